@@ -1,0 +1,43 @@
+# Two entry points (README): `make demo` and `make test`. Both create .venv, install the
+# pinned dependencies and the system packages for offscreen rendering, then run their job.
+# Idempotent: a second run only re-checks the system packages and the install stamp.
+PY ?= python3
+VENV := .venv
+STAMP := $(VENV)/.stamp-install
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+
+.PHONY: demo test install sysdeps clean
+
+demo: install
+	@mkdir -p out
+	$(VENV)/bin/dct hil run case1 --json out/case1.json
+
+test: install
+	$(VENV)/bin/python -m pytest -q
+
+install: sysdeps $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(PY) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python 3.11+ is required")'
+	test -x $(VENV)/bin/python || $(PY) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install --quiet --upgrade pip
+	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
+	$(VENV)/bin/python -m pip install --quiet torch==2.13.0
+	$(VENV)/bin/python -m pip install --quiet -e '.[test,bench]'
+	touch $@
+
+# Mesa for MuJoCo's offscreen (EGL) rendering, and venv support; installed only when missing.
+sysdeps:
+	@missing=""; \
+	for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	$(PY) -c 'import ensurepip, venv' >/dev/null 2>&1 || missing="$$missing python3-venv"; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
+
+clean:
+	rm -rf $(VENV) out

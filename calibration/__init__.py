@@ -1,0 +1,1 @@
+"""Robot description, camera and lidar-camera calibration, per-robot calibration files."""

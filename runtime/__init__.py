@@ -1,0 +1,1 @@
+"""The controller: fixed-rate loop, stages (odometry, VPP, planner, MPC), safety, telemetry, `dct`."""

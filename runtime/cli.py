@@ -1,0 +1,59 @@
+"""The `dct` command line.
+
+Convention for the group modules (`*/cli.py`): import heavy libraries (MuJoCo, torch)
+inside the commands, not at module level, so that `dct --help` stays fast.
+
+Each package contributes its command group through the `dct.commands` entry point
+(pyproject.toml). A group is imported only when it is invoked, so `dct can decode` on
+the robot never imports MuJoCo, and this module never imports hil_sim directly.
+"""
+from __future__ import annotations
+
+import sys
+from importlib.metadata import entry_points
+
+import click
+
+
+def _command_entry_points() -> dict:
+    return {ep.name: ep for ep in entry_points(group="dct.commands")}
+
+
+class LazyGroup(click.Group):
+    """A click group whose sub-groups are loaded from entry points on first use."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(super().list_commands(ctx)) | set(_command_entry_points()))
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        cmd = super().get_command(ctx, name)
+        if cmd is not None:
+            return cmd
+        ep = _command_entry_points().get(name)
+        if ep is None:
+            return None
+        try:
+            return ep.load()
+        except ImportError as exc:
+            # Show the group as unavailable rather than break the whole command line.
+            @click.command(name=name, help=f"(unavailable: {exc})")
+            def unavailable() -> None:
+                raise click.ClickException(f"command group '{name}' cannot be loaded: {exc}")
+
+            return unavailable
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+def dct() -> None:
+    """DCT contact-tolerant navigation controller: CAN tools, HIL simulation, calibration, models."""
+
+
+def main() -> None:
+    try:
+        dct(standalone_mode=True)
+    except KeyboardInterrupt:
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()
