@@ -1,0 +1,78 @@
+"""`dct hil` (run scenarios in the simulator) and `dct bench` (benchmarks that print figures)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+
+@click.group(name="hil")
+def hil_group() -> None:
+    """Hardware-in-the-loop simulation: scenarios, episodes, metrics."""
+
+
+@hil_group.command("list")
+def list_command() -> None:
+    """List the scenario library."""
+    from hil_sim.scenario import list_scenarios, load_scenario
+
+    for name in list_scenarios():
+        sc = load_scenario(name)
+        click.echo(f"{name:12s} {sc.description or ''}".rstrip())
+
+
+@hil_group.command("run")
+@click.argument("scenario")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the episode metrics here.")
+@click.option("--seed", default=0, show_default=True, help="Seed for every random source (deterministic).")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Controller config YAML.")
+@click.option("--robot", "robot_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Robot description YAML.")
+def run_command(scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None) -> None:
+    """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path)."""
+    from calibration.errors import ConfigFileError
+    from calibration.robot_description import load_robot_description
+    from hil_sim.runner import run_episode
+    from hil_sim.scenario import load_scenario
+    from runtime.config import load_controller_config
+
+    try:
+        sc = load_scenario(scenario)
+        robot = load_robot_description(robot_path)
+        config = load_controller_config(config_path)
+    except ConfigFileError as exc:
+        raise click.ClickException(str(exc)) from exc
+    result = run_episode(sc, robot=robot, config=config, seed=seed)
+    m = result.metrics
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        payload = dict(m)
+        payload["telemetry"] = result.telemetry
+        json_path.write_text(json.dumps(payload, indent=2) + "\n")
+    click.echo(
+        f"{sc.name}: {'SUCCESS' if m['success'] else 'FAIL'}"
+        f" goal_reached={m['goal_reached']} time={m['navigation_time_s']:.2f}s"
+        f" path={m['path_length_m']:.2f}m speed={m['average_speed_mps']:.3f}m/s"
+        f" fixed_contacts={m['fixed_contacts']} movable_contacts={m.get('movable_contacts', 0)}"
+        f" deadline_misses={m['deadline_misses']} state={m.get('controller_state')}"
+        f" realtime={result.realtime_factor:.1f}x"
+    )
+    if not m["success"]:
+        sys.exit(1)
+
+
+@click.group(name="bench")
+def bench_group() -> None:
+    """Benchmarks: each prints its figures (no pass/fail)."""
+
+
+@bench_group.command("sim-speed")
+@click.option("--scenario", default="case1", show_default=True)
+@click.option("--seconds", default=10.0, show_default=True, help="Simulated seconds per run.")
+@click.option("--repeats", default=3, show_default=True)
+def sim_speed_command(scenario: str, seconds: float, repeats: int) -> None:
+    """Lockstep speed as a multiple of real time, with the robot driving (controller in the loop)."""
+    from hil_sim.sim_bench import run_sim_speed_benchmark
+
+    run_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)

@@ -1,0 +1,218 @@
+"""Lockstep HIL episodes: simulation time drives everything.
+
+The controller runs its ordinary fixed-rate loop; its clock is the simulator's. Each
+`sleep_until(t)` of the loop advances physics to t, stepping the emulated base firmware
+(which reads the controller's CAN frames and answers with feedback frames) every physics
+step. The controller and the firmware talk over a python-can `virtual` bus, exactly the
+frames they would exchange on the robot. Deterministic for a given seed.
+"""
+from __future__ import annotations
+
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Protocol
+
+import can
+
+from calibration.robot_description import RobotDescription, load_robot_description
+from firmware_bridge.base_driver import AgileXBaseDriver
+from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+from hil_sim.metrics import EpisodeMetrics
+from hil_sim.scenario import Scenario, load_scenario
+from hil_sim.world import World
+from runtime.config import ControllerConfig, load_controller_config
+from runtime.controller import ControllerState, NavigationController
+from runtime.geometry import Pose2D
+from runtime.hardware import AgileXBaseHardware
+from runtime.loop import FixedRateLoop
+from runtime.telemetry import TickTelemetry
+
+
+class SimulatedDevice(Protocol):
+    """Anything stepped with physics (sensors, later fault injectors)."""
+
+    def step(self, t_s: float) -> None: ...
+
+
+class LockstepSimulation:
+    """Physics + emulated firmware (+ sensors), advanced only when asked."""
+
+    def __init__(
+        self,
+        world: World,
+        firmware: EmulatedBaseFirmware,
+        metrics: EpisodeMetrics | None = None,
+        devices: Iterable[SimulatedDevice] = (),
+    ) -> None:
+        self.world = world
+        self.firmware = firmware
+        self.metrics = metrics
+        self.devices = list(devices)
+        self.steps = 0
+        self._half_step = 0.5 * world.timestep_s
+
+    @property
+    def time_s(self) -> float:
+        return self.world.time_s
+
+    def step(self) -> None:
+        world = self.world
+        torques = self.firmware.step(world.time_s, world.wheel_speeds_radps(), world.wheel_angles_rad())
+        world.set_wheel_torques(torques)
+        world.step()
+        self.steps += 1
+        if self.metrics is not None:
+            self.metrics.update(world)
+        t = world.time_s
+        for device in self.devices:
+            device.step(t)
+
+    def advance_to(self, t_s: float) -> None:
+        while self.world.time_s < t_s - self._half_step:
+            self.step()
+
+
+class LockstepClock:
+    """The loop's clock in lockstep mode: now() is simulation time; sleeping advances physics."""
+
+    def __init__(self, sim: LockstepSimulation) -> None:
+        self.sim = sim
+
+    def now(self) -> float:
+        return self.sim.time_s
+
+    def sleep_until(self, t_s: float) -> None:
+        self.sim.advance_to(t_s)
+
+
+def virtual_bus_pair(channel: str | None = None) -> tuple[can.BusABC, can.BusABC]:
+    """Two ends of one python-can virtual bus: (controller side, simulator side)."""
+    channel = channel or f"dct-hil-{uuid.uuid4().hex}"
+    return (
+        can.Bus(interface="virtual", channel=channel, receive_own_messages=False),
+        can.Bus(interface="virtual", channel=channel, receive_own_messages=False),
+    )
+
+
+@dataclass
+class EpisodeResult:
+    metrics: dict
+    telemetry: dict
+    controller: dict
+    wall_time_s: float
+    sim_time_s: float
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.sim_time_s / self.wall_time_s if self.wall_time_s > 0 else float("inf")
+
+
+def goal_in_odom_frame(scenario: Scenario) -> Pose2D:
+    """The goal relative to the start pose: the odometry frame starts at the robot's start."""
+    start = Pose2D(scenario.robot_start.x_m, scenario.robot_start.y_m, scenario.robot_start.yaw_rad)
+    goal = Pose2D(scenario.goal.x_m, scenario.goal.y_m, scenario.goal.yaw_rad)
+    return start.inverse().compose(goal)
+
+
+def run_episode(
+    scenario: Scenario | str,
+    robot: RobotDescription | None = None,
+    config: ControllerConfig | None = None,
+    seed: int = 0,
+    settle_s: float = 0.5,
+    progress: Callable[[float], None] | None = None,
+) -> EpisodeResult:
+    """Run one lockstep episode of the navigation controller in a scenario."""
+    if isinstance(scenario, str):
+        scenario = load_scenario(scenario)
+    robot = robot or load_robot_description()
+    config = config or load_controller_config()
+
+    world = World(scenario, robot)
+    world.reset(seed)
+    metrics = EpisodeMetrics(world, scenario, seed)
+    controller_bus, sim_bus = virtual_bus_pair()
+    firmware = EmulatedBaseFirmware(sim_bus, robot)
+    sim = LockstepSimulation(world, firmware, metrics)
+    clock = LockstepClock(sim)
+
+    driver = AgileXBaseDriver(controller_bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
+    hardware = AgileXBaseHardware(driver)
+    controller = NavigationController(robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now)
+    telemetry = TickTelemetry()
+    loop = FixedRateLoop(
+        clock,
+        period_s=config.loop.period_s,
+        stage_budgets_s=config.loop.stage_budgets_s,
+        command_deadline_s=config.loop.command_deadline_s,
+        keepalive_period_s=config.loop.keepalive_period_s,
+        telemetry=telemetry,
+    )
+    t_start = sim.time_s
+    time_limit = t_start + scenario.time_limit_s
+    finished_at: list[float] = []
+
+    def should_stop() -> bool:
+        now = sim.time_s
+        if progress is not None:
+            progress(now)
+        if now >= time_limit:
+            return True
+        if controller.finished:
+            if not finished_at:
+                finished_at.append(now)
+            return now >= finished_at[0] + settle_s
+        return False
+
+    wall0 = time.perf_counter()
+    controller.activate()
+    try:
+        loop.run(controller, should_stop)
+    finally:
+        controller.deactivate()
+        sim.advance_to(sim.time_s + 0.02)  # let the firmware consume the final zero command
+        controller_bus.shutdown()
+        sim_bus.shutdown()
+    wall = time.perf_counter() - wall0
+
+    reached = controller.state is ControllerState.GOAL_REACHED and world_goal_reached(world, scenario)
+    if controller.goal_reached_at_s is not None:
+        nav_time = controller.goal_reached_at_s - t_start
+    else:
+        nav_time = sim.time_s - t_start
+    result_metrics = metrics.to_dict(
+        goal_reached=reached,
+        navigation_time_s=nav_time,
+        deadline_misses=telemetry.deadline_misses,
+        extra={
+            "controller_state": controller.state.name,
+            "stop_reason": controller.stop_reason,
+            "final_distance_to_goal_m": world_distance_to_goal(world, scenario),
+            "sim_time_s": sim.time_s - t_start,
+            "planner": config.planner.mode,
+        },
+    )
+    return EpisodeResult(
+        metrics=result_metrics,
+        telemetry=telemetry.summary(),
+        controller=controller.describe(),
+        wall_time_s=wall,
+        sim_time_s=sim.time_s - t_start,
+        extra={
+            "keepalives_sent": loop.keepalives_sent,
+            "firmware_frames_rejected": firmware.frames_rejected,
+            "physics_steps": sim.steps,
+            "timestep_s": world.timestep_s,
+        },
+    )
+
+
+def world_distance_to_goal(world: World, scenario: Scenario) -> float:
+    x, y, _ = world.robot_pose()
+    return float(((x - scenario.goal.x_m) ** 2 + (y - scenario.goal.y_m) ** 2) ** 0.5)
+
+
+def world_goal_reached(world: World, scenario: Scenario) -> bool:
+    return world_distance_to_goal(world, scenario) <= scenario.goal.tolerance_m

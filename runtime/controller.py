@@ -1,0 +1,178 @@
+"""The navigation controller: one tick = Algorithm 1 of the DCT paper, stage by stage.
+
+    read() -> odometry -> partition (VPP) -> planner -> safety -> write()
+
+The controller talks to the base only through a hardware interface with a lifecycle
+(configure / activate / deactivate, as in ros2_control); it never knows whether the base
+is a real LIMO or the simulator's emulated firmware.
+"""
+from __future__ import annotations
+
+import math
+from enum import IntEnum
+from typing import Callable
+
+from calibration.robot_description import RobotDescription
+from runtime.command_limits import CommandLimiter
+from runtime.config import ControllerConfig
+from runtime.geometry import Pose2D
+from runtime.hardware import BaseHardware
+from runtime.loop import StageClock
+from runtime.odometry import WheelOdometry
+from runtime.planning.pure_pursuit import PurePursuitPlanner
+from runtime.safety_stop import SafetyStop
+from runtime.telemetry import STAGES
+
+READ, ODOMETRY, PARTITION, PLANNER, SAFETY, WRITE = (STAGES.index(s) for s in STAGES)
+
+
+class ControllerState(IntEnum):
+    INITIALIZING = 0  # enabled the base, waiting for its feedback
+    ACTIVE = 1  # navigating
+    GOAL_REACHED = 2  # at the goal, commanding zero
+    STOPPED = 3  # safety stop latched: commanding zero until reset
+
+
+class NavigationController:
+    def __init__(
+        self,
+        robot: RobotDescription,
+        config: ControllerConfig,
+        hardware: BaseHardware,
+        goal: Pose2D,
+        clock: Callable[[], float],
+    ) -> None:
+        self.robot = robot
+        self.config = config
+        self.hardware = hardware
+        self.goal = goal
+        self.clock = clock
+        self.state = ControllerState.INITIALIZING
+        self.odometry = WheelOdometry(robot.drive.track_m, config.odometry.effective_track_factor)
+        pp = config.planner.pure_pursuit
+        self.planner = PurePursuitPlanner(
+            target_speed_mps=min(pp.target_speed_mps, robot.limits.max_linear_speed_mps),
+            lookahead_m=pp.lookahead_m,
+            goal_tolerance_m=pp.goal_tolerance_m,
+            slowdown_distance_m=pp.slowdown_distance_m,
+            max_heading_error_for_full_speed_rad=pp.max_heading_error_for_full_speed_rad,
+            max_angular_speed_radps=robot.limits.max_angular_speed_radps,
+        )
+        self.limiter = CommandLimiter(
+            robot.limits.max_linear_speed_mps,
+            robot.limits.max_angular_speed_radps,
+            robot.limits.max_linear_accel_mps2,
+            robot.limits.max_angular_accel_radps2,
+        )
+        self.safety_stop = SafetyStop(
+            config.safety_stop.max_consecutive_deadline_misses, config.safety_stop.startup_timeout_s
+        )
+        self.period_s = config.loop.period_s
+        self.command = (0.0, 0.0)  # (v_mps, omega_radps) last written
+        self.pose = Pose2D(0.0, 0.0, 0.0)
+        self.goal_reached_at_s: float | None = None
+        self._activated_at_s = 0.0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def activate(self) -> None:
+        self.hardware.configure()
+        self.hardware.activate()
+        self._activated_at_s = self.clock()
+        self.state = ControllerState.INITIALIZING
+
+    def deactivate(self) -> None:
+        self.command = (0.0, 0.0)
+        self.hardware.deactivate()
+
+    @property
+    def finished(self) -> bool:
+        """At the goal with the command ramped to zero, or stopped."""
+        if self.state is ControllerState.GOAL_REACHED:
+            return self.command == (0.0, 0.0)
+        return self.state is ControllerState.STOPPED
+
+    @property
+    def state_code(self) -> int:
+        return int(self.state)
+
+    # -- the tick ----------------------------------------------------------------------------
+    def tick(self, scheduled_s: float, stages: StageClock) -> None:
+        now = self.clock()
+        inputs = self.hardware.read(now)
+        self._supervise_link(inputs, now)
+        stages.mark(READ)
+
+        if inputs.odometry is not None:
+            self.pose = self.odometry.update(*inputs.odometry)
+        stages.mark(ODOMETRY)
+
+        # Partition into P_mov / P_fix (VPP) arrives in roadmap step 5; no points yet.
+        stages.mark(PARTITION)
+
+        v, omega = 0.0, 0.0
+        if self.state is ControllerState.ACTIVE:
+            plan = self.planner.plan(self.pose, self.goal)
+            if plan.at_goal:
+                self.state = ControllerState.GOAL_REACHED
+                self.goal_reached_at_s = now
+            else:
+                v, omega = plan.v_mps, plan.omega_radps
+        stages.mark(PLANNER)
+
+        if self.state in (ControllerState.ACTIVE, ControllerState.GOAL_REACHED):
+            # Speed and acceleration limits; at the goal this ramps down to a controlled stop.
+            v, omega = self.limiter.limit(v, omega, self.period_s)
+        else:
+            self.limiter.reset()  # a safety stop is immediate
+            v, omega = 0.0, 0.0
+        stages.mark(SAFETY)
+
+        self.command = (v, omega)
+        self.hardware.write(v, omega)
+        stages.mark_command_written()
+        stages.mark(WRITE)
+
+    def keepalive(self, now_s: float) -> None:
+        """Re-send the current command between ticks (0x111 at the CAN command rate)."""
+        v, omega = self.command if self.state is not ControllerState.STOPPED else (0.0, 0.0)
+        self.hardware.write(v, omega)
+
+    def note_deadline(self, missed: bool) -> None:
+        self.safety_stop.note_deadline(missed)
+        if self.safety_stop.tripped:
+            self._stop()
+
+    # -- internals ---------------------------------------------------------------------------
+    def _supervise_link(self, inputs, now: float) -> None:
+        self.safety_stop.check_feedback(
+            inputs.feedback_lost, now - self._activated_at_s, inputs.ever_received_motion_state
+        )
+        if self.state is ControllerState.ACTIVE and not inputs.feedback_lost:
+            if inputs.stopping_error:
+                self.safety_stop.trip(f"base reports error code 0x{inputs.error_code:04X}")
+            elif not inputs.in_command_mode:
+                self.safety_stop.trip("base left CAN command mode (remote control or standby)")
+        if self.safety_stop.tripped:
+            self._stop()
+        elif self.state is ControllerState.INITIALIZING and inputs.ready:
+            self.state = ControllerState.ACTIVE
+            self.planner.reset(self.pose)
+
+    def _stop(self) -> None:
+        if self.state is not ControllerState.STOPPED:
+            self.state = ControllerState.STOPPED
+        self.command = (0.0, 0.0)
+
+    @property
+    def stop_reason(self) -> str | None:
+        return self.safety_stop.tripped_reason
+
+    def describe(self) -> dict:
+        return {
+            "state": self.state.name,
+            "stop_reason": self.stop_reason,
+            "pose_odom": [self.pose.x_m, self.pose.y_m, self.pose.yaw_rad],
+            "goal_odom": [self.goal.x_m, self.goal.y_m, self.goal.yaw_rad],
+            "goal_reached_at_s": self.goal_reached_at_s,
+            "distance_to_goal_m": math.hypot(self.goal.x_m - self.pose.x_m, self.goal.y_m - self.pose.y_m),
+        }

@@ -1,0 +1,107 @@
+"""Which P_fix points constrain which predicted pose: corridor, voxel thinning, K nearest.
+
+Each tick the MPC needs, for every predicted pose h = 1..H of the horizon, the K points of P_fix
+nearest to the footprint at that pose. Vectorized throughout: no Python loop over points.
+
+1. corridor: keep points within `corridor_radius_m` of some pose centre (box prefilter first),
+2. voxel thinning: keep one point per `voxel_size_m` cell (the first seen; dense walls add little),
+3. K nearest per pose by the exact footprint signed distance (argpartition over a (H, M) table);
+   points farther than `max_distance_m` from the footprint, and missing slots, are marked invalid.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from runtime.planning.distance_model import footprint_distance_to_points
+from runtime.planning.errors import PlannerInputError, check_points
+
+
+class PointSelectionConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    points_per_pose: int = Field(default=10, ge=1, le=500, description="K: constraint points per pose")
+    corridor_radius_m: float = Field(default=1.5, gt=0.0, le=20.0, description="around each pose centre")
+    voxel_size_m: float = Field(default=0.05, ge=0.0, le=1.0, description="0 disables thinning")
+    max_distance_m: float = Field(default=1.0, gt=0.0, le=20.0, description="footprint distance beyond which a point is ignored")
+
+
+@dataclass
+class SelectedPoints:
+    """Per pose h (rows), up to K points; `valid` marks real entries (padding is invalid)."""
+
+    points_world: np.ndarray  # (P, K, 2); padding rows hold a far dummy point
+    valid: np.ndarray  # (P, K) bool
+    distance_m: np.ndarray  # (P, K) exact footprint signed distance (inf for padding)
+    corridor_points_world: np.ndarray  # (M, 2) after corridor and thinning
+
+    @property
+    def count(self) -> int:
+        return int(self.valid.sum())
+
+
+def corridor_points(poses: np.ndarray, points_world: np.ndarray, radius_m: float) -> np.ndarray:
+    """Points within radius_m of any pose centre (bounding-box prefilter, then exact test)."""
+    lo = poses[:, :2].min(axis=0) - radius_m
+    hi = poses[:, :2].max(axis=0) + radius_m
+    in_box = np.all((points_world >= lo) & (points_world <= hi), axis=1)
+    cand = points_world[in_box]
+    if cand.shape[0] == 0:
+        return cand
+    d2 = (cand[:, None, 0] - poses[None, :, 0]) ** 2 + (cand[:, None, 1] - poses[None, :, 1]) ** 2
+    return cand[d2.min(axis=1) <= radius_m * radius_m]
+
+
+def voxel_thin(points_world: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """One point per square cell of side voxel_size_m (the first in input order)."""
+    if voxel_size_m <= 0.0 or points_world.shape[0] <= 1:
+        return points_world
+    cells = np.floor(points_world / voxel_size_m).astype(np.int64)
+    keys = cells[:, 0] * np.int64(1 << 32) + (cells[:, 1] & np.int64(0xFFFFFFFF))
+    _, first = np.unique(keys, return_index=True)
+    first.sort()
+    return points_world[first]
+
+
+class PointSelector:
+    """Selects the K nearest P_fix points per predicted pose (see module docstring)."""
+
+    def __init__(self, config: PointSelectionConfig, half_length_m: float, half_width_m: float) -> None:
+        self.config = config
+        self.half_length_m = float(half_length_m)
+        self.half_width_m = float(half_width_m)
+
+    def select(self, poses: np.ndarray, points_world: np.ndarray) -> SelectedPoints:
+        """poses (P, 3) x, y, yaw; points_world (N, 2) P_fix in the same (odom) frame."""
+        poses = np.asarray(poses, dtype=np.float64)
+        if poses.ndim != 2 or poses.shape[1] != 3 or not np.isfinite(poses).all():
+            raise PlannerInputError(f"PointSelector.select: poses must be finite (P, 3), got {poses.shape}")
+        points_world = check_points(points_world, "PointSelector.select: points_world")
+        cfg = self.config
+        k = cfg.points_per_pose
+        n_poses = poses.shape[0]
+        near = voxel_thin(corridor_points(poses, points_world, cfg.corridor_radius_m), cfg.voxel_size_m)
+        m = near.shape[0]
+        out_pts = np.empty((n_poses, k, 2))
+        out_pts[...] = poses[:, None, :2] + 1.0e3  # far dummy, never used as a constraint
+        out_valid = np.zeros((n_poses, k), dtype=bool)
+        out_dist = np.full((n_poses, k), np.inf)
+        if m == 0:
+            return SelectedPoints(out_pts, out_valid, out_dist, near)
+        dist = footprint_distance_to_points(poses, near, self.half_length_m, self.half_width_m)  # (P, M)
+        take = min(k, m)
+        if m > k:
+            idx = np.argpartition(dist, k - 1, axis=1)[:, :k]
+        else:
+            idx = np.broadcast_to(np.arange(m), (n_poses, m))
+        d_sel = np.take_along_axis(dist, idx, axis=1)
+        order = np.argsort(d_sel, axis=1)  # nearest first: stable row order helps warm starts
+        idx = np.take_along_axis(idx, order, axis=1)
+        d_sel = np.take_along_axis(d_sel, order, axis=1)
+        valid = d_sel <= cfg.max_distance_m
+        out_pts[:, :take] = np.where(valid[..., None], near[idx], out_pts[:, :take])
+        out_valid[:, :take] = valid
+        out_dist[:, :take] = np.where(valid, d_sel, np.inf)
+        return SelectedPoints(out_pts, out_valid, out_dist, near)
