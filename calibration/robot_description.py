@@ -93,9 +93,10 @@ class CameraDescription(_Strict):
     horizontal_fov_deg: float = Field(gt=1.0, lt=179.0)
 
     def nominal_intrinsics(self) -> np.ndarray:
-        """Pinhole K from the field of view (square pixels, principal point at the centre)."""
+        """Pinhole K from the field of view: square pixels, principal point at the image centre in
+        OpenCV's convention (pixel centres at integers, so cx = (W - 1) / 2)."""
         fx = (self.width_px / 2) / np.tan(np.radians(self.horizontal_fov_deg) / 2)
-        return np.array([[fx, 0.0, self.width_px / 2], [0.0, fx, self.height_px / 2], [0.0, 0.0, 1.0]])
+        return np.array([[fx, 0.0, (self.width_px - 1) / 2], [0.0, fx, (self.height_px - 1) / 2], [0.0, 0.0, 1.0]])
 
 
 class ImuDescription(_Strict):
