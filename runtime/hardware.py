@@ -70,8 +70,8 @@ class AgileXBaseHardware:
         self.active = False
 
     def configure(self) -> None:
-        """Drain whatever is queued from before we started (old frames are not our feedback)."""
-        self.driver.poll()
+        """Drop whatever is queued from before we started (old frames are not our feedback)."""
+        self.driver.discard_pending()
 
     def activate(self) -> None:
         """Enable CAN command mode (0x421 = 0x01). The loop then sends 0x111 every tick."""

@@ -1,0 +1,215 @@
+"""Host-side driver for an AgileX V2 base over any python-can bus.
+
+No threads and no timers: the control loop calls ``send_motion`` every tick (50 Hz; never
+``send_periodic``, which would keep a stale speed alive on SocketCAN if the loop hangs) and
+``poll`` to drain feedback. Time comes from the injected ``clock`` so that lockstep simulation
+drives everything.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import numbers
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import can
+
+from firmware_bridge import protocol as p
+
+log = logging.getLogger(__name__)
+
+#: Records that are commands (host -> base). On buses that loop our own frames back
+#: (udp_multicast) they arrive in poll() and are ignored.
+_COMMAND_TYPES = (p.MotionCommand, p.ControlModeCommand, p.ErrorClearCommand, p.LightCommand)
+
+
+@dataclass(frozen=True)
+class Stamped:
+    """A decoded record and the driver clock when it was received."""
+
+    record: Any
+    stamp_s: float
+
+
+@dataclass(frozen=True)
+class BaseFeedback:
+    """Snapshot of everything the base reported (None until first received)."""
+
+    motion: Stamped | None = None
+    system: Stamped | None = None
+    actuator_hs: tuple[Stamped | None, ...] = (None,) * p.NUM_MOTORS
+    actuator_ls: tuple[Stamped | None, ...] = (None,) * p.NUM_MOTORS
+    odometry: Stamped | None = None
+    bms: Stamped | None = None
+    light: Stamped | None = None
+    imu_accel: Stamped | None = None
+    imu_gyro: Stamped | None = None
+    imu_euler: Stamped | None = None
+    decode_error_counts: dict[str, int] = field(default_factory=dict)
+    last_decode_error: str | None = None
+    frames_received: int = 0
+    system_count_gaps: int = 0
+
+
+class AgileXBaseDriver:
+    """Enable sequence, 0x111 commands, feedback tracking with staleness detection, clean stop."""
+
+    def __init__(self, bus: can.BusABC, clock: Callable[[], float], feedback_timeout_s: float = 0.1) -> None:
+        if not (math.isfinite(feedback_timeout_s) and feedback_timeout_s > 0):
+            raise ValueError(f"AgileXBaseDriver: feedback_timeout_s must be > 0, got {feedback_timeout_s!r}")
+        self._bus = bus
+        self._clock = clock
+        self.feedback_timeout_s = float(feedback_timeout_s)
+        self._decoder = p.FrameDecoder()
+        self._motion: Stamped | None = None
+        self._system: Stamped | None = None
+        self._hs: list[Stamped | None] = [None] * p.NUM_MOTORS
+        self._ls: list[Stamped | None] = [None] * p.NUM_MOTORS
+        self._other: dict[str, Stamped] = {}
+        self._frames_received = 0
+        self._system_count_gaps = 0
+        self.frames_sent = 0
+        self.own_frames_ignored = 0
+        self.last_command: p.MotionCommand | None = None
+        self.last_command_stamp_s: float | None = None
+
+    # ---------------------------------------------------------------- commands
+    def _send(self, record: Any) -> can.Message:
+        msg = p.encode(record)
+        self._bus.send(msg)
+        self.frames_sent += 1
+        return msg
+
+    def enable(self) -> can.Message:
+        """Switch the base to CAN command mode (0x421 = 0x01). Confirm with ``control_mode``."""
+        return self._send(p.ControlModeCommand(p.CONTROL_MODE_CAN))
+
+    def clear_errors(self, code: int = p.ERROR_CLEAR_ALL) -> can.Message:
+        """Send 0x441 (0 = clear all)."""
+        return self._send(p.ErrorClearCommand(code))
+
+    def send_motion(self, linear_mps: float, angular_radps: float) -> can.Message:
+        """Send one 0x111. Call every control tick (>= 50 Hz); the caller clamps to robot limits.
+
+        Raises ValueError for a non-finite value or one outside the int16 wire range (+-32.767).
+        """
+        for name, value in (("linear_mps", linear_mps), ("angular_radps", angular_radps)):
+            if not isinstance(value, numbers.Real) or isinstance(value, bool) or not math.isfinite(value):
+                raise ValueError(f"send_motion: {name} must be a finite number, got {value!r}")
+        cmd = p.MotionCommand(float(linear_mps), float(angular_radps))
+        msg = self._send(cmd)  # p.OutOfRange (a ValueError) if outside int16 after scaling
+        self.last_command = cmd
+        self.last_command_stamp_s = self._clock()
+        return msg
+
+    # ---------------------------------------------------------------- feedback
+    def poll(self, max_frames: int = 10_000) -> int:
+        """Drain the bus without blocking, decode and record feedback. Returns frames read."""
+        n = 0
+        now: float | None = None
+        while n < max_frames:
+            msg = self._bus.recv(timeout=0)
+            if msg is None:
+                break
+            n += 1
+            self._frames_received += 1
+            record = self._decoder.decode(msg)
+            if record is None:
+                continue
+            if now is None:
+                now = self._clock()
+            self._apply(record, now)
+        return n
+
+    def discard_pending(self, max_frames: int = 10_000) -> int:
+        """Drop frames queued before we started listening (their receive stamp would be wrong)."""
+        n = 0
+        while n < max_frames and self._bus.recv(timeout=0) is not None:
+            n += 1
+        return n
+
+    def _apply(self, record: Any, now: float) -> None:
+        st = Stamped(record, now)
+        if isinstance(record, p.MotionState):
+            self._motion = st
+        elif isinstance(record, p.SystemState):
+            if self._system is not None and record.count != (self._system.record.count + 1) % 256:
+                self._system_count_gaps += 1
+            self._system = st
+        elif isinstance(record, p.ActuatorHighSpeed):
+            self._hs[record.motor_index] = st
+        elif isinstance(record, p.ActuatorLowSpeed):
+            self._ls[record.motor_index] = st
+        elif isinstance(record, _COMMAND_TYPES):
+            self.own_frames_ignored += 1
+        else:
+            key = {p.Odometry: "odometry", p.BmsBasic: "bms", p.LightState: "light",
+                   p.ImuAccel: "imu_accel", p.ImuGyro: "imu_gyro", p.ImuEuler: "imu_euler"}.get(type(record))
+            if key is not None:
+                self._other[key] = st
+
+    @property
+    def feedback(self) -> BaseFeedback:
+        """A consistent snapshot of the latest feedback."""
+        return BaseFeedback(
+            motion=self._motion, system=self._system,
+            actuator_hs=tuple(self._hs), actuator_ls=tuple(self._ls),
+            odometry=self._other.get("odometry"), bms=self._other.get("bms"),
+            light=self._other.get("light"), imu_accel=self._other.get("imu_accel"),
+            imu_gyro=self._other.get("imu_gyro"), imu_euler=self._other.get("imu_euler"),
+            decode_error_counts=dict(self._decoder.error_counts),
+            last_decode_error=self._decoder.last_error,
+            frames_received=self._frames_received,
+            system_count_gaps=self._system_count_gaps,
+        )
+
+    @property
+    def feedback_age_s(self) -> float:
+        """Seconds since the last 0x221 (inf before the first)."""
+        if self._motion is None:
+            return math.inf
+        return self._clock() - self._motion.stamp_s
+
+    @property
+    def feedback_lost(self) -> bool:
+        """True when no 0x221 arrived within ``feedback_timeout_s`` (and before the first one)."""
+        return self.feedback_age_s > self.feedback_timeout_s
+
+    @property
+    def control_mode(self) -> int | None:
+        """Last reported control mode (0 standby, 1 CAN, 2 UART, 3 RC), None before any 0x211."""
+        return None if self._system is None else self._system.record.control_mode
+
+    @property
+    def control_mode_name(self) -> str | None:
+        mode = self.control_mode
+        return None if mode is None else p.CONTROL_MODE_NAMES.get(mode, f"unknown_{mode}")
+
+    @property
+    def error_code(self) -> int | None:
+        """Last reported 0x211 error bitfield, None before any 0x211."""
+        return None if self._system is None else self._system.record.error_code
+
+    def errors_active(self) -> list[str]:
+        """Names of the error bits set in the last 0x211 (empty before any)."""
+        code = self.error_code
+        return [] if code is None else p.error_names(code)
+
+    @property
+    def decode_error_counts(self) -> dict[str, int]:
+        return dict(self._decoder.error_counts)
+
+    # ---------------------------------------------------------------- shutdown
+    def shutdown(self, zero_frames: int = 3) -> int:
+        """Send zero velocity ``zero_frames`` times. Never raises; returns frames actually sent."""
+        sent = 0
+        for _ in range(max(1, zero_frames)):
+            try:
+                self._bus.send(p.encode(p.MotionCommand(0.0, 0.0)))
+                sent += 1
+                self.frames_sent += 1
+            except Exception as exc:  # noqa: BLE001 - a dead bus must not break shutdown
+                log.warning("AgileXBaseDriver.shutdown: zero-velocity send failed: %s", exc)
+                break
+        return sent

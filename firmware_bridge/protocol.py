@@ -1,0 +1,672 @@
+"""AgileX UGV CAN protocol V2: typed records, encoder and strict decoder.
+
+The frame layouts (ids, byte positions, signedness, scale, valid range, shortest accepted DLC)
+come from ``agilex_v2.dbc`` read with cantools; this module adds typed records and the rules
+the DBC cannot express:
+
+* Scaling on encode. The command/motion frames 0x111 and 0x221 use the vendor SDK rule
+  ``raw = (int16)(float32(value) * 1000)``: a float32 product truncated toward zero
+  (AGILEX_V2.md section 1), so ``0.251`` m/s becomes 250, byte-identical to the SDK.
+  Every other scaled signal (only ever produced by firmware, i.e. our emulator) is rounded
+  to the nearest raw step. cantools' own scaling is not used on encode; raw values are packed
+  with the DBC layout.
+* Decoding is strict: unknown id, extended/remote/error frame, DLC shorter than the layout
+  (``MinDLC`` attribute in the DBC) or a value outside the DBC ``[min|max]`` raises a named
+  ``FrameError``. The SDK ignores the DLC; we do not.
+* DLC choice: we always *send* 8 bytes (0x421/0x441 zero-padded, as the SDK does); we *accept*
+  0x421/0x441 with DLC 1..8 (the docs say 1, the SDK sends 8) and every other frame with DLC 8
+  only. Reserved bytes are ignored on decode (the SDK leaves garbage in them).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+from typing import Any, ClassVar
+
+import can
+import cantools
+import numpy as np
+
+# --------------------------------------------------------------------------------------
+# Frame ids and constants
+# --------------------------------------------------------------------------------------
+ID_MOTION_COMMAND = 0x111
+ID_LIGHT_COMMAND = 0x121
+ID_CONTROL_MODE = 0x421
+ID_ERROR_CLEAR = 0x441
+ID_SYSTEM_STATE = 0x211
+ID_MOTION_STATE = 0x221
+ID_LIGHT_STATE = 0x231
+ID_RC_STATE = 0x241
+ID_ACTUATOR_HS_BASE = 0x251
+ID_ACTUATOR_LS_BASE = 0x261
+ID_ODOMETRY = 0x311
+ID_IMU_ACCEL = 0x321
+ID_IMU_GYRO = 0x322
+ID_IMU_EULER = 0x323
+ID_BMS = 0x361
+ID_BMS_EXTENDED = 0x362
+NUM_MOTORS = 4  # SCOUT layout: 0 front-right, 1 front-left, 2 rear-left, 3 rear-right
+
+CONTROL_MODE_STANDBY = 0
+CONTROL_MODE_CAN = 1
+CONTROL_MODE_UART = 2
+CONTROL_MODE_RC = 3
+CONTROL_MODE_NAMES = {0: "standby", 1: "can_command", 2: "uart", 3: "remote_control"}
+
+VEHICLE_STATE_NORMAL = 0
+VEHICLE_STATE_ESTOP = 1
+VEHICLE_STATE_EXCEPTION = 2
+
+MOTION_MODE_DIFFERENTIAL = 0  # LIMO 0x211 byte 6
+MOTION_MODE_ACKERMANN = 1
+MOTION_MODE_MECANUM = 2
+
+ERROR_BATTERY_FAULT = 0x0001
+ERROR_BATTERY_WARNING = 0x0002
+ERROR_RC_SIGNAL_LOST = 0x0004
+ERROR_MOTOR1_COMM = 0x0008
+ERROR_MOTOR2_COMM = 0x0010
+ERROR_MOTOR3_COMM = 0x0020
+ERROR_MOTOR4_COMM = 0x0040
+ERROR_STEERING_ENCODER = 0x0080
+ERROR_MOTOR_DRIVER = 0x0100
+ERROR_HOST_COMM_LOST = 0x0200
+ERROR_BITS: dict[str, int] = {
+    "battery_fault": ERROR_BATTERY_FAULT,
+    "battery_warning": ERROR_BATTERY_WARNING,
+    "rc_signal_lost": ERROR_RC_SIGNAL_LOST,
+    "motor1_comm": ERROR_MOTOR1_COMM,
+    "motor2_comm": ERROR_MOTOR2_COMM,
+    "motor3_comm": ERROR_MOTOR3_COMM,
+    "motor4_comm": ERROR_MOTOR4_COMM,
+    "steering_encoder": ERROR_STEERING_ENCODER,
+    "motor_driver": ERROR_MOTOR_DRIVER,
+    "host_comm_lost": ERROR_HOST_COMM_LOST,
+}
+
+DRIVER_STATE_BITS: dict[str, int] = {
+    "supply_voltage_low": 0x01,
+    "motor_over_temperature": 0x02,
+    "driver_over_current": 0x04,
+    "driver_over_temperature": 0x08,
+    "sensor_fault": 0x10,
+    "driver_fault": 0x20,
+    "driver_enable_state": 0x40,
+    "reset": 0x80,
+}
+
+ERROR_CLEAR_ALL = 0x00
+
+
+def _bit_names(value: int, table: dict[str, int], width: int) -> list[str]:
+    names = [name for name, mask in table.items() if value & mask]
+    known = 0
+    for mask in table.values():
+        known |= mask
+    for bit in range(width):
+        if value & ~known & (1 << bit):
+            names.append(f"unknown_bit_0x{1 << bit:0{width // 4}X}")
+    return names
+
+
+def error_names(error_code: int) -> list[str]:
+    """Names of the bits set in a 0x211 error code (unknown bits as ``unknown_bit_0xNNNN``)."""
+    return _bit_names(int(error_code), ERROR_BITS, 16)
+
+
+def driver_state_names(driver_state: int) -> list[str]:
+    """Names of the bits set in a 0x26x driver_state byte."""
+    return _bit_names(int(driver_state), DRIVER_STATE_BITS, 8)
+
+
+# --------------------------------------------------------------------------------------
+# Errors
+# --------------------------------------------------------------------------------------
+class FrameError(ValueError):
+    """A frame that cannot be encoded or decoded. ``name`` is a snake_case counter key."""
+
+    name: str = "frame_error"
+
+    def __init__(self, frame_id: int | None, detail: str) -> None:
+        self.frame_id = frame_id
+        self.detail = detail
+        where = "frame" if frame_id is None else f"frame 0x{frame_id:03X}"
+        super().__init__(f"{where}: {detail}")
+
+
+class UnknownFrameId(FrameError):
+    name = "unknown_frame_id"
+
+
+class WrongDlc(FrameError):
+    name = "wrong_dlc"
+
+
+class OutOfRange(FrameError):
+    name = "out_of_range"
+
+
+class MalformedFrame(FrameError):
+    name = "malformed_frame"
+
+
+class CandumpSyntaxError(FrameError):
+    name = "candump_syntax"
+
+
+# --------------------------------------------------------------------------------------
+# Records. Each maps its fields onto DBC signal names (``_signals``: field -> signal).
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MotionCommand:
+    """0x111, host -> base."""
+
+    linear_mps: float
+    angular_radps: float
+    lateral_mps: float = 0.0
+    steering_rad: float = 0.0
+    _signals: ClassVar[dict[str, str]] = {
+        "linear_mps": "linear_velocity",
+        "angular_radps": "angular_velocity",
+        "lateral_mps": "lateral_velocity",
+        "steering_rad": "steering_angle",
+    }
+
+
+@dataclass(frozen=True)
+class _LightFields:
+    """Fields shared by 0x121 and 0x231. Modes: 0 off, 1 on, 2 breathing, 3 custom (0..100)."""
+
+    enable_cmd_ctrl: int = 1
+    front_mode: int = 0
+    front_custom: int = 0
+    rear_mode: int = 0
+    rear_custom: int = 0
+    count: int = 0
+    _signals: ClassVar[dict[str, str]] = {
+        "enable_cmd_ctrl": "enable_cmd_ctrl",
+        "front_mode": "front_mode",
+        "front_custom": "front_custom",
+        "rear_mode": "rear_mode",
+        "rear_custom": "rear_custom",
+        "count": "count",
+    }
+
+
+@dataclass(frozen=True)
+class LightCommand(_LightFields):
+    """0x121, host -> base."""
+
+
+@dataclass(frozen=True)
+class ControlModeCommand:
+    """0x421, host -> base: 0 standby, 1 CAN command mode, 2 UART."""
+
+    mode: int
+    _signals: ClassVar[dict[str, str]] = {"mode": "mode"}
+
+
+@dataclass(frozen=True)
+class ErrorClearCommand:
+    """0x441, host -> base: 0 clear all, 1..4 motor 1..4 (SCOUT)."""
+
+    code: int
+    _signals: ClassVar[dict[str, str]] = {"code": "clear_code"}
+
+
+@dataclass(frozen=True)
+class SystemState:
+    """0x211, base -> host."""
+
+    vehicle_state: int
+    control_mode: int
+    battery_voltage_v: float
+    error_code: int
+    motion_mode: int = 0
+    count: int = 0
+    _signals: ClassVar[dict[str, str]] = {
+        "vehicle_state": "vehicle_state",
+        "control_mode": "control_mode",
+        "battery_voltage_v": "battery_voltage",
+        "error_code": "error_code",
+        "motion_mode": "motion_mode",
+        "count": "count",
+    }
+
+
+@dataclass(frozen=True)
+class MotionState:
+    """0x221, base -> host (same layout as 0x111)."""
+
+    linear_mps: float
+    angular_radps: float
+    lateral_mps: float = 0.0
+    steering_rad: float = 0.0
+    _signals: ClassVar[dict[str, str]] = MotionCommand._signals
+
+
+@dataclass(frozen=True)
+class LightState(_LightFields):
+    """0x231, base -> host (same layout as 0x121)."""
+
+
+@dataclass(frozen=True)
+class RcState:
+    """0x241, base -> host (SDK only)."""
+
+    switches: int
+    stick_right_h: int
+    stick_right_v: int
+    stick_left_v: int
+    stick_left_h: int
+    var_a: int
+    count: int = 0
+    _signals: ClassVar[dict[str, str]] = {
+        k: k for k in ("switches", "stick_right_h", "stick_right_v", "stick_left_v",
+                       "stick_left_h", "var_a", "count")
+    }
+
+
+@dataclass(frozen=True)
+class ActuatorHighSpeed:
+    """0x251 + motor_index, base -> host."""
+
+    motor_index: int
+    rpm: int
+    current_a: float
+    pulse_count: int
+    _signals: ClassVar[dict[str, str]] = {
+        "rpm": "rpm", "current_a": "current", "pulse_count": "pulse_count"}
+
+
+@dataclass(frozen=True)
+class ActuatorLowSpeed:
+    """0x261 + motor_index, base -> host."""
+
+    motor_index: int
+    driver_voltage_v: float
+    driver_temp_c: int
+    motor_temp_c: int
+    driver_state: int
+    _signals: ClassVar[dict[str, str]] = {
+        "driver_voltage_v": "driver_voltage",
+        "driver_temp_c": "driver_temp",
+        "motor_temp_c": "motor_temp",
+        "driver_state": "driver_state",
+    }
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """0x311, base -> host: cumulative wheel distances (wire unit mm)."""
+
+    left_wheel_m: float
+    right_wheel_m: float
+    _signals: ClassVar[dict[str, str]] = {
+        "left_wheel_m": "left_wheel", "right_wheel_m": "right_wheel"}
+
+
+@dataclass(frozen=True)
+class ImuAccel:
+    """0x321 (LIMO)."""
+
+    accel_x_mps2: float
+    accel_y_mps2: float
+    accel_z_mps2: float
+    count: int = 0
+    _signals: ClassVar[dict[str, str]] = {
+        "accel_x_mps2": "accel_x", "accel_y_mps2": "accel_y", "accel_z_mps2": "accel_z",
+        "count": "count"}
+
+
+@dataclass(frozen=True)
+class ImuGyro:
+    """0x322 (LIMO)."""
+
+    gyro_x_dps: float
+    gyro_y_dps: float
+    gyro_z_dps: float
+    count: int = 0
+    _signals: ClassVar[dict[str, str]] = {
+        "gyro_x_dps": "gyro_x", "gyro_y_dps": "gyro_y", "gyro_z_dps": "gyro_z", "count": "count"}
+
+
+@dataclass(frozen=True)
+class ImuEuler:
+    """0x323 (LIMO)."""
+
+    yaw_deg: float
+    pitch_deg: float
+    roll_deg: float
+    count: int = 0
+    _signals: ClassVar[dict[str, str]] = {
+        "yaw_deg": "yaw", "pitch_deg": "pitch", "roll_deg": "roll", "count": "count"}
+
+
+@dataclass(frozen=True)
+class BmsBasic:
+    """0x361 (SDK only)."""
+
+    soc_pct: int
+    soh_pct: int
+    voltage_v: float
+    current_a: float
+    temperature_c: float
+    _signals: ClassVar[dict[str, str]] = {
+        "soc_pct": "battery_soc",
+        "soh_pct": "battery_soh",
+        "voltage_v": "voltage",
+        "current_a": "current",
+        "temperature_c": "temperature",
+    }
+
+
+@dataclass(frozen=True)
+class BmsExtended:
+    """0x362 (SDK only): alarm / warning bitfields."""
+
+    alarm_status_1: int
+    alarm_status_2: int
+    warn_status_1: int
+    warn_status_2: int
+    _signals: ClassVar[dict[str, str]] = {
+        k: k for k in ("alarm_status_1", "alarm_status_2", "warn_status_1", "warn_status_2")}
+
+
+Record = (MotionCommand | LightCommand | ControlModeCommand | ErrorClearCommand | SystemState
+          | MotionState | LightState | RcState | ActuatorHighSpeed | ActuatorLowSpeed | Odometry
+          | ImuAccel | ImuGyro | ImuEuler | BmsBasic | BmsExtended)
+
+# Fixed-id records. Actuator records are keyed by their base id + motor index.
+_RECORD_BY_ID: dict[int, type] = {
+    ID_MOTION_COMMAND: MotionCommand,
+    ID_LIGHT_COMMAND: LightCommand,
+    ID_CONTROL_MODE: ControlModeCommand,
+    ID_ERROR_CLEAR: ErrorClearCommand,
+    ID_SYSTEM_STATE: SystemState,
+    ID_MOTION_STATE: MotionState,
+    ID_LIGHT_STATE: LightState,
+    ID_RC_STATE: RcState,
+    ID_ODOMETRY: Odometry,
+    ID_IMU_ACCEL: ImuAccel,
+    ID_IMU_GYRO: ImuGyro,
+    ID_IMU_EULER: ImuEuler,
+    ID_BMS: BmsBasic,
+    ID_BMS_EXTENDED: BmsExtended,
+}
+for _i in range(NUM_MOTORS):
+    _RECORD_BY_ID[ID_ACTUATOR_HS_BASE + _i] = ActuatorHighSpeed
+    _RECORD_BY_ID[ID_ACTUATOR_LS_BASE + _i] = ActuatorLowSpeed
+_ID_BY_RECORD: dict[type, int] = {
+    cls: fid for fid, cls in _RECORD_BY_ID.items()
+    if cls not in (ActuatorHighSpeed, ActuatorLowSpeed)
+}
+
+# Frames whose scaled signals use the SDK float32-truncation rule on encode.
+_SDK_TRUNCATE_IDS = frozenset({ID_MOTION_COMMAND, ID_MOTION_STATE})
+
+
+# --------------------------------------------------------------------------------------
+# DBC-driven codec
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _SignalSpec:
+    name: str
+    scale: float
+    offset: float
+    inv_scale: int | None  # 1/scale when it is an integer (exact decimal decode), else None
+    raw_min: int
+    raw_max: int
+    integer: bool  # physical value is an integer (scale 1, offset 0)
+
+
+@dataclass(frozen=True)
+class _MessageSpec:
+    frame_id: int
+    name: str
+    min_dlc: int
+    message: Any  # cantools Message
+    signals: dict[str, _SignalSpec]
+
+
+def dbc_path() -> str:
+    """Filesystem path of the packaged DBC file."""
+    return str(resources.files("firmware_bridge").joinpath("agilex_v2.dbc"))
+
+
+@lru_cache(maxsize=1)
+def load_dbc() -> Any:
+    """The AgileX V2 DBC as a cantools database (loaded once)."""
+    return cantools.database.load_file(dbc_path())
+
+
+def _signal_spec(sig: Any) -> _SignalSpec:
+    scale = float(sig.scale)
+    offset = float(sig.offset)
+    inv = 1.0 / scale
+    inv_scale = int(round(inv)) if abs(inv - round(inv)) < 1e-9 and scale < 1.0 else None
+    type_min = -(1 << (sig.length - 1)) if sig.is_signed else 0
+    type_max = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
+    raw_min = type_min if sig.minimum is None else max(type_min, round((sig.minimum - offset) / scale))
+    raw_max = type_max if sig.maximum is None else min(type_max, round((sig.maximum - offset) / scale))
+    return _SignalSpec(sig.name, scale, offset, inv_scale, int(raw_min), int(raw_max),
+                       scale == 1.0 and offset == 0.0)
+
+
+@lru_cache(maxsize=1)
+def _specs() -> dict[int, _MessageSpec]:
+    db = load_dbc()
+    specs: dict[int, _MessageSpec] = {}
+    for msg in db.messages:
+        attr = msg.dbc.attributes.get("MinDLC") if msg.dbc is not None else None
+        min_dlc = int(attr.value) if attr is not None else msg.length
+        specs[msg.frame_id] = _MessageSpec(
+            msg.frame_id, msg.name, min_dlc, msg, {s.name: _signal_spec(s) for s in msg.signals})
+    missing = set(_RECORD_BY_ID) - set(specs)
+    if missing:
+        raise RuntimeError(f"agilex_v2.dbc lacks frames {sorted(hex(i) for i in missing)}")
+    return specs
+
+
+def known_frame_ids() -> list[int]:
+    """All frame ids this codec understands."""
+    return sorted(_RECORD_BY_ID)
+
+
+def message_name(frame_id: int) -> str:
+    """DBC message name of a known frame id."""
+    spec = _specs().get(frame_id)
+    if spec is None:
+        raise UnknownFrameId(frame_id, "not an AgileX V2 frame known to agilex_v2.dbc")
+    return spec.name
+
+
+def sdk_scale(value: float, factor: int = 1000) -> int:
+    """The SDK rule: ``(int)(float32(value) * factor)`` computed in float32, truncated toward zero."""
+    return int(np.float32(value) * np.float32(factor))
+
+
+def _to_raw(frame_id: int, spec: _SignalSpec, value: Any) -> int:
+    if isinstance(value, bool | np.bool_):
+        value = int(value)
+    try:
+        fval = float(value)
+    except (TypeError, ValueError):
+        raise OutOfRange(frame_id, f"signal {spec.name}: {value!r} is not a number") from None
+    if not math.isfinite(fval):
+        raise OutOfRange(frame_id, f"signal {spec.name}: value {value!r} is not finite")
+    if spec.integer:
+        if fval != int(fval):
+            raise OutOfRange(frame_id, f"signal {spec.name}: {value!r} is not an integer")
+        raw = int(value) if isinstance(value, int | np.integer) else int(fval)
+    elif frame_id in _SDK_TRUNCATE_IDS and spec.inv_scale is not None and spec.offset == 0.0:
+        raw = sdk_scale(fval, spec.inv_scale)
+    else:
+        scaled = (fval - spec.offset) * (spec.inv_scale if spec.inv_scale else 1.0 / spec.scale)
+        raw = int(round(scaled))
+    if not spec.raw_min <= raw <= spec.raw_max:
+        lo, hi = _to_phys(spec, spec.raw_min), _to_phys(spec, spec.raw_max)
+        raise OutOfRange(frame_id, f"signal {spec.name}: {value!r} is outside [{lo}, {hi}]")
+    return raw
+
+
+def _to_phys(spec: _SignalSpec, raw: int) -> float | int:
+    if spec.integer:
+        return int(raw)
+    if spec.inv_scale is not None:
+        return raw / spec.inv_scale + spec.offset
+    return raw * spec.scale + spec.offset
+
+
+def _record_frame_id(record: Any) -> int:
+    cls = type(record)
+    if cls is ActuatorHighSpeed or cls is ActuatorLowSpeed:
+        idx = record.motor_index
+        if not isinstance(idx, int | np.integer) or not 0 <= int(idx) < NUM_MOTORS:
+            base = ID_ACTUATOR_HS_BASE if cls is ActuatorHighSpeed else ID_ACTUATOR_LS_BASE
+            raise OutOfRange(base, f"motor_index {idx!r} is outside 0..{NUM_MOTORS - 1}")
+        base = ID_ACTUATOR_HS_BASE if cls is ActuatorHighSpeed else ID_ACTUATOR_LS_BASE
+        return base + int(idx)
+    fid = _ID_BY_RECORD.get(cls)
+    if fid is None:
+        raise TypeError(f"encode: {cls.__name__} is not an AgileX V2 record")
+    return fid
+
+
+def encode(record: Any) -> can.Message:
+    """Encode a record as a standard-id, 8-byte CAN frame (byte-identical to the SDK for commands)."""
+    fid = _record_frame_id(record)
+    spec = _specs()[fid]
+    raw = {sig_name: _to_raw(fid, spec.signals[sig_name], getattr(record, field))
+           for field, sig_name in type(record)._signals.items()}
+    data = spec.message.encode(raw, scaling=False, padding=False, strict=False)
+    return can.Message(arbitration_id=fid, is_extended_id=False, dlc=8, data=bytes(data).ljust(8, b"\0"))
+
+
+def decode(msg: can.Message) -> Any:
+    """Decode one frame into its record. Raises only ``FrameError`` subclasses."""
+    try:
+        fid = int(msg.arbitration_id)
+        if msg.is_error_frame:
+            raise MalformedFrame(fid, "error frame")
+        if msg.is_extended_id:
+            raise MalformedFrame(fid, "extended (29-bit) id; AgileX V2 uses 11-bit ids only")
+        if msg.is_remote_frame:
+            raise MalformedFrame(fid, "remote frame")
+        if getattr(msg, "is_fd", False):
+            raise MalformedFrame(fid, "CAN FD frame; AgileX V2 is classic CAN")
+        data = bytes(msg.data or b"")
+        dlc = int(msg.dlc)
+    except FrameError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - anything odd about the object is a malformed frame
+        raise MalformedFrame(None, f"not a CAN message: {exc}") from None
+    if not 0 <= fid <= 0x7FF:
+        raise UnknownFrameId(fid, "id outside the 11-bit range")
+    cls = _RECORD_BY_ID.get(fid)
+    if cls is None:
+        raise UnknownFrameId(fid, "not an AgileX V2 frame known to agilex_v2.dbc")
+    spec = _specs()[fid]
+    if dlc != len(data):
+        raise MalformedFrame(fid, f"DLC {dlc} does not match {len(data)} data bytes")
+    if dlc > 8:
+        raise WrongDlc(fid, f"DLC {dlc} exceeds 8 (classic CAN)")
+    if dlc < spec.min_dlc:
+        raise WrongDlc(fid, f"DLC {dlc} is shorter than the {spec.min_dlc}-byte layout of {spec.name}")
+    raw = spec.message.decode(data.ljust(8, b"\0"), decode_choices=False, scaling=False)
+    values: dict[str, Any] = {}
+    for field, sig_name in cls._signals.items():
+        sspec = spec.signals[sig_name]
+        r = int(raw[sig_name])
+        if not sspec.raw_min <= r <= sspec.raw_max:
+            lo, hi = _to_phys(sspec, sspec.raw_min), _to_phys(sspec, sspec.raw_max)
+            raise OutOfRange(fid, f"signal {sig_name} = {_to_phys(sspec, r)} is outside [{lo}, {hi}]")
+        values[field] = _to_phys(sspec, r)
+    if cls is ActuatorHighSpeed:
+        values["motor_index"] = fid - ID_ACTUATOR_HS_BASE
+    elif cls is ActuatorLowSpeed:
+        values["motor_index"] = fid - ID_ACTUATOR_LS_BASE
+    return cls(**values)
+
+
+class FrameDecoder:
+    """Decoder that never raises for bad frames: it counts them by error name instead."""
+
+    def __init__(self) -> None:
+        self.error_counts: dict[str, int] = {}
+        self.last_error: str | None = None
+        self.frames_ok = 0
+
+    def decode(self, msg: can.Message) -> Any | None:
+        """The record, or None when the frame was rejected (and counted)."""
+        try:
+            record = decode(msg)
+        except FrameError as exc:
+            self.error_counts[exc.name] = self.error_counts.get(exc.name, 0) + 1
+            self.last_error = str(exc)
+            return None
+        self.frames_ok += 1
+        return record
+
+    @property
+    def errors_total(self) -> int:
+        return sum(self.error_counts.values())
+
+
+# --------------------------------------------------------------------------------------
+# Text formats
+# --------------------------------------------------------------------------------------
+def format_candump(msg: can.Message) -> str:
+    """candump compact format: ``111#0096000000000000`` (``123#R`` for remote frames)."""
+    fid = int(msg.arbitration_id)
+    ident = f"{fid:08X}" if msg.is_extended_id else f"{fid:03X}"
+    if msg.is_remote_frame:
+        return f"{ident}#R"
+    return f"{ident}#{bytes(msg.data).hex().upper()}"
+
+
+_CANDUMP_RE = re.compile(r"^(?P<id>[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#(?P<data>R|(?:[0-9A-Fa-f]{2}\.?){0,8})$")
+
+
+def parse_candump(text: str) -> can.Message:
+    """Parse ``ID#DATA`` (3 hex digits = standard id, 8 = extended; data up to 8 bytes).
+
+    A full ``candump -L`` line (``(1.0) can0 111#...``) is accepted: the last token is used.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise CandumpSyntaxError(None, f"empty candump text {text!r}")
+    token = text.strip().split()[-1]
+    m = _CANDUMP_RE.match(token)
+    if m is None:
+        raise CandumpSyntaxError(
+            None, f"{text!r} is not candump 'ID#DATA' (3 or 8 hex id digits, up to 8 hex bytes)")
+    fid = int(m["id"], 16)
+    extended = len(m["id"]) == 8
+    if extended and fid > 0x1FFFFFFF:
+        raise CandumpSyntaxError(fid, f"{text!r}: extended id above 0x1FFFFFFF")
+    if not extended and fid > 0x7FF:
+        raise CandumpSyntaxError(fid, f"{text!r}: standard id above 0x7FF")
+    if m["data"] == "R":
+        return can.Message(arbitration_id=fid, is_extended_id=extended, is_remote_frame=True)
+    data = bytes.fromhex(m["data"].replace(".", ""))
+    return can.Message(arbitration_id=fid, is_extended_id=extended, data=data, dlc=len(data))
+
+
+def record_to_dict(record: Any) -> dict[str, Any]:
+    """Record fields keyed by DBC signal names (``motor_index`` added for actuator frames)."""
+    out: dict[str, Any] = {}
+    if isinstance(record, ActuatorHighSpeed | ActuatorLowSpeed):
+        out["motor_index"] = record.motor_index
+    for field, sig_name in type(record)._signals.items():
+        out[sig_name] = getattr(record, field)
+    return out
+
+
+def record_fields(record: Any) -> dict[str, Any]:
+    """Record fields keyed by their Python attribute names."""
+    return dataclasses.asdict(record)

@@ -1,0 +1,138 @@
+"""AgileXBaseDriver over a virtual bus against a tiny fake base peer."""
+from __future__ import annotations
+
+import math
+
+import can
+import numpy as np
+import pytest
+
+from firmware_bridge import protocol as p
+from firmware_bridge.base_driver import AgileXBaseDriver
+
+
+def drain(bus: can.BusABC) -> list[str]:
+    out = []
+    while (m := bus.recv(timeout=0)) is not None:
+        out.append(p.format_candump(m))
+    return out
+
+
+def test_enable_sequence_bytes(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    drv.enable()
+    drv.send_motion(0.15, 0.0)
+    drv.send_motion(0.0, 0.05)
+    assert drain(peer) == ["421#0100000000000000", "111#0096000000000000", "111#0000003200000000"]
+    assert drv.last_command == p.MotionCommand(0.0, 0.05)
+
+
+def test_feedback_staleness_with_fake_clock(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock, feedback_timeout_s=0.1)
+    assert drv.feedback_lost  # before the first 0x221
+    assert drv.poll() == 0
+    clock.t = 1.0
+    peer.send(p.encode(p.MotionState(0.4, -0.1)))
+    assert drv.poll() == 1
+    fb = drv.feedback
+    assert fb.motion.record == p.MotionState(0.4, -0.1) and fb.motion.stamp_s == 1.0
+    assert not drv.feedback_lost
+    clock.t = 1.099
+    assert not drv.feedback_lost
+    clock.t = 1.101
+    assert drv.feedback_lost
+    # Other frames do not refresh the 0x221 stamp.
+    peer.send(p.encode(p.SystemState(0, 1, 12.0, 0, 0, 0)))
+    drv.poll()
+    assert drv.feedback_lost
+    peer.send(p.encode(p.MotionState(0.0, 0.0)))
+    drv.poll()
+    assert not drv.feedback_lost and math.isclose(drv.feedback_age_s, 0.0)
+
+
+def test_control_mode_and_errors(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    assert drv.control_mode is None and drv.error_code is None and drv.errors_active() == []
+    peer.send(p.encode(p.SystemState(0, p.CONTROL_MODE_STANDBY, 12.1, 0, 0, 0)))
+    drv.poll()
+    assert drv.control_mode == p.CONTROL_MODE_STANDBY and drv.control_mode_name == "standby"
+    peer.send(p.encode(p.SystemState(0, p.CONTROL_MODE_CAN, 12.1,
+                                     p.ERROR_HOST_COMM_LOST | p.ERROR_MOTOR2_COMM, 0, 1)))
+    drv.poll()
+    assert drv.control_mode == p.CONTROL_MODE_CAN
+    assert drv.error_code == 0x0210
+    assert drv.errors_active() == ["motor2_comm", "host_comm_lost"]
+    peer.send(p.encode(p.SystemState(0, 1, 12.1, 0, 0, 5)))  # counter jumped 1 -> 5
+    drv.poll()
+    assert drv.feedback.system_count_gaps == 1
+
+
+def test_bad_frames_counted_and_never_acted_on(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    peer.send(p.encode(p.MotionState(0.2, 0.0)))
+    peer.send(can.Message(arbitration_id=0x221, data=b"\x7f\xff", is_extended_id=False))  # short
+    peer.send(can.Message(arbitration_id=0x5AA, data=bytes(8), is_extended_id=False))  # unknown
+    peer.send(can.Message(arbitration_id=0x211, data=bytes([0, 9, 0, 0, 0, 0, 0, 0]), is_extended_id=False))
+    assert drv.poll() == 4
+    fb = drv.feedback
+    assert fb.motion.record.linear_mps == 0.2  # the short frame did not overwrite it
+    assert fb.system is None and drv.control_mode is None
+    assert fb.decode_error_counts == {"wrong_dlc": 1, "unknown_frame_id": 1, "out_of_range": 1}
+    assert "0x211" in fb.last_decode_error and fb.frames_received == 4
+
+
+def test_actuator_and_odometry_feedback(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    clock.t = 2.5
+    for i in range(4):
+        peer.send(p.encode(p.ActuatorHighSpeed(i, 100 * (i + 1), 0.5, 1000 * i)))
+        peer.send(p.encode(p.ActuatorLowSpeed(i, 12.0, 30, 31, 0)))
+    peer.send(p.encode(p.Odometry(1.5, 1.6)))
+    assert drv.poll() == 9
+    fb = drv.feedback
+    assert [s.record.rpm for s in fb.actuator_hs] == [100, 200, 300, 400]
+    assert [s.record.motor_index for s in fb.actuator_ls] == [0, 1, 2, 3]
+    assert fb.odometry.record == p.Odometry(1.5, 1.6) and fb.odometry.stamp_s == 2.5
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, np.float32("nan"), 33.0, -40.0, "1", None, True])
+def test_send_motion_rejects_bad_values(virtual_pair, clock, bad):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    with pytest.raises(ValueError):
+        drv.send_motion(bad, 0.0)
+    with pytest.raises(ValueError):
+        drv.send_motion(0.0, bad)
+    assert drain(peer) == []
+
+
+def test_shutdown_sends_zero_and_survives_dead_bus(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    drv.send_motion(0.5, 0.3)
+    assert drv.shutdown() == 3
+    frames = drain(peer)
+    assert frames[0] == "111#01F4012C00000000"
+    assert frames[1:] == ["111#0000000000000000"] * 3
+    bus.shutdown()
+    assert drv.shutdown() == 0  # does not raise
+
+
+def test_no_periodic_tasks(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    drv.enable()
+    drv.send_motion(0.1, 0.0)
+    assert bus._periodic_tasks == []  # commands come from the caller's loop only
+
+
+def test_send_motion_accepts_numpy_scalars(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    drv.send_motion(np.float32(0.15), np.float64(0.05))
+    assert drain(peer) == ["111#0096003200000000"]
