@@ -1,0 +1,317 @@
+"""Reference path: A*-style shortest path on a local occupancy grid built from P_fix.
+
+Each replan builds a square grid centred on the robot (vectorized): cells whose centre lies
+within the inflation radius of a P_fix point are lethal. The radius is half the robot's width
+plus a small margin, not the circumradius, so that a gap a few centimetres wider than the robot
+stays open when the robot goes through it lengthwise; the MPC handles the exact footprint. Cells
+near obstacles cost more (a soft zone, as Nav2's inflation layer), so paths keep to the middle
+of wide passages. The search is Dijkstra over the 8-connected grid graph with scipy's csgraph (C
+speed; with all costs >= the step length it returns the same path A* would). When the goal lies
+outside the window, the path goes to the reachable border cell minimizing cost-to-come plus the
+straight-line distance to the goal. Replanned when blocked, when the goal changes, when the
+robot strays from the path, or every `replan_every_ticks` ticks. The path is then resampled at
+the target speed into the MPC's (H+1, 3) reference (x_m, y_m, v_mps), slowing down to the goal.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import ndimage
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from runtime.planning.errors import PlannerInputError, check_points, check_vector
+
+
+class ReferencePathConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    window_m: float = Field(default=8.0, gt=0.5, le=50.0, description="side of the local grid")
+    resolution_m: float = Field(default=0.05, gt=0.005, le=0.5)
+    inflation_margin_m: float = Field(default=0.01, ge=0.0, le=1.0, description="added to half the width")
+    soft_zone_m: float = Field(default=0.35, ge=0.0, le=5.0, description="extra-cost zone beyond inflation")
+    soft_cost: float = Field(default=4.0, ge=0.0, le=100.0, description="extra cost factor at the lethal edge")
+    replan_every_ticks: int = Field(default=10, ge=1, le=10000)
+    deviation_replan_m: float = Field(default=0.4, gt=0.0, le=10.0)
+    blocked_check_ahead_m: float = Field(default=2.5, gt=0.0, le=50.0)
+    escape_radius_m: float = Field(default=0.35, ge=0.0, le=5.0, description="start inside inflation: free cells this near")
+    target_speed_mps: float = Field(default=1.0, gt=0.0, le=5.0)
+    decel_mps2: float = Field(default=1.0, gt=0.0, le=20.0, description="speed ramp to the goal")
+    goal_tolerance_m: float = Field(default=0.10, gt=0.0, le=5.0)
+    horizon_steps: int = Field(default=10, ge=1, le=200)
+    step_s: float = Field(default=0.1, gt=0.0, le=1.0)
+    smoothing_window: int = Field(default=5, ge=1, le=51, description="moving average of the cell path")
+
+
+@dataclass
+class ReferenceUpdate:
+    reference: np.ndarray  # (H+1, 3) x_m, y_m, v_mps; row 0 at the robot's projection on the path
+    path_world: np.ndarray | None  # (M, 2) the current path, None when blocked
+    blocked: bool  # no path to the goal (or towards it) exists in the window
+    replanned: bool
+    reason: str  # why it replanned (or why blocked)
+    goal_reached: bool
+    remaining_m: float  # path length left (inf when blocked)
+
+
+@dataclass
+class LocalGrid:
+    origin_m: np.ndarray  # world position of cell (0, 0)'s corner
+    resolution_m: float
+    clearance_m: np.ndarray  # (n, n) distance of cell centres to the nearest point (capped)
+    lethal: np.ndarray  # (n, n) bool
+    cost: np.ndarray  # (n, n) >= 1
+
+    def cell_of(self, xy: np.ndarray) -> np.ndarray:
+        return np.floor((np.asarray(xy) - self.origin_m) / self.resolution_m).astype(np.int64)
+
+    def centre_of(self, ij: np.ndarray) -> np.ndarray:
+        return self.origin_m + (np.asarray(ij) + 0.5) * self.resolution_m
+
+
+class ReferencePathPlanner:
+    """Global-ish path on a local grid plus resampling into the MPC reference."""
+
+    def __init__(self, config: ReferencePathConfig, robot) -> None:
+        self.config = config
+        self.inflation_radius_m = robot.footprint.width_m / 2.0 + config.inflation_margin_m
+        n = int(math.ceil(config.window_m / config.resolution_m))
+        self.n = n
+        # The 8-connected grid graph: fixed for the window, built once.
+        i = np.arange(n * n)
+        ii, jj = np.divmod(i, n)
+        src, dst, length, ortho_a, ortho_b = [], [], [], [], []
+        for di, dj in ((1, 0), (0, 1), (-1, 0), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+            ok = (ii + di >= 0) & (ii + di < n) & (jj + dj >= 0) & (jj + dj < n)
+            src.append(i[ok])
+            dst.append(((ii + di) * n + jj + dj)[ok])
+            length.append(np.full(int(ok.sum()), math.hypot(di, dj) * config.resolution_m))
+            # For diagonal moves, the two orthogonal cells passed at the corner (no corner cutting).
+            ortho_a.append(((ii + di) * n + jj)[ok])
+            ortho_b.append((ii * n + jj + dj)[ok])
+        self._src = np.concatenate(src)
+        self._dst = np.concatenate(dst)
+        self._len = np.concatenate(length)
+        self._ortho_a = np.concatenate(ortho_a)
+        self._ortho_b = np.concatenate(ortho_b)
+        self._path: np.ndarray | None = None
+        self._goal: np.ndarray | None = None
+        self._ticks = 0
+        self.replans = 0
+        self.last_grid: LocalGrid | None = None
+
+    # -- grid ---------------------------------------------------------------------------------
+    def build_grid(self, centre_xy: np.ndarray, points_world: np.ndarray) -> LocalGrid:
+        """Local grid around centre_xy: clearance (exact near the lethal edge), lethal mask, costs."""
+        cfg, n, res = self.config, self.n, self.config.resolution_m
+        origin = np.floor((centre_xy - cfg.window_m / 2.0) / res) * res
+        r_infl = self.inflation_radius_m
+        reach = r_infl + cfg.soft_zone_m + res
+        lo, hi = origin - reach, origin + n * res + reach
+        pts = points_world[np.all((points_world >= lo) & (points_world <= hi), axis=1)]
+        cap = r_infl + cfg.soft_zone_m
+        if pts.shape[0] == 0:
+            clearance = np.full((n, n), cap)
+        else:
+            # Approximate clearance from an exact Euclidean distance transform of occupied cells
+            # (cells one ring larger so that points just outside the window count)...
+            occ = np.zeros((n + 2, n + 2), dtype=bool)
+            ij = np.floor((pts - origin) / res).astype(np.int64) + 1
+            ij = np.clip(ij, 0, n + 1)
+            occ[ij[:, 0], ij[:, 1]] = True
+            approx = ndimage.distance_transform_edt(~occ)[1:-1, 1:-1] * res
+            clearance = np.minimum(approx, cap)
+            # ...then exact for cells near the lethal edge, where it decides passability.
+            band = approx < r_infl + res
+            if band.any():
+                bi, bj = np.nonzero(band)
+                centres = origin + (np.stack([bi, bj], axis=1) + 0.5) * res
+                d, _ = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(
+                    centres, distance_upper_bound=r_infl + 2 * res
+                )
+                clearance[bi, bj] = np.minimum(d, cap)
+        lethal = clearance < r_infl
+        if cfg.soft_zone_m > 0:
+            depth = np.clip((r_infl + cfg.soft_zone_m - clearance) / cfg.soft_zone_m, 0.0, 1.0)
+            cost = 1.0 + cfg.soft_cost * depth * depth
+        else:
+            cost = np.ones((n, n))
+        grid = LocalGrid(origin, res, clearance, lethal, cost)
+        self.last_grid = grid
+        return grid
+
+    # -- search -------------------------------------------------------------------------------
+    def search(self, grid: LocalGrid, start_xy: np.ndarray, goal_xy: np.ndarray) -> tuple[np.ndarray | None, str]:
+        """Cheapest cell path start -> goal (or towards it); (None, reason) when there is none."""
+        n, cfg = self.n, self.config
+        start = grid.cell_of(start_xy)
+        if not (0 <= start[0] < n and 0 <= start[1] < n):
+            raise PlannerInputError(f"ReferencePathPlanner.search: start {start_xy} outside the grid")
+        passable = ~grid.lethal
+        cost = grid.cost.copy()
+        if grid.lethal[start[0], start[1]] and cfg.escape_radius_m > 0:
+            # Inside the inflation (e.g. close to a wall): let the robot leave through free space.
+            ci = np.arange(n)
+            d2 = (ci[:, None] - start[0]) ** 2 + (ci[None, :] - start[1]) ** 2
+            escape = (d2 * grid.resolution_m**2 <= cfg.escape_radius_m**2) & (grid.clearance_m > grid.resolution_m / 2)
+            passable = passable | escape
+            cost[escape & grid.lethal] = 1.0 + 4.0 * cfg.soft_cost
+            passable[start[0], start[1]] = True
+        flat_pass = passable.ravel()
+        flat_cost = cost.ravel()
+        ok = flat_pass[self._src] & flat_pass[self._dst] & flat_pass[self._ortho_a] & flat_pass[self._ortho_b]
+        w = self._len[ok] * 0.5 * (flat_cost[self._src[ok]] + flat_cost[self._dst[ok]])
+        graph = csr_matrix((w, (self._src[ok], self._dst[ok])), shape=(n * n, n * n))
+        s_idx = int(start[0] * n + start[1])
+        dist, pred = dijkstra(graph, directed=True, indices=s_idx, return_predecessors=True)
+        goal_cell = grid.cell_of(goal_xy)
+        if 0 <= goal_cell[0] < n and 0 <= goal_cell[1] < n:
+            g_idx = int(goal_cell[0] * n + goal_cell[1])
+            if not passable.ravel()[g_idx]:
+                return None, "goal inside an inflated obstacle"
+            if not np.isfinite(dist[g_idx]):
+                return None, "no path to the goal"
+            target, end_xy = g_idx, goal_xy
+        else:
+            border = np.zeros((n, n), dtype=bool)
+            border[[0, -1], :] = True
+            border[:, [0, -1]] = True
+            cand = np.flatnonzero(border.ravel() & np.isfinite(dist))
+            if cand.size == 0:
+                return None, "no path out of the local window towards the goal"
+            ci, cj = np.divmod(cand, n)
+            centres = grid.origin_m + (np.stack([ci, cj], axis=1) + 0.5) * grid.resolution_m
+            score = dist[cand] + np.hypot(centres[:, 0] - goal_xy[0], centres[:, 1] - goal_xy[1])
+            target, end_xy = int(cand[np.argmin(score)]), None
+        cells = [target]
+        while cells[-1] != s_idx:  # path length in cells, not points
+            cells.append(int(pred[cells[-1]]))
+        cells.reverse()
+        ci, cj = np.divmod(np.asarray(cells), n)
+        path = grid.origin_m + (np.stack([ci, cj], axis=1) + 0.5) * grid.resolution_m
+        path[0] = start_xy
+        if end_xy is not None:
+            path[-1] = end_xy
+        return path, "ok"
+
+    def _smooth(self, path: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+        w = self.config.smoothing_window
+        if w <= 1 or path.shape[0] <= w:
+            return path
+        pad = w // 2
+        padded = np.concatenate([np.repeat(path[:1], pad, 0), path, np.repeat(path[-1:], pad, 0)])
+        kernel = np.ones(w) / w
+        smooth = np.stack([np.convolve(padded[:, k], kernel, mode="valid") for k in range(2)], axis=1)
+        smooth[0], smooth[-1] = path[0], path[-1]
+        if points_world.shape[0] == 0:
+            return smooth
+        tree = cKDTree(points_world)
+        d_raw, _ = tree.query(path)
+        d_s, _ = tree.query(smooth)
+        # Keep the smoothing only where it does not bring the path nearer than allowed.
+        bad = d_s < np.minimum(d_raw, self.inflation_radius_m)
+        smooth[bad] = path[bad]
+        return smooth
+
+    # -- blocked / deviation ------------------------------------------------------------------
+    def _projection(self, path: np.ndarray, xy: np.ndarray) -> tuple[float, float, np.ndarray]:
+        """(arc length of the projection, distance to the path, cumulative arc lengths)."""
+        seg = np.diff(path, axis=0)
+        seg_len = np.hypot(seg[:, 0], seg[:, 1])
+        cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+        if seg.shape[0] == 0:
+            return 0.0, float(np.hypot(*(xy - path[0]))), cum
+        rel = xy - path[:-1]
+        t = np.clip(np.einsum("ij,ij->i", rel, seg) / np.maximum(seg_len**2, 1e-12), 0.0, 1.0)
+        foot = path[:-1] + t[:, None] * seg
+        d = np.hypot(foot[:, 0] - xy[0], foot[:, 1] - xy[1])
+        k = int(np.argmin(d))
+        return float(cum[k] + t[k] * seg_len[k]), float(d[k]), cum
+
+    def _blocked_ahead(self, path: np.ndarray, s0: float, cum: np.ndarray, points_world: np.ndarray) -> bool:
+        ahead = path[(cum >= s0) & (cum <= s0 + self.config.blocked_check_ahead_m)]
+        if ahead.shape[0] == 0 or points_world.shape[0] == 0:
+            return False
+        r = self.inflation_radius_m
+        lo, hi = ahead.min(axis=0) - r, ahead.max(axis=0) + r
+        pts = points_world[np.all((points_world >= lo) & (points_world <= hi), axis=1)]
+        if pts.shape[0] == 0:
+            return False
+        d2 = (pts[:, None, 0] - ahead[None, :, 0]) ** 2 + (pts[:, None, 1] - ahead[None, :, 1]) ** 2
+        # A little tolerance: the smoothed path may pass slightly nearer than a cell centre would.
+        return bool((d2 < (r - 0.5 * self.config.resolution_m) ** 2).any())
+
+    # -- reference ----------------------------------------------------------------------------
+    def resample(self, path: np.ndarray, s0: float, cum: np.ndarray, stop_at_end: bool = True) -> np.ndarray:
+        """(H+1, 3) waypoints from arc length s0 at the target speed; with stop_at_end, slowing
+        down to stop at the path's end (the goal), else full speed up to it (a window border)."""
+        cfg = self.config
+        H, dt = cfg.horizon_steps, cfg.step_s
+        total = float(cum[-1])
+        s = np.empty(H + 1)
+        v = np.empty(H + 1)
+        s[0] = min(s0, total)
+        for h in range(H + 1):  # H+1 scalar steps, not points
+            v[h] = cfg.target_speed_mps
+            if stop_at_end:
+                v[h] = min(v[h], math.sqrt(2.0 * cfg.decel_mps2 * max(total - s[h], 0.0)))
+            if h < H:
+                s[h + 1] = min(total, s[h] + v[h] * dt)
+        x = np.interp(s, cum, path[:, 0])
+        y = np.interp(s, cum, path[:, 1])
+        return np.stack([x, y, v], axis=1)
+
+    def update(self, pose: np.ndarray, goal: np.ndarray, points_fix_world: np.ndarray) -> ReferenceUpdate:
+        """pose (x_m, y_m, yaw_rad), goal (x_m, y_m[, yaw]), P_fix (N, 2) in the odom frame."""
+        pose = check_vector(pose, 3, "ReferencePathPlanner.update", "pose")
+        goal_arr = np.asarray(goal, dtype=np.float64).reshape(-1)
+        if goal_arr.size not in (2, 3):
+            raise PlannerInputError(f"ReferencePathPlanner.update: goal must be (x, y) or (x, y, yaw), got {goal_arr.shape}")
+        goal_xy = check_vector(goal_arr[:2], 2, "ReferencePathPlanner.update", "goal")
+        points = check_points(points_fix_world, "ReferencePathPlanner.update: points_fix_world")
+        cfg = self.config
+        xy = pose[:2]
+        self._ticks += 1
+        if math.hypot(*(goal_xy - xy)) <= cfg.goal_tolerance_m:
+            ref = np.zeros((cfg.horizon_steps + 1, 3))
+            ref[:, :2] = goal_xy
+            return ReferenceUpdate(ref, self._path, False, False, "goal reached", True, 0.0)
+
+        reason = ""
+        if self._path is None:
+            reason = "no path"
+        elif self._goal is None or math.hypot(*(self._goal - goal_xy)) > cfg.goal_tolerance_m:
+            reason = "new goal"
+        elif self._ticks >= cfg.replan_every_ticks:
+            reason = "periodic"
+        else:
+            s0, dev, cum = self._projection(self._path, xy)
+            if dev > cfg.deviation_replan_m:
+                reason = "strayed from the path"
+            elif self._blocked_ahead(self._path, s0, cum, points):
+                reason = "path blocked"
+        replanned = bool(reason)
+        if replanned:
+            self._ticks = 0
+            self.replans += 1
+            self._goal = goal_xy.copy()
+            grid = self.build_grid(xy, points)
+            path, why = self.search(grid, xy, goal_xy)
+            if path is None:
+                self._path = None
+                ref = np.zeros((cfg.horizon_steps + 1, 3))
+                ref[:, :2] = xy  # hold position; the MPC brakes within its rate limits
+                return ReferenceUpdate(ref, None, True, True, why, False, math.inf)
+            self._path = self._smooth(path, points)
+        s0, _, cum = self._projection(self._path, xy)
+        at_goal = self._path_ends_at_goal(goal_xy)
+        ref = self.resample(self._path, s0, cum, stop_at_end=at_goal)
+        remaining = float(cum[-1] - s0) + (0.0 if at_goal else math.hypot(*(goal_xy - self._path[-1])))
+        return ReferenceUpdate(ref, self._path, False, replanned, reason or "kept", False, remaining)
+
+    def _path_ends_at_goal(self, goal_xy: np.ndarray) -> bool:
+        return self._path is not None and math.hypot(*(self._path[-1] - goal_xy)) <= self.config.goal_tolerance_m

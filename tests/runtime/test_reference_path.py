@@ -1,0 +1,112 @@
+"""Reference path: A*-equivalent search on the local grid, blocked detection, resampling."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.robot_description import load_robot_description
+from runtime.planning.errors import PlannerInputError
+from runtime.planning.reference_path import ReferencePathConfig, ReferencePathPlanner
+
+ROBOT = load_robot_description()
+
+
+def _segment(a, b, step=0.02) -> np.ndarray:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = max(2, int(np.ceil(np.linalg.norm(b - a) / step)) + 1)
+    return a + np.linspace(0, 1, n)[:, None] * (b - a)
+
+
+def _path_clearance(path: np.ndarray, pts: np.ndarray) -> float:
+    return float(np.hypot(path[:, None, 0] - pts[None, :, 0], path[:, None, 1] - pts[None, :, 1]).min())
+
+
+def _planner(**kw) -> ReferencePathPlanner:
+    return ReferencePathPlanner(ReferencePathConfig(**kw), ROBOT)
+
+
+def test_open_space_path_is_nearly_straight_and_reaches_the_goal() -> None:
+    rp = _planner()
+    up = rp.update(np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0]), np.zeros((0, 2)))
+    assert not up.blocked and up.replanned
+    np.testing.assert_allclose(up.path_world[-1], [2.0, 1.0])
+    length = np.hypot(*np.diff(up.path_world, axis=0).T).sum()
+    assert length < np.hypot(2.0, 1.0) * 1.1
+
+
+def test_path_goes_around_a_wall_through_its_opening_with_clearance() -> None:
+    # Wall at x = 1 from y = -2 to 2 with a 0.6 m opening centred at y = 1.2.
+    pts = np.concatenate([_segment([1.0, -2.0], [1.0, 0.9]), _segment([1.0, 1.5], [1.0, 2.0])])
+    rp = _planner()
+    up = rp.update(np.array([0.0, 0.0, 0.0]), np.array([2.0, 0.0]), pts)
+    assert not up.blocked
+    crossing = up.path_world[np.argmin(np.abs(up.path_world[:, 0] - 1.0))]
+    assert 0.9 < crossing[1] < 1.5
+    assert _path_clearance(up.path_world, pts) >= rp.inflation_radius_m - 1e-9
+
+
+def test_gap_ten_centimetres_wider_than_the_robot_is_passable() -> None:
+    gap = ROBOT.footprint.width_m + 0.10
+    pts = np.concatenate([_segment([1.0, gap / 2], [1.0, 2.0]), _segment([1.0, -gap / 2], [1.0, -2.0])])
+    # Make the wall thick (0.2 m) as a real obstacle.
+    pts = np.concatenate([pts + [dx, 0.0] for dx in np.arange(0.0, 0.21, 0.02)])
+    up = _planner().update(np.array([0.0, 0.0, 0.0]), np.array([2.5, 0.0]), pts)
+    assert not up.blocked
+    at_gap = up.path_world[(up.path_world[:, 0] > 1.0) & (up.path_world[:, 0] < 1.2)]
+    assert at_gap.size and np.abs(at_gap[:, 1]).max() < 0.03
+    # A gap narrower than the robot is not.
+    narrow = ROBOT.footprint.width_m - 0.02
+    pts2 = np.concatenate([_segment([1.0, narrow / 2], [1.0, 4.0]), _segment([1.0, -narrow / 2], [1.0, -4.0])])
+    up2 = _planner().update(np.array([0.0, 0.0, 0.0]), np.array([2.5, 0.0]), pts2)
+    assert up2.blocked and up2.path_world is None
+
+
+def test_goal_inside_a_closed_ring_is_reported_blocked() -> None:
+    ang = np.linspace(0, 2 * np.pi, 400)
+    ring = np.stack([2.0 + 0.6 * np.cos(ang), 0.6 * np.sin(ang)], axis=1)
+    up = _planner().update(np.zeros(3), np.array([2.0, 0.0]), ring)
+    assert up.blocked and up.reason == "no path to the goal"
+    assert np.all(up.reference[:, 2] == 0.0) and np.allclose(up.reference[:, :2], 0.0)
+    up2 = _planner().update(np.zeros(3), np.array([2.0, 0.6]), ring)
+    assert up2.blocked and "inflated" in up2.reason
+
+
+def test_goal_outside_the_window_heads_towards_it() -> None:
+    rp = _planner(window_m=4.0)
+    up = rp.update(np.zeros(3), np.array([10.0, 0.0]), np.zeros((0, 2)))
+    assert not up.blocked
+    assert up.path_world[-1, 0] > 1.8 and abs(up.path_world[-1, 1]) < 0.2
+    assert np.all(up.reference[:, 2] == pytest.approx(1.0))  # no slow-down at a window border
+
+
+def test_replans_when_an_obstacle_appears_on_the_path() -> None:
+    rp = _planner(replan_every_ticks=1000)
+    pose = np.zeros(3)
+    goal = np.array([3.0, 0.0])
+    first = rp.update(pose, goal, np.zeros((0, 2)))
+    kept = rp.update(pose, goal, np.zeros((0, 2)))
+    assert first.replanned and not kept.replanned and kept.reason == "kept"
+    box = _segment([1.5, -0.3], [1.5, 0.3])
+    again = rp.update(pose, goal, box)
+    assert again.replanned and again.reason == "path blocked"
+    assert _path_clearance(again.path_world, box) >= rp.inflation_radius_m - 1e-9
+
+
+def test_reference_is_resampled_at_the_target_speed_and_stops_at_the_goal() -> None:
+    rp = _planner(target_speed_mps=0.8, decel_mps2=1.0, horizon_steps=20)
+    up = rp.update(np.zeros(3), np.array([1.0, 0.0]), np.zeros((0, 2)))
+    ref = up.reference
+    assert ref.shape == (21, 3)
+    assert np.all(ref[:, 2] <= 0.8 + 1e-12) and ref[0, 2] == pytest.approx(0.8)
+    spacing = np.hypot(*np.diff(ref[:, :2], axis=0).T)
+    assert np.all(spacing <= ref[:-1, 2] * 0.1 + 1e-9)  # chords of arcs of v * dt
+    assert spacing[0] == pytest.approx(0.08, abs=1e-3)
+    np.testing.assert_allclose(ref[-1], [1.0, 0.0, 0.0], atol=1e-9)
+
+
+def test_bad_input_raises_named_errors() -> None:
+    rp = _planner()
+    with pytest.raises(PlannerInputError, match="goal"):
+        rp.update(np.zeros(3), np.array([np.nan, 0.0]), np.zeros((0, 2)))
+    with pytest.raises(PlannerInputError, match="points"):
+        rp.update(np.zeros(3), np.array([1.0, 0.0]), np.zeros((3,)))
