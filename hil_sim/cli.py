@@ -76,3 +76,27 @@ def sim_speed_command(scenario: str, seconds: float, repeats: int) -> None:
     from hil_sim.sim_bench import run_sim_speed_benchmark
 
     run_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)
+
+
+@bench_group.command("sensors")
+@click.option("--frames", default=10, show_default=True, help="Lidar frames to time.")
+@click.option("--renders", default=10, show_default=True, help="RGB and segmentation renders to time.")
+@click.option("--boxes", default=60, show_default=True, help="Clutter boxes in the benchmark room.")
+def sensors_command(frames: int, renders: int, boxes: int) -> None:
+    """ms per 20k-point lidar frame, per RGB render and per segmentation render."""
+    from hil_sim.sensor_bench import run_sensor_benchmark
+
+    result = run_sensor_benchmark(n_frames=frames, n_renders=renders, n_boxes=boxes)
+    for key, value in result.items():
+        click.echo(f"{key}: {value:.3f}" if isinstance(value, float) else f"{key}: {value}")
+
+
+@bench_group.command("planner")
+@click.option("--repeats", default=300, show_default=True, help="Planner steps per configuration.")
+@click.option("--cvxpy-repeats", default=30, show_default=True, help="cvxpy solves per configuration.")
+@click.option("--net", "net_path", type=click.Path(exists=True, dir_okay=False), help="Distance net (default: shipped).")
+def planner_command(repeats: int, cvxpy_repeats: int, net_path: str | None) -> None:
+    """Planner step time (net + QP) at H = 10, 20 with 100 and 1,000 points, against cvxpy (ECOS, Clarabel)."""
+    from hil_sim.planner_bench import print_planner_benchmark
+
+    print_planner_benchmark(repeats=repeats, cvxpy_repeats=cvxpy_repeats, distance_net_path=net_path)

@@ -1,0 +1,246 @@
+"""Per-robot calibration file (YAML): camera intrinsics, distortion, T_camera<-lidar, provenance.
+
+Example::
+
+    robot: limo
+    camera:
+      width_px: 640
+      height_px: 480
+      fx: 336.0
+      fy: 336.0
+      cx: 319.5
+      cy: 239.5
+      distortion: [0.0, 0.0, 0.0, 0.0, 0.0]   # OpenCV order k1 k2 p1 p2 [k3 ...]
+    lidar_to_camera:            # T_camera<-lidar: p_cam = R p_lidar + t; optional until calibrated
+      xyz_m: [0.0, 0.05, -0.08]
+      rpy_deg: [-90.0, 0.0, -90.0]   # or quaternion_xyzw: [...] or rotation_matrix: 3x3
+    provenance:
+      date: 2025-01-01T12:00:00
+      method: "checkerboard 9x6, 25 mm; calibrateCamera"
+      intrinsics_rms_px: 0.21
+      extrinsic_rms_m: 0.012
+
+rpy_deg uses the robot description's convention (extrinsic x-y-z: R = Rz(yaw) Ry(pitch) Rx(roll)).
+Every problem raises ConfigFileError naming the file, the field and the reason.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from scipy.spatial.transform import Rotation
+
+from calibration.camera_model import VALID_DISTORTION_LENGTHS, CameraModel
+from calibration.errors import ConfigFileError, format_validation_error, load_yaml_model
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CameraIntrinsics(_Strict):
+    width_px: int = Field(gt=0, le=16384)
+    height_px: int = Field(gt=0, le=16384)
+    fx: float = Field(gt=0.0, allow_inf_nan=False)
+    fy: float = Field(gt=0.0, allow_inf_nan=False)
+    cx: float = Field(allow_inf_nan=False)
+    cy: float = Field(allow_inf_nan=False)
+    skew: float = Field(default=0.0, allow_inf_nan=False)
+    distortion: list[float] = Field(default_factory=lambda: [0.0] * 5)
+
+    @field_validator("distortion")
+    @classmethod
+    def _distortion_length(cls, v: list[float]) -> list[float]:
+        if len(v) not in VALID_DISTORTION_LENGTHS:
+            raise ValueError(f"must have one of {VALID_DISTORTION_LENGTHS} coefficients (OpenCV order), got {len(v)}")
+        if not all(np.isfinite(v)):
+            raise ValueError(f"coefficients must be finite, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _principal_point_in_image(self) -> "CameraIntrinsics":
+        if not (0.0 <= self.cx <= self.width_px and 0.0 <= self.cy <= self.height_px):
+            raise ValueError(
+                f"principal point ({self.cx}, {self.cy}) lies outside the {self.width_px}x{self.height_px} image"
+            )
+        return self
+
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def camera_model(self) -> CameraModel:
+        return CameraModel(self.K(), np.array(self.distortion), self.width_px, self.height_px)
+
+
+class RigidTransform(_Strict):
+    """A rigid transform: translation plus exactly one rotation form."""
+
+    xyz_m: tuple[float, float, float]
+    rpy_deg: Optional[tuple[float, float, float]] = None
+    quaternion_xyzw: Optional[tuple[float, float, float, float]] = None
+    rotation_matrix: Optional[tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]] = None
+
+    @field_validator("xyz_m")
+    @classmethod
+    def _finite_translation(cls, v):
+        if not all(np.isfinite(v)):
+            raise ValueError(f"translation must be finite, got {v}")
+        if max(abs(x) for x in v) > 100.0:
+            raise ValueError(f"translation {v} is implausibly large (> 100 m)")
+        return v
+
+    @model_validator(mode="after")
+    def _one_valid_rotation(self) -> "RigidTransform":
+        given = [k for k in ("rpy_deg", "quaternion_xyzw", "rotation_matrix") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"give exactly one of rpy_deg, quaternion_xyzw, rotation_matrix (got {given or 'none'})")
+        if self.rpy_deg is not None and not all(np.isfinite(self.rpy_deg)):
+            raise ValueError(f"rpy_deg must be finite, got {self.rpy_deg}")
+        if self.quaternion_xyzw is not None:
+            q = np.array(self.quaternion_xyzw)
+            if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+                raise ValueError(f"quaternion_xyzw must have unit norm (got norm {np.linalg.norm(q):.6g})")
+        if self.rotation_matrix is not None:
+            R = np.array(self.rotation_matrix)
+            if not np.all(np.isfinite(R)):
+                raise ValueError("rotation_matrix must be finite")
+            err = np.abs(R @ R.T - np.eye(3)).max()
+            if err > 1e-4:
+                raise ValueError(f"rotation_matrix is not orthonormal (max |R R^T - I| = {err:.3g})")
+            if np.linalg.det(R) < 0:
+                raise ValueError("rotation_matrix has determinant -1 (a reflection, not a rotation)")
+        return self
+
+    def rotation(self) -> np.ndarray:
+        if self.rpy_deg is not None:
+            return Rotation.from_euler("xyz", self.rpy_deg, degrees=True).as_matrix()
+        if self.quaternion_xyzw is not None:
+            return Rotation.from_quat(self.quaternion_xyzw).as_matrix()
+        return np.array(self.rotation_matrix, dtype=float)
+
+    def matrix(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.rotation()
+        T[:3, 3] = self.xyz_m
+        return T
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray) -> "RigidTransform":
+        T = np.asarray(T, dtype=float)
+        rot = Rotation.from_matrix(T[:3, :3])
+        xyz = tuple(float(x) for x in T[:3, 3])
+        if abs(np.degrees(np.arcsin(np.clip(-T[2, 0], -1.0, 1.0)))) > 85.0:  # near gimbal lock
+            return cls(xyz_m=xyz, quaternion_xyzw=tuple(float(q) for q in rot.as_quat()))
+        rpy = rot.as_euler("xyz", degrees=True)
+        return cls(xyz_m=xyz, rpy_deg=tuple(float(a) for a in rpy))
+
+
+class Provenance(_Strict):
+    date: _dt.datetime
+    method: str = Field(min_length=1)
+    intrinsics_rms_px: Optional[float] = Field(default=None, ge=0.0, allow_inf_nan=False)
+    per_image_rms_px: Optional[dict[str, float]] = None
+    extrinsic_rms_m: Optional[float] = Field(default=None, ge=0.0, allow_inf_nan=False)
+    n_images: Optional[int] = Field(default=None, ge=0)
+    n_board_poses: Optional[int] = Field(default=None, ge=0)
+    notes: Optional[str] = None
+
+
+class CalibrationFile(_Strict):
+    robot: str = Field(min_length=1)
+    camera: CameraIntrinsics
+    lidar_to_camera: Optional[RigidTransform] = None
+    provenance: Provenance
+
+    def camera_model(self) -> CameraModel:
+        return self.camera.camera_model()
+
+    def T_cam_lidar(self) -> np.ndarray:
+        """4x4 T_camera<-lidar; ConfigFileError if the file has no extrinsic yet."""
+        if self.lidar_to_camera is None:
+            raise ConfigFileError(f"calibration for robot '{self.robot}' has no lidar_to_camera extrinsic yet")
+        return self.lidar_to_camera.matrix()
+
+
+def load_calibration(path: str | Path) -> CalibrationFile:
+    """Load and validate a calibration file; any problem raises ConfigFileError."""
+    return load_yaml_model(Path(path), CalibrationFile, what="calibration file")
+
+
+def save_calibration(cal: CalibrationFile, path: str | Path) -> None:
+    """Write a calibration file (validated again before writing)."""
+    data = cal.model_dump(mode="json", exclude_none=True)
+    try:
+        CalibrationFile.model_validate(data)
+    except ValidationError as exc:  # pragma: no cover - model was already valid
+        raise ConfigFileError(f"calibration is invalid:\n{format_validation_error(exc)}") from exc
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+
+
+def make_calibration(
+    robot: str,
+    K: np.ndarray,
+    dist: np.ndarray,
+    width_px: int,
+    height_px: int,
+    T_cam_lidar: np.ndarray | None,
+    method: str,
+    **provenance,
+) -> CalibrationFile:
+    """Build a validated CalibrationFile from arrays (ConfigFileError on bad values)."""
+    K = np.asarray(K, dtype=float)
+    try:
+        return CalibrationFile(
+            robot=robot,
+            camera=CameraIntrinsics(
+                width_px=width_px, height_px=height_px, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2],
+                skew=K[0, 1], distortion=[float(x) for x in np.ravel(dist)],
+            ),
+            lidar_to_camera=None if T_cam_lidar is None else RigidTransform.from_matrix(T_cam_lidar),
+            provenance=Provenance(date=_dt.datetime.now().replace(microsecond=0), method=method, **provenance),
+        )
+    except ValidationError as exc:
+        raise ConfigFileError(f"calibration is invalid:\n{format_validation_error(exc)}") from exc
+
+
+def calibration_from_opencalib(
+    intrinsic_json: str | Path, extrinsic_json: str | Path, width_px: int, height_px: int, robot: str = "opencalib"
+) -> CalibrationFile:
+    """Import OpenCalib (SensorsCalibration) camera-intrinsic and lidar-to-camera extrinsic JSON files.
+
+    The image size is passed explicitly: OpenCalib's img_dist_w/h may not match the image.
+    """
+    import json
+
+    def _param(path: Path) -> dict:
+        try:
+            doc = json.loads(Path(path).read_text(encoding="utf-8"))
+            (entry,) = doc.values()
+            return entry["param"]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise ConfigFileError(f"OpenCalib file {path}: cannot read ({exc})") from exc
+
+    try:
+        p_in = _param(Path(intrinsic_json))
+        K = np.array(p_in["cam_K"]["data"], dtype=float)
+        dist = np.array(p_in["cam_dist"]["data"], dtype=float).ravel()
+        T = np.array(_param(Path(extrinsic_json))["sensor_calib"]["data"], dtype=float)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigFileError(f"OpenCalib files {intrinsic_json}, {extrinsic_json}: missing or bad field ({exc})") from exc
+    if K.shape != (3, 3) or T.shape != (4, 4):
+        raise ConfigFileError(f"OpenCalib: cam_K must be 3x3 and sensor_calib 4x4, got {K.shape}, {T.shape}")
+    # Re-orthonormalize the 6-digit rotation before storing it as rpy.
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    if np.abs(T[:3, :3] - U @ Vt).max() > 1e-3:
+        raise ConfigFileError("OpenCalib: sensor_calib rotation is not orthonormal")
+    T = T.copy()
+    T[:3, :3] = U @ Vt
+    return make_calibration(robot, K, dist, width_px, height_px, T, method="imported from OpenCalib JSON")
+
+
+__all__ = ["CalibrationFile", "CameraIntrinsics", "RigidTransform", "Provenance", "load_calibration",
+           "save_calibration", "make_calibration", "calibration_from_opencalib", "ConfigFileError"]

@@ -1,0 +1,389 @@
+"""Point-cloud files: PCD (ascii, binary, binary_compressed) and PLY (ascii, binary LE/BE).
+
+`load_point_cloud(path)` returns a `PointCloud` (named per-point fields plus an (N,3) `xyz`).
+Any malformed file raises `PointCloudFormatError` naming the file and what is wrong; nothing
+else escapes the parsers (they are fuzzed with arbitrary bytes in the tests).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+MAX_POINTS = 50_000_000  # a larger header claim is treated as corrupt, not allocated
+
+
+class PointCloudFormatError(ValueError):
+    """A point-cloud file is malformed, truncated or uses an unsupported feature."""
+
+
+@dataclass
+class PointCloud:
+    """Per-point fields by name (each (N,) or (N, count)); `xyz` is (N,3) float64."""
+
+    fields: dict[str, np.ndarray]
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return np.stack([self.fields[k] for k in ("x", "y", "z")], axis=1).astype(np.float64)
+
+    def __len__(self) -> int:
+        return len(self.fields["x"])
+
+
+# ---------------------------------------------------------------------------- helpers
+def _fail(where: str, msg: str) -> PointCloudFormatError:
+    return PointCloudFormatError(f"{where}: {msg}")
+
+
+def _check_xyz(fields: dict[str, np.ndarray], where: str) -> PointCloud:
+    missing = [k for k in ("x", "y", "z") if k not in fields]
+    if missing:
+        raise _fail(where, f"no {'/'.join(missing)} field (fields: {list(fields)})")
+    for k in ("x", "y", "z"):
+        if fields[k].ndim != 1:
+            raise _fail(where, f"field {k} must have count 1")
+    return PointCloud(fields)
+
+
+def _read_header_lines(data: bytes, where: str, end_keyword: bytes, max_lines: int = 200) -> tuple[list[str], int]:
+    """Split header lines up to and including the line starting with end_keyword."""
+    lines: list[str] = []
+    pos = 0
+    for _ in range(max_lines):
+        nl = data.find(b"\n", pos)
+        if nl < 0:
+            raise _fail(where, f"header ends before the '{end_keyword.decode()}' line")
+        raw = data[pos:nl].rstrip(b"\r")
+        pos = nl + 1
+        try:
+            line = raw.decode("ascii").strip()
+        except UnicodeDecodeError:
+            raise _fail(where, f"header line {len(lines) + 1} is not ASCII text") from None
+        lines.append(line)
+        if line.split(" ", 1)[0] == end_keyword.decode():
+            return lines, pos
+    raise _fail(where, f"no '{end_keyword.decode()}' line in the first {max_lines} header lines")
+
+
+def _parse_int(text: str, where: str, what: str, lo: int = 0, hi: int = MAX_POINTS) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise _fail(where, f"{what} is not an integer: {text!r}") from None
+    if not lo <= v <= hi:
+        raise _fail(where, f"{what} = {v} is out of range [{lo}, {hi}]")
+    return v
+
+
+def _ascii_table(body: bytes, n_rows: int, n_cols: int, where: str) -> np.ndarray:
+    try:
+        text = body.decode("ascii")
+    except UnicodeDecodeError:
+        raise _fail(where, "ascii data section contains non-ASCII bytes") from None
+    rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if len(rows) < n_rows:
+        raise _fail(where, f"ascii data has {len(rows)} rows, header says {n_rows}")
+    rows = rows[:n_rows]
+    for i, r in enumerate(rows):
+        if len(r) != n_cols:
+            raise _fail(where, f"ascii data row {i} has {len(r)} values, expected {n_cols}")
+    try:
+        return np.array(rows, dtype=np.float64).reshape(n_rows, n_cols)
+    except ValueError as exc:
+        raise _fail(where, f"ascii data has a value that is not a number ({exc})") from None
+
+
+# ---------------------------------------------------------------------------- PCD
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4",
+              ("I", 8): "i8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
+
+
+def lzf_decompress(src: bytes, out_len: int) -> bytes:
+    """Decompress LibLZF data (used by PCD binary_compressed); errors raise PointCloudFormatError."""
+    out = bytearray(out_len)
+    ip = op = 0
+    n = len(src)
+    while ip < n:
+        ctrl = src[ip]
+        ip += 1
+        if ctrl < 32:  # literal run of ctrl + 1 bytes
+            length = ctrl + 1
+            if ip + length > n or op + length > out_len:
+                raise PointCloudFormatError("LZF: literal run past the end of the data")
+            out[op:op + length] = src[ip:ip + length]
+            ip += length
+            op += length
+        else:  # back reference
+            length = ctrl >> 5
+            if length == 7:
+                if ip >= n:
+                    raise PointCloudFormatError("LZF: truncated back reference")
+                length += src[ip]
+                ip += 1
+            if ip >= n:
+                raise PointCloudFormatError("LZF: truncated back reference")
+            ref = op - ((ctrl & 0x1F) << 8) - src[ip] - 1
+            ip += 1
+            length += 2
+            if ref < 0 or op + length > out_len:
+                raise PointCloudFormatError("LZF: back reference outside the output")
+            for _ in range(length):  # may overlap: copy byte by byte
+                out[op] = out[ref]
+                op += 1
+                ref += 1
+    if op != out_len:
+        raise PointCloudFormatError(f"LZF: decompressed {op} bytes, expected {out_len}")
+    return bytes(out)
+
+
+def lzf_store(data: bytes) -> bytes:
+    """A valid LZF stream holding `data` as literal runs only (no compression; for writing)."""
+    out = bytearray()
+    for i in range(0, len(data), 32):
+        chunk = data[i:i + 32]
+        out.append(len(chunk) - 1)
+        out += chunk
+    return bytes(out)
+
+
+def parse_pcd(data: bytes, where: str = "<pcd>") -> PointCloud:
+    """Parse PCD bytes (v0.6/v0.7; DATA ascii, binary or binary_compressed)."""
+    lines, pos = _read_header_lines(data, where, b"DATA")
+    hdr: dict[str, list[str]] = {}
+    for line in lines:
+        if not line or line.startswith("#"):
+            continue
+        key, *vals = line.split()
+        hdr[key.upper()] = vals
+    for key in ("FIELDS", "SIZE", "TYPE", "DATA"):
+        if key not in hdr:
+            raise _fail(where, f"header has no {key} line")
+    names = hdr["FIELDS"]
+    n_f = len(names)
+    if n_f == 0 or len(set(names)) != n_f:
+        raise _fail(where, f"FIELDS must list distinct names, got {names}")
+    sizes = [_parse_int(s, where, "SIZE", 1, 8) for s in hdr["SIZE"]]
+    types = [t.upper() for t in hdr["TYPE"]]
+    counts = [_parse_int(c, where, "COUNT", 1, 1024) for c in hdr.get("COUNT", ["1"] * n_f)]
+    if not (len(sizes) == len(types) == len(counts) == n_f):
+        raise _fail(where, f"FIELDS ({n_f}), SIZE ({len(sizes)}), TYPE ({len(types)}) and COUNT "
+                           f"({len(counts)}) must have the same length")
+    dtypes = []
+    for name, t, s in zip(names, types, sizes):
+        if (t, s) not in _PCD_TYPES:
+            raise _fail(where, f"field {name}: unsupported TYPE {t} with SIZE {s}")
+        dtypes.append(_PCD_TYPES[(t, s)])
+    if "POINTS" in hdr and hdr["POINTS"]:
+        n = _parse_int(hdr["POINTS"][0], where, "POINTS")
+    elif "WIDTH" in hdr and "HEIGHT" in hdr and hdr["WIDTH"] and hdr["HEIGHT"]:
+        n = _parse_int(hdr["WIDTH"][0], where, "WIDTH") * _parse_int(hdr["HEIGHT"][0], where, "HEIGHT")
+    else:
+        raise _fail(where, "header has neither POINTS nor WIDTH/HEIGHT")
+    if n > MAX_POINTS:
+        raise _fail(where, f"{n} points is more than the supported {MAX_POINTS}")
+    if "WIDTH" in hdr and "HEIGHT" in hdr and hdr["WIDTH"] and hdr["HEIGHT"]:
+        w = _parse_int(hdr["WIDTH"][0], where, "WIDTH")
+        h = _parse_int(hdr["HEIGHT"][0], where, "HEIGHT")
+        if w * h != n:
+            raise _fail(where, f"WIDTH*HEIGHT = {w * h} does not match POINTS = {n}")
+    mode = hdr["DATA"][0].lower() if hdr["DATA"] else ""
+    body = data[pos:]
+    fields: dict[str, np.ndarray] = {}
+    if mode == "ascii":
+        table = _ascii_table(body, n, sum(counts), where)
+        col = 0
+        for name, dt, c in zip(names, dtypes, counts):
+            vals = table[:, col:col + c]
+            col += c
+            if dt.startswith(("i", "u")):
+                if not np.all(np.isfinite(vals)) or np.any(vals != np.round(vals)):
+                    raise _fail(where, f"field {name} is an integer field but has non-integer values")
+                info = np.iinfo(np.dtype(dt))
+                if np.any(vals < info.min) or np.any(vals > info.max):
+                    raise _fail(where, f"field {name}: value out of range for {dt}")
+            arr = vals.astype(dt)
+            fields[name] = arr[:, 0] if c == 1 else arr
+    elif mode == "binary":
+        dtype = np.dtype([(nm, "<" + dt, (c,) if c > 1 else ()) for nm, dt, c in zip(names, dtypes, counts)])
+        need = n * dtype.itemsize
+        if len(body) < need:
+            raise _fail(where, f"binary data has {len(body)} bytes, {n} points need {need}")
+        rec = np.frombuffer(body, dtype=dtype, count=n)
+        fields = {nm: np.ascontiguousarray(rec[nm]) for nm in names}
+    elif mode == "binary_compressed":
+        if len(body) < 8:
+            raise _fail(where, "binary_compressed data is shorter than its 8-byte size header")
+        comp_size, raw_size = np.frombuffer(body[:8], dtype="<u4")
+        comp_size, raw_size = int(comp_size), int(raw_size)
+        item_sizes = [s * c for s, c in zip(sizes, counts)]
+        if raw_size != n * sum(item_sizes):
+            raise _fail(where, f"binary_compressed: uncompressed size {raw_size} does not match "
+                               f"{n} points x {sum(item_sizes)} bytes")
+        if comp_size > len(body) - 8:
+            raise _fail(where, f"binary_compressed: {comp_size} compressed bytes announced, "
+                               f"{len(body) - 8} present")
+        try:
+            raw = lzf_decompress(body[8:8 + comp_size], raw_size)
+        except PointCloudFormatError as exc:
+            raise _fail(where, f"binary_compressed: {exc}") from None
+        off = 0  # column-major: all values of field 0, then field 1, ...
+        for name, dt, c, isz in zip(names, dtypes, counts, item_sizes):
+            arr = np.frombuffer(raw, dtype="<" + dt, count=n * c, offset=off).reshape(n, c)
+            off += n * isz
+            fields[name] = arr[:, 0].copy() if c == 1 else arr.copy()
+    else:
+        raise _fail(where, f"unsupported DATA mode {mode!r} (ascii, binary, binary_compressed)")
+    return _check_xyz(fields, where)
+
+
+def write_pcd(path: str | Path, fields: dict[str, np.ndarray], mode: str = "binary") -> None:
+    """Write 1-D fields (float32/float64/int/uint) as PCD v0.7; mode ascii|binary|binary_compressed."""
+    names = list(fields)
+    arrays = [np.ascontiguousarray(fields[k]) for k in names]
+    n = len(arrays[0])
+    kinds = {"f": "F", "i": "I", "u": "U"}
+    header = [
+        "# .PCD v0.7 - Point Cloud Data file format", "VERSION 0.7",
+        "FIELDS " + " ".join(names),
+        "SIZE " + " ".join(str(a.dtype.itemsize) for a in arrays),
+        "TYPE " + " ".join(kinds[a.dtype.kind] for a in arrays),
+        "COUNT " + " ".join("1" for _ in arrays),
+        f"WIDTH {n}", "HEIGHT 1", "VIEWPOINT 0 0 0 1 0 0 0", f"POINTS {n}", f"DATA {mode}",
+    ]
+    head = ("\n".join(header) + "\n").encode("ascii")
+    if mode == "ascii":
+        body = "\n".join(" ".join(repr(a[i].item()) for a in arrays) for i in range(n)).encode() + b"\n"
+    elif mode == "binary":
+        dtype = np.dtype([(k, a.dtype.newbyteorder("<")) for k, a in zip(names, arrays)])
+        rec = np.empty(n, dtype=dtype)
+        for k, a in zip(names, arrays):
+            rec[k] = a
+        body = rec.tobytes()
+    elif mode == "binary_compressed":
+        raw = b"".join(a.astype(a.dtype.newbyteorder("<")).tobytes() for a in arrays)
+        comp = lzf_store(raw)
+        body = np.array([len(comp), len(raw)], dtype="<u4").tobytes() + comp
+    else:
+        raise ValueError(f"unknown PCD mode {mode!r}")
+    Path(path).write_bytes(head + body)
+
+
+# ---------------------------------------------------------------------------- PLY
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def parse_ply(data: bytes, where: str = "<ply>") -> PointCloud:
+    """Parse PLY bytes: the `vertex` element (scalar properties), which must come first."""
+    if not data.startswith(b"ply"):
+        raise _fail(where, "does not start with 'ply'")
+    lines, pos = _read_header_lines(data, where, b"end_header")
+    if lines[0] != "ply":
+        raise _fail(where, "first line must be exactly 'ply'")
+    fmt = None
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    for line in lines[1:-1]:
+        parts = line.split()
+        if not parts or parts[0] in ("comment", "obj_info"):
+            continue
+        if parts[0] == "format":
+            if len(parts) != 3 or parts[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
+                raise _fail(where, f"unsupported format line {line!r}")
+            fmt = parts[1]
+        elif parts[0] == "element":
+            if len(parts) != 3:
+                raise _fail(where, f"bad element line {line!r}")
+            elements.append((parts[1], _parse_int(parts[2], where, f"element {parts[1]} count"), []))
+        elif parts[0] == "property":
+            if not elements:
+                raise _fail(where, "property before any element")
+            if len(parts) >= 2 and parts[1] == "list":
+                elements[-1][2].append(("list", "list"))
+                continue
+            if len(parts) != 3 or parts[1] not in _PLY_TYPES:
+                raise _fail(where, f"bad property line {line!r}")
+            elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
+        else:
+            raise _fail(where, f"unknown header line {line!r}")
+    if fmt is None:
+        raise _fail(where, "header has no format line")
+    if not elements or elements[0][0] != "vertex":
+        raise _fail(where, "the first element must be 'vertex'")
+    _, n, props = elements[0]
+    if any(t == "list" for _, t in props):
+        raise _fail(where, "list properties in the vertex element are not supported")
+    names = [p for p, _ in props]
+    if len(set(names)) != len(names) or not names:
+        raise _fail(where, f"vertex properties must be distinct and non-empty, got {names}")
+    body = data[pos:]
+    if fmt == "ascii":
+        table = _ascii_table(body, n, len(props), where)
+        fields = {}
+        for i, (nm, dt) in enumerate(props):
+            vals = table[:, i]
+            if dt.startswith(("i", "u")):
+                if not np.all(np.isfinite(vals)) or np.any(vals != np.round(vals)):
+                    raise _fail(where, f"property {nm} is an integer but has non-integer values")
+                info = np.iinfo(np.dtype(dt))
+                if np.any(vals < info.min) or np.any(vals > info.max):
+                    raise _fail(where, f"property {nm}: value out of range for {dt}")
+            fields[nm] = vals.astype(dt)
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dtype = np.dtype([(nm, order + dt) for nm, dt in props])
+        need = n * dtype.itemsize
+        if len(body) < need:
+            raise _fail(where, f"binary vertex data has {len(body)} bytes, {n} vertices need {need}")
+        rec = np.frombuffer(body, dtype=dtype, count=n)
+        fields = {nm: rec[nm].astype(rec[nm].dtype.newbyteorder("=")) for nm in names}
+    return _check_xyz(fields, where)
+
+
+def write_ply(path: str | Path, fields: dict[str, np.ndarray], binary: bool = True) -> None:
+    """Write 1-D fields as a PLY vertex element (binary little-endian or ascii)."""
+    inv = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+           "f4": "float", "f8": "double"}
+    names = list(fields)
+    arrays = [np.ascontiguousarray(fields[k]) for k in names]
+    n = len(arrays[0])
+    header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0", f"element vertex {n}"]
+    header += [f"property {inv[a.dtype.str[1:]]} {k}" for k, a in zip(names, arrays)]
+    header.append("end_header")
+    head = ("\n".join(header) + "\n").encode("ascii")
+    if binary:
+        rec = np.empty(n, dtype=np.dtype([(k, a.dtype.newbyteorder("<")) for k, a in zip(names, arrays)]))
+        for k, a in zip(names, arrays):
+            rec[k] = a
+        body = rec.tobytes()
+    else:
+        body = "".join(" ".join(repr(a[i].item()) for a in arrays) + "\n" for i in range(n)).encode()
+    Path(path).write_bytes(head + body)
+
+
+# ---------------------------------------------------------------------------- entry point
+def load_point_cloud(path: str | Path) -> PointCloud:
+    """Load a .pcd or .ply file (chosen by its first bytes, else by its suffix)."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise PointCloudFormatError(f"{p}: cannot read file: {exc.strerror or exc}") from exc
+    return parse_point_cloud(data, where=str(p), suffix=p.suffix.lower())
+
+
+def parse_point_cloud(data: bytes, where: str = "<bytes>", suffix: str = "") -> PointCloud:
+    """Parse PLY or PCD bytes; every failure is a PointCloudFormatError."""
+    if data.startswith(b"ply"):
+        return parse_ply(data, where)
+    if suffix == ".pcd" or data.lstrip().startswith((b"#", b"VERSION", b"FIELDS")):
+        return parse_pcd(data, where)
+    if suffix == ".ply":
+        return parse_ply(data, where)
+    raise _fail(where, "neither a PLY nor a PCD file (unknown header)")
+
+
+__all__ = ["PointCloud", "PointCloudFormatError", "load_point_cloud", "parse_point_cloud", "parse_pcd",
+           "parse_ply", "write_pcd", "write_ply", "lzf_decompress", "lzf_store"]

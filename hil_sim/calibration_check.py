@@ -1,0 +1,350 @@
+"""HIL self-check of the calibration pipeline against the simulator's true values.
+
+A MuJoCo scene (built with mujoco.MjSpec) holds the LIMO camera and lidar at their mounts from
+the robot description, and a checkerboard made of thin black/white boxes on a mocap body. For
+15-25 board poses: render the camera image (mujoco.Renderer, shadows off), cast a dense ray grid
+from the lidar at the board (mujoco.mj_multiRay) with Gaussian range noise; then calibrate the
+intrinsics and the lidar-camera extrinsic with the project's calibration code and compare with
+the truth: K from the MuJoCo camera (fx = fy = (h/2)/tan(fovy/2), principal point at the image
+centre) and T_camera<-lidar from the mounts.
+
+Pixel convention: OpenCV puts pixel centres at integer coordinates, so the image centre is
+((w-1)/2, (h-1)/2). `measure_pixel_offset` checks this empirically by rendering small spheres at
+known 3-D points and comparing their rendered centroids with the true-K projection.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import click
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calibration.robot_description import RobotDescription, load_robot_description
+
+BOARD_PATTERN = (9, 6)  # inner corners
+BOARD_SQUARE_M = 0.05
+BOARD_BORDER_M = 0.04
+BOARD_THICKNESS_M = 0.005
+RANGE_NOISE_STD_M = 0.02
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
+
+
+# Rotation from the optical frame (x right, y down, z forward) to MuJoCo's camera frame
+# (x right, y up, looking along -z): a half turn about x.
+R_OPTICAL_TO_MJCAM = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass
+class CalibrationScene:
+    """The compiled MuJoCo scene and the true calibration values."""
+
+    model: object
+    data: object
+    K_true: np.ndarray
+    T_cam_lidar_true: np.ndarray
+    T_base_cam: np.ndarray
+    T_base_lidar: np.ndarray
+    width_px: int
+    height_px: int
+    fovy_deg: float
+
+
+def build_scene(desc: RobotDescription) -> CalibrationScene:
+    """MjSpec scene: camera + lidar site at the description's mounts, a checkerboard and a probe sphere."""
+    import mujoco
+
+    cam_desc = desc.sensors.camera
+    w, h = cam_desc.width_px, cam_desc.height_px
+    fx = cam_desc.nominal_intrinsics()[0, 0]
+    fovy_deg = float(np.degrees(2 * np.arctan((h / 2) / fx)))
+
+    spec = mujoco.MjSpec()
+    spec.modelname = "calibration_check"
+    spec.visual.global_.offwidth = max(w, 640)
+    spec.visual.global_.offheight = max(h, 480)
+    # Flat, shadow-free lighting: the board's colours come out as their rgba.
+    spec.visual.headlight.ambient = [1.0, 1.0, 1.0]
+    spec.visual.headlight.diffuse = [0.0, 0.0, 0.0]
+    spec.visual.headlight.specular = [0.0, 0.0, 0.0]
+    spec.stat.extent = 3.0  # sets the clip planes for a scene a few metres across
+
+    T_base_cam = cam_desc.mount.transform()
+    T_base_lidar = desc.sensors.lidar.mount.transform()
+    spec.worldbody.add_camera(
+        name="camera", pos=T_base_cam[:3, 3], quat=_quat_wxyz(T_base_cam[:3, :3] @ R_OPTICAL_TO_MJCAM), fovy=fovy_deg
+    )
+    spec.worldbody.add_site(name="lidar", pos=T_base_lidar[:3, 3], quat=_quat_wxyz(T_base_lidar[:3, :3]))
+
+    # Board frame = OpenCV corner frame: origin at the first inner corner, z into the board,
+    # front face at z = 0. Squares (cols+1) x (rows+1) plus a white border, all one flat layer.
+    board = spec.worldbody.add_body(name="board", mocap=True, pos=[0, 0, -50])
+    cols, rows = BOARD_PATTERN
+    sq, half_t = BOARD_SQUARE_M, BOARD_THICKNESS_M / 2
+    black, white = [0.05, 0.05, 0.05, 1.0], [0.95, 0.95, 0.95, 1.0]
+    for i in range(cols + 1):
+        for j in range(rows + 1):
+            board.add_geom(
+                type=mujoco.mjtGeom.mjGEOM_BOX, size=[sq / 2, sq / 2, half_t],
+                pos=[(i - 0.5) * sq, (j - 0.5) * sq, half_t], rgba=black if (i + j) % 2 == 0 else white,
+            )
+    x0, x1 = -sq - BOARD_BORDER_M, cols * sq + BOARD_BORDER_M
+    y0, y1 = -sq - BOARD_BORDER_M, rows * sq + BOARD_BORDER_M
+    b = BOARD_BORDER_M
+    for cx, cy, sx, sy in [
+        ((x0 + x1) / 2, y0 + b / 2, (x1 - x0) / 2, b / 2), ((x0 + x1) / 2, y1 - b / 2, (x1 - x0) / 2, b / 2),
+        (x0 + b / 2, (y0 + y1) / 2, b / 2, (y1 - y0) / 2 - b), (x1 - b / 2, (y0 + y1) / 2, b / 2, (y1 - y0) / 2 - b),
+    ]:
+        board.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[sx, sy, half_t], pos=[cx, cy, half_t], rgba=white)
+
+    probe = spec.worldbody.add_body(name="probe", mocap=True, pos=[0, 0, -60])
+    probe.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.01, 0, 0], rgba=[1, 1, 1, 1], group=3)
+
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    K_true = np.array([[fx, 0.0, (w - 1) / 2], [0.0, fx, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    T_cam_lidar = np.linalg.inv(T_base_cam) @ T_base_lidar
+    return CalibrationScene(model, data, K_true, T_cam_lidar, T_base_cam, T_base_lidar, w, h, fovy_deg)
+
+
+def _make_renderer(scene: CalibrationScene):
+    import mujoco
+
+    r = mujoco.Renderer(scene.model, height=scene.height_px, width=scene.width_px)
+    for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX):
+        r.scene.flags[flag] = 0
+    return r
+
+
+def _set_mocap(scene: CalibrationScene, body: str, T_world: np.ndarray) -> None:
+    import mujoco
+
+    mid = scene.model.body(body).mocapid[0]
+    scene.data.mocap_pos[mid] = T_world[:3, 3]
+    scene.data.mocap_quat[mid] = _quat_wxyz(T_world[:3, :3])
+    mujoco.mj_forward(scene.model, scene.data)
+
+
+def _render(scene: CalibrationScene, renderer) -> np.ndarray:
+    import mujoco
+
+    opt = mujoco.MjvOption()
+    opt.geomgroup[:] = 1
+    renderer.update_scene(scene.data, camera="camera", scene_option=opt)
+    return renderer.render()
+
+
+def measure_pixel_offset(scene: CalibrationScene, renderer=None) -> np.ndarray:
+    """Mean (du, dv) of rendered probe-sphere centroids minus their true-K projections (pixels)."""
+    renderer = renderer or _make_renderer(scene)
+    _set_mocap(scene, "board", _far())
+    offsets = []
+    for p_cam in ([0.0, 0.0, 1.0], [0.25, -0.15, 1.2], [-0.3, 0.2, 1.0], [0.4, 0.3, 1.5]):
+        T = np.eye(4)
+        T[:3, 3] = scene.T_base_cam[:3, :3] @ p_cam + scene.T_base_cam[:3, 3]
+        _set_mocap(scene, "probe", T)
+        img = _render(scene, renderer).astype(np.float64).mean(axis=2)
+        vv, uu = np.mgrid[0: img.shape[0], 0: img.shape[1]]
+        wgt = img / img.sum()
+        centroid = np.array([(wgt * uu).sum(), (wgt * vv).sum()])
+        proj = scene.K_true @ np.asarray(p_cam)
+        offsets.append(centroid - proj[:2] / proj[2])
+    _set_mocap(scene, "probe", _far())
+    return np.mean(offsets, axis=0)
+
+
+def _far() -> np.ndarray:
+    T = np.eye(4)
+    T[2, 3] = -50.0
+    return T
+
+
+def sample_board_poses(scene: CalibrationScene, n: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """T_camera<-board poses with the whole board in view, tilted in varied directions."""
+    from calibration.camera_model import CameraModel, transform_points
+
+    cam = CameraModel(scene.K_true, np.zeros(5), scene.width_px, scene.height_px)
+    cols, rows = BOARD_PATTERN
+    sq, b = BOARD_SQUARE_M, BOARD_BORDER_M
+    outline = np.array([[-sq - b, -sq - b, 0], [cols * sq + b, -sq - b, 0], [cols * sq + b, rows * sq + b, 0],
+                        [-sq - b, rows * sq + b, 0]])
+    centre = np.array([(cols - 1) / 2 * sq, (rows - 1) / 2 * sq, 0.0])
+    poses: list[np.ndarray] = []
+    while len(poses) < n:
+        k = len(poses)
+        # Alternate tilt directions so that the board normals span 3-D.
+        tilt = np.radians([rng.uniform(-35, 35), rng.uniform(-35, 35), rng.uniform(-20, 20)])
+        if k % 4 == 0:
+            tilt[0] = np.radians(rng.choice([-1, 1]) * rng.uniform(20, 35))
+        elif k % 4 == 1:
+            tilt[1] = np.radians(rng.choice([-1, 1]) * rng.uniform(20, 35))
+        R = Rotation.from_euler("xyz", tilt).as_matrix()
+        pos = np.array([rng.uniform(-0.35, 0.35), rng.uniform(-0.25, 0.25), rng.uniform(0.8, 1.7)])
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = pos - R @ centre
+        uv, valid = cam.project(transform_points(T, outline))
+        margin = 10
+        if valid.all() and uv[:, 0].min() > margin and uv[:, 1].min() > margin \
+                and uv[:, 0].max() < scene.width_px - margin and uv[:, 1].max() < scene.height_px - margin:
+            poses.append(T)
+    return poses
+
+
+def cast_lidar(scene: CalibrationScene, T_cam_board: np.ndarray, rng: np.random.Generator,
+               n_side: int = 120, noise_std_m: float = RANGE_NOISE_STD_M) -> np.ndarray:
+    """Dense ray grid from the lidar over the board's angular extent; (M,3) hits in the lidar frame."""
+    import mujoco
+
+    from calibration.camera_model import transform_points
+
+    cols, rows = BOARD_PATTERN
+    sq, b = BOARD_SQUARE_M, BOARD_BORDER_M
+    outline = np.array([[-sq - b, -sq - b, 0], [cols * sq + b, -sq - b, 0], [cols * sq + b, rows * sq + b, 0],
+                        [-sq - b, rows * sq + b, 0]])
+    T_lidar_board = np.linalg.inv(scene.T_cam_lidar_true) @ T_cam_board
+    corners = transform_points(T_lidar_board, outline)
+    az = np.arctan2(corners[:, 1], corners[:, 0])
+    el = np.arctan2(corners[:, 2], np.hypot(corners[:, 0], corners[:, 1]))
+    pad = np.radians(2.0)
+    A, E = np.meshgrid(np.linspace(az.min() - pad, az.max() + pad, n_side),
+                       np.linspace(el.min() - pad, el.max() + pad, n_side))
+    dirs = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1).reshape(-1, 3)
+    R_wl = scene.T_base_lidar[:3, :3]
+    vec = np.ascontiguousarray((dirs @ R_wl.T).ravel())
+    nray = len(dirs)
+    geomid = np.zeros(nray, dtype=np.int32)
+    dist = np.zeros(nray)
+    group = np.array([1, 1, 1, 0, 0, 0], dtype=np.uint8)  # the probe sphere (group 3) is invisible to the lidar
+    mujoco.mj_multiRay(scene.model, scene.data, scene.T_base_lidar[:3, 3].copy(), vec, group, 1, -1,
+                       geomid, dist, None, nray, 50.0)
+    hit = geomid >= 0
+    r = dist[hit] + rng.normal(0.0, noise_std_m, hit.sum())
+    return dirs[hit] * r[:, None]
+
+
+def run_hil_check(seed: int = 0, n_poses: int = 20, desc: RobotDescription | None = None,
+                  T_guess_error: tuple[float, float] = (0.05, 3.0)) -> dict:
+    """Render, ray-cast, calibrate and compare with the truth; returns the figures as a dict."""
+    from calibration.extrinsics import (BoardGeometry, BoardObservation, calibrate_lidar_camera, segment_board,
+                                        transform_error)
+    from calibration.intrinsics import board_pose_in_camera, calibrate_intrinsics, detect_board
+
+    desc = desc or load_robot_description()
+    rng = np.random.default_rng(seed)
+    scene = build_scene(desc)
+    renderer = _make_renderer(scene)
+    try:
+        pixel_offset = measure_pixel_offset(scene, renderer)
+        poses = sample_board_poses(scene, n_poses, rng)
+        images, scans = {}, {}
+        for k, T_cb in enumerate(poses):
+            _set_mocap(scene, "board", scene.T_base_cam @ T_cb)
+            name = f"pose_{k:02d}"
+            images[name] = _render(scene, renderer)[:, :, ::-1].copy()  # RGB -> BGR (OpenCV)
+            scans[name] = cast_lidar(scene, T_cb, rng)
+    finally:
+        renderer.close()
+
+    intr = calibrate_intrinsics(images, BOARD_PATTERN, BOARD_SQUARE_M)
+    K, dist = intr.K, intr.dist
+    board = BoardGeometry(BOARD_PATTERN, BOARD_SQUARE_M, BOARD_BORDER_M)
+    # A rough prior, as a user would take from the robot description: truth perturbed.
+    dt, dr = T_guess_error
+    T_guess = scene.T_cam_lidar_true.copy()
+    T_guess[:3, 3] += dt * rng.normal(size=3) / np.sqrt(3)
+    axis = rng.normal(size=3)
+    T_guess[:3, :3] = Rotation.from_rotvec(np.radians(dr) * axis / np.linalg.norm(axis)).as_matrix() @ T_guess[:3, :3]
+    observations = []
+    for name in intr.per_image_rms_px:
+        det = detect_board(images[name], BOARD_PATTERN)
+        T_cb, _ = board_pose_in_camera(det.corners_px, BOARD_PATTERN, BOARD_SQUARE_M, K, dist)
+        pts = segment_board(scans[name], board, T_cb, T_guess)
+        observations.append(BoardObservation(T_cb, pts, name))
+    ext = calibrate_lidar_camera(observations, board)
+    t_err, r_err = transform_error(ext.T_cam_lidar, scene.T_cam_lidar_true)
+    K_true = scene.K_true
+    result = {
+        "seed": seed,
+        "n_poses": n_poses,
+        "n_images_used": len(intr.per_image_rms_px),
+        "rejected": intr.rejected,
+        "intrinsics_rms_px": intr.rms_px,
+        "fx_rel_err": abs(K[0, 0] - K_true[0, 0]) / K_true[0, 0],
+        "fy_rel_err": abs(K[1, 1] - K_true[1, 1]) / K_true[1, 1],
+        "cx_err_px": abs(K[0, 2] - K_true[0, 2]),
+        "cy_err_px": abs(K[1, 2] - K_true[1, 2]),
+        "extrinsic_trans_err_m": t_err,
+        "extrinsic_rot_err_deg": r_err,
+        "extrinsic_rms_point_to_plane_m": ext.rms_point_to_plane_m,
+        "lidar_points_on_board": ext.n_points,
+        "range_noise_std_m": RANGE_NOISE_STD_M,
+        "render_pixel_offset_px": pixel_offset.tolist(),
+        "K_true": K_true.tolist(),
+        "K_est": K.tolist(),
+        "dist_est": dist.tolist(),
+        "T_cam_lidar_true": scene.T_cam_lidar_true.tolist(),
+        "T_cam_lidar_est": ext.T_cam_lidar.tolist(),
+    }
+    result["passed"] = bool(
+        result["fx_rel_err"] < 0.01 and result["fy_rel_err"] < 0.01 and result["cx_err_px"] < 2.0
+        and result["cy_err_px"] < 2.0 and t_err < 0.01 and r_err < 0.5
+    )
+    return result
+
+
+def write_board_views(folder: str | Path, seed: int = 0, n_poses: int = 20,
+                      desc: RobotDescription | None = None) -> dict:
+    """Write NAME.png + NAME.pcd (binary, lidar frame) board views to `folder`, as a real capture would.
+
+    Returns the truth: {"K": 3x3, "T_cam_lidar": 4x4, "pattern": (cols, rows), "square_m", "border_m"}.
+    The folder can be fed to `dct calibrate intrinsics` / `dct calibrate extrinsics`.
+    """
+    import cv2
+
+    from calibration.pointcloud_io import write_pcd
+
+    desc = desc or load_robot_description()
+    rng = np.random.default_rng(seed)
+    scene = build_scene(desc)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    renderer = _make_renderer(scene)
+    try:
+        for k, T_cb in enumerate(sample_board_poses(scene, n_poses, rng)):
+            _set_mocap(scene, "board", scene.T_base_cam @ T_cb)
+            cv2.imwrite(str(folder / f"pose_{k:02d}.png"), _render(scene, renderer)[:, :, ::-1])
+            pts = cast_lidar(scene, T_cb, rng).astype(np.float32)
+            write_pcd(folder / f"pose_{k:02d}.pcd", {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, "binary")
+    finally:
+        renderer.close()
+    return {"K": scene.K_true, "T_cam_lidar": scene.T_cam_lidar_true, "pattern": BOARD_PATTERN,
+            "square_m": BOARD_SQUARE_M, "border_m": BOARD_BORDER_M}
+
+
+@click.command(name="hil-check")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="write the figures to this JSON file")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--poses", "n_poses", type=click.IntRange(5, 60), default=20, show_default=True)
+def hil_check_command(json_path: Path | None, seed: int, n_poses: int) -> None:
+    """Calibrate from simulated checkerboard views and compare with the simulator's true values."""
+    result = run_hil_check(seed=seed, n_poses=n_poses)
+    keys = ["fx_rel_err", "fy_rel_err", "cx_err_px", "cy_err_px", "extrinsic_trans_err_m", "extrinsic_rot_err_deg",
+            "intrinsics_rms_px", "n_images_used", "lidar_points_on_board"]
+    for k in keys:
+        click.echo(f"{k:28s} {result[k]:.6g}" if isinstance(result[k], float) else f"{k:28s} {result[k]}")
+    click.echo(f"{'passed':28s} {result['passed']}")
+    if json_path is not None:
+        json_path.write_text(json.dumps(result, indent=2))
+    if not result["passed"]:
+        raise SystemExit(1)
+
+
+__all__ = ["hil_check_command", "run_hil_check", "build_scene", "measure_pixel_offset", "write_board_views"]
