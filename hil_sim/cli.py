@@ -29,7 +29,14 @@ def list_command() -> None:
 @click.option("--seed", default=0, show_default=True, help="Seed for every random source (deterministic).")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Controller config YAML.")
 @click.option("--robot", "robot_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Robot description YAML.")
-def run_command(scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None) -> None:
+@click.option(
+    "--planner",
+    type=click.Choice(["pure-pursuit", "all-fixed"]),
+    help="Override the config's planner mode (all-fixed: MPC with every lidar point fixed, the NeuPAN-like baseline).",
+)
+def run_command(
+    scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None, planner: str | None
+) -> None:
     """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path)."""
     from calibration.errors import ConfigFileError
     from calibration.robot_description import load_robot_description
@@ -41,6 +48,8 @@ def run_command(scenario: str, json_path: Path | None, seed: int, config_path: P
         sc = load_scenario(scenario)
         robot = load_robot_description(robot_path)
         config = load_controller_config(config_path)
+        if planner is not None:
+            config = config.with_planner_mode(planner)
     except ConfigFileError as exc:
         raise click.ClickException(str(exc)) from exc
     result = run_episode(sc, robot=robot, config=config, seed=seed)

@@ -26,6 +26,7 @@ from runtime.controller import ControllerState, NavigationController
 from runtime.geometry import Pose2D
 from runtime.hardware import AgileXBaseHardware
 from runtime.loop import FixedRateLoop
+from runtime.sensor_inbox import SensorInbox
 from runtime.telemetry import TickTelemetry
 
 
@@ -57,16 +58,21 @@ class LockstepSimulation:
         return self.world.time_s
 
     def step(self) -> None:
+        """One physics step, then every device with the time *before* the step.
+
+        mj_step computes kinematics and sensors of the state at the start of the step and then
+        integrates, so after it the poses and sensordata in `data` belong to that earlier time.
+        """
         world = self.world
-        torques = self.firmware.step(world.time_s, world.wheel_speeds_radps(), world.wheel_angles_rad())
+        t_before = world.time_s
+        torques = self.firmware.step(t_before, world.wheel_speeds_radps(), world.wheel_angles_rad())
         world.set_wheel_torques(torques)
         world.step()
         self.steps += 1
         if self.metrics is not None:
             self.metrics.update(world)
-        t = world.time_s
         for device in self.devices:
-            device.step(t)
+            device.step(t_before)
 
     def advance_to(self, t_s: float) -> None:
         while self.world.time_s < t_s - self._half_step:
@@ -123,8 +129,13 @@ def run_episode(
     seed: int = 0,
     settle_s: float = 0.5,
     progress: Callable[[float], None] | None = None,
+    sensors: "SensorRigConfig | None | bool" = None,
 ) -> EpisodeResult:
-    """Run one lockstep episode of the navigation controller in a scenario."""
+    """Run one lockstep episode of the navigation controller in a scenario.
+
+    sensors: a SensorRigConfig, True for the default rig, False for none; None picks what the
+    controller needs (lidar + IMU for the MPC, nothing for pure pursuit).
+    """
     if isinstance(scenario, str):
         scenario = load_scenario(scenario)
     robot = robot or load_robot_description()
@@ -135,12 +146,23 @@ def run_episode(
     metrics = EpisodeMetrics(world, scenario, seed)
     controller_bus, sim_bus = virtual_bus_pair()
     firmware = EmulatedBaseFirmware(sim_bus, robot)
-    sim = LockstepSimulation(world, firmware, metrics)
+    inbox = SensorInbox()
+    devices = []
+    if sensors is None:
+        sensors = config.uses_mpc
+    if sensors is not False:
+        from hil_sim.sensor_rig import SensorRig, SensorRigConfig
+
+        rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
+        devices.append(SensorRig(world, robot, inbox, rig_config))
+    sim = LockstepSimulation(world, firmware, metrics, devices)
     clock = LockstepClock(sim)
 
     driver = AgileXBaseDriver(controller_bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
     hardware = AgileXBaseHardware(driver)
-    controller = NavigationController(robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now)
+    controller = NavigationController(
+        robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now, sensors=inbox if devices else None
+    )
     telemetry = TickTelemetry()
     loop = FixedRateLoop(
         clock,
@@ -205,6 +227,8 @@ def run_episode(
             "firmware_frames_rejected": firmware.frames_rejected,
             "physics_steps": sim.steps,
             "timestep_s": world.timestep_s,
+            "sensor_errors": dict(inbox.error_counts),
+            "sensor_frames": dict(inbox.accepted),
         },
     )
 

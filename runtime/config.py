@@ -8,6 +8,9 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from calibration.errors import ConfigFileError, load_yaml_model
+from runtime.planning.mpc import MpcConfig
+from runtime.planning.reference_path import ReferencePathConfig
+from runtime.safety_supervisor import SafetySupervisorConfig
 from runtime.telemetry import STAGES
 
 
@@ -53,9 +56,39 @@ class PurePursuitConfig(_Strict):
     max_heading_error_for_full_speed_rad: float = Field(gt=0.0, le=3.2)
 
 
+class ObstaclePointsConfig(_Strict):
+    """Lidar scan -> obstacle points (runtime.obstacle_points)."""
+
+    ground_clearance_m: float = Field(default=0.04, ge=0.0, le=0.5)
+    overhead_margin_m: float = Field(default=0.10, ge=0.0, le=2.0)
+    max_range_m: float = Field(default=6.0, gt=0.2, le=100.0)
+    voxel_m: float = Field(default=0.04, ge=0.0, le=0.5)
+    max_scan_age_s: float = Field(default=0.3, gt=0.0, le=5.0, description="older P_fix -> hold zero command")
+
+
 class PlannerConfig(_Strict):
-    mode: Literal["pure-pursuit"]
+    #: pure-pursuit: the step-1 placeholder (straight line, no obstacles).
+    #: all-fixed: reference path + OSQP MPC with the distance net + safety supervisor on lidar
+    #: points, every point treated as P_fix (the NeuPAN-like baseline; the VLM partition of
+    #: roadmap step 5 adds the DCT mode next to it).
+    mode: Literal["pure-pursuit", "all-fixed"]
     pure_pursuit: PurePursuitConfig
+    distance_net_path: str | None = None  # None: the shipped artifact for the robot
+    obstacle_points: ObstaclePointsConfig = ObstaclePointsConfig()
+    mpc: MpcConfig = MpcConfig()
+    reference_path: ReferencePathConfig = ReferencePathConfig()
+    safety_supervisor: SafetySupervisorConfig = SafetySupervisorConfig()
+
+    @model_validator(mode="after")
+    def _consistent_horizon(self) -> "PlannerConfig":
+        if self.reference_path.horizon_steps != self.mpc.horizon_steps:
+            raise ValueError(
+                f"reference_path.horizon_steps ({self.reference_path.horizon_steps}) must equal "
+                f"mpc.horizon_steps ({self.mpc.horizon_steps})"
+            )
+        if abs(self.reference_path.step_s - self.mpc.step_s) > 1e-9:
+            raise ValueError(f"reference_path.step_s ({self.reference_path.step_s}) must equal mpc.step_s ({self.mpc.step_s})")
+        return self
 
 
 class ControllerConfig(_Strict):
@@ -63,6 +96,21 @@ class ControllerConfig(_Strict):
     safety_stop: SafetyStopConfig
     odometry: OdometryConfig
     planner: PlannerConfig
+
+    @model_validator(mode="after")
+    def _tick_matches_mpc(self) -> "ControllerConfig":
+        if abs(self.planner.mpc.tick_period_s - self.loop.period_s) > 1e-9:
+            raise ValueError(
+                f"planner.mpc.tick_period_s ({self.planner.mpc.tick_period_s}) must equal loop.period_s ({self.loop.period_s})"
+            )
+        return self
+
+    @property
+    def uses_mpc(self) -> bool:
+        return self.planner.mode != "pure-pursuit"
+
+    def with_planner_mode(self, mode: str) -> "ControllerConfig":
+        return self.model_copy(update={"planner": self.planner.model_copy(update={"mode": mode})})
 
 
 def load_controller_config(path: str | Path | None = None) -> ControllerConfig:
