@@ -61,6 +61,10 @@ class Drive(_Strict):
     track_m: float = Field(gt=0.0, lt=3.0)
     wheel_radius_m: float = Field(gt=0.005, lt=1.0)
     wheel_width_m: float = Field(gt=0.001, lt=1.0)
+    #: Skid-steer slip: the yaw rate the wheel speed difference implies (and what 0x111/0x221
+    #: carry as angular velocity) divided by the body's true yaw rate. 1.0 = an ideal
+    #: differential drive. Calibrate on the robot: command a spin, compare with the gyro.
+    skid_steer_yaw_factor: float = Field(default=1.0, ge=1.0, le=10.0)
 
 
 class Limits(_Strict):
@@ -125,6 +129,15 @@ class RobotDescription(_Strict):
     motors: Motors
     sensors: Sensors
     can: CanSettings
+
+    @property
+    def body_max_angular_speed_radps(self) -> float:
+        """The body yaw rate the base can reach (its 0x111 limit divided by the skid-steer factor)."""
+        return self.limits.max_angular_speed_radps / self.drive.skid_steer_yaw_factor
+
+    @property
+    def body_max_angular_accel_radps2(self) -> float:
+        return self.limits.max_angular_accel_radps2 / self.drive.skid_steer_yaw_factor
 
     @model_validator(mode="after")
     def _wheels_fit_the_footprint(self) -> "RobotDescription":

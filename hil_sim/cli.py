@@ -80,8 +80,15 @@ def bench_group() -> None:
 @click.option("--scenario", default="case1", show_default=True)
 @click.option("--seconds", default=10.0, show_default=True, help="Simulated seconds per run.")
 @click.option("--repeats", default=3, show_default=True)
-def sim_speed_command(scenario: str, seconds: float, repeats: int) -> None:
+@click.option("--sensors", is_flag=True, help="Sensors on (lidar 10 Hz, IMU 200 Hz, camera 2 Hz), robot driven by "
+              "constant 0x111 commands (no planner); also times the same loop without sensors.")
+def sim_speed_command(scenario: str, seconds: float, repeats: int, sensors: bool) -> None:
     """Lockstep speed as a multiple of real time, with the robot driving (controller in the loop)."""
+    if sensors:
+        from hil_sim.sim_bench import run_sensor_sim_speed_benchmark
+
+        run_sensor_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)
+        return
     from hil_sim.sim_bench import run_sim_speed_benchmark
 
     run_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)

@@ -159,7 +159,7 @@ def run_episode(
     clock = LockstepClock(sim)
 
     driver = AgileXBaseDriver(controller_bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
-    hardware = AgileXBaseHardware(driver)
+    hardware = AgileXBaseHardware(driver, robot.drive.skid_steer_yaw_factor)
     controller = NavigationController(
         robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now, sensors=inbox if devices else None
     )

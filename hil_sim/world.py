@@ -16,11 +16,16 @@ higher `priority`. Robot geoms carry a very low friction, so the wheel-floor coe
 from __future__ import annotations
 
 import math
+import os
 
-import mujoco
-import numpy as np
+os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported: no display here (ENVIRONMENT.md)
 
-from calibration.robot_description import RobotDescription
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from calibration.robot_description import RobotDescription  # noqa: E402
+from hil_sim.camera import add_camera_to_spec, ensure_offscreen_buffer
+from hil_sim.imu import add_imu_to_spec
 from hil_sim.scenario import FREE_BODY_CLASSES, Scenario
 
 #: Physics step. 1 ms: the firmware's discrete wheel-speed loop (run once per step) on the
@@ -35,6 +40,15 @@ FREE_BODY_GEOM_GROUP = 1
 ROBOT_GEOM_GROUP = 2
 #: The tyre spheres that carry the floor contact (hidden by default in renderers).
 TYRE_GEOM_GROUP = 3
+#: What the robot's own sensors must not see: its chassis and wheels (the LIMO camera and lidar
+#: mounts lie inside the chassis boxes, which are a coarse collision shape, not the real cover).
+ROBOT_OWN_GEOM_GROUPS: tuple[int, int] = (ROBOT_GEOM_GROUP, TYRE_GEOM_GROUP)
+#: mj_multiRay geomgroup flags for the robot's lidar: every group but the robot's own.
+LIDAR_GEOMGROUP: tuple[int, int, int, int, int, int] = tuple(  # type: ignore[assignment]
+    0 if g in ROBOT_OWN_GEOM_GROUPS else 1 for g in range(6))
+#: Names of the robot's sensors in the model.
+CAMERA_NAME = "camera"
+IMU_NAME = "imu"
 
 WHEEL_NAMES: tuple[str, str, str, str] = ("fr", "fl", "rl", "rr")
 #: Lateral side of each wheel: +1 left, -1 right (order FR, FL, RL, RR).
@@ -192,9 +206,22 @@ def _add_robot(spec: mujoco.MjSpec, scenario: Scenario, robot: RobotDescription)
         act.set_to_motor()
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
 
+    # Sensors: the camera (optical-frame mount) and the IMU site with gyro + accelerometer.
+    cam = robot.sensors.camera
+    add_camera_to_spec(base, cam.mount, cam, name=CAMERA_NAME)
+    ensure_offscreen_buffer(spec, cam.width_px, cam.height_px)
+    add_imu_to_spec(base, robot.sensors.imu.mount, spec=spec, name=IMU_NAME)
+
 
 class World:
-    """A compiled scenario: MuJoCo model and data plus the robot/obstacle accessors."""
+    """A compiled scenario: MuJoCo model and data plus the robot/obstacle accessors.
+
+    Sensors in the model: the camera `camera_name` on base_link (render it with
+    `camera_hidden_geom_groups` hidden: it sits inside the chassis box), the IMU's gyro and
+    accelerometer `imu_sensor_names`. The lidar is cast by hil_sim.lidar.SimLidar from
+    `lidar_mount` on base_link with `lidar_geomgroup` (robot groups excluded).
+    hil_sim.sensor_rig.SensorRig wires all three.
+    """
 
     def __init__(self, scenario: Scenario, robot: RobotDescription, seed: int = 0) -> None:
         self.scenario = scenario
@@ -237,6 +264,13 @@ class World:
             if self._class[name] in FREE_BODY_CLASSES:
                 self._obstacle_body[name] = int(m.geom_bodyid[gid])
         self.obstacle_classes: list[str] = [self._class[n] for n in self.obstacle_names]
+
+        self.camera_name: str = CAMERA_NAME
+        self.camera_id: int = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
+        self.camera_hidden_geom_groups: tuple[int, ...] = ROBOT_OWN_GEOM_GROUPS
+        self.imu_sensor_names: tuple[str, str] = (f"{IMU_NAME}_gyro", f"{IMU_NAME}_accel")
+        self.lidar_mount = robot.sensors.lidar.mount
+        self.lidar_geomgroup: tuple[int, int, int, int, int, int] = LIDAR_GEOMGROUP
 
         self.seed = seed
         self.reset(seed)
@@ -332,4 +366,8 @@ __all__ = [
     "FREE_BODY_GEOM_GROUP",
     "ROBOT_GEOM_GROUP",
     "TYRE_GEOM_GROUP",
+    "ROBOT_OWN_GEOM_GROUPS",
+    "LIDAR_GEOMGROUP",
+    "CAMERA_NAME",
+    "IMU_NAME",
 ]

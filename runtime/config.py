@@ -44,10 +44,6 @@ class SafetyStopConfig(_Strict):
     startup_timeout_s: float = Field(gt=0.0, le=30.0)
 
 
-class OdometryConfig(_Strict):
-    effective_track_factor: float = Field(ge=0.5, le=3.0)
-
-
 class PurePursuitConfig(_Strict):
     target_speed_mps: float = Field(gt=0.0, le=5.0)
     lookahead_m: float = Field(gt=0.05, le=5.0)
@@ -94,7 +90,6 @@ class PlannerConfig(_Strict):
 class ControllerConfig(_Strict):
     loop: LoopConfig
     safety_stop: SafetyStopConfig
-    odometry: OdometryConfig
     planner: PlannerConfig
 
     @model_validator(mode="after")

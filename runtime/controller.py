@@ -56,7 +56,7 @@ class NavigationController:
         self.clock = clock
         self.sensors = sensors
         self.state = ControllerState.INITIALIZING
-        self.odometry = WheelGyroOdometry(robot.drive.track_m, config.odometry.effective_track_factor)
+        self.odometry = WheelGyroOdometry(robot.drive.track_m, robot.drive.skid_steer_yaw_factor)
         self.mode = config.planner.mode
         # P_fix in the odom frame (every lidar point is fixed until the VPP partition lands).
         self.points_fix = np.zeros((0, 2))
@@ -70,13 +70,13 @@ class NavigationController:
             goal_tolerance_m=pp.goal_tolerance_m,
             slowdown_distance_m=pp.slowdown_distance_m,
             max_heading_error_for_full_speed_rad=pp.max_heading_error_for_full_speed_rad,
-            max_angular_speed_radps=robot.limits.max_angular_speed_radps,
+            max_angular_speed_radps=robot.body_max_angular_speed_radps,
         )
         self.limiter = CommandLimiter(
             robot.limits.max_linear_speed_mps,
-            robot.limits.max_angular_speed_radps,
+            robot.body_max_angular_speed_radps,
             robot.limits.max_linear_accel_mps2,
-            robot.limits.max_angular_accel_radps2,
+            robot.body_max_angular_accel_radps2,
         )
         self.safety_stop = SafetyStop(
             config.safety_stop.max_consecutive_deadline_misses, config.safety_stop.startup_timeout_s

@@ -65,8 +65,14 @@ class BaseHardware(Protocol):
 
 
 class AgileXBaseHardware:
-    def __init__(self, driver: AgileXBaseDriver) -> None:
+    """The controller works in body twists; the base's 0x111/0x221 angular velocity is the
+    wheel-level one, larger by the skid-steer yaw factor (robot description, drive section)."""
+
+    def __init__(self, driver: AgileXBaseDriver, skid_steer_yaw_factor: float = 1.0) -> None:
+        if not skid_steer_yaw_factor >= 1.0:
+            raise ValueError(f"skid_steer_yaw_factor must be >= 1, got {skid_steer_yaw_factor}")
         self.driver = driver
+        self.yaw_factor = float(skid_steer_yaw_factor)
         self.active = False
 
     def configure(self) -> None:
@@ -97,9 +103,9 @@ class AgileXBaseHardware:
             in_command_mode=mode == protocol.CONTROL_MODE_CAN,
             error_code=driver.error_code or 0,
             linear_mps=motion.linear_mps if motion is not None else 0.0,
-            angular_radps=motion.angular_radps if motion is not None else 0.0,
+            angular_radps=motion.angular_radps / self.yaw_factor if motion is not None else 0.0,
             odometry=(odom.left_wheel_m, odom.right_wheel_m) if odom is not None else None,
         )
 
     def write(self, v_mps: float, omega_radps: float) -> None:
-        self.driver.send_motion(v_mps, omega_radps)
+        self.driver.send_motion(v_mps, omega_radps * self.yaw_factor)

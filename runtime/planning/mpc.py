@@ -99,9 +99,9 @@ class MpcLimits(BaseModel):
         return cls(
             v_min_mps=-float(max_reverse_speed_mps),
             v_max_mps=lim.max_linear_speed_mps,
-            omega_max_radps=lim.max_angular_speed_radps,
+            omega_max_radps=robot.body_max_angular_speed_radps,  # body yaw rate, skid slip included
             accel_mps2=lim.max_linear_accel_mps2,
-            angular_accel_radps2=lim.max_angular_accel_radps2,
+            angular_accel_radps2=robot.body_max_angular_accel_radps2,
         )
 
 
