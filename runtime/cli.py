@@ -9,6 +9,7 @@ the robot never imports MuJoCo, and this module never imports hil_sim directly.
 """
 from __future__ import annotations
 
+import os
 import sys
 from importlib.metadata import entry_points
 
@@ -49,6 +50,10 @@ def dct() -> None:
 
 
 def main() -> None:
+    # Offscreen rendering for the simulator's camera: there is no display on a robot computer
+    # or a CI machine. Set before any group imports MuJoCo; an explicit setting wins.
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     try:
         dct(standalone_mode=True)
     except KeyboardInterrupt:
