@@ -165,6 +165,17 @@ class AgileXBaseDriver:
         )
 
     @property
+    def latest_motion(self) -> p.MotionState | None:
+        """The last 0x221 record (no snapshot copy: cheap enough for every tick)."""
+        return None if self._motion is None else self._motion.record
+
+    @property
+    def latest_odometry(self) -> p.Odometry | None:
+        """The last 0x311 record."""
+        st = self._other.get("odometry")
+        return None if st is None else st.record
+
+    @property
     def feedback_age_s(self) -> float:
         """Seconds since the last 0x221 (inf before the first)."""
         if self._motion is None:

@@ -92,9 +92,8 @@ class AgileXBaseHardware:
     def read(self, now_s: float) -> BaseInputs:
         driver = self.driver
         driver.poll()
-        fb = driver.feedback
-        motion = fb.motion.record if fb.motion is not None else None
-        odom = fb.odometry.record if fb.odometry is not None else None
+        motion = driver.latest_motion  # not driver.feedback: that builds a full snapshot
+        odom = driver.latest_odometry
         mode = driver.control_mode
         return BaseInputs(
             stamp_s=now_s,
