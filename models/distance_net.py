@@ -194,14 +194,7 @@ class DistanceNet:
 
     def mu(self, points_robot_frame: np.ndarray) -> np.ndarray:
         """Dual variables (N, 4) >= 0, rows (front, left, rear, right), with ||G^T mu|| <= 1."""
-        p = validate_points(points_robot_frame, "DistanceNet points_robot_frame")
-        if p.shape[0] == 0:
-            return np.zeros((0, self.G.shape[0]))
-        with torch.inference_mode():
-            mu = self._module(torch.from_numpy(p.astype(np.float32))).numpy().astype(np.float64)
-        # Repeat the scaling in float64 so that the bound holds beyond float32 rounding.
-        norm = np.linalg.norm(mu @ self.G, axis=1)
-        return mu / np.maximum(norm, 1.0)[:, None]
+        return self.dual(points_robot_frame)[0]
 
     def distance(self, points_robot_frame: np.ndarray) -> np.ndarray:
         """Signed distance (N,) in m (negative inside): mu^T (G p - g)."""
@@ -210,9 +203,17 @@ class DistanceNet:
     def dual(self, points_robot_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(mu (N, 4), lam_robot (N, 2) = -G^T mu, signed distance (N,)) in the robot frame."""
         p = validate_points(points_robot_frame, "DistanceNet points_robot_frame")
-        mu = self.mu(p)
-        distance = np.einsum("nk,nk->n", mu, p @ self.G.T - self.g)
-        return mu, -(mu @ self.G), distance
+        if p.shape[0] == 0:
+            return np.zeros((0, self.G.shape[0])), np.zeros((0, 2)), np.zeros(0)
+        with torch.inference_mode():
+            mu = self._module(torch.from_numpy(p.astype(np.float32))).numpy().astype(np.float64)
+        # Repeat the scaling in float64 so that the bound holds beyond float32 rounding.
+        gt_mu = mu @ self.G  # (N, 2) = G^T mu per point
+        scale = 1.0 / np.maximum(np.sqrt(gt_mu[:, 0] * gt_mu[:, 0] + gt_mu[:, 1] * gt_mu[:, 1]), 1.0)
+        mu *= scale[:, None]
+        gt_mu *= scale[:, None]
+        distance = (mu * (p @ self.G.T - self.g)).sum(axis=1)
+        return mu, -gt_mu, distance
 
 
 __all__ = [

@@ -59,6 +59,9 @@ class ObstaclePointsConfig(_Strict):
     overhead_margin_m: float = Field(default=0.10, ge=0.0, le=2.0)
     max_range_m: float = Field(default=6.0, gt=0.2, le=100.0)
     voxel_m: float = Field(default=0.04, ge=0.0, le=0.5)
+    min_support_ratio: float = Field(
+        default=0.25, ge=0.0, le=1.0, description="drop voxels with fewer points than this x their fullest neighbour"
+    )
     max_scan_age_s: float = Field(default=0.3, gt=0.0, le=5.0, description="older P_fix -> hold zero command")
 
 

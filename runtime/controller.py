@@ -205,7 +205,8 @@ class NavigationController:
         self.reference = ReferencePathPlanner(pc.reference_path, self.robot)
         self.supervisor = SafetySupervisor(pc.safety_supervisor, self.robot)
         self.obstacles = ObstaclePointExtractor(
-            self.robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m
+            self.robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m,
+            op.min_support_ratio,
         )
         self._goal_xy = np.array([self.goal.x_m, self.goal.y_m])
         self.last_plan = None

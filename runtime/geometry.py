@@ -4,10 +4,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 
 def wrap_angle(a_rad: float) -> float:
     """Wrap an angle to [-pi, pi)."""
     return (a_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def in_box(points: np.ndarray, lo, hi) -> np.ndarray:
+    """Mask (N,) of points (N, 2) with lo <= p <= hi per axis. Column compares: several times
+    faster than reducing an (N, 2) boolean array over axis 1, and this runs in the tick."""
+    x, y = points[:, 0], points[:, 1]
+    return (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1])
 
 
 @dataclass(frozen=True)

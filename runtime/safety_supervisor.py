@@ -1,8 +1,9 @@
 """Safety supervisor: an independent check of the command against the raw P_fix points.
 
 In the style of Nav2's collision monitor, and separate from the MPC: before write(), the command
-(v, omega) is rolled out as a constant-twist arc for a look-ahead time plus the time to brake,
-the footprint is placed at each sampled pose, and the exact point-to-rectangle signed distance
+(v, omega) is held for a look-ahead time (a tick plus the base's response) and then ramped to
+zero at the deceleration limits, which is the stop the controller would execute if this were the
+last command it could send. The footprint is placed at each sampled pose of that curve, and the exact point-to-rectangle signed distance
 (vectorized numpy; not the distance net) to every nearby point is taken. If the swept footprint
 would come within `stop_distance_m` of a point and the command brings it nearer than it is now,
 the command is replaced by a stop; within `slow_distance_m` it is scaled down (slow-down zone).
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from runtime.geometry import in_box
 from runtime.planning.distance_model import footprint_distance_to_points
 from runtime.planning.errors import check_points, check_vector
 
@@ -53,31 +55,42 @@ class SafetyDecision:
 class SafetySupervisor:
     """Stop/slow zones on the command's swept footprint; see the module docstring."""
 
+    INTEGRATION_SUBSTEPS = 4  # per sample period, for the positions along the braking curve
+
     def __init__(self, config: SafetySupervisorConfig, robot) -> None:
         self.config = config
         self.half_length_m = robot.footprint.length_m / 2.0
         self.half_width_m = robot.footprint.width_m / 2.0
         self.circumradius_m = math.hypot(self.half_length_m, self.half_width_m)
         self.decel_mps2 = robot.limits.max_linear_accel_mps2
-        self.angular_decel_radps2 = robot.limits.max_angular_accel_radps2
+        self.angular_decel_radps2 = robot.body_max_angular_accel_radps2  # body yaw, as the limiter
         self.stops = 0
         self.slowdowns = 0
 
     def swept_poses(self, pose: np.ndarray, v_mps: float, omega_radps: float) -> np.ndarray:
-        """Poses (S, 3) along the constant-twist arc, from now to look-ahead + braking time."""
+        """Poses (S, 3) every sample_period_s: the twist held for lookahead_s, then v and omega
+        ramped to zero at the deceleration limits (the stop the command limiter would execute)."""
         cfg = self.config
-        brake_s = max(abs(v_mps) / self.decel_mps2, abs(omega_radps) / self.angular_decel_radps2)
-        n = int(math.ceil((cfg.lookahead_s + brake_s) / cfg.sample_period_s))
-        t = np.arange(n + 1) * cfg.sample_period_s
-        th = pose[2] + omega_radps * t
-        if abs(omega_radps) > 1e-6:
-            r = v_mps / omega_radps
-            x = pose[0] + r * (np.sin(th) - math.sin(pose[2]))
-            y = pose[1] - r * (np.cos(th) - math.cos(pose[2]))
-        else:
-            x = pose[0] + v_mps * t * math.cos(pose[2])
-            y = pose[1] + v_mps * t * math.sin(pose[2])
-        return np.stack([x, y, th], axis=1)
+        a_v, a_w = self.decel_mps2, self.angular_decel_radps2
+        brake_v, brake_w = abs(v_mps) / a_v, abs(omega_radps) / a_w
+        n = int(math.ceil((cfg.lookahead_s + max(brake_v, brake_w)) / cfg.sample_period_s))
+        sub = self.INTEGRATION_SUBSTEPS
+        dt = cfg.sample_period_s / sub
+        t = np.arange(n * sub + 1) * dt
+        t_hold = np.minimum(t, cfg.lookahead_s)
+        t_brake = np.maximum(t - cfg.lookahead_s, 0.0)
+        v = math.copysign(1.0, v_mps) * np.maximum(abs(v_mps) - a_v * t_brake, 0.0)
+        # Heading: the exact integral of the held-then-ramped yaw rate.
+        tw = np.minimum(t_brake, brake_w)
+        th = pose[2] + omega_radps * t_hold + math.copysign(1.0, omega_radps) * (abs(omega_radps) * tw - 0.5 * a_w * tw * tw)
+        out = np.empty((n * sub + 1, 3))
+        for axis, f in ((0, np.cos), (1, np.sin)):  # trapezoidal integration of v (cos, sin)(theta)
+            vel = v * f(th)
+            out[0, axis] = pose[axis]
+            np.cumsum(0.5 * (vel[1:] + vel[:-1]) * dt, out=out[1:, axis])
+            out[1:, axis] += pose[axis]
+        out[:, 2] = th
+        return out[::sub]
 
     def check(self, pose: np.ndarray, command: np.ndarray, points_fix_world: np.ndarray) -> SafetyDecision:
         """pose (x_m, y_m, yaw_rad), command (v_mps, omega_radps), raw P_fix points (N, 2)."""
@@ -89,7 +102,7 @@ class SafetySupervisor:
         reach = self.circumradius_m + cfg.slow_distance_m + 0.01
         lo = poses[:, :2].min(axis=0) - reach
         hi = poses[:, :2].max(axis=0) + reach
-        near = points[np.all((points >= lo) & (points <= hi), axis=1)]
+        near = points[in_box(points, lo, hi)]
         if near.shape[0] == 0:
             return SafetyDecision(cmd, False, False, "clear", math.inf, math.inf)
         d = footprint_distance_to_points(poses, near, self.half_length_m, self.half_width_m)  # (S, M)

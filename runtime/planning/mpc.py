@@ -33,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from runtime.planning.distance_model import (
     DistanceModel,
     check_dual_output,
-    footprint_distance_to_points,
+    rectangle_signed_distance,
 )
 from runtime.planning.errors import PlannerInputError, check_points, check_vector
 from runtime.planning.point_selection import PointSelectionConfig, PointSelector
@@ -64,7 +64,10 @@ class MpcConfig(BaseModel):
     alternations: int = Field(default=2, ge=1, le=10, description="net/QP alternations per tick")
     d_min_m: float = Field(default=0.03, ge=0.0, le=1.0, description="minimum footprint distance to P_fix")
     max_reverse_speed_mps: float = Field(default=0.3, ge=0.0, le=5.0, description="v_rev")
-    linearize_heading: bool = Field(default=True, description="collision rows also depend on theta")
+    linearize_heading: bool = Field(
+        default=False,
+        description="collision rows also depend on theta (the paper's rows are linear in position only)",
+    )
     max_iterations: int = Field(default=200, ge=10, le=100000, description="OSQP iterations per solve")
     qp_time_budget_s: float = Field(default=0.008, gt=0.0, le=1.0, description="all alternations together")
     eps_abs: float = Field(default=1e-3, gt=0.0)
@@ -173,7 +176,7 @@ class PlanResult:
     capped: bool  # some solve hit the iteration or time cap
     fallback: bool  # commands are the shifted previous plan (or a braking plan), not a fresh solve
     timings_ms: dict[str, float]  # select, net, qp, check, total
-    min_predicted_distance_m: float  # exact footprint distance of states[1:] to the corridor points
+    min_predicted_distance_m: float  # exact footprint distance of states[1:] to their constraint points
     max_slack_m: float
     constraint_points: int  # valid (point, pose) rows in the last QP
     alternations_done: int
@@ -257,7 +260,8 @@ class OsqpMpcBackend:
         r_c = self.r_coll + np.arange(H * K)
         add("cx", r_c, sx(hk_h), 0.0)
         add("cy", r_c, sx(hk_h) + 1, 0.0)
-        add("cth", r_c, sx(hk_h) + 2, 0.0)
+        if config.linearize_heading:  # else the rows do not touch theta: no entries to factorize
+            add("cth", r_c, sx(hk_h) + 2, 0.0)
         e_cols = self.n_s + self.n_u + np.arange(H * K)
         add(None, r_c, e_cols, 1.0)
         self.r_slack = self.r_coll + H * K
@@ -331,7 +335,8 @@ class OsqpMpcBackend:
         active = lin.coll_active.reshape(H * K)
         vals[sl["cx"]] = np.where(active, coef[:, 0], 0.0)
         vals[sl["cy"]] = np.where(active, coef[:, 1], 0.0)
-        vals[sl["cth"]] = np.where(active, coef[:, 2], 0.0)
+        if "cth" in sl:
+            vals[sl["cth"]] = np.where(active, coef[:, 2], 0.0)
         np.take(vals, self._perm, out=self._Ax)
 
         q, l, u = self._q, self._l, self._u
@@ -409,6 +414,7 @@ class MpcPlanner:
         self._prev_commands: np.ndarray | None = None
         self._ticks_since_plan = 0
         self._dummy_far = np.array([1.0e3, 0.0])
+        self._local = np.empty((H, K, 2))  # robot-frame points of the net's batch
         # Counters (never reset by plan()).
         self.plans = 0
         self.capped_solves = 0
@@ -465,8 +471,9 @@ class MpcPlanner:
         idx = np.where(moving, np.arange(H), -1)
         np.maximum.accumulate(idx, out=idx)
         yaw = np.where(idx >= 0, yaw[np.maximum(idx, 0)], state[2])
-        yaw = state[2] + np.unwrap(np.concatenate([[0.0], (yaw - state[2] + math.pi) % (2 * math.pi) - math.pi]))[1:]
-        lin.ref_yaw[:] = yaw
+        # Unwrapped from the current heading: each step of the sequence taken the short way round.
+        steps = np.diff((yaw - state[2] + math.pi) % (2 * math.pi) - math.pi, prepend=0.0)
+        lin.ref_yaw[:] = state[2] + np.cumsum((steps + math.pi) % (2 * math.pi) - math.pi)
 
     def _linearize_dynamics(self, nominal_states: np.ndarray, nominal_inputs: np.ndarray) -> None:
         lin, dt = self.lin, self.config.step_s
@@ -483,18 +490,23 @@ class MpcPlanner:
         lin.nominal_states[:] = nominal_states
         lin.nominal_inputs[:] = nominal_inputs
 
-    def _linearize_collisions(self, nominal_states: np.ndarray, points_world: np.ndarray, timings: dict) -> int:
-        """Select K points per pose, run the distance model at the nominal poses, fill the rows."""
-        lin, H, K = self.lin, self.config.horizon_steps, self.config.points.points_per_pose
+    def _select_points(self, nominal_states: np.ndarray, points_world: np.ndarray, timings: dict) -> None:
+        """The K P_fix points nearest to each nominal pose; once per plan, kept for all alternations
+        (NeuPAN's PAN iterations also keep the point set and re-run only the net and the QP)."""
         t0 = time.perf_counter()
-        poses = nominal_states[1:]
-        sel = self.selector.select(poses, points_world)
-        self.last_selection = sel
+        self.last_selection = self.selector.select(nominal_states[1:], points_world)
+        timings["select"] += (time.perf_counter() - t0) * 1e3
+
+    def _collision_rows(self, nominal_states: np.ndarray, timings: dict) -> int:
+        """Run the distance model at the nominal poses on the selected points and fill the rows."""
+        lin, H, K = self.lin, self.config.horizon_steps, self.config.points.points_per_pose
+        sel = self.last_selection
         t1 = time.perf_counter()
+        poses = nominal_states[1:]
         c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
         dx = sel.points_world[..., 0] - poses[:, 0, None]
         dy = sel.points_world[..., 1] - poses[:, 1, None]
-        local = np.empty((H, K, 2))
+        local = self._local
         local[..., 0] = c * dx + s * dy
         local[..., 1] = -s * dx + c * dy
         local[~sel.valid] = self._dummy_far  # fixed-size batch for the net; rows inactive anyway
@@ -505,21 +517,23 @@ class MpcPlanner:
         dist = dist.reshape(H, K)
         lx = c * lam_r[..., 0] - s * lam_r[..., 1]  # lambda_w = R lam_robot
         ly = s * lam_r[..., 0] + c * lam_r[..., 1]
-        if self.config.linearize_heading:
-            lth = lam_r[..., 1] * local[..., 0] - lam_r[..., 0] * local[..., 1]
-        else:
-            lth = np.zeros((H, K))
         coef = lin.coll_coef
         coef[..., 0] = lx
         coef[..., 1] = ly
-        coef[..., 2] = lth
-        lin.coll_rhs[:] = (
-            self.config.d_min_m - dist + lx * poses[:, 0, None] + ly * poses[:, 1, None] + lth * poses[:, 2, None]
-        )
+        rhs = self.config.d_min_m - dist + lx * poses[:, 0, None] + ly * poses[:, 1, None]
+        if self.config.linearize_heading:
+            lth = lam_r[..., 1] * local[..., 0] - lam_r[..., 0] * local[..., 1]
+            coef[..., 2] = lth
+            rhs += lth * poses[:, 2, None]
+        lin.coll_rhs[:] = rhs
         lin.coll_active[:] = sel.valid
-        timings["select"] += (t1 - t0) * 1e3
         timings["net"] += (t2 - t1) * 1e3
         return sel.count
+
+    def _linearize_collisions(self, nominal_states: np.ndarray, points_world: np.ndarray, timings: dict) -> int:
+        """Select the points at the nominal poses, then fill the collision rows (both steps)."""
+        self._select_points(nominal_states, points_world, timings)
+        return self._collision_rows(nominal_states, timings)
 
     # -- the planning step --------------------------------------------------------------------
     def plan(
@@ -582,8 +596,9 @@ class MpcPlanner:
         solution: np.ndarray | None = None
         max_slack, n_rows, done = 0.0, 0, 0
         per_solve_limit = cfg.qp_time_budget_s / cfg.alternations
+        self._select_points(nominal_states, points, timings)
         for _ in range(cfg.alternations):
-            n_rows = self._linearize_collisions(nominal_states, points, timings)
+            n_rows = self._collision_rows(nominal_states, timings)
             self._linearize_dynamics(nominal_states, nominal_inputs)
             t0 = time.perf_counter()
             out = self.backend.solve(lin, per_solve_limit)
@@ -613,12 +628,20 @@ class MpcPlanner:
             commands = solution
             self._prev_commands = commands.copy()
             self._ticks_since_plan = 0
-        states = unicycle_rollout(state, commands, cfg.step_s)
+        # The last alternation already rolled the solution out (nominal_states); a fallback has not.
+        states = unicycle_rollout(state, commands, cfg.step_s) if fallback else nominal_states
         t0 = time.perf_counter()
-        corridor = self.last_selection.corridor_points_world if self.last_selection is not None else points[:0]
-        if corridor.shape[0]:
-            d = footprint_distance_to_points(states[1:], corridor, self.half_length_m, self.half_width_m)
-            min_dist = float(d.min())
+        sel = self.last_selection
+        if sel is not None and sel.count:
+            # Exact distance of each predicted pose to its own constraint points (the rows it saw).
+            c, s = np.cos(states[1:, 2])[:, None], np.sin(states[1:, 2])[:, None]
+            dx = sel.points_world[..., 0] - states[1:, 0, None]
+            dy = sel.points_world[..., 1] - states[1:, 1, None]
+            local = self._local
+            local[..., 0] = c * dx + s * dy
+            local[..., 1] = -s * dx + c * dy
+            d = rectangle_signed_distance(local, self.half_length_m, self.half_width_m)
+            min_dist = float(d[sel.valid].min())
         else:
             min_dist = math.inf
         timings["check"] = (time.perf_counter() - t0) * 1e3

@@ -3,8 +3,9 @@
 Each tick the MPC needs, for every predicted pose h = 1..H of the horizon, the K points of P_fix
 nearest to the footprint at that pose. Vectorized throughout: no Python loop over points.
 
-1. corridor: keep points within `corridor_radius_m` of some pose centre (box prefilter first),
-2. voxel thinning: keep one point per `voxel_size_m` cell (the first seen; dense walls add little),
+1. box prefilter around the poses, then voxel thinning: one point per `voxel_size_m` cell (the
+   first seen; dense walls add little),
+2. corridor: keep points within `corridor_radius_m` of some pose centre,
 3. K nearest per pose by the exact footprint signed distance (argpartition over a (H, M) table);
    points farther than `max_distance_m` from the footprint, and missing slots, are marked invalid.
 """
@@ -15,7 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from runtime.planning.distance_model import footprint_distance_to_points
+from runtime.geometry import in_box
+from runtime.planning.distance_model import points_in_pose_frames, rectangle_signed_distance
 from runtime.planning.errors import PlannerInputError, check_points
 
 
@@ -46,8 +48,7 @@ def corridor_points(poses: np.ndarray, points_world: np.ndarray, radius_m: float
     """Points within radius_m of any pose centre (bounding-box prefilter, then exact test)."""
     lo = poses[:, :2].min(axis=0) - radius_m
     hi = poses[:, :2].max(axis=0) + radius_m
-    in_box = np.all((points_world >= lo) & (points_world <= hi), axis=1)
-    cand = points_world[in_box]
+    cand = points_world[in_box(points_world, lo, hi)]
     if cand.shape[0] == 0:
         return cand
     d2 = (cand[:, None, 0] - poses[None, :, 0]) ** 2 + (cand[:, None, 1] - poses[None, :, 1]) ** 2
@@ -82,7 +83,15 @@ class PointSelector:
         cfg = self.config
         k = cfg.points_per_pose
         n_poses = poses.shape[0]
-        near = voxel_thin(corridor_points(poses, points_world, cfg.corridor_radius_m), cfg.voxel_size_m)
+        # Box prefilter, thinning, then one pass in the pose frames: centre distance for the
+        # corridor and the exact footprint distance for the K nearest, from the same local coords.
+        r = cfg.corridor_radius_m
+        lo = poses[:, :2].min(axis=0) - r
+        hi = poses[:, :2].max(axis=0) + r
+        cand = voxel_thin(points_world[in_box(points_world, lo, hi)], cfg.voxel_size_m)
+        local = points_in_pose_frames(poses, cand)  # (P, M, 2)
+        in_corridor = ((local[..., 0] ** 2 + local[..., 1] ** 2) <= r * r).any(axis=0)
+        near = cand[in_corridor]
         m = near.shape[0]
         out_pts = np.empty((n_poses, k, 2))
         out_pts[...] = poses[:, None, :2] + 1.0e3  # far dummy, never used as a constraint
@@ -90,7 +99,7 @@ class PointSelector:
         out_dist = np.full((n_poses, k), np.inf)
         if m == 0:
             return SelectedPoints(out_pts, out_valid, out_dist, near)
-        dist = footprint_distance_to_points(poses, near, self.half_length_m, self.half_width_m)  # (P, M)
+        dist = rectangle_signed_distance(local[:, in_corridor], self.half_length_m, self.half_width_m)  # (P, M)
         take = min(k, m)
         if m > k:
             idx = np.argpartition(dist, k - 1, axis=1)[:, :k]

@@ -24,6 +24,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
+from runtime.geometry import in_box
 from runtime.planning.errors import PlannerInputError, check_points, check_vector
 
 
@@ -112,7 +113,7 @@ class ReferencePathPlanner:
         r_infl = self.inflation_radius_m
         reach = r_infl + cfg.soft_zone_m + res
         lo, hi = origin - reach, origin + n * res + reach
-        pts = points_world[np.all((points_world >= lo) & (points_world <= hi), axis=1)]
+        pts = points_world[in_box(points_world, lo, hi)]
         cap = r_infl + cfg.soft_zone_m
         if pts.shape[0] == 0:
             clearance = np.full((n, n), cap)
@@ -238,7 +239,7 @@ class ReferencePathPlanner:
             return False
         r = self.inflation_radius_m
         lo, hi = ahead.min(axis=0) - r, ahead.max(axis=0) + r
-        pts = points_world[np.all((points_world >= lo) & (points_world <= hi), axis=1)]
+        pts = points_world[in_box(points_world, lo, hi)]
         if pts.shape[0] == 0:
             return False
         d2 = (pts[:, None, 0] - ahead[None, :, 0]) ** 2 + (pts[:, None, 1] - ahead[None, :, 1]) ** 2

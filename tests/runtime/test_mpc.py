@@ -152,7 +152,7 @@ def test_osqp_iteration_cap_is_detected_without_a_previous_plan() -> None:
 def test_collision_rows_are_the_first_order_expansion_of_the_exact_distance(seed: int) -> None:
     """The row coefficients equal finite differences of the exact distance in (x, y, theta)."""
     rng = np.random.default_rng(seed)
-    cfg = MpcConfig(horizon_steps=4)
+    cfg = MpcConfig(horizon_steps=4, linearize_heading=True)
     planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT))
     pts = rng.uniform(-1.0, 1.5, size=(30, 2))
     pts = pts[footprint_distance_to_points(np.zeros((1, 3)), pts, HL, HW)[0] > 0.05]

@@ -54,8 +54,7 @@ def test_lets_through_when_clear_and_when_moving_away() -> None:
 def test_slow_down_zone_scales_the_command() -> None:
     sup = _supervisor(lookahead_s=0.2, stop_distance_m=0.01, slow_distance_m=0.2)
     v = 0.4
-    brake = v / ROBOT.limits.max_linear_accel_mps2
-    travel = v * (0.2 + brake)
+    travel = v * 0.2 + v * v / (2 * ROBOT.limits.max_linear_accel_mps2)  # held, then braking
     wall = _wall_x(HL + travel + 0.08)  # swept footprint ends 8 cm short: inside the slow zone
     dec = sup.check(np.zeros(3), np.array([v, 0.0]), wall)
     assert dec.slowed and not dec.stopped
@@ -97,3 +96,27 @@ def test_rectangle_signed_distance_matches_a_dense_boundary(px: float, py: float
     inside = abs(px) < HL and abs(py) < HW
     expected = -d_boundary if inside else d_boundary
     assert rectangle_signed_distance(np.array([px, py]), HL, HW) == pytest.approx(expected, abs=2e-4)
+
+
+@pytest.mark.parametrize("v, omega", [(0.6, 0.0), (0.5, 1.2), (-0.3, -0.8), (0.0, 1.5), (0.8, -0.4)])
+def test_swept_poses_follow_the_held_then_braking_command(v: float, omega: float) -> None:
+    """The swept curve equals a fine Euler integration of: hold (v, omega) for the look-ahead,
+    then ramp both to zero at the limiter's deceleration limits; it ends at standstill."""
+    sup = _supervisor(lookahead_s=0.2, sample_period_s=0.02)
+    pose = np.array([0.3, -0.2, 0.7])
+    poses = sup.swept_poses(pose, v, omega)
+    a_v, a_w = ROBOT.limits.max_linear_accel_mps2, ROBOT.body_max_angular_accel_radps2
+    dt = 1e-5
+    t_end = (poses.shape[0] - 1) * 0.02
+    s = pose.copy()
+    ref = [s.copy()]
+    for k in range(int(round(t_end / dt))):
+        tb = max(k * dt - 0.2, 0.0)
+        vk = np.sign(v) * max(abs(v) - a_v * tb, 0.0)
+        wk = np.sign(omega) * max(abs(omega) - a_w * tb, 0.0)
+        s = s + dt * np.array([vk * np.cos(s[2]), vk * np.sin(s[2]), wk])
+        if (k + 1) % 2000 == 0:
+            ref.append(s.copy())
+    np.testing.assert_allclose(poses, np.array(ref), atol=2e-4)
+    brake = max(abs(v) / a_v, abs(omega) / a_w)
+    assert t_end == pytest.approx(0.2 + brake, abs=0.02 + 1e-9)
