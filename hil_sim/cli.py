@@ -64,6 +64,7 @@ def run_command(
         f" goal_reached={m['goal_reached']} time={m['navigation_time_s']:.2f}s"
         f" path={m['path_length_m']:.2f}m speed={m['average_speed_mps']:.3f}m/s"
         f" fixed_contacts={m['fixed_contacts']} movable_contacts={m.get('movable_contacts', 0)}"
+        f" min_fixed_clearance={m['min_fixed_clearance_m'] * 100:.1f}cm"
         f" deadline_misses={m['deadline_misses']} state={m.get('controller_state')}"
         f" realtime={result.realtime_factor:.1f}x"
     )

@@ -11,16 +11,21 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from hil_sim.scenario import Scenario
-from hil_sim.world import World
+from hil_sim.world import ROBOT_GEOM_GROUP, World
 
 #: Path length is accumulated in hops of at least this length, so that contact jitter of the
 #: resting robot (micrometres per step) does not add up to phantom distance.
 PATH_MIN_HOP_M = 0.002
 #: A touch that starts within this time of the previous one ending continues that event.
 CONTACT_RELEASE_S = 0.1
+#: Ground-truth clearance (signed distance robot <-> obstacle geoms) is sampled every this many
+#: physics steps (5 ms: 2.5 mm of travel at 0.5 m/s), and only below this distance.
+CLEARANCE_EVERY_STEPS = 5
+CLEARANCE_MAX_M = 0.5
 
 
 class EpisodeMetrics:
@@ -48,6 +53,14 @@ class EpisodeMetrics:
         self._t_last = world.time_s
         self.steps = 0
         self._world = world
+        # Clearance pairs: the robot's collision shapes (chassis, wheels) x each obstacle's geoms.
+        m = world.model
+        robot_shapes = [int(g) for g in world.robot_geom_ids if m.geom_group[g] == ROBOT_GEOM_GROUP]
+        self._clearance_pairs = [
+            (i, r, int(g)) for g in np.flatnonzero(self._geom_obstacle >= 0) for r in robot_shapes
+            for i in [int(self._geom_obstacle[g])]
+        ]
+        self.min_clearance_m = np.full(n, math.inf)
 
     def robot_contacts(self, world: World) -> np.ndarray:
         """Boolean per obstacle: is the robot touching it now?"""
@@ -81,7 +94,24 @@ class EpisodeMetrics:
         if hop >= PATH_MIN_HOP_M:
             self.path_length_m += hop
             self._last_xy = (x, y)
+        if self.steps % CLEARANCE_EVERY_STEPS == 0:
+            self._update_clearance(world)
         self.steps += 1
+
+    def _update_clearance(self, world: World) -> None:
+        m, d, best = world.model, world.data, self.min_clearance_m
+        for i, robot_geom, obstacle_geom in self._clearance_pairs:
+            dist = mujoco.mj_geomDistance(m, d, robot_geom, obstacle_geom, CLEARANCE_MAX_M, None)
+            if dist < best[i]:
+                best[i] = dist
+
+    @property
+    def min_fixed_clearance_m(self) -> float:
+        """Smallest ground-truth distance from the robot to anything not movable (capped at
+        CLEARANCE_MAX_M; negative: penetration)."""
+        mask = np.array([c != "movable" for c in self.classes], dtype=bool)
+        vals = self.min_clearance_m[mask] if mask.size else np.zeros(0)
+        return float(min(vals.min(), CLEARANCE_MAX_M)) if vals.size else CLEARANCE_MAX_M
 
     def _finish_path(self, world: World) -> float:
         x, y, _ = world.robot_pose()
@@ -135,6 +165,7 @@ class EpisodeMetrics:
             "average_speed_mps": float(path / nav_t) if nav_t > 0 else 0.0,
             "fixed_contacts": fixed,
             "movable_contacts": self.movable_contacts,
+            "min_fixed_clearance_m": self.min_fixed_clearance_m,
             "deadline_misses": int(deadline_misses),
             "obstacles": [
                 {
@@ -143,6 +174,7 @@ class EpisodeMetrics:
                     "contact_count": int(self.contact_count[i]),
                     "contact_duration_s": float(self.contact_duration_s[i]),
                     "displacement_m": float(disp[i]),
+                    "min_clearance_m": float(min(self.min_clearance_m[i], CLEARANCE_MAX_M)),
                 }
                 for i, (name, cls) in enumerate(zip(self.names, self.classes))
             ],

@@ -202,6 +202,7 @@ class NavigationController:
         op = pc.obstacle_points
         self.distance_net = DistanceNet.load(pc.distance_net_path, robot=self.robot)
         self.mpc = MpcPlanner(pc.mpc, self.robot, self.distance_net)
+        self.mpc.warm_up()  # here, not in the first tick (TorchScript optimizes on first calls)
         self.reference = ReferencePathPlanner(pc.reference_path, self.robot)
         self.supervisor = SafetySupervisor(pc.safety_supervisor, self.robot)
         self.obstacles = ObstaclePointExtractor(

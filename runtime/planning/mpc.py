@@ -426,6 +426,24 @@ class MpcPlanner:
         self._prev_commands = None
         self._ticks_since_plan = 0
 
+    def warm_up(self, plans: int = 4) -> None:
+        """Plan a few times on a synthetic corridor, then forget it: TorchScript's profiling
+        executor optimizes the net only after its first calls (the first one takes ~20 ms) and
+        OSQP allocates on its first solve. Call before the loop starts, never in a tick."""
+        H, dt = self.config.horizon_steps, self.config.step_s
+        v = 0.5 * self.limits.v_max_mps
+        reference = np.zeros((H + 1, 3))
+        reference[:, 0] = np.arange(H + 1) * v * dt
+        reference[:, 2] = v
+        x = np.arange(-1.0, 3.0, 0.05)
+        wall = np.concatenate([np.stack([x, np.full_like(x, 0.5)], 1), np.stack([x, np.full_like(x, -0.5)], 1)])
+        counters = (self.plans, self.capped_solves, self.fallbacks)
+        for _ in range(plans):
+            self.plan(np.zeros(3), np.array([v, 0.0]), reference, wall)
+        self.plans, self.capped_solves, self.fallbacks = counters
+        self.reset()
+        self.last_selection = None
+
     # -- helpers ------------------------------------------------------------------------------
     def _shifted_previous(self, ticks: int) -> np.ndarray | None:
         if self._prev_commands is None:

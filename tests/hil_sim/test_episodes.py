@@ -24,8 +24,19 @@ def _behaviour(metrics: dict) -> dict:
     return {k: v for k, v in metrics.items() if k != "deadline_misses"}
 
 
-def test_case1_pure_pursuit_reaches_the_goal_through_the_movable_box():
+def test_default_config_runs_the_mpc_and_reaches_the_case1_goal():
     result = run_episode("case1", seed=0)
+    m = result.metrics
+    assert REQUIRED_KEYS <= set(m)
+    assert result.controller["mode"] == "all-fixed" and result.controller["mpc_plans"] > 20
+    assert m["success"] and m["fixed_contacts"] == 0
+    assert result.extra["firmware_frames_rejected"] == 0 and result.extra["sensor_errors"] == {}
+    assert result.extra["keepalives_sent"] >= result.telemetry["ticks"]  # 0x111 at >= 50 Hz
+
+
+def test_case1_pure_pursuit_reaches_the_goal_through_the_movable_box():
+    config = load_controller_config().with_planner_mode("pure-pursuit")
+    result = run_episode("case1", config=config, seed=0)
     m = result.metrics
     assert REQUIRED_KEYS <= set(m)
     assert m["success"] and m["goal_reached"]
@@ -77,6 +88,7 @@ def test_all_fixed_mpc_avoids_fixed_obstacles(scenario):
     m = result.metrics
     assert m["goal_reached"], (m, result.controller)
     assert m["fixed_contacts"] == 0, m["obstacles"]
+    assert m["min_fixed_clearance_m"] > 0.01
     assert m["success"]
     assert result.extra["sensor_errors"] == {}
     assert result.controller["mpc_plans"] > 20

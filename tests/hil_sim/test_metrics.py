@@ -13,6 +13,7 @@ from tests.hil_sim.test_firmware_emulator import ROBOT, drive
 REQUIRED_KEYS = {
     "success", "goal_reached", "navigation_time_s", "path_length_m", "average_speed_mps",
     "fixed_contacts", "movable_contacts", "deadline_misses", "obstacles", "scenario", "seed",
+    "min_fixed_clearance_m",
 }
 
 
@@ -75,6 +76,19 @@ def test_fixed_contact_fails_the_episode_and_events_are_counted_per_touch():
     assert block["displacement_m"] == 0.0 and block["contact_duration_s"] > 0.2
     # Back and forth: path length counts both directions.
     assert out["path_length_m"] > abs(world.robot_pose()[0]) + 0.2
+
+
+def test_min_clearance_is_the_ground_truth_gap_to_the_block():
+    """Standing 0.6 - 0.15 - half length from the block's face, then driving into it."""
+    world = World(fixed_block_ahead(), ROBOT)
+    gap = 0.6 - 0.15 - ROBOT.footprint.length_m / 2
+    m = run(world, lambda t: (0.0, 0.0), 0.2)
+    block = next(o for o in m.to_dict(False, 0.2)["obstacles"] if o["name"] == "block")
+    # The chassis boxes may be a little shorter than the footprint rectangle; never longer.
+    assert gap - 0.01 < block["min_clearance_m"] < gap + 0.03
+    assert m.min_fixed_clearance_m == pytest.approx(block["min_clearance_m"])
+    m = run(world, lambda t: (0.3, 0.0), 1.5)
+    assert m.min_fixed_clearance_m <= 0.0 and m.fixed_contacts >= 1
 
 
 def test_heavy_contacts_count_as_fixed():

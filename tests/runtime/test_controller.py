@@ -56,9 +56,10 @@ class FakeBase:
         self.writes.append((v, w))
 
 
-def make(goal=Pose2D(2.0, 0.0, 0.0)):
+def make(goal=Pose2D(2.0, 0.0, 0.0), mode="pure-pursuit"):
+    """The state machine is tested with the sensorless placeholder planner unless `mode` says."""
     robot = load_robot_description()
-    config = load_controller_config()
+    config = load_controller_config().with_planner_mode(mode)
     base = FakeBase()
     ctl = NavigationController(robot, config, base, goal, clock=lambda: base.t)
     ctl.activate()
@@ -104,6 +105,16 @@ def test_feedback_loss_latches_stopped_with_zero_command():
     assert ctl.state is ControllerState.STOPPED and base.writes[-1] == (0.0, 0.0)
     ctl.keepalive(base.t)
     assert base.writes[-1] == (0.0, 0.0)
+
+
+def test_mpc_never_moves_without_fresh_lidar_points():
+    """The default planner (MPC) holds zero while it has no obstacle points, or only stale ones."""
+    ctl, base = make(mode="all-fixed")
+    assert load_controller_config().planner.mode == "all-fixed"  # the shipped default
+    run_ticks(ctl, base, 40)
+    assert ctl.state is ControllerState.ACTIVE
+    assert all(w == (0.0, 0.0) for w in base.writes)
+    assert ctl.stale_scan_holds >= 38
 
 
 def test_consecutive_deadline_misses_stop_the_robot():
