@@ -212,7 +212,8 @@ class DistanceNet:
         scale = 1.0 / np.maximum(np.sqrt(gt_mu[:, 0] * gt_mu[:, 0] + gt_mu[:, 1] * gt_mu[:, 1]), 1.0)
         mu *= scale[:, None]
         gt_mu *= scale[:, None]
-        distance = (mu * (p @ self.G.T - self.g)).sum(axis=1)
+        # mu^T (G p - g) = (G^T mu) . p - mu . g
+        distance = gt_mu[:, 0] * p[:, 0] + gt_mu[:, 1] * p[:, 1] - mu @ self.g
         return mu, -gt_mu, distance
 
 
