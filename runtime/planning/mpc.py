@@ -65,7 +65,7 @@ class MpcConfig(BaseModel):
     d_min_m: float = Field(default=0.03, ge=0.0, le=1.0, description="minimum footprint distance to P_fix")
     max_reverse_speed_mps: float = Field(default=0.3, ge=0.0, le=5.0, description="v_rev")
     linearize_heading: bool = Field(
-        default=False,
+        default=True,
         description="collision rows also depend on theta (the paper's rows are linear in position only)",
     )
     max_iterations: int = Field(default=200, ge=10, le=100000, description="OSQP iterations per solve")
