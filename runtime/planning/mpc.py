@@ -281,6 +281,9 @@ class OsqpMpcBackend:
 
         self._P = self._build_cost_matrix()
         self._q = np.zeros(self.n)
+        self._q[self.n_s + self.n_u :] = config.weights.slack_linear
+        self._neg2_pos_w = np.full(H, -2.0 * config.weights.position)
+        self._neg2_pos_w[-1] = -2.0 * config.weights.terminal_position
         self._l = np.zeros(self.m)
         self._u = np.zeros(self.m)
         # Constant bounds.
@@ -333,23 +336,19 @@ class OsqpMpcBackend:
         vals[sl["b1"]] = lin.b1
         coef = lin.coll_coef.reshape(H * K, 3)
         active = lin.coll_active.reshape(H * K)
-        vals[sl["cx"]] = np.where(active, coef[:, 0], 0.0)
-        vals[sl["cy"]] = np.where(active, coef[:, 1], 0.0)
+        vals[sl["cx"]] = coef[:, 0] * active  # inactive rows: explicit zeros (fixed pattern)
+        vals[sl["cy"]] = coef[:, 1] * active
         if "cth" in sl:
-            vals[sl["cth"]] = np.where(active, coef[:, 2], 0.0)
+            vals[sl["cth"]] = coef[:, 2] * active
         np.take(vals, self._perm, out=self._Ax)
 
-        q, l, u = self._q, self._l, self._u
-        q.fill(0.0)
-        pos_w = np.full(H, w.position)
-        pos_w[-1] = w.terminal_position
-        q[3 : n_s : 3] = -2 * pos_w * lin.ref_xy[:, 0]
-        q[4 : n_s : 3] = -2 * pos_w * lin.ref_xy[:, 1]
+        q, l, u = self._q, self._l, self._u  # q: zero where not written (set up once)
+        q[3 : n_s : 3] = self._neg2_pos_w * lin.ref_xy[:, 0]
+        q[4 : n_s : 3] = self._neg2_pos_w * lin.ref_xy[:, 1]
         q[5 : n_s : 3] = -2 * w.heading * lin.ref_yaw
         q[n_s : n_s + n_u : 2] = -2 * w.speed * lin.ref_v
         q[n_s] += -2 * w.speed_change * lin.u_prev[0]
-        q[n_s + 1] += -2 * w.angular_speed_change * lin.u_prev[1]
-        q[n_s + n_u :] = w.slack_linear
+        q[n_s + 1] = -2 * w.angular_speed_change * lin.u_prev[1]
 
         l[0:3] = lin.state0
         u[0:3] = lin.state0
@@ -512,7 +511,7 @@ class MpcPlanner:
         """The K P_fix points nearest to each nominal pose; once per plan, kept for all alternations
         (NeuPAN's PAN iterations also keep the point set and re-run only the net and the QP)."""
         t0 = time.perf_counter()
-        self.last_selection = self.selector.select(nominal_states[1:], points_world)
+        self.last_selection = self.selector.select(nominal_states[1:], points_world, points_checked=True)
         timings["select"] += (time.perf_counter() - t0) * 1e3
 
     def _collision_rows(self, nominal_states: np.ndarray, timings: dict) -> int:
@@ -550,6 +549,7 @@ class MpcPlanner:
 
     def _linearize_collisions(self, nominal_states: np.ndarray, points_world: np.ndarray, timings: dict) -> int:
         """Select the points at the nominal poses, then fill the collision rows (both steps)."""
+        points_world = check_points(points_world, "MpcPlanner._linearize_collisions: points_world")
         self._select_points(nominal_states, points_world, timings)
         return self._collision_rows(nominal_states, timings)
 

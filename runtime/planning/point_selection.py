@@ -74,12 +74,14 @@ class PointSelector:
         self.half_length_m = float(half_length_m)
         self.half_width_m = float(half_width_m)
 
-    def select(self, poses: np.ndarray, points_world: np.ndarray) -> SelectedPoints:
-        """poses (P, 3) x, y, yaw; points_world (N, 2) P_fix in the same (odom) frame."""
+    def select(self, poses: np.ndarray, points_world: np.ndarray, points_checked: bool = False) -> SelectedPoints:
+        """poses (P, 3) x, y, yaw; points_world (N, 2) P_fix in the same (odom) frame
+        (points_checked: the caller already ran check_points on them, this tick)."""
         poses = np.asarray(poses, dtype=np.float64)
         if poses.ndim != 2 or poses.shape[1] != 3 or not np.isfinite(poses).all():
             raise PlannerInputError(f"PointSelector.select: poses must be finite (P, 3), got {poses.shape}")
-        points_world = check_points(points_world, "PointSelector.select: points_world")
+        if not points_checked:
+            points_world = check_points(points_world, "PointSelector.select: points_world")
         cfg = self.config
         k = cfg.points_per_pose
         n_poses = poses.shape[0]
