@@ -92,3 +92,14 @@ def test_all_fixed_mpc_avoids_fixed_obstacles(scenario):
     assert m["success"]
     assert result.extra["sensor_errors"] == {}
     assert result.controller["mpc_plans"] > 20
+
+
+def test_steep_approach_to_the_tight_gap_never_touches_even_when_it_stalls():
+    """Known limit (README): from 0.5 m off the gap's axis the MPC stops at the mouth (a local
+    minimum that correcting mode, roadmap step 6, will back out of). Whatever it does, the
+    supervisor keeps it off the blocks: no fixed contact, positive ground-truth clearance."""
+    result = run_episode("gap_offset", seed=0)
+    m = result.metrics
+    assert m["fixed_contacts"] == 0, m["obstacles"]
+    assert m["min_fixed_clearance_m"] > 0.0
+    assert result.controller["safety_stops"] + result.controller["safety_slowdowns"] > 0
