@@ -3,7 +3,8 @@
 Each point is taken from the lidar frame to base_link (mount from the robot description),
 deskewed with the robot's current twist and its own time stamp (the scan is cast over
 100 ms while the robot moves), cut to the robot's height band (ground removed, overhead
-ignored), cropped to a range, reduced to one mean point per 2-D voxel (sparse noise cells dropped) and put in the odom frame.
+ignored), cropped to a range, reduced to one mean point per 2-D voxel (sparse noise cells
+dropped) and put in the odom frame.
 All numpy, no Python loop over points.
 """
 from __future__ import annotations
@@ -37,7 +38,7 @@ def voxel_filter(points: np.ndarray, voxel_m: float, min_support_ratio: float = 
     """
     cells = np.floor(points / voxel_m).astype(np.int64)
     key = cells[:, 0] * _KEY_STRIDE + cells[:, 1]
-    keys, inverse, counts = np.unique(key, return_index=False, return_inverse=True, return_counts=True)
+    keys, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     out = np.empty((keys.shape[0], 2))
     out[:, 0] = np.bincount(inverse, weights=points[:, 0]) / counts
     out[:, 1] = np.bincount(inverse, weights=points[:, 1]) / counts

@@ -3,8 +3,9 @@
 In the style of Nav2's collision monitor, and separate from the MPC: before write(), the command
 (v, omega) is held for a look-ahead time (a tick plus the base's response) and then ramped to
 zero at the deceleration limits, which is the stop the controller would execute if this were the
-last command it could send. The footprint is placed at each sampled pose of that curve, and the exact point-to-rectangle signed distance
-(vectorized numpy; not the distance net) to every nearby point is taken. If the swept footprint
+last command it could send. The footprint is placed at each sampled pose of that curve, and the
+exact point-to-rectangle signed distance (vectorized numpy; not the distance net) to every
+nearby point is taken. If the swept footprint
 would come within `stop_distance_m` of a point and the command brings it nearer than it is now,
 the command is replaced by a stop; within `slow_distance_m` it is scaled down (slow-down zone).
 A command that moves away from a point already inside a zone is let through, so that the robot
@@ -82,7 +83,8 @@ class SafetySupervisor:
         v = math.copysign(1.0, v_mps) * np.maximum(abs(v_mps) - a_v * t_brake, 0.0)
         # Heading: the exact integral of the held-then-ramped yaw rate.
         tw = np.minimum(t_brake, brake_w)
-        th = pose[2] + omega_radps * t_hold + math.copysign(1.0, omega_radps) * (abs(omega_radps) * tw - 0.5 * a_w * tw * tw)
+        w_sign = math.copysign(1.0, omega_radps)
+        th = pose[2] + omega_radps * t_hold + w_sign * (abs(omega_radps) * tw - 0.5 * a_w * tw * tw)
         out = np.empty((n * sub + 1, 3))
         for axis, f in ((0, np.cos), (1, np.sin)):  # trapezoidal integration of v (cos, sin)(theta)
             vel = v * f(th)

@@ -514,18 +514,25 @@ class MpcPlanner:
         self.last_selection = self.selector.select(nominal_states[1:], points_world, points_checked=True)
         timings["select"] += (time.perf_counter() - t0) * 1e3
 
-    def _collision_rows(self, nominal_states: np.ndarray, timings: dict) -> int:
-        """Run the distance model at the nominal poses on the selected points and fill the rows."""
-        lin, H, K = self.lin, self.config.horizon_steps, self.config.points.points_per_pose
+    def _selected_in_pose_frames(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cos, sin) of the poses' yaw (H, 1) and the selected points in pose h's frame, written
+        into the preallocated (H, K, 2) buffer."""
         sel = self.last_selection
-        t1 = time.perf_counter()
-        poses = nominal_states[1:]
         c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
         dx = sel.points_world[..., 0] - poses[:, 0, None]
         dy = sel.points_world[..., 1] - poses[:, 1, None]
         local = self._local
         local[..., 0] = c * dx + s * dy
         local[..., 1] = -s * dx + c * dy
+        return c, s, local
+
+    def _collision_rows(self, nominal_states: np.ndarray, timings: dict) -> int:
+        """Run the distance model at the nominal poses on the selected points and fill the rows."""
+        lin, H, K = self.lin, self.config.horizon_steps, self.config.points.points_per_pose
+        sel = self.last_selection
+        t1 = time.perf_counter()
+        poses = nominal_states[1:]
+        c, s, local = self._selected_in_pose_frames(poses)
         local[~sel.valid] = self._dummy_far  # fixed-size batch for the net; rows inactive anyway
         n = H * K
         mu, lam_r, dist = check_dual_output(self.distance_model.dual(local.reshape(n, 2)), n)
@@ -652,12 +659,7 @@ class MpcPlanner:
         sel = self.last_selection
         if sel is not None and sel.count:
             # Exact distance of each predicted pose to its own constraint points (the rows it saw).
-            c, s = np.cos(states[1:, 2])[:, None], np.sin(states[1:, 2])[:, None]
-            dx = sel.points_world[..., 0] - states[1:, 0, None]
-            dy = sel.points_world[..., 1] - states[1:, 1, None]
-            local = self._local
-            local[..., 0] = c * dx + s * dy
-            local[..., 1] = -s * dx + c * dy
+            local = self._selected_in_pose_frames(states[1:])[2]
             d = rectangle_signed_distance(local, self.half_length_m, self.half_width_m)
             min_dist = float(d[sel.valid].min())
         else:

@@ -44,17 +44,6 @@ class SelectedPoints:
         return int(self.valid.sum())
 
 
-def corridor_points(poses: np.ndarray, points_world: np.ndarray, radius_m: float) -> np.ndarray:
-    """Points within radius_m of any pose centre (bounding-box prefilter, then exact test)."""
-    lo = poses[:, :2].min(axis=0) - radius_m
-    hi = poses[:, :2].max(axis=0) + radius_m
-    cand = points_world[in_box(points_world, lo, hi)]
-    if cand.shape[0] == 0:
-        return cand
-    d2 = (cand[:, None, 0] - poses[None, :, 0]) ** 2 + (cand[:, None, 1] - poses[None, :, 1]) ** 2
-    return cand[d2.min(axis=1) <= radius_m * radius_m]
-
-
 def voxel_thin(points_world: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """One point per square cell of side voxel_size_m (the first in input order)."""
     if voxel_size_m <= 0.0 or points_world.shape[0] <= 1:

@@ -6,7 +6,7 @@ import pytest
 
 from runtime.planning.distance_model import footprint_distance_to_points
 from runtime.planning.errors import PlannerInputError
-from runtime.planning.point_selection import PointSelectionConfig, PointSelector, corridor_points, voxel_thin
+from runtime.planning.point_selection import PointSelectionConfig, PointSelector, voxel_thin
 
 HL, HW = 0.161, 0.110
 
@@ -39,7 +39,8 @@ def test_selects_at_most_k_and_exactly_the_nearest(seed: int, k: int) -> None:
 def test_corridor_drops_far_points_and_keeps_near_ones() -> None:
     poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     pts = np.array([[0.5, 0.8], [0.5, 1.2], [3.0, 0.0], [-1.05, 0.0], [2.0, 0.0]])
-    kept = corridor_points(poses, pts, 1.0)
+    cfg = PointSelectionConfig(corridor_radius_m=1.0, voxel_size_m=0.0)
+    kept = PointSelector(cfg, HL, HW).select(poses, pts).corridor_points_world
     assert {tuple(p) for p in kept} == {(0.5, 0.8), (2.0, 0.0)}
 
 
