@@ -161,7 +161,8 @@ def run_episode(
     driver = AgileXBaseDriver(controller_bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
     hardware = AgileXBaseHardware(driver, robot.drive.skid_steer_yaw_factor)
     controller = NavigationController(
-        robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now, sensors=inbox if devices else None
+        robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now, sensors=inbox if devices else None,
+        lockstep=True,
     )
     telemetry = TickTelemetry()
     loop = FixedRateLoop(

@@ -48,7 +48,12 @@ class NavigationController:
         goal: Pose2D,
         clock: Callable[[], float],
         sensors: SensorInbox | None = None,
+        lockstep: bool = False,
     ) -> None:
+        """lockstep: the clock is simulated time; nothing that decides behaviour may read the wall
+        clock (solver caps are iteration counts). False on the robot and in real-time HIL."""
+        self.lockstep = lockstep
+        self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
         self.hardware = hardware
@@ -201,7 +206,7 @@ class NavigationController:
         pc = self.config.planner
         op = pc.obstacle_points
         self.distance_net = DistanceNet.load(pc.distance_net_path, robot=self.robot)
-        self.mpc = MpcPlanner(pc.mpc, self.robot, self.distance_net)
+        self.mpc = MpcPlanner(pc.mpc, self.robot, self.distance_net, wall_clock_caps=self.wall_clock_caps)
         self.mpc.warm_up()  # here, not in the first tick (TorchScript optimizes on first calls)
         self.reference = ReferencePathPlanner(pc.reference_path, self.robot)
         self.supervisor = SafetySupervisor(pc.safety_supervisor, self.robot)

@@ -14,8 +14,10 @@ waypoints (position, heading, speed), penalize input changes.
 The QP has a fixed sparsity pattern: all H*K collision rows are always present (unused ones have
 zero coefficients, kept as explicit entries, and a lower bound of -inf), so OSQP is set up once
 and each tick only `update(q, l, u, Ax)` + `warm_start` + `solve()`. Net and QP alternate
-`alternations` times (NeuPAN's PAN iterations). Each solve is capped in iterations and time; on
-a cap the planner falls back to the shifted previous plan and counts it.
+`alternations` times (NeuPAN's PAN iterations). Each solve is capped in iterations, and in real
+time also by the wall clock (`qp_time_budget_s`); on a cap the planner falls back to the shifted
+previous plan and counts it. In lockstep (`wall_clock_caps=False`) only the iteration cap
+applies, so the same inputs give the same plan under any machine load (DESIGN.md section 6).
 """
 from __future__ import annotations
 
@@ -69,7 +71,9 @@ class MpcConfig(BaseModel):
         description="collision rows also depend on theta (the paper's rows are linear in position only)",
     )
     max_iterations: int = Field(default=200, ge=10, le=100000, description="OSQP iterations per solve")
-    qp_time_budget_s: float = Field(default=0.008, gt=0.0, le=1.0, description="all alternations together")
+    qp_time_budget_s: float = Field(
+        default=0.008, gt=0.0, le=1.0, description="all alternations together; wall clock, real time only"
+    )
     eps_abs: float = Field(default=1e-3, gt=0.0)
     eps_rel: float = Field(default=1e-3, gt=0.0)
     weights: MpcWeights = MpcWeights()
@@ -164,7 +168,7 @@ class QpOutcome:
 class QpBackend(Protocol):
     """Solves the QP described by an MpcLinearization (OSQP here; cvxpy in the benchmark)."""
 
-    def solve(self, lin: MpcLinearization, time_limit_s: float) -> QpOutcome: ...
+    def solve(self, lin: MpcLinearization, time_limit_s: float | None) -> QpOutcome: ...
 
 
 @dataclass
@@ -204,9 +208,15 @@ class OsqpMpcBackend:
     collision (HK), slack >= 0 (HK).
     """
 
-    def __init__(self, config: MpcConfig, limits: MpcLimits) -> None:
+    #: OSQP's own default time limit (1e10 s): in effect, none.
+    NO_TIME_LIMIT_S = 1.0e10
+
+    def __init__(self, config: MpcConfig, limits: MpcLimits, wall_clock_caps: bool = True) -> None:
+        """wall_clock_caps: cap each solve at qp_time_budget_s / alternations of wall-clock time
+        (real time). False: iterations only (lockstep: deterministic under any load)."""
         self.config = config
         self.limits = limits
+        self.wall_clock_caps = wall_clock_caps
         H = config.horizon_steps
         K = config.points.points_per_pose
         self.H, self.K = H, K
@@ -296,11 +306,16 @@ class OsqpMpcBackend:
             self._P, self._q, A, self._l, self._u,
             verbose=False, polishing=False, warm_starting=True,
             max_iter=config.max_iterations, eps_abs=config.eps_abs, eps_rel=config.eps_rel,
-            time_limit=config.qp_time_budget_s / config.alternations,
+            time_limit=self._default_time_limit_s(),
             check_termination=10,
             adaptive_rho_interval=25,  # fixed, not time-based: the same inputs give the same plan
         )
-        self._time_limit_s = config.qp_time_budget_s / config.alternations
+        self._time_limit_s = self._default_time_limit_s()
+
+    def _default_time_limit_s(self) -> float:
+        if not self.wall_clock_caps:
+            return self.NO_TIME_LIMIT_S
+        return self.config.qp_time_budget_s / self.config.alternations
 
     # -- cost ---------------------------------------------------------------------------------
     def _build_cost_matrix(self) -> sp.csc_matrix:
@@ -366,6 +381,8 @@ class OsqpMpcBackend:
 
         solver = self._solver
         solver.update(q=q, l=l, u=u, Ax=self._Ax)
+        if not self.wall_clock_caps:
+            time_limit_s = None
         if time_limit_s is not None and time_limit_s != self._time_limit_s:
             solver.update_settings(time_limit=time_limit_s)
             self._time_limit_s = time_limit_s
@@ -395,7 +412,9 @@ class MpcPlanner:
         robot,
         distance_model: DistanceModel,
         qp_backend: QpBackend | None = None,
+        wall_clock_caps: bool = True,
     ) -> None:
+        """wall_clock_caps: False in lockstep (iteration caps only; see the module docstring)."""
         if not callable(getattr(distance_model, "dual", None)):
             raise PlannerInputError(f"MpcPlanner: distance_model {type(distance_model).__name__} has no dual()")
         if "torch" in sys.modules:  # the distance net runs on one thread (ENVIRONMENT.md)
@@ -407,7 +426,10 @@ class MpcPlanner:
         self.half_width_m = robot.footprint.width_m / 2.0
         self.limits = MpcLimits.from_robot(robot, config.max_reverse_speed_mps)
         self.selector = PointSelector(config.points, self.half_length_m, self.half_width_m)
-        self.backend: QpBackend = qp_backend if qp_backend is not None else OsqpMpcBackend(config, self.limits)
+        self.wall_clock_caps = wall_clock_caps
+        self.backend: QpBackend = (
+            qp_backend if qp_backend is not None else OsqpMpcBackend(config, self.limits, wall_clock_caps)
+        )
         H, K = config.horizon_steps, config.points.points_per_pose
         self.lin = MpcLinearization(H, K)
         self._prev_commands: np.ndarray | None = None
@@ -620,7 +642,7 @@ class MpcPlanner:
         iterations, capped, status = 0, False, "not run"
         solution: np.ndarray | None = None
         max_slack, n_rows, done = 0.0, 0, 0
-        per_solve_limit = cfg.qp_time_budget_s / cfg.alternations
+        per_solve_limit = cfg.qp_time_budget_s / cfg.alternations if self.wall_clock_caps else None
         self._select_points(nominal_states, points, timings)
         for _ in range(cfg.alternations):
             n_rows = self._collision_rows(nominal_states, timings)
