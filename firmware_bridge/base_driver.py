@@ -178,14 +178,41 @@ class AgileXBaseDriver:
     @property
     def feedback_age_s(self) -> float:
         """Seconds since the last 0x221 (inf before the first)."""
-        if self._motion is None:
+        return self.frame_age_s(p.ID_MOTION_STATE)
+
+    def frame_age_s(self, frame_id: int, now_s: float | None = None) -> float:
+        """Seconds since the last frame of `frame_id` was received (inf before the first).
+
+        Tracked for the feedback streams a controller watches: 0x221 motion state, 0x211 system
+        state, 0x311 odometry (a watchdog per stream: DESIGN.md section 9).
+        """
+        if frame_id == p.ID_MOTION_STATE:
+            st = self._motion
+        elif frame_id == p.ID_SYSTEM_STATE:
+            st = self._system
+        elif frame_id == p.ID_ODOMETRY:
+            st = self._other.get("odometry")
+        else:
+            raise ValueError(f"frame_age_s: 0x{frame_id:03X} is not a watched feedback frame (0x211, 0x221, 0x311)")
+        if st is None:
             return math.inf
-        return self._clock() - self._motion.stamp_s
+        return (self._clock() if now_s is None else now_s) - st.stamp_s
 
     @property
     def feedback_lost(self) -> bool:
         """True when no 0x221 arrived within ``feedback_timeout_s`` (and before the first one)."""
         return self.feedback_age_s > self.feedback_timeout_s
+
+    @property
+    def vehicle_state(self) -> int | None:
+        """Last reported 0x211 vehicle state (0 normal, 1 E-stop, 2 exception; any other value
+        is unknown and kept as sent), None before any 0x211."""
+        return None if self._system is None else self._system.record.vehicle_state
+
+    @property
+    def system_state_flags(self) -> tuple[str, ...]:
+        """Fields of the last 0x211 whose value lay outside its documented range."""
+        return () if self._system is None else tuple(getattr(self._system.record, "flagged_fields", ()))
 
     @property
     def control_mode(self) -> int | None:

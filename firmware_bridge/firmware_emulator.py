@@ -25,6 +25,11 @@ Behaviour (AGILEX_V2.md sections 2-6, and the choices made where the sources are
   every 1 s. 0x211 byte 7 is a rolling counter. Wheel rpm and pulse counts are signed so that
   positive = the robot moving forward, on both sides. 0x221 is computed from the measured wheel
   speeds (what the firmware knows), not from the body's true motion.
+* E-stop (`emergency_stop = True`, the HIL's stand-in for the red button): 0x211 reports
+  vehicle state 0x01, the wheels stop at once and 0x111 is ignored; releasing it lets 0x111
+  through again (the host is expected to restart its own sequence, as our controller does).
+* Fault injection for HIL: `suppressed_frame_ids` holds feedback ids the firmware stops sending
+  (a silent stream; counted in `frames_suppressed`).
 * Frames are decoded with `FrameDecoder`: a bad frame is counted (`frames_rejected`) and never
   acted on. Feedback frames carry `timestamp = t_s` (a virtual bus created with
   `preserve_timestamps=True` keeps it).
@@ -107,6 +112,9 @@ class EmulatedBaseFirmware:
         self.frames_sent = 0
         self.send_errors = 0
         self.error_clears = 0
+        self.emergency_stop = False
+        self.suppressed_frame_ids: set[int] = set()
+        self.frames_suppressed = 0
 
         self._integral = np.zeros(4)
         self._at_limit_s = np.zeros(4)
@@ -186,8 +194,10 @@ class EmulatedBaseFirmware:
 
     def _handle(self, record: object, t_s: float) -> None:
         if isinstance(record, p.MotionCommand):
-            if self.control_mode != p.CONTROL_MODE_CAN or self.comm_lost:
+            if self.control_mode != p.CONTROL_MODE_CAN or self.comm_lost or self.emergency_stop:
                 self.commands_ignored += 1
+                if self.emergency_stop and self.control_mode == p.CONTROL_MODE_CAN and not self.comm_lost:
+                    self.last_command_time_s = t_s  # the host is alive; its command is not obeyed
                 return
             v = min(max(float(record.linear_mps), -self._v_max), self._v_max)
             w = min(max(float(record.angular_radps), -self._w_max), self._w_max)
@@ -219,7 +229,7 @@ class EmulatedBaseFirmware:
             self._stop_now()
 
     def _update_targets(self, dt: float) -> None:
-        if self.control_mode != p.CONTROL_MODE_CAN:
+        if self.control_mode != p.CONTROL_MODE_CAN or self.emergency_stop:
             self._stop_now()
         (v_cmd, w_cmd), (v, w) = self.commanded, self.ramped
         dv, dw = self._a_max * dt, self._alpha_max * dt
@@ -271,6 +281,9 @@ class EmulatedBaseFirmware:
     # ------------------------------------------------------------------------------------
     def _send(self, record: object, t_s: float) -> None:
         msg = p.encode(record)
+        if msg.arbitration_id in self.suppressed_frame_ids:
+            self.frames_suppressed += 1
+            return
         msg.timestamp = t_s
         try:
             self.bus.send(msg)
@@ -308,7 +321,8 @@ class EmulatedBaseFirmware:
         if slow:
             volts = round(self.battery_voltage_v, 1)
             self._send(p.SystemState(
-                vehicle_state=p.VEHICLE_STATE_NORMAL, control_mode=self.control_mode,
+                vehicle_state=p.VEHICLE_STATE_ESTOP if self.emergency_stop else p.VEHICLE_STATE_NORMAL,
+                control_mode=self.control_mode,
                 battery_voltage_v=volts, error_code=self.error_code,
                 motion_mode=p.MOTION_MODE_DIFFERENTIAL, count=self._count_211,
             ), t_s)

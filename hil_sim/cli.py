@@ -25,8 +25,10 @@ def list_command() -> None:
 
 @hil_group.command("run")
 @click.argument("scenario")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the episode metrics here.")
-@click.option("--seed", default=0, show_default=True, help="Seed for every random source (deterministic).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the episode metrics here (checked before the run, written atomically after it).")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1),
+              help="Seed for every random source (deterministic).")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Controller config YAML.")
 @click.option("--robot", "robot_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Robot description YAML.")
 @click.option(
@@ -34,42 +36,76 @@ def list_command() -> None:
     type=click.Choice(["pure-pursuit", "all-fixed"]),
     help="Override the config's planner mode (all-fixed: MPC with every lidar point fixed, the NeuPAN-like baseline).",
 )
+@click.option(
+    "--fault", "fault_texts", multiple=True, metavar="NAME:START_S[:DURATION_S]",
+    help="Inject a fault (repeatable): lidar-blind, lidar-far, lidar-frozen, drop-0x311, drop-0x211, drop-0x221, "
+         "imu-silent, estop. Times in simulated seconds from the start; no duration = to the end.",
+)
 def run_command(
-    scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None, planner: str | None
+    scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None,
+    planner: str | None, fault_texts: tuple[str, ...],
 ) -> None:
-    """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path)."""
+    """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path).
+
+    The metrics JSON is deterministic (same inputs and seed, same file, under any machine load);
+    the wall-clock timing the computer spent is in its `wall_clock` section, a measurement.
+    Exit status 0 on success, 1 when the episode failed (the JSON says why: failure_reason).
+    """
     from calibration.errors import ConfigFileError
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
     from calibration.robot_description import load_robot_description
+    from hil_sim.faults import FaultSpec, FaultSpecError
     from hil_sim.runner import run_episode
     from hil_sim.scenario import load_scenario
     from runtime.config import load_controller_config
 
     try:
+        faults = [FaultSpec.parse(t) for t in fault_texts]
         sc = load_scenario(scenario)
         robot = load_robot_description(robot_path)
         config = load_controller_config(config_path)
         if planner is not None:
             config = config.with_planner_mode(planner)
-    except ConfigFileError as exc:
+        inputs = [p for p in (config_path, robot_path, Path(scenario)) if p is not None and Path(p).is_file()]
+        if json_path is not None:
+            check_output_path(json_path, what="--json", inputs=inputs)
+    except (ConfigFileError, FaultSpecError, OutputPathError) as exc:
         raise click.ClickException(str(exc)) from exc
-    result = run_episode(sc, robot=robot, config=config, seed=seed)
+    try:
+        result = run_episode(sc, robot=robot, config=config, seed=seed, faults=faults)
+    except ConfigFileError as exc:  # a scenario the robot cannot start in, a bad model file
+        raise click.ClickException(str(exc)) from exc
     m = result.metrics
     if json_path is not None:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
         payload = dict(m)
-        payload["telemetry"] = result.telemetry
-        json_path.write_text(json.dumps(payload, indent=2) + "\n")
-    click.echo(
-        f"{sc.name}: {'SUCCESS' if m['success'] else 'FAIL'}"
+        payload["wall_clock"] = wall_clock_report(result)
+        atomic_write_json(json_path, payload)
+    click.echo(summary_line(sc.name, m, result.realtime_factor))
+    if not m["success"]:
+        sys.exit(1)
+
+
+def wall_clock_report(result) -> dict:
+    """What the computer spent: measurements, not verdicts (they vary with the machine's load)."""
+    return {
+        "wall_time_s": result.wall_time_s,
+        "realtime_factor": result.realtime_factor,
+        **result.telemetry,
+    }
+
+
+def summary_line(name: str, m: dict, realtime_factor: float) -> str:
+    verdict = "SUCCESS" if m["success"] else f"FAIL ({m.get('failure_reason') or 'no reason recorded'})"
+    line = (
+        f"{name}: {verdict}"
         f" goal_reached={m['goal_reached']} time={m['navigation_time_s']:.2f}s"
         f" path={m['path_length_m']:.2f}m speed={m['average_speed_mps']:.3f}m/s"
         f" fixed_contacts={m['fixed_contacts']} movable_contacts={m.get('movable_contacts', 0)}"
         f" min_fixed_clearance={m['min_fixed_clearance_m'] * 100:.1f}cm"
         f" deadline_misses={m['deadline_misses']} state={m.get('controller_state')}"
-        f" realtime={result.realtime_factor:.1f}x"
+        f" events={len(m.get('events', []))} realtime={realtime_factor:.1f}x"
     )
-    if not m["success"]:
-        sys.exit(1)
+    return line
 
 
 @click.group(name="bench")

@@ -18,6 +18,7 @@ import can
 from calibration.robot_description import RobotDescription, load_robot_description
 from firmware_bridge.base_driver import AgileXBaseDriver
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+from hil_sim.faults import FaultInjector, FaultSpec
 from hil_sim.metrics import EpisodeMetrics
 from hil_sim.scenario import Scenario, load_scenario
 from hil_sim.world import World
@@ -130,12 +131,19 @@ def run_episode(
     settle_s: float = 0.5,
     progress: Callable[[float], None] | None = None,
     sensors: "SensorRigConfig | None | bool" = None,
+    faults: Iterable[FaultSpec] = (),
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
     sensors: a SensorRigConfig, True for the default rig, False for none; None picks what the
     controller needs (lidar + IMU for the MPC, nothing for pure pursuit).
+    faults: injected faults (hil_sim.faults), times from the start of the episode.
+
+    Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
+    What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
+    returned in `telemetry` and `wall_time_s`, never in the metrics.
     """
+    faults = tuple(faults)
     if isinstance(scenario, str):
         scenario = load_scenario(scenario)
     robot = robot or load_robot_description()
@@ -147,21 +155,26 @@ def run_episode(
     controller_bus, sim_bus = virtual_bus_pair()
     firmware = EmulatedBaseFirmware(sim_bus, robot)
     inbox = SensorInbox()
-    devices = []
+    injector = FaultInjector(
+        faults, firmware, inbox, start_s=world.time_s,
+        far_m=config.planner.obstacle_points.max_range_m + 4.0,
+    )
+    devices: list = [injector]  # first: faults switch before the sensors and firmware act
     if sensors is None:
         sensors = config.uses_mpc
-    if sensors is not False:
+    has_sensors = sensors is not False
+    if has_sensors:
         from hil_sim.sensor_rig import SensorRig, SensorRigConfig
 
         rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
-        devices.append(SensorRig(world, robot, inbox, rig_config))
+        devices.append(SensorRig(world, robot, injector, rig_config))
     sim = LockstepSimulation(world, firmware, metrics, devices)
     clock = LockstepClock(sim)
 
     driver = AgileXBaseDriver(controller_bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
     hardware = AgileXBaseHardware(driver, robot.drive.skid_steer_yaw_factor)
     controller = NavigationController(
-        robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now, sensors=inbox if devices else None,
+        robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now, sensors=inbox if has_sensors else None,
         lockstep=True,
     )
     telemetry = TickTelemetry()
@@ -205,6 +218,7 @@ def run_episode(
         nav_time = controller.goal_reached_at_s - t_start
     else:
         nav_time = sim.time_s - t_start
+    report = controller.describe()
     result_metrics = metrics.to_dict(
         goal_reached=reached,
         navigation_time_s=nav_time,
@@ -215,12 +229,18 @@ def run_episode(
             "final_distance_to_goal_m": world_distance_to_goal(world, scenario),
             "sim_time_s": sim.time_s - t_start,
             "planner": config.planner.mode,
+            "faults": [f.to_dict() for f in faults],
+            "events": controller.events.to_list(t0_s=t_start),
+            "controller": report,
+            "sensor_errors": dict(sorted(inbox.error_counts.items())),
+            "firmware_frames_rejected": firmware.frames_rejected,
         },
     )
+    result_metrics["failure_reason"] = failure_reason(result_metrics, report)
     return EpisodeResult(
         metrics=result_metrics,
         telemetry=telemetry.summary(),
-        controller=controller.describe(),
+        controller=report,
         wall_time_s=wall,
         sim_time_s=sim.time_s - t_start,
         extra={
@@ -230,8 +250,46 @@ def run_episode(
             "timestep_s": world.timestep_s,
             "sensor_errors": dict(inbox.error_counts),
             "sensor_frames": dict(inbox.accepted),
+            "faults_applied": dict(injector.applied),
         },
     )
+
+
+def failure_reason(metrics: dict, controller: dict) -> str | None:
+    """Why the episode failed, in words (None on success). The first that applies:
+    fixed contact; a latched safety stop; an input fault the robot was holding for at the end;
+    never became active; time limit while blocked (no path); stalled without progress with a
+    valid reference path; the controller's goal not the world's (odometry drift); time limit.
+    """
+    if metrics["success"]:
+        return None
+    if metrics["fixed_contacts"]:
+        hit = [o["name"] for o in metrics["obstacles"] if o["class"] != "movable" and o["contact_count"]]
+        return f"fixed contact: {', '.join(hit)} ({metrics['fixed_contacts']} contact events)"
+    state = controller["state"]
+    if state == "STOPPED":
+        return f"safety stop: {controller['stop_reason']}"
+    if state == "HOLDING":
+        return f"sensor stale: {controller['hold_reason']} (held still at the time limit)"
+    if state == "INITIALIZING":
+        faults = "; ".join(f["reason"] for f in controller["input_faults"]) or "base not ready"
+        return f"never became active: {faults}"
+    if state == "GOAL_REACHED":
+        return (
+            f"odometry drift: the controller reached the goal in its odom frame, the robot is "
+            f"{metrics['final_distance_to_goal_m']:.2f} m from it"
+        )
+    if controller.get("blocked_now"):
+        return (
+            f"time limit while blocked: no path to the goal in the local map for the last "
+            f"{controller['blocked_for_s']:.1f} s ({controller['blocked_ticks']} blocked ticks)"
+        )
+    if controller.get("stalled_now"):
+        return (
+            f"stalled without progress for {controller['no_progress_s']:.1f} s with a valid reference path "
+            f"({controller['backoffs']} backoffs, {metrics['final_distance_to_goal_m']:.2f} m from the goal)"
+        )
+    return f"time limit: {metrics['final_distance_to_goal_m']:.2f} m from the goal"
 
 
 def world_distance_to_goal(world: World, scenario: Scenario) -> float:

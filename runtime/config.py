@@ -8,6 +8,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from calibration.errors import ConfigFileError, load_yaml_model
+from runtime.input_monitor import InputsConfig
+from runtime.modes.selector import RecoveryConfig
 from runtime.planning.mpc import MpcConfig
 from runtime.planning.reference_path import ReferencePathConfig
 from runtime.safety_supervisor import SafetySupervisorConfig
@@ -40,6 +42,8 @@ class LoopConfig(_Strict):
 
 
 class SafetyStopConfig(_Strict):
+    #: Judged on the loop's clock: the wall clock on the robot and in real-time HIL; simulated
+    #: time in lockstep (where the command is never late; wall-clock misses are only reported).
     max_consecutive_deadline_misses: int = Field(ge=1, le=100)
     startup_timeout_s: float = Field(gt=0.0, le=30.0)
 
@@ -62,7 +66,6 @@ class ObstaclePointsConfig(_Strict):
     min_support_ratio: float = Field(
         default=0.25, ge=0.0, le=1.0, description="drop voxels with fewer points than this x their fullest neighbour"
     )
-    max_scan_age_s: float = Field(default=0.3, gt=0.0, le=5.0, description="older P_fix -> hold zero command")
 
 
 class PlannerConfig(_Strict):
@@ -94,6 +97,10 @@ class ControllerConfig(_Strict):
     loop: LoopConfig
     safety_stop: SafetyStopConfig
     planner: PlannerConfig
+    #: Watchdogs and sanity checks of every input (runtime.input_monitor).
+    inputs: InputsConfig = InputsConfig()
+    #: Stall detection and the backoff recovery (runtime.modes.selector).
+    recovery: RecoveryConfig = RecoveryConfig()
 
     @model_validator(mode="after")
     def _tick_matches_mpc(self) -> "ControllerConfig":

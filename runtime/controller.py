@@ -1,10 +1,25 @@
 """The navigation controller: one tick = Algorithm 1 of the DCT paper, stage by stage.
 
-    read() -> odometry -> partition (VPP) -> planner -> safety -> write()
+    read() + watchdogs -> odometry -> partition (VPP) -> planner (mode) -> safety -> write()
 
 The controller talks to the base only through a hardware interface with a lifecycle
 (configure / activate / deactivate, as in ros2_control); it never knows whether the base
 is a real LIMO or the simulator's emulated firmware.
+
+Its lifecycle is a small state machine:
+
+    INITIALIZING --base ready, every input good--> ACTIVE --goal--> GOAL_REACHED
+         ^                                          |  ^
+         |  restart (fresh enable, ramp from 0)    v  | every input good again
+         +----- E-stop / lost command stream --- HOLDING  (a controlled stop, reason named)
+    any state --base fault, remote control, deadline misses (real time), no base--> STOPPED
+
+"No data" is never "free space": every input has a watchdog (runtime.input_monitor); while one
+fails the robot holds still with the failing inputs named in the event log, and resumes by
+itself when they are good again. An E-stop (or any vehicle state that is not normal) is also
+a hold, but clearing it does not resume driving at the last command: the controller re-enters
+its start-up sequence. Which planner drives while ACTIVE is a navigation mode chosen by
+`runtime.modes.selector.ModeSelector` (the all-fixed MPC, pure pursuit, or the stall recovery).
 """
 from __future__ import annotations
 
@@ -12,31 +27,36 @@ import math
 from enum import IntEnum
 from typing import Callable
 
+import numpy as np
+
 from calibration.robot_description import RobotDescription
 from runtime.command_limits import CommandLimiter
 from runtime.config import ControllerConfig
+from runtime.events import EventLog
 from runtime.geometry import Pose2D
-from runtime.hardware import BaseHardware
+from runtime.hardware import BaseHardware, BaseInputs
+from runtime.input_monitor import InputFault, InputMonitor
 from runtime.loop import StageClock
+from runtime.modes.base import ModeDecision, Situation
+from runtime.modes.selector import ModeSelector
 from runtime.obstacle_points import ObstaclePointExtractor
 from runtime.odometry import WheelGyroOdometry
-from runtime.planning.pure_pursuit import PurePursuitPlanner
 from runtime.safety_stop import SafetyStop
 from runtime.sensor_inbox import SensorInbox, SensorSnapshot
 from runtime.telemetry import STAGES
 
-import numpy as np
-
 _NO_SENSORS = SensorSnapshot(None, None, ())
+_NO_POINTS = np.zeros((0, 2))
 
 READ, ODOMETRY, PARTITION, PLANNER, SAFETY, WRITE = (STAGES.index(s) for s in STAGES)
 
 
 class ControllerState(IntEnum):
-    INITIALIZING = 0  # enabled the base, waiting for its feedback
+    INITIALIZING = 0  # start-up sequence: base enabled, waiting for it and for every input
     ACTIVE = 1  # navigating
     GOAL_REACHED = 2  # at the goal, commanding zero
-    STOPPED = 3  # safety stop latched: commanding zero until reset
+    STOPPED = 3  # latched stop: commanding zero until a new run
+    HOLDING = 4  # controlled stop while an input is faulty; resumes by itself
 
 
 class NavigationController:
@@ -58,25 +78,24 @@ class NavigationController:
         self.config = config
         self.hardware = hardware
         self.goal = goal
+        self._goal_xy = np.array([goal.x_m, goal.y_m])
         self.clock = clock
         self.sensors = sensors
         self.state = ControllerState.INITIALIZING
+        self.events = EventLog()
         self.odometry = WheelGyroOdometry(robot.drive.track_m, robot.drive.skid_steer_yaw_factor)
         self.mode = config.planner.mode
+        uses_sensors = sensors is not None
+        op = config.planner.obstacle_points
+        self.monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=uses_sensors, uses_imu=uses_sensors)
         # P_fix in the odom frame (every lidar point is fixed until the VPP partition lands).
-        self.points_fix = np.zeros((0, 2))
+        self.points_fix = _NO_POINTS
         self.points_fix_stamp_s: float | None = None
-        if self.config.uses_mpc:
-            self._build_mpc_stack()
-        pp = config.planner.pure_pursuit
-        self.planner = PurePursuitPlanner(
-            target_speed_mps=min(pp.target_speed_mps, robot.limits.max_linear_speed_mps),
-            lookahead_m=pp.lookahead_m,
-            goal_tolerance_m=pp.goal_tolerance_m,
-            slowdown_distance_m=pp.slowdown_distance_m,
-            max_heading_error_for_full_speed_rad=pp.max_heading_error_for_full_speed_rad,
-            max_angular_speed_radps=robot.body_max_angular_speed_radps,
+        self.obstacles = ObstaclePointExtractor(
+            robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
         )
+        self.supervisor = None
+        self.modes = self._build_modes()
         self.limiter = CommandLimiter(
             robot.limits.max_linear_speed_mps,
             robot.body_max_angular_speed_radps,
@@ -91,10 +110,59 @@ class NavigationController:
         self.pose = Pose2D(0.0, 0.0, 0.0)
         self.goal_reached_at_s: float | None = None
         self._activated_at_s = 0.0
-        self.stale_scan_holds = 0
+        self.faults: tuple[InputFault, ...] = ()
+        self.hold_reason: str | None = None
+        self._held_streams: list[str] = []
+        self._restart_pending = False
+        self.last_decision = ModeDecision()
+        self.blocked_since_s: float | None = None
+        # Counters (never reset).
+        self.hold_ticks = 0
         self.blocked_ticks = 0
-        if not self.config.uses_mpc:
-            self.obstacles = ObstaclePointExtractor(robot)
+        self.restarts = 0
+        self.degraded_ticks = 0
+        self._degraded = False
+
+    # -- construction ------------------------------------------------------------------------
+    def _build_modes(self) -> ModeSelector:
+        from runtime.modes.pure_pursuit import PurePursuitMode
+        from runtime.planning.pure_pursuit import PurePursuitPlanner
+
+        cfg, robot = self.config, self.robot
+        recovery = None
+        if cfg.uses_mpc:
+            normal, recovery = self._build_mpc_modes()
+        else:
+            pp = cfg.planner.pure_pursuit
+            planner = PurePursuitPlanner(
+                target_speed_mps=min(pp.target_speed_mps, robot.limits.max_linear_speed_mps),
+                lookahead_m=pp.lookahead_m,
+                goal_tolerance_m=pp.goal_tolerance_m,
+                slowdown_distance_m=pp.slowdown_distance_m,
+                max_heading_error_for_full_speed_rad=pp.max_heading_error_for_full_speed_rad,
+                max_angular_speed_radps=robot.body_max_angular_speed_radps,
+            )
+            normal = PurePursuitMode(planner, self.goal)
+        return ModeSelector(normal, recovery, cfg.recovery, self.events)
+
+    def _build_mpc_modes(self):
+        from models.distance_net import DistanceNet  # TorchScript: only when the MPC is used
+        from runtime.modes.all_fixed import AllFixedMode
+        from runtime.modes.backoff import BackoffMode
+        from runtime.planning.mpc import MpcPlanner
+        from runtime.planning.reference_path import ReferencePathPlanner
+        from runtime.safety_supervisor import SafetySupervisor
+
+        pc, rc = self.config.planner, self.config.recovery
+        self.distance_net = DistanceNet.load(pc.distance_net_path, robot=self.robot)
+        self.mpc = MpcPlanner(pc.mpc, self.robot, self.distance_net, wall_clock_caps=self.wall_clock_caps)
+        self.mpc.warm_up()  # here, not in the first tick (TorchScript optimizes on first calls)
+        self.reference = ReferencePathPlanner(pc.reference_path, self.robot)
+        self.supervisor = SafetySupervisor(pc.safety_supervisor, self.robot)
+        self.last_safety = None
+        backoff = BackoffMode(self.mpc, rc.backoff_distance_m, min(rc.backoff_speed_mps, pc.mpc.max_reverse_speed_mps),
+                              rc.backoff_timeout_s)
+        return AllFixedMode(self.reference, self.mpc), backoff
 
     # -- lifecycle ---------------------------------------------------------------------------
     def activate(self) -> None:
@@ -118,25 +186,24 @@ class NavigationController:
     def state_code(self) -> int:
         return int(self.state)
 
-    # -- the tick ----------------------------------------------------------------------------
+    # -- the tick (Algorithm 1) ----------------------------------------------------------------
     def tick(self, scheduled_s: float, stages: StageClock) -> None:
         now = self.clock()
         inputs = self.hardware.read(now)
         sensors = self.sensors.take() if self.sensors is not None else _NO_SENSORS
-        self._supervise_link(inputs, now)
+        self.faults = self.monitor.check(inputs, sensors, now)
+        self._update_state(inputs, now)
         stages.mark(READ)
 
-        if self.state is ControllerState.INITIALIZING:
-            self.odometry.calibrate_bias(sensors.imu)  # standing still: learn the gyro bias
-        else:
-            self.pose = self.odometry.update_with_imu(inputs.odometry, sensors.imu)
+        self._update_odometry(inputs, sensors)
         stages.mark(ODOMETRY)
 
-        if sensors.scan is not None:
+        scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
+        if scan is not None:
             # Partition (VPP, roadmap step 5) will split P_mov from P_fix here; for now every
             # point is P_fix (the NeuPAN-like all-fixed baseline).
             self.points_fix = self.obstacles.extract(
-                sensors.scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps
+                scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps
             )
             self.points_fix_stamp_s = now
         stages.mark(PARTITION)
@@ -146,14 +213,7 @@ class NavigationController:
             v, omega = self._plan(now)
         stages.mark(PLANNER)
 
-        if self.state is ControllerState.ACTIVE and self.config.uses_mpc:
-            v, omega = self._supervise_command(v, omega)
-        if self.state in (ControllerState.ACTIVE, ControllerState.GOAL_REACHED):
-            # Speed and acceleration limits; at the goal this ramps down to a controlled stop.
-            v, omega = self.limiter.limit(v, omega, self.period_s)
-        else:
-            self.limiter.reset()  # a safety stop is immediate
-            v, omega = 0.0, 0.0
+        v, omega = self._safety(v, omega)
         stages.mark(SAFETY)
 
         self.command = (v, omega)
@@ -161,63 +221,130 @@ class NavigationController:
         stages.mark_command_written()
         stages.mark(WRITE)
 
+    # -- read: the state machine -------------------------------------------------------------
+    def _update_state(self, inputs: BaseInputs, now: float) -> None:
+        state = self.state
+        if state is ControllerState.STOPPED:
+            return
+        self._check_latched_stops(inputs, now)
+        if self.state is ControllerState.STOPPED:
+            return
+        faults = self.faults
+        if any(f.restart for f in faults):
+            self._restart_pending = True
+        if state in (ControllerState.ACTIVE, ControllerState.HOLDING):
+            if faults:
+                self._hold(faults, now)
+            if self._restart_pending and not any(f.blocks_restart for f in faults):
+                self._restart(now)
+            elif not faults and state is ControllerState.HOLDING:
+                self._resume(now, "every input good again")
+        elif state is ControllerState.INITIALIZING:
+            if self._restart_pending and not any(f.blocks_restart for f in faults):
+                self._restart(now)
+            elif not faults and inputs.ready:
+                was_restart = self.restarts > 0
+                self.state = ControllerState.ACTIVE
+                self.limiter.reset()
+                self.modes.reset(now)
+                if was_restart:
+                    self.events.add(now, "resume", "start-up sequence complete")
+
+    def _check_latched_stops(self, inputs: BaseInputs, now: float) -> None:
+        stop = self.safety_stop
+        if not inputs.ever_received_motion_state and now - self._activated_at_s > stop.startup_timeout_s:
+            stop.trip(f"no base feedback (0x221) within {stop.startup_timeout_s} s of activation")
+        elif inputs.system_state_age_s <= self.config.inputs.system_state_timeout_s:
+            if inputs.stopping_error:
+                stop.trip(f"base reports error code 0x{inputs.error_code:04X}")
+            elif self.state is not ControllerState.INITIALIZING and not inputs.in_command_mode:
+                stop.trip("base left CAN command mode (remote control or standby)")
+        if stop.tripped:
+            self._stop(now)
+
+    def _hold(self, faults: tuple[InputFault, ...], now: float) -> None:
+        reason = "; ".join(f.reason for f in faults)
+        streams = sorted({f.stream for f in faults})
+        if self.state is not ControllerState.HOLDING or streams != self._held_streams:
+            self.events.add(now, "stop", reason)
+        self._held_streams = streams
+        self.state = ControllerState.HOLDING
+        self.hold_reason = reason
+
+    def _resume(self, now: float, why: str) -> None:
+        self.state = ControllerState.ACTIVE
+        self.hold_reason = None
+        self._held_streams = []
+        self.limiter.reset()
+        self.modes.reset(now)
+        self.events.add(now, "resume", why)
+
+    def _restart(self, now: float) -> None:
+        """The start-up sequence again: a fresh enable, the command ramps from zero."""
+        self._restart_pending = False
+        self.restarts += 1
+        self.hold_reason = None
+        self._held_streams = []
+        self.limiter.reset()
+        self.hardware.activate()
+        self._activated_at_s = now
+        self.state = ControllerState.INITIALIZING
+        self.events.add(now, "restart", "base ready again: fresh enable (0x421), commands ramp from zero")
+
+    # -- odometry ----------------------------------------------------------------------------
+    def _update_odometry(self, inputs: BaseInputs, sensors: SensorSnapshot) -> None:
+        if self.state is ControllerState.INITIALIZING:
+            self.odometry.calibrate_bias(sensors.imu)  # standing still: learn the gyro bias
+        else:
+            self.pose = self.odometry.update_with_imu(inputs.odometry, sensors.imu)
+
     # -- planner stage -----------------------------------------------------------------------
     def _plan(self, now: float) -> tuple[float, float]:
-        if self.mode == "pure-pursuit":
-            plan = self.planner.plan(self.pose, self.goal)
-            if plan.at_goal:
-                self._goal_reached(now)
-                return 0.0, 0.0
-            return plan.v_mps, plan.omega_radps
-        # MPC: never move on stale obstacle data.
-        age = math.inf if self.points_fix_stamp_s is None else now - self.points_fix_stamp_s
-        if age > self.config.planner.obstacle_points.max_scan_age_s:
-            self.stale_scan_holds += 1
-            return 0.0, 0.0
         pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
-        ref = self.reference.update(pose, self._goal_xy, self.points_fix)
-        self.last_reference = ref
-        if ref.goal_reached:
+        situation = Situation(now, pose, np.asarray(self.command), self.points_fix, self._goal_xy)
+        d = self.modes.plan(situation)
+        self.last_decision = d
+        if d.at_goal:
             self._goal_reached(now)
             return 0.0, 0.0
-        if ref.blocked:
+        if d.blocked:
             self.blocked_ticks += 1
+            if self.blocked_since_s is None:
+                self.blocked_since_s = now
             return 0.0, 0.0
-        plan = self.mpc.plan(pose, np.asarray(self.command), ref.reference, self.points_fix)
-        self.last_plan = plan
-        return float(plan.commands[0, 0]), float(plan.commands[0, 1])
+        self.blocked_since_s = None
+        if d.degraded != self._degraded:
+            self._degraded = d.degraded
+            if d.degraded:
+                self.events.add(now, "degraded", f"{self.modes.mode_name}: no fresh plan ({d.note}), previous plan")
+            else:
+                self.events.add(now, "restored", f"{self.modes.mode_name}: fresh plans again")
+        self.degraded_ticks += int(d.degraded)
+        return d.v_mps, d.omega_radps
 
-    def _supervise_command(self, v: float, omega: float) -> tuple[float, float]:
-        pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
-        decision = self.supervisor.check(pose, np.array([v, omega]), self.points_fix)
-        self.last_safety = decision
-        return float(decision.command_out[0]), float(decision.command_out[1])
+    # -- safety stage ------------------------------------------------------------------------
+    def _safety(self, v: float, omega: float) -> tuple[float, float]:
+        state = self.state
+        if state is ControllerState.ACTIVE:
+            if self.supervisor is not None:
+                pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
+                decision = self.supervisor.check(pose, np.array([v, omega]), self.points_fix)
+                self.last_safety = decision
+                v, omega = float(decision.command_out[0]), float(decision.command_out[1])
+            return self.limiter.limit(v, omega, self.period_s)
+        if state is ControllerState.GOAL_REACHED:
+            return self.limiter.limit(0.0, 0.0, self.period_s)  # ramp down at the limits
+        # Holding, starting up or stopped: zero now (the base brakes at its own limits), and
+        # whatever comes next ramps up from zero.
+        if state is ControllerState.HOLDING:
+            self.hold_ticks += 1
+        self.limiter.reset()
+        return 0.0, 0.0
 
     def _goal_reached(self, now: float) -> None:
         self.state = ControllerState.GOAL_REACHED
         self.goal_reached_at_s = now
-
-    def _build_mpc_stack(self) -> None:
-        from models.distance_net import DistanceNet  # TorchScript: only when the MPC is used
-        from runtime.planning.mpc import MpcPlanner
-        from runtime.planning.reference_path import ReferencePathPlanner
-        from runtime.safety_supervisor import SafetySupervisor
-
-        pc = self.config.planner
-        op = pc.obstacle_points
-        self.distance_net = DistanceNet.load(pc.distance_net_path, robot=self.robot)
-        self.mpc = MpcPlanner(pc.mpc, self.robot, self.distance_net, wall_clock_caps=self.wall_clock_caps)
-        self.mpc.warm_up()  # here, not in the first tick (TorchScript optimizes on first calls)
-        self.reference = ReferencePathPlanner(pc.reference_path, self.robot)
-        self.supervisor = SafetySupervisor(pc.safety_supervisor, self.robot)
-        self.obstacles = ObstaclePointExtractor(
-            self.robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m,
-            op.min_support_ratio,
-        )
-        self._goal_xy = np.array([self.goal.x_m, self.goal.y_m])
-        self.last_plan = None
-        self.last_reference = None
-        self.last_safety = None
+        self.events.add(now, "goal_reached", f"within {self._goal_distance_m():.2f} m of the goal (odometry)")
 
     def keepalive(self, now_s: float) -> None:
         """Re-send the current command between ticks (0x111 at the CAN command rate)."""
@@ -225,46 +352,67 @@ class NavigationController:
         self.hardware.write(v, omega)
 
     def note_deadline(self, missed: bool) -> None:
+        """The loop's verdict on this tick's command deadline (on the loop's clock: simulated
+        time in lockstep, where it is never missed; the wall clock on the robot)."""
         self.safety_stop.note_deadline(missed)
         if self.safety_stop.tripped:
-            self._stop()
+            self._stop(self.clock())
 
     # -- internals ---------------------------------------------------------------------------
-    def _supervise_link(self, inputs, now: float) -> None:
-        self.safety_stop.check_feedback(
-            inputs.feedback_lost, now - self._activated_at_s, inputs.ever_received_motion_state
-        )
-        if self.state is ControllerState.ACTIVE and not inputs.feedback_lost:
-            if inputs.stopping_error:
-                self.safety_stop.trip(f"base reports error code 0x{inputs.error_code:04X}")
-            elif not inputs.in_command_mode:
-                self.safety_stop.trip("base left CAN command mode (remote control or standby)")
-        if self.safety_stop.tripped:
-            self._stop()
-        elif self.state is ControllerState.INITIALIZING and inputs.ready:
-            self.state = ControllerState.ACTIVE
-            self.planner.reset(self.pose)
-
-    def _stop(self) -> None:
+    def _stop(self, now: float) -> None:
         if self.state is not ControllerState.STOPPED:
             self.state = ControllerState.STOPPED
+            self.events.add(now, "safety_stop", self.safety_stop.tripped_reason or "stopped")
         self.command = (0.0, 0.0)
+
+    def _goal_distance_m(self) -> float:
+        return math.hypot(self.goal.x_m - self.pose.x_m, self.goal.y_m - self.pose.y_m)
 
     @property
     def stop_reason(self) -> str | None:
         return self.safety_stop.tripped_reason
 
+    @property
+    def last_plan(self):
+        """The MPC's last PlanResult (all-fixed mode), for tracing; None before the first."""
+        return getattr(self.modes.normal, "last_plan", None)
+
+    @property
+    def last_reference(self):
+        return getattr(self.modes.normal, "last_reference", None)
+
+    @property
+    def stale_scan_holds(self) -> int:
+        """Ticks held still for lack of a fresh, good lidar frame (an older counter's name)."""
+        return self.hold_ticks
+
     def describe(self) -> dict:
+        """Counters and state for the episode metrics (JSON-ready)."""
+        now = self.clock()
+        d = self.last_decision
         out = {
             "mode": self.mode,
-            "stale_scan_holds": self.stale_scan_holds,
-            "blocked_ticks": self.blocked_ticks,
+            "active_mode": self.modes.mode_name,
             "state": self.state.name,
             "stop_reason": self.stop_reason,
+            "hold_reason": self.hold_reason,
+            "input_faults": [{"stream": f.stream, "reason": f.reason} for f in self.faults],
+            "hold_ticks": self.hold_ticks,
+            "blocked_ticks": self.blocked_ticks,
+            "blocked_now": bool(d.blocked and self.state is ControllerState.ACTIVE),
+            "blocked_for_s": 0.0 if self.blocked_since_s is None else now - self.blocked_since_s,
+            "restarts": self.restarts,
+            "degraded_ticks": self.degraded_ticks,
+            "stalls": self.modes.stall.stalls,
+            "stalled_now": self.modes.stall.stalled,
+            "no_progress_s": self.modes.stall.no_progress_s(now) if self.state is ControllerState.ACTIVE else 0.0,
+            "backoffs": self.modes.backoffs,
+            "lidar_frames_refused": self.monitor.frames_refused,
             "pose_odom": [self.pose.x_m, self.pose.y_m, self.pose.yaw_rad],
             "goal_odom": [self.goal.x_m, self.goal.y_m, self.goal.yaw_rad],
             "goal_reached_at_s": self.goal_reached_at_s,
-            "distance_to_goal_m": math.hypot(self.goal.x_m - self.pose.x_m, self.goal.y_m - self.pose.y_m),
+            "distance_to_goal_m": self._goal_distance_m(),
+            "events_dropped": self.events.dropped,
         }
         if self.config.uses_mpc:
             out.update(

@@ -12,7 +12,7 @@ from typing import Protocol
 from firmware_bridge import protocol
 from firmware_bridge.base_driver import AgileXBaseDriver
 
-#: Base error bits that stop the controller: the base has stopped obeying, or is broken.
+#: Base error bits that stop the controller for good: the base is broken (a latched stop).
 STOPPING_ERRORS = (
     protocol.ERROR_BATTERY_FAULT
     | protocol.ERROR_MOTOR1_COMM
@@ -20,36 +20,66 @@ STOPPING_ERRORS = (
     | protocol.ERROR_MOTOR3_COMM
     | protocol.ERROR_MOTOR4_COMM
     | protocol.ERROR_MOTOR_DRIVER
-    | protocol.ERROR_HOST_COMM_LOST
 )
+#: The base stopped hearing our command stream (its 500 ms timeout) and ignores 0x111 until a
+#: fresh enable (0x421): the controller re-enters its start-up sequence, it does not latch.
+HOST_COMM_LOST = protocol.ERROR_HOST_COMM_LOST
+
+VEHICLE_STATE_NAMES = {
+    protocol.VEHICLE_STATE_NORMAL: "normal",
+    protocol.VEHICLE_STATE_ESTOP: "E-stop",
+    protocol.VEHICLE_STATE_EXCEPTION: "exception",
+}
 
 
 @dataclass(frozen=True)
 class BaseInputs:
-    """What read() returns each tick."""
+    """What read() returns each tick. Ages are seconds since that frame last arrived (inf
+    before the first): the controller's watchdogs judge them (runtime.input_monitor)."""
 
     stamp_s: float
-    feedback_lost: bool
+    feedback_lost: bool  # no 0x221 within the driver's feedback timeout
     ever_received_motion_state: bool
     in_command_mode: bool  # 0x211 says control mode = CAN command
     error_code: int  # 0 until the first 0x211
     linear_mps: float
     angular_radps: float
     odometry: tuple[float, float] | None  # cumulative (left, right) wheel distance, m
+    motion_state_age_s: float = 0.0  # 0x221
+    system_state_age_s: float = 0.0  # 0x211
+    odometry_age_s: float = 0.0  # 0x311
+    vehicle_state: int | None = protocol.VEHICLE_STATE_NORMAL  # 0x211 byte 0; None before any 0x211
+    system_state_flags: tuple[str, ...] = ()  # 0x211 fields outside their documented range
 
     @property
     def ready(self) -> bool:
-        """The base obeys us: fresh feedback, command mode, no stopping error."""
+        """The base obeys us: fresh feedback, command mode, normal state, no error that stops us."""
         return (
             not self.feedback_lost
             and self.in_command_mode
-            and not (self.error_code & STOPPING_ERRORS)
+            and self.vehicle_normal
+            and not (self.error_code & (STOPPING_ERRORS | HOST_COMM_LOST))
             and self.odometry is not None
         )
 
     @property
     def stopping_error(self) -> bool:
         return bool(self.error_code & STOPPING_ERRORS)
+
+    @property
+    def host_comm_lost(self) -> bool:
+        return bool(self.error_code & HOST_COMM_LOST)
+
+    @property
+    def vehicle_normal(self) -> bool:
+        """0x211 reports a normal vehicle state (an unknown or flagged state is not normal)."""
+        return self.vehicle_state == protocol.VEHICLE_STATE_NORMAL and "vehicle_state" not in self.system_state_flags
+
+    @property
+    def vehicle_state_name(self) -> str:
+        if self.vehicle_state is None:
+            return "unknown (no 0x211 yet)"
+        return VEHICLE_STATE_NAMES.get(self.vehicle_state, f"unknown vehicle state {self.vehicle_state}")
 
 
 class BaseHardware(Protocol):
@@ -96,6 +126,11 @@ class AgileXBaseHardware:
         odom = driver.latest_odometry
         mode = driver.control_mode
         return BaseInputs(
+            motion_state_age_s=driver.frame_age_s(protocol.ID_MOTION_STATE, now_s),
+            system_state_age_s=driver.frame_age_s(protocol.ID_SYSTEM_STATE, now_s),
+            odometry_age_s=driver.frame_age_s(protocol.ID_ODOMETRY, now_s),
+            vehicle_state=driver.vehicle_state,
+            system_state_flags=driver.system_state_flags,
             stamp_s=now_s,
             feedback_lost=driver.feedback_lost,
             ever_received_motion_state=motion is not None,

@@ -11,6 +11,12 @@ The clock is injected: `MonotonicClock` runs on the wall clock (the robot, real-
 in lockstep HIL the simulator supplies a clock whose `sleep_until` advances physics, so the
 same loop runs on simulation time. Stage durations are always measured on the monotonic
 wall clock (they are what the computer really spent).
+
+Two clocks, never mixed (DESIGN.md section 6): the command deadline that the controller acts on
+is judged on the loop's clock (the wall clock on the robot; simulated time in lockstep, where
+the simulator waits for the tick, so a lockstep verdict never depends on the machine's load).
+The wall-clock latency of every command is measured beside it and recorded as what it is
+(`wall_command_latency_s`, `wall_deadline_missed`): in lockstep a report, not a verdict.
 """
 from __future__ import annotations
 
@@ -52,17 +58,20 @@ class StageClock:
     Preallocated and reused every tick; marking costs one perf_counter_ns call.
     """
 
-    def __init__(self, budgets_s: np.ndarray) -> None:
+    def __init__(self, budgets_s: np.ndarray, loop_clock: Callable[[], float] | None = None) -> None:
         self.budgets_s = np.asarray(budgets_s, dtype=np.float64)
         self._row: np.void | None = None
         self._t0_ns = 0
         self._last_ns = 0
-        self.write_done_s = 0.0
+        self._loop_clock = loop_clock
+        self.write_done_s = 0.0  # wall clock: tick start -> command written
+        self.write_done_loop_s: float | None = None  # the loop's clock when the command was written
 
     def start(self, row: np.void) -> None:
         self._row = row
         self._t0_ns = self._last_ns = time.perf_counter_ns()
         self.write_done_s = 0.0
+        self.write_done_loop_s = None
 
     def mark(self, stage_index: int) -> None:
         now = time.perf_counter_ns()
@@ -76,6 +85,8 @@ class StageClock:
     def mark_command_written(self) -> None:
         """Call right after the command left for the bus (the command deadline is measured here)."""
         self.write_done_s = (time.perf_counter_ns() - self._t0_ns) * 1e-9
+        if self._loop_clock is not None:
+            self.write_done_loop_s = self._loop_clock()
 
     def elapsed_s(self) -> float:
         return (time.perf_counter_ns() - self._t0_ns) * 1e-9
@@ -118,9 +129,11 @@ class FixedRateLoop:
         self.keepalive_period_s = keepalive_period_s
         self.telemetry = telemetry or TickTelemetry()
         budgets = np.array([stage_budgets_s.get(s, period_s) for s in self.telemetry.stages])
-        self.stage_clock = StageClock(budgets)
+        self.stage_clock = StageClock(budgets, loop_clock=clock.now)
         self.gc_every_ticks = gc_every_ticks
         self.keepalives_sent = 0
+        #: The loop's clock is the wall clock (its lateness is real waiting time).
+        self.wall_clock_loop = isinstance(clock, MonotonicClock)
 
     def run(self, controlled: LoopControlled, should_stop: Callable[[], bool], max_ticks: int | None = None) -> None:
         """Run ticks until should_stop() (checked before each tick) or max_ticks."""
@@ -153,10 +166,16 @@ class FixedRateLoop:
             row["tick_s"] = stages.elapsed_s()
             row["state"] = controlled.state_code
             row["v_cmd_mps"], row["omega_cmd_radps"] = controlled.command
-            latency = lateness + stages.write_done_s
+            # The verdict, on the loop's clock (module docstring).
+            written = stages.write_done_loop_s if stages.write_done_loop_s is not None else clock.now()
+            latency = max(0.0, written - scheduled)
             row["command_latency_s"] = latency
             missed = latency > self.command_deadline_s
             row["deadline_missed"] = missed
+            # The measurement, on the wall clock.
+            wall_latency = (lateness if self.wall_clock_loop else 0.0) + stages.write_done_s
+            row["wall_command_latency_s"] = wall_latency
+            row["wall_deadline_missed"] = wall_latency > self.command_deadline_s
             controlled.note_deadline(missed)
             telemetry.commit_tick(row)
             ticks_run += 1

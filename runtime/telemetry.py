@@ -24,9 +24,11 @@ def tick_record_dtype(n_stages: int) -> np.dtype:
             ("lateness_s", np.float64),  # actual start - scheduled start (wake-up latency)
             ("stage_s", np.float64, (n_stages,)),  # duration of each stage (monotonic clock)
             ("tick_s", np.float64),  # whole tick: start of read() to end of write()
-            ("command_latency_s", np.float64),  # scheduled start -> command written
-            ("overrun_mask", np.uint32),  # bit i set: stage i exceeded its budget
-            ("deadline_missed", np.bool_),
+            ("command_latency_s", np.float64),  # scheduled start -> command written (loop clock)
+            ("overrun_mask", np.uint32),  # bit i set: stage i exceeded its budget (wall clock)
+            ("deadline_missed", np.bool_),  # judged on the loop clock: what the controller acts on
+            ("wall_command_latency_s", np.float64),  # the same, measured on the wall clock
+            ("wall_deadline_missed", np.bool_),  # measured; in lockstep a report, not a verdict
             ("state", np.int8),  # controller state code (runtime.controller.ControllerState)
             ("v_cmd_mps", np.float32),
             ("omega_cmd_radps", np.float32),
@@ -60,6 +62,7 @@ class TickTelemetry:
         self._count = 0
         self.stage_overruns = np.zeros(len(stages), dtype=np.int64)
         self.deadline_misses = 0
+        self.wall_deadline_misses = 0
         self.ticks_skipped = 0  # scheduled ticks dropped because a tick ran past its period
         self._lock = threading.Lock()
 
@@ -71,6 +74,8 @@ class TickTelemetry:
         row["stage_s"][:] = 0.0
         row["overrun_mask"] = 0
         row["deadline_missed"] = False
+        row["wall_deadline_missed"] = False
+        row["wall_command_latency_s"] = 0.0
         return row
 
     def commit_tick(self, row: np.void) -> None:
@@ -81,6 +86,8 @@ class TickTelemetry:
                     self.stage_overruns[i] += 1
         if row["deadline_missed"]:
             self.deadline_misses += 1
+        if row["wall_deadline_missed"]:
+            self.wall_deadline_misses += 1
         with self._lock:
             self._count += 1
 
@@ -120,6 +127,7 @@ class TickTelemetry:
         return {
             "ticks": self.ticks,
             "deadline_misses": int(self.deadline_misses),
+            "wall_deadline_misses": int(self.wall_deadline_misses),
             "ticks_skipped": int(self.ticks_skipped),
             "tick_median_ms": float(np.median(tick_ms)) if len(tick_ms) else 0.0,
             "tick_p99_ms": float(np.percentile(tick_ms, 99)) if len(tick_ms) else 0.0,

@@ -105,6 +105,10 @@ class ReferencePathPlanner:
         self.replans = 0
         self.last_grid: LocalGrid | None = None
 
+    def reset(self) -> None:
+        """Forget the current path: the next update replans (after a stop or a recovery)."""
+        self._path = None
+
     # -- grid ---------------------------------------------------------------------------------
     def build_grid(self, centre_xy: np.ndarray, points_world: np.ndarray) -> LocalGrid:
         """Local grid around centre_xy: clearance (exact near the lethal edge), lethal mask, costs."""

@@ -1,0 +1,44 @@
+"""The interface every navigation mode implements."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Situation:
+    """What a mode sees in one tick (odom frame)."""
+
+    now_s: float
+    pose: np.ndarray  # (3,) x_m, y_m, yaw_rad
+    command: np.ndarray  # (2,) v_mps, omega_radps being applied now
+    points_fix: np.ndarray  # (N, 2) P_fix
+    goal_xy: np.ndarray  # (2,)
+
+
+@dataclass(frozen=True)
+class ModeDecision:
+    v_mps: float = 0.0
+    omega_radps: float = 0.0
+    at_goal: bool = False
+    #: No path towards the goal exists in the local map (the command holds zero).
+    blocked: bool = False
+    #: Path length left to the goal (inf when unknown): progress is measured on it.
+    remaining_m: float = math.inf
+    #: The mode has finished its job (a recovery); the selector switches back.
+    done: bool = False
+    #: The command is not a fresh plan (a fallback); said in telemetry.
+    degraded: bool = False
+    note: str = ""
+
+
+class NavigationMode(Protocol):
+    name: str
+
+    def plan(self, situation: Situation) -> ModeDecision: ...
+
+    def reset(self) -> None:
+        """Forget any plan in progress (after a stop, a restart or a switch of mode)."""
