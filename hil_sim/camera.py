@@ -114,6 +114,12 @@ class SimCamera:
         """K (3x3, read-only)."""
         return self._K
 
+    def pose_is_finite(self) -> bool:
+        """False when the camera pose in data is NaN or infinite (a diverged simulation): a
+        render would be a blank image that looks like a real one."""
+        cid = self.camera_id
+        return bool(np.isfinite(self._d.cam_xpos[cid]).all() and np.isfinite(self._d.cam_xmat[cid]).all())
+
     def render_rgb(self, stamp_s: float) -> CameraImage:
         """Render the current state of `data` as an RGB CameraImage stamped stamp_s."""
         r = self._renderer

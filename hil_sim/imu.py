@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from runtime.sensor_data import ImuSample
+from runtime.sensor_data import MAX_ACCEL_MPS2, MAX_GYRO_RADPS, ImuSample
 
 _Vec3 = tuple[float, float, float]
 
@@ -21,7 +21,7 @@ _Vec3 = tuple[float, float, float]
 class ImuConfig(BaseModel):
     """IMU rate, white noise, constant bias and bias random walk (defaults: a BMI088-class part)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     rate_hz: float = Field(200.0, gt=0.0, le=10_000.0)
     gyro_noise_sigma_radps: float = Field(0.003, ge=0.0, le=1.0)
@@ -52,6 +52,14 @@ def add_imu_to_spec(spec_body: Any, mount: Any, *, spec: Any, name: str = "imu")
     return gyro, accel
 
 
+def _clip_in_place(v: np.ndarray, limit: float) -> bool:
+    """Clip v to [-limit, limit] as the real part does; True when something was clipped."""
+    over = bool((np.abs(v) > limit).any())
+    if over:
+        np.clip(v, -limit, limit, out=v)
+    return over
+
+
 def _sensor_slice(model: mujoco.MjModel, name: str, expected_type: int) -> slice:
     sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)
     if sid < 0:
@@ -68,6 +76,12 @@ class SimImu:
     `step(t_s)` takes one sample when one is due (stamped t_s, the time of the state it reads);
     if a coarse step passed several due instants only one sample is taken and the rest are
     counted in `missed_samples`. `pop_samples()` returns and clears the samples so far.
+
+    Like the real part it never fails on what it measures: readings beyond +-MAX_GYRO_RADPS or
+    +-MAX_ACCEL_MPS2 (a crash into a wall) are clipped to the range and the sample is flagged
+    `saturated` (counted in `saturated_samples`); a NaN or infinite physics reading gives no
+    sample and is counted in `invalid_readings`. Only a bad call (time not finite or going
+    backwards) raises.
     """
 
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, gyro_name: str, accel_name: str,
@@ -86,6 +100,10 @@ class SimImu:
         self._accel_bias = np.array(self.config.accel_bias_mps2, dtype=np.float64)
         self._samples: list[ImuSample] = []
         self.missed_samples = 0
+        #: Due samples not produced because the physics reading was NaN or infinite.
+        self.invalid_readings = 0
+        #: Samples with a component clipped to the sensor's range (flagged `saturated`).
+        self.saturated_samples = 0
 
     def step(self, t_s: float) -> None:
         t_s = float(t_s)
@@ -108,11 +126,17 @@ class SimImu:
         if c.accel_bias_walk_mps2_per_sqrt_s > 0:
             self._accel_bias += c.accel_bias_walk_mps2_per_sqrt_s * math.sqrt(dt) * self._rng.standard_normal(3)
         sd = self._d.sensordata
-        gyro = sd[self._gyro] + self._gyro_bias + c.gyro_noise_sigma_radps * self._rng.standard_normal(3)
-        accel = sd[self._accel] + self._accel_bias + c.accel_noise_sigma_mps2 * self._rng.standard_normal(3)
+        gyro_true, accel_true = sd[self._gyro], sd[self._accel]
+        if not (np.isfinite(gyro_true).all() and np.isfinite(accel_true).all()):
+            self.invalid_readings += 1  # a broken physics state: no sample, as a sensor that reports an error
+            return
+        gyro = gyro_true + self._gyro_bias + c.gyro_noise_sigma_radps * self._rng.standard_normal(3)
+        accel = accel_true + self._accel_bias + c.accel_noise_sigma_mps2 * self._rng.standard_normal(3)
+        saturated = _clip_in_place(gyro, MAX_GYRO_RADPS) | _clip_in_place(accel, MAX_ACCEL_MPS2)
+        self.saturated_samples += int(saturated)
         gyro.flags.writeable = False
         accel.flags.writeable = False
-        self._samples.append(ImuSample(stamp_s=t_s, gyro_radps=gyro, accel_mps2=accel))
+        self._samples.append(ImuSample(stamp_s=t_s, gyro_radps=gyro, accel_mps2=accel, saturated=saturated))
 
     def pop_samples(self) -> list[ImuSample]:
         out, self._samples = self._samples, []

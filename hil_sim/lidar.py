@@ -12,6 +12,11 @@ every slice due up to t_s from the lidar pose in `data` at that moment, so a fra
 the robot moves is distorted exactly as a real one (deskewing matters). Each point is given in
 the lidar frame *at the time its ray was cast*, with that time as its offset within the frame.
 
+Robustness: nothing in the physics state makes `step` raise (only a bad call: time not finite
+or going backwards). A non-finite distance is a no-return like a miss; a non-finite body pose
+makes its slice all no-returns (counted in `invalid_pose_slices`); ranges outside
+[min_range_m, max_range_m] (noise included) are dropped.
+
 Pose convention: `step(t_s)` uses `data.xpos`/`data.xmat` of the robot body as MuJoCo last
 computed them; pass the time those correspond to (after `mj_step`, the state at the start of
 that step; after `mj_forward`/`mj_kinematics`, `data.time`). Call `step` at least once per slice
@@ -37,7 +42,7 @@ _GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
 class LidarConfig(BaseModel):
     """Simulated lidar settings (defaults: Livox Mid-360 class)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     frame_rate_hz: float = Field(10.0, gt=0.0, le=100.0)
     points_per_frame: int = Field(20_000, gt=0, le=200_000)
@@ -84,6 +89,13 @@ def pattern_directions(n: int, elevation_min_deg: float, elevation_max_deg: floa
     cos_el = np.sqrt(np.maximum(0.0, 1.0 - sin_el**2))
     az = 2.0 * math.pi * u
     return np.stack([cos_el * np.cos(az), cos_el * np.sin(az), sin_el], axis=1)
+
+
+def ray_returns(geomid: np.ndarray, dist_m: np.ndarray, max_range_m: float) -> np.ndarray:
+    """Which rays of mj_multiRay returned: a geom was hit at a finite distance in [0, max_range_m].
+    A miss (-1), a non-finite distance or anything beyond the range is a no-return."""
+    with np.errstate(invalid="ignore"):
+        return (geomid >= 0) & np.isfinite(dist_m) & (dist_m >= 0.0) & (dist_m <= max_range_m)
 
 
 def _mount_transform(mount: Any) -> np.ndarray:
@@ -145,6 +157,8 @@ class SimLidar:
         self._count = 0
         self._done: deque[LidarScan] = deque()
         self.late_slices = 0
+        #: Slices cast while the body pose in data was not finite (all their rays: no return).
+        self.invalid_pose_slices = 0
         self.dropped_frames = 0
         self.frames_completed = 0
 
@@ -156,7 +170,8 @@ class SimLidar:
             return self._mount_r.copy(), self._mount_t.copy()
         rb = self._d.xmat[self._body].reshape(3, 3)
         pb = self._d.xpos[self._body]
-        return rb @ self._mount_r, pb + rb @ self._mount_t
+        with np.errstate(invalid="ignore", over="ignore"):  # a diverged state: NaN out, checked by the caller
+            return rb @ self._mount_r, pb + rb @ self._mount_t
 
     # ------------------------------------------------------------------ stepping
 
@@ -182,16 +197,18 @@ class SimLidar:
                 self.late_slices += j1 - j0
             frame_start = self._due_s(self._frame, 0)
             offset = min(max(t_s - frame_start, 0.0), self._max_offset_s)
-            self._cast(int(self._bounds[j0]), int(self._bounds[j1]), offset)
+            if not self._cast(int(self._bounds[j0]), int(self._bounds[j1]), offset):
+                self.invalid_pose_slices += j1 - j0
             self._slice = j1
             if j1 == c.slices_per_frame:
                 self._finish_frame()
 
-    def _cast(self, i0: int, i1: int, offset_s: float) -> None:
+    def _cast(self, i0: int, i1: int, offset_s: float) -> bool:
+        """Cast rays [i0, i1) of this frame; False (and no returns) when the body pose is not finite."""
         c = self.config
         n = i1 - i0
         if n <= 0:
-            return
+            return True
         frames_in_table = c.pattern_frames
         pass_index, frame_in_table = divmod(self._frame, frames_in_table)
         base = frame_in_table * c.points_per_frame
@@ -206,12 +223,14 @@ class SimLidar:
         else:
             dl[...] = tab
         r_wl, origin = self.lidar_pose_world()
+        if not (np.isfinite(r_wl).all() and np.isfinite(origin).all()):
+            return False  # a diverged physics state: these rays return nothing
         dw = self._dir_w[:n]
         np.matmul(dl, r_wl.T, out=dw)
         geomid, dist = self._geomid[:n], self._dist[:n]
         mujoco.mj_multiRay(self._m, self._d, np.ascontiguousarray(origin), dw.reshape(-1), self._geomgroup, 1,
                            self._body if self._body > 0 else -1, geomid, dist, None, n, c.max_range_m)
-        hit = (geomid >= 0) & (dist >= 0.0) & (dist <= c.max_range_m)
+        hit = ray_returns(geomid, dist, c.max_range_m)
         r = dist
         if c.range_noise_sigma_m > 0:
             noise = self._noise[:n]
@@ -224,6 +243,7 @@ class SimLidar:
             self._pts[s:s + k] = dl[keep] * r[keep, None]
             self._offs[s:s + k] = offset_s
             self._count += k
+        return True
 
     def _finish_frame(self) -> None:
         k = self._count
@@ -247,4 +267,4 @@ class SimLidar:
         return self._done.popleft() if self._done else None
 
 
-__all__ = ["LidarConfig", "SimLidar", "pattern_directions"]
+__all__ = ["LidarConfig", "SimLidar", "pattern_directions", "ray_returns"]

@@ -14,13 +14,16 @@ Later classes (fragile, deformable) slot into `ObstacleClass` and `FREE_BODY_CLA
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from calibration.errors import ConfigFileError, load_yaml_model
+from calibration.robot_description import Footprint, Mount, RobotDescription
 
 ObstacleClass = Literal["fixed", "movable", "heavy"]
 #: Classes simulated as free bodies (they carry mass_kg and friction).
@@ -81,6 +84,23 @@ class Wall(_Strict):
     @property
     def length_m(self) -> float:
         return math.dist(self.from_xy_m, self.to_xy_m)
+
+    @property
+    def centre_xy_m(self) -> tuple[float, float]:
+        (x0, y0), (x1, y1) = self.from_xy_m, self.to_xy_m
+        return (x0 + x1) / 2, (y0 + y1) / 2
+
+    @property
+    def yaw_rad(self) -> float:
+        """Direction of the from -> to line."""
+        (x0, y0), (x1, y1) = self.from_xy_m, self.to_xy_m
+        return math.atan2(y1 - y0, x1 - x0)
+
+    @property
+    def half_extents_m(self) -> tuple[float, float]:
+        """Half sizes of the wall's box along and across its line: it reaches thickness/2 beyond
+        each end point, so two walls meeting at a corner close it."""
+        return self.length_m / 2 + self.thickness_m / 2, self.thickness_m / 2
 
 
 class BoxSize(_Strict):
@@ -244,6 +264,286 @@ class Scenario(_Strict):
         return math.hypot(g.x_m - s.x_m, g.y_m - s.y_m)
 
 
+# ----------------------------------------------------------------------------- plane geometry
+# Hand-written rather than shapely: shapely is not a dependency here, and every footprint in a
+# scene is an oriented rectangle or a disc, for which the exact formulas below are short.
+
+
+@dataclass(frozen=True)
+class Rect2D:
+    """An oriented rectangle on the floor: centre, half sizes along its own x and y, yaw."""
+
+    centre_xy_m: tuple[float, float]
+    half_extents_m: tuple[float, float]
+    yaw_rad: float = 0.0
+
+    def axes(self) -> np.ndarray:
+        """2x2: rows are the rectangle's x and y axes in the world."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return np.array([[c, s], [-s, c]])
+
+    def corners(self) -> np.ndarray:
+        """4x2 corners in the world, counter-clockwise."""
+        hx, hy = self.half_extents_m
+        local = np.array([[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]])
+        return np.asarray(self.centre_xy_m) + local @ self.axes()
+
+    def signed_distance_m(self, point_xy: np.ndarray | tuple[float, float]) -> float:
+        """Distance from the point to the rectangle; negative inside (minus the depth)."""
+        local = self.axes() @ (np.asarray(point_xy, dtype=float) - np.asarray(self.centre_xy_m))
+        q = np.abs(local) - np.asarray(self.half_extents_m)
+        return float(np.linalg.norm(np.maximum(q, 0.0)) + min(float(q.max()), 0.0))
+
+
+@dataclass(frozen=True)
+class Disc2D:
+    """A disc on the floor (the footprint of a cylinder)."""
+
+    centre_xy_m: tuple[float, float]
+    radius_m: float
+
+    def signed_distance_m(self, point_xy: np.ndarray | tuple[float, float]) -> float:
+        return math.dist(tuple(map(float, point_xy)), self.centre_xy_m) - self.radius_m
+
+
+Shape2D = Union[Rect2D, Disc2D]
+
+
+def _point_segment_distance_m(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    t = float(np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0.0, 1.0))
+    return float(np.linalg.norm(p - (a + t * ab)))
+
+
+def _rect_rect_gap_m(a: Rect2D, b: Rect2D) -> float:
+    """Separating-axis test: the smallest overlap over the four edge normals is the penetration
+    depth; when some axis separates them, the distance is the closest corner-edge pair."""
+    ca, cb = a.corners(), b.corners()
+    overlaps = []
+    for axis in np.vstack([a.axes(), b.axes()]):
+        pa, pb = ca @ axis, cb @ axis
+        # The shorter push along this axis that separates them (also when one interval contains the other).
+        overlaps.append(min(pa.max() - pb.min(), pb.max() - pa.min()))
+    if min(overlaps) > 0.0:
+        return -float(min(overlaps))
+    return min(
+        _point_segment_distance_m(p, poly[i], poly[(i + 1) % 4])
+        for pts, poly in ((ca, cb), (cb, ca)) for p in pts for i in range(4)
+    )
+
+
+def signed_gap_m(a: Shape2D, b: Shape2D) -> float:
+    """Clearance between two footprints when apart (> 0); minus the penetration depth (the
+    shortest move that separates them) when they overlap (< 0); exact for rectangles and discs."""
+    if isinstance(a, Disc2D) and isinstance(b, Disc2D):
+        return math.dist(a.centre_xy_m, b.centre_xy_m) - a.radius_m - b.radius_m
+    if isinstance(b, Disc2D):
+        return a.signed_distance_m(b.centre_xy_m) - b.radius_m
+    if isinstance(a, Disc2D):
+        return b.signed_distance_m(a.centre_xy_m) - a.radius_m
+    return _rect_rect_gap_m(a, b)
+
+
+def obstacle_footprint(obstacle: BoxObstacle | CylinderObstacle) -> Shape2D:
+    """The obstacle's footprint on the floor as written in the scenario."""
+    xy = (obstacle.pose.x_m, obstacle.pose.y_m)
+    if isinstance(obstacle, CylinderObstacle):
+        return Disc2D(xy, obstacle.size.radius_m)
+    sx, sy, _ = obstacle.size.xyz_m
+    return Rect2D(xy, (sx / 2, sy / 2), obstacle.pose.yaw_rad)
+
+
+def wall_footprint(wall: Wall) -> Rect2D:
+    """The wall's box footprint (the same box hil_sim.world builds)."""
+    return Rect2D(wall.centre_xy_m, wall.half_extents_m, wall.yaw_rad)
+
+
+def robot_footprint_at(pose: Pose2D, footprint: Footprint, margin_m: float = 0.0) -> Rect2D:
+    """The robot's footprint rectangle at a pose, grown by margin_m on every side."""
+    return Rect2D((pose.x_m, pose.y_m), (footprint.length_m / 2 + margin_m, footprint.width_m / 2 + margin_m),
+                  pose.yaw_rad)
+
+
+# ----------------------------------------------------------------------------- scenario vs robot
+
+#: The controller's default ObstaclePointsConfig.ground_clearance_m: lidar points at or below
+#: this height are cut as ground (a test keeps the two equal).
+DEFAULT_GROUND_CLEARANCE_M = 0.04
+#: Free space required around the robot's start footprint.
+DEFAULT_START_MARGIN_M = 0.01
+#: A start pose closer than this to an obstacle (but outside the margin) is warned about.
+START_CLEARANCE_WARNING_M = 0.05
+#: Obstacles lower than the lidar's lowest beam at this horizontal range are warned about.
+PARTIAL_VISIBILITY_RANGE_M = 0.5
+#: Free bodies may rest against each other or a wall; deeper overlaps are errors.
+FREE_BODY_OVERLAP_TOLERANCE_M = 0.001
+#: Randomized free bodies within this many sigma of the start footprint are warned about.
+RANDOMIZATION_SIGMAS = 3.0
+
+
+class ScenarioError(ConfigFileError):
+    """A scenario that cannot run with this robot (start pose in an obstacle, unreachable goal,
+    an obstacle the lidar cannot see); the message names the scenario and the field."""
+
+
+@dataclass(frozen=True)
+class _SceneItem:
+    field: str            # "obstacles[2]" or "walls[0]"
+    label: str            # "obstacle 'crate' (obstacles[2])"
+    shape: Shape2D
+    height_field: str     # the field holding its height
+    height_m: float
+    movable: bool         # the robot may push it (class movable)
+    free_body: bool       # simulated as a free body (movable or heavy)
+
+
+def _scene_items(scenario: Scenario) -> list[_SceneItem]:
+    items = [
+        _SceneItem(f"obstacles[{i}]", f"{o.obstacle_class} obstacle '{o.name}' (obstacles[{i}])", obstacle_footprint(o),
+                   f"obstacles[{i}].size", o.height_m, o.obstacle_class == "movable", o.is_free_body)
+        for i, o in enumerate(scenario.obstacles)
+    ]
+    items += [
+        _SceneItem(f"walls[{i}]", f"wall '{name}' (walls[{i}])", wall_footprint(w), f"walls[{i}].height_m",
+                   w.height_m, False, False)
+        for i, (w, name) in enumerate(zip(scenario.walls, scenario.wall_names()))
+    ]
+    return items
+
+
+def lowest_beam_elevation_rad(mount: Mount, lidar_min_elevation_deg: float) -> float:
+    """World elevation of the lidar's lowest beam on a level robot, in its worst direction (a
+    tilted mount raises it on one side)."""
+    az = np.linspace(0.0, 2.0 * math.pi, 360, endpoint=False)
+    el = math.radians(lidar_min_elevation_deg)
+    ring = np.stack([math.cos(el) * np.cos(az), math.cos(el) * np.sin(az), np.full_like(az, math.sin(el))], axis=1)
+    z = ring @ mount.rotation()[2]
+    return float(np.arcsin(np.clip(z.max(), -1.0, 1.0)))
+
+
+def _check_heights(items: list[_SceneItem], robot: RobotDescription, ground_clearance_m: float,
+                   lidar_min_elevation_deg: float, errors: list[str], warnings: list[str]) -> None:
+    mount_z_m = robot.sensors.lidar.mount.xyz_m[2]
+    tan_el = math.tan(lowest_beam_elevation_rad(robot.sensors.lidar.mount, lidar_min_elevation_deg))
+    beam_at_range_m = mount_z_m + PARTIAL_VISIBILITY_RANGE_M * tan_el
+    for it in items:
+        if it.height_m <= ground_clearance_m:
+            errors.append(f"{it.height_field}: {it.label} is {it.height_m:.3f} m high, at or below the controller's "
+                          f"ground cut {ground_clearance_m:.3f} m: its lidar points are removed as ground, the robot "
+                          "cannot see it")
+        elif it.height_m < beam_at_range_m:
+            blind = (f"closer than {(mount_z_m - it.height_m) / -tan_el:.2f} m" if tan_el < 0
+                     else "at any range")
+            warnings.append(f"{it.height_field}: {it.label} is {it.height_m:.3f} m high, below the lidar's lowest beam "
+                            f"({beam_at_range_m:.3f} m at {PARTIAL_VISIBILITY_RANGE_M} m): only partly visible, "
+                            f"the lidar loses it {blind}")
+
+
+def _check_start(scenario: Scenario, items: list[_SceneItem], robot: RobotDescription, margin_m: float,
+                 errors: list[str], warnings: list[str]) -> None:
+    start, fp = scenario.robot.start, robot.footprint
+    body = robot_footprint_at(start, fp)
+    what = f"the robot's footprint ({fp.length_m:.3f} x {fp.width_m:.3f} m at yaw {start.yaw_deg:g} deg)"
+    for it in items:
+        gap = signed_gap_m(body, it.shape)
+        if gap < 0.0:
+            errors.append(f"robot.start: {what} overlaps {it.label} by {-gap:.3f} m")
+        elif gap < margin_m:
+            errors.append(f"robot.start: {what} is {gap:.3f} m from {it.label}, less than the margin {margin_m:.3f} m")
+        elif gap < START_CLEARANCE_WARNING_M:
+            warnings.append(f"robot.start: {what} is only {gap:.3f} m from {it.label}")
+
+
+def _check_goal(scenario: Scenario, items: list[_SceneItem], robot: RobotDescription,
+                errors: list[str], warnings: list[str]) -> None:
+    goal = scenario.goal.pose
+    half_width_m = robot.footprint.width_m / 2
+    where = f"the goal ({goal.x_m:g}, {goal.y_m:g})"
+    for it in items:
+        d = it.shape.signed_distance_m((goal.x_m, goal.y_m))
+        if d >= half_width_m:
+            continue
+        problem = (f"{where} lies inside {it.label}" if d < 0.0 else
+                   f"{where} is {d:.3f} m from {it.label}, less than half the robot's width ({half_width_m:.3f} m)")
+        if it.movable:
+            warnings.append(f"goal.pose: {problem}: the robot must push it away to get there")
+        else:
+            errors.append(f"goal.pose: {problem}: the robot cannot reach it")
+
+
+def _check_free_bodies(items: list[_SceneItem], errors: list[str]) -> None:
+    for i, it in enumerate(items):
+        if not it.free_body:
+            continue
+        for j, other in enumerate(items):
+            if j == i or (other.free_body and j < i):  # each pair of free bodies once
+                continue
+            gap = signed_gap_m(it.shape, other.shape)
+            if gap < -FREE_BODY_OVERLAP_TOLERANCE_M:
+                errors.append(f"{it.field}.pose: {it.label} overlaps {other.label} by {-gap:.3f} m: the simulator "
+                              "would throw it apart at the start")
+
+
+def _check_randomization(scenario: Scenario, items: list[_SceneItem], robot: RobotDescription,
+                         warnings: list[str]) -> None:
+    rnd = scenario.randomization
+    if rnd.free_body_xy_noise_m == 0.0 and rnd.free_body_yaw_noise_deg == 0.0:
+        return
+    body = robot_footprint_at(scenario.robot.start, robot.footprint)
+    for it, ob in zip(items, scenario.obstacles):
+        if not it.free_body:
+            continue
+        reach_m = RANDOMIZATION_SIGMAS * math.sqrt(2.0) * rnd.free_body_xy_noise_m
+        if rnd.free_body_yaw_noise_deg > 0 and isinstance(it.shape, Rect2D):
+            reach_m += ob.footprint_radius_m() - min(it.shape.half_extents_m)
+        gap = signed_gap_m(body, it.shape)
+        if gap < reach_m:
+            warnings.append(f"randomization: {it.label} is {gap:.3f} m from the robot's start footprint; the "
+                            f"randomization moves it up to about {reach_m:.3f} m ({RANDOMIZATION_SIGMAS:g} sigma), "
+                            "so some seeds start with it on the robot")
+
+
+def check_scenario_against_robot(
+    scenario: Scenario,
+    robot: RobotDescription,
+    ground_clearance_m: float = DEFAULT_GROUND_CLEARANCE_M,
+    margin_m: float = DEFAULT_START_MARGIN_M,
+    *,
+    lidar_min_elevation_deg: float | None = None,
+) -> list[str]:
+    """Check that `scenario` can run with `robot`; returns warnings, raises ScenarioError.
+
+    Errors (all of them in one line, each naming its field): the start footprint grown by
+    margin_m overlaps an obstacle or wall (robot.start); the goal lies inside, or closer than
+    half the robot's width to, a fixed or heavy obstacle or a wall (goal.pose); an obstacle or
+    wall no higher than ground_clearance_m, whose lidar points the controller cuts as ground
+    (obstacles[i].size, walls[i].height_m); a free body that starts inside another obstacle or
+    a wall (obstacles[i].pose).
+    Warnings: an obstacle lower than the lidar's lowest beam at PARTIAL_VISIBILITY_RANGE_M
+    (from the robot's lidar mount and lidar_min_elevation_deg, default the simulated lidar's);
+    a start pose within START_CLEARANCE_WARNING_M of an obstacle; a goal on or next to a
+    movable obstacle; randomization that can move a free body onto the start footprint.
+    """
+    for name, value in (("ground_clearance_m", ground_clearance_m), ("margin_m", margin_m)):
+        if not (math.isfinite(value) and value >= 0.0):
+            raise ValueError(f"check_scenario_against_robot: {name} must be finite and >= 0, got {value!r}")
+    if lidar_min_elevation_deg is None:
+        from hil_sim.lidar import LidarConfig  # the simulated lidar's field of view
+
+        lidar_min_elevation_deg = LidarConfig().elevation_min_deg
+    items = _scene_items(scenario)
+    errors: list[str] = []
+    warnings: list[str] = []
+    _check_start(scenario, items, robot, margin_m, errors, warnings)
+    _check_goal(scenario, items, robot, errors, warnings)
+    _check_heights(items, robot, ground_clearance_m, lidar_min_elevation_deg, errors, warnings)
+    _check_free_bodies(items, errors)
+    _check_randomization(scenario, items, robot, warnings)
+    if errors:
+        raise ScenarioError(f"scenario {scenario.name}: " + "; ".join(errors))
+    return [f"scenario {scenario.name}: {w}" for w in warnings]
+
+
 def _library_dir() -> Path:
     return Path(str(resources.files("hil_sim") / "scenarios"))
 
@@ -290,6 +590,19 @@ __all__ = [
     "FREE_BODY_CLASSES",
     "NON_MOVABLE_CLASSES",
     "UnknownScenarioError",
+    "ScenarioError",
+    "check_scenario_against_robot",
+    "Rect2D",
+    "Disc2D",
+    "signed_gap_m",
+    "obstacle_footprint",
+    "wall_footprint",
+    "robot_footprint_at",
+    "lowest_beam_elevation_rad",
+    "DEFAULT_GROUND_CLEARANCE_M",
+    "DEFAULT_START_MARGIN_M",
+    "START_CLEARANCE_WARNING_M",
+    "PARTIAL_VISIBILITY_RANGE_M",
     "load_scenario",
     "list_scenarios",
 ]

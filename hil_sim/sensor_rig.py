@@ -17,6 +17,10 @@ Per call:
   to `inbox.put_image`. If steps are so coarse that several frame instants passed, one frame is
   rendered and the others are counted in `camera_frames_missed`.
 
+Robustness: no physics state makes `step` raise (a crash into a wall saturates the IMU, whose
+samples are then clipped and flagged; NaN readings give no IMU sample, lidar no-returns and no
+camera image; see hil_sim.imu and hil_sim.lidar); only a bad call does (time not finite or going backwards).
+
 The robot's own geoms (groups World.ROBOT_OWN_GEOM_GROUPS) are invisible to the lidar rays
 and hidden from the camera: both mounts lie inside the coarse chassis boxes.
 """
@@ -32,6 +36,7 @@ from calibration.robot_description import RobotDescription
 from hil_sim.imu import ImuConfig, SimImu
 from hil_sim.lidar import LidarConfig, SimLidar
 from hil_sim.world import ROBOT_OWN_GEOM_GROUPS, World
+from runtime.sensor_data import CameraImage
 from runtime.sensor_inbox import SensorInbox
 
 _EPS_S = 1e-9
@@ -105,6 +110,8 @@ class SensorRig:
         self.images_produced = 0
         self.imu_samples_produced = 0
         self.camera_frames_missed = 0
+        #: Camera frames not rendered because the camera pose in data was not finite.
+        self.camera_invalid_poses = 0
         #: put_* calls the inbox refused (validation or stamp order), per stream.
         self.rejected = {"lidar": 0, "camera": 0, "imu": 0}
         #: Wall-clock seconds spent in each sensor (including the inbox's validation).
@@ -151,14 +158,18 @@ class SensorRig:
                 n_due = int(math.floor((t_s + _EPS_S - self._camera_start_s) / self._camera_period_s)) + 1
                 self.camera_frames_missed += max(0, n_due - self._camera_next - 1)
                 self._camera_next = max(self._camera_next + 1, n_due)
-                if self.config.camera_segmentation:
-                    image = self.camera.render_rgb_with_segmentation(t_s)
+                if not self.camera.pose_is_finite():
+                    self.camera_invalid_poses += 1  # no image rather than a blank one
+                elif self.config.camera_segmentation:
+                    self._deliver_image(self.camera.render_rgb_with_segmentation(t_s))
                 else:
-                    image = self.camera.render_rgb(t_s)
-                self.images_produced += 1
-                if not inbox.put_image(image):
-                    self.rejected["camera"] += 1
+                    self._deliver_image(self.camera.render_rgb(t_s))
                 spent["camera"] += clock() - t0
+
+    def _deliver_image(self, image: CameraImage) -> None:
+        self.images_produced += 1
+        if not self.inbox.put_image(image):
+            self.rejected["camera"] += 1
 
     # ------------------------------------------------------------------ reporting
     @property
@@ -167,7 +178,9 @@ class SensorRig:
         return 0 if self.camera is None else self.camera.renders
 
     def stats(self) -> dict:
-        """Counters: frames produced per sensor, late/missed/dropped, inbox rejections, renders."""
+        """Counters: frames produced per sensor, late/missed/dropped, saturated IMU samples, physics
+        readings that were not finite (no IMU sample; lidar slices with no returns), inbox
+        rejections, renders."""
         return {
             "scans_produced": self.scans_produced,
             "images_produced": self.images_produced,
@@ -177,6 +190,10 @@ class SensorRig:
             "lidar_late_slices": 0 if self.lidar is None else self.lidar.late_slices,
             "lidar_dropped_frames": 0 if self.lidar is None else self.lidar.dropped_frames,
             "imu_missed_samples": 0 if self.imu is None else self.imu.missed_samples,
+            "imu_saturated_samples": 0 if self.imu is None else self.imu.saturated_samples,
+            "imu_invalid_readings": 0 if self.imu is None else self.imu.invalid_readings,
+            "lidar_invalid_pose_slices": 0 if self.lidar is None else self.lidar.invalid_pose_slices,
+            "camera_invalid_poses": self.camera_invalid_poses,
             "rejected": dict(self.rejected),
             "time_spent_s": dict(self.time_spent_s),
         }

@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 from calibration.robot_description import RobotDescription  # noqa: E402
 from hil_sim.camera import add_camera_to_spec, ensure_offscreen_buffer
 from hil_sim.imu import add_imu_to_spec
-from hil_sim.scenario import FREE_BODY_CLASSES, Scenario
+from hil_sim.scenario import DEFAULT_GROUND_CLEARANCE_M, FREE_BODY_CLASSES, Scenario, check_scenario_against_robot
 
 #: Physics step. 1 ms: the firmware's discrete wheel-speed loop (run once per step) on the
 #: light wheel inertia needs it to stop a wheel within a few ms without chatter (see the
@@ -114,12 +114,12 @@ def build_spec(scenario: Scenario, robot: RobotDescription) -> mujoco.MjSpec:
     world.add_light(name="sun", pos=[0, 0, 6], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, castshadow=False)
 
     for wall, name in zip(scenario.walls, scenario.wall_names()):
-        (x0, y0), (x1, y1) = wall.from_xy_m, wall.to_xy_m
-        yaw = math.atan2(y1 - y0, x1 - x0)
+        # The same box as hil_sim.scenario.wall_footprint (what the scenario check measures).
+        (hx, hy), (cx, cy) = wall.half_extents_m, wall.centre_xy_m
         world.add_geom(
             name=name, type=mujoco.mjtGeom.mjGEOM_BOX,
-            size=[wall.length_m / 2 + wall.thickness_m / 2, wall.thickness_m / 2, wall.height_m / 2],
-            pos=[(x0 + x1) / 2, (y0 + y1) / 2, wall.height_m / 2], quat=_yaw_quat(yaw),
+            size=[hx, hy, wall.height_m / 2],
+            pos=[cx, cy, wall.height_m / 2], quat=_yaw_quat(wall.yaw_rad),
             friction=[WALL_FRICTION, 0.005, 0.0001], rgba=_WALL_RGBA, group=SCENE_GEOM_GROUP,
             contype=_BIT_OBJECT, conaffinity=_BIT_OBJECT,
         )
@@ -216,6 +216,11 @@ def _add_robot(spec: mujoco.MjSpec, scenario: Scenario, robot: RobotDescription)
 class World:
     """A compiled scenario: MuJoCo model and data plus the robot/obstacle accessors.
 
+    The scenario is checked against the robot first (hil_sim.scenario.check_scenario_against_robot:
+    ScenarioError for a start pose in an obstacle, an unreachable goal, an obstacle the lidar
+    cannot see; its warnings are kept in `scenario_warnings`). ground_clearance_m: the
+    controller's ground cut (ObstaclePointsConfig.ground_clearance_m).
+
     Sensors in the model: the camera `camera_name` on base_link (render it with
     `camera_hidden_geom_groups` hidden: it sits inside the chassis box), the IMU's gyro and
     accelerometer `imu_sensor_names`. The lidar is cast by hil_sim.lidar.SimLidar from
@@ -223,7 +228,13 @@ class World:
     hil_sim.sensor_rig.SensorRig wires all three.
     """
 
-    def __init__(self, scenario: Scenario, robot: RobotDescription, seed: int = 0) -> None:
+    def __init__(self, scenario: Scenario, robot: RobotDescription, seed: int = 0, *,
+                 ground_clearance_m: float = DEFAULT_GROUND_CLEARANCE_M) -> None:
+        # First: a scenario this robot cannot start in (inside a wall, an invisible obstacle,
+        # an unreachable goal) is a ScenarioError naming the field, before any physics runs.
+        #: Warnings of hil_sim.scenario.check_scenario_against_robot (each names its field).
+        self.scenario_warnings: list[str] = check_scenario_against_robot(
+            scenario, robot, ground_clearance_m=ground_clearance_m)
         self.scenario = scenario
         self.robot = robot
         self.spec = build_spec(scenario, robot)

@@ -294,20 +294,29 @@ class ImuSample:
     """One IMU sample in the IMU frame: angular rate (rad/s) and specific force (m/s^2).
 
     At rest with z up, accel_mps2 reads about (0, 0, +9.81).
+    saturated: at least one component hit the sensor's range and was clipped to it, as a real
+    MEMS part does (values within +-MAX_GYRO_RADPS / +-MAX_ACCEL_MPS2, the limit included, are
+    valid; beyond it a sample is out_of_range with or without the flag: a clipping sensor never
+    reports more than its range). The true rate or acceleration was at least that large.
     """
 
     stamp_s: float
     gyro_radps: np.ndarray
     accel_mps2: np.ndarray
+    saturated: bool = False
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
         set_(self, "stamp_s", _check_stamp(self.stamp_s))
         set_(self, "gyro_radps", _owned_array(self.gyro_radps, np.float64, "gyro_radps", accept_kinds="fiu"))
         set_(self, "accel_mps2", _owned_array(self.accel_mps2, np.float64, "accel_mps2", accept_kinds="fiu"))
+        if isinstance(self.saturated, np.bool_):
+            set_(self, "saturated", bool(self.saturated))
         self.validate()
 
     def validate(self) -> None:
+        if not isinstance(self.saturated, bool):
+            raise SensorDataError(f"must be a bool, got {self.saturated!r}", name="bad_flag", field_name="saturated")
         for what, v, limit in (("gyro_radps", self.gyro_radps, MAX_GYRO_RADPS),
                                ("accel_mps2", self.accel_mps2, MAX_ACCEL_MPS2)):
             if v.shape != (3,):

@@ -11,6 +11,7 @@ from hil_sim.lidar import LidarConfig
 from hil_sim.scenario import load_scenario
 from hil_sim.sensor_rig import SensorRig, SensorRigConfig, SensorRigError
 from hil_sim.world import World
+from runtime.sensor_data import MAX_GYRO_RADPS
 from runtime.sensor_inbox import SensorInbox
 
 ROBOT = load_robot_description()
@@ -134,3 +135,38 @@ def test_rig_rejects_a_lidar_that_sees_the_robot_and_time_going_back():
         rig.step(0.0)
     with pytest.raises(SensorRigError, match="not finite"):
         rig.step(math.nan)
+
+
+def test_violent_motion_saturates_the_imu_and_the_inbox_takes_the_flagged_samples():
+    world = World(SCENARIO, ROBOT)
+    inbox = SensorInbox()
+    rig = SensorRig(world, ROBOT, inbox, SensorRigConfig(camera_rate_hz=0.0))
+    adr = world.model.jnt_dofadr[world.model.body_jntadr[world.robot_body_id]]
+    world.data.qvel[adr + 3] = 80.0  # roll at 80 rad/s: beyond the gyro's 2000 deg/s
+    scans, _, imu = _run(world, rig, inbox, 0.1)
+    stats = rig.stats()
+    assert len(imu) == 20 and stats["rejected"]["imu"] == 0
+    assert stats["imu_saturated_samples"] == sum(s.saturated for s in imu) > 0
+    assert imu[0].saturated and max(abs(s.gyro_radps[0]) for s in imu) == MAX_GYRO_RADPS
+    assert len(scans) == 1 and stats["imu_invalid_readings"] == 0
+
+
+def test_a_broken_physics_state_never_raises_from_the_rig():
+    world = World(SCENARIO, ROBOT)
+    inbox = SensorInbox()
+    rig = SensorRig(world, ROBOT, inbox, SensorRigConfig(camera_rate_hz=20.0))
+    _run(world, rig, inbox, 0.05)
+    assert rig.images_produced == 1
+    # What a diverged simulation leaves in data: NaN sensor readings and body and camera poses.
+    world.data.sensordata[:] = np.nan
+    world.data.xpos[world.robot_body_id] = np.nan
+    world.data.cam_xpos[world.camera_id] = np.nan
+    for k in range(1, 11):  # 0.051 .. 0.060 s (the last good step was at 0.049 s)
+        rig.step(0.05 + k * 0.001)
+    rig.step(0.07)  # a coarse step: 5 lidar slices at once
+    stats = rig.stats()
+    rig.close()
+    assert stats["imu_invalid_readings"] == 4  # samples due at 0.050, 0.055, 0.060 and 0.065 s
+    assert stats["lidar_invalid_pose_slices"] == 6 + 5  # slices every 2 ms from 0.050 s
+    assert stats["camera_invalid_poses"] == 1 and stats["images_produced"] == 1  # no blank image
+    assert stats["rejected"] == {"lidar": 0, "camera": 0, "imu": 0}

@@ -11,8 +11,10 @@ from scipy.spatial.transform import Rotation
 from calibration.robot_description import load_robot_description
 from hil_sim.camera import SimCamera, add_camera_to_spec, fovy_deg_from_horizontal
 from hil_sim.imu import ImuConfig, SimImu, add_imu_to_spec
-from hil_sim.lidar import LidarConfig, SimLidar, pattern_directions
-from runtime.sensor_data import CameraImage, ImuSample, LidarScan
+from hil_sim.lidar import LidarConfig, SimLidar, pattern_directions, ray_returns
+from hil_sim.scenario import Scenario
+from hil_sim.world import IMU_NAME, build_spec
+from runtime.sensor_data import MAX_ACCEL_MPS2, MAX_GYRO_RADPS, CameraImage, ImuSample, LidarScan
 
 DESC = load_robot_description()
 LIDAR_MOUNT = DESC.sensors.lidar.mount
@@ -254,6 +256,44 @@ def test_coarse_steps_are_counted_late_and_time_must_not_go_back():
         lidar.step(0.04)
 
 
+def test_non_finite_or_out_of_range_distances_are_no_returns():
+    geomid = np.array([3, 3, 3, 3, -1, 3, 3], dtype=np.int32)
+    dist = np.array([1.0, np.nan, np.inf, -np.inf, 2.0, 40.0, 40.5])
+    np.testing.assert_array_equal(ray_returns(geomid, dist, 40.0), [True, False, False, False, False, True, False])
+
+
+def test_a_broken_body_pose_gives_no_returns_and_no_exception():
+    model, data, body, _ = _scene(room=True)
+    cfg = LidarConfig(points_per_frame=2000, slices_per_frame=10, range_noise_sigma_m=0.0)
+    lidar = SimLidar(model, data, body, LIDAR_MOUNT, cfg)
+    _set_pose(model, data)
+    for k in range(5):  # half a frame with a good pose
+        lidar.step(k * 0.01)
+    data.xpos[body] = np.nan  # what a diverged simulation leaves in data
+    for k in range(5, 10):
+        lidar.step(k * 0.01)
+    data.xmat[body] = np.inf
+    _set_pose(model, data)  # kinematics again: finite xpos, but put xmat back to inf
+    data.xmat[body] = np.inf
+    lidar.step(0.1)
+    frame = lidar.pop_frame()
+    assert lidar.invalid_pose_slices == 5 + 1
+    assert 900 <= frame.num_points <= 1000  # only the good half, every point finite (validated)
+    for k in range(11, 20):
+        lidar.step(k * 0.01)
+    # A frame cast wholly from a broken pose sees nothing: the controller's blind-lidar case.
+    blind = lidar.pop_frame()
+    assert blind.num_points == 0 and blind.nothing_seen and lidar.invalid_pose_slices == 15
+
+
+def test_lidar_config_rejects_non_finite_values():
+    for field in ("max_range_m", "min_range_m", "range_noise_sigma_m"):
+        with pytest.raises(ValueError, match=field):
+            LidarConfig(**{field: float("nan")})
+    with pytest.raises(ValueError, match="min_range_m"):
+        LidarConfig(min_range_m=float("inf"))
+
+
 def test_lidar_config_rejects_inconsistent_values():
     with pytest.raises(ValueError):
         LidarConfig(elevation_min_deg=10, elevation_max_deg=5)
@@ -395,6 +435,7 @@ def test_imu_at_rest_reads_gravity_up_and_zero_rate():
     gyr = np.array([s.gyro_radps for s in samples])
     np.testing.assert_allclose(acc.mean(axis=0), [0.0, 0.0, 9.81], atol=0.01)
     np.testing.assert_allclose(gyr.mean(axis=0), 0.0, atol=0.001)
+    assert not any(s.saturated for s in samples) and imu.saturated_samples == 0
     assert acc.std(axis=0) == pytest.approx([cfg.accel_noise_sigma_mps2] * 3, rel=0.2)
     assert gyr.std(axis=0) == pytest.approx([cfg.gyro_noise_sigma_radps] * 3, rel=0.2)
 
@@ -440,3 +481,77 @@ def test_imu_rejects_wrong_sensor_names():
         SimImu(model, data, "nope", accel)
     with pytest.raises(ValueError, match="type"):
         SimImu(model, data, accel, gyro)
+
+
+def test_imu_saturates_like_the_real_part_on_a_huge_spin():
+    model, data, body, names = _scene(imu=True)  # no gravity
+    model.opt.timestep = DT
+    data.qpos[2] = 1.0  # off the floor
+    data.qvel[3] = 100.0  # 100 rad/s roll: beyond the 2000 deg/s gyro
+    mujoco.mj_forward(model, data)
+    true_gyro = data.sensordata[0:3].copy()
+    true_accel = data.sensordata[3:6].copy()
+    # The IMU (z 0.10 m) sits 0.05 m above the centre of mass: centripetal 100^2 * 0.05 m/s^2.
+    assert abs(true_gyro[0]) == pytest.approx(100.0) and np.abs(true_accel).max() > 3 * MAX_ACCEL_MPS2
+    imu = SimImu(model, data, *names["imu"], ImuConfig())
+    samples = _imu_run(model, data, imu, 0.05)
+    assert len(samples) == 10 and imu.saturated_samples == 10 and imu.invalid_readings == 0
+    for s in samples:
+        assert s.saturated
+        assert s.gyro_radps[0] == MAX_GYRO_RADPS  # clipped to the range exactly
+        assert np.abs(s.accel_mps2).max() == MAX_ACCEL_MPS2
+        assert abs(s.gyro_radps[1]) < 1.0  # the unsaturated axes keep their reading
+
+
+def test_imu_without_a_physics_reading_gives_no_sample_and_counts_it():
+    model, data, body, names = _scene(imu=True)
+    imu = SimImu(model, data, *names["imu"], ImuConfig(rate_hz=100.0))
+    gyro_adr = model.sensor("imu_gyro").adr[0]
+    accel_adr = model.sensor("imu_accel").adr[0]
+    imu.step(0.0)
+    data.sensordata[gyro_adr + 1] = np.nan
+    imu.step(0.01)
+    data.sensordata[gyro_adr + 1] = 0.0
+    data.sensordata[accel_adr + 2] = -np.inf
+    imu.step(0.02)
+    data.sensordata[accel_adr + 2] = 0.0
+    imu.step(0.03)
+    samples = imu.pop_samples()
+    assert [s.stamp_s for s in samples] == [0.0, 0.03]
+    assert imu.invalid_readings == 2 and imu.missed_samples == 0
+
+
+def test_imu_config_rejects_non_finite_values():
+    with pytest.raises(ValueError, match="gyro_bias_radps"):
+        ImuConfig(gyro_bias_radps=(float("nan"), 0.0, 0.0))
+    with pytest.raises(ValueError, match="rate_hz"):
+        ImuConfig(rate_hz=float("inf"))
+
+
+def test_sensors_on_a_robot_started_inside_a_wall_clip_and_never_raise():
+    """The model the scenario check now refuses (World raises), built directly: the contact
+    throws the robot out of the wall; the IMU saturates, the lidar keeps casting."""
+    scenario = Scenario.model_validate({
+        "name": "in_wall",
+        "floor": {"size_m": [6.0, 6.0], "friction": 0.8},
+        "walls": [{"name": "wall_north", "from": [-2.0, 0.3], "to": [2.0, 0.3], "thickness_m": 0.1,
+                   "height_m": 0.5}],
+        "robot": {"start": {"x_m": 0.0, "y_m": 0.25, "yaw_deg": 30.0}},
+        "goal": {"pose": {"x_m": 1.5, "y_m": -1.0}, "tolerance_m": 0.1},
+        "time_limit_s": 5.0,
+    })
+    model = build_spec(scenario, DESC).compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    imu = SimImu(model, data, f"{IMU_NAME}_gyro", f"{IMU_NAME}_accel", ImuConfig())
+    body = model.body("base_link").id
+    lidar = SimLidar(model, data, body, LIDAR_MOUNT, LidarConfig(points_per_frame=2000, slices_per_frame=10))
+    for _ in range(200):
+        t = data.time
+        mujoco.mj_step(model, data)
+        imu.step(t)
+        lidar.step(t)
+    samples = imu.pop_samples()
+    assert len(samples) + imu.invalid_readings == 40
+    assert imu.saturated_samples > 0 and all(np.abs(s.accel_mps2).max() <= MAX_ACCEL_MPS2 for s in samples)
+    assert lidar.frames_completed == 2

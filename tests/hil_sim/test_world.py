@@ -7,8 +7,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from calibration.errors import ConfigFileError
 from calibration.robot_description import load_robot_description
-from hil_sim.scenario import Scenario, load_scenario
+from hil_sim.scenario import Scenario, ScenarioError, load_scenario, wall_footprint
 from hil_sim.world import FREE_BODY_GEOM_GROUP, ROBOT_GEOM_GROUP, SCENE_GEOM_GROUP, World, WorldError
 
 ROBOT = load_robot_description()
@@ -163,3 +164,33 @@ def test_positive_torque_drives_forward():
     assert w.robot_pose()[0] > x0 + 0.01
     assert np.all(w.wheel_speeds_radps() > 0)
     assert w.robot_body_velocity()[0] > 0
+
+
+def test_a_start_inside_a_wall_is_refused_before_any_physics():
+    raw = load_scenario("case1").model_dump(by_alias=True)
+    raw["robot"]["start"] = {"x_m": -1.95, "y_m": 1.95, "yaw_deg": 30.0}  # across wall_north
+    scn = Scenario.model_validate(raw)  # the file alone is valid
+    with pytest.raises(ScenarioError) as err:
+        World(scn, ROBOT)
+    assert str(err.value).startswith("scenario case1: robot.start: the robot's footprint")
+    assert "wall 'wall_north'" in str(err.value)
+    assert isinstance(err.value, ConfigFileError)  # what the CLI turns into one line
+
+
+def test_scenario_warnings_are_kept_and_the_ground_cut_is_a_parameter():
+    raw = load_scenario("case1").model_dump(by_alias=True)
+    raw["obstacles"].append({"name": "step", "shape": "box", "size": {"xyz_m": [0.3, 0.3, 0.08]},
+                             "pose": {"x_m": 1.0, "y_m": -1.0}, "class": "fixed"})
+    scn = Scenario.model_validate(raw)
+    w = World(scn, ROBOT)
+    assert len(w.scenario_warnings) == 1 and "obstacles[4].size" in w.scenario_warnings[0]
+    with pytest.raises(ScenarioError, match=r"obstacles\[4\].size"):
+        World(scn, ROBOT, ground_clearance_m=0.10)
+    assert World(load_scenario("case1"), ROBOT).scenario_warnings == []
+
+
+def test_walls_are_the_boxes_the_scenario_check_measures(case1):
+    for wall, name in zip(case1.scenario.walls, case1.scenario.wall_names()):
+        gid = case1.obstacle_geom_id(name)
+        np.testing.assert_allclose(case1.model.geom_size[gid][:2], wall_footprint(wall).half_extents_m)
+        np.testing.assert_allclose(case1.data.geom_xpos[gid][:2], wall_footprint(wall).centre_xy_m)

@@ -11,6 +11,7 @@ from hypothesis.extra import numpy as hnp
 
 from runtime.sensor_data import (
     MAX_ACCEL_MPS2,
+    MAX_GYRO_RADPS,
     MAX_LIDAR_POINTS,
     CameraImage,
     DtypeError,
@@ -282,6 +283,26 @@ def test_imu_sample_ok_and_limits():
         ImuSample(0.01, [0.0, np.nan, 0.0], [0.0, 0.0, 9.81])
     with pytest.raises(DtypeError):
         ImuSample(0.01, np.array([True, False, True]), [0.0, 0.0, 9.81])
+
+
+def test_imu_saturated_flag_limits_included():
+    """A clipping sensor reports exactly its range, flagged; beyond the range it is out_of_range
+    with or without the flag."""
+    at_limit = ImuSample(0.01, [MAX_GYRO_RADPS, -MAX_GYRO_RADPS, 0.0], [0.0, -MAX_ACCEL_MPS2, MAX_ACCEL_MPS2],
+                         saturated=True)
+    assert at_limit.saturated is True
+    assert ImuSample(0.01, [0.0, 0.0, MAX_GYRO_RADPS], [0.0, 0.0, MAX_ACCEL_MPS2]).saturated is False
+    assert ImuSample(0.01, [0.0, 0.0, 0.1], [0.0, 0.0, 9.81], saturated=np.bool_(True)).saturated is True
+    beyond = np.nextafter(MAX_GYRO_RADPS, np.inf)
+    for flag in (False, True):
+        with pytest.raises(RangeError) as err:
+            ImuSample(0.01, [beyond, 0.0, 0.0], [0.0, 0.0, 9.81], saturated=flag)
+        assert err.value.name == "out_of_range" and err.value.field_name == "gyro_radps"
+        with pytest.raises(RangeError, match="accel_mps2"):
+            ImuSample(0.01, [0.0, 0.0, 0.0], [0.0, 0.0, -np.nextafter(MAX_ACCEL_MPS2, np.inf)], saturated=flag)
+    with pytest.raises(SensorDataError) as err:
+        ImuSample(0.01, [0.0, 0.0, 0.1], [0.0, 0.0, 9.81], saturated=1)
+    assert err.value.name == "bad_flag" and err.value.field_name == "saturated"
 
 
 @settings(max_examples=80, deadline=None)
