@@ -8,6 +8,12 @@ from pathlib import Path
 import click
 
 
+class InputError(click.ClickException):
+    """Bad input (file, option): one line on stderr, exit status 2 (1 means: the episode failed)."""
+
+    exit_code = 2
+
+
 @click.group(name="hil")
 def hil_group() -> None:
     """Hardware-in-the-loop simulation: scenarios, episodes, metrics."""
@@ -49,7 +55,8 @@ def run_command(
 
     The metrics JSON is deterministic (same inputs and seed, same file, under any machine load);
     the wall-clock timing the computer spent is in its `wall_clock` section, a measurement.
-    Exit status 0 on success, 1 when the episode failed (the JSON says why: failure_reason).
+    Exit status 0 on success, 1 when the episode failed (the JSON says why: failure_reason), 2 on
+    bad input (nothing is run, nothing is written).
     """
     from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
@@ -66,15 +73,22 @@ def run_command(
         config = load_controller_config(config_path)
         if planner is not None:
             config = config.with_planner_mode(planner)
+        from hil_sim.scenario import check_scenario_against_robot
+
+        warnings = check_scenario_against_robot(
+            sc, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m
+        )
         inputs = [p for p in (config_path, robot_path, Path(scenario)) if p is not None and Path(p).is_file()]
         if json_path is not None:
             check_output_path(json_path, what="--json", inputs=inputs)
     except (ConfigFileError, FaultSpecError, OutputPathError) as exc:
-        raise click.ClickException(str(exc)) from exc
+        raise InputError(str(exc)) from exc
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
     try:
         result = run_episode(sc, robot=robot, config=config, seed=seed, faults=faults)
     except ConfigFileError as exc:  # a scenario the robot cannot start in, a bad model file
-        raise click.ClickException(str(exc)) from exc
+        raise InputError(str(exc)) from exc
     m = result.metrics
     if json_path is not None:
         payload = dict(m)

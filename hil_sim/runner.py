@@ -149,7 +149,7 @@ def run_episode(
     robot = robot or load_robot_description()
     config = config or load_controller_config()
 
-    world = World(scenario, robot)
+    world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
     world.reset(seed)
     metrics = EpisodeMetrics(world, scenario, seed)
     controller_bus, sim_bus = virtual_bus_pair()
@@ -234,6 +234,7 @@ def run_episode(
             "controller": report,
             "sensor_errors": dict(sorted(inbox.error_counts.items())),
             "firmware_frames_rejected": firmware.frames_rejected,
+            "scenario_warnings": list(world.scenario_warnings),
         },
     )
     result_metrics["failure_reason"] = failure_reason(result_metrics, report)

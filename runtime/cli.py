@@ -58,6 +58,13 @@ def main() -> None:
         dct(standalone_mode=True)
     except KeyboardInterrupt:
         sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, never a traceback
+        if os.environ.get("DCT_DEBUG"):
+            raise
+        text = " ".join(str(exc).split())[:500]
+        click.echo(f"Error: internal error: {type(exc).__name__}: {text} (set DCT_DEBUG=1 for the traceback)",
+                   err=True)
+        sys.exit(3)
 
 
 if __name__ == "__main__":
