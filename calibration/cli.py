@@ -187,7 +187,19 @@ def _existing_calibration(out: Path, robot: str | None):
     return existing
 
 
-@calibrate_group.command("intrinsics")
+INTRINSICS_HELP = f"""Calibrate K and distortion from checkerboard images in FOLDER; write a calibration file.
+
+If --out already holds a calibration file, the new intrinsics are merged into it: its
+lidar_to_camera extrinsic and that extrinsic's provenance are kept (the output line says
+so). A file at --out that is not a valid calibration is never overwritten.
+
+Quality target: RMS reprojection error at most {INTRINSICS_MAX_RMS_PX} px over at least
+{INTRINSICS_MIN_VIEWS} usable views. A result that misses it is printed, not written, and
+the command exits 1, unless --force is given.
+"""
+
+
+@calibrate_group.command("intrinsics", help=INTRINSICS_HELP)
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--pattern", default="9x6", show_default=True, callback=_pattern, help="inner corners, COLSxROWS")
 @click.option("--square-m", type=float, default=0.025, show_default=True, callback=_positive_length,
@@ -196,19 +208,9 @@ def _existing_calibration(out: Path, robot: str | None):
               help="calibration YAML; an existing calibration file keeps its lidar_to_camera extrinsic")
 @click.option("--robot", default=None, help="robot name stored in the file [default: the --out file's, else limo]")
 @click.option("--force", is_flag=True,
-              help=f"write even if the quality target is missed (RMS > {INTRINSICS_MAX_RMS_PX} px or fewer than "
-                   f"{INTRINSICS_MIN_VIEWS} usable views)")
+              help="write even if the quality target is missed (see above)")
 def intrinsics_cmd(folder: Path, pattern, square_m: float, out: Path, robot: str | None, force: bool) -> None:
-    """Calibrate K and distortion from checkerboard images in FOLDER; write a calibration file.
-
-    If --out already holds a calibration file, the new intrinsics are merged into it: its
-    lidar_to_camera extrinsic and that extrinsic's provenance are kept (the output line says
-    so). A file at --out that is not a valid calibration is never overwritten.
-
-    Quality target: RMS reprojection error at most INTRINSICS_MAX_RMS_PX and at least
-    INTRINSICS_MIN_VIEWS usable views (values in --force's help); a result that misses it is
-    printed and not written without --force.
-    """
+    """See INTRINSICS_HELP."""
     from calibration.calibration_file import make_calibration
     from calibration.intrinsics import CalibrationError, calibrate_intrinsics, intrinsics_quality_problems
 
@@ -267,7 +269,19 @@ def _load_scans(folder: Path, names: list[str]) -> dict:
     return scans
 
 
-@calibrate_group.command("extrinsics")
+EXTRINSICS_HELP = f"""Lidar-camera extrinsic from board views: FOLDER holds NAME.png (or .jpg) + NAME.pcd (or .ply) pairs.
+
+The input calibration file is never modified: the result (its intrinsics plus the new
+lidar_to_camera) goes to --out, which must be another file. A scan that cannot be read, or
+has no finite point, is an error; a view whose board is not found is skipped.
+
+Quality target: point-to-plane RMS of the board points at most {EXTRINSIC_MAX_RMS_M * 100:g} cm
+over at least {EXTRINSIC_MIN_POSES} board poses. A result that misses it is printed, not
+written, and the command exits 1, unless --force is given.
+"""
+
+
+@calibrate_group.command("extrinsics", help=EXTRINSICS_HELP)
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--calibration", "cal_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               required=True, help="calibration YAML with the intrinsics (read only)")
@@ -280,20 +294,10 @@ def _load_scans(folder: Path, names: list[str]) -> dict:
 @click.option("--robot-description", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="for the initial guess of T_camera<-lidar (default: the shipped LIMO description)")
 @click.option("--force", is_flag=True,
-              help=f"write even if the quality target is missed (point-to-plane RMS > {EXTRINSIC_MAX_RMS_M} m or "
-                   f"fewer than {EXTRINSIC_MIN_POSES} board poses)")
+              help="write even if the quality target is missed (see above)")
 def extrinsics_cmd(folder: Path, cal_path: Path, out: Path, pattern, square_m: float, border_m: float,
                    robot_description: Path | None, force: bool) -> None:
-    """Lidar-camera extrinsic from board views: FOLDER holds NAME.png (or .jpg) + NAME.pcd (or .ply) pairs.
-
-    The input calibration file is never modified: the result (its intrinsics plus the new
-    lidar_to_camera) goes to --out, which must be another file. A scan that cannot be read,
-    or has no finite point, is an error; a view whose board is not found is skipped.
-
-    Quality target: point-to-plane RMS at most EXTRINSIC_MAX_RMS_M and at least
-    EXTRINSIC_MIN_POSES board poses (values in --force's help); a result that misses it is
-    printed and not written without --force.
-    """
+    """See EXTRINSICS_HELP."""
     import numpy as np
     from pydantic import ValidationError
 
