@@ -21,13 +21,19 @@ Example::
       extrinsic_rms_m: 0.012
 
 rpy_deg uses the robot description's convention (extrinsic x-y-z: R = Rz(yaw) Ry(pitch) Rx(roll)).
-Every problem raises ConfigFileError naming the file, the field and the reason.
+Every problem raises ConfigFileError naming the file, the field and the reason, on one line.
+
+What is refused when the file loads: any non-finite number; a focal length that is not positive;
+a principal point outside the image; a lidar-camera translation longer than
+MAX_LIDAR_CAMERA_TRANSLATION_M (both sensors sit on one robot); rpy angles outside [-360, 360]
+degrees; a rotation_matrix that is not orthonormal (max |R R^T - I| > 1e-4) or is a reflection
+(det < 0); a quaternion whose norm is not 1 (within 1e-3).
 """
 from __future__ import annotations
 
 import datetime as _dt
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import numpy as np
 import yaml
@@ -36,10 +42,19 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import VALID_DISTORTION_LENGTHS, CameraModel
 from calibration.errors import ConfigFileError, format_validation_error, load_yaml_model
+from calibration.outputs import atomic_write_text
+
+#: T_camera<-lidar translations longer than this are refused: both sensors sit on one robot.
+MAX_LIDAR_CAMERA_TRANSLATION_M = 2.0
+MAX_ANGLE_DEG = 360.0
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+AngleDeg = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_ANGLE_DEG, le=MAX_ANGLE_DEG)]
+Row3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class CameraIntrinsics(_Strict):
@@ -79,18 +94,18 @@ class CameraIntrinsics(_Strict):
 class RigidTransform(_Strict):
     """A rigid transform: translation plus exactly one rotation form."""
 
-    xyz_m: tuple[float, float, float]
-    rpy_deg: Optional[tuple[float, float, float]] = None
-    quaternion_xyzw: Optional[tuple[float, float, float, float]] = None
-    rotation_matrix: Optional[tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]] = None
+    xyz_m: Row3
+    rpy_deg: Optional[tuple[AngleDeg, AngleDeg, AngleDeg]] = None
+    quaternion_xyzw: Optional[tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]] = None
+    rotation_matrix: Optional[tuple[Row3, Row3, Row3]] = None
 
     @field_validator("xyz_m")
     @classmethod
-    def _finite_translation(cls, v):
-        if not all(np.isfinite(v)):
-            raise ValueError(f"translation must be finite, got {v}")
-        if max(abs(x) for x in v) > 100.0:
-            raise ValueError(f"translation {v} is implausibly large (> 100 m)")
+    def _plausible_translation(cls, v):
+        length_m = float(np.linalg.norm(v))
+        if length_m > MAX_LIDAR_CAMERA_TRANSLATION_M:
+            raise ValueError(f"translation is {length_m:.3g} m long, implausible between two sensors on one robot "
+                             f"(at most {MAX_LIDAR_CAMERA_TRANSLATION_M} m)")
         return v
 
     @model_validator(mode="after")
@@ -98,21 +113,18 @@ class RigidTransform(_Strict):
         given = [k for k in ("rpy_deg", "quaternion_xyzw", "rotation_matrix") if getattr(self, k) is not None]
         if len(given) != 1:
             raise ValueError(f"give exactly one of rpy_deg, quaternion_xyzw, rotation_matrix (got {given or 'none'})")
-        if self.rpy_deg is not None and not all(np.isfinite(self.rpy_deg)):
-            raise ValueError(f"rpy_deg must be finite, got {self.rpy_deg}")
         if self.quaternion_xyzw is not None:
             q = np.array(self.quaternion_xyzw)
-            if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            if abs(np.linalg.norm(q) - 1.0) > 1e-3:
                 raise ValueError(f"quaternion_xyzw must have unit norm (got norm {np.linalg.norm(q):.6g})")
         if self.rotation_matrix is not None:
             R = np.array(self.rotation_matrix)
-            if not np.all(np.isfinite(R)):
-                raise ValueError("rotation_matrix must be finite")
             err = np.abs(R @ R.T - np.eye(3)).max()
             if err > 1e-4:
                 raise ValueError(f"rotation_matrix is not orthonormal (max |R R^T - I| = {err:.3g})")
-            if np.linalg.det(R) < 0:
-                raise ValueError("rotation_matrix has determinant -1 (a reflection, not a rotation)")
+            det = np.linalg.det(R)
+            if det < 0:
+                raise ValueError(f"rotation_matrix has determinant {det:.3g} (a reflection, not a rotation)")
         return self
 
     def rotation(self) -> np.ndarray:
@@ -130,13 +142,19 @@ class RigidTransform(_Strict):
 
     @classmethod
     def from_matrix(cls, T: np.ndarray) -> "RigidTransform":
+        return cls(**cls.fields_from_matrix(T))
+
+    @staticmethod
+    def fields_from_matrix(T: np.ndarray) -> dict:
+        """The file fields of a 4x4 transform: xyz_m plus rpy_deg, or quaternion_xyzw near gimbal lock."""
         T = np.asarray(T, dtype=float)
+        xyz = [float(x) for x in T[:3, 3]]
+        if not np.all(np.isfinite(T[:3, :3])):  # let validation name the non-finite values
+            return {"xyz_m": xyz, "rotation_matrix": T[:3, :3].tolist()}
         rot = Rotation.from_matrix(T[:3, :3])
-        xyz = tuple(float(x) for x in T[:3, 3])
         if abs(np.degrees(np.arcsin(np.clip(-T[2, 0], -1.0, 1.0)))) > 85.0:  # near gimbal lock
-            return cls(xyz_m=xyz, quaternion_xyzw=tuple(float(q) for q in rot.as_quat()))
-        rpy = rot.as_euler("xyz", degrees=True)
-        return cls(xyz_m=xyz, rpy_deg=tuple(float(a) for a in rpy))
+            return {"xyz_m": xyz, "quaternion_xyzw": [float(q) for q in rot.as_quat()]}
+        return {"xyz_m": xyz, "rpy_deg": [float(a) for a in rot.as_euler("xyz", degrees=True)]}
 
 
 class Provenance(_Strict):
@@ -171,14 +189,19 @@ def load_calibration(path: str | Path) -> CalibrationFile:
     return load_yaml_model(Path(path), CalibrationFile, what="calibration file")
 
 
-def save_calibration(cal: CalibrationFile, path: str | Path) -> None:
-    """Write a calibration file (validated again before writing)."""
+def calibration_yaml(cal: CalibrationFile) -> str:
+    """The YAML text of a calibration (validated again, as load_calibration would read it)."""
     data = cal.model_dump(mode="json", exclude_none=True)
     try:
         CalibrationFile.model_validate(data)
-    except ValidationError as exc:  # pragma: no cover - model was already valid
-        raise ConfigFileError(f"calibration is invalid:\n{format_validation_error(exc)}") from exc
-    Path(path).write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    except ValidationError as exc:  # a field assigned after construction (no validate_assignment)
+        raise ConfigFileError(f"calibration is invalid: {format_validation_error(exc)}") from None
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def save_calibration(cal: CalibrationFile, path: str | Path) -> None:
+    """Write a calibration file atomically (validated again before writing)."""
+    atomic_write_text(path, calibration_yaml(cal))
 
 
 def make_calibration(
@@ -193,18 +216,18 @@ def make_calibration(
 ) -> CalibrationFile:
     """Build a validated CalibrationFile from arrays (ConfigFileError on bad values)."""
     K = np.asarray(K, dtype=float)
+    data = {
+        "robot": robot,
+        "camera": {"width_px": width_px, "height_px": height_px, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2],
+                   "cy": K[1, 2], "skew": K[0, 1], "distortion": [float(x) for x in np.ravel(dist)]},
+        "provenance": {"date": _dt.datetime.now().replace(microsecond=0), "method": method, **provenance},
+    }
+    if T_cam_lidar is not None:
+        data["lidar_to_camera"] = RigidTransform.fields_from_matrix(T_cam_lidar)
     try:
-        return CalibrationFile(
-            robot=robot,
-            camera=CameraIntrinsics(
-                width_px=width_px, height_px=height_px, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2],
-                skew=K[0, 1], distortion=[float(x) for x in np.ravel(dist)],
-            ),
-            lidar_to_camera=None if T_cam_lidar is None else RigidTransform.from_matrix(T_cam_lidar),
-            provenance=Provenance(date=_dt.datetime.now().replace(microsecond=0), method=method, **provenance),
-        )
+        return CalibrationFile.model_validate(data)
     except ValidationError as exc:
-        raise ConfigFileError(f"calibration is invalid:\n{format_validation_error(exc)}") from exc
+        raise ConfigFileError(f"calibration is invalid: {format_validation_error(exc)}") from None
 
 
 def calibration_from_opencalib(
@@ -233,14 +256,22 @@ def calibration_from_opencalib(
         raise ConfigFileError(f"OpenCalib files {intrinsic_json}, {extrinsic_json}: missing or bad field ({exc})") from exc
     if K.shape != (3, 3) or T.shape != (4, 4):
         raise ConfigFileError(f"OpenCalib: cam_K must be 3x3 and sensor_calib 4x4, got {K.shape}, {T.shape}")
+    for name, arr, src in (("cam_K", K, intrinsic_json), ("cam_dist", dist, intrinsic_json),
+                           ("sensor_calib", T, extrinsic_json)):
+        if not np.all(np.isfinite(arr)):
+            raise ConfigFileError(f"OpenCalib file {src}: {name} has a non-finite value (got {arr.ravel().tolist()})")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ConfigFileError(f"OpenCalib file {extrinsic_json}: sensor_calib last row must be [0, 0, 0, 1], "
+                              f"got {T[3].tolist()}")
     # Re-orthonormalize the 6-digit rotation before storing it as rpy.
     U, _, Vt = np.linalg.svd(T[:3, :3])
-    if np.abs(T[:3, :3] - U @ Vt).max() > 1e-3:
-        raise ConfigFileError("OpenCalib: sensor_calib rotation is not orthonormal")
+    if np.abs(T[:3, :3] - U @ Vt).max() > 1e-3 or np.linalg.det(U @ Vt) < 0:
+        raise ConfigFileError(f"OpenCalib file {extrinsic_json}: sensor_calib rotation is not a rotation "
+                              f"(not orthonormal, or a reflection)")
     T = T.copy()
     T[:3, :3] = U @ Vt
     return make_calibration(robot, K, dist, width_px, height_px, T, method="imported from OpenCalib JSON")
 
 
 __all__ = ["CalibrationFile", "CameraIntrinsics", "RigidTransform", "Provenance", "load_calibration",
-           "save_calibration", "make_calibration", "calibration_from_opencalib", "ConfigFileError"]
+           "save_calibration", "calibration_yaml", "MAX_LIDAR_CAMERA_TRANSLATION_M", "make_calibration", "calibration_from_opencalib", "ConfigFileError"]

@@ -3,16 +3,55 @@
 Sub-commands from other packages (e.g. `hil-check` from hil_sim) come from the entry point group
 "dct.calibrate" and are imported only when invoked; this module never imports hil_sim or runtime.
 Heavy libraries (cv2) are imported inside the commands.
+
+Rules every sub-command follows:
+
+* An input error (missing folder, no images, an unreadable image, a bad YAML file, an empty or
+  malformed point cloud, a bad option) is ONE line on stderr ("Error: ...") and a non-zero exit
+  (2 for a usage error, 1 otherwise), never a traceback.
+* Outputs: the path is checked before the work (`calibration.outputs.check_output_path`: its
+  folder exists and is writable, it is not one of the command's inputs, not a shipped artifact)
+  and the file is written atomically, only after the command succeeded.
+* A calibration that misses its quality target (see `calibration.intrinsics.INTRINSICS_*` and
+  `calibration.extrinsics.EXTRINSIC_*`) is not written unless --force is given: the command
+  prints the figures and exits 1.
 """
 from __future__ import annotations
 
-import json
+import math
 from importlib.metadata import entry_points
 from pathlib import Path
 
 import click
 
 from calibration.errors import ConfigFileError
+from calibration.extrinsics import EXTRINSIC_MAX_RMS_M, EXTRINSIC_MIN_POSES
+from calibration.intrinsics import INTRINSICS_MAX_RMS_PX, INTRINSICS_MIN_VIEWS
+from calibration.outputs import OutputPathError, check_output_path
+
+
+# ---------------------------------------------------------------------------- one-line errors
+class OneLineError(click.ClickException):
+    """A command-line error printed as one line ("Error: <message>"); newlines are folded."""
+
+    def format_message(self) -> str:
+        return " ".join(str(self.message).split())
+
+
+def _usage_error(ctx: click.Context, exc: click.UsageError) -> OneLineError:
+    err = OneLineError(f"{ctx.command_path}: {exc.format_message()} (see --help)")
+    err.exit_code = exc.exit_code
+    return err
+
+
+class OneLineCommand(click.Command):
+    """A click command whose usage errors (bad option, missing argument) are one line, exit 2."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        try:
+            return super().parse_args(ctx, args)
+        except click.UsageError as exc:
+            raise _usage_error(ctx, exc) from None
 
 
 def _plugin_entry_points() -> dict:
@@ -21,6 +60,8 @@ def _plugin_entry_points() -> dict:
 
 class LazyCalibrateGroup(click.Group):
     """Built-in sub-commands plus lazily loaded ones from the "dct.calibrate" entry points."""
+
+    command_class = OneLineCommand
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(set(super().list_commands(ctx)) | set(_plugin_entry_points()))
@@ -37,11 +78,18 @@ class LazyCalibrateGroup(click.Group):
         except ImportError as exc:
             @click.command(name=name, help=f"(unavailable: {exc})")
             def unavailable() -> None:
-                raise click.ClickException(f"calibrate command '{name}' cannot be loaded: {exc}")
+                raise OneLineError(f"calibrate command '{name}' cannot be loaded: {exc}")
 
             return unavailable
 
+    def resolve_command(self, ctx: click.Context, args: list[str]):
+        try:
+            return super().resolve_command(ctx, args)
+        except click.UsageError as exc:
+            raise _usage_error(ctx, exc) from None
 
+
+# ---------------------------------------------------------------------------- option checks
 def _pattern(ctx, param, value: str) -> tuple[int, int]:
     from calibration.intrinsics import parse_pattern
 
@@ -51,13 +99,69 @@ def _pattern(ctx, param, value: str) -> tuple[int, int]:
         raise click.BadParameter(str(exc)) from None
 
 
+def _positive_length(ctx, param, value: float) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise click.BadParameter(f"must be a positive length in metres, got {value}")
+    return value
+
+
+def _non_negative_length(ctx, param, value: float) -> float:
+    if not (math.isfinite(value) and value >= 0):
+        raise click.BadParameter(f"must be a length >= 0 in metres, got {value}")
+    return value
+
+
+def checked_output(path: Path, what: str, inputs=(), overwrite: bool = True) -> Path:
+    """check_output_path as a one-line CLI error."""
+    try:
+        return check_output_path(path, what=what, inputs=[p for p in inputs if p is not None], overwrite=overwrite)
+    except OutputPathError as exc:
+        raise OneLineError(str(exc)) from None
+
+
 def _load_cal(path: Path):
     from calibration.calibration_file import load_calibration
 
     try:
         return load_calibration(path)
     except ConfigFileError as exc:
-        raise click.ClickException(str(exc)) from None
+        raise OneLineError(str(exc)) from None
+
+
+def _load_images(folder: Path) -> dict:
+    from calibration.intrinsics import load_images
+
+    try:
+        return load_images(folder)
+    except ValueError as exc:
+        raise OneLineError(str(exc)) from None
+
+
+def _image_files(folder: Path) -> list[Path]:
+    from calibration.intrinsics import IMAGE_SUFFIXES
+
+    return [p for p in sorted(folder.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES]
+
+
+def _check_image_size(name: str, img, cal) -> None:
+    h, w = img.shape[:2]
+    if (w, h) != (cal.camera.width_px, cal.camera.height_px):
+        raise OneLineError(f"{name}: image is {w}x{h}, the calibration's intrinsics are for "
+                           f"{cal.camera.width_px}x{cal.camera.height_px}")
+
+
+def _quality_refused(what: str, problems: list[str], out: Path) -> OneLineError:
+    return OneLineError(f"{what} miss the quality target: {'; '.join(problems)}; {out} not written "
+                        f"(pass --force to write it anyway)")
+
+
+def _save(cal, out: Path) -> None:
+    from calibration.calibration_file import save_calibration
+
+    try:
+        save_calibration(cal, out)
+    except (ConfigFileError, OSError) as exc:
+        raise OneLineError(f"{out}: not written: {exc}") from None
 
 
 @click.group(name="calibrate", cls=LazyCalibrateGroup)
@@ -65,53 +169,146 @@ def calibrate_group() -> None:
     """Camera intrinsics, lidar-camera extrinsics, projection checks, calibration reports."""
 
 
-@calibrate_group.command("intrinsics")
+# ---------------------------------------------------------------------------- intrinsics
+def _existing_calibration(out: Path, robot: str | None):
+    """The calibration already at --out (None if there is none); refuses a file that is not one."""
+    from calibration.calibration_file import load_calibration
+
+    if not out.exists():
+        return None
+    try:
+        existing = load_calibration(out)
+    except ConfigFileError as exc:
+        raise OneLineError(f"--out {out} exists and is not a valid calibration file, so it is left alone: {exc}; "
+                           f"choose another --out") from None
+    if robot is not None and existing.robot != robot:
+        raise OneLineError(f"--out {out} is the calibration of robot '{existing.robot}', not '{robot}'; "
+                           f"choose another --out")
+    return existing
+
+
+INTRINSICS_HELP = f"""Calibrate K and distortion from checkerboard images in FOLDER; write a calibration file.
+
+If --out already holds a calibration file, the new intrinsics are merged into it: its
+lidar_to_camera extrinsic and that extrinsic's provenance are kept (the output line says
+so). A file at --out that is not a valid calibration is never overwritten.
+
+Quality target: RMS reprojection error at most {INTRINSICS_MAX_RMS_PX} px over at least
+{INTRINSICS_MIN_VIEWS} usable views. A result that misses it is printed, not written, and
+the command exits 1, unless --force is given.
+"""
+
+
+@calibrate_group.command("intrinsics", help=INTRINSICS_HELP)
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--pattern", default="9x6", show_default=True, callback=_pattern, help="inner corners, COLSxROWS")
-@click.option("--square-m", type=float, default=0.025, show_default=True, help="square side in metres")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="calibration YAML")
-@click.option("--robot", default="limo", show_default=True)
-def intrinsics_cmd(folder: Path, pattern, square_m: float, out: Path, robot: str) -> None:
-    """Calibrate K and distortion from checkerboard images in FOLDER; write a calibration file."""
-    from calibration.calibration_file import make_calibration, save_calibration
-    from calibration.intrinsics import CalibrationError, calibrate_intrinsics, load_images
+@click.option("--square-m", type=float, default=0.025, show_default=True, callback=_positive_length,
+              help="square side in metres")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="calibration YAML; an existing calibration file keeps its lidar_to_camera extrinsic")
+@click.option("--robot", default=None, help="robot name stored in the file [default: the --out file's, else limo]")
+@click.option("--force", is_flag=True,
+              help="write even if the quality target is missed (see above)")
+def intrinsics_cmd(folder: Path, pattern, square_m: float, out: Path, robot: str | None, force: bool) -> None:
+    """See INTRINSICS_HELP."""
+    from calibration.calibration_file import make_calibration
+    from calibration.intrinsics import CalibrationError, calibrate_intrinsics, intrinsics_quality_problems
 
+    checked_output(out, "calibration file", inputs=_image_files(folder))
+    existing = _existing_calibration(out, robot)
+    robot = robot or (existing.robot if existing is not None else "limo")
+    images = _load_images(folder)
     try:
-        res = calibrate_intrinsics(load_images(folder), pattern, square_m)
+        res = calibrate_intrinsics(images, pattern, square_m)
     except (CalibrationError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
-    cal = make_calibration(
-        robot, res.K, res.dist, res.width_px, res.height_px, None,
-        method=f"checkerboard {pattern[0]}x{pattern[1]} inner corners, {square_m} m squares; cv2.calibrateCamera",
-        intrinsics_rms_px=res.rms_px, per_image_rms_px=res.per_image_rms_px, n_images=len(res.per_image_rms_px),
-    )
-    save_calibration(cal, out)
-    click.echo(f"RMS reprojection error {res.rms_px:.3f} px over {len(res.per_image_rms_px)} images -> {out}")
+        raise OneLineError(f"{folder}: {exc}") from None
+    n_views = len(res.per_image_rms_px)
+    click.echo(f"RMS reprojection error {res.rms_px:.3f} px over {n_views} images")
     for name, why in res.rejected.items():
         click.echo(f"  rejected {name}: {why}")
+    problems = intrinsics_quality_problems(res)
+    if problems and not force:
+        raise _quality_refused("intrinsics", problems, out)
+    method = f"checkerboard {pattern[0]}x{pattern[1]} inner corners, {square_m} m squares; cv2.calibrateCamera"
+    kept = existing is not None and existing.lidar_to_camera is not None
+    extra = {}
+    if kept:
+        method += f"; lidar_to_camera kept from the previous file ({existing.provenance.date.isoformat()})"
+        extra = {"extrinsic_rms_m": existing.provenance.extrinsic_rms_m,
+                 "n_board_poses": existing.provenance.n_board_poses}
+    try:
+        cal = make_calibration(robot, res.K, res.dist, res.width_px, res.height_px, None, method=method,
+                               intrinsics_rms_px=res.rms_px, per_image_rms_px=res.per_image_rms_px,
+                               n_images=n_views, **extra)
+    except ConfigFileError as exc:
+        raise OneLineError(f"{folder}: the intrinsics found are not usable: {exc}") from None
+    if kept:
+        cal.lidar_to_camera = existing.lidar_to_camera
+    _save(cal, out)
+    note = f" (kept the lidar_to_camera extrinsic already in {out})" if kept else ""
+    forced = f" (quality target missed, written because of --force: {'; '.join(problems)})" if problems else ""
+    click.echo(f"intrinsics -> {out}{note}{forced}")
 
 
-@calibrate_group.command("extrinsics")
+# ---------------------------------------------------------------------------- extrinsics
+def _load_scans(folder: Path, names: list[str]) -> dict:
+    """{image name: (M,3) finite lidar points} for the images that have a NAME.pcd / NAME.ply next to them."""
+    from calibration.pointcloud_io import PointCloudFormatError, finite_xyz, load_point_cloud
+
+    scans = {}
+    for name in names:
+        stem = Path(name).stem
+        scan = next((folder / f"{stem}{s}" for s in (".pcd", ".ply") if (folder / f"{stem}{s}").exists()), None)
+        if scan is None:
+            click.echo(f"  skipped {name}: no {stem}.pcd or {stem}.ply")
+            continue
+        try:
+            scans[name] = finite_xyz(load_point_cloud(scan), str(scan))
+        except PointCloudFormatError as exc:
+            raise OneLineError(str(exc)) from None
+    return scans
+
+
+EXTRINSICS_HELP = f"""Lidar-camera extrinsic from board views: FOLDER holds NAME.png (or .jpg) + NAME.pcd (or .ply) pairs.
+
+The input calibration file is never modified: the result (its intrinsics plus the new
+lidar_to_camera) goes to --out, which must be another file. A scan that cannot be read, or
+has no finite point, is an error; a view whose board is not found is skipped.
+
+Quality target: point-to-plane RMS of the board points at most {EXTRINSIC_MAX_RMS_M * 100:g} cm
+over at least {EXTRINSIC_MIN_POSES} board poses. A result that misses it is printed, not
+written, and the command exits 1, unless --force is given.
+"""
+
+
+@calibrate_group.command("extrinsics", help=EXTRINSICS_HELP)
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--calibration", "cal_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              required=True, help="calibration YAML with the intrinsics (updated in place unless --out)")
+              required=True, help="calibration YAML with the intrinsics (read only)")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="calibration YAML to write (the intrinsics plus the new extrinsic); not --calibration")
 @click.option("--pattern", default="9x6", show_default=True, callback=_pattern)
-@click.option("--square-m", type=float, default=0.025, show_default=True)
-@click.option("--border-m", type=float, default=0.0, show_default=True, help="white margin around the squares")
+@click.option("--square-m", type=float, default=0.025, show_default=True, callback=_positive_length)
+@click.option("--border-m", type=float, default=0.0, show_default=True, callback=_non_negative_length,
+              help="white margin around the squares")
 @click.option("--robot-description", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="for the initial guess of T_camera<-lidar (default: the shipped LIMO description)")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None)
-def extrinsics_cmd(folder: Path, cal_path: Path, pattern, square_m: float, border_m: float,
-                   robot_description: Path | None, out: Path | None) -> None:
-    """Lidar-camera extrinsic from board views: FOLDER holds NAME.png (or .jpg) + NAME.pcd (or .ply) pairs."""
+@click.option("--force", is_flag=True,
+              help="write even if the quality target is missed (see above)")
+def extrinsics_cmd(folder: Path, cal_path: Path, out: Path, pattern, square_m: float, border_m: float,
+                   robot_description: Path | None, force: bool) -> None:
+    """See EXTRINSICS_HELP."""
     import numpy as np
+    from pydantic import ValidationError
 
-    from calibration.calibration_file import RigidTransform, save_calibration
-    from calibration.extrinsics import BoardGeometry, BoardObservation, calibrate_lidar_camera, segment_board
-    from calibration.intrinsics import CalibrationError, board_pose_in_camera, detect_board, load_images
-    from calibration.pointcloud_io import PointCloudFormatError, load_point_cloud
+    from calibration.calibration_file import RigidTransform
+    from calibration.errors import format_validation_error
+    from calibration.extrinsics import (BoardGeometry, BoardObservation, calibrate_lidar_camera,
+                                        extrinsics_quality_problems, segment_board)
+    from calibration.intrinsics import CalibrationError, board_pose_in_camera, detect_board
     from calibration.robot_description import load_robot_description
 
+    checked_output(out, "calibration file", inputs=[cal_path, robot_description, *folder.iterdir()])
     cal = _load_cal(cal_path)
     K, dist = cal.camera.K(), np.array(cal.camera.distortion)
     if cal.lidar_to_camera is not None:
@@ -120,60 +317,67 @@ def extrinsics_cmd(folder: Path, cal_path: Path, pattern, square_m: float, borde
         try:
             desc = load_robot_description(robot_description)
         except ConfigFileError as exc:
-            raise click.ClickException(str(exc)) from None
+            raise OneLineError(str(exc)) from None
         T_guess = np.linalg.inv(desc.sensors.camera.mount.transform()) @ desc.sensors.lidar.mount.transform()
     board = BoardGeometry(pattern, square_m, border_m)
-    observations = []
-    try:
-        images = load_images(folder)
-    except ValueError as exc:
-        raise click.ClickException(str(exc)) from None
+    images = _load_images(folder)
     for name, img in images.items():
-        stem = Path(name).stem
-        scan = next((folder / f"{stem}{s}" for s in (".pcd", ".ply") if (folder / f"{stem}{s}").exists()), None)
-        if scan is None:
-            click.echo(f"  skipped {name}: no {stem}.pcd or {stem}.ply")
-            continue
-        det = detect_board(img, pattern)
+        _check_image_size(str(folder / name), img, cal)
+    scans = _load_scans(folder, list(images))
+    observations = []
+    for name, pts_all in scans.items():
+        det = detect_board(images[name], pattern)
         if det is None:
             click.echo(f"  skipped {name}: checkerboard not found")
             continue
         try:
-            T_cb, rms = board_pose_in_camera(det.corners_px, pattern, square_m, K, dist)
-            pts = segment_board(load_point_cloud(scan).xyz, board, T_cb, T_guess)
-        except (CalibrationError, PointCloudFormatError) as exc:
+            T_cb, _ = board_pose_in_camera(det.corners_px, pattern, square_m, K, dist)
+            pts = segment_board(pts_all, board, T_cb, T_guess)
+        except CalibrationError as exc:
             click.echo(f"  skipped {name}: {exc}")
             continue
-        observations.append(BoardObservation(T_cb, pts, stem))
+        observations.append(BoardObservation(T_cb, pts, Path(name).stem))
     try:
         res = calibrate_lidar_camera(observations, board)
     except CalibrationError as exc:
-        raise click.ClickException(str(exc)) from None
-    cal.lidar_to_camera = RigidTransform.from_matrix(res.T_cam_lidar)
+        raise OneLineError(f"{folder}: {exc}") from None
+    n_poses = len(res.per_pose_rms_m)
+    click.echo(f"T_camera<-lidar from {n_poses} poses, {res.n_points} board points, "
+               f"point-to-plane RMS {res.rms_point_to_plane_m * 100:.2f} cm")
+    problems = extrinsics_quality_problems(res)
+    if problems and not force:
+        raise _quality_refused("extrinsics", problems, out)
+    try:
+        cal.lidar_to_camera = RigidTransform.from_matrix(res.T_cam_lidar)
+    except ValidationError as exc:
+        raise OneLineError(f"{folder}: the extrinsic found is implausible: {format_validation_error(exc)}") from None
     cal.provenance.extrinsic_rms_m = res.rms_point_to_plane_m
-    cal.provenance.n_board_poses = len(observations)
-    cal.provenance.method += f"; lidar-camera board planes ({len(observations)} poses, point-to-plane)"
-    save_calibration(cal, out or cal_path)
-    click.echo(f"T_camera<-lidar from {len(observations)} poses, {res.n_points} board points, "
-               f"point-to-plane RMS {res.rms_point_to_plane_m * 100:.2f} cm -> {out or cal_path}")
+    cal.provenance.n_board_poses = n_poses
+    cal.provenance.method += f"; lidar-camera board planes ({n_poses} poses, point-to-plane)"
+    _save(cal, out)
+    forced = f" (quality target missed, written because of --force: {'; '.join(problems)})" if problems else ""
+    click.echo(f"extrinsic -> {out}{forced}")
 
 
+# ---------------------------------------------------------------------------- import, project, report
 @calibrate_group.command("import-opencalib")
 @click.argument("intrinsic_json", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.argument("extrinsic_json", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--width", type=int, required=True)
-@click.option("--height", type=int, required=True)
+@click.option("--width", type=click.IntRange(1, 16384), required=True)
+@click.option("--height", type=click.IntRange(1, 16384), required=True)
 @click.option("--robot", default="opencalib", show_default=True)
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True)
-def import_opencalib_cmd(intrinsic_json: Path, extrinsic_json: Path, width: int, height: int, robot: str, out: Path) -> None:
+def import_opencalib_cmd(intrinsic_json: Path, extrinsic_json: Path, width: int, height: int, robot: str,
+                         out: Path) -> None:
     """Convert OpenCalib camera-intrinsic + lidar-to-camera JSON files into a calibration YAML."""
-    from calibration.calibration_file import calibration_from_opencalib, save_calibration
+    from calibration.calibration_file import calibration_from_opencalib
 
+    checked_output(out, "calibration file", inputs=[intrinsic_json, extrinsic_json])
     try:
         cal = calibration_from_opencalib(intrinsic_json, extrinsic_json, width, height, robot)
     except ConfigFileError as exc:
-        raise click.ClickException(str(exc)) from None
-    save_calibration(cal, out)
+        raise OneLineError(str(exc)) from None
+    _save(cal, out)
     click.echo(f"wrote {out}")
 
 
@@ -181,30 +385,39 @@ def import_opencalib_cmd(intrinsic_json: Path, extrinsic_json: Path, width: int,
 @click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.argument("image", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--calibration", "cal_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), required=True)
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="overlay PNG")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="overlay image (.png, .jpg, ...)")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None)
 def project_cmd(scan: Path, image: Path, cal_path: Path, out: Path, json_path: Path | None) -> None:
     """Project SCAN into IMAGE; write an overlay (colour = depth) and stats."""
+    import json
+
     import cv2
     import numpy as np
 
     from calibration.extrinsics import edge_alignment_score, image_edge_map
-    from calibration.pointcloud_io import PointCloudFormatError, load_point_cloud
+    from calibration.outputs import atomic_write_bytes, atomic_write_json
+    from calibration.pointcloud_io import PointCloudFormatError, finite_xyz, load_point_cloud
 
+    inputs = [scan, image, cal_path]
+    checked_output(out, "overlay image", inputs=inputs)
+    if not cv2.haveImageWriter(str(out)):
+        raise OneLineError(f"overlay image {out}: no image format for suffix {out.suffix!r} (use .png or .jpg)")
+    if json_path is not None:
+        checked_output(json_path, "JSON output", inputs=[*inputs, out])
     cal = _load_cal(cal_path)
     cam = cal.camera_model()
     try:
-        cloud = load_point_cloud(scan)
         T = cal.T_cam_lidar()
-    except (PointCloudFormatError, ConfigFileError) as exc:
-        raise click.ClickException(str(exc)) from None
+        pts = finite_xyz(load_point_cloud(scan), str(scan))
+    except ConfigFileError as exc:
+        raise OneLineError(f"calibration file {cal_path}: {exc}") from None
+    except PointCloudFormatError as exc:
+        raise OneLineError(str(exc)) from None
     img = cv2.imread(str(image), cv2.IMREAD_COLOR)
     if img is None:
-        raise click.ClickException(f"{image}: cannot be read as an image")
-    if img.shape[:2] != (cam.height_px, cam.width_px):
-        raise click.ClickException(f"{image}: size {img.shape[1]}x{img.shape[0]} differs from the calibration's "
-                                   f"{cam.width_px}x{cam.height_px}")
-    pts = cloud.xyz
+        raise OneLineError(f"{image}: cannot be read as an image")
+    _check_image_size(str(image), img, cal)
     uv, valid, z = cam.depths_and_project_lidar(pts, T)
     overlay = img.copy()
     zs = z[valid]
@@ -212,7 +425,6 @@ def project_cmd(scan: Path, image: Path, cal_path: Path, out: Path, json_path: P
     colours = cv2.applyColorMap(levels.reshape(-1, 1), cv2.COLORMAP_JET).reshape(-1, 3)
     for (u, v), c in zip(np.round(uv[valid]).astype(int), colours):
         cv2.circle(overlay, (int(u), int(v)), 2, tuple(int(x) for x in c), -1)
-    cv2.imwrite(str(out), overlay)
     stats = {
         "points": int(len(pts)),
         "in_front": int(np.sum(z > 0)),
@@ -220,9 +432,13 @@ def project_cmd(scan: Path, image: Path, cal_path: Path, out: Path, json_path: P
         "depth_m_median": float(np.median(zs)) if len(zs) else None,
         "edge_alignment_score": edge_alignment_score(cam, pts, T, image_edge_map(img)),
     }
+    ok, encoded = cv2.imencode(out.suffix, overlay)
+    if not ok:
+        raise OneLineError(f"overlay image {out}: cannot be encoded as {out.suffix}")
+    atomic_write_bytes(out, encoded.tobytes())
     click.echo(json.dumps(stats, indent=2))
-    if json_path:
-        json_path.write_text(json.dumps(stats, indent=2))
+    if json_path is not None:
+        atomic_write_json(json_path, stats)
 
 
 @calibrate_group.command("report")
@@ -230,7 +446,7 @@ def project_cmd(scan: Path, image: Path, cal_path: Path, out: Path, json_path: P
 @click.option("--images", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
               help="recompute per-image reprojection errors on these checkerboard images")
 @click.option("--pattern", default="9x6", show_default=True, callback=_pattern)
-@click.option("--square-m", type=float, default=0.025, show_default=True)
+@click.option("--square-m", type=float, default=0.025, show_default=True, callback=_positive_length)
 def report_cmd(cal_path: Path, images: Path | None, pattern, square_m: float) -> None:
     """Print a calibration file's values and reprojection errors (stored, or recomputed on --images)."""
     import numpy as np
@@ -252,20 +468,33 @@ def report_cmd(cal_path: Path, images: Path | None, pattern, square_m: float) ->
     if p.extrinsic_rms_m is not None:
         click.echo(f"extrinsic point-to-plane RMS: {p.extrinsic_rms_m * 100:.2f} cm over {p.n_board_poses} poses")
     if images is not None:
-        from calibration.intrinsics import board_pose_in_camera, detect_board, load_images
+        _report_images(cal, images, pattern, square_m)
 
-        K, dist = c.K(), np.array(c.distortion)
-        errs = []
-        for name, img in load_images(images).items():
-            det = detect_board(img, pattern)
-            if det is None:
-                click.echo(f"  {name}: board not found")
-                continue
+
+def _report_images(cal, folder: Path, pattern, square_m: float) -> None:
+    import numpy as np
+
+    from calibration.intrinsics import CalibrationError, board_pose_in_camera, detect_board
+
+    K, dist = cal.camera.K(), np.array(cal.camera.distortion)
+    loaded = _load_images(folder)
+    for name, img in loaded.items():
+        _check_image_size(str(folder / name), img, cal)
+    errs = []
+    for name, img in loaded.items():
+        det = detect_board(img, pattern)
+        if det is None:
+            click.echo(f"  {name}: board not found")
+            continue
+        try:
             _, rms = board_pose_in_camera(det.corners_px, pattern, square_m, K, dist)
-            errs.append(rms)
-            click.echo(f"  {name}: {rms:.3f} px (solvePnP with the file's intrinsics)")
-        if errs:
-            click.echo(f"mean per-image RMS {np.mean(errs):.3f} px over {len(errs)} images")
+        except CalibrationError as exc:
+            click.echo(f"  {name}: {exc}")
+            continue
+        errs.append(rms)
+        click.echo(f"  {name}: {rms:.3f} px (solvePnP with the file's intrinsics)")
+    if errs:
+        click.echo(f"mean per-image RMS {np.mean(errs):.3f} px over {len(errs)} images")
 
 
-__all__ = ["calibrate_group"]
+__all__ = ["calibrate_group", "OneLineCommand", "OneLineError", "checked_output"]

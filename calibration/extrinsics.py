@@ -12,11 +12,17 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import transform_points
 from calibration.intrinsics import CalibrationError
+
+#: Quality target of a lidar-camera extrinsic: `dct calibrate extrinsics` does not write a
+#: result that misses it unless --force is given. The point-to-plane RMS of the board points is
+#: about the lidar's range noise (2-3 cm for a Livox Mid-360 class sensor) when the transform is
+#: right; above 4 cm a wrong segmentation or transform is likely. Fewer than 6 board poses leave
+#: the translation weakly constrained (3 is the solver's hard minimum).
+EXTRINSIC_MAX_RMS_M = 0.04
+EXTRINSIC_MIN_POSES = 6
 
 
 @dataclass(frozen=True)
@@ -152,6 +158,9 @@ def calibrate_lidar_camera(
 
 
 def _solve(observations: list[BoardObservation], min_poses: int) -> ExtrinsicsResult:
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
     obs = [o for o in observations if len(o.board_points_lidar) >= 10]
     if len(obs) < min_poses:
         raise CalibrationError(f"need at least {min_poses} board poses with lidar points, got {len(obs)}")
@@ -201,8 +210,25 @@ def _solve(observations: list[BoardObservation], min_poses: int) -> ExtrinsicsRe
                             per_pose_rms_m=per_pose, n_points=len(P), T_closed_form=T0)
 
 
+def extrinsics_quality_problems(
+    res: ExtrinsicsResult, max_rms_m: float | None = None, min_poses: int | None = None
+) -> list[str]:
+    """Why `res` misses the quality target (EXTRINSIC_MAX_RMS_M, EXTRINSIC_MIN_POSES); [] when it meets it."""
+    max_rms_m = EXTRINSIC_MAX_RMS_M if max_rms_m is None else max_rms_m
+    min_poses = EXTRINSIC_MIN_POSES if min_poses is None else min_poses
+    problems = []
+    if not np.isfinite(res.rms_point_to_plane_m) or res.rms_point_to_plane_m > max_rms_m:
+        problems.append(f"point-to-plane RMS {res.rms_point_to_plane_m * 100:.2f} cm > {max_rms_m * 100:.2f} cm")
+    n_poses = len(res.per_pose_rms_m)
+    if n_poses < min_poses:
+        problems.append(f"{n_poses} board poses < {min_poses}")
+    return problems
+
+
 def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(translation error m, rotation error deg) between two 4x4 transforms."""
+    from scipy.spatial.transform import Rotation
+
     dT = np.linalg.inv(T_true) @ T_est
     ang = np.degrees(np.linalg.norm(Rotation.from_matrix(dT[:3, :3]).as_rotvec()))
     return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), float(ang)
@@ -270,6 +296,8 @@ def intensity_mutual_information(
 
 def perturb_transform(T: np.ndarray, dxyz_m=(0.0, 0.0, 0.0), drpy_deg=(0.0, 0.0, 0.0)) -> np.ndarray:
     """Apply a small rotation (about the camera axes) and shift (in the camera frame) to T_cam_lidar."""
+    from scipy.spatial.transform import Rotation
+
     P = np.eye(4)
     P[:3, :3] = Rotation.from_euler("xyz", drpy_deg, degrees=True).as_matrix()
     P[:3, 3] = dxyz_m
@@ -277,5 +305,6 @@ def perturb_transform(T: np.ndarray, dxyz_m=(0.0, 0.0, 0.0), drpy_deg=(0.0, 0.0,
 
 
 __all__ = ["BoardGeometry", "BoardObservation", "ExtrinsicsResult", "calibrate_lidar_camera", "segment_board",
+           "extrinsics_quality_problems", "EXTRINSIC_MAX_RMS_M", "EXTRINSIC_MIN_POSES",
            "ransac_plane", "fit_plane", "transform_error", "image_edge_map", "depth_edge_mask",
            "edge_alignment_score", "intensity_mutual_information", "perturb_transform"]

@@ -9,6 +9,13 @@ import numpy as np
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
+#: Quality target of an intrinsic calibration: `dct calibrate intrinsics` does not write a
+#: result that misses it unless --force is given. An RMS reprojection error under about
+#: 0.5 px is a good checkerboard calibration, above 1 px a detection or model problem; fewer
+#: than 8 views rarely constrain the distortion (OpenCV's guides ask for 10-20).
+INTRINSICS_MAX_RMS_PX = 1.0
+INTRINSICS_MIN_VIEWS = 8
+
 
 class CalibrationError(RuntimeError):
     """A calibration could not be computed (too few usable views, degenerate data)."""
@@ -111,8 +118,8 @@ def calibrate_intrinsics(
     """
     import cv2
 
-    if square_m <= 0:
-        raise ValueError(f"square_m must be positive, got {square_m}")
+    if not (np.isfinite(square_m) and square_m > 0):
+        raise ValueError(f"square_m must be a positive length, got {square_m}")
     if not isinstance(images, Mapping):
         images = {f"image_{i:03d}": img for i, img in enumerate(images)}
     if not images:
@@ -162,6 +169,21 @@ def calibrate_intrinsics(
     )
 
 
+def intrinsics_quality_problems(
+    res: IntrinsicsResult, max_rms_px: float | None = None, min_views: int | None = None
+) -> list[str]:
+    """Why `res` misses the quality target (INTRINSICS_MAX_RMS_PX, INTRINSICS_MIN_VIEWS); [] when it meets it."""
+    max_rms_px = INTRINSICS_MAX_RMS_PX if max_rms_px is None else max_rms_px
+    min_views = INTRINSICS_MIN_VIEWS if min_views is None else min_views
+    problems = []
+    if not np.isfinite(res.rms_px) or res.rms_px > max_rms_px:
+        problems.append(f"RMS reprojection error {res.rms_px:.3f} px > {max_rms_px} px")
+    n_views = len(res.per_image_rms_px)
+    if n_views < min_views:
+        problems.append(f"{n_views} usable views < {min_views}")
+    return problems
+
+
 def board_pose_in_camera(
     corners_px: np.ndarray, pattern_size: tuple[int, int], square_m: float, K: np.ndarray, dist: np.ndarray
 ) -> tuple[np.ndarray, float]:
@@ -182,4 +204,5 @@ def board_pose_in_camera(
 
 
 __all__ = ["IntrinsicsResult", "BoardDetection", "CalibrationError", "calibrate_intrinsics", "detect_board",
+           "intrinsics_quality_problems", "INTRINSICS_MAX_RMS_PX", "INTRINSICS_MIN_VIEWS",
            "board_object_points", "board_pose_in_camera", "load_images", "parse_pattern"]

@@ -32,6 +32,21 @@ class PointCloud:
         return len(self.fields["x"])
 
 
+def finite_xyz(cloud: PointCloud, where: str) -> np.ndarray:
+    """The cloud's points with finite x, y, z as (M,3) float64, for a command that needs points.
+
+    An empty cloud, or one whose points are all NaN/inf, raises PointCloudFormatError naming
+    `where` (the file) and the counts.
+    """
+    xyz = cloud.xyz
+    if len(xyz) == 0:
+        raise PointCloudFormatError(f"{where}: the point cloud is empty (0 points)")
+    finite = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(finite) == 0:
+        raise PointCloudFormatError(f"{where}: none of its {len(xyz)} points has finite x, y, z (all NaN or inf)")
+    return finite
+
+
 # ---------------------------------------------------------------------------- helpers
 def _fail(where: str, msg: str) -> PointCloudFormatError:
     return PointCloudFormatError(f"{where}: {msg}")
@@ -77,14 +92,15 @@ def _parse_int(text: str, where: str, what: str, lo: int = 0, hi: int = MAX_POIN
     return v
 
 
-def _ascii_table(body: bytes, n_rows: int, n_cols: int, where: str) -> np.ndarray:
+def _ascii_table(body: bytes, n_rows: int, n_cols: int, where: str, exact: bool = False) -> np.ndarray:
+    """The first n_rows data rows as floats; exact: no further rows may follow (PCD)."""
     try:
         text = body.decode("ascii")
     except UnicodeDecodeError:
         raise _fail(where, "ascii data section contains non-ASCII bytes") from None
     rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if len(rows) < n_rows:
-        raise _fail(where, f"ascii data has {len(rows)} rows, header says {n_rows}")
+    if len(rows) < n_rows or (exact and len(rows) > n_rows):
+        raise _fail(where, f"ascii data has {len(rows)} rows, header says {n_rows} points")
     rows = rows[:n_rows]
     for i, r in enumerate(rows):
         if len(r) != n_cols:
@@ -100,42 +116,96 @@ _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("
               ("I", 8): "i8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
 
 
-def lzf_decompress(src: bytes, out_len: int) -> bytes:
-    """Decompress LibLZF data (used by PCD binary_compressed); errors raise PointCloudFormatError."""
-    out = bytearray(out_len)
-    ip = op = 0
-    n = len(src)
+#: LZF cannot expand data more than 88x (its longest back reference, 3 bytes, yields 264 bytes);
+#: a binary_compressed header announcing more than this ratio is corrupt and is refused before
+#: the output is allocated.
+MAX_LZF_EXPANSION = 100
+
+_LZF_ERRORS = {
+    -1: "literal run past the end of the compressed data",
+    -2: "literal run past the end of the output",
+    -3: "truncated back reference",
+    -4: "back reference before the start of the output",
+    -5: "back reference past the end of the output",
+}
+
+
+def _lzf_kernel_source(src, out):  # pragma: no cover - runs compiled by numba
+    """LibLZF's lzf_decompress (liblzf 3.6 lzf_d.c) over uint8 arrays.
+
+    Returns the number of bytes written, or a negative code from _LZF_ERRORS. Hand-written
+    because no maintained LZF package installs here (the PyPI bindings are unmaintained source
+    builds); numba (a dependency already) compiles it, so it runs at C speed.
+    """
+    ip = 0
+    op = 0
+    n = src.shape[0]
+    out_len = out.shape[0]
     while ip < n:
-        ctrl = src[ip]
+        ctrl = np.int64(src[ip])
         ip += 1
         if ctrl < 32:  # literal run of ctrl + 1 bytes
             length = ctrl + 1
-            if ip + length > n or op + length > out_len:
-                raise PointCloudFormatError("LZF: literal run past the end of the data")
-            out[op:op + length] = src[ip:ip + length]
+            if ip + length > n:
+                return -1
+            if op + length > out_len:
+                return -2
+            for k in range(length):
+                out[op + k] = src[ip + k]
             ip += length
             op += length
         else:  # back reference
             length = ctrl >> 5
             if length == 7:
                 if ip >= n:
-                    raise PointCloudFormatError("LZF: truncated back reference")
-                length += src[ip]
+                    return -3
+                length += np.int64(src[ip])
                 ip += 1
             if ip >= n:
-                raise PointCloudFormatError("LZF: truncated back reference")
-            ref = op - ((ctrl & 0x1F) << 8) - src[ip] - 1
+                return -3
+            ref = op - ((ctrl & 0x1F) << 8) - np.int64(src[ip]) - 1
             ip += 1
             length += 2
-            if ref < 0 or op + length > out_len:
-                raise PointCloudFormatError("LZF: back reference outside the output")
-            for _ in range(length):  # may overlap: copy byte by byte
-                out[op] = out[ref]
-                op += 1
-                ref += 1
-    if op != out_len:
-        raise PointCloudFormatError(f"LZF: decompressed {op} bytes, expected {out_len}")
-    return bytes(out)
+            if ref < 0:
+                return -4
+            if op + length > out_len:
+                return -5
+            for k in range(length):  # may overlap the output being written: byte by byte
+                out[op + k] = out[ref + k]
+            op += length
+    return op
+
+
+_lzf_kernel = None
+
+
+def _compiled_lzf_kernel():
+    """The numba-compiled LZF kernel (compiled on first use, cached on disk by numba)."""
+    global _lzf_kernel
+    if _lzf_kernel is None:
+        import numba
+
+        _lzf_kernel = numba.njit(cache=True, nogil=True)(_lzf_kernel_source)
+    return _lzf_kernel
+
+
+def lzf_decompress(src: bytes, out_len: int) -> bytes:
+    """Decompress LibLZF data (used by PCD binary_compressed); errors raise PointCloudFormatError.
+
+    out_len is the exact decompressed size; it may not exceed MAX_LZF_EXPANSION x len(src).
+    """
+    if out_len < 0 or out_len > MAX_LZF_EXPANSION * len(src):
+        raise PointCloudFormatError(
+            f"LZF: {out_len} decompressed bytes announced for {len(src)} compressed bytes "
+            f"(LZF expands at most {MAX_LZF_EXPANSION}x)"
+        )
+    out = np.empty(out_len, dtype=np.uint8)
+    written = int(_compiled_lzf_kernel()(np.frombuffer(src, dtype=np.uint8), out))
+    if written < 0:
+        raise PointCloudFormatError(f"LZF: {_LZF_ERRORS[written]}")
+    if written != out_len:
+        raise PointCloudFormatError(f"LZF: decompressed {written} bytes, expected {out_len}")
+    return out.tobytes()
 
 
 def lzf_store(data: bytes) -> bytes:
@@ -192,7 +262,7 @@ def parse_pcd(data: bytes, where: str = "<pcd>") -> PointCloud:
     body = data[pos:]
     fields: dict[str, np.ndarray] = {}
     if mode == "ascii":
-        table = _ascii_table(body, n, sum(counts), where)
+        table = _ascii_table(body, n, sum(counts), where, exact=True)
         col = 0
         for name, dt, c in zip(names, dtypes, counts):
             vals = table[:, col:col + c]
@@ -208,8 +278,9 @@ def parse_pcd(data: bytes, where: str = "<pcd>") -> PointCloud:
     elif mode == "binary":
         dtype = np.dtype([(nm, "<" + dt, (c,) if c > 1 else ()) for nm, dt, c in zip(names, dtypes, counts)])
         need = n * dtype.itemsize
-        if len(body) < need:
-            raise _fail(where, f"binary data has {len(body)} bytes, {n} points need {need}")
+        if len(body) != need:
+            raise _fail(where, f"binary data has {len(body)} bytes, header's {n} points x {dtype.itemsize} bytes "
+                               f"need {need}")
         rec = np.frombuffer(body, dtype=dtype, count=n)
         fields = {nm: np.ascontiguousarray(rec[nm]) for nm in names}
     elif mode == "binary_compressed":
@@ -221,7 +292,7 @@ def parse_pcd(data: bytes, where: str = "<pcd>") -> PointCloud:
         if raw_size != n * sum(item_sizes):
             raise _fail(where, f"binary_compressed: uncompressed size {raw_size} does not match "
                                f"{n} points x {sum(item_sizes)} bytes")
-        if comp_size > len(body) - 8:
+        if comp_size != len(body) - 8:
             raise _fail(where, f"binary_compressed: {comp_size} compressed bytes announced, "
                                f"{len(body) - 8} present")
         try:
@@ -385,5 +456,5 @@ def parse_point_cloud(data: bytes, where: str = "<bytes>", suffix: str = "") -> 
     raise _fail(where, "neither a PLY nor a PCD file (unknown header)")
 
 
-__all__ = ["PointCloud", "PointCloudFormatError", "load_point_cloud", "parse_point_cloud", "parse_pcd",
+__all__ = ["PointCloud", "PointCloudFormatError", "finite_xyz", "MAX_LZF_EXPANSION", "load_point_cloud", "parse_point_cloud", "parse_pcd",
            "parse_ply", "write_pcd", "write_ply", "lzf_decompress", "lzf_store"]

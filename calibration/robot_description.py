@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -16,15 +16,27 @@ from scipy.spatial.transform import Rotation
 from calibration.errors import ConfigFileError, load_yaml_model
 
 
+#: Where a sensor mount may be (base_link: footprint centre on the ground, z up). A mount
+#: farther than this outside the footprint's bounding box horizontally, below the floor
+#: (z < 0), or higher than body_height_m + MOUNT_MAX_ABOVE_BODY_M is a typo (a value in mm, a
+#: sign), not a robot, and the file is refused. rpy angles must lie in [-360, 360] degrees.
+MOUNT_MAX_OUTSIDE_FOOTPRINT_M = 0.5
+MOUNT_MAX_ABOVE_BODY_M = 1.0
+MOUNT_MAX_ANGLE_DEG = 360.0
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+AngleDeg = Annotated[float, Field(allow_inf_nan=False, ge=-MOUNT_MAX_ANGLE_DEG, le=MOUNT_MAX_ANGLE_DEG)]
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Mount(_Strict):
-    """A rigid mount: the sensor frame's pose in base_link."""
+    """A rigid mount: the sensor frame's pose in base_link (finite; angles in [-360, 360] deg)."""
 
-    xyz_m: tuple[float, float, float]
-    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    xyz_m: tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+    rpy_deg: tuple[AngleDeg, AngleDeg, AngleDeg] = (0.0, 0.0, 0.0)
 
     def rotation(self) -> np.ndarray:
         """3x3 rotation of the sensor frame in base_link (extrinsic x-y-z, i.e. R = Rz Ry Rx)."""
@@ -152,6 +164,30 @@ class RobotDescription(_Strict):
             )
         return self
 
+    @model_validator(mode="after")
+    def _sensors_on_the_body(self) -> "RobotDescription":
+        """Every sensor mount lies on or near the body (see MOUNT_MAX_* above)."""
+        problems = [p for name in ("lidar", "camera", "imu")
+                    if (p := self._mount_problem(f"sensors.{name}.mount.xyz_m", getattr(self.sensors, name).mount))]
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+    def _mount_problem(self, field: str, mount: Mount) -> str | None:
+        x, y, z = mount.xyz_m
+        half_x = self.footprint.length_m / 2 + MOUNT_MAX_OUTSIDE_FOOTPRINT_M
+        half_y = self.footprint.width_m / 2 + MOUNT_MAX_OUTSIDE_FOOTPRINT_M
+        top = self.body_height_m + MOUNT_MAX_ABOVE_BODY_M
+        where = f"{field} {list(mount.xyz_m)}"
+        if abs(x) > half_x or abs(y) > half_y:
+            return (f"{where} is more than {MOUNT_MAX_OUTSIDE_FOOTPRINT_M} m outside the footprint "
+                    f"(|x| <= {half_x:g} m, |y| <= {half_y:g} m)")
+        if z < 0.0:
+            return f"{where} is below the floor (z must be >= 0 m in base_link)"
+        if z > top:
+            return f"{where} is more than {MOUNT_MAX_ABOVE_BODY_M} m above the body (z <= {top:g} m)"
+        return None
+
 
 def load_robot_description(path: str | Path | None = None) -> RobotDescription:
     """Load and validate a robot description; None loads the shipped LIMO description.
@@ -163,4 +199,5 @@ def load_robot_description(path: str | Path | None = None) -> RobotDescription:
     return load_yaml_model(Path(str(path)), RobotDescription, what="robot description")
 
 
-__all__ = ["RobotDescription", "Mount", "Footprint", "load_robot_description", "ConfigFileError"]
+__all__ = ["RobotDescription", "Mount", "Footprint", "load_robot_description", "ConfigFileError",
+           "MOUNT_MAX_OUTSIDE_FOOTPRINT_M", "MOUNT_MAX_ABOVE_BODY_M", "MOUNT_MAX_ANGLE_DEG"]

@@ -14,7 +14,6 @@ known 3-D points and comparing their rendered centroids with the true-K projecti
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import click
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calibration.cli import OneLineCommand
 from calibration.robot_description import RobotDescription, load_robot_description
 
 BOARD_PATTERN = (9, 6)  # inner corners
@@ -328,21 +328,38 @@ def write_board_views(folder: str | Path, seed: int = 0, n_poses: int = 20,
             "square_m": BOARD_SQUARE_M, "border_m": BOARD_BORDER_M}
 
 
-@click.command(name="hil-check")
+@click.command(name="hil-check", cls=OneLineCommand)
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="write the figures to this JSON file")
+              help="write the figures to this JSON file (checked before the run, written atomically)")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--poses", "n_poses", type=click.IntRange(5, 60), default=20, show_default=True)
 def hil_check_command(json_path: Path | None, seed: int, n_poses: int) -> None:
-    """Calibrate from simulated checkerboard views and compare with the simulator's true values."""
-    result = run_hil_check(seed=seed, n_poses=n_poses)
+    """Calibrate from simulated checkerboard views and compare with the simulator's true values.
+
+    Exit 0 when the targets are met, 1 when they are not (the JSON is written in both cases:
+    it is the check's verdict), 1 with a one-line error when the check could not run.
+    """
+    from calibration.cli import OneLineError, checked_output
+    from calibration.errors import ConfigFileError
+    from calibration.intrinsics import CalibrationError
+    from calibration.outputs import atomic_write_json
+
+    if json_path is not None:
+        checked_output(json_path, "JSON output")
+    try:
+        result = run_hil_check(seed=seed, n_poses=n_poses)
+    except (CalibrationError, ConfigFileError) as exc:
+        raise OneLineError(f"calibration HIL check (seed {seed}, {n_poses} poses) could not run: {exc}") from None
     keys = ["fx_rel_err", "fy_rel_err", "cx_err_px", "cy_err_px", "extrinsic_trans_err_m", "extrinsic_rot_err_deg",
             "intrinsics_rms_px", "n_images_used", "lidar_points_on_board"]
     for k in keys:
         click.echo(f"{k:28s} {result[k]:.6g}" if isinstance(result[k], float) else f"{k:28s} {result[k]}")
     click.echo(f"{'passed':28s} {result['passed']}")
     if json_path is not None:
-        json_path.write_text(json.dumps(result, indent=2))
+        try:
+            atomic_write_json(json_path, result)
+        except (OSError, ValueError) as exc:
+            raise OneLineError(f"JSON output {json_path}: not written: {exc}") from None
     if not result["passed"]:
         raise SystemExit(1)
 

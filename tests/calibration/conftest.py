@@ -70,3 +70,77 @@ def pandar_image():
     img = cv2.imread(str(PANDAR / "0.png"), cv2.IMREAD_COLOR)
     assert img is not None
     return img
+
+
+# ---------------------------------------------------------------------------- synthetic captures
+CAPTURE_K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
+CAPTURE_PATTERN, CAPTURE_SQUARE_M, CAPTURE_BORDER_M = (9, 6), 0.06, 0.06  # border = one square (render_board_view)
+
+
+def capture_T_cam_lidar() -> np.ndarray:
+    """A LIMO-like T_camera<-lidar (lidar x forward, camera optical z forward, a few cm apart)."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [-90, 1.5, -88], degrees=True).as_matrix().T
+    T[:3, 3] = [0.02, 0.05, -0.08]
+    return T
+
+
+def write_synthetic_capture(folder: Path, n_poses: int, seed: int = 0, noise_m: float = 0.01) -> dict:
+    """NAME.png (OpenCV-rendered board, no distortion) + NAME.pcd (board points + clutter, lidar frame) pairs.
+
+    The board is fully in view at 1.2-1.8 m, tilted in varied directions. Returns the truth.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from calibration.camera_model import CameraModel, transform_points
+    from calibration.pointcloud_io import write_pcd
+
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    cols, rows = CAPTURE_PATTERN
+    sq, b = CAPTURE_SQUARE_M, CAPTURE_BORDER_M
+    outline = np.array([[-sq - b, -sq - b, 0], [cols * sq + b, -sq - b, 0], [cols * sq + b, rows * sq + b, 0],
+                        [-sq - b, rows * sq + b, 0]])
+    centre = np.array([(cols - 1) / 2 * sq, (rows - 1) / 2 * sq, 0.0])
+    cam = CameraModel(CAPTURE_K, np.zeros(5), 640, 480)
+    T_cl = capture_T_cam_lidar()
+    k = 0
+    while k < n_poses:
+        tilt = rng.uniform(-30, 30, 3)
+        tilt[k % 2] = rng.choice([-1, 1]) * rng.uniform(15, 30)  # normals that span 3-D
+        R = Rotation.from_euler("xyz", tilt, degrees=True).as_matrix()
+        T_cb = np.eye(4)
+        T_cb[:3, :3] = R
+        T_cb[:3, 3] = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.1, 0.1), rng.uniform(1.2, 1.8)]) - R @ centre
+        uv, valid = cam.project(transform_points(T_cb, outline))
+        if not (valid.all() and uv.min() > 10 and uv[:, 0].max() < 630 and uv[:, 1].max() < 470):
+            continue
+        rvec = cv2.Rodrigues(R)[0].ravel()
+        img = render_board_view(CAPTURE_K, None, rvec, T_cb[:3, 3], CAPTURE_PATTERN, sq, border_sq=b / sq)
+        cv2.imwrite(str(folder / f"pose_{k:02d}.png"), img)
+        n = 1500
+        p_board = np.column_stack([rng.uniform(-sq - b, cols * sq + b, n), rng.uniform(-sq - b, rows * sq + b, n),
+                                   np.zeros(n)])
+        p = transform_points(np.linalg.inv(T_cl) @ T_cb, p_board)
+        r = np.linalg.norm(p, axis=1, keepdims=True)
+        p = p / r * (r + rng.normal(0.0, noise_m, (n, 1)))
+        p = np.vstack([p, p.mean(axis=0) + rng.uniform(-1.5, 1.5, (200, 3))]).astype(np.float32)
+        write_pcd(folder / f"pose_{k:02d}.pcd", {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]}, "binary")
+        k += 1
+    return {"K": CAPTURE_K, "T_cam_lidar": T_cl}
+
+
+def capture_calibration(path: Path, with_guess: bool = True) -> Path:
+    """A calibration file with the capture's exact intrinsics and (optionally) a rough extrinsic guess."""
+    from calibration.calibration_file import make_calibration, save_calibration
+
+    guess = None
+    if with_guess:
+        guess = capture_T_cam_lidar().copy()
+        guess[:3, 3] += [0.03, -0.02, 0.02]
+    save_calibration(make_calibration("limo", CAPTURE_K, np.zeros(5), 640, 480, guess, method="test"), path)
+    return path

@@ -96,3 +96,76 @@ def test_not_yaml_and_missing_file(tmp_path):
         load_calibration(p)
     with pytest.raises(ConfigFileError, match="cannot read"):
         load_calibration(tmp_path / "missing.yaml")
+
+
+@pytest.mark.parametrize(
+    "extrinsic, field, reason",
+    [
+        ({"xyz_m": [2.5, 0.0, 0.0], "rpy_deg": [0, 0, 0]}, "lidar_to_camera.xyz_m", "implausible"),
+        ({"xyz_m": [1.5, 1.5, 0.0], "rpy_deg": [0, 0, 0]}, "lidar_to_camera.xyz_m", "2.12 m long"),
+        ({"xyz_m": [0.0, 0.0, 0.0], "rpy_deg": [0, 400, 0]}, "lidar_to_camera.rpy_deg.1", "less than or equal to 360"),
+        ({"xyz_m": [0.0, 0.0, 0.0], "rotation_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 2]]}, "lidar_to_camera",
+         "not orthonormal"),
+        ({"xyz_m": [0.0, 0.0, 0.0], "rotation_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}, "lidar_to_camera",
+         "reflection"),
+        ({"xyz_m": [0.0, 0.0, 0.0], "quaternion_xyzw": [0.5, 0.5, 0.5, 0.6]}, "lidar_to_camera", "unit norm"),
+    ],
+)
+def test_impossible_extrinsic_is_rejected_naming_the_field(tmp_path, good, extrinsic, field, reason):
+    good["lidar_to_camera"] = extrinsic
+    with pytest.raises(ConfigFileError) as e:
+        load_calibration(_write(tmp_path, good))
+    msg = str(e.value)
+    assert "\n" not in msg and "cal.yaml" in msg and f"{field}" in msg and reason in msg, msg
+
+
+@pytest.mark.parametrize(
+    "text_old, text_new, shown",
+    [
+        ("fx: 336.0", "fx: .nan", "camera.fx: must be a finite number (got nan)"),
+        ("fy: 337.0", "fy: -.inf", "camera.fy: must be a finite number (got -inf)"),
+        ("fx: 336.0", "fx: 0.0", "camera.fx: Input should be greater than 0 (got 0.0)"),
+        ("- 0.01\n", "- .nan\n", "camera.distortion.0: must be a finite number (got nan)"),
+    ],
+)
+def test_non_finite_or_non_positive_intrinsics_are_rejected(tmp_path, good, text_old, text_new, shown):
+    text = yaml.safe_dump(good, sort_keys=False)
+    assert text_old in text, text
+    p = tmp_path / "cal.yaml"
+    p.write_text(text.replace(text_old, text_new, 1))
+    with pytest.raises(ConfigFileError) as e:
+        load_calibration(p)
+    assert shown in str(e.value), str(e.value)
+
+
+def test_non_finite_values_in_the_extrinsic_are_named(tmp_path, good):
+    good["lidar_to_camera"] = {"xyz_m": [0.1, 0.2, 0.3], "rpy_deg": [1.5, 2.5, 3.5]}
+    text = yaml.safe_dump(good, sort_keys=False)
+    p = tmp_path / "cal.yaml"
+    for key, first in (("xyz_m", "- 0.1\n"), ("rpy_deg", "- 1.5\n")):
+        assert text.count(first) == 1, text
+        p.write_text(text.replace(first, "- .nan\n"))
+        with pytest.raises(ConfigFileError, match=rf"lidar_to_camera\.{key}\.0: must be a finite number \(got nan\)"):
+            load_calibration(p)
+
+
+def test_make_calibration_rejects_non_finite_and_far_extrinsic():
+    bad_K = K.copy()
+    bad_K[0, 0] = np.nan
+    with pytest.raises(ConfigFileError, match="camera.fx"):
+        make_calibration("limo", bad_K, np.zeros(5), 640, 480, None, method="test")
+    far = T.copy()
+    far[:3, 3] = [0.0, 0.0, 5.0]
+    with pytest.raises(ConfigFileError, match="lidar_to_camera.xyz_m"):
+        make_calibration("limo", K, np.zeros(5), 640, 480, far, method="test")
+
+
+def test_save_calibration_is_atomic_and_keeps_the_old_file_on_error(tmp_path, good):
+    p = _write(tmp_path, good)
+    before = p.read_bytes()
+    cal = load_calibration(p)
+    cal.camera.fx = -1.0  # assignment is not validated; saving validates again
+    with pytest.raises(ConfigFileError, match="camera.fx"):
+        save_calibration(cal, p)
+    assert p.read_bytes() == before
+    assert [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []  # no temporary left behind

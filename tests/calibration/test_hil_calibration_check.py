@@ -55,10 +55,14 @@ def test_cli_on_a_folder_of_simulated_captures(tmp_path):
     r = CliRunner().invoke(calibrate_group, ["intrinsics", str(tmp_path / "capture"), "--pattern", "9x6",
                                              "--square-m", sq, "--out", str(cal)])
     assert r.exit_code == 0, r.output
+    intrinsics_only = cal.read_bytes()
+    out = tmp_path / "cal_with_extrinsic.yaml"
     r = CliRunner().invoke(calibrate_group, ["extrinsics", str(tmp_path / "capture"), "--calibration", str(cal),
-                                             "--pattern", "9x6", "--square-m", sq, "--border-m", str(truth["border_m"])])
+                                             "--pattern", "9x6", "--square-m", sq, "--border-m", str(truth["border_m"]),
+                                             "--out", str(out)])
     assert r.exit_code == 0, r.output
-    c = load_calibration(cal)
+    assert cal.read_bytes() == intrinsics_only  # the input calibration is never modified
+    c = load_calibration(out)
     assert abs(c.camera.fx / truth["K"][0, 0] - 1) < 0.01
     t_err, r_err = transform_error(c.T_cam_lidar(), truth["T_cam_lidar"])
     assert t_err < 0.01 and r_err < 0.5, (t_err, r_err)

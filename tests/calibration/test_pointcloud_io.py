@@ -172,3 +172,208 @@ def test_fuzz_structured_ply(lines, body):
         parse_ply(data, "fuzz")
     except PointCloudFormatError:
         pass
+
+
+# ---------------------------------------------------------------------------- LZF (numba) and header/body checks
+def _lzf_reference(src: bytes, out_len: int) -> bytes:
+    """liblzf's lzf_decompress as a plain Python loop: the oracle for the compiled decoder."""
+    out = bytearray(out_len)
+    ip = op = 0
+    while ip < len(src):
+        ctrl = src[ip]
+        ip += 1
+        if ctrl < 32:
+            length = ctrl + 1
+            if ip + length > len(src) or op + length > out_len:
+                raise ValueError("literal")
+            out[op:op + length] = src[ip:ip + length]
+            ip += length
+            op += length
+        else:
+            length = ctrl >> 5
+            if length == 7:
+                if ip >= len(src):
+                    raise ValueError("truncated")
+                length += src[ip]
+                ip += 1
+            if ip >= len(src):
+                raise ValueError("truncated")
+            ref = op - ((ctrl & 0x1F) << 8) - src[ip] - 1
+            ip += 1
+            length += 2
+            if ref < 0 or op + length > out_len:
+                raise ValueError("reference")
+            for _ in range(length):
+                out[op] = out[ref]
+                op += 1
+                ref += 1
+    if op != out_len:
+        raise ValueError("short")
+    return bytes(out)
+
+
+def _lzf_compress(data: bytes) -> bytes:
+    """A greedy LZF compressor (liblzf's format: literal runs <= 32, back references 3..264 at <= 8192)."""
+    out, lit, last = bytearray(), bytearray(), {}
+    i = 0
+
+    def flush():
+        for k in range(0, len(lit), 32):
+            chunk = lit[k:k + 32]
+            out.append(len(chunk) - 1)
+            out.extend(chunk)
+        lit.clear()
+
+    while i < len(data):
+        best_len, best_off = 0, 0
+        for j in last.get(data[i:i + 3], [])[-16:]:
+            if i - j > 8192:
+                continue
+            n = 0
+            while i + n < len(data) and n < 264 and data[j + n] == data[i + n]:
+                n += 1
+            if n > best_len:
+                best_len, best_off = n, i - j - 1
+        if best_len >= 3:
+            flush()
+            L = best_len - 2
+            if L < 7:
+                out += bytes([(L << 5) | (best_off >> 8), best_off & 0xFF])
+            else:
+                out += bytes([(7 << 5) | (best_off >> 8), L - 7, best_off & 0xFF])
+            for k in range(best_len):
+                last.setdefault(data[i + k:i + k + 3], []).append(i + k)
+            i += best_len
+        else:
+            last.setdefault(data[i:i + 3], []).append(i)
+            lit.append(data[i])
+            i += 1
+    flush()
+    return bytes(out)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=300), st.integers(0, 3000))
+def test_lzf_decoder_agrees_with_the_reference_on_any_input(src, out_len):
+    out_len = min(out_len, 100 * len(src))
+    try:
+        expected = _lzf_reference(src, out_len)
+    except ValueError:
+        with pytest.raises(PointCloudFormatError, match="LZF"):
+            lzf_decompress(src, out_len)
+    else:
+        assert lzf_decompress(src, out_len) == expected
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.sampled_from([b"ab", b"abcabc", b"\x00" * 40, b"xyz" * 100, b"\x01\x02\x03\x04"]), max_size=30),
+       st.binary(max_size=50))
+def test_lzf_round_trip_with_back_references(pieces, tail):
+    data = b"".join(pieces) + tail
+    comp = _lzf_compress(data)
+    assert lzf_decompress(comp, len(data)) == data
+
+
+def _compressed_pcd(fields: dict, raw_size: int | None = None, trailing: bytes = b"") -> bytes:
+    n = len(fields["x"])
+    raw = b"".join(np.ascontiguousarray(a).astype("<f4").tobytes() for a in fields.values())
+    comp = _lzf_compress(raw)
+    head = (f"VERSION 0.7\nFIELDS {' '.join(fields)}\nSIZE {' '.join('4' for _ in fields)}\n"
+            f"TYPE {' '.join('F' for _ in fields)}\nCOUNT {' '.join('1' for _ in fields)}\nWIDTH {n}\nHEIGHT 1\n"
+            f"POINTS {n}\nDATA binary_compressed\n").encode()
+    sizes = np.array([len(comp), len(raw) if raw_size is None else raw_size], dtype="<u4").tobytes()
+    return head + sizes + comp + trailing
+
+
+def test_binary_compressed_pcd_with_real_compression():
+    xyz = np.zeros((500, 3), np.float32)
+    xyz[::7] = [1.0, 2.0, 3.0]  # repetitive: compresses with back references
+    fields = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+    data = _compressed_pcd(fields)
+    assert len(data) < 500 * 12 / 4
+    np.testing.assert_array_equal(parse_pcd(data, "t.pcd").xyz, xyz)
+
+
+def test_lzf_expansion_cap_refused_before_allocating():
+    # 1e6 points x 12 bytes announced for 16 compressed bytes: consistent with POINTS but 750000x.
+    head = (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1000000\nHEIGHT 1\n"
+            b"POINTS 1000000\nDATA binary_compressed\n")
+    data = head + np.array([16, 12_000_000], dtype="<u4").tobytes() + bytes([31]) + b"\0" * 15
+    with pytest.raises(PointCloudFormatError, match=r"t\.pcd: .*12000000 decompressed bytes .* 16 compressed .*100x"):
+        parse_pcd(data, "t.pcd")
+    with pytest.raises(PointCloudFormatError, match="at most"):
+        lzf_decompress(b"\x00a", 201)
+
+
+@pytest.mark.parametrize(
+    "data,numbers",
+    [
+        (GOOD_PCD + b"7 8 9\n", ("3 rows", "2 points")),
+        (GOOD_PCD.replace(b"DATA ascii\n1 2 3\n4 5 6\n", b"DATA binary\n" + b"\0" * 28), ("28 bytes", "need 24")),
+        (GOOD_PCD.replace(b"DATA ascii\n1 2 3\n4 5 6\n", b"DATA binary\n" + b"\0" * 20), ("20 bytes", "need 24")),
+    ],
+)
+def test_header_and_body_disagree_in_either_direction(tmp_path, data, numbers):
+    path = tmp_path / "scan.pcd"
+    path.write_bytes(data)
+    with pytest.raises(PointCloudFormatError) as err:
+        load_point_cloud(path)
+    msg = str(err.value)
+    assert str(path) in msg and all(n in msg for n in numbers), msg
+
+
+def test_compressed_body_longer_than_announced():
+    f = _fields(20)
+    data = _compressed_pcd({"x": f["x"], "y": f["y"], "z": f["z"].astype(np.float32)}, trailing=b"junk")
+    with pytest.raises(PointCloudFormatError, match="compressed bytes announced"):
+        parse_pcd(data, "t.pcd")
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 12), st.sampled_from(["ascii", "binary", "binary_compressed"]),
+       st.integers(-30, 30).filter(lambda d: d != 0), st.sampled_from(["body", "points"]))
+def test_fuzz_header_body_mismatch_is_always_named(n, mode, delta, where):
+    """Any disagreement between the header's point count and the body raises the reader's error."""
+    import tempfile
+    from pathlib import Path
+
+    f = {k: v[:n] for k, v in _fields(12).items() if k in ("x", "y", "z")}
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "a.pcd"
+        write_pcd(p, f, mode)
+        data = p.read_bytes()
+    head, body = data.split(b"DATA " + mode.encode() + b"\n", 1)
+    if where == "points":
+        m = max(n + delta, 0)
+        if m == n:
+            return
+        head = head.replace(f"WIDTH {n}\n".encode(), f"WIDTH {m}\n".encode()).replace(
+            f"POINTS {n}\n".encode(), f"POINTS {m}\n".encode())
+    elif mode == "ascii":
+        rows = body.decode().splitlines() if n else []
+        body = ("\n".join(rows + ["0.5 0.5 0.5"] * delta if delta > 0 else rows[:delta]) + "\n").encode()
+        if delta < 0 and n == 0:
+            return
+    else:
+        cut = body + b"\x07" * delta if delta > 0 else body[:delta]
+        if cut == body:  # nothing to cut from an empty body
+            return
+        body = cut
+    with pytest.raises(PointCloudFormatError):
+        parse_pcd(head + b"DATA " + mode.encode() + b"\n" + body, "fuzz.pcd")
+
+
+def test_finite_xyz_refuses_empty_and_all_nan_clouds(tmp_path):
+    from calibration.pointcloud_io import finite_xyz
+
+    empty = {k: np.zeros(0, np.float32) for k in "xyz"}
+    write_pcd(tmp_path / "empty.pcd", empty)
+    with pytest.raises(PointCloudFormatError, match=r"empty\.pcd: the point cloud is empty \(0 points\)"):
+        finite_xyz(load_point_cloud(tmp_path / "empty.pcd"), str(tmp_path / "empty.pcd"))
+    nan = {k: np.full(5, np.nan, np.float32) for k in "xyz"}
+    write_pcd(tmp_path / "nan.pcd", nan, "binary_compressed")
+    with pytest.raises(PointCloudFormatError, match=r"nan\.pcd: none of its 5 points has finite x, y, z"):
+        finite_xyz(load_point_cloud(tmp_path / "nan.pcd"), str(tmp_path / "nan.pcd"))
+    some = {k: np.array([np.nan, 1.0], np.float32) for k in "xyz"}
+    write_pcd(tmp_path / "some.pcd", some)
+    assert finite_xyz(load_point_cloud(tmp_path / "some.pcd"), "some.pcd").shape == (1, 3)

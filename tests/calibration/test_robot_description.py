@@ -72,3 +72,53 @@ def test_controller_config_rejects_inconsistent_values(tmp_path):
     path.write_text(yaml.safe_dump(raw))
     with pytest.raises(ConfigFileError, match="command_deadline_s"):
         load_controller_config(path)
+
+
+@pytest.mark.parametrize(
+    "sensor, xyz, rpy, field, reason",
+    [
+        ("lidar", [5.0, 0.0, 0.2], None, "sensors.lidar.mount.xyz_m", "outside the footprint"),
+        ("camera", [0.13, -0.9, 0.15], None, "sensors.camera.mount.xyz_m", "outside the footprint"),
+        ("imu", [0.0, 0.0, -0.05], None, "sensors.imu.mount.xyz_m", "below the floor"),
+        ("lidar", [0.05, 0.0, 200.0], None, "sensors.lidar.mount.xyz_m", "above the body"),  # mm, not m
+        ("camera", None, [-90.0, 0.0, 450.0], "sensors.camera.mount.rpy_deg.2", "less than or equal to 360"),
+        ("camera", None, [-400.0, 0.0, -90.0], "sensors.camera.mount.rpy_deg.0", "greater than or equal to -360"),
+    ],
+)
+def test_sensor_at_an_impossible_pose_is_rejected(tmp_path, sensor, xyz, rpy, field, reason):
+    def mutate(r):
+        mount = r["sensors"][sensor]["mount"]
+        if xyz is not None:
+            mount["xyz_m"] = xyz
+        if rpy is not None:
+            mount["rpy_deg"] = rpy
+
+    path = _write(tmp_path, mutate)
+    with pytest.raises(ConfigFileError) as err:
+        load_robot_description(path)
+    msg = str(err.value)
+    assert "\n" not in msg and str(path) in msg and field in msg and reason in msg, msg
+
+
+def test_mount_bounds_are_the_documented_ones(tmp_path):
+    """On the bound is accepted, just past it is not (0.5 m outside the footprint, body + 1 m above)."""
+    from calibration.robot_description import MOUNT_MAX_ABOVE_BODY_M, MOUNT_MAX_OUTSIDE_FOOTPRINT_M
+
+    edge_x = LIMO.footprint.length_m / 2 + MOUNT_MAX_OUTSIDE_FOOTPRINT_M
+    top = LIMO.body_height_m + MOUNT_MAX_ABOVE_BODY_M
+    ok = _write(tmp_path, lambda r: r["sensors"]["lidar"]["mount"].update(xyz_m=[edge_x - 1e-6, 0.0, top - 1e-6]))
+    assert load_robot_description(ok).sensors.lidar.mount.xyz_m[0] == pytest.approx(edge_x, abs=1e-5)
+    bad = _write(tmp_path, lambda r: r["sensors"]["lidar"]["mount"].update(xyz_m=[edge_x + 1e-3, 0.0, 0.2]))
+    with pytest.raises(ConfigFileError, match="sensors.lidar.mount.xyz_m"):
+        load_robot_description(bad)
+
+
+def test_non_finite_mount_built_in_python_is_rejected():
+    from pydantic import ValidationError
+
+    from calibration.robot_description import Mount
+
+    with pytest.raises(ValidationError, match="finite"):
+        Mount(xyz_m=(float("nan"), 0.0, 0.0))
+    with pytest.raises(ValidationError, match="finite"):
+        Mount(xyz_m=(0.0, 0.0, 0.0), rpy_deg=(0.0, float("inf"), 0.0))
