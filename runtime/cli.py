@@ -55,17 +55,32 @@ def main() -> None:
     os.environ.setdefault("MUJOCO_GL", "egl")
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     try:
-        dct(standalone_mode=True)
+        rv = dct.main(standalone_mode=False)
+    except click.UsageError as exc:
+        path = exc.ctx.command_path if exc.ctx is not None else "dct"
+        click.echo(f"Error: {path}: {_one_line(exc.format_message())} (see {path} --help)", err=True)
+        sys.exit(exc.exit_code)
+    except click.ClickException as exc:
+        click.echo(f"Error: {_one_line(exc.format_message())}", err=True)
+        sys.exit(exc.exit_code)
+    except click.exceptions.Abort:
+        click.echo("Aborted!", err=True)
+        sys.exit(1)
     except KeyboardInterrupt:
         sys.exit(130)
     except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, never a traceback
         if os.environ.get("DCT_DEBUG"):
             raise
-        text = " ".join(str(exc).split())[:500]
-        click.echo(f"Error: internal error: {type(exc).__name__}: {text} (set DCT_DEBUG=1 for the traceback)",
-                   err=True)
+        click.echo(f"Error: internal error: {type(exc).__name__}: {_one_line(str(exc))} "
+                   "(set DCT_DEBUG=1 for the traceback)", err=True)
         sys.exit(3)
+    sys.exit(rv if isinstance(rv, int) else 0)
 
+
+def _one_line(text: str, limit: int = 1000) -> str:
+    """Every CLI error is one line (DEVELOPERS.md): fold newlines, cap the length."""
+    folded = " ".join(str(text).split())
+    return folded if len(folded) <= limit else folded[: limit - 3] + "..."
 
 if __name__ == "__main__":
     main()
