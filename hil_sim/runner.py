@@ -285,10 +285,11 @@ def failure_reason(metrics: dict, controller: dict) -> str | None:
             f"time limit while blocked: no path to the goal in the local map for the last "
             f"{controller['blocked_for_s']:.1f} s ({controller['blocked_ticks']} blocked ticks)"
         )
-    if controller.get("stalled_now"):
+    if controller.get("stalled_now") or controller.get("stalls"):
         return (
-            f"stalled without progress for {controller['no_progress_s']:.1f} s with a valid reference path "
-            f"({controller['backoffs']} backoffs, {metrics['final_distance_to_goal_m']:.2f} m from the goal)"
+            f"stalled without progress with a valid reference path: {controller['stalls']} stalls, "
+            f"{controller['backoffs']} backoffs, no progress for the last {controller['no_progress_s']:.1f} s, "
+            f"{metrics['final_distance_to_goal_m']:.2f} m from the goal"
         )
     return f"time limit: {metrics['final_distance_to_goal_m']:.2f} m from the goal"
 

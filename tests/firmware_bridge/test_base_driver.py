@@ -136,3 +136,24 @@ def test_send_motion_accepts_numpy_scalars(virtual_pair, clock):
     drv = AgileXBaseDriver(bus, clock)
     drv.send_motion(np.float32(0.15), np.float64(0.05))
     assert drain(peer) == ["111#0096003200000000"]
+
+
+def test_each_watched_stream_has_its_own_age_and_the_vehicle_state_is_kept(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    for fid in (p.ID_MOTION_STATE, p.ID_SYSTEM_STATE, p.ID_ODOMETRY):
+        assert drv.frame_age_s(fid) == math.inf
+    assert drv.vehicle_state is None
+    clock.t = 2.0
+    peer.send(p.encode(p.Odometry(1.0, 1.0)))
+    peer.send(p.encode(p.SystemState(p.VEHICLE_STATE_ESTOP, 1, 12.0, 0, 0, 0)))
+    drv.poll()
+    clock.t = 2.5
+    peer.send(p.encode(p.MotionState(0.0, 0.0)))
+    drv.poll()
+    assert drv.frame_age_s(p.ID_ODOMETRY) == pytest.approx(0.5)
+    assert drv.frame_age_s(p.ID_SYSTEM_STATE, now_s=3.0) == pytest.approx(1.0)
+    assert drv.frame_age_s(p.ID_MOTION_STATE) == pytest.approx(0.0)
+    assert drv.vehicle_state == p.VEHICLE_STATE_ESTOP
+    with pytest.raises(ValueError, match="not a watched feedback frame"):
+        drv.frame_age_s(p.ID_BMS)

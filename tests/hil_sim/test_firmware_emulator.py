@@ -404,3 +404,43 @@ def test_bad_step_arguments_raise():
     finally:
         fw_bus.shutdown()
         host.shutdown()
+
+
+def test_estop_stops_the_wheels_reports_it_and_ignores_motion_until_released():
+    world = World(open_floor(), ROBOT)
+    fw_bus, host = bus_pair()
+    try:
+        _, fw = drive(world, lambda t: (0.5, 0.0), 1.0, buses=(fw_bus, host))
+        x0 = world.robot_pose()[0]
+        fw.emergency_stop = True
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 1.0, enable=False, firmware=fw, buses=(fw_bus, host))
+        states = [r.vehicle_state for _, r in trace.records(p.SystemState)]
+        assert states and all(s == p.VEHICLE_STATE_ESTOP for s in states)
+        assert world.robot_pose()[0] - x0 < 0.2  # braked, then stood (0.5 m/s: ~6 cm of braking)
+        assert np.allclose(fw.wheel_targets_radps, 0.0) and fw.commands_ignored > 0
+        assert not fw.comm_lost  # the host kept sending: its stream is not lost
+        x1 = world.robot_pose()[0]
+        fw.emergency_stop = False
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 1.0, enable=False, firmware=fw, buses=(fw_bus, host))
+        assert trace.records(p.SystemState)[-1][1].vehicle_state == p.VEHICLE_STATE_NORMAL
+        assert world.robot_pose()[0] - x1 > 0.2
+    finally:
+        fw_bus.shutdown()
+        host.shutdown()
+
+
+def test_suppressed_feedback_frames_are_not_sent():
+    world = World(open_floor(), ROBOT)
+    fw_bus, host = bus_pair()
+    fw = EmulatedBaseFirmware(fw_bus, ROBOT)
+    fw.suppressed_frame_ids = {p.ID_ODOMETRY}
+    try:
+        trace, fw = drive(world, lambda t: (0.3, 0.0), 0.5, firmware=fw, buses=(fw_bus, host))
+        assert trace.records(p.Odometry) == [] and fw.frames_suppressed >= 24
+        assert len(trace.records(p.MotionState)) >= 24
+        fw.suppressed_frame_ids.clear()
+        trace, fw = drive(world, lambda t: (0.3, 0.0), 0.1, firmware=fw, buses=(fw_bus, host))
+        assert len(trace.records(p.Odometry)) >= 4
+    finally:
+        fw_bus.shutdown()
+        host.shutdown()
