@@ -227,6 +227,7 @@ def run_episode(
             "controller_state": controller.state.name,
             "stop_reason": controller.stop_reason,
             "final_distance_to_goal_m": world_distance_to_goal(world, scenario),
+            "final_pose_world": [float(v) for v in world.robot_pose()],
             "sim_time_s": sim.time_s - t_start,
             "planner": config.planner.mode,
             "faults": [f.to_dict() for f in faults],

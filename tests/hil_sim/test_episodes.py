@@ -98,3 +98,28 @@ def test_steep_approach_to_the_tight_gap_never_touches_even_when_it_stalls():
     assert m["fixed_contacts"] == 0, m["obstacles"]
     assert m["min_fixed_clearance_m"] > 0.0
     assert result.controller["safety_stops"] + result.controller["safety_slowdowns"] > 0
+
+
+def test_a_walled_off_goal_fails_as_blocked_and_says_so():
+    """The failure reason names the class of failure: here, no path to the goal exists."""
+    from hil_sim.scenario import Scenario
+
+    scenario = Scenario.model_validate({
+        "name": "walled_off",
+        "floor": {"size_m": [5.0, 3.0], "friction": 0.8},
+        "walls": [
+            {"from": [0.5, -1.4], "to": [0.5, 1.4], "thickness_m": 0.1, "height_m": 0.6},
+            {"from": [-2.4, -1.4], "to": [2.4, -1.4], "thickness_m": 0.1, "height_m": 0.6},
+            {"from": [-2.4, 1.4], "to": [2.4, 1.4], "thickness_m": 0.1, "height_m": 0.6},
+            {"from": [-2.4, -1.4], "to": [-2.4, 1.4], "thickness_m": 0.1, "height_m": 0.6},
+        ],
+        "robot": {"start": {"x_m": -1.5, "y_m": 0.0}},
+        "goal": {"pose": {"x_m": 1.5, "y_m": 0.0}, "tolerance_m": 0.15},
+        "time_limit_s": 3.0,
+    })
+    result = run_episode(scenario, seed=0)
+    m = result.metrics
+    assert not m["success"] and m["fixed_contacts"] == 0
+    assert m["failure_reason"].startswith("time limit while blocked: no path to the goal"), m["failure_reason"]
+    assert result.controller["blocked_ticks"] > 40
+    assert set(m["controller"]) >= {"blocked_ticks", "mpc_capped_solves", "mpc_fallbacks", "safety_stops", "pose_odom"}
