@@ -182,9 +182,12 @@ def footprint_metadata(robot: Any) -> dict[str, Any]:
     }
 
 
-def train_and_export(robot: Any, output: Path, config: TrainingConfig = TrainingConfig(),
-                     eval_points: int = 100_000, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Train for `robot`'s footprint, evaluate on held-out points and save the frozen artifact."""
+def train_and_evaluate(robot: Any, config: TrainingConfig = TrainingConfig(), eval_points: int = 100_000,
+                       log: Callable[[str], None] = print) -> tuple[FoldedDualMLP, dict[str, Any]]:
+    """Train for `robot`'s footprint and evaluate on held-out points; returns (module, metadata).
+
+    Nothing is written: the caller decides (quality targets) and saves with `save_artifact`.
+    """
     from models.distance_check import evaluate_module
 
     G, g = robot.footprint.halfspaces()
@@ -200,9 +203,17 @@ def train_and_export(robot: Any, output: Path, config: TrainingConfig = Training
         "training": info,
         "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
+    return model, metadata
+
+
+def train_and_export(robot: Any, output: Path, config: TrainingConfig = TrainingConfig(),
+                     eval_points: int = 100_000, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Train, evaluate and save the frozen artifact (atomically, with its integrity record) whatever
+    its accuracy; returns the saved metadata. `dct models train-distance` adds the quality gate."""
+    model, metadata = train_and_evaluate(robot, config, eval_points, log)
     save_artifact(model, output, metadata)
     return metadata
 
 
-__all__ = ["TrainingConfig", "sample_folded_points", "folded_targets", "train_distance_net", "train_and_export",
-           "footprint_metadata"]
+__all__ = ["TrainingConfig", "sample_folded_points", "folded_targets", "train_distance_net", "train_and_evaluate",
+           "train_and_export", "footprint_metadata"]

@@ -28,7 +28,8 @@ def test_shipped_artifact_is_small_frozen_torchscript_with_metadata(net: Distanc
     path = shipped_artifact_path()
     assert path.stat().st_size < 1_000_000
     meta = net.metadata
-    assert meta["format"] == "dct-distance-net" and meta["version"] == 1
+    assert meta["format"] == "dct-distance-net" and meta["version"] == 2
+    assert len(meta["integrity"]["weights_sha256"]) == 64 and meta["integrity"]["probe"]["n_points"] >= 300
     np.testing.assert_allclose(meta["footprint"]["vertices_m"], ROBOT.footprint.vertices())
     assert meta["training_domain"]["max_distance_outside_m"] >= 3.0
     assert meta["error_statistics"]["n_points"] >= 100_000
@@ -150,3 +151,23 @@ def test_wrong_version_or_format_is_refused(tmp_path: Path, net: DistanceNet) ->
     ok = tmp_path / "same.pt"
     _with_metadata(shipped_artifact_path(), ok, net.metadata)
     assert DistanceNet.load(ok).metadata == net.metadata
+
+
+def test_old_format_is_refused_with_the_way_to_upgrade(tmp_path: Path, net: DistanceNet) -> None:
+    old = tmp_path / "v1.pt"
+    v1_meta = {k: v for k, v in net.metadata.items() if k != "integrity"}
+    _with_metadata(shipped_artifact_path(), old, dict(v1_meta, version=1))
+    with pytest.raises(DistanceNetFileError, match=r"version 1 is an older format.*upgrade-distance"):
+        DistanceNet.load(old)
+
+
+def test_folder_and_truncated_archive_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(DistanceNetFileError, match="is a folder"):
+        DistanceNet.load(tmp_path)
+    data = shipped_artifact_path().read_bytes()
+    for cut in (len(data) // 2, len(data) - 30, 100):
+        truncated = tmp_path / f"cut{cut}.pt"
+        truncated.write_bytes(data[:cut])
+        with pytest.raises(DistanceNetFileError, match="not a readable TorchScript file") as info:
+            DistanceNet.load(truncated)
+        assert "\n" not in str(info.value) and str(truncated) in str(info.value)
