@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import json
-import time
 import warnings
 import zipfile
 from pathlib import Path
@@ -200,16 +199,6 @@ def test_a_module_that_is_not_the_net_is_refused(tmp_path: Path, net: DistanceNe
     message = "module fails on the probe points: ValueError: the module returned shape"
     with pytest.raises(DistanceNetFileError, match=message):
         DistanceNet.load(path)
-
-
-def test_load_stays_fast(net: DistanceNet) -> None:
-    DistanceNet.load(robot=ROBOT)
-    times = []
-    for _ in range(5):
-        start = time.perf_counter()
-        DistanceNet.load(robot=ROBOT)
-        times.append(time.perf_counter() - start)
-    assert min(times) < 0.25  # a few ms on an idle machine; generous for a loaded 2-core CI box
 
 
 def _as_version_1(src: Path, dst: Path, module: torch.jit.ScriptModule | None = None) -> Path:
