@@ -5,11 +5,16 @@ linearized along a nominal trajectory (the previous plan, shifted). Input and ra
 Collision (12d): for the K P_fix points nearest to each predicted pose h = 1..H, the model's dual
 (mu, lambda) at the nominal pose gives a row linear in the pose,
 
-    d(s_h) ~ d_bar + lambda_w^T (t_h - t_bar) + dd/dtheta (theta_h - theta_bar) >= d_min - e_hk,
+    d(s_h) ~ d_bar + lambda_w^T (t_h - t_bar) + dd/dtheta (theta_h - theta_bar) >= r_hk - e_hk,
 
 with lambda_w = R(theta_bar) lam_robot = -R G^T mu (the gradient of the dual objective in t) and
-an L1-penalized slack e_hk >= 0 so that the QP is always feasible. Cost (13): track the reference
-waypoints (position, heading, speed), penalize input changes.
+an L1-penalized slack e_hk >= 0 so that the QP is always feasible. The required clearance r_hk is
+d_min, or the point's distance to the footprint now where that is smaller ("never plan deeper":
+such a row holds with standing still, and its slack costs `slack_linear_holding`). Cost (13):
+track the reference waypoints (position, heading, speed), re-timed so that their speed rises from
+the speed now within the acceleration limit, and penalize input changes. Issue 10 (the MPC stood
+still beside obstacles with a valid reference) came from rows it could not meet, targets it
+could not reach and a linearization about a standstill; the methods say which does what.
 
 The QP has a fixed sparsity pattern: all H*K collision rows are always present (unused ones have
 zero coefficients, kept as explicit entries, and a lower bound of -inf), so OSQP is set up once
@@ -35,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from runtime.planning.distance_model import (
     DistanceModel,
     check_dual_output,
+    footprint_distance_to_points,
     rectangle_signed_distance,
 )
 from runtime.planning.errors import PlannerInputError, check_points, check_vector
@@ -53,6 +59,12 @@ class MpcWeights(BaseModel):
     angular_speed_change: float = Field(default=0.3, ge=0.0)
     slack_linear: float = Field(default=200.0, gt=0.0, description="L1 weight of collision slack (per m)")
     slack_quadratic: float = Field(default=100.0, ge=0.0)
+    slack_linear_holding: float = Field(
+        default=2000.0,
+        gt=0.0,
+        description="L1 weight of the slack of rows that hold the current clearance (points already "
+        "nearer than d_min, see MpcPlanner._required_clearance), per m",
+    )
 
 
 class MpcConfig(BaseModel):
@@ -128,6 +140,7 @@ class MpcLinearization:
     coll_coef: np.ndarray = field(init=False)  # (H, K, 3) row coefficients on (x_h, y_h, theta_h)
     coll_rhs: np.ndarray = field(init=False)  # (H, K) lower bound of the row
     coll_active: np.ndarray = field(init=False)  # (H, K) bool
+    coll_slack_weight: np.ndarray = field(init=False)  # (H, K) L1 weight of each row's slack
     ref_xy: np.ndarray = field(init=False)  # (H, 2) targets for poses 1..H
     ref_yaw: np.ndarray = field(init=False)  # (H,)
     ref_v: np.ndarray = field(init=False)  # (H,) target speed of inputs 0..H-1
@@ -147,6 +160,7 @@ class MpcLinearization:
         self.coll_coef = np.zeros((h, k, 3))
         self.coll_rhs = np.zeros((h, k))
         self.coll_active = np.zeros((h, k), dtype=bool)
+        self.coll_slack_weight = np.zeros((h, k))
         self.ref_xy = np.zeros((h, 2))
         self.u_lo = np.zeros(2)
         self.u_hi = np.zeros(2)
@@ -364,6 +378,7 @@ class OsqpMpcBackend:
         q[n_s : n_s + n_u : 2] = -2 * w.speed * lin.ref_v
         q[n_s] += -2 * w.speed_change * lin.u_prev[0]
         q[n_s + 1] = -2 * w.angular_speed_change * lin.u_prev[1]
+        q[n_s + n_u :] = lin.coll_slack_weight.reshape(-1)
 
         l[0:3] = lin.state0
         u[0:3] = lin.state0
@@ -497,6 +512,56 @@ class MpcPlanner:
         w = np.sign(u_now[1]) * np.maximum(abs(u_now[1]) - k * self.limits.angular_accel_radps2 * dt, 0.0)
         return np.stack([v, w], axis=1)
 
+    def _reachable_reference(self, reference: np.ndarray, v_now_mps: float) -> np.ndarray:
+        """The reference re-timed along its own polyline so that its speed rises from the speed
+        now at no more than the acceleration limit (never faster than the reference's own).
+
+        The reference path is resampled at the target speed whatever the robot does, so from a
+        standstill its waypoints run away at 1 m/s while the rate limits allow 0.2, 0.4, ... m/s:
+        position errors of 0.2-0.3 m that no input can remove. Their gradient buys collision
+        slack at the L1 price (the plan cuts into d_min to turn early), and the supervisor then
+        stops the command. Targets the inputs can reach keep tracking and slack in proportion."""
+        H, dt = self.config.horizon_steps, self.config.step_s
+        xy = reference[:, :2]
+        v_ref = reference[:H, 2]
+        direction = -1.0 if np.all(v_ref <= 0.0) and np.any(v_ref < 0.0) else 1.0  # reversing reference
+        seg = np.hypot(*np.diff(xy, axis=0).T)
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        speed_now = max(direction * v_now_mps, 0.0)
+        reachable = speed_now + self.limits.accel_mps2 * dt * np.arange(1, H + 1)
+        speed = np.minimum(np.abs(v_ref), reachable)
+        s = np.minimum(np.concatenate([[0.0], np.cumsum(speed * dt)]), cum[-1])
+        out = np.empty_like(reference)
+        out[:, 0] = np.interp(s, cum, xy[:, 0])
+        out[:, 1] = np.interp(s, cum, xy[:, 1])
+        out[:H, 2] = direction * speed
+        out[H, 2] = reference[H, 2]
+        return out
+
+    def _reference_following_inputs(self, state: np.ndarray) -> np.ndarray:
+        """(H, 2) inputs that follow the reference within the box and rate bounds: turn towards
+        each waypoint's heading, drive at its speed scaled by the cosine of the heading error.
+
+        The nominal trajectory when no moving plan exists (first plan, or the robot stopped).
+        Straight ahead at the reference speeds, as before, drives the nominal poses into whatever
+        the robot faces when the path leaves sideways (a start turned 60 degrees in a corridor):
+        the collision rows are then linearized at poses deep inside a wall, where they describe
+        nothing reachable, and the QP plans through it (slack 0.13 m; the supervisor stops every
+        command)."""
+        lin, H, dt = self.lin, self.config.horizon_steps, self.config.step_s
+        out = np.empty((H, 2))
+        theta = float(state[2])
+        v, w = float(lin.u_prev[0]), float(lin.u_prev[1])
+        for h in range(H):  # H scalar steps
+            err = (float(lin.ref_yaw[h]) - theta + math.pi) % (2 * math.pi) - math.pi
+            w_goal = min(max(err / dt, -lin.u_hi[1]), lin.u_hi[1])
+            v_goal = min(max(float(lin.ref_v[h]) * max(math.cos(err), 0.0), lin.u_lo[0]), lin.u_hi[0])
+            w = min(max(w_goal, w - lin.du_max[1]), w + lin.du_max[1])
+            v = min(max(v_goal, v - lin.du_max[0]), v + lin.du_max[0])
+            out[h] = v, w
+            theta += w * dt
+        return out
+
     def _set_reference(self, state: np.ndarray, reference: np.ndarray) -> None:
         lin, H = self.lin, self.config.horizon_steps
         lin.ref_xy[:] = reference[1:, :2]
@@ -566,15 +631,36 @@ class MpcPlanner:
         coef = lin.coll_coef
         coef[..., 0] = lx
         coef[..., 1] = ly
-        rhs = self.config.d_min_m - dist + lx * poses[:, 0, None] + ly * poses[:, 1, None]
+        required = self._required_clearance(sel)
+        rhs = required - dist + lx * poses[:, 0, None] + ly * poses[:, 1, None]
         if self.config.linearize_heading:
             lth = lam_r[..., 1] * local[..., 0] - lam_r[..., 0] * local[..., 1]
             coef[..., 2] = lth
             rhs += lth * poses[:, 2, None]
         lin.coll_rhs[:] = rhs
         lin.coll_active[:] = sel.valid
+        w = self.config.weights
+        lin.coll_slack_weight[:] = np.where(required < self.config.d_min_m, w.slack_linear_holding, w.slack_linear)
         timings["net"] += (t2 - t1) * 1e3
         return sel.count
+
+    def _required_clearance(self, sel) -> np.ndarray:
+        """(H, K) clearance each row demands: d_min, or, for a point the footprint at the current
+        pose is already nearer to than d_min, that current distance ("never plan deeper").
+
+        A non-holonomic robot cannot step sideways out of d_min within 0.1 s, so a row demanding
+        d_min of such a point is violated by every plan: its slack is paid anyway, and the QP
+        then trades further millimetres of penetration for tracking at the slack's flat L1 price.
+        The safety supervisor stops any command that brings the footprint nearer than now inside
+        d_stop, so that plan is refused tick after tick (issue 10's stall: zero command with
+        solved QPs, no fallback). Demanding the current distance keeps every row satisfiable
+        (standing still meets it), so the exact L1 penalty holds it, and the plan slides along
+        or away from the point, which the supervisor accepts."""
+        pts = sel.points_world
+        d_now = footprint_distance_to_points(
+            self.lin.state0[None], pts.reshape(-1, 2), self.half_length_m, self.half_width_m
+        ).reshape(pts.shape[:2])
+        return np.minimum(self.config.d_min_m, d_now)
 
     def _linearize_collisions(self, nominal_states: np.ndarray, points_world: np.ndarray, timings: dict) -> int:
         """Select the points at the nominal poses, then fill the collision rows (both steps)."""
@@ -628,13 +714,16 @@ class MpcPlanner:
         lin.du_max[:] = (lim.accel_mps2 * cfg.step_s, lim.angular_accel_radps2 * cfg.step_s)
         # The rate limit starts from the input now, brought inside the box so the QP is feasible.
         lin.u_prev[:] = np.clip(u_now, lin.u_lo, lin.u_hi)
-        self._set_reference(state, reference)
+        self._set_reference(state, self._reachable_reference(reference, float(lin.u_prev[0])))
 
-        # Nominal trajectory: the previous plan shifted by one tick, else the reference speeds.
+        # Nominal trajectory: the previous plan shifted by one tick; where there is none, or it
+        # stands still, the reference's (reachable) speeds. Linearized about a standstill, the
+        # dynamics lose the heading's effect on position (d x_{h+1} / d theta_h = -dt v sin theta
+        # is 0 at v = 0): the QP then sees no use in turning towards the path before it moves
+        # and holds still beside an obstacle it could turn away from (issue 10).
         shifted = self._shifted_previous(self._ticks_since_plan + 1)
-        if shifted is None:
-            nominal_inputs = np.zeros((H, 2))
-            nominal_inputs[:, 0] = np.clip(lin.ref_v, v_lo, v_hi)
+        if shifted is None or np.abs(shifted[:, 0]).max() < lin.du_max[0]:
+            nominal_inputs = self._reference_following_inputs(state)
         else:
             nominal_inputs = np.clip(shifted, lin.u_lo, lin.u_hi)
         nominal_states = unicycle_rollout(state, nominal_inputs, cfg.step_s)

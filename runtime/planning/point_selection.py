@@ -3,11 +3,17 @@
 Each tick the MPC needs, for every predicted pose h = 1..H of the horizon, the K points of P_fix
 nearest to the footprint at that pose. Vectorized throughout: no Python loop over points.
 
-1. box prefilter around the poses, then voxel thinning: one point per `voxel_size_m` cell (the
-   first seen; dense walls add little),
+1. box prefilter around the poses,
 2. corridor: keep points within `corridor_radius_m` of some pose centre,
-3. K nearest per pose by the exact footprint signed distance (argpartition over a (H, M) table);
+3. per pose, thinning: of the points in each `voxel_size_m` cell only the one nearest to that
+   pose's footprint competes (dense walls then do not fill all K rows of a pose with one spot),
+4. K nearest per pose by the exact footprint signed distance (argpartition over a (H, M) table);
    points farther than `max_distance_m` from the footprint, and missing slots, are marked invalid.
+
+The thinning is per pose because a cell's nearest point depends on the pose: thinning once for
+all poses (say, the first point of each cell) can drop the point a later pose passes closest to,
+by up to the cell's diagonal (7 cm at 5 cm cells), and the collision rows would then see more
+clearance than the safety supervisor (raw points) does (issue 10: plans that clip a box corner).
 """
 from __future__ import annotations
 
@@ -37,22 +43,42 @@ class SelectedPoints:
     points_world: np.ndarray  # (P, K, 2); padding rows hold a far dummy point
     valid: np.ndarray  # (P, K) bool
     distance_m: np.ndarray  # (P, K) exact footprint signed distance (inf for padding)
-    corridor_points_world: np.ndarray  # (M, 2) after corridor and thinning
+    corridor_points_world: np.ndarray  # (M, 2) after the corridor (before the per-pose thinning)
 
     @property
     def count(self) -> int:
         return int(self.valid.sum())
 
 
+def _cell_keys(points_world: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """One int64 per point naming its square cell of side voxel_size_m."""
+    cells = np.floor(points_world / voxel_size_m).astype(np.int64)
+    return cells[:, 0] * np.int64(1 << 32) + (cells[:, 1] & np.int64(0xFFFFFFFF))
+
+
 def voxel_thin(points_world: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """One point per square cell of side voxel_size_m (the first in input order)."""
     if voxel_size_m <= 0.0 or points_world.shape[0] <= 1:
         return points_world
-    cells = np.floor(points_world / voxel_size_m).astype(np.int64)
-    keys = cells[:, 0] * np.int64(1 << 32) + (cells[:, 1] & np.int64(0xFFFFFFFF))
-    _, first = np.unique(keys, return_index=True)
+    _, first = np.unique(_cell_keys(points_world, voxel_size_m), return_index=True)
     first.sort()
     return points_world[first]
+
+
+def nearest_per_cell(distance_m: np.ndarray, points_world: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """distance_m (P, M) of points (M, 2) to P poses: in each row, every point but the nearest of
+    its square cell (side voxel_size_m) set to +inf (it no longer competes for the K nearest)."""
+    _, cell_id = np.unique(_cell_keys(points_world, voxel_size_m), return_inverse=True)
+    # One sort key per row: by cell, nearest first (distances beyond 100 m need no order; float64
+    # keeps 1e-7 m resolution next to cell ids up to 1e6).
+    key = cell_id * 1.0e3 + np.clip(distance_m, -1.0, 100.0)
+    order = np.argsort(key, axis=1)
+    sorted_cells = cell_id[order]
+    first = np.ones(order.shape, dtype=bool)
+    first[:, 1:] = sorted_cells[:, 1:] != sorted_cells[:, :-1]
+    nearest = np.empty_like(first)
+    np.put_along_axis(nearest, order, first, axis=1)
+    return np.where(nearest, distance_m, np.inf)
 
 
 class PointSelector:
@@ -74,12 +100,12 @@ class PointSelector:
         cfg = self.config
         k = cfg.points_per_pose
         n_poses = poses.shape[0]
-        # Box prefilter, thinning, then one pass in the pose frames: centre distance for the
-        # corridor and the exact footprint distance for the K nearest, from the same local coords.
+        # Box prefilter, then one pass in the pose frames: centre distance for the corridor and
+        # the exact footprint distance for the thinning and the K nearest, from the same coords.
         r = cfg.corridor_radius_m
         lo = poses[:, :2].min(axis=0) - r
         hi = poses[:, :2].max(axis=0) + r
-        cand = voxel_thin(points_world[in_box(points_world, lo, hi)], cfg.voxel_size_m)
+        cand = points_world[in_box(points_world, lo, hi)]
         local = points_in_pose_frames(poses, cand)  # (P, M, 2)
         in_corridor = ((local[..., 0] ** 2 + local[..., 1] ** 2) <= r * r).any(axis=0)
         near = cand[in_corridor]
@@ -91,6 +117,8 @@ class PointSelector:
         if m == 0:
             return SelectedPoints(out_pts, out_valid, out_dist, near)
         dist = rectangle_signed_distance(local[:, in_corridor], self.half_length_m, self.half_width_m)  # (P, M)
+        if cfg.voxel_size_m > 0.0:
+            dist = nearest_per_cell(dist, near, cfg.voxel_size_m)
         take = min(k, m)
         if m > k:
             idx = np.argpartition(dist, k - 1, axis=1)[:, :k]

@@ -1,4 +1,5 @@
-"""The OSQP MPC: closed loop around obstacles, through a narrow gap, bounds, capped solves."""
+"""The OSQP MPC: closed loop around obstacles, through a narrow gap, bounds, capped solves, and
+the causes of issue 10's stalls (rows it could not meet, unreachable targets, the nominal)."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -11,7 +12,9 @@ from runtime.planning.distance_model import ExactRectangleDual, footprint_distan
 from runtime.planning.errors import PlannerInputError
 from runtime.planning.modes import PlannerMode, constraint_points
 from runtime.planning.mpc import MpcConfig, MpcPlanner, OsqpMpcBackend, QpOutcome
+from runtime.planning.point_selection import PointSelectionConfig, PointSelector
 from runtime.planning.reference_path import ReferencePathConfig, ReferencePathPlanner
+from runtime.safety_supervisor import SafetySupervisor, SafetySupervisorConfig
 
 ROBOT = load_robot_description()
 HL, HW = ROBOT.footprint.length_m / 2, ROBOT.footprint.width_m / 2
@@ -211,3 +214,128 @@ def test_all_fixed_mode_treats_every_point_as_fixed() -> None:
     assert constraint_points("partitioned", fix, mov).shape == (1, 2)
     with pytest.raises(PlannerInputError, match="unknown planner mode"):
         constraint_points("bogus", fix, mov)
+
+
+# -- Issue 10: the MPC stood still beside obstacles while the reference path was valid ---------
+
+
+def _segment_points(a, b, step_m: float = 0.02) -> np.ndarray:
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    n = max(int(np.ceil(np.hypot(*(b - a)) / step_m)), 1)
+    return a + (b - a) * np.linspace(0.0, 1.0, n + 1)[:, None]
+
+
+def _simulate_supervised(pts, start, goal, ticks):
+    """Closed loop as the controller runs it: reference path, MPC, safety supervisor (which may
+    stop the MPC's command), kinematic unicycle in 1 ms steps. Iteration caps only (lockstep)."""
+    planner = MpcPlanner(MpcConfig(), ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
+    reference = ReferencePathPlanner(ReferencePathConfig(), ROBOT)
+    supervisor = SafetySupervisor(SafetySupervisorConfig(), ROBOT)
+    state, u = np.array(start, dtype=float), np.zeros(2)
+    log = {"reached": False, "stops": 0, "min_dist": np.inf, "ticks": 0}
+    for log["ticks"] in range(1, ticks + 1):
+        up = reference.update(state, goal, pts)
+        if up.goal_reached:
+            log["reached"] = True
+            break
+        plan = planner.plan(state, u, up.reference, pts)
+        decision = supervisor.check(state, plan.commands[0], pts)
+        log["stops"] += int(decision.stopped)
+        u = decision.command_out.copy()
+        for _ in range(int(TICK_S / 0.001)):
+            state = state + 0.001 * np.array([u[0] * np.cos(state[2]), u[0] * np.sin(state[2]), u[1]])
+            log["min_dist"] = min(log["min_dist"], footprint_distance_to_points(state[None], pts, HL, HW).min())
+    log["state"] = state
+    return log
+
+
+def _box_corner_beside_the_robot() -> tuple[np.ndarray, np.ndarray]:
+    """corridor_boxes in small: a corridor 1.02 m wide, a box against its south wall, the robot
+    heading 45 degrees across the box's top face with the box's corner 3 mm from its right side,
+    ahead of its centre (turning right towards the goal first swings that side into the corner)."""
+    box = np.concatenate([
+        _segment_points((0.13, -0.6), (0.13, -0.03)),
+        _segment_points((0.13, -0.03), (0.53, -0.03)),
+        _segment_points((0.53, -0.03), (0.53, -0.6)),
+    ])
+    walls = np.concatenate([_segment_points((-1.0, 0.42), (2.5, 0.42)), _segment_points((-1.0, -0.6), (2.5, -0.6))])
+    yaw = np.pi / 4
+    corner_in_robot = np.array([0.07, -HW - 0.003])
+    rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    xy = np.array([0.13, -0.03]) - rot @ corner_in_robot
+    return np.concatenate([box, walls]), np.array([xy[0], xy[1], yaw])
+
+
+def test_beside_a_box_corner_inside_d_min_the_plan_slides_past_instead_of_stalling() -> None:
+    """Before: rows demanding d_min of a point 3 mm away cannot be met by any plan; the QP paid
+    the slack and bought more penetration for tracking (a right turn into the corner), the
+    supervisor stopped every such command: 109 stops in 120 ticks, the robot never passed."""
+    pts, start = _box_corner_beside_the_robot()
+    assert footprint_distance_to_points(start[None], pts, HL, HW).min() == pytest.approx(0.003, abs=1e-6)
+    log = _simulate_supervised(pts, start, np.array([2.0, 0.2]), ticks=120)
+    assert log["reached"], f"stalled at {log['state']} after {log['stops']} supervisor stops"
+    assert log["stops"] <= 10
+    assert log["min_dist"] > 0.0  # never touched
+
+
+def test_rows_of_points_already_inside_d_min_demand_the_current_distance() -> None:
+    """A row's required clearance is min(d_min, distance now) and its slack costs the holding
+    weight: standing still meets it, so the plan never goes deeper than the robot is now."""
+    pts, start = _box_corner_beside_the_robot()
+    cfg = MpcConfig()
+    planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
+    planner.lin.state0[:] = start
+    nominal = np.repeat(start[None], cfg.horizon_steps + 1, axis=0)  # standing still
+    planner._linearize_collisions(nominal, pts, {"select": 0.0, "net": 0.0})
+    lin, sel = planner.lin, planner.last_selection
+    d_now = footprint_distance_to_points(start[None], sel.points_world.reshape(-1, 2), HL, HW).reshape(sel.valid.shape)
+    row_at_standstill = np.einsum("hkj,j->hk", lin.coll_coef, start) - lin.coll_rhs
+    inside = sel.valid & (d_now < cfg.d_min_m)
+    assert inside.any()
+    np.testing.assert_allclose(row_at_standstill[inside], 0.0, atol=1e-9)  # met exactly, no slack
+    np.testing.assert_allclose(row_at_standstill[sel.valid & ~inside], (d_now - cfg.d_min_m)[sel.valid & ~inside], atol=1e-9)
+    assert (lin.coll_slack_weight[inside] == cfg.weights.slack_linear_holding).all()
+    assert (lin.coll_slack_weight[~inside] == cfg.weights.slack_linear).all()
+
+
+def test_turned_towards_a_wall_with_the_path_leaving_sideways_it_turns_and_drives() -> None:
+    """corridor_l's start (and the robot after a corner taken wide): facing a wall 0.2 m ahead,
+    the path along the corridor. Before: the nominal trajectory ran straight ahead into the wall,
+    the rows linearized there let the QP plan through it (slack 0.13 m), the supervisor stopped
+    it: the robot never left. Now the nominal follows the reference."""
+    walls = np.concatenate([_segment_points((-1.0, 0.4), (3.0, 0.4)), _segment_points((-1.0, -0.4), (3.0, -0.4))])
+    log = _simulate_supervised(walls, [0.0, 0.0, np.radians(60.0)], np.array([2.0, 0.0]), ticks=80)
+    assert log["reached"], f"stalled at {log['state']} after {log['stops']} supervisor stops"
+    assert log["stops"] == 0 and log["min_dist"] > 0.03
+
+
+def test_from_standstill_the_tracked_waypoints_are_reachable_within_the_acceleration_limit() -> None:
+    """The reference runs at 1 m/s whatever the robot does; the MPC re-times it along the same
+    path so that the targets' speed rises from the speed now at the acceleration limit."""
+    cfg = MpcConfig()
+    planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
+    planner.plan(np.zeros(3), np.zeros(2), _straight_reference(0.0), np.zeros((0, 2)))
+    a_dt = ROBOT.limits.max_linear_accel_mps2 * cfg.step_s
+    expected_speed = np.minimum(a_dt * np.arange(1, cfg.horizon_steps + 1), 1.0)
+    np.testing.assert_allclose(planner.lin.ref_v, expected_speed, atol=1e-12)
+    np.testing.assert_allclose(planner.lin.ref_xy[:, 0], np.cumsum(expected_speed) * cfg.step_s, atol=1e-12)
+    np.testing.assert_allclose(planner.lin.ref_xy[:, 1], 0.0, atol=1e-12)
+    # At speed, the reference is kept as it is.
+    planner.reset()
+    planner.plan(np.zeros(3), np.array([1.0, 0.0]), _straight_reference(0.0), np.zeros((0, 2)))
+    np.testing.assert_allclose(planner.lin.ref_xy[:, 0], 0.1 * np.arange(1, cfg.horizon_steps + 1), atol=1e-12)
+
+
+def test_each_pose_sees_the_nearest_point_of_every_cell() -> None:
+    """Thinning keeps one point per 5 cm cell per pose, the one nearest to that pose: a box
+    corner the later poses pass closest to is not lost to a neighbour in its cell (before: the
+    first point of each cell for all poses, up to the cell's diagonal farther away)."""
+    cell_first = np.array([0.32, -0.16])  # the same 5 cm cell, first in input order
+    corner = np.array([0.34, -0.196])
+    poses = np.array([[0.0, 0.0, 0.0], [0.3, -0.33, 0.0]])  # the second passes just below the corner
+    selector = PointSelector(PointSelectionConfig(points_per_pose=1, voxel_size_m=0.05), HL, HW)
+    sel = selector.select(poses, np.stack([cell_first, corner]))
+    exact = footprint_distance_to_points(poses, np.stack([cell_first, corner]), HL, HW)
+    for h in range(2):
+        np.testing.assert_allclose(sel.points_world[h, 0], [cell_first, corner][int(exact[h].argmin())])
+        assert sel.distance_m[h, 0] == pytest.approx(exact[h].min())
