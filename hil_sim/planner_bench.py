@@ -38,7 +38,7 @@ class CvxpyMpcBackend:
             "state0": P(3), "u_prev": P(2), "a02": P(H), "a12": P(H), "b0": P(H), "b1": P(H),
             "off": P((H, 3)), "cx": P((H, K)), "cy": P((H, K)), "cth": P((H, K)), "rhs": P((H, K)),
             "ref_xy": P((H, 2)), "ref_yaw": P(H), "ref_v": P(H), "u_lo": P((H, 2)), "u_hi": P((H, 2)),
-            "du": P((H, 2)),
+            "du": P((H, 2)), "slack_w": P((H, K), nonneg=True),
         }
         p = self.p
         S, U, E = cp.Variable((H + 1, 3)), cp.Variable((H, 2)), cp.Variable((H, K))
@@ -67,7 +67,7 @@ class CvxpyMpcBackend:
             + w.angular_speed * cp.sum_squares(U[:, 1])
             + w.speed_change * cp.sum_squares(U[:, 0] - U_prev[:, 0])
             + w.angular_speed_change * cp.sum_squares(U[:, 1] - U_prev[:, 1])
-            + w.slack_linear * cp.sum(E)
+            + cp.sum(cp.multiply(p["slack_w"], E))  # per-row L1 weight (holding rows cost more)
             + (w.slack_quadratic + 5e-7) * cp.sum_squares(E)
         )
         self.problem = cp.Problem(cp.Minimize(cost), cons)
@@ -87,6 +87,7 @@ class CvxpyMpcBackend:
         p["cth"].value = np.where(act, lin.coll_coef[..., 2], 0.0)
         p["rhs"].value = np.where(act, lin.coll_rhs, -1.0e3)  # inactive rows: always satisfied
         p["ref_xy"].value = lin.ref_xy
+        p["slack_w"].value = np.asarray(lin.coll_slack_weight, dtype=float)
         p["u_lo"].value = np.broadcast_to(lin.u_lo, (H, 2)).copy()
         p["u_hi"].value = np.broadcast_to(lin.u_hi, (H, 2)).copy()
         p["du"].value = np.broadcast_to(lin.du_max, (H, 2)).copy()
