@@ -251,14 +251,22 @@ def test_socketcan_open_error_in_a_real_process():
 
 def test_dump_receive_failure_is_one_line():
     """The serial link disappearing under `dct can dump` (LIMO UART on a pty) ends it with one line."""
+    from firmware_bridge.limo_serial import frame_limo
+
     master, slave = pty.openpty()
     proc = subprocess.Popen([str(DCT), "can", "dump", "--interface", "limo_serial", "--channel", os.ttyname(slave),
-                             "--duration", "30"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             "--duration", "120"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
     try:
-        time.sleep(2.0)  # let it open the port (a fixed wait: there is nothing to poll before a frame)
+        first = b""
+        deadline = time.monotonic() + 60
+        while not first and time.monotonic() < deadline:  # until dump has the port open and reads
+            os.write(master, frame_limo(0x221, bytes.fromhex("03E8FE0C00000000")))
+            first = _read_line(proc.stdout.fileno(), timeout_s=0.2)
+        assert b"221#03E8FE0C00000000" in first
         os.close(slave)
         os.close(master)
-        out, err = proc.communicate(timeout=60)
+        proc.wait(timeout=60)
+        err = proc.stderr.read().decode()
     finally:
         if proc.poll() is None:
             proc.kill()
