@@ -1,4 +1,4 @@
-"""AgileX UGV CAN protocol V2: typed records, encoder and strict decoder.
+"""AgileX UGV CAN protocol V2: typed records, encoder and decoder.
 
 The frame layouts (ids, byte positions, signedness, scale, valid range, shortest accepted DLC)
 come from ``agilex_v2.dbc`` read with cantools; this module adds typed records and the rules
@@ -10,9 +10,16 @@ the DBC cannot express:
   Every other scaled signal (only ever produced by firmware, i.e. our emulator) is rounded
   to the nearest raw step. cantools' own scaling is not used on encode; raw values are packed
   with the DBC layout.
-* Decoding is strict: unknown id, extended/remote/error frame, DLC shorter than the layout
-  (``MinDLC`` attribute in the DBC) or a value outside the DBC ``[min|max]`` raises a named
-  ``FrameError``. The SDK ignores the DLC; we do not.
+* Frame-level checks are strict: unknown id, extended/remote/error/FD frame or a DLC shorter
+  than the layout (``MinDLC`` attribute in the DBC) raises a named ``FrameError``. The SDK
+  ignores the DLC; we do not.
+* Field ranges (the DBC ``[min|max]``) depend on the direction, given by the DBC sender:
+  a *command* (HOST -> base: 0x111, 0x121, 0x421, 0x441) with a field out of range raises
+  ``OutOfRange``, since the firmware must never act on a bad command. A *feedback* frame
+  (BASE -> host) is decoded whole, like the vendor SDK does, and the out-of-range fields are
+  named in ``record.flagged_fields`` with their values kept as decoded (never clamped), so a
+  0x211 with an unknown vehicle state still delivers its error code and battery voltage.
+  Encoding is strict for every frame, and a record with flags is never encoded.
 * DLC choice: we always *send* 8 bytes (0x421/0x441 zero-padded, as the SDK does); we *accept*
   0x421/0x441 with DLC 1..8 (the docs say 1, the SDK sends 8) and every other frame with DLC 8
   only. Reserved bytes are ignored on decode (the SDK leaves garbage in them).
@@ -25,7 +32,7 @@ import re
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import can
 import cantools
@@ -159,8 +166,16 @@ class CandumpSyntaxError(FrameError):
     name = "candump_syntax"
 
 
+class FlaggedRecordError(FrameError):
+    """``encode()`` of a record that carries ``flagged_fields``: decoded data, not a thing to send."""
+
+    name = "flagged_record"
+
+
 # --------------------------------------------------------------------------------------
 # Records. Each maps its fields onto DBC signal names (``_signals``: field -> signal).
+# ``flagged_fields`` (always last): the attribute names of the fields whose raw value lay
+# outside the DBC [min|max] in a decoded feedback frame; their values are kept as decoded.
 # --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class MotionCommand:
@@ -170,6 +185,7 @@ class MotionCommand:
     angular_radps: float
     lateral_mps: float = 0.0
     steering_rad: float = 0.0
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "linear_mps": "linear_velocity",
         "angular_radps": "angular_velocity",
@@ -188,6 +204,7 @@ class _LightFields:
     rear_mode: int = 0
     rear_custom: int = 0
     count: int = 0
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "enable_cmd_ctrl": "enable_cmd_ctrl",
         "front_mode": "front_mode",
@@ -208,6 +225,7 @@ class ControlModeCommand:
     """0x421, host -> base: 0 standby, 1 CAN command mode, 2 UART."""
 
     mode: int
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {"mode": "mode"}
 
 
@@ -216,6 +234,7 @@ class ErrorClearCommand:
     """0x441, host -> base: 0 clear all, 1..4 motor 1..4 (SCOUT)."""
 
     code: int
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {"code": "clear_code"}
 
 
@@ -229,6 +248,7 @@ class SystemState:
     error_code: int
     motion_mode: int = 0
     count: int = 0
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "vehicle_state": "vehicle_state",
         "control_mode": "control_mode",
@@ -247,6 +267,7 @@ class MotionState:
     angular_radps: float
     lateral_mps: float = 0.0
     steering_rad: float = 0.0
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = MotionCommand._signals
 
 
@@ -266,6 +287,7 @@ class RcState:
     stick_left_h: int
     var_a: int
     count: int = 0
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         k: k for k in ("switches", "stick_right_h", "stick_right_v", "stick_left_v",
                        "stick_left_h", "var_a", "count")
@@ -280,6 +302,7 @@ class ActuatorHighSpeed:
     rpm: int
     current_a: float
     pulse_count: int
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "rpm": "rpm", "current_a": "current", "pulse_count": "pulse_count"}
 
@@ -293,6 +316,7 @@ class ActuatorLowSpeed:
     driver_temp_c: int
     motor_temp_c: int
     driver_state: int
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "driver_voltage_v": "driver_voltage",
         "driver_temp_c": "driver_temp",
@@ -307,6 +331,7 @@ class Odometry:
 
     left_wheel_m: float
     right_wheel_m: float
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "left_wheel_m": "left_wheel", "right_wheel_m": "right_wheel"}
 
@@ -319,6 +344,7 @@ class ImuAccel:
     accel_y_mps2: float
     accel_z_mps2: float
     count: int = 0
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "accel_x_mps2": "accel_x", "accel_y_mps2": "accel_y", "accel_z_mps2": "accel_z",
         "count": "count"}
@@ -332,6 +358,7 @@ class ImuGyro:
     gyro_y_dps: float
     gyro_z_dps: float
     count: int = 0
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "gyro_x_dps": "gyro_x", "gyro_y_dps": "gyro_y", "gyro_z_dps": "gyro_z", "count": "count"}
 
@@ -344,6 +371,7 @@ class ImuEuler:
     pitch_deg: float
     roll_deg: float
     count: int = 0
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "yaw_deg": "yaw", "pitch_deg": "pitch", "roll_deg": "roll", "count": "count"}
 
@@ -357,6 +385,7 @@ class BmsBasic:
     voltage_v: float
     current_a: float
     temperature_c: float
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         "soc_pct": "battery_soc",
         "soh_pct": "battery_soh",
@@ -374,6 +403,7 @@ class BmsExtended:
     alarm_status_2: int
     warn_status_1: int
     warn_status_2: int
+    flagged_fields: tuple[str, ...] = ()
     _signals: ClassVar[dict[str, str]] = {
         k: k for k in ("alarm_status_1", "alarm_status_2", "warn_status_1", "warn_status_2")}
 
@@ -417,6 +447,7 @@ _SDK_TRUNCATE_IDS = frozenset({ID_MOTION_COMMAND, ID_MOTION_STATE})
 @dataclass(frozen=True)
 class _SignalSpec:
     name: str
+    unit: str
     scale: float
     offset: float
     inv_scale: int | None  # 1/scale when it is an integer (exact decimal decode), else None
@@ -432,6 +463,7 @@ class _MessageSpec:
     min_dlc: int
     message: Any  # cantools Message
     signals: dict[str, _SignalSpec]
+    is_command: bool  # sent by HOST (strict on decode); BASE frames flag out-of-range fields
 
 
 def dbc_path() -> str:
@@ -454,8 +486,16 @@ def _signal_spec(sig: Any) -> _SignalSpec:
     type_max = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
     raw_min = type_min if sig.minimum is None else max(type_min, round((sig.minimum - offset) / scale))
     raw_max = type_max if sig.maximum is None else min(type_max, round((sig.maximum - offset) / scale))
-    return _SignalSpec(sig.name, scale, offset, inv_scale, int(raw_min), int(raw_max),
+    return _SignalSpec(sig.name, sig.unit or "", scale, offset, inv_scale, int(raw_min), int(raw_max),
                        scale == 1.0 and offset == 0.0)
+
+
+def _message_is_command(msg: Any) -> bool:
+    senders = set(msg.senders)
+    if senders not in ({"HOST"}, {"BASE"}):
+        raise RuntimeError(f"agilex_v2.dbc: {msg.name} must be sent by exactly one of HOST or BASE, "
+                           f"not {sorted(senders)}")
+    return senders == {"HOST"}
 
 
 @lru_cache(maxsize=1)
@@ -466,7 +506,8 @@ def _specs() -> dict[int, _MessageSpec]:
         attr = msg.dbc.attributes.get("MinDLC") if msg.dbc is not None else None
         min_dlc = int(attr.value) if attr is not None else msg.length
         specs[msg.frame_id] = _MessageSpec(
-            msg.frame_id, msg.name, min_dlc, msg, {s.name: _signal_spec(s) for s in msg.signals})
+            msg.frame_id, msg.name, min_dlc, msg, {s.name: _signal_spec(s) for s in msg.signals},
+            _message_is_command(msg))
     missing = set(_RECORD_BY_ID) - set(specs)
     if missing:
         raise RuntimeError(f"agilex_v2.dbc lacks frames {sorted(hex(i) for i in missing)}")
@@ -476,6 +517,16 @@ def _specs() -> dict[int, _MessageSpec]:
 def known_frame_ids() -> list[int]:
     """All frame ids this codec understands."""
     return sorted(_RECORD_BY_ID)
+
+
+def command_frame_ids() -> list[int]:
+    """Host -> base frames (DBC sender HOST): decoded strictly, an out-of-range field raises."""
+    return sorted(fid for fid in _RECORD_BY_ID if _specs()[fid].is_command)
+
+
+def feedback_frame_ids() -> list[int]:
+    """Base -> host frames (DBC sender BASE): an out-of-range field is kept and flagged."""
+    return sorted(fid for fid in _RECORD_BY_ID if not _specs()[fid].is_command)
 
 
 def message_name(frame_id: int) -> str:
@@ -491,36 +542,100 @@ def sdk_scale(value: float, factor: int = 1000) -> int:
     return int(np.float32(value) * np.float32(factor))
 
 
-def _to_raw(frame_id: int, spec: _SignalSpec, value: Any) -> int:
-    if isinstance(value, bool | np.bool_):
-        value = int(value)
-    try:
-        fval = float(value)
-    except (TypeError, ValueError):
-        raise OutOfRange(frame_id, f"signal {spec.name}: {value!r} is not a number") from None
-    if not math.isfinite(fval):
-        raise OutOfRange(frame_id, f"signal {spec.name}: value {value!r} is not finite")
-    if spec.integer:
-        if fval != int(fval):
-            raise OutOfRange(frame_id, f"signal {spec.name}: {value!r} is not an integer")
-        raw = int(value) if isinstance(value, int | np.integer) else int(fval)
-    elif frame_id in _SDK_TRUNCATE_IDS and spec.inv_scale is not None and spec.offset == 0.0:
-        raw = sdk_scale(fval, spec.inv_scale)
-    else:
-        scaled = (fval - spec.offset) * (spec.inv_scale if spec.inv_scale else 1.0 / spec.scale)
-        raw = int(round(scaled))
-    if not spec.raw_min <= raw <= spec.raw_max:
-        lo, hi = _to_phys(spec, spec.raw_min), _to_phys(spec, spec.raw_max)
-        raise OutOfRange(frame_id, f"signal {spec.name}: {value!r} is outside [{lo}, {hi}]")
-    return raw
-
-
 def _to_phys(spec: _SignalSpec, raw: int) -> float | int:
     if spec.integer:
         return int(raw)
     if spec.inv_scale is not None:
         return raw / spec.inv_scale + spec.offset
     return raw * spec.scale + spec.offset
+
+
+def _allowed(spec: _SignalSpec) -> str:
+    unit = f" {spec.unit}" if spec.unit else ""
+    return f"[{_to_phys(spec, spec.raw_min)}, {_to_phys(spec, spec.raw_max)}]{unit}"
+
+
+def _show(value: Any) -> str:
+    """A value for an error message: exact for numbers, never longer than 40 characters."""
+    if isinstance(value, float | np.floating):
+        text = repr(float(value))
+    elif isinstance(value, int | np.integer):
+        big = int(value)
+        # No str() of a huge int: it is slow and raises beyond sys.get_int_max_str_digits().
+        digits = int(big.bit_length() * math.log10(2)) + 1
+        sign = "a negative" if big < 0 else "an"
+        text = str(big) if abs(big) < 10**30 else f"{sign} integer of about {digits} digits"
+    else:
+        text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _out_of_range(frame_id: int, spec: _SignalSpec, value: Any) -> OutOfRange:
+    return OutOfRange(frame_id, f"signal {spec.name}: {_show(value)} is out of range, allowed {_allowed(spec)}")
+
+
+def _to_raw(frame_id: int, spec: _SignalSpec, value: Any) -> int:
+    """The raw wire value of a physical value, or ``OutOfRange`` naming the signal and its range.
+
+    Non-numbers, NaN, inf and values that would overflow the scaling are all rejected here,
+    before any float32 or int conversion could overflow.
+    """
+    if isinstance(value, bool | np.bool_):
+        value = int(value)
+    lo, hi = _to_phys(spec, spec.raw_min), _to_phys(spec, spec.raw_max)
+    margin = 2.0 * spec.scale  # truncation/rounding never moves a value by more than one step
+    if isinstance(value, int | np.integer):
+        value = int(value)  # exact: Python compares big ints with floats without overflow
+        if not lo - margin <= value <= hi + margin:
+            raise _out_of_range(frame_id, spec, value)
+        fval = float(value)
+    else:
+        try:
+            fval = float(value)
+        except (TypeError, ValueError, OverflowError):
+            raise OutOfRange(frame_id, f"signal {spec.name}: {_show(value)} is not a number, "
+                                       f"allowed {_allowed(spec)}") from None
+        if math.isnan(fval):
+            raise OutOfRange(frame_id, f"signal {spec.name}: NaN is not a finite number, allowed {_allowed(spec)}")
+        if math.isinf(fval):
+            raise OutOfRange(frame_id, f"signal {spec.name}: {'-' if fval < 0 else ''}inf is not a finite number, "
+                                       f"allowed {_allowed(spec)}")
+        if not lo - margin <= fval <= hi + margin:
+            raise _out_of_range(frame_id, spec, value)
+    if spec.integer:
+        if fval != int(fval):
+            raise OutOfRange(frame_id, f"signal {spec.name}: {_show(value)} is not an integer, "
+                                       f"allowed {_allowed(spec)}")
+        raw = value if isinstance(value, int) else int(fval)
+    elif frame_id in _SDK_TRUNCATE_IDS and spec.inv_scale is not None and spec.offset == 0.0:
+        raw = sdk_scale(fval, spec.inv_scale)
+    else:
+        scaled = (fval - spec.offset) * (spec.inv_scale if spec.inv_scale else 1.0 / spec.scale)
+        raw = int(round(scaled))
+    if not spec.raw_min <= raw <= spec.raw_max:
+        raise _out_of_range(frame_id, spec, value)
+    return raw
+
+
+def signal_limits(frame_id: int, signal_name: str) -> tuple[float | int, float | int, str]:
+    """``(minimum, maximum, unit)`` of a signal's documented range (the DBC ``[min|max]``)."""
+    spec = _specs().get(frame_id)
+    if spec is None:
+        raise UnknownFrameId(frame_id, "not an AgileX V2 frame known to agilex_v2.dbc")
+    sspec = spec.signals[signal_name]
+    return _to_phys(sspec, sspec.raw_min), _to_phys(sspec, sspec.raw_max), sspec.unit
+
+
+def signal_raw(frame_id: int, signal_name: str, value: Any) -> int:
+    """Validate one physical value as ``encode`` would and return its raw wire value.
+
+    Raises ``OutOfRange`` (naming the signal, the value and the allowed range) for a non-number,
+    NaN, inf or a value outside the DBC range; ``UnknownFrameId``/``KeyError`` for unknown names.
+    """
+    spec = _specs().get(frame_id)
+    if spec is None:
+        raise UnknownFrameId(frame_id, "not an AgileX V2 frame known to agilex_v2.dbc")
+    return _to_raw(frame_id, spec.signals[signal_name], value)
 
 
 def _record_frame_id(record: Any) -> int:
@@ -539,8 +654,16 @@ def _record_frame_id(record: Any) -> int:
 
 
 def encode(record: Any) -> can.Message:
-    """Encode a record as a standard-id, 8-byte CAN frame (byte-identical to the SDK for commands)."""
+    """Encode a record as a standard-id, 8-byte CAN frame (byte-identical to the SDK for commands).
+
+    Strict for every frame: an out-of-range value raises ``OutOfRange``. A record whose
+    ``flagged_fields`` is not ``()`` is decoded data and raises ``FlaggedRecordError``.
+    """
     fid = _record_frame_id(record)
+    if record.flagged_fields != ():
+        raise FlaggedRecordError(
+            fid, f"{type(record).__name__} has flagged_fields {_show(record.flagged_fields)}: a decoded record "
+                 "with out-of-range fields is not sent; build a new record with valid values")
     spec = _specs()[fid]
     raw = {sig_name: _to_raw(fid, spec.signals[sig_name], getattr(record, field))
            for field, sig_name in type(record)._signals.items()}
@@ -549,7 +672,12 @@ def encode(record: Any) -> can.Message:
 
 
 def decode(msg: can.Message) -> Any:
-    """Decode one frame into its record. Raises only ``FrameError`` subclasses."""
+    """Decode one frame into its record. Raises only ``FrameError`` subclasses.
+
+    Frame-level faults (unknown id, wrong DLC, extended/remote/error/FD frame) reject the frame.
+    A field outside its DBC range rejects a command frame (``OutOfRange``); in a feedback frame
+    the field keeps its decoded value and its name is added to ``record.flagged_fields``.
+    """
     try:
         fid = int(msg.arbitration_id)
         if msg.is_error_frame:
@@ -580,27 +708,73 @@ def decode(msg: can.Message) -> Any:
         raise WrongDlc(fid, f"DLC {dlc} is shorter than the {spec.min_dlc}-byte layout of {spec.name}")
     raw = spec.message.decode(data.ljust(8, b"\0"), decode_choices=False, scaling=False)
     values: dict[str, Any] = {}
+    flagged: list[str] = []
     for field, sig_name in cls._signals.items():
         sspec = spec.signals[sig_name]
         r = int(raw[sig_name])
         if not sspec.raw_min <= r <= sspec.raw_max:
-            lo, hi = _to_phys(sspec, sspec.raw_min), _to_phys(sspec, sspec.raw_max)
-            raise OutOfRange(fid, f"signal {sig_name} = {_to_phys(sspec, r)} is outside [{lo}, {hi}]")
+            if spec.is_command:  # the firmware must never act on a bad command
+                raise _out_of_range(fid, sspec, _to_phys(sspec, r))
+            flagged.append(field)
         values[field] = _to_phys(sspec, r)
     if cls is ActuatorHighSpeed:
         values["motor_index"] = fid - ID_ACTUATOR_HS_BASE
     elif cls is ActuatorLowSpeed:
         values["motor_index"] = fid - ID_ACTUATOR_LS_BASE
+    if flagged:
+        values["flagged_fields"] = tuple(flagged)
     return cls(**values)
 
 
+class FlaggedField(NamedTuple):
+    """One out-of-range field of a decoded feedback record."""
+
+    frame_id: int
+    signal: str  # DBC signal name
+    field: str  # record attribute name
+    value: float | int  # as decoded, never clamped
+    minimum: float | int
+    maximum: float | int
+
+    @property
+    def key(self) -> str:
+        """Counter key ``"0x211.vehicle_state"`` (frame id and DBC signal name)."""
+        return f"0x{self.frame_id:03X}.{self.signal}"
+
+    @property
+    def message(self) -> str:
+        return (f"frame 0x{self.frame_id:03X} ({message_name(self.frame_id)}): {self.signal} = "
+                f"{self.value} is outside [{self.minimum}, {self.maximum}], kept and flagged")
+
+
+def describe_flags(record: Any) -> list[FlaggedField]:
+    """The flagged fields of a decoded record with their values and DBC ranges ([] when none)."""
+    if not record.flagged_fields:
+        return []
+    fid = _record_frame_id(record)
+    spec = _specs()[fid]
+    out = []
+    for field in record.flagged_fields:
+        sspec = spec.signals[type(record)._signals[field]]
+        out.append(FlaggedField(fid, sspec.name, field, getattr(record, field),
+                                _to_phys(sspec, sspec.raw_min), _to_phys(sspec, sspec.raw_max)))
+    return out
+
+
 class FrameDecoder:
-    """Decoder that never raises for bad frames: it counts them by error name instead."""
+    """Decoder that never raises for bad frames: it counts them by error name instead.
+
+    Feedback frames with out-of-range fields are returned (with ``flagged_fields``) and their
+    fields counted in ``flag_counts`` under ``"0x211.vehicle_state"`` style keys.
+    """
 
     def __init__(self) -> None:
         self.error_counts: dict[str, int] = {}
         self.last_error: str | None = None
         self.frames_ok = 0
+        self.frames_flagged = 0
+        self.flag_counts: dict[str, int] = {}
+        self.last_flag: str | None = None
 
     def decode(self, msg: can.Message) -> Any | None:
         """The record, or None when the frame was rejected (and counted)."""
@@ -611,59 +785,107 @@ class FrameDecoder:
             self.last_error = str(exc)
             return None
         self.frames_ok += 1
+        if record.flagged_fields:
+            self._count_flags(record)
         return record
+
+    def _count_flags(self, record: Any) -> None:
+        self.frames_flagged += 1
+        for flag in describe_flags(record):
+            self.flag_counts[flag.key] = self.flag_counts.get(flag.key, 0) + 1
+            self.last_flag = flag.message
 
     @property
     def errors_total(self) -> int:
         return sum(self.error_counts.values())
+
+    @property
+    def flags_total(self) -> int:
+        return sum(self.flag_counts.values())
 
 
 # --------------------------------------------------------------------------------------
 # Text formats
 # --------------------------------------------------------------------------------------
 def format_candump(msg: can.Message) -> str:
-    """candump compact format: ``111#0096000000000000`` (``123#R`` for remote frames)."""
+    """candump compact format: ``111#0096000000000000`` (``123#R`` / ``123#R8`` for remote frames)."""
     fid = int(msg.arbitration_id)
     ident = f"{fid:08X}" if msg.is_extended_id else f"{fid:03X}"
     if msg.is_remote_frame:
-        return f"{ident}#R"
+        return f"{ident}#R{msg.dlc}" if 0 < msg.dlc <= 8 else f"{ident}#R"
     return f"{ident}#{bytes(msg.data).hex().upper()}"
 
 
-_CANDUMP_RE = re.compile(r"^(?P<id>[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#(?P<data>R|(?:[0-9A-Fa-f]{2}\.?){0,8})$")
+_CANDUMP_RE = re.compile(r"(?P<id>[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#(?P<data>R[0-8]?|(?:[0-9A-Fa-f]{2}\.?){0,8})")
+# candump's default (long) output, can-utils lib.c sprint_long_canframe():
+#   [(timestamp)] [interface [RX - -]]  ID   [N]  XX XX ...  ['ascii']   or   ... [N]  remote request
+_CANDUMP_LONG_RE = re.compile(
+    r"(?:\([^)]*\)\s+)?(?:\S+\s+){0,4}?(?P<id>[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})\s+\[(?P<dlc>\d)\]"
+    r"(?:\s+(?P<remote>remote request)|(?P<data>(?:\s+[0-9A-Fa-f]{2}){0,8})(?:\s+'.*')?)\s*")
+_CANDUMP_FORMS = ("candump 'ID#DATA' (3 or 8 hex id digits, up to 8 hex bytes) "
+                  "or candump's 'can0  ID   [N]  XX XX ...'")
 
 
-def parse_candump(text: str) -> can.Message:
-    """Parse ``ID#DATA`` (3 hex digits = standard id, 8 = extended; data up to 8 bytes).
+def _show_text(text: str, limit: int = 60) -> str:
+    """``repr`` of input text, cut to ``limit`` characters (with its length) so errors stay short."""
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}... ({len(text)} characters)"
 
-    A full ``candump -L`` line (``(1.0) can0 111#...``) is accepted: the last token is used.
-    """
-    if not isinstance(text, str) or not text.strip():
-        raise CandumpSyntaxError(None, f"empty candump text {text!r}")
-    token = text.strip().split()[-1]
-    m = _CANDUMP_RE.match(token)
-    if m is None:
-        raise CandumpSyntaxError(
-            None, f"{text!r} is not candump 'ID#DATA' (3 or 8 hex id digits, up to 8 hex bytes)")
-    fid = int(m["id"], 16)
-    extended = len(m["id"]) == 8
+
+def _candump_message(text: str, ident: str, data: bytes | None, remote_dlc: int = 0) -> can.Message:
+    fid = int(ident, 16)
+    extended = len(ident) == 8
     if extended and fid > 0x1FFFFFFF:
-        raise CandumpSyntaxError(fid, f"{text!r}: extended id above 0x1FFFFFFF")
+        raise CandumpSyntaxError(fid, f"{_show_text(text)}: extended id above 0x1FFFFFFF")
     if not extended and fid > 0x7FF:
-        raise CandumpSyntaxError(fid, f"{text!r}: standard id above 0x7FF")
-    if m["data"] == "R":
-        return can.Message(arbitration_id=fid, is_extended_id=extended, is_remote_frame=True)
-    data = bytes.fromhex(m["data"].replace(".", ""))
+        raise CandumpSyntaxError(fid, f"{_show_text(text)}: standard id above 0x7FF")
+    if data is None:
+        return can.Message(arbitration_id=fid, is_extended_id=extended, is_remote_frame=True, dlc=remote_dlc)
     return can.Message(arbitration_id=fid, is_extended_id=extended, data=data, dlc=len(data))
 
 
+def parse_candump(text: str) -> can.Message:
+    """Parse one candump frame.
+
+    Accepted: compact ``ID#DATA`` (3 hex digits = standard id, 8 = extended; up to 8 data bytes;
+    ``ID#R`` remote), also as the last token of a ``candump -L`` line (``(1.0) can0 111#...``);
+    and candump's default output ``can0  111   [8]  00 96 00 00 00 00 00 00`` (with optional
+    timestamp and ASCII column), so ``candump can0 | dct can decode`` works as it is.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise CandumpSyntaxError(None, f"empty candump text {_show_text(str(text))}")
+    stripped = text.strip()
+    long_form = _CANDUMP_LONG_RE.fullmatch(stripped)
+    if long_form is not None:
+        dlc = int(long_form["dlc"])
+        if long_form["remote"]:
+            return _candump_message(text, long_form["id"], None, remote_dlc=min(dlc, 8))
+        data = bytes.fromhex(long_form["data"] or "")
+        if len(data) != dlc:
+            raise CandumpSyntaxError(
+                None, f"{_show_text(text)}: [{dlc}] announces {dlc} data bytes, the line has {len(data)}")
+        return _candump_message(text, long_form["id"], data)
+    compact = _CANDUMP_RE.fullmatch(stripped.split()[-1])
+    if compact is None:
+        raise CandumpSyntaxError(None, f"{_show_text(text)} is not {_CANDUMP_FORMS}")
+    if compact["data"].startswith("R"):
+        return _candump_message(text, compact["id"], None, remote_dlc=int(compact["data"][1:] or 0))
+    return _candump_message(text, compact["id"], bytes.fromhex(compact["data"].replace(".", "")))
+
+
 def record_to_dict(record: Any) -> dict[str, Any]:
-    """Record fields keyed by DBC signal names (``motor_index`` added for actuator frames)."""
+    """Record fields keyed by DBC signal names (``motor_index`` added for actuator frames).
+
+    ``"flagged"``: the DBC names of the out-of-range signals, present only when there are any.
+    """
     out: dict[str, Any] = {}
     if isinstance(record, ActuatorHighSpeed | ActuatorLowSpeed):
         out["motor_index"] = record.motor_index
     for field, sig_name in type(record)._signals.items():
         out[sig_name] = getattr(record, field)
+    if record.flagged_fields:
+        out["flagged"] = [type(record)._signals[field] for field in record.flagged_fields]
     return out
 
 

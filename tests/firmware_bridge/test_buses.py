@@ -12,7 +12,7 @@ import pytest
 
 from firmware_bridge import protocol as p
 from firmware_bridge.base_driver import AgileXBaseDriver
-from firmware_bridge.buses import BusConfig, open_bus
+from firmware_bridge.buses import DEFAULT_UDP_GROUP, BusConfig, BusOpenError, open_bus
 
 GROUP = "239.74.163.97"  # not python-can's default group, to avoid clashing with other tests
 
@@ -55,10 +55,42 @@ def test_virtual_via_config():
 
 
 def test_socketcan_same_code_path():
-    # No SocketCAN on these machines: the config is accepted and open_bus reaches python-can's backend.
-    cfg = BusConfig(interface="socketcan", channel="can_dct_missing0")
-    with pytest.raises((OSError, can.CanError)):
+    # No SocketCAN on these machines: the config is accepted and open_bus reaches python-can's
+    # backend, whose OS error comes back as one BusOpenError naming interface, channel and reason.
+    cfg = BusConfig(interface="socketcan", channel="dctmissing0")
+    with pytest.raises(BusOpenError) as exc_info:
         open_bus(cfg).shutdown()
+    text = str(exc_info.value)
+    assert isinstance(exc_info.value, can.CanInitializationError)
+    assert text.startswith("cannot open socketcan bus on channel 'dctmissing0': ") and "\n" not in text
+    assert exc_info.value.reason  # the OS reason, e.g. "Address family not supported by protocol"
+
+
+def test_limo_serial_open_error_names_the_os_reason(tmp_path):
+    missing = str(tmp_path / "ttyMISSING")
+    with pytest.raises(BusOpenError, match=r"cannot open limo_serial bus on channel '.*ttyMISSING': "
+                                           r"No such file or directory \[ENOENT\]"):
+        open_bus(BusConfig(interface="limo_serial", channel=missing))
+    with pytest.raises(BusOpenError, match=r"Is a directory \[EISDIR\]"):
+        open_bus(BusConfig(interface="limo_serial", channel=str(tmp_path)))
+
+
+@pytest.mark.parametrize(
+    ("interface", "channel", "fragment"),
+    [("udp_multicast", "not-a-group", "not a multicast group"), ("udp_multicast", "10.0.0.1", "not a multicast group"),
+     ("udp_multicast", "", "not a multicast group"), ("socketcan", "a/b", "not a network interface name"),
+     ("socketcan", "x" * 16, "not a network interface name"), ("limo_serial", "", "must not be empty")],
+)
+def test_bad_channel_rejected_by_config(interface, channel, fragment):
+    with pytest.raises(pydantic.ValidationError, match=fragment):
+        BusConfig(interface=interface, channel=channel)
+
+
+def test_default_channel_per_interface():
+    assert BusConfig(interface="udp_multicast").channel == DEFAULT_UDP_GROUP
+    assert BusConfig(interface="socketcan").channel == "can0"
+    assert BusConfig(interface="limo_serial", channel=None).channel == "/dev/ttyTHS1"
+    assert BusConfig().channel == "dct"
 
 
 def _recv_until(bus: can.BusABC, fid: int, timeout_s: float = 2.0) -> can.Message | None:

@@ -28,9 +28,9 @@ def test_encode_enable_and_errors():
     assert run("encode", "enable").output.strip() == "421#0100000000000000"
     assert run("encode", "clear-errors").output.strip() == "441#0000000000000000"
     r = run("encode", "motion", "--linear", "50")
-    assert r.exit_code != 0 and "out_of_range" in r.output
+    assert r.exit_code != 0 and "--linear" in r.output and "out of range" in r.output
     r = run("encode", "motion", "--linear", "nan")
-    assert r.exit_code != 0 and "not finite" in r.output
+    assert r.exit_code != 0 and "NaN is not a finite number" in r.output
 
 
 def test_decode_json_line():
@@ -50,8 +50,10 @@ def test_decode_stdin_and_rejects():
     out = [json.loads(x) for x in r.stdout.strip().splitlines()]
     assert out == [{"id": "0x211", "message": "SystemState", "vehicle_state": 0, "control_mode": 1,
                     "battery_voltage": 24.0, "error_code": 512, "motion_mode": 0, "count": 7}]
-    err = json.loads(r.stderr.strip())
-    assert err["error"] == "wrong_dlc" and "0x221" in err["detail"]
+    err, summary = (json.loads(x) for x in r.stderr.strip().splitlines())
+    assert err["error"] == "wrong_dlc" and "0x221" in err["detail"] and err["line"] == 2
+    assert summary == {"summary": {"lines": 2, "decoded": 1, "rejected": 1, "blank": 0,
+                                   "errors": {"wrong_dlc": 1}, "flagged": {}}}
 
 
 def test_dct_subprocess():

@@ -128,11 +128,15 @@ def test_big_endian_layout():
         (msg(0x421, b""), p.WrongDlc, "0x421"),
         (msg(0x555, bytes(8)), p.UnknownFrameId, "0x555"),
         (msg(0x255, bytes(8)), p.UnknownFrameId, "0x255"),  # only 4 motors
-        (msg(0x211, bytes([3, 1, 0, 0, 0, 0, 0, 0])), p.OutOfRange, "vehicle_state"),
-        (msg(0x211, bytes([0, 7, 0, 0, 0, 0, 0, 0])), p.OutOfRange, "control_mode"),
+        # Commands stay strict (feedback out of range is flagged instead: test_flagged_fields.py).
         (msg(0x421, bytes([5])), p.OutOfRange, "mode"),
-        (msg(0x361, bytes([101, 100, 0, 0, 0, 0, 0, 0])), p.OutOfRange, "battery_soc"),
         (msg(0x121, bytes([1, 4, 0, 0, 0, 0, 0, 0])), p.OutOfRange, "front_mode"),
+        (msg(0x121, bytes([2, 0, 0, 0, 0, 0, 0, 0])), p.OutOfRange, "enable_cmd_ctrl"),
+        (msg(0x121, bytes([1, 3, 101, 0, 0, 0, 0, 0])), p.OutOfRange, "front_custom"),
+        (can.Message(arbitration_id=0x211, data=bytes(8), is_extended_id=False, is_error_frame=True),
+         p.MalformedFrame, "error frame"),
+        (can.Message(arbitration_id=0x211, data=bytes(8), is_extended_id=False, is_fd=True),
+         p.MalformedFrame, "FD"),
         (can.Message(arbitration_id=0x221, data=bytes(8), is_extended_id=True), p.MalformedFrame, "extended"),
         (can.Message(arbitration_id=0x221, is_remote_frame=True, dlc=8, is_extended_id=False), p.MalformedFrame, "remote"),
     ],
@@ -158,10 +162,35 @@ def test_reserved_bytes_ignored():
     assert rec == p.ActuatorLowSpeed(0, 24.0, 25, 30, 0)
 
 
-@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf, 32.768, -32.769, 1e9])
-def test_encode_rejects_non_finite_and_overflow(bad):
-    with pytest.raises(p.OutOfRange):
+@pytest.mark.parametrize(
+    ("bad", "says"),
+    [(math.nan, "NaN"), (math.inf, "inf is not a finite"), (-math.inf, "-inf is not a finite"),
+     (32.768, "out of range"), (-32.769, "out of range"), (1e9, "out of range"),
+     # Overflowed float32 (and int) conversion before the range check: an OverflowError before.
+     (1e308, "1e+308 is out of range"), (-1e40, "-1e+40 is out of range"),
+     (np.float64(3e38), "out of range"), (10**400, "out of range"), ("fast", "not a number")],
+)
+def test_encode_rejects_non_finite_and_overflow(bad, says):
+    with pytest.raises(p.OutOfRange) as exc_info:
         p.encode(p.MotionCommand(bad, 0.0))
+    text = str(exc_info.value)
+    assert says in text and "linear_velocity" in text and "allowed [-32.768, 32.767] m/s" in text
+    assert len(text) < 160
+
+
+@settings(max_examples=1500, deadline=None)
+@given(value=st.one_of(st.floats(), st.integers(min_value=-(10**500), max_value=10**500)),
+       which=st.integers(0, 3))
+def test_fuzz_encode_raises_only_out_of_range(value, which):
+    """Any number in any field: an encoded frame or OutOfRange, never OverflowError/ValueError."""
+    records = [p.MotionCommand(value, 0.0), p.SystemState(0, 1, value, 0),
+               p.Odometry(value, 0.0), p.ControlModeCommand(value)]
+    try:
+        m = p.encode(records[which])
+    except p.OutOfRange as exc:
+        assert "allowed [" in str(exc)
+        return
+    assert len(m.data) == 8
 
 
 def test_encode_rejects_out_of_range_feedback():
@@ -178,11 +207,12 @@ def test_encode_rejects_out_of_range_feedback():
 def test_frame_decoder_counts_by_name():
     dec = p.FrameDecoder()
     frames = [msg(0x221, bytes(4)), msg(0x221, bytes(4)), msg(0x600, bytes(8)),
-              msg(0x211, bytes([9] + [0] * 7)), msg(0x221, bytes(8))]
+              msg(0x421, bytes([9] + [0] * 7)), msg(0x221, bytes(8))]
     out = [dec.decode(f) for f in frames]
     assert out[:4] == [None] * 4 and out[4] == p.MotionState(0.0, 0.0)
     assert dec.error_counts == {"wrong_dlc": 2, "unknown_frame_id": 1, "out_of_range": 1}
-    assert "0x211" in dec.last_error and dec.frames_ok == 1 and dec.errors_total == 4
+    assert "0x421" in dec.last_error and dec.frames_ok == 1 and dec.errors_total == 4
+    assert dec.flag_counts == {} and dec.last_flag is None
 
 
 def test_error_names():
@@ -210,8 +240,13 @@ def test_fuzz_decode_raises_only_named_errors(fid, data, extended, remote, dlc_d
         assert exc.name in FRAME_ERROR_NAMES
         assert f"0x{fid:03X}" in str(exc)
         return
-    # Accepted: a well-formed standard data frame of a known id, and it re-encodes.
+    # Accepted: a well-formed standard data frame of a known id, and it re-encodes unless flagged.
     assert fid in KNOWN and not m.is_extended_id and not m.is_remote_frame and m.dlc == len(data)
+    if rec.flagged_fields:
+        assert fid in p.feedback_frame_ids()
+        with pytest.raises(p.FlaggedRecordError):
+            p.encode(rec)
+        return
     again = p.decode(p.encode(rec))
     assert type(again) is type(rec)
     for f in dataclasses.fields(rec):
@@ -229,7 +264,7 @@ def test_fuzz_frame_decoder_never_raises(fid, data):
 
 # ------------------------------------------------------------------ candump text
 def test_candump_roundtrip():
-    for text in ["111#0096000000000000", "421#01", "7FF#", "12345678#DEADBEEF"]:
+    for text in ["111#0096000000000000", "421#01", "7FF#", "12345678#DEADBEEF", "123#R", "123#R8"]:
         assert p.format_candump(p.parse_candump(text)) == text
     m = p.parse_candump("(1700000000.123) can0 221#03E8FE0C00000000")
     assert m.arbitration_id == 0x221 and not m.is_extended_id and m.dlc == 8
@@ -237,7 +272,26 @@ def test_candump_roundtrip():
     assert p.parse_candump("123#R").is_remote_frame
 
 
-@pytest.mark.parametrize("text", ["", "111", "111#0", "111#ZZ", "800#00", "11#00", "111#000000000000000000", "1111#00"])
+@pytest.mark.parametrize(
+    ("line", "expected"),
+    [
+        # candump's default output (can-utils lib.c sprint_long_canframe), as `candump can0` prints it.
+        ("  can0  111   [8]  00 96 00 00 00 00 00 00", "111#0096000000000000"),
+        (" (1700000000.123456)  can0  211   [8]  07 01 00 F0 02 00 00 07   '........'", "211#070100F002000007"),
+        ("  can0  421   [1]  01", "421#01"),
+        ("  vcan0  12345678   [3]  11 22 33", "12345678#112233"),
+        ("  can0  123   [8]  remote request", "123#R8"),
+        (" (000.000123)  can0  RX - -  221   [8]  03 E8 FE 0C 00 00 00 00", "221#03E8FE0C00000000"),
+        ("(1700000000.123456) can0 221#03E8FE0C00000000", "221#03E8FE0C00000000"),  # candump -L
+    ],
+)
+def test_candump_default_output_format(line, expected):
+    assert p.format_candump(p.parse_candump(line)) == expected
+
+
+@pytest.mark.parametrize("text", ["", "111", "111#0", "111#ZZ", "800#00", "11#00", "111#000000000000000000", "1111#00",
+                                  "  can0  111   [8]  00 96", "  can0  111   [2]  00 96 00", "  can0  111   [9]  00",
+                                  "  can0  800   [1]  00", "  can0  111   [1]  0G"])
 def test_candump_parse_errors(text):
     with pytest.raises(p.CandumpSyntaxError) as exc_info:
         p.parse_candump(text)
