@@ -80,9 +80,23 @@ def test_bad_frames_counted_and_never_acted_on(virtual_pair, clock):
     assert drv.poll() == 4
     fb = drv.feedback
     assert fb.motion.record.linear_mps == 0.2  # the short frame did not overwrite it
-    assert fb.system is None and drv.control_mode is None
-    assert fb.decode_error_counts == {"wrong_dlc": 1, "unknown_frame_id": 1, "out_of_range": 1}
-    assert "0x211" in fb.last_decode_error and fb.frames_received == 4
+    # A feedback field outside its range is kept and flagged, not dropped with the whole frame:
+    # control mode 9 is not CAN command mode, so the controller will not drive on it.
+    assert fb.system.record.flagged_fields == ("control_mode",) and drv.control_mode == 9
+    assert fb.decode_error_counts == {"wrong_dlc": 1, "unknown_frame_id": 1}
+    assert "0x5AA" in fb.last_decode_error and fb.frames_received == 4
+
+
+def test_an_unknown_vehicle_state_reaches_the_controller_as_not_normal(virtual_pair, clock):
+    from runtime.hardware import AgileXBaseHardware
+
+    bus, peer = virtual_pair
+    hw = AgileXBaseHardware(AgileXBaseDriver(bus, clock))
+    peer.send(can.Message(arbitration_id=0x211, data=bytes([7, 1, 0, 240, 0x02, 0x00, 0, 5]), is_extended_id=False))
+    inputs = hw.read(clock())
+    assert inputs.vehicle_state == 7 and inputs.system_state_flags == ("vehicle_state",)
+    assert not inputs.vehicle_normal and not inputs.ready
+    assert inputs.error_code == 0x0200  # the rest of the frame is kept
 
 
 def test_actuator_and_odometry_feedback(virtual_pair, clock):
