@@ -81,6 +81,14 @@ def run_command(
         inputs = [p for p in (config_path, robot_path, Path(scenario)) if p is not None and Path(p).is_file()]
         if json_path is not None:
             check_output_path(json_path, what="--json", inputs=inputs)
+        if config.uses_mpc:  # the distance net must fit this robot (checked again at start-up)
+            from models.distance_net import DistanceNet
+            from models.errors import DistanceNetError
+
+            try:
+                DistanceNet.load(config.planner.distance_net_path, robot=robot)
+            except DistanceNetError as exc:
+                raise InputError(str(exc)) from exc
     except (ConfigFileError, FaultSpecError, OutputPathError) as exc:
         raise InputError(str(exc)) from exc
     for w in warnings:

@@ -173,10 +173,15 @@ def run_episode(
 
     driver = AgileXBaseDriver(controller_bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
     hardware = AgileXBaseHardware(driver, robot.drive.skid_steer_yaw_factor)
-    controller = NavigationController(
-        robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now, sensors=inbox if has_sensors else None,
-        lockstep=True,
-    )
+    try:  # loads the distance net: a bad model file must not leave the buses open
+        controller = NavigationController(
+            robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now,
+            sensors=inbox if has_sensors else None, lockstep=True,
+        )
+    except BaseException:
+        controller_bus.shutdown()
+        sim_bus.shutdown()
+        raise
     telemetry = TickTelemetry()
     loop = FixedRateLoop(
         clock,

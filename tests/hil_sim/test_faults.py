@@ -192,3 +192,35 @@ def test_injector_pushes_returns_out_and_blinds_frames():
     assert np.allclose(r, [10.0, 10.0, 20.0]) and np.allclose(far.points_m[1] / r[1], [0, 1, 0])
     blind = _blind(scan)
     assert blind.num_points == 0 and blind.nothing_seen and blind.stamp_s == 1.0
+
+
+@pytest.mark.parametrize("make_args, words", [
+    (lambda d: ["--robot", _robot_with(d, "  width_m: 0.220", "  width_m: 0.250")], "trained for footprint"),
+    (lambda d: ["--robot", _robot_with(d, "mass_kg: 4.8", "mass_kg: true")], "mass_kg: Input should be a valid number (got true)"),
+    (lambda d: ["--robot", _robot_with(d, "mass_kg: 4.8", "mass_kg: .nan")], "got nan"),
+    (lambda d: ["--config", _write(d, "c.yaml", "loop: {period_s: .nan}\n")], "loop.period_s: must be a finite number (got nan)"),
+    (lambda d: [_write(d, "s.yaml", b"\xbd\x00\xff binary")], "scenario"),
+])
+def test_dct_hil_run_bad_files_are_one_line_errors(tmp_path, make_args, words):
+    args = make_args(tmp_path)
+    if not args[0].startswith("--"):
+        cmd = ["hil", "run", *args]
+    else:
+        cmd = ["hil", "run", "case1", *args]
+    proc = subprocess.run([sys.executable, "-m", "runtime.cli", *cmd], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert words in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def _write(d, name, content):
+    path = d / name
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    return str(path)
+
+
+def _robot_with(d, old, new):
+    from importlib import resources
+
+    text = (resources.files("calibration") / "robots" / "limo.yaml").read_text()
+    assert old in text
+    return _write(d, "robot.yaml", text.replace(old, new))
