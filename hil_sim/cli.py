@@ -91,6 +91,8 @@ def run_command(
                 raise InputError(str(exc)) from exc
     except (ConfigFileError, FaultSpecError, OutputPathError) as exc:
         raise InputError(str(exc)) from exc
+    warnings += [f"--fault {f}: starts at or after the time limit ({sc.time_limit_s:g} s); it will never act"
+                 for f in faults if f.start_s >= sc.time_limit_s]
     for w in warnings:
         click.echo(f"warning: {w}", err=True)
     try:

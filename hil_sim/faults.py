@@ -107,6 +107,7 @@ class FaultInjector:
         self._now_s = self.start_s
         self._frozen: LidarScan | None = None  # the frame replayed while lidar-frozen is active
         self._last_scan: LidarScan | None = None
+        #: Physics steps (firmware faults) or sensor outputs (sensor faults) each fault acted on.
         self.applied: dict[str, int] = {f.name: 0 for f in self.faults}
 
     def _active(self, name: str) -> bool:
@@ -115,6 +116,7 @@ class FaultInjector:
 
     # -- lockstep device: the firmware faults --------------------------------------------------
     def step(self, t_s: float) -> None:
+        """Before the firmware's step at t_s (LockstepSimulation `controls`)."""
         self._now_s = t_s
         fw = self.firmware
         for name, frame_id in _FRAME_DROPS.items():
@@ -135,13 +137,13 @@ class FaultInjector:
             self.applied["lidar-frozen"] += 1
             return self.inbox.put_scan(self._frozen)
         self._frozen = None
-        self._last_scan = scan
         if self._active("lidar-blind"):
             self.applied["lidar-blind"] += 1
             scan = _blind(scan)
         elif self._active("lidar-far"):
             self.applied["lidar-far"] += 1
             scan = _pushed_out(scan, self.far_m)
+        self._last_scan = scan  # what the controller got: a frozen sensor repeats that
         return self.inbox.put_scan(scan)
 
     def put_imu(self, sample: ImuSample) -> bool:

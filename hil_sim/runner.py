@@ -46,11 +46,16 @@ class LockstepSimulation:
         firmware: EmulatedBaseFirmware,
         metrics: EpisodeMetrics | None = None,
         devices: Iterable[SimulatedDevice] = (),
+        controls: Iterable[SimulatedDevice] = (),
     ) -> None:
+        """devices: stepped after physics (sensors). controls: stepped before the firmware, with
+        the time of the step about to be taken (fault injection: a fault that starts at t acts on
+        everything the firmware and the sensors produce from t on)."""
         self.world = world
         self.firmware = firmware
         self.metrics = metrics
         self.devices = list(devices)
+        self.controls = list(controls)
         self.steps = 0
         self._half_step = 0.5 * world.timestep_s
 
@@ -66,6 +71,8 @@ class LockstepSimulation:
         """
         world = self.world
         t_before = world.time_s
+        for control in self.controls:
+            control.step(t_before)
         torques = self.firmware.step(t_before, world.wheel_speeds_radps(), world.wheel_angles_rad())
         world.set_wheel_torques(torques)
         world.step()
@@ -159,7 +166,7 @@ def run_episode(
         faults, firmware, inbox, start_s=world.time_s,
         far_m=config.planner.obstacle_points.max_range_m + 4.0,
     )
-    devices: list = [injector]  # first: faults switch before the sensors and firmware act
+    devices: list = []
     if sensors is None:
         sensors = config.uses_mpc
     has_sensors = sensors is not False
@@ -168,7 +175,7 @@ def run_episode(
 
         rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
         devices.append(SensorRig(world, robot, injector, rig_config))
-    sim = LockstepSimulation(world, firmware, metrics, devices)
+    sim = LockstepSimulation(world, firmware, metrics, devices, controls=[injector])
     clock = LockstepClock(sim)
 
     driver = AgileXBaseDriver(controller_bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
@@ -235,7 +242,7 @@ def run_episode(
             "final_pose_world": [float(v) for v in world.robot_pose()],
             "sim_time_s": sim.time_s - t_start,
             "planner": config.planner.mode,
-            "faults": [f.to_dict() for f in faults],
+            "faults": [{**f.to_dict(), "acted_on": injector.applied[f.name]} for f in faults],
             "events": controller.events.to_list(t0_s=t_start),
             "controller": report,
             "sensor_errors": dict(sorted(inbox.error_counts.items())),
@@ -276,10 +283,15 @@ def failure_reason(metrics: dict, controller: dict) -> str | None:
     state = controller["state"]
     if state == "STOPPED":
         return f"safety stop: {controller['stop_reason']}"
+    base_faults = [f["reason"] for f in controller["input_faults"] if f["stream"] == "0x211"]
     if state == "HOLDING":
+        if controller["hold_reason"] in base_faults:
+            return f"base not ready: {controller['hold_reason']} (held still at the time limit)"
         return f"sensor stale: {controller['hold_reason']} (held still at the time limit)"
     if state == "INITIALIZING":
         faults = "; ".join(f["reason"] for f in controller["input_faults"]) or "base not ready"
+        if controller["restarts"]:
+            return f"start-up sequence not complete after {controller['restarts']} restarts: {faults}"
         return f"never became active: {faults}"
     if state == "GOAL_REACHED":
         return (
@@ -294,7 +306,7 @@ def failure_reason(metrics: dict, controller: dict) -> str | None:
     if controller.get("stalled_now") or controller.get("stalls"):
         return (
             f"stalled without progress with a valid reference path: {controller['stalls']} stalls, "
-            f"{controller['backoffs']} backoffs, no progress for the last {controller['no_progress_s']:.1f} s, "
+            f"{controller['backoffs']} backoffs did not free it, "
             f"{metrics['final_distance_to_goal_m']:.2f} m from the goal"
         )
     return f"time limit: {metrics['final_distance_to_goal_m']:.2f} m from the goal"

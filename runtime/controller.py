@@ -37,7 +37,8 @@ from runtime.geometry import Pose2D
 from runtime.hardware import BaseHardware, BaseInputs
 from runtime.input_monitor import InputFault, InputMonitor
 from runtime.loop import StageClock
-from runtime.modes.base import ModeDecision, Situation
+from runtime.modes.base import ModeContext, ModeDecision, Situation
+from runtime.modes.registry import build_mode
 from runtime.modes.selector import ModeSelector
 from runtime.obstacle_points import ObstaclePointExtractor
 from runtime.odometry import WheelGyroOdometry
@@ -48,7 +49,13 @@ from runtime.telemetry import STAGES
 _NO_SENSORS = SensorSnapshot(None, None, ())
 _NO_POINTS = np.zeros((0, 2))
 
-READ, ODOMETRY, PARTITION, PLANNER, SAFETY, WRITE = (STAGES.index(s) for s in STAGES)
+READ, ODOMETRY, PARTITION, PLANNER, SAFETY, WRITE = range(len(STAGES))
+#: While the base still reports a lost command stream after a fresh enable (its next 0x211 is
+#: up to 100 ms away), enable again at most this often.
+RESTART_RETRY_S = 0.5
+#: The supervisor's stops are logged once per episode of stops: `supervisor_clear` only after
+#: this many ticks in a row without one (in a tight passage it stops and lets go tick by tick).
+SUPERVISOR_CLEAR_TICKS = 10
 
 
 class ControllerState(IntEnum):
@@ -72,7 +79,6 @@ class NavigationController:
     ) -> None:
         """lockstep: the clock is simulated time; nothing that decides behaviour may read the wall
         clock (solver caps are iteration counts). False on the robot and in real-time HIL."""
-        self.lockstep = lockstep
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
@@ -84,18 +90,19 @@ class NavigationController:
         self.state = ControllerState.INITIALIZING
         self.events = EventLog()
         self.odometry = WheelGyroOdometry(robot.drive.track_m, robot.drive.skid_steer_yaw_factor)
-        self.mode = config.planner.mode
+        self.mode_name = config.planner.mode  # the configured planner mode (a name)
         uses_sensors = sensors is not None
         op = config.planner.obstacle_points
         self.monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=uses_sensors, uses_imu=uses_sensors)
         # P_fix in the odom frame (every lidar point is fixed until the VPP partition lands).
         self.points_fix = _NO_POINTS
-        self.points_fix_stamp_s: float | None = None
         self.obstacles = ObstaclePointExtractor(
             robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
         )
-        self.supervisor = None
-        self.modes = self._build_modes()
+        stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps))
+        self.supervisor = stack.supervisor
+        self.last_safety = None
+        self.modes = ModeSelector(stack.normal, stack.recovery, config.recovery, self.events)
         self.limiter = CommandLimiter(
             robot.limits.max_linear_speed_mps,
             robot.body_max_angular_speed_radps,
@@ -114,55 +121,17 @@ class NavigationController:
         self.hold_reason: str | None = None
         self._held_streams: list[str] = []
         self._restart_pending = False
+        self._last_restart_s = -math.inf
         self.last_decision = ModeDecision()
         self.blocked_since_s: float | None = None
+        self._supervisor_stopping = False
+        self._supervisor_clear_ticks = 0
         # Counters (never reset).
         self.hold_ticks = 0
         self.blocked_ticks = 0
         self.restarts = 0
         self.degraded_ticks = 0
         self._degraded = False
-
-    # -- construction ------------------------------------------------------------------------
-    def _build_modes(self) -> ModeSelector:
-        from runtime.modes.pure_pursuit import PurePursuitMode
-        from runtime.planning.pure_pursuit import PurePursuitPlanner
-
-        cfg, robot = self.config, self.robot
-        recovery = None
-        if cfg.uses_mpc:
-            normal, recovery = self._build_mpc_modes()
-        else:
-            pp = cfg.planner.pure_pursuit
-            planner = PurePursuitPlanner(
-                target_speed_mps=min(pp.target_speed_mps, robot.limits.max_linear_speed_mps),
-                lookahead_m=pp.lookahead_m,
-                goal_tolerance_m=pp.goal_tolerance_m,
-                slowdown_distance_m=pp.slowdown_distance_m,
-                max_heading_error_for_full_speed_rad=pp.max_heading_error_for_full_speed_rad,
-                max_angular_speed_radps=robot.body_max_angular_speed_radps,
-            )
-            normal = PurePursuitMode(planner, self.goal)
-        return ModeSelector(normal, recovery, cfg.recovery, self.events)
-
-    def _build_mpc_modes(self):
-        from models.distance_net import DistanceNet  # TorchScript: only when the MPC is used
-        from runtime.modes.all_fixed import AllFixedMode
-        from runtime.modes.backoff import BackoffMode
-        from runtime.planning.mpc import MpcPlanner
-        from runtime.planning.reference_path import ReferencePathPlanner
-        from runtime.safety_supervisor import SafetySupervisor
-
-        pc, rc = self.config.planner, self.config.recovery
-        self.distance_net = DistanceNet.load(pc.distance_net_path, robot=self.robot)
-        self.mpc = MpcPlanner(pc.mpc, self.robot, self.distance_net, wall_clock_caps=self.wall_clock_caps)
-        self.mpc.warm_up()  # here, not in the first tick (TorchScript optimizes on first calls)
-        self.reference = ReferencePathPlanner(pc.reference_path, self.robot)
-        self.supervisor = SafetySupervisor(pc.safety_supervisor, self.robot)
-        self.last_safety = None
-        backoff = BackoffMode(self.mpc, rc.backoff_distance_m, min(rc.backoff_speed_mps, pc.mpc.max_reverse_speed_mps),
-                              rc.backoff_timeout_s)
-        return AllFixedMode(self.reference, self.mpc), backoff
 
     # -- lifecycle ---------------------------------------------------------------------------
     def activate(self) -> None:
@@ -205,7 +174,6 @@ class NavigationController:
             self.points_fix = self.obstacles.extract(
                 scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps
             )
-            self.points_fix_stamp_s = now
         stages.mark(PARTITION)
 
         v, omega = 0.0, 0.0
@@ -230,25 +198,23 @@ class NavigationController:
         if self.state is ControllerState.STOPPED:
             return
         faults = self.faults
-        if any(f.restart for f in faults):
+        restart_faults = [f for f in faults if f.restart]
+        if restart_faults and (state is not ControllerState.INITIALIZING
+                               or now - self._last_restart_s >= RESTART_RETRY_S):
+            # (Right after a fresh enable the base's last 0x211 still says what it said before.)
             self._restart_pending = True
         if state in (ControllerState.ACTIVE, ControllerState.HOLDING):
             if faults:
                 self._hold(faults, now)
-            if self._restart_pending and not any(f.blocks_restart for f in faults):
-                self._restart(now)
-            elif not faults and state is ControllerState.HOLDING:
+            elif state is ControllerState.HOLDING and not self._restart_pending:
                 self._resume(now, "every input good again")
-        elif state is ControllerState.INITIALIZING:
-            if self._restart_pending and not any(f.blocks_restart for f in faults):
-                self._restart(now)
-            elif not faults and inputs.ready:
-                was_restart = self.restarts > 0
-                self.state = ControllerState.ACTIVE
-                self.limiter.reset()
-                self.modes.reset(now)
-                if was_restart:
-                    self.events.add(now, "resume", "start-up sequence complete")
+        if self.state in (ControllerState.HOLDING, ControllerState.INITIALIZING) and self._restart_pending:
+            # The start-up sequence, once nothing that must clear first (an E-stop) is left;
+            # repeated at most every RESTART_RETRY_S while the base still says it lost us.
+            if not any(f.blocks_restart for f in faults) and now - self._last_restart_s >= RESTART_RETRY_S:
+                self._restart(now, restart_faults)
+        elif self.state is ControllerState.INITIALIZING and not faults and inputs.ready:
+            self._resume(now, "start-up sequence complete" if self.restarts else None)
 
     def _check_latched_stops(self, inputs: BaseInputs, now: float) -> None:
         stop = self.safety_stop
@@ -258,7 +224,7 @@ class NavigationController:
             if inputs.stopping_error:
                 stop.trip(f"base reports error code 0x{inputs.error_code:04X}")
             elif self.state is not ControllerState.INITIALIZING and not inputs.in_command_mode:
-                stop.trip("base left CAN command mode (remote control or standby)")
+                stop.trip(f"base left CAN command mode (control mode {inputs.control_mode_name})")
         if stop.tripped:
             self._stop(now)
 
@@ -270,18 +236,23 @@ class NavigationController:
         self._held_streams = streams
         self.state = ControllerState.HOLDING
         self.hold_reason = reason
+        self.blocked_since_s = None  # blocked is judged again after the hold
 
-    def _resume(self, now: float, why: str) -> None:
+    def _resume(self, now: float, why: str | None) -> None:
+        """ACTIVE, from a hold or the start-up sequence: commands ramp up from zero, the mode
+        plans afresh. `why` None: the first start (no event)."""
         self.state = ControllerState.ACTIVE
         self.hold_reason = None
         self._held_streams = []
         self.limiter.reset()
         self.modes.reset(now)
-        self.events.add(now, "resume", why)
+        if why is not None:
+            self.events.add(now, "resume", why)
 
-    def _restart(self, now: float) -> None:
+    def _restart(self, now: float, faults: list[InputFault]) -> None:
         """The start-up sequence again: a fresh enable, the command ramps from zero."""
         self._restart_pending = False
+        self._last_restart_s = now
         self.restarts += 1
         self.hold_reason = None
         self._held_streams = []
@@ -289,12 +260,15 @@ class NavigationController:
         self.hardware.activate()
         self._activated_at_s = now
         self.state = ControllerState.INITIALIZING
-        self.events.add(now, "restart", "base ready again: fresh enable (0x421), commands ramp from zero")
+        why = "; ".join(f.reason for f in faults) if faults else "E-stop cleared"
+        self.events.add(now, "restart", f"{why}: fresh enable (0x421), commands ramp from zero")
 
     # -- odometry ----------------------------------------------------------------------------
     def _update_odometry(self, inputs: BaseInputs, sensors: SensorSnapshot) -> None:
-        if self.state is ControllerState.INITIALIZING:
-            self.odometry.calibrate_bias(sensors.imu)  # standing still: learn the gyro bias
+        if self.state is ControllerState.INITIALIZING and self.restarts == 0:
+            # Standing still before the first start: learn the gyro bias. (After a restart the
+            # robot may still be rolling: keep integrating the pose instead.)
+            self.odometry.calibrate_bias(sensors.imu)
         else:
             self.pose = self.odometry.update_with_imu(inputs.odometry, sensors.imu)
 
@@ -311,8 +285,11 @@ class NavigationController:
             self.blocked_ticks += 1
             if self.blocked_since_s is None:
                 self.blocked_since_s = now
+                self.events.add(now, "blocked", f"no path to the goal in the local map ({d.note}): holding still")
             return 0.0, 0.0
-        self.blocked_since_s = None
+        if self.blocked_since_s is not None:
+            self.blocked_since_s = None
+            self.events.add(now, "unblocked", "a path to the goal again")
         if d.degraded != self._degraded:
             self._degraded = d.degraded
             if d.degraded:
@@ -327,10 +304,7 @@ class NavigationController:
         state = self.state
         if state is ControllerState.ACTIVE:
             if self.supervisor is not None:
-                pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
-                decision = self.supervisor.check(pose, np.array([v, omega]), self.points_fix)
-                self.last_safety = decision
-                v, omega = float(decision.command_out[0]), float(decision.command_out[1])
+                v, omega = self._supervise(v, omega)
             return self.limiter.limit(v, omega, self.period_s)
         if state is ControllerState.GOAL_REACHED:
             return self.limiter.limit(0.0, 0.0, self.period_s)  # ramp down at the limits
@@ -340,6 +314,24 @@ class NavigationController:
             self.hold_ticks += 1
         self.limiter.reset()
         return 0.0, 0.0
+
+    def _supervise(self, v: float, omega: float) -> tuple[float, float]:
+        """The independent check of the command against P_fix (Nav2's collision monitor)."""
+        pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
+        decision = self.supervisor.check(pose, np.array([v, omega]), self.points_fix)
+        self.last_safety = decision
+        if decision.stopped:
+            self._supervisor_clear_ticks = 0
+            if not self._supervisor_stopping:
+                self._supervisor_stopping = True
+                self.events.add(self.clock(), "supervisor_stop", decision.reason)
+        elif self._supervisor_stopping:
+            self._supervisor_clear_ticks += 1
+            if self._supervisor_clear_ticks >= SUPERVISOR_CLEAR_TICKS:
+                self._supervisor_stopping = False
+                self.events.add(self.clock(), "supervisor_clear",
+                                f"no supervisor stop for {SUPERVISOR_CLEAR_TICKS} ticks")
+        return float(decision.command_out[0]), float(decision.command_out[1])
 
     def _goal_reached(self, now: float) -> None:
         self.state = ControllerState.GOAL_REACHED
@@ -372,26 +364,12 @@ class NavigationController:
     def stop_reason(self) -> str | None:
         return self.safety_stop.tripped_reason
 
-    @property
-    def last_plan(self):
-        """The MPC's last PlanResult (all-fixed mode), for tracing; None before the first."""
-        return getattr(self.modes.normal, "last_plan", None)
-
-    @property
-    def last_reference(self):
-        return getattr(self.modes.normal, "last_reference", None)
-
-    @property
-    def stale_scan_holds(self) -> int:
-        """Ticks held still for lack of a fresh, good lidar frame (an older counter's name)."""
-        return self.hold_ticks
-
     def describe(self) -> dict:
         """Counters and state for the episode metrics (JSON-ready)."""
         now = self.clock()
         d = self.last_decision
         out = {
-            "mode": self.mode,
+            "mode": self.mode_name,
             "active_mode": self.modes.mode_name,
             "state": self.state.name,
             "stop_reason": self.stop_reason,
@@ -403,10 +381,7 @@ class NavigationController:
             "blocked_for_s": 0.0 if self.blocked_since_s is None else now - self.blocked_since_s,
             "restarts": self.restarts,
             "degraded_ticks": self.degraded_ticks,
-            "stalls": self.modes.stall.stalls,
-            "stalled_now": self.modes.stall.stalled,
             "no_progress_s": self.modes.stall.no_progress_s(now) if self.state is ControllerState.ACTIVE else 0.0,
-            "backoffs": self.modes.backoffs,
             "lidar_frames_refused": self.monitor.frames_refused,
             "pose_odom": [self.pose.x_m, self.pose.y_m, self.pose.yaw_rad],
             "goal_odom": [self.goal.x_m, self.goal.y_m, self.goal.yaw_rad],
@@ -414,13 +389,7 @@ class NavigationController:
             "distance_to_goal_m": self._goal_distance_m(),
             "events_dropped": self.events.dropped,
         }
-        if self.config.uses_mpc:
-            out.update(
-                mpc_plans=self.mpc.plans,
-                mpc_capped_solves=self.mpc.capped_solves,
-                mpc_fallbacks=self.mpc.fallbacks,
-                reference_replans=self.reference.replans,
-                safety_stops=self.supervisor.stops,
-                safety_slowdowns=self.supervisor.slowdowns,
-            )
+        out.update(self.modes.counters())
+        if self.supervisor is not None:
+            out.update(safety_stops=self.supervisor.stops, safety_slowdowns=self.supervisor.slowdowns)
         return out

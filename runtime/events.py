@@ -12,6 +12,10 @@ Event names:
   E-stop or a base that lost our command stream.
 - `safety_stop`: a latched stop (deadline misses in real time, a base fault, the base left
   command mode, no base at start-up); only a new run clears it.
+- `blocked` / `unblocked`: no path to the goal in the local map (the robot holds still) / a
+  path again.
+- `supervisor_stop` / `supervisor_clear`: the safety supervisor replaced the planner's command by
+  a stop / no stop for 10 ticks in a row (once per episode of stops, not per tick).
 - `stall`: no progress towards the goal with a valid reference path; `backoff`: the recovery
   reverses along the recorded path; `backoff_end`: it is done and the planner replans.
 - `degraded` / `restored`: the planner falls back to the previous plan (a failed solve).

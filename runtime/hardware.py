@@ -50,6 +50,7 @@ class BaseInputs:
     odometry_age_s: float = 0.0  # 0x311
     vehicle_state: int | None = protocol.VEHICLE_STATE_NORMAL  # 0x211 byte 0; None before any 0x211
     system_state_flags: tuple[str, ...] = ()  # 0x211 fields outside their documented range
+    control_mode: int | None = protocol.CONTROL_MODE_CAN  # 0x211 byte 1; None before any 0x211
 
     @property
     def ready(self) -> bool:
@@ -74,6 +75,14 @@ class BaseInputs:
     def vehicle_normal(self) -> bool:
         """0x211 reports a normal vehicle state (an unknown or flagged state is not normal)."""
         return self.vehicle_state == protocol.VEHICLE_STATE_NORMAL and "vehicle_state" not in self.system_state_flags
+
+    @property
+    def control_mode_name(self) -> str:
+        if self.control_mode is None:
+            return "unknown (no 0x211 yet)"
+        name = protocol.CONTROL_MODE_NAMES.get(self.control_mode, "unknown")
+        flagged = ", flagged out of range" if "control_mode" in self.system_state_flags else ""
+        return f"{self.control_mode}: {name}{flagged}"
 
     @property
     def vehicle_state_name(self) -> str:
@@ -131,6 +140,7 @@ class AgileXBaseHardware:
             odometry_age_s=driver.frame_age_s(protocol.ID_ODOMETRY, now_s),
             vehicle_state=driver.vehicle_state,
             system_state_flags=driver.system_state_flags,
+            control_mode=mode,
             stamp_s=now_s,
             feedback_lost=driver.feedback_lost,
             ever_received_motion_state=motion is not None,

@@ -16,7 +16,8 @@ Streams and rules:
   return within the planner's range, and in every azimuth sector at least
   `min_sector_return_fraction` of that sector's rays (a blind frame, or a frame whose returns
   all lie beyond the planner's range, is not an empty room). A frame refused at the inbox
-  (invalid, frozen) is a fault until a good frame arrives, and the newest good frame must be
+  (invalid, frozen), stamped in the future or arriving too old is a fault until
+  `resume_after_good_frames` good frames in a row arrive, and the newest good frame must be
   younger than `max_age_frames` frame periods.
 
 Everything here is judged on the controller's clock (simulated time in lockstep), so the
@@ -51,9 +52,13 @@ class LidarInputConfig(BaseModel):
     min_sector_return_fraction: float = Field(default=0.0, ge=0.0, le=1.0)
     #: Returns nearer than this are the sensor's own housing or dirt, not a measurement.
     min_range_m: float = Field(default=0.1, ge=0.0, le=5.0)
+    #: The sensor's frame period (its configuration, not what a frame claims about itself).
+    frame_period_s: float = Field(default=0.1, gt=0.0, le=1.0)
     #: The obstacle set is stale when the newest good frame ended more than this many frame
     #: periods ago (a 10 Hz lidar: 0.3 s).
     max_age_frames: float = Field(default=3.0, gt=0.0, le=100.0)
+    #: After a problem, this many good frames in a row before the lidar counts as good again.
+    resume_after_good_frames: int = Field(default=2, ge=1, le=100)
 
 
 class InputsConfig(BaseModel):
@@ -66,6 +71,9 @@ class InputsConfig(BaseModel):
     odometry_timeout_s: float = Field(default=0.1, gt=0.0, le=5.0, description="0x311")
     system_state_timeout_s: float = Field(default=0.35, gt=0.0, le=5.0, description="0x211")
     imu_timeout_s: float = Field(default=0.05, gt=0.0, le=5.0)
+    #: A sample or frame stamped later than now plus this is refused (a clock gone wrong must
+    #: not make data look fresh for as long as it is wrong).
+    future_tolerance_s: float = Field(default=0.01, ge=0.0, le=1.0)
     lidar: LidarInputConfig = LidarInputConfig()
 
 
@@ -132,10 +140,9 @@ class InputMonitor:
         self._last_imu_stamp_s: float | None = None
         self._imu_fault: str | None = None
         self._lidar_good_end_s: float | None = None  # end of the newest good frame
-        self._lidar_period_s = 0.1
-        self._lidar_fault: str | None = None  # the last frame's problem, until a good frame
+        self._lidar_fault: str | None = None  # the last problem, until enough good frames
+        self._lidar_good_streak = 0  # good frames since the last problem
         self.good_scan: LidarScan | None = None  # the good frame of this tick (None if none)
-        self.frames_judged = 0
         self.frames_refused = 0
 
     # -- per stream ---------------------------------------------------------------------------
@@ -160,49 +167,76 @@ class InputMonitor:
                                       blocks_restart=False))
 
     def _imu_faults(self, snapshot: SensorSnapshot, now_s: float, out: list[InputFault]) -> None:
+        """Every sample of the tick is judged: one saturated or refused sample among ten good ones
+        still faults this tick; a tick whose samples are all good clears it."""
+        c = self.config
+        problem: str | None = None
         for rej in snapshot.rejected:
             if rej.stream == "imu":
-                self._imu_fault = f"IMU sample rejected: {rej.message}"
-        for s in snapshot.imu:
-            self._last_imu_stamp_s = s.stamp_s
-            if getattr(s, "saturated", False):
-                self._imu_fault = "IMU saturated"
-            else:
-                self._imu_fault = None
+                problem = f"IMU sample rejected: {rej.message}"
+        for smp in snapshot.imu:
+            if smp.stamp_s > now_s + c.future_tolerance_s:
+                problem = f"IMU sample stamped {smp.stamp_s - now_s:.3f} s in the future"
+                continue  # never counts as fresh
+            self._last_imu_stamp_s = smp.stamp_s
+            if getattr(smp, "saturated", False):
+                problem = "IMU saturated"
+        if problem is not None or snapshot.imu:
+            self._imu_fault = problem
         last = self._last_imu_stamp_s
         age = math.inf if last is None else now_s - last
-        if age > self.config.imu_timeout_s:
+        if age > c.imu_timeout_s:
             detail = "no sample yet" if last is None else f"no sample for {age:.3f} s"
-            out.append(InputFault("imu", f"IMU stale ({detail}, timeout {self.config.imu_timeout_s:g} s)"))
+            out.append(InputFault("imu", f"IMU stale ({detail}, timeout {c.imu_timeout_s:g} s)"))
         elif self._imu_fault is not None:
             out.append(InputFault("imu", self._imu_fault))
 
-    def _lidar_faults(self, snapshot: SensorSnapshot, now_s: float, out: list[InputFault]) -> None:
-        c = self.config.lidar
-        self.good_scan = None
+    def _lidar_problem(self, snapshot: SensorSnapshot, now_s: float) -> tuple[str | None, LidarScan | None]:
+        """This tick's lidar problem (None if none) and its good frame (None if none)."""
+        c = self.config
+        problem = None
         for rej in snapshot.rejected:
             if rej.stream == "lidar":
                 self.frames_refused += 1
                 what = "lidar frozen (repeated frame)" if rej.name == "frozen_frame" else "lidar frame rejected"
-                self._lidar_fault = f"{what}: {rej.message}"
+                problem = f"{what}: {rej.message}"
         scan = snapshot.scan
-        if scan is not None:
-            self.frames_judged += 1
-            verdict = judge_lidar_frame(scan, c, self.planner_range_m)
+        if scan is None:
+            return problem, None
+        end = scan.stamp_s + scan.frame_duration_s
+        max_age = c.lidar.max_age_frames * c.lidar.frame_period_s
+        if end > now_s + c.future_tolerance_s:
+            reason = f"lidar frame stamped in the future (it ends {end - now_s:.3f} s after now)"
+        elif now_s - end > max_age:
+            reason = f"lidar stale (a frame arrived {now_s - end:.2f} s after its end, limit {max_age:.2f} s)"
+        else:
+            verdict = judge_lidar_frame(scan, c.lidar, self.planner_range_m)
             if verdict.ok:
+                return problem, scan
+            reason = verdict.reason
+        self.frames_refused += 1
+        return reason, None
+
+    def _lidar_faults(self, snapshot: SensorSnapshot, now_s: float, out: list[InputFault]) -> None:
+        """A problem holds until `resume_after_good_frames` good frames in a row (hysteresis: a
+        lidar that is blind every other frame keeps the robot stopped, it does not jerk it)."""
+        c = self.config.lidar
+        problem, good = self._lidar_problem(snapshot, now_s)
+        self.good_scan = good
+        if problem is not None:
+            self._lidar_fault = problem
+            self._lidar_good_streak = 0
+        elif good is not None:
+            self._lidar_good_end_s = good.stamp_s + good.frame_duration_s
+            self._lidar_good_streak += 1
+            if self._lidar_good_streak >= c.resume_after_good_frames:
                 self._lidar_fault = None
-                self._lidar_good_end_s = scan.stamp_s + scan.frame_duration_s
-                self._lidar_period_s = scan.frame_duration_s
-                self.good_scan = scan
-            else:
-                self.frames_refused += 1
-                self._lidar_fault = verdict.reason
         if self._lidar_fault is not None:
             out.append(InputFault("lidar", self._lidar_fault))
             return
         end = self._lidar_good_end_s
         age = math.inf if end is None else now_s - end
-        max_age = c.max_age_frames * self._lidar_period_s
+        max_age = c.max_age_frames * c.frame_period_s
         if age > max_age:
             detail = "no good frame yet" if end is None else f"newest good frame ended {age:.2f} s ago"
             out.append(InputFault("lidar", f"lidar stale ({detail}, limit {max_age:.2f} s)"))

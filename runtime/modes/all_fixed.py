@@ -5,7 +5,7 @@ adds the DCT mode beside it, with only the non-touchable points in P_fix.
 """
 from __future__ import annotations
 
-from runtime.modes.base import ModeDecision, Situation
+from runtime.modes.base import ModeContext, ModeDecision, ModeStack, Situation
 from runtime.planning.mpc import MpcPlanner, PlanResult
 from runtime.planning.reference_path import ReferencePathPlanner, ReferenceUpdate
 
@@ -23,6 +23,14 @@ class AllFixedMode:
         self.mpc.reset()
         self.reference.reset()
 
+    def counters(self) -> dict:
+        return {
+            "mpc_plans": self.mpc.plans,
+            "mpc_capped_solves": self.mpc.capped_solves,
+            "mpc_fallbacks": self.mpc.fallbacks,
+            "reference_replans": self.reference.replans,
+        }
+
     def plan(self, s: Situation) -> ModeDecision:
         ref = self.reference.update(s.pose, s.goal_xy, s.points_fix)
         self.last_reference = ref
@@ -37,3 +45,20 @@ class AllFixedMode:
             float(plan.commands[0, 0]), float(plan.commands[0, 1]), remaining_m=ref.remaining_m,
             degraded=plan.fallback, note=plan.solve_status,
         )
+
+
+def build(ctx: ModeContext) -> ModeStack:
+    """The distance net (checked against the robot's footprint), the MPC warmed up, the
+    reference path, the backoff recovery sharing the MPC, and the safety supervisor."""
+    from models.distance_net import DistanceNet  # TorchScript: only when the MPC is used
+    from runtime.modes.backoff import BackoffMode
+    from runtime.safety_supervisor import SafetySupervisor
+
+    pc, rc, robot = ctx.config.planner, ctx.config.recovery, ctx.robot
+    net = DistanceNet.load(pc.distance_net_path, robot=robot)
+    mpc = MpcPlanner(pc.mpc, robot, net, wall_clock_caps=ctx.wall_clock_caps)
+    mpc.warm_up()  # here, not in the first tick (TorchScript optimizes on its first calls)
+    reference = ReferencePathPlanner(pc.reference_path, robot)
+    backoff = BackoffMode(mpc, rc.backoff_distance_m, min(rc.backoff_speed_mps, pc.mpc.max_reverse_speed_mps),
+                          rc.backoff_timeout_s)
+    return ModeStack(AllFixedMode(reference, mpc), backoff, SafetySupervisor(pc.safety_supervisor, robot))

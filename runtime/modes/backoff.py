@@ -72,6 +72,9 @@ class BackoffMode:
         self._path: np.ndarray | None = None
         self._cum: np.ndarray | None = None
         self._started_s = 0.0
+        self._s = np.zeros(H + 1)
+        self._speed = np.zeros(H + 1)
+        self._ref = np.zeros((H + 1, 3))
 
     def reset(self) -> None:
         self._path = None
@@ -97,16 +100,18 @@ class BackoffMode:
         """(H+1, 3) waypoints along the way back, speed -v_rev, slowing to stop at its end."""
         path, cum = self._path, self._cum
         d = np.hypot(path[:, 0] - xy[0], path[:, 1] - xy[1])
-        s0 = float(cum[int(np.argmin(d))])
         total = float(cum[-1])
-        ref = np.empty((self._H + 1, 3))
-        s = s0
-        for h in range(self._H + 1):  # H+1 scalar steps
-            v = min(self.speed_mps, math.sqrt(2.0 * self.mpc.limits.accel_mps2 * max(total - s, 0.0)))
-            ref[h, 0] = np.interp(s, cum, path[:, 0])
-            ref[h, 1] = np.interp(s, cum, path[:, 1])
-            ref[h, 2] = -v
-            s = min(total, s + v * self._dt)
+        s = self._s
+        speed = self._speed
+        s[0] = float(cum[int(np.argmin(d))])
+        for h in range(self._H + 1):  # H+1 scalar steps (arc length and speed), not points
+            speed[h] = min(self.speed_mps, math.sqrt(2.0 * self.mpc.limits.accel_mps2 * max(total - s[h], 0.0)))
+            if h < self._H:
+                s[h + 1] = min(total, s[h] + speed[h] * self._dt)
+        ref = self._ref
+        ref[:, 0] = np.interp(s, cum, path[:, 0])
+        ref[:, 1] = np.interp(s, cum, path[:, 1])
+        ref[:, 2] = -speed
         return ref
 
     def plan(self, s: Situation) -> ModeDecision:

@@ -1,9 +1,9 @@
-"""The interface every navigation mode implements."""
+"""The interface every navigation mode implements, and what a mode's builder returns."""
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -42,3 +42,26 @@ class NavigationMode(Protocol):
 
     def reset(self) -> None:
         """Forget any plan in progress (after a stop, a restart or a switch of mode)."""
+
+    def counters(self) -> dict[str, Any]:
+        """JSON-ready counters for the episode report (plans, fallbacks, ...)."""
+
+
+@dataclass(frozen=True)
+class ModeContext:
+    """What a mode's builder may use."""
+
+    robot: Any  # calibration.robot_description.RobotDescription
+    config: Any  # runtime.config.ControllerConfig
+    goal: Any  # runtime.geometry.Pose2D in the odom frame
+    wall_clock_caps: bool  # False in lockstep: iteration caps only
+
+
+@dataclass
+class ModeStack:
+    """A planner mode as the controller runs it: the mode, its stall recovery (or None), and the
+    safety supervisor that checks its commands against P_fix (or None for a sensorless mode)."""
+
+    normal: NavigationMode
+    recovery: Any = None  # runtime.modes.backoff.BackoffMode
+    supervisor: Any = None  # runtime.safety_supervisor.SafetySupervisor

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 
 from runtime.geometry import Pose2D
-from runtime.modes.base import ModeDecision, Situation
+from runtime.modes.base import ModeContext, ModeDecision, ModeStack, Situation
 from runtime.planning.pure_pursuit import PurePursuitPlanner
 
 
@@ -16,7 +16,10 @@ class PurePursuitMode:
         self.goal = goal
 
     def reset(self) -> None:
-        self.planner._start = None  # the next plan starts its line at the robot
+        self.planner.reset(None)  # the next plan starts its line at the robot
+
+    def counters(self) -> dict:
+        return {}
 
     def plan(self, s: Situation) -> ModeDecision:
         pose = Pose2D(float(s.pose[0]), float(s.pose[1]), float(s.pose[2]))
@@ -25,3 +28,17 @@ class PurePursuitMode:
             return ModeDecision(at_goal=True, remaining_m=0.0)
         remaining = math.hypot(self.goal.x_m - pose.x_m, self.goal.y_m - pose.y_m)
         return ModeDecision(cmd.v_mps, cmd.omega_radps, remaining_m=remaining)
+
+
+def build(ctx: ModeContext) -> ModeStack:
+    """No sensors, no supervisor, no recovery: the placeholder it always was."""
+    pp, robot = ctx.config.planner.pure_pursuit, ctx.robot
+    planner = PurePursuitPlanner(
+        target_speed_mps=min(pp.target_speed_mps, robot.limits.max_linear_speed_mps),
+        lookahead_m=pp.lookahead_m,
+        goal_tolerance_m=pp.goal_tolerance_m,
+        slowdown_distance_m=pp.slowdown_distance_m,
+        max_heading_error_for_full_speed_rad=pp.max_heading_error_for_full_speed_rad,
+        max_angular_speed_radps=robot.body_max_angular_speed_radps,
+    )
+    return ModeStack(PurePursuitMode(planner, ctx.goal))

@@ -92,6 +92,10 @@ class ModeSelector:
     def mode_name(self) -> str:
         return self.active.name
 
+    def counters(self) -> dict:
+        return {**self.normal.counters(), "stalls": self.stall.stalls, "stalled_now": self.stall.stalled,
+                "backoffs": self.backoffs}
+
     def reset(self, now_s: float) -> None:
         """After a stop or a restart: the normal mode, a fresh plan, the stall clock from now."""
         if self.active is not self.normal and self.recovery is not None:

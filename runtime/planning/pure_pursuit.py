@@ -36,7 +36,8 @@ class PurePursuitPlanner:
         self.max_angular_speed_radps = max_angular_speed_radps
         self._start: Pose2D | None = None
 
-    def reset(self, start: Pose2D) -> None:
+    def reset(self, start: Pose2D | None) -> None:
+        """Start the line at `start` (None: at the robot's pose on the next plan)."""
         self._start = start
 
     def plan(self, pose: Pose2D, goal: Pose2D) -> PurePursuitCommand:

@@ -117,7 +117,7 @@ def test_estop_stops_and_clearing_it_restarts_the_start_up_sequence():
 
 def test_a_permanent_estop_is_the_failure_reason():
     m = run_episode(_short("case1", 3.0), seed=0, faults=[FaultSpec("estop", 0.5)]).metrics
-    assert not m["success"] and m["failure_reason"] == "sensor stale: E-stop (held still at the time limit)"
+    assert not m["success"] and m["failure_reason"] == "base not ready: E-stop (held still at the time limit)"
 
 
 # -- lockstep verdicts do not depend on the machine's load ----------------------------------------

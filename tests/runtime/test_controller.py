@@ -247,9 +247,20 @@ def test_base_that_lost_our_command_stream_is_re_enabled_not_latched():
     assert "0x0200" in ctl.events.last("stop").reason
     run_ticks(ctl, base, 3)
     assert ctl.state is ControllerState.INITIALIZING  # the bit is still reported: wait
+    assert base.activations == 2 and ctl.restarts == 1  # no enable per tick while it is
     base.error_code = 0  # the fresh enable cleared it
     run_ticks(ctl, base, 1)
     assert ctl.state is ControllerState.ACTIVE
+    assert [e for e, _ in events(ctl)].count("restart") == 1
+
+
+def test_a_base_that_keeps_saying_it_lost_us_is_re_enabled_at_a_bounded_rate():
+    ctl, base, _ = make(goal=Pose2D(20.0, 0.0, 0.0))
+    run_ticks(ctl, base, 5)
+    base.error_code = p.ERROR_HOST_COMM_LOST
+    run_ticks(ctl, base, 40)  # 2 s
+    assert ctl.state is ControllerState.INITIALIZING and all(w == (0.0, 0.0) for w in base.writes[-40:])
+    assert 3 <= ctl.restarts <= 5  # every 0.5 s, not every tick
 
 
 def test_base_fault_bit_latches_stopped():

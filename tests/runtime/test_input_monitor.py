@@ -73,11 +73,51 @@ def test_monitor_names_frozen_then_stale_then_resumes_on_a_good_frame():
     faults = mon.check(fresh_inputs(0.3), SensorSnapshot(None, None, ()), 0.3)
     assert faults and faults[0].reason.startswith("lidar frozen")  # until a good frame arrives
     inbox.put_scan(ring_scan(0.3))
-    assert mon.check(fresh_inputs(0.4), inbox.take(), 0.4) == ()
-    # No frame at all: stale after max_age_frames (3) periods after the newest frame's end (0.4 s).
-    assert mon.check(fresh_inputs(0.69), SensorSnapshot(None, None, ()), 0.69) == ()
-    faults = mon.check(fresh_inputs(0.71), SensorSnapshot(None, None, ()), 0.71)
+    faults = mon.check(fresh_inputs(0.4), inbox.take(), 0.4)
+    assert faults and faults[0].reason.startswith("lidar frozen")  # one good frame is not enough
+    inbox.put_scan(ring_scan(0.4))
+    assert mon.check(fresh_inputs(0.5), inbox.take(), 0.5) == ()  # the second in a row is
+    # No frame at all: stale after max_age_frames (3) periods after the newest frame's end (0.5 s).
+    assert mon.check(fresh_inputs(0.79), SensorSnapshot(None, None, ()), 0.79) == ()
+    faults = mon.check(fresh_inputs(0.81), SensorSnapshot(None, None, ()), 0.81)
     assert faults and faults[0].reason.startswith("lidar stale")
+
+
+def test_a_frame_or_sample_stamped_in_the_future_never_counts_as_fresh():
+    """One frame stamped 30 s ahead must not switch the staleness watchdog off for 30 s."""
+    mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=True, uses_imu=True)
+    inbox = SensorInbox()
+    imu = ImuSample(0.095, np.zeros(3), np.array([0, 0, 9.81]))
+    inbox.put_scan(ring_scan(0.0))
+    inbox.put_imu(imu)
+    assert mon.check(fresh_inputs(0.1), inbox.take(), 0.1) == ()
+    inbox.put_scan(ring_scan(0.1))
+    inbox.put_imu(ImuSample(0.195, np.zeros(3), np.array([0, 0, 9.81])))
+    assert mon.check(fresh_inputs(0.2), inbox.take(), 0.2) == ()
+    inbox.put_scan(ring_scan(30.0))
+    inbox.put_imu(ImuSample(30.0, np.zeros(3), np.array([0, 0, 9.81])))
+    faults = {f.stream: f.reason for f in mon.check(fresh_inputs(0.21), inbox.take(), 0.21)}
+    assert "in the future" in faults["lidar"] and "in the future" in faults["imu"]
+    later = {f.stream: f.reason for f in mon.check(fresh_inputs(0.6), SensorSnapshot(None, None, ()), 0.6)}
+    assert "lidar" in later and "IMU stale" in later["imu"]
+
+
+def test_a_frame_that_arrives_too_old_is_stale():
+    mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=True, uses_imu=False)
+    inbox = SensorInbox()
+    inbox.put_scan(ring_scan(0.0))
+    (f,) = mon.check(fresh_inputs(1.0), inbox.take(), 1.0)
+    assert f.reason.startswith("lidar stale (a frame arrived 0.90 s after its end")
+
+
+def test_a_lidar_blind_every_other_frame_keeps_the_robot_stopped():
+    mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=True, uses_imu=False)
+    verdicts = []
+    for k in range(10):
+        t = 0.1 * k
+        scan = ring_scan(t) if k % 2 == 0 else ring_scan(t, n=10, noise=0.0)
+        verdicts.append(mon.check(fresh_inputs(t + 0.1), SensorSnapshot(scan, None, ()), t + 0.1) == ())
+    assert verdicts[0] and not any(verdicts[1:])
 
 
 def test_monitor_never_treats_never_received_as_fresh():
@@ -98,8 +138,17 @@ def test_imu_staleness_and_saturation():
     faults = mon.check(fresh_inputs(1.06), SensorSnapshot(None, None, ()), 1.06)
     assert faults[0].reason.startswith("IMU stale (no sample for 0.060 s")
     sat = ImuSample(1.07, np.array([0.0, 0.0, 30.0]), np.zeros(3), saturated=True)
-    faults = mon.check(fresh_inputs(1.07), SensorSnapshot(None, None, (sat,)), 1.07)
-    assert [f.reason for f in faults] == ["IMU saturated"]
+    good = ImuSample(1.075, np.zeros(3), np.array([0, 0, 9.81]))
+    faults = mon.check(fresh_inputs(1.08), SensorSnapshot(None, None, (sat, good)), 1.08)
+    assert [f.reason for f in faults] == ["IMU saturated"]  # not hidden by a later good sample
+    from runtime.sensor_inbox import Rejection
+
+    rej = Rejection("imu", "non_finite", "[non_finite] gyro_radps: non-finite value", 1.085)
+    later = ImuSample(1.09, np.zeros(3), np.array([0, 0, 9.81]))
+    faults = mon.check(fresh_inputs(1.1), SensorSnapshot(None, None, (later,), (rej,)), 1.1)
+    assert faults[0].reason.startswith("IMU sample rejected")
+    assert mon.check(fresh_inputs(1.15), SensorSnapshot(None, None, (ImuSample(1.14, np.zeros(3), np.zeros(3)),)),
+                     1.15) == ()
 
 
 def test_base_state_faults_need_a_restart():
