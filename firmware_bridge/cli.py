@@ -41,7 +41,9 @@ def _one_line(ctx: click.Context, exc: click.UsageError) -> OneLineUsageError:
     return OneLineUsageError(f"{ctx.command_path}: {exc.format_message()} (see --help)")
 
 
-class _OneLineCommand(click.Command):
+class _OneLineUsage:
+    """Mixin: usage errors while parsing arguments come out as one line (help stays help)."""
+
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
         try:
             return super().parse_args(ctx, args)
@@ -51,17 +53,13 @@ class _OneLineCommand(click.Command):
             raise _one_line(ctx, exc) from None
 
 
-class _OneLineGroup(click.Group):
+class _OneLineCommand(_OneLineUsage, click.Command):
+    pass
+
+
+class _OneLineGroup(_OneLineUsage, click.Group):
     command_class = _OneLineCommand
     group_class = type  # sub-groups are _OneLineGroup too
-
-    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        try:
-            return super().parse_args(ctx, args)
-        except click.exceptions.NoArgsIsHelpError:
-            raise
-        except click.UsageError as exc:
-            raise _one_line(ctx, exc) from None
 
     def resolve_command(self, ctx: click.Context, args: list[str]) -> Any:
         try:
