@@ -76,9 +76,11 @@ class LazyCalibrateGroup(click.Group):
         try:
             return ep.load()
         except ImportError as exc:
-            @click.command(name=name, help=f"(unavailable: {exc})")
+            why = str(exc)  # `exc` is unbound after the except block; the command runs later
+
+            @click.command(name=name, help=f"(unavailable: {why})")
             def unavailable() -> None:
-                raise OneLineError(f"calibrate command '{name}' cannot be loaded: {exc}")
+                raise OneLineError(f"calibrate command '{name}' cannot be loaded: {why}")
 
             return unavailable
 

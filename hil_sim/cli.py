@@ -1,7 +1,6 @@
 """`dct hil` (run scenarios in the simulator) and `dct bench` (benchmarks that print figures)."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 

@@ -12,7 +12,6 @@ problem built once with Parameters and re-solved each alternation (cvxpy is benc
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import numpy as np

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 import uuid
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Protocol
+from typing import TYPE_CHECKING, Callable, Iterable, Protocol
 
 import can
 
@@ -29,6 +29,9 @@ from runtime.hardware import AgileXBaseHardware
 from runtime.loop import FixedRateLoop
 from runtime.sensor_inbox import SensorInbox
 from runtime.telemetry import TickTelemetry
+
+if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
+    from hil_sim.sensor_rig import SensorRigConfig
 
 
 class SimulatedDevice(Protocol):

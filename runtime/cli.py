@@ -36,10 +36,11 @@ class LazyGroup(click.Group):
         try:
             return ep.load()
         except ImportError as exc:
+            why = str(exc)  # `exc` is unbound after the except block; the command runs later
             # Show the group as unavailable rather than break the whole command line.
-            @click.command(name=name, help=f"(unavailable: {exc})")
+            @click.command(name=name, help=f"(unavailable: {why})")
             def unavailable() -> None:
-                raise click.ClickException(f"command group '{name}' cannot be loaded: {exc}")
+                raise click.ClickException(f"command group '{name}' cannot be loaded: {why}")
 
             return unavailable
 

@@ -2,7 +2,6 @@
 the causes of issue 10's stalls (rows it could not meet, unreachable targets, the nominal)."""
 from __future__ import annotations
 
-from dataclasses import replace
 
 import numpy as np
 import pytest
