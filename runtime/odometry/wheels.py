@@ -1,4 +1,4 @@
-"""Odometry stage. Step 1: dead reckoning from the base's cumulative wheel distances (0x311).
+"""Wheel odometry: dead reckoning from the base's cumulative wheel distances (0x311) and the gyro.
 
 Later steps fuse KISS-ICP lidar odometry and the IMU here; the tick only asks for a pose.
 """

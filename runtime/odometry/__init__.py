@@ -1,0 +1,11 @@
+"""Odometry: where the robot is in the odom frame, from wheels, IMU and lidar.
+
+- `wheels`: dead reckoning from the base's wheel distances (0x311) and the IMU gyro.
+- `icp`: KISS-ICP lidar odometry on deskewed scans (runs beside the tick).
+- `degeneracy`: does a scan constrain the planar motion, and along which direction not.
+- `fusion`: one pose stream with a covariance from ICP, wheels and gyro.
+- `metrics`: drift and relative pose error against a reference trajectory.
+"""
+from runtime.odometry.wheels import WheelGyroOdometry, WheelOdometry
+
+__all__ = ["WheelOdometry", "WheelGyroOdometry"]
