@@ -80,10 +80,26 @@ def test_probe_set_surrounds_and_fills_the_footprint() -> None:
     assert np.any(np.all(np.abs(pts) < 1e-12, axis=1))  # the centre
 
 
+def _assert_same_record(a, b, what: str = "record") -> None:
+    """Equal, except that recomputed floats (probe outputs, error figures) may differ in the last
+    bits between CPUs (torch picks other kernels on another instruction set): within 1e-6."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), what
+        for k in a:
+            _assert_same_record(a[k], b[k], f"{what}.{k}")
+    elif isinstance(a, (list, tuple)) or isinstance(a, float):
+        np.testing.assert_allclose(np.asarray(a, dtype=float), np.asarray(b, dtype=float), rtol=0, atol=1e-6,
+                                   err_msg=what)
+    else:
+        assert a == b, what
+
+
 def test_checksum_is_stable_on_resave_and_changes_with_any_weight(tmp_path: Path, net: DistanceNet) -> None:
     resaved = save_artifact(net._module, tmp_path / "resaved.pt", net.metadata)
     again = save_artifact(DistanceNet.load(resaved)._module, tmp_path / "again.pt", net.metadata)
-    assert DistanceNet.load(again).metadata["integrity"] == net.metadata["integrity"]
+    again_record = DistanceNet.load(again).metadata["integrity"]
+    assert again_record["weights_sha256"] == net.metadata["integrity"]["weights_sha256"]
+    _assert_same_record(again_record, net.metadata["integrity"])
     module = _load_module(shipped_artifact_path())
     reference = weights_checksum(weight_tensors(module))
     seen = {reference}
@@ -218,8 +234,9 @@ def test_upgrade_of_a_version_1_artifact_keeps_the_weights(tmp_path: Path, net: 
     old = _as_version_1(shipped_artifact_path(), tmp_path / "v1.pt")
     meta = upgrade_artifact(old, tmp_path / "v2.pt", ROBOT)
     assert meta["version"] == 2 and meta["upgraded_from_version"] == 1
-    assert meta["integrity"] == net.metadata["integrity"]
-    assert meta["error_statistics"] == net.metadata["error_statistics"]
+    assert meta["integrity"]["weights_sha256"] == net.metadata["integrity"]["weights_sha256"]
+    _assert_same_record(meta["integrity"], net.metadata["integrity"])
+    _assert_same_record(meta["error_statistics"], net.metadata["error_statistics"])
     upgraded = DistanceNet.load(tmp_path / "v2.pt")
     pts = np.random.default_rng(3).uniform(-2, 2, size=(1_000, 2))
     np.testing.assert_array_equal(upgraded.dual(pts)[2], net.dual(pts)[2])
