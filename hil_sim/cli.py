@@ -114,6 +114,7 @@ def wall_clock_report(result) -> dict:
         "wall_time_s": result.wall_time_s,
         "realtime_factor": result.realtime_factor,
         **result.telemetry,
+        "odometry": result.extra.get("odometry_wall_clock"),
     }
 
 

@@ -90,17 +90,28 @@ class LockstepSimulation:
             self.step()
 
 
-class LockstepClock:
-    """The loop's clock in lockstep mode: now() is simulation time; sleeping advances physics."""
+class LockstepBarrier(Protocol):
+    """Work beside the tick that delivers at a fixed simulated latency (ICP): the simulator
+    waits for whatever is due by t_s before time t_s is reached, instead of racing it."""
 
-    def __init__(self, sim: LockstepSimulation) -> None:
+    def settle(self, t_s: float) -> None: ...
+
+
+class LockstepClock:
+    """The loop's clock in lockstep mode: now() is simulation time; sleeping advances physics
+    (and waits for every barrier's work due by then)."""
+
+    def __init__(self, sim: LockstepSimulation, barriers: Iterable[LockstepBarrier] = ()) -> None:
         self.sim = sim
+        self.barriers = list(barriers)
 
     def now(self) -> float:
         return self.sim.time_s
 
     def sleep_until(self, t_s: float) -> None:
         self.sim.advance_to(t_s)
+        for barrier in self.barriers:
+            barrier.settle(self.sim.time_s)
 
 
 def virtual_bus_pair(channel: str | None = None) -> tuple[can.BusABC, can.BusABC]:
@@ -192,6 +203,7 @@ def run_episode(
         controller_bus.shutdown()
         sim_bus.shutdown()
         raise
+    clock.barriers.append(controller.odometry)
     telemetry = TickTelemetry()
     loop = FixedRateLoop(
         clock,
@@ -268,6 +280,7 @@ def run_episode(
             "sensor_errors": dict(inbox.error_counts),
             "sensor_frames": dict(inbox.accepted),
             "faults_applied": dict(injector.applied),
+            "odometry_wall_clock": controller.odometry.wall_clock(),
         },
     )
 

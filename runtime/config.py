@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from calibration.errors import ConfigFileError, load_yaml_model
 from runtime.input_monitor import InputsConfig
 from runtime.modes.selector import RecoveryConfig
+from runtime.odometry.stage import OdometryConfig
 from runtime.planning.mpc import MpcConfig
 from runtime.planning.reference_path import ReferencePathConfig
 from runtime.safety_supervisor import SafetySupervisorConfig
@@ -101,6 +102,8 @@ class ControllerConfig(_Strict):
     inputs: InputsConfig = InputsConfig()
     #: Stall detection and the backoff recovery (runtime.modes.selector).
     recovery: RecoveryConfig = RecoveryConfig()
+    #: Wheels + gyro + KISS-ICP, fused (runtime.odometry).
+    odometry: OdometryConfig = OdometryConfig()
 
     @model_validator(mode="after")
     def _tick_matches_mpc(self) -> "ControllerConfig":

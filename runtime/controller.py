@@ -41,7 +41,7 @@ from runtime.modes.base import ModeContext, ModeDecision, Situation
 from runtime.modes.registry import build_mode
 from runtime.modes.selector import ModeSelector
 from runtime.obstacle_points import ObstaclePointExtractor
-from runtime.odometry import WheelGyroOdometry
+from runtime.odometry.stage import OdometryStage
 from runtime.safety_stop import SafetyStop
 from runtime.sensor_inbox import SensorInbox, SensorSnapshot
 from runtime.telemetry import STAGES
@@ -76,9 +76,13 @@ class NavigationController:
         clock: Callable[[], float],
         sensors: SensorInbox | None = None,
         lockstep: bool = False,
+        wheel_calibration: tuple[float, float] | None = None,
     ) -> None:
         """lockstep: the clock is simulated time; nothing that decides behaviour may read the wall
-        clock (solver caps are iteration counts). False on the robot and in real-time HIL."""
+        clock (solver caps are iteration counts, ICP results arrive at a fixed simulated latency).
+        False on the robot and in real-time HIL.
+        wheel_calibration: (effective track m, wheel scale) from the robot's calibration file
+        (`dct calibrate wheels`); None: the robot description's track x skid_steer_yaw_factor, 1.0."""
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
@@ -89,9 +93,16 @@ class NavigationController:
         self.sensors = sensors
         self.state = ControllerState.INITIALIZING
         self.events = EventLog()
-        self.odometry = WheelGyroOdometry(robot.drive.track_m, robot.drive.skid_steer_yaw_factor)
         self.mode_name = config.planner.mode  # the configured planner mode (a name)
         uses_sensors = sensors is not None
+        track_factor, wheel_scale = robot.drive.skid_steer_yaw_factor, 1.0
+        if wheel_calibration is not None:
+            track_factor = wheel_calibration[0] / robot.drive.track_m
+            wheel_scale = wheel_calibration[1]
+        self.odometry = OdometryStage(
+            config.odometry, robot.drive.track_m, track_factor, robot.sensors.lidar.mount.transform(),
+            lockstep=lockstep, events=self.events, wheel_scale=wheel_scale, uses_lidar=uses_sensors,
+        )
         op = config.planner.obstacle_points
         self.monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=uses_sensors, uses_imu=uses_sensors)
         # P_fix in the odom frame (every lidar point is fixed until the VPP partition lands).
@@ -135,6 +146,7 @@ class NavigationController:
 
     # -- lifecycle ---------------------------------------------------------------------------
     def activate(self) -> None:
+        self.odometry.start()
         self.hardware.configure()
         self.hardware.activate()
         self._activated_at_s = self.clock()
@@ -142,7 +154,10 @@ class NavigationController:
 
     def deactivate(self) -> None:
         self.command = (0.0, 0.0)
-        self.hardware.deactivate()
+        try:
+            self.hardware.deactivate()
+        finally:
+            self.odometry.close()
 
     @property
     def finished(self) -> bool:
@@ -164,7 +179,7 @@ class NavigationController:
         self._update_state(inputs, now)
         stages.mark(READ)
 
-        self._update_odometry(inputs, sensors)
+        self._update_odometry(now, inputs, sensors)
         stages.mark(ODOMETRY)
 
         scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
@@ -264,13 +279,15 @@ class NavigationController:
         self.events.add(now, "restart", f"{why}: fresh enable (0x421), commands ramp from zero")
 
     # -- odometry ----------------------------------------------------------------------------
-    def _update_odometry(self, inputs: BaseInputs, sensors: SensorSnapshot) -> None:
+    def _update_odometry(self, now: float, inputs: BaseInputs, sensors: SensorSnapshot) -> None:
+        """Wheels + gyro every tick, good lidar frames to ICP (beside the tick), the fused pose."""
+        imu = sensors.imu
         if self.state is ControllerState.INITIALIZING and self.restarts == 0:
-            # Standing still before the first start: learn the gyro bias. (After a restart the
-            # robot may still be rolling: keep integrating the pose instead.)
-            self.odometry.calibrate_bias(sensors.imu)
-        else:
-            self.pose = self.odometry.update_with_imu(inputs.odometry, sensors.imu)
+            # Standing still before the first start: learn the gyro bias (and let ICP build its
+            # first map). After a restart the robot may still be rolling: keep integrating.
+            self.odometry.calibrate_bias(imu)
+            imu = ()
+        self.pose = self.odometry.update(now, inputs.odometry, imu, self.monitor.good_scan)
 
     # -- planner stage -----------------------------------------------------------------------
     def _plan(self, now: float) -> tuple[float, float]:
@@ -388,6 +405,7 @@ class NavigationController:
             "goal_reached_at_s": self.goal_reached_at_s,
             "distance_to_goal_m": self._goal_distance_m(),
             "events_dropped": self.events.dropped,
+            "odometry": self.odometry.describe(),
         }
         out.update(self.modes.counters())
         if self.supervisor is not None:

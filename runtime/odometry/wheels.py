@@ -12,10 +12,13 @@ from runtime.geometry import Pose2D, wrap_angle
 class WheelOdometry:
     """Integrates left/right wheel distance increments (midpoint rule) into a pose in the odom frame."""
 
-    def __init__(self, track_m: float, effective_track_factor: float = 1.0) -> None:
+    def __init__(self, track_m: float, effective_track_factor: float = 1.0, wheel_scale: float = 1.0) -> None:
         if track_m <= 0.0:
             raise ValueError(f"track must be positive, got {track_m} m")
+        if not 0.5 <= wheel_scale <= 1.5:
+            raise ValueError(f"wheel scale must be in [0.5, 1.5], got {wheel_scale}")
         self.effective_track_m = track_m * effective_track_factor
+        self.wheel_scale = float(wheel_scale)
         self._last: tuple[float, float] | None = None
         self._x = self._y = self._yaw = 0.0
         self.distance_travelled_m = 0.0
@@ -30,6 +33,8 @@ class WheelOdometry:
 
     def update(self, left_wheel_m: float, right_wheel_m: float) -> Pose2D:
         """Feed the cumulative wheel distances (m); returns the new pose."""
+        left_wheel_m *= self.wheel_scale
+        right_wheel_m *= self.wheel_scale
         if self._last is None:
             self._last = (left_wheel_m, right_wheel_m)
             return self.pose
@@ -55,8 +60,8 @@ class WheelGyroOdometry(WheelOdometry):
     it is activated (`calibrate_bias`). Without IMU samples the wheel yaw is used.
     """
 
-    def __init__(self, track_m: float, effective_track_factor: float = 1.0) -> None:
-        super().__init__(track_m, effective_track_factor)
+    def __init__(self, track_m: float, effective_track_factor: float = 1.0, wheel_scale: float = 1.0) -> None:
+        super().__init__(track_m, effective_track_factor, wheel_scale)
         self.gyro_bias_radps = 0.0
         self._bias_sum = 0.0
         self._bias_n = 0
@@ -97,7 +102,7 @@ class WheelGyroOdometry(WheelOdometry):
             return self.pose
         if not have_imu:
             return self.update(*wheels)
-        left, right = wheels
+        left, right = wheels[0] * self.wheel_scale, wheels[1] * self.wheel_scale
         if self._last is None:
             self._last = (left, right)
             self._yaw = wrap_angle(self._yaw + d_yaw)

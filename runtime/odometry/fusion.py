@@ -1,0 +1,248 @@
+"""One pose stream in the odom frame, with a covariance, from wheels + gyro and KISS-ICP.
+
+Which filter, and why: an extended Kalman filter on pose *increments* (information form), not a
+complementary filter. KISS-ICP is odometry too: it measures the motion between two frames, not
+an absolute pose, so fusing its increments (rather than its drifting pose) counts every
+measurement once. And its certainty depends on the direction: in a corridor it knows the
+across-axis motion to a few millimetres and the along-axis motion not at all (the Hessian,
+runtime.odometry.degeneracy). A complementary filter blends with one fixed gain per axis; the
+EKF weighs each direction by its information, so a degenerate direction falls back to the wheels
+by itself while the constrained ones follow the lidar.
+
+The state:
+- the dead-reckoning pose D(t) from wheels and gyro (runtime.odometry.wheels), every tick, kept
+  in a short history so that an ICP result stamped in the past can be placed;
+- the anchor: the fused pose F_a at the time t_a of the newest ICP result, with its covariance.
+
+Output at any time t: F(t) = F_a (+) (D(t_a)^-1 (+) D(t)): the newest ICP-corrected pose,
+predicted forward with the wheels and the gyro. Between scans, when ICP is late and when ICP is
+degenerate, wheels and gyro carry the pose.
+
+An ICP result for the frame ending at t_b (its increment since the previous result at t_a):
+the wheel increment over the same interval d_w (covariance Q from the wheel noise model: a
+share of the distance along the track, a larger share across it and per radian turned, as a
+skid-steer base slips sideways when it turns), the ICP increment d_i (covariance R from the scan's
+constraint: `icp_sigma` along constrained directions, `degenerate_variance` along a degenerate
+one), fused: P = (Q^-1 + R^-1)^-1, d = P (Q^-1 d_w + R^-1 d_i); F_b = F_a (+) d. An ICP increment
+that no robot could have made (farther from the wheels' than `gate_m` + `gate_fraction` of the
+distance, or `gate_rad` in yaw) is refused and the wheels' is used (counted, named).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from runtime.odometry.icp import IcpResult
+from runtime.odometry.se2 import compose_jacobians, se2_between, se2_compose, wrap
+
+
+class FusionConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    # Wheel + gyro increment noise (1 sigma).
+    wheel_along_fraction: float = Field(0.03, gt=0.0, le=1.0)  # of the distance travelled
+    wheel_across_fraction: float = Field(0.05, gt=0.0, le=1.0)  # of the distance (sideways slip)
+    wheel_across_per_rad_m: float = Field(0.02, ge=0.0, le=1.0)  # sideways slip per radian turned
+    gyro_fraction: float = Field(0.01, ge=0.0, le=1.0)  # of the angle turned (gyro scale)
+    gyro_rate_sigma_radps: float = Field(0.002, ge=0.0, le=1.0)  # uncorrected bias, as a rate
+    wheel_floor_m: float = Field(0.001, gt=0.0, le=1.0)  # per increment: nothing is exact
+    wheel_floor_rad: float = Field(0.0005, gt=0.0, le=1.0)
+    # ICP increment noise (1 sigma) along well-constrained directions.
+    icp_sigma_m: float = Field(0.005, gt=0.0, le=1.0)
+    icp_sigma_rad: float = Field(0.002, gt=0.0, le=1.0)
+    #: A constrained direction with a normalised eigenvalue of `reference_eigenvalue` gets
+    #: icp_sigma; a weaker one proportionally more variance.
+    reference_eigenvalue: float = Field(0.4, gt=0.0, le=1.0)
+    #: Variance along a degenerate direction (m^2 or rad^2): the wheels decide there.
+    degenerate_variance: float = Field(1e4, gt=0.0)
+    # Plausibility gate of an ICP increment against the wheels'.
+    gate_m: float = Field(0.10, gt=0.0, le=10.0)
+    gate_fraction: float = Field(0.5, ge=0.0, le=10.0)
+    gate_rad: float = Field(0.15, gt=0.0, le=3.2)
+    #: How far back (s) the dead-reckoning history reaches (ICP results older are dropped).
+    history_s: float = Field(3.0, gt=0.2, le=60.0)
+
+
+@dataclass
+class FusionStats:
+    results: int = 0
+    fused: int = 0
+    refused: int = 0
+    too_old: int = 0
+    degenerate: int = 0
+    last_refusal: str | None = None
+
+
+class PoseFusion:
+    """EKF on increments: wheels + gyro predict, KISS-ICP increments correct (module docstring)."""
+
+    def __init__(self, config: FusionConfig, capacity: int = 512) -> None:
+        self.config = config
+        self._cap = capacity
+        self._t = np.full(capacity, -np.inf)
+        self._d = np.zeros((capacity, 3))
+        self._n = 0  # samples written (ring index = n % cap)
+        self.anchor_t: float | None = None
+        self.anchor_pose = np.zeros(3)
+        self.anchor_cov = np.zeros((3, 3))
+        self._anchor_d = np.zeros(3)
+        self.stats = FusionStats()
+        self.last_constraint = None
+
+    # -- dead reckoning ------------------------------------------------------------------------
+    def add_dead_reckoning(self, t_s: float, pose: np.ndarray) -> None:
+        """The wheel + gyro pose D(t) (call every tick, times increasing)."""
+        i = self._n % self._cap
+        self._t[i] = t_s
+        self._d[i] = pose
+        self._n += 1
+        if self.anchor_t is None:
+            self.anchor_t = t_s
+            self._anchor_d = np.array(pose, dtype=float)
+
+    def _dead_reckoning_at(self, t_s: float) -> np.ndarray | None:
+        """D(t) interpolated from the history (None when t is outside it)."""
+        n = min(self._n, self._cap)
+        if n == 0:
+            return None
+        order = np.argsort(self._t[:n]) if self._n > self._cap else np.arange(n)
+        ts = self._t[:n][order]
+        if t_s < ts[0] - 1e-9 or t_s > ts[-1] + 1e-9:
+            # A little past the newest sample (the frame ended after the last tick): hold it.
+            if ts[-1] < t_s <= ts[-1] + 0.06:
+                return self._d[:n][order][-1].copy()
+            return None
+        ds = self._d[:n][order]
+        j = int(np.searchsorted(ts, t_s))
+        if j == 0:
+            return ds[0].copy()
+        if j >= n:
+            return ds[-1].copy()
+        t0, t1 = ts[j - 1], ts[j]
+        w = 0.0 if t1 <= t0 else (t_s - t0) / (t1 - t0)
+        a, b = ds[j - 1], ds[j]
+        return np.array([a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), wrap(a[2] + w * wrap(b[2] - a[2]))])
+
+    def dead_reckoning_between(self, t0_s: float, t1_s: float) -> np.ndarray | None:
+        """The wheel + gyro increment from t0 to t1, in the base frame at t0 (None: not in history)."""
+        a, b = self._dead_reckoning_at(t0_s), self._dead_reckoning_at(t1_s)
+        if a is None or b is None:
+            return None
+        return se2_between(a, b)
+
+    def motion_samples(self, t0_s: float, t1_s: float) -> np.ndarray:
+        """Dead-reckoning samples (K, 4: t, x, y, yaw) covering [t0, t1] (for deskew)."""
+        n = min(self._n, self._cap)
+        ts = self._t[:n]
+        sel = (ts >= t0_s - 0.06) & (ts <= t1_s + 0.06)
+        out = np.column_stack([ts[sel], self._d[:n][sel]])
+        return out[np.argsort(out[:, 0])]
+
+    # -- output --------------------------------------------------------------------------------
+    def pose_now(self, d_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The fused pose for the dead-reckoning pose now, and its covariance."""
+        inc = se2_between(self._anchor_d, d_now)
+        pose = se2_compose(self.anchor_pose, inc)
+        ja, jb = compose_jacobians(self.anchor_pose, inc)
+        cov = ja @ self.anchor_cov @ ja.T + jb @ self.wheel_covariance(inc, 0.0) @ jb.T
+        return pose, cov
+
+    # -- noise models --------------------------------------------------------------------------
+    def wheel_covariance(self, inc: np.ndarray, dt_s: float) -> np.ndarray:
+        c = self.config
+        dist = math.hypot(inc[0], inc[1])
+        turn = abs(inc[2])
+        along = c.wheel_along_fraction * dist + c.wheel_floor_m
+        across = c.wheel_across_fraction * dist + c.wheel_across_per_rad_m * turn + c.wheel_floor_m
+        heading = math.atan2(inc[1], inc[0]) if dist > 1e-6 else 0.0
+        ch, sh = math.cos(heading), math.sin(heading)
+        rot = np.array([[ch, -sh], [sh, ch]])
+        cov = np.zeros((3, 3))
+        cov[:2, :2] = rot @ np.diag([along**2, across**2]) @ rot.T
+        yaw = c.gyro_fraction * turn + c.gyro_rate_sigma_radps * dt_s + c.wheel_floor_rad
+        cov[2, 2] = yaw**2
+        return cov
+
+    def icp_covariance(self, result: IcpResult) -> np.ndarray:
+        c = self.config
+        con = result.constraint
+        cov = np.zeros((3, 3))
+        if con is None:
+            cov[:2, :2] = np.eye(2) * c.degenerate_variance
+            cov[2, 2] = c.degenerate_variance
+            return cov
+        var = []
+        for lam in con.eigenvalues_xy:
+            if con.degenerate_xy and lam == con.eigenvalues_xy[0]:
+                var.append(c.degenerate_variance)
+            else:
+                var.append(c.icp_sigma_m**2 * c.reference_eigenvalue / max(float(lam), 1e-6))
+        if con.too_few_points:
+            var = [c.degenerate_variance, c.degenerate_variance]
+        v = con.eigenvectors_xy
+        cov[:2, :2] = v @ np.diag(var) @ v.T
+        cov[2, 2] = c.degenerate_variance if con.degenerate_yaw else (
+            c.icp_sigma_rad**2 * c.reference_eigenvalue / max(con.yaw_eigenvalue, 1e-6))
+        return cov
+
+    # -- ICP update ----------------------------------------------------------------------------
+    def icp_update(self, result: IcpResult) -> str | None:
+        """Fuse one ICP result; returns None when fused, else why it was not."""
+        self.stats.results += 1
+        self.last_constraint = result.constraint
+        if result.constraint is not None and result.constraint.degenerate:
+            self.stats.degenerate += 1
+        t_b = result.end_s
+        if self.anchor_t is None:
+            return self._refuse("no wheel odometry yet")
+        d_b = self._dead_reckoning_at(t_b)
+        if d_b is None:
+            self.stats.too_old += 1
+            return self._refuse(f"frame end {t_b:.3f} s is outside the {self.config.history_s:.1f} s odometry history")
+        d_w = se2_between(self._anchor_d, d_b)   # wheels from the anchor to t_b
+        if result.delta_base is None or result.prev_end_s is None or result.error is not None:
+            # The first frame (or one ICP could not register): move the anchor with the wheels.
+            self._move_anchor(t_b, d_b, d_w, self.wheel_covariance(d_w, t_b - self.anchor_t))
+            return result.error
+        if abs(result.prev_end_s - self.anchor_t) > 1e-6:
+            # The anchor is not at ICP's previous frame (a result was lost): wheels up to it.
+            self._move_anchor(t_b, d_b, d_w, self.wheel_covariance(d_w, t_b - self.anchor_t))
+            return self._refuse("previous ICP frame missing: wheels and gyro carried the pose")
+        d_i = np.asarray(result.delta_base, dtype=float)
+        c = self.config
+        dist = math.hypot(d_w[0], d_w[1])
+        off = math.hypot(d_i[0] - d_w[0], d_i[1] - d_w[1])
+        off_yaw = abs(wrap(d_i[2] - d_w[2]))
+        q = self.wheel_covariance(d_w, t_b - self.anchor_t)
+        if off > c.gate_m + c.gate_fraction * dist or off_yaw > c.gate_rad:
+            self._move_anchor(t_b, d_b, d_w, q)
+            return self._refuse(f"ICP increment {off * 100:.1f} cm / {math.degrees(off_yaw):.1f} deg from the "
+                                f"wheels' over {t_b - result.prev_end_s:.2f} s: implausible, wheels used")
+        r = self.icp_covariance(result)
+        q_inf, r_inf = np.linalg.inv(q), np.linalg.inv(r)
+        p = np.linalg.inv(q_inf + r_inf)
+        innov = d_i - d_w
+        innov[2] = wrap(innov[2])
+        d = d_w + p @ (r_inf @ innov)   # = P (Q^-1 d_w + R^-1 d_i), angles wrapped
+        d[2] = wrap(d[2])
+        self._move_anchor(t_b, d_b, d, p)
+        self.stats.fused += 1
+        return None
+
+    def _move_anchor(self, t_b: float, d_b: np.ndarray, inc: np.ndarray, inc_cov: np.ndarray) -> None:
+        ja, jb = compose_jacobians(self.anchor_pose, inc)
+        self.anchor_cov = ja @ self.anchor_cov @ ja.T + jb @ inc_cov @ jb.T
+        self.anchor_pose = se2_compose(self.anchor_pose, inc)
+        self.anchor_t = t_b
+        self._anchor_d = d_b
+
+    def _refuse(self, why: str) -> str:
+        self.stats.refused += 1
+        self.stats.last_refusal = why
+        return why
+
+
+__all__ = ["FusionConfig", "PoseFusion", "FusionStats"]

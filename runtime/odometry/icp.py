@@ -1,0 +1,170 @@
+"""Lidar odometry: one KISS-ICP pipeline on deskewed frames, and what the fusion needs of each.
+
+`IcpEngine.process(job)` runs where the ICP worker runs (runtime.odometry.worker: a process on
+the robot, because KISS-ICP's registration holds Python's GIL for its whole duration and would
+stall the tick if it ran in a thread). It uses the kiss-icp package's own pipeline
+(`KissICP.register_frame`); what we add around it:
+
+- The initial guess. Before each frame, KISS-ICP's `last_delta` (its constant-velocity
+  prediction, used for the initial guess and for its deskew) is replaced by the motion the wheels
+  and the gyro measured since the previous frame (`IcpJob.prior_base`), when there is one.
+- Deskew. "kiss": KISS-ICP's deskew (constant velocity over the sweep, from `last_delta`, i.e. from
+  the wheels and gyro when a prior is given); "odometry": ours, every point moved by the wheel/gyro
+  pose interpolated at its own time (`IcpJob.motion`), KISS-ICP's deskew off; "off". KISS-ICP
+  deskews to the END of the sweep (it normalises the given times over [min, max] and moves every
+  point to the time 1.0; measured: against ground truth, the pose matches the frame's end, not its
+  middle), so every pose here is stamped with the time of the frame's last point.
+- Degeneracy: `planar_constraint` on the deskewed frame (runtime.odometry.degeneracy).
+- The planar increment since the previous frame in the base frame (the lidar's mount applied).
+
+Frames must span their sweep in time for a deskew: a frame whose point times span less than half
+its duration is registered without one (counted in the result), never with fake times.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from runtime.odometry.degeneracy import DegeneracyConfig, PlanarConstraint, planar_constraint
+from runtime.odometry.icp_config import IcpConfig, new_kiss_icp
+from runtime.odometry.se2 import se2_between, se2_matrix, se2_of_matrix
+
+
+@dataclass(frozen=True)
+class IcpJob:
+    """One lidar frame for the ICP worker (picklable: it crosses a process boundary)."""
+
+    seq: int
+    stamp_s: float  # start of the frame
+    end_s: float  # time of the frame's last point: the time the result's pose refers to
+    points: np.ndarray  # (N, 3) float32, lidar frame, each at its own time
+    offsets_s: np.ndarray  # (N,) float32, seconds since stamp_s
+    duration_s: float
+    #: Planar motion (dx, dy, dyaw) of the base from the previous job's end_s to this end_s,
+    #: in the base frame at the previous end (wheels + gyro); None: KISS-ICP's own prediction.
+    prior_base: np.ndarray | None = None
+    #: Dead-reckoning poses (K, 4): t, x, y, yaw covering the sweep, for deskew="odometry".
+    motion: np.ndarray | None = None
+    #: Lockstep: the simulated time the result is delivered at (end_s + the fixed latency).
+    ready_at_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    seq: int
+    stamp_s: float
+    end_s: float
+    ready_at_s: float
+    #: The base's planar pose in ICP's own odom frame (the base at the first frame = origin).
+    pose_base: np.ndarray
+    #: (dx, dy, dyaw) since the previous result, in the base frame at prev_end_s (None: first).
+    delta_base: np.ndarray | None
+    prev_end_s: float | None
+    constraint: PlanarConstraint | None
+    points_in: int
+    points_registered: int
+    deskewed: bool
+    compute_s: float  # wall-clock seconds in the worker (a measurement, never used for behaviour)
+    error: str | None = None
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def _lidar_delta(prior_base: np.ndarray, mount: np.ndarray, mount_inv: np.ndarray) -> np.ndarray:
+    """The base's planar motion as the lidar's 4x4 motion (what KISS-ICP's last_delta holds)."""
+    return mount_inv @ se2_matrix(prior_base) @ mount
+
+
+def deskew_with_motion(points: np.ndarray, times_s: np.ndarray, end_s: float, motion: np.ndarray,
+                       mount: np.ndarray) -> np.ndarray:
+    """Move every point (lidar frame, at its own time) to the lidar frame at end_s, with the
+    dead-reckoning poses `motion` (K, 4: t, x, y, yaw; interpolated linearly, held at the ends)."""
+    t, x, y, yaw = motion[:, 0], motion[:, 1], motion[:, 2], np.unwrap(motion[:, 3])
+    px, py, pyaw = np.interp(times_s, t, x), np.interp(times_s, t, y), np.interp(times_s, t, yaw)
+    ex, ey, eyaw = np.interp(end_s, t, x), np.interp(end_s, t, y), np.interp(end_s, t, yaw)
+    # Relative planar pose of the base at each point's time, seen from the base at end_s.
+    c, s = math.cos(eyaw), math.sin(eyaw)
+    dx, dy = px - ex, py - ey
+    rx, ry = c * dx + s * dy, -s * dx + c * dy
+    ryaw = pyaw - eyaw
+    r, tm = mount[:3, :3], mount[:3, 3]
+    pb = points @ r.T + tm  # base frame at the point's own time
+    cr, sr = np.cos(ryaw), np.sin(ryaw)
+    out = np.empty_like(pb)
+    out[:, 0] = cr * pb[:, 0] - sr * pb[:, 1] + rx
+    out[:, 1] = sr * pb[:, 0] + cr * pb[:, 1] + ry
+    out[:, 2] = pb[:, 2]
+    return (out - tm) @ r  # back to the lidar frame (at end_s)
+
+
+class IcpEngine:
+    """One KISS-ICP pipeline and the bookkeeping around it; runs wherever the worker runs."""
+
+    def __init__(self, icp: IcpConfig, degeneracy: DegeneracyConfig, mount: np.ndarray,
+                 use_prior: bool = True) -> None:
+        self.config = icp
+        self.degeneracy = degeneracy
+        self.mount = np.asarray(mount, dtype=np.float64)
+        self.mount_inv = np.linalg.inv(self.mount)
+        self.use_prior = use_prior
+        self.kiss = new_kiss_icp(icp, deskew=icp.deskew == "kiss")
+        # KISS-ICP's own preprocessor objects, with and without its deskew: a frame that cannot
+        # be deskewed (its times do not span the sweep) goes through the one without.
+        from kiss_icp.preprocess import get_preprocessor
+        from runtime.odometry.icp_config import make_kiss_config
+
+        self._pre_deskew = self.kiss.preprocessor
+        self._pre_plain = get_preprocessor(make_kiss_config(icp, deskew=False))
+        self._prev_pose: np.ndarray | None = None
+        self._prev_end: float | None = None
+
+    def process(self, job: IcpJob) -> IcpResult:
+        t0 = time.perf_counter()
+        from kiss_icp.voxelization import voxel_down_sample
+
+        notes: list[str] = []
+        pts = np.asarray(job.points, dtype=np.float64)
+        offs = np.asarray(job.offsets_s, dtype=np.float64)
+        span = float(offs.max() - offs.min()) if len(offs) else 0.0
+        deskew = self.config.deskew != "off"
+        if deskew and span < 0.5 * job.duration_s:
+            deskew = False
+            notes.append(f"point times span {span * 1e3:.0f} ms of a {job.duration_s * 1e3:.0f} ms frame: no deskew")
+        if self._prev_pose is not None and job.prior_base is not None and self.use_prior:
+            self.kiss.last_delta = _lidar_delta(np.asarray(job.prior_base, dtype=np.float64), self.mount,
+                                                self.mount_inv)
+        mode = self.config.deskew
+        if (mode == "kiss" and deskew and self._prev_end is not None and job.prior_base is not None
+                and job.end_s - self._prev_end > 1.5 * job.duration_s):
+            # KISS-ICP's deskew spreads last_delta over one sweep; after a gap (frames lost or
+            # refused) the prior spans several, so this frame is deskewed with the wheels instead.
+            mode = "odometry"
+            notes.append(f"{(job.end_s - self._prev_end) * 1e3:.0f} ms since the previous frame: wheel/gyro deskew")
+        if mode == "odometry" and deskew:
+            if job.motion is not None and len(job.motion) >= 2:
+                pts = deskew_with_motion(pts, job.stamp_s + offs, job.end_s, np.asarray(job.motion), self.mount)
+            else:
+                deskew = False
+                notes.append("no wheel/gyro motion over the sweep: no deskew")
+        kiss_deskews = deskew and mode == "kiss"
+        self.kiss.preprocessor = self._pre_deskew if kiss_deskews else self._pre_plain
+        frame, source = self.kiss.register_frame(pts, offs)
+        pose_base = se2_of_matrix(self.mount @ self.kiss.last_pose @ self.mount_inv)
+        delta = None if self._prev_pose is None else se2_between(self._prev_pose, pose_base)
+        prev_end = self._prev_end
+        self._prev_pose, self._prev_end = pose_base, job.end_s
+        constraint = None
+        if len(frame):
+            thin = voxel_down_sample(frame, self.degeneracy.voxel_m)
+            constraint = planar_constraint(thin @ self.mount[:3, :3].T + self.mount[:3, 3], self.degeneracy)
+        return IcpResult(
+            seq=job.seq, stamp_s=job.stamp_s, end_s=job.end_s, ready_at_s=job.ready_at_s,
+            pose_base=pose_base, delta_base=delta, prev_end_s=prev_end, constraint=constraint,
+            points_in=len(pts), points_registered=len(source), deskewed=deskew,
+            compute_s=time.perf_counter() - t0, notes=tuple(notes),
+        )
+
+
+__all__ = ["IcpEngine", "IcpJob", "IcpResult", "deskew_with_motion"]

@@ -1,0 +1,216 @@
+"""The tick's odometry stage: wheels + gyro every tick, KISS-ICP beside the tick, one fused pose.
+
+Per tick (`update`): integrate the wheels (0x311, scaled by the calibrated wheel scale) and the
+gyro (the wheels' yaw with the calibrated effective track when there is no IMU sample) into the
+dead-reckoning pose; hand a new good lidar frame to the ICP worker with the wheel/gyro motion
+since the previous frame as its prior; fuse every ICP result that is ready; output the newest
+ICP-corrected pose predicted forward with wheels and gyro (runtime.odometry.fusion).
+
+Nothing here waits for ICP. What it says in telemetry (`describe`): ICP results fused, refused and
+dropped, degenerate frames and the weak direction, the age of the newest ICP correction, the
+worker's compute time, and the pose covariance.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from runtime.events import EventLog
+from runtime.geometry import Pose2D
+from runtime.odometry.degeneracy import DegeneracyConfig
+from runtime.odometry.fusion import FusionConfig, PoseFusion
+from runtime.odometry.icp import IcpEngine, IcpJob
+from runtime.odometry.icp_config import IcpConfig
+from runtime.odometry.wheels import WheelGyroOdometry
+from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
+from runtime.sensor_data import LidarScan
+
+
+class OdometryConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    #: fused: wheels + gyro + KISS-ICP (the default); wheels_imu: dead reckoning only.
+    source: Literal["fused", "wheels_imu"] = "fused"
+    icp: IcpConfig = IcpConfig()
+    degeneracy: DegeneracyConfig = DegeneracyConfig()
+    fusion: FusionConfig = FusionConfig()
+    #: Where ICP runs in lockstep: "process" (beside the simulator) or "inline" (in the
+    #: simulator's time advance). On the robot and in real time it is always a process.
+    lockstep_worker: Literal["process", "inline"] = "process"
+    #: Lockstep: an ICP result is delivered this long (simulated) after its frame's end.
+    lockstep_latency_s: float = Field(0.1, gt=0.0, le=2.0)
+    #: No ICP correction for longer than this: "icp_lost" event (wheels and gyro carry the pose).
+    max_icp_age_s: float = Field(0.6, gt=0.05, le=30.0)
+
+
+def _pose_vec(p: Pose2D) -> np.ndarray:
+    return np.array([p.x_m, p.y_m, p.yaw_rad])
+
+
+class OdometryStage:
+    def __init__(self, config: OdometryConfig, track_m: float, effective_track_factor: float,
+                 lidar_mount: np.ndarray, lockstep: bool, events: EventLog | None = None,
+                 wheel_scale: float = 1.0, uses_lidar: bool = True) -> None:
+        self.config = config
+        self.lockstep = lockstep
+        self.events = events
+        self.wheels = WheelGyroOdometry(track_m, effective_track_factor, wheel_scale=wheel_scale)
+        self.fusion = PoseFusion(config.fusion)
+        self.mount = np.asarray(lidar_mount, dtype=float)
+        self.icp_enabled = config.source == "fused" and config.icp.enabled and uses_lidar
+        self.worker = None
+        self._seq = 0
+        self._last_job_end: float | None = None
+        self._first_submit_s: float | None = None
+        self.pose = Pose2D(0.0, 0.0, 0.0)
+        self.covariance = np.zeros((3, 3))
+        self.frames_submitted = 0
+        self.compute_ms: list[float] = []
+        self.icp_age_s = float("inf")
+        self._icp_lost = False
+        self._degenerate = False
+        self.last_degeneracy: str | None = None
+        self.last_refusal: str | None = None
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the ICP worker (a process: it takes a moment; call at activation, not in a tick)."""
+        if not self.icp_enabled or self.worker is not None:
+            return
+        c = self.config
+        factory = functools.partial(IcpEngine, c.icp, c.degeneracy, self.mount, True)
+        if self.lockstep and c.lockstep_worker == "inline":
+            self.worker = InlineIcpWorker(factory)
+        else:
+            self.worker = ProcessIcpWorker(factory, lockstep=self.lockstep)
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+            self.worker = None
+
+    def settle(self, t_s: float) -> None:
+        """Lockstep: the simulator calls this before time t_s is reached (the ICP barrier)."""
+        if self.worker is not None:
+            self.worker.settle(t_s)
+
+    # -- the tick ------------------------------------------------------------------------------
+    def calibrate_bias(self, imu_samples) -> None:
+        self.wheels.calibrate_bias(imu_samples)
+
+    @property
+    def yaw_rate_radps(self) -> float:
+        return self.wheels.yaw_rate_radps
+
+    def update(self, now_s: float, wheels: tuple[float, float] | None, imu_samples,
+               good_scan: LidarScan | None) -> Pose2D:
+        d_now = _pose_vec(self.wheels.update_with_imu(wheels, imu_samples))
+        fusion = self.fusion
+        fusion.add_dead_reckoning(now_s, d_now)
+        if self.worker is not None:
+            if good_scan is not None:
+                self._submit(good_scan)
+            for result in self.worker.poll(now_s):
+                self._take(result, now_s)
+        pose, cov = fusion.pose_now(d_now)
+        self.pose = Pose2D(float(pose[0]), float(pose[1]), float(pose[2]))
+        self.covariance = cov
+        self._watch_age(now_s)
+        return self.pose
+
+    def _submit(self, scan: LidarScan) -> None:
+        offs = scan.point_time_offsets_s
+        end = scan.stamp_s + (float(offs.max()) if len(offs) else scan.frame_duration_s)
+        prior = None
+        if self._last_job_end is not None:
+            prior = self.fusion.dead_reckoning_between(self._last_job_end, end)
+        motion = self.fusion.motion_samples(scan.stamp_s, end)  # a few rows: for a wheel/gyro deskew
+        job = IcpJob(seq=self._seq, stamp_s=scan.stamp_s, end_s=end, points=scan.points_m, offsets_s=offs,
+                     duration_s=scan.frame_duration_s, prior_base=prior, motion=motion,
+                     ready_at_s=end + self.config.lockstep_latency_s)
+        self._seq += 1
+        if self._first_submit_s is None:
+            self._first_submit_s = end
+        self._last_job_end = end
+        self.frames_submitted += 1
+        self.worker.submit(job)
+
+    def _take(self, result, now_s: float) -> None:
+        self.compute_ms.append(result.compute_s * 1e3)
+        if len(self.compute_ms) > 4000:
+            del self.compute_ms[:2000]
+        why = self.fusion.icp_update(result)
+        if why is not None:
+            self.last_refusal = why
+        else:
+            self.icp_age_s = 0.0
+        con = result.constraint
+        degenerate = con is not None and con.degenerate
+        if con is not None:
+            self.last_degeneracy = con.describe()
+        if degenerate != self._degenerate and self.events is not None:
+            if degenerate:
+                self.events.add(now_s, "icp_degenerate", f"{con.describe()}: wheels and gyro carry that direction")
+            else:
+                self.events.add(now_s, "icp_constrained", "the scan constrains the planar motion again")
+        self._degenerate = degenerate
+
+    def _watch_age(self, now_s: float) -> None:
+        if self.worker is None:
+            return
+        t_a = self.fusion.anchor_t
+        fused_at = self.fusion.stats.fused
+        self.icp_age_s = now_s - t_a if (t_a is not None and fused_at) else float("inf")
+        # Before the first correction, the age counts from the first frame handed to ICP.
+        since = self.icp_age_s if fused_at else (
+            now_s - self._first_submit_s if self._first_submit_s is not None else 0.0)
+        lost = since > self.config.max_icp_age_s
+        failed = getattr(self.worker, "failed", None)
+        if lost != self._icp_lost and self.events is not None:
+            if lost:
+                why = failed or self.last_refusal or "no ICP result"
+                self.events.add(now_s, "icp_lost", f"no ICP correction for {self.icp_age_s:.2f} s ({why}): "
+                                                   f"wheels and gyro carry the pose")
+            else:
+                self.events.add(now_s, "icp_restored", "ICP corrections again")
+        self._icp_lost = lost
+
+    # -- telemetry -----------------------------------------------------------------------------
+    def describe(self) -> dict:
+        """Counters and state (deterministic in lockstep: no wall-clock figure here; see wall_clock())."""
+        s = self.fusion.stats
+        out = {
+            "source": self.config.source if self.icp_enabled else "wheels_imu",
+            "icp_frames_submitted": self.frames_submitted,
+            "icp_results": s.results,
+            "icp_fused": s.fused,
+            "icp_refused": s.refused,
+            "icp_degenerate_frames": s.degenerate,
+            "icp_dropped": getattr(self.worker, "dropped", 0),
+            "icp_last_degeneracy": self.last_degeneracy,
+            "icp_last_refusal": self.last_refusal,
+            "icp_worker_failed": getattr(self.worker, "failed", None),
+            "icp_age_s": None if not np.isfinite(self.icp_age_s) else round(float(self.icp_age_s), 4),
+            "pose_sigma": [float(np.sqrt(max(self.covariance[i, i], 0.0))) for i in range(3)],
+            "wheel_scale": self.wheels.wheel_scale,
+            "effective_track_m": self.wheels.effective_track_m,
+        }
+        return out
+
+
+    def wall_clock(self) -> dict:
+        """What ICP cost on this computer (a measurement, never in the deterministic metrics):
+        the worker's time per frame, and in real time the send-to-result round trip."""
+        ms = np.asarray(self.compute_ms) if self.compute_ms else np.zeros(0)
+        rt = np.asarray(getattr(self.worker, "round_trip_s", ()) or (), dtype=float) * 1e3
+        pct = lambda a, q: round(float(np.percentile(a, q)), 3) if len(a) else None  # noqa: E731
+        return {
+            "icp_compute_ms": {"p50": pct(ms, 50), "p99": pct(ms, 99), "max": pct(ms, 100), "frames": int(len(ms))},
+            "icp_round_trip_ms": {"p50": pct(rt, 50), "p99": pct(rt, 99), "max": pct(rt, 100)},
+        }
+
+
+__all__ = ["OdometryConfig", "OdometryStage"]

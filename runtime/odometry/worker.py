@@ -1,0 +1,228 @@
+"""Where KISS-ICP runs: beside the tick, never in it.
+
+KISS-ICP's registration holds Python's GIL for its whole duration (measured: a thread running it
+delays a 1 ms sleep of the main thread by as long as the registration takes, 10-90 ms), so a
+thread would stall the tick. It runs in its own process (`ProcessIcpWorker`): jobs and results
+cross a pipe (a 20k-point frame is 320 kB; pickling it costs well under a millisecond), the tick
+only sends and polls, never waits.
+
+Two clocks (DESIGN.md section 6):
+- Real time: a result is used when it has arrived. One frame is registered at a time; while the
+  worker is busy, the newest frame waits and an older waiting one is dropped (counted): ICP
+  always works on the newest data and its latency stays bounded.
+- Lockstep: every frame is registered, and its result is delivered at exactly
+  `end_s + latency_s` of simulated time, however long it took on this machine. The simulator
+  waits for it (`settle(t)`, called by the lockstep clock before time t is reached) instead of
+  racing it, so the same seed gives the same poses under any load. `InlineIcpWorker` computes the
+  job right there, in the simulator's time advance (no process: cheaper for short runs);
+  `ProcessIcpWorker` lets the registration overlap the physics.
+"""
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from collections import deque
+from typing import Callable, Protocol
+
+import numpy as np
+
+from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult
+
+
+class IcpWorker(Protocol):
+    def submit(self, job: IcpJob) -> None: ...
+
+    def poll(self, now_s: float) -> list[IcpResult]: ...
+
+    def settle(self, t_s: float) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def _serve(conn) -> None:
+    """The worker process: build the engine it is sent, register every job, answer each."""
+    try:
+        engine = conn.recv()()
+    except BaseException as exc:  # pragma: no cover - reported to the parent
+        conn.send(("fatal", f"ICP worker could not start: {type(exc).__name__}: {exc}"))
+        return
+    conn.send(("ready", None))
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):
+            return
+        if job is None:
+            return
+        try:
+            conn.send(("result", engine.process(job)))
+        except BaseException as exc:
+            conn.send(("error", (job, f"{type(exc).__name__}: {exc}")))
+
+
+def _failed(job: IcpJob, why: str) -> IcpResult:
+    return IcpResult(seq=job.seq, stamp_s=job.stamp_s, end_s=job.end_s, ready_at_s=job.ready_at_s,
+                     pose_base=np.zeros(3), delta_base=None, prev_end_s=None, constraint=None, points_in=len(job.points),
+                     points_registered=0, deskewed=False, compute_s=0.0, error=why)
+
+
+class InlineIcpWorker:
+    """Lockstep only: the job is computed in `settle`, in the simulator's time advance."""
+
+    def __init__(self, engine_factory: Callable[[], IcpEngine]) -> None:
+        self._factory = engine_factory
+        self._engine: IcpEngine | None = None
+        self._jobs: deque[IcpJob] = deque()
+        self._done: deque[IcpResult] = deque()
+        self.dropped = 0
+        self.failed: str | None = None
+
+    def submit(self, job: IcpJob) -> None:
+        self._jobs.append(job)
+
+    def settle(self, t_s: float) -> None:
+        while self._jobs and self._jobs[0].ready_at_s <= t_s + 1e-9:
+            job = self._jobs.popleft()
+            if self._engine is None:
+                self._engine = self._factory()
+            try:
+                self._done.append(self._engine.process(job))
+            except Exception as exc:  # a registration that raised: the frame is lost, named
+                self._done.append(_failed(job, f"{type(exc).__name__}: {exc}"))
+
+    def poll(self, now_s: float) -> list[IcpResult]:
+        out = []
+        while self._done and self._done[0].ready_at_s <= now_s + 1e-9:
+            out.append(self._done.popleft())
+        return out
+
+    @property
+    def busy(self) -> bool:
+        return bool(self._jobs)
+
+    def close(self) -> None:
+        self._jobs.clear()
+
+
+class ProcessIcpWorker:
+    """KISS-ICP in a child process (see the module docstring for the two clocks)."""
+
+    def __init__(self, engine_factory: Callable[[], IcpEngine], lockstep: bool,
+                 start_timeout_s: float = 60.0) -> None:
+        # A fresh interpreter running this module (`python -m runtime.odometry.worker FD`), joined
+        # by a socket pair: no fork of a process that holds CAN-bus threads, and, unlike
+        # multiprocessing's spawn, no re-import of the caller's main script.
+        from multiprocessing.connection import Connection
+
+        ours, theirs = socket.socketpair()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "runtime.odometry.worker", str(theirs.fileno())],
+            pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, close_fds=True,
+        )
+        theirs.close()
+        self._conn = Connection(ours.detach())
+        self._conn.send(engine_factory)
+        self.lockstep = lockstep
+        self._start_timeout_s = start_timeout_s
+        self._ready = False
+        self._in_flight: deque[IcpJob] = deque()  # sent, result not received (in order)
+        self._waiting: IcpJob | None = None  # real time: the newest frame while the worker is busy
+        self._done: deque[IcpResult] = deque()
+        self.dropped = 0
+        self.failed: str | None = None
+        #: Real time: wall-clock seconds from a job's send to its result (pose latency part).
+        self.round_trip_s: deque[float] = deque(maxlen=2000)
+        self._sent_at: dict[int, float] = {}
+
+    # -- plumbing ------------------------------------------------------------------------------
+    def _send(self, job: IcpJob) -> None:
+        try:
+            self._conn.send(job)
+        except (OSError, ValueError, BrokenPipeError) as exc:
+            self.failed = f"ICP worker gone ({exc})"
+            return
+        self._sent_at[job.seq] = time.perf_counter()
+        self._in_flight.append(job)
+
+    def _receive(self, block: bool) -> bool:
+        """Take one message; False when none (non-blocking) or the worker is gone."""
+        try:
+            if not block and not self._conn.poll(0):
+                return False
+            if block and not self._conn.poll(self._start_timeout_s):
+                self.failed = f"ICP worker did not answer within {self._start_timeout_s:.0f} s"
+                return False
+            kind, payload = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            self.failed = self.failed or f"ICP worker gone ({type(exc).__name__})"
+            return False
+        if kind == "ready":
+            self._ready = True
+        elif kind == "fatal":
+            self.failed = payload
+        elif kind in ("result", "error"):
+            result = payload if kind == "result" else _failed(*payload)
+            if self._in_flight and self._in_flight[0].seq == result.seq:
+                self._in_flight.popleft()
+            sent = self._sent_at.pop(result.seq, None)
+            if sent is not None:
+                self.round_trip_s.append(time.perf_counter() - sent)
+            self._done.append(result)
+        return True
+
+    # -- the interface -------------------------------------------------------------------------
+    def submit(self, job: IcpJob) -> None:
+        if self.failed:
+            return
+        if self.lockstep or not self._in_flight:
+            self._send(job)
+            return
+        if self._waiting is not None:
+            self.dropped += 1
+        self._waiting = job
+
+    def poll(self, now_s: float) -> list[IcpResult]:
+        while self._receive(block=False):
+            pass
+        if not self.lockstep and not self._in_flight and self._waiting is not None:
+            job, self._waiting = self._waiting, None
+            self._send(job)
+        out = []
+        while self._done and (not self.lockstep or self._done[0].ready_at_s <= now_s + 1e-9):
+            out.append(self._done.popleft())
+        return out
+
+    def settle(self, t_s: float) -> None:
+        """Lockstep: block until every job due by t_s has its result."""
+        if not self.lockstep:
+            return
+        while not self.failed and self._in_flight and self._in_flight[0].ready_at_s <= t_s + 1e-9:
+            if not self._receive(block=True):
+                break
+
+    @property
+    def busy(self) -> bool:
+        return bool(self._in_flight)
+
+    def close(self) -> None:
+        try:
+            self._conn.send(None)
+        except (OSError, ValueError):
+            pass
+        try:
+            self._proc.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait(timeout=2.0)
+        self._conn.close()
+
+
+__all__ = ["IcpWorker", "InlineIcpWorker", "ProcessIcpWorker"]
+
+
+if __name__ == "__main__":  # the worker process (started by ProcessIcpWorker)
+    from multiprocessing.connection import Connection as _Connection
+
+    _serve(_Connection(int(sys.argv[1])))
