@@ -10,6 +10,11 @@ Obstacle classes (DESIGN.md section 7):
 * ``heavy``: a free body that looks like a movable one but is too heavy to push; contact
   counts as a fixed contact.
 Later classes (fragile, deformable) slot into `ObstacleClass` and `FREE_BODY_CLASSES`.
+
+Fixed obstacles may be raised off the floor (`pose.z_m`: chair seats, shelf boards, table tops;
+hil_sim/scene_builder.py builds such furniture). An optional `route` is the path an odometry
+evaluation drives with a scripted operator (issue 11); check_scenario_against_robot checks that
+the robot's footprint swept along it clears everything.
 """
 from __future__ import annotations
 
@@ -54,6 +59,17 @@ class Pose2D(_Strict):
     @property
     def yaw_rad(self) -> float:
         return math.radians(self.yaw_deg)
+
+
+class ObstaclePose(Pose2D):
+    """An obstacle's pose: the centre of its footprint, and the height of its bottom face.
+
+    z_m > 0 lifts a fixed geom off the floor: the seat of a chair, the boards of a shelf, a
+    table top (realistic clutter for the lidar odometry needs furniture, not only blocks).
+    Free bodies stand on the floor (z_m 0).
+    """
+
+    z_m: float = Field(default=0.0, ge=0.0, le=10.0)
 
 
 class Floor(_Strict):
@@ -120,7 +136,7 @@ class CylinderSize(_Strict):
 
 class _ObstacleBase(_Strict):
     name: str = Field(pattern=_NAME_PATTERN, max_length=64)
-    pose: Pose2D
+    pose: ObstaclePose
     obstacle_class: ObstacleClass = Field(alias="class")
     mass_kg: float | None = Field(default=None, gt=0.0, le=10000.0)
     friction: float | None = Field(default=None, gt=0.0, le=3.0)
@@ -140,6 +156,11 @@ class _ObstacleBase(_Strict):
                 f"obstacle '{self.name}' of class {self.obstacle_class} is static: mass_kg is only for "
                 f"free bodies ({', '.join(sorted(FREE_BODY_CLASSES))})"
             )
+        if self.obstacle_class in FREE_BODY_CLASSES and self.pose.z_m != 0.0:
+            raise ValueError(
+                f"obstacle '{self.name}' of class {self.obstacle_class} is a free body and stands on the floor: "
+                f"pose.z_m must be 0 (got {self.pose.z_m}); only fixed obstacles may be raised"
+            )
         return self
 
     @property
@@ -149,6 +170,16 @@ class _ObstacleBase(_Strict):
     @property
     def height_m(self) -> float:
         raise NotImplementedError
+
+    @property
+    def bottom_z_m(self) -> float:
+        """Height of the geom's bottom face above the floor (pose.z_m)."""
+        return self.pose.z_m
+
+    @property
+    def top_z_m(self) -> float:
+        """Height of the geom's top face above the floor: what the lidar and the ground cut see."""
+        return self.pose.z_m + self.height_m
 
     def footprint_radius_m(self) -> float:
         """Radius of a circle around the obstacle's centre that contains its footprint."""
@@ -210,6 +241,44 @@ class Randomization(_Strict):
     free_body_yaw_noise_deg: float = Field(default=0.0, ge=0.0, le=180.0)
 
 
+_FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+#: Consecutive route points closer than this make a segment without a direction.
+MIN_ROUTE_SEGMENT_M = 0.01
+
+
+class Route(_Strict):
+    """The path an odometry evaluation drives (`dct odom eval`): from robot.start through the
+    waypoints in order, straight segments, turning in place at the start and at each waypoint.
+
+    Only a scripted operator that knows the ground-truth pose follows it; the navigation
+    controller ignores it (it drives to goal.pose). check_scenario_against_robot checks that
+    the robot's footprint swept along it clears every obstacle and wall.
+    """
+
+    waypoints: list[tuple[_FiniteFloat, _FiniteFloat]] = Field(min_length=1, max_length=1000)
+    speed_mps: float = Field(default=0.4, gt=0.0, le=1.0)
+
+    def polyline(self, start_xy: tuple[float, float] | np.ndarray) -> np.ndarray:
+        """(K, 2) points driven in order: the start, then every waypoint (K = 1 + waypoints)."""
+        return np.vstack([np.asarray(start_xy, dtype=float).reshape(1, 2), np.asarray(self.waypoints, dtype=float)])
+
+    def length_m(self, start_xy: tuple[float, float] | np.ndarray) -> float:
+        """Length of the polyline from the start through every waypoint."""
+        return float(np.linalg.norm(np.diff(self.polyline(start_xy), axis=0), axis=1).sum())
+
+    def headings_rad(self, start_xy: tuple[float, float] | np.ndarray) -> np.ndarray:
+        """Direction of each segment (one per waypoint), radians counter-clockwise from +x."""
+        d = np.diff(self.polyline(start_xy), axis=0)
+        return np.arctan2(d[:, 1], d[:, 0])
+
+    def total_turn_rad(self, start: Pose2D) -> float:
+        """Sum of the in-place turns: from the start yaw onto the first segment, then at each
+        waypoint onto the next segment (each the shorter way round). With length_m and a turn
+        rate it bounds the time a drive along the route takes."""
+        yaws = np.concatenate([[start.yaw_rad], self.headings_rad((start.x_m, start.y_m))])
+        return float(np.abs(np.angle(np.exp(1j * np.diff(yaws)))).sum())
+
+
 class Scenario(_Strict):
     """One HIL scenario. Walls count as fixed obstacles in the metrics."""
 
@@ -222,6 +291,7 @@ class Scenario(_Strict):
     goal: Goal
     time_limit_s: float = Field(gt=0.0, le=3600.0)
     randomization: Randomization = Field(default_factory=Randomization)
+    route: Route | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> "Scenario":
@@ -241,7 +311,22 @@ class Scenario(_Strict):
         for o in self.obstacles:
             if not self.floor.contains(o.pose.x_m, o.pose.y_m):
                 raise ValueError(f"obstacle '{o.name}' at ({o.pose.x_m}, {o.pose.y_m}) lies outside the floor")
+        if self.route is not None:
+            self._check_route_points()
         return self
+
+    def _check_route_points(self) -> None:
+        assert self.route is not None
+        points = self.route.polyline((self.robot.start.x_m, self.robot.start.y_m))
+        for i, (x, y) in enumerate(self.route.waypoints):
+            if not self.floor.contains(x, y):
+                raise ValueError(f"route.waypoints[{i}] ({x}, {y}) lies outside the floor of size {self.floor.size_m} "
+                                 "centred at the origin")
+        for i, step in enumerate(np.linalg.norm(np.diff(points, axis=0), axis=1)):
+            if step < MIN_ROUTE_SEGMENT_M:
+                before = "robot.start" if i == 0 else f"route.waypoints[{i - 1}]"
+                raise ValueError(f"route.waypoints[{i}] is {step:.4f} m from {before}: a segment shorter than "
+                                 f"{MIN_ROUTE_SEGMENT_M} m has no direction (remove the repeated point)")
 
     @property
     def robot_start(self) -> Pose2D:
@@ -332,6 +417,16 @@ def _rect_rect_gap_m(a: Rect2D, b: Rect2D) -> float:
     )
 
 
+def bounding_radius_m(shape: Shape2D) -> float:
+    """Radius of the smallest circle about the shape's centre that contains it."""
+    return shape.radius_m if isinstance(shape, Disc2D) else math.hypot(*shape.half_extents_m)
+
+
+def gap_lower_bound_m(a: Shape2D, b: Shape2D) -> float:
+    """A cheap lower bound of signed_gap_m (bounding circles): pairs far apart skip the exact test."""
+    return math.dist(a.centre_xy_m, b.centre_xy_m) - bounding_radius_m(a) - bounding_radius_m(b)
+
+
 def signed_gap_m(a: Shape2D, b: Shape2D) -> float:
     """Clearance between two footprints when apart (> 0); minus the penetration depth (the
     shortest move that separates them) when they overlap (< 0); exact for rectangles and discs."""
@@ -377,6 +472,9 @@ START_CLEARANCE_WARNING_M = 0.05
 PARTIAL_VISIBILITY_RANGE_M = 0.5
 #: Free bodies may rest against each other or a wall; deeper overlaps are errors.
 FREE_BODY_OVERLAP_TOLERANCE_M = 0.001
+#: Free space required between the robot's footprint swept along the route (and its turning
+#: circle at each waypoint) and every obstacle or wall.
+DEFAULT_ROUTE_MARGIN_M = 0.10
 #: Randomized free bodies within this many sigma of the start footprint are warned about.
 RANDOMIZATION_SIGMAS = 3.0
 
@@ -392,15 +490,27 @@ class _SceneItem:
     label: str            # "obstacle 'crate' (obstacles[2])"
     shape: Shape2D
     height_field: str     # the field holding its height
-    height_m: float
+    height_m: float       # the geom's own height
     movable: bool         # the robot may push it (class movable)
     free_body: bool       # simulated as a free body (movable or heavy)
+    bottom_z_m: float = 0.0  # its bottom face above the floor (pose.z_m)
+
+    @property
+    def top_z_m(self) -> float:
+        return self.bottom_z_m + self.height_m
+
+    def describe_height(self) -> str:
+        """'is 0.100 m high', or for a raised geom where its top is and why."""
+        if self.bottom_z_m == 0.0:
+            return f"is {self.height_m:.3f} m high"
+        return (f"reaches {self.top_z_m:.3f} m above the floor (pose.z_m {self.bottom_z_m:.3f} + height "
+                f"{self.height_m:.3f})")
 
 
 def _scene_items(scenario: Scenario) -> list[_SceneItem]:
     items = [
         _SceneItem(f"obstacles[{i}]", f"{o.obstacle_class} obstacle '{o.name}' (obstacles[{i}])", obstacle_footprint(o),
-                   f"obstacles[{i}].size", o.height_m, o.obstacle_class == "movable", o.is_free_body)
+                   f"obstacles[{i}].size", o.height_m, o.obstacle_class == "movable", o.is_free_body, o.bottom_z_m)
         for i, o in enumerate(scenario.obstacles)
     ]
     items += [
@@ -426,15 +536,18 @@ def _check_heights(items: list[_SceneItem], robot: RobotDescription, ground_clea
     mount_z_m = robot.sensors.lidar.mount.xyz_m[2]
     tan_el = math.tan(lowest_beam_elevation_rad(robot.sensors.lidar.mount, lidar_min_elevation_deg))
     beam_at_range_m = mount_z_m + PARTIAL_VISIBILITY_RANGE_M * tan_el
+    # What matters is the top face: a raised geom (a seat, a shelf board) with its top above
+    # the ground cut keeps its points, and the lowest beam sees it where it sees its top.
     for it in items:
-        if it.height_m <= ground_clearance_m:
-            errors.append(f"{it.height_field}: {it.label} is {it.height_m:.3f} m high, at or below the controller's "
+        top = it.top_z_m
+        if top <= ground_clearance_m:
+            errors.append(f"{it.height_field}: {it.label} {it.describe_height()}, at or below the controller's "
                           f"ground cut {ground_clearance_m:.3f} m: its lidar points are removed as ground, the robot "
                           "cannot see it")
-        elif it.height_m < beam_at_range_m:
-            blind = (f"closer than {(mount_z_m - it.height_m) / -tan_el:.2f} m" if tan_el < 0
+        elif top < beam_at_range_m:
+            blind = (f"closer than {(mount_z_m - top) / -tan_el:.2f} m" if tan_el < 0
                      else "at any range")
-            warnings.append(f"{it.height_field}: {it.label} is {it.height_m:.3f} m high, below the lidar's lowest beam "
+            warnings.append(f"{it.height_field}: {it.label} {it.describe_height()}, below the lidar's lowest beam "
                             f"({beam_at_range_m:.3f} m at {PARTIAL_VISIBILITY_RANGE_M} m): only partly visible, "
                             f"the lidar loses it {blind}")
 
@@ -445,6 +558,8 @@ def _check_start(scenario: Scenario, items: list[_SceneItem], robot: RobotDescri
     body = robot_footprint_at(start, fp)
     what = f"the robot's footprint ({fp.length_m:.3f} x {fp.width_m:.3f} m at yaw {start.yaw_deg:g} deg)"
     for it in items:
+        if gap_lower_bound_m(body, it.shape) >= max(margin_m, START_CLEARANCE_WARNING_M):
+            continue
         gap = signed_gap_m(body, it.shape)
         if gap < 0.0:
             errors.append(f"robot.start: {what} overlaps {it.label} by {-gap:.3f} m")
@@ -471,6 +586,79 @@ def _check_goal(scenario: Scenario, items: list[_SceneItem], robot: RobotDescrip
             errors.append(f"goal.pose: {problem}: the robot cannot reach it")
 
 
+@dataclass(frozen=True)
+class RouteClearance:
+    """The smallest clearance of one part of a route (a segment, or a turn in place)."""
+
+    field: str            # "route.waypoints[3]" (the segment ending there, or the turn there) or "robot.start"
+    what: str             # "the footprint swept from (x, y) to (x, y)" or "turning in place at (x, y)"
+    clearance_m: float    # signed gap to the nearest obstacle or wall (< 0: overlap)
+    nearest: str          # the label of that obstacle or wall
+
+
+def _route_shapes(route: Route, start: Pose2D, footprint: Footprint) -> list[tuple[str, str, Shape2D]]:
+    """The robot's swept footprint along each segment (exactly a rectangle: the footprint
+    translated along its own x axis) and its circumscribed circle at each turn in place."""
+    points = route.polyline((start.x_m, start.y_m))
+    hl, hw = footprint.length_m / 2, footprint.width_m / 2
+    turn_radius_m = math.hypot(hl, hw)
+
+    def at(p: np.ndarray) -> str:
+        return f"({p[0]:g}, {p[1]:g})"
+
+    shapes: list[tuple[str, str, Shape2D]] = [
+        ("robot.start", f"turning in place at the start {at(points[0])} (circle of radius {turn_radius_m:.3f} m)",
+         Disc2D((float(points[0][0]), float(points[0][1])), turn_radius_m))]
+    for i, (a, b) in enumerate(zip(points[:-1], points[1:])):
+        field = f"route.waypoints[{i}]"
+        centre = (a + b) / 2
+        shapes.append((field, f"the footprint swept from {at(a)} to {at(b)}",
+                       Rect2D((float(centre[0]), float(centre[1])), (float(np.linalg.norm(b - a)) / 2 + hl, hw),
+                              math.atan2(b[1] - a[1], b[0] - a[0]))))
+        shapes.append((field, f"turning in place at {at(b)} (circle of radius {turn_radius_m:.3f} m)",
+                       Disc2D((float(b[0]), float(b[1])), turn_radius_m)))
+    return shapes
+
+
+def route_clearances(scenario: Scenario, robot: RobotDescription) -> list[RouteClearance]:
+    """Per segment and per turn of scenario.route, the clearance to the nearest obstacle or wall
+    (every footprint counts as blocking, whatever its height or elevation: the scripted operator
+    that drives the route does not avoid anything). Empty without a route."""
+    if scenario.route is None:
+        return []
+    items = _scene_items(scenario)
+    out = []
+    for field, what, shape in _route_shapes(scenario.route, scenario.robot.start, robot.footprint):
+        gap, label = math.inf, "nothing"
+        for it in sorted(items, key=lambda it: gap_lower_bound_m(shape, it.shape)):
+            if gap_lower_bound_m(shape, it.shape) >= gap:
+                break  # sorted: no later item can be nearer
+            g = signed_gap_m(shape, it.shape)
+            if g < gap:
+                gap, label = g, it.label
+        out.append(RouteClearance(field, what, gap, label))
+    return out
+
+
+def _check_route(scenario: Scenario, items: list[_SceneItem], robot: RobotDescription, margin_m: float,
+                 errors: list[str]) -> None:
+    if scenario.route is None:
+        return
+    # Conservative: the circle is checked at the start and at the last waypoint too, even where
+    # the headings need no turn (the operator may turn there to settle, or onto the goal's yaw).
+    for field, what, shape in _route_shapes(scenario.route, scenario.robot.start, robot.footprint):
+        subject = field if field.startswith("route.") else f"route ({field})"
+        for it in items:
+            if gap_lower_bound_m(shape, it.shape) >= margin_m:
+                continue
+            gap = signed_gap_m(shape, it.shape)
+            if gap < 0.0:
+                errors.append(f"{subject}: {what} overlaps {it.label} by {-gap:.3f} m")
+            elif gap < margin_m:
+                errors.append(f"{subject}: {what} is {gap:.3f} m from {it.label}, less than the route margin "
+                              f"{margin_m:.3f} m")
+
+
 def _check_free_bodies(items: list[_SceneItem], errors: list[str]) -> None:
     for i, it in enumerate(items):
         if not it.free_body:
@@ -478,6 +666,8 @@ def _check_free_bodies(items: list[_SceneItem], errors: list[str]) -> None:
         for j, other in enumerate(items):
             if j == i or (other.free_body and j < i):  # each pair of free bodies once
                 continue
+            if other.bottom_z_m >= it.top_z_m or it.bottom_z_m >= other.top_z_m:
+                continue  # one above the other (a box under a table top)
             gap = signed_gap_m(it.shape, other.shape)
             if gap < -FREE_BODY_OVERLAP_TOLERANCE_M:
                 errors.append(f"{it.field}.pose: {it.label} overlaps {other.label} by {-gap:.3f} m: the simulator "
@@ -510,6 +700,7 @@ def check_scenario_against_robot(
     margin_m: float = DEFAULT_START_MARGIN_M,
     *,
     lidar_min_elevation_deg: float | None = None,
+    route_margin_m: float = DEFAULT_ROUTE_MARGIN_M,
 ) -> list[str]:
     """Check that `scenario` can run with `robot`; returns warnings, raises ScenarioError.
 
@@ -517,14 +708,18 @@ def check_scenario_against_robot(
     margin_m overlaps an obstacle or wall (robot.start); the goal lies inside, or closer than
     half the robot's width to, a fixed or heavy obstacle or a wall (goal.pose); an obstacle or
     wall no higher than ground_clearance_m, whose lidar points the controller cuts as ground
-    (obstacles[i].size, walls[i].height_m); a free body that starts inside another obstacle or
-    a wall (obstacles[i].pose).
+    (obstacles[i].size, walls[i].height_m; a raised geom counts with its top, pose.z_m + height);
+    a free body that starts inside another obstacle or a wall it is not above or below
+    (obstacles[i].pose); a route whose swept footprint or turning circle comes closer than
+    route_margin_m to any obstacle or wall, whatever its height (route.waypoints[i] for the
+    segment ending at waypoint i and the turn there; "route (robot.start)" for the first turn).
     Warnings: an obstacle lower than the lidar's lowest beam at PARTIAL_VISIBILITY_RANGE_M
     (from the robot's lidar mount and lidar_min_elevation_deg, default the simulated lidar's);
     a start pose within START_CLEARANCE_WARNING_M of an obstacle; a goal on or next to a
     movable obstacle; randomization that can move a free body onto the start footprint.
     """
-    for name, value in (("ground_clearance_m", ground_clearance_m), ("margin_m", margin_m)):
+    for name, value in (("ground_clearance_m", ground_clearance_m), ("margin_m", margin_m),
+                        ("route_margin_m", route_margin_m)):
         if not (math.isfinite(value) and value >= 0.0):
             raise ValueError(f"check_scenario_against_robot: {name} must be finite and >= 0, got {value!r}")
     if lidar_min_elevation_deg is None:
@@ -539,6 +734,7 @@ def check_scenario_against_robot(
     _check_heights(items, robot, ground_clearance_m, lidar_min_elevation_deg, errors, warnings)
     _check_free_bodies(items, errors)
     _check_randomization(scenario, items, robot, warnings)
+    _check_route(scenario, items, robot, route_margin_m, errors)
     if errors:
         raise ScenarioError(f"scenario {scenario.name}: " + "; ".join(errors))
     return [f"scenario {scenario.name}: {w}" for w in warnings]
@@ -583,6 +779,12 @@ __all__ = [
     "BoxSize",
     "CylinderSize",
     "Pose2D",
+    "ObstaclePose",
+    "Route",
+    "RouteClearance",
+    "route_clearances",
+    "DEFAULT_ROUTE_MARGIN_M",
+    "MIN_ROUTE_SEGMENT_M",
     "Goal",
     "RobotStart",
     "Randomization",

@@ -129,7 +129,8 @@ def build_spec(scenario: Scenario, robot: RobotDescription) -> mujoco.MjSpec:
             gtype, size = mujoco.mjtGeom.mjGEOM_BOX, [v / 2 for v in ob.size.xyz_m]
         else:
             gtype, size = mujoco.mjtGeom.mjGEOM_CYLINDER, [ob.size.radius_m, ob.size.height_m / 2, 0.0]
-        pos = [ob.pose.x_m, ob.pose.y_m, ob.height_m / 2]
+        # The geom's bottom face at pose.z_m (0 but for raised fixed geoms: seats, shelf boards).
+        pos = [ob.pose.x_m, ob.pose.y_m, ob.bottom_z_m + ob.height_m / 2]
         if ob.is_free_body:
             body = world.add_body(name=ob.name, pos=pos, quat=_yaw_quat(ob.pose.yaw_rad))
             body.add_freejoint(name=f"{ob.name}_free")

@@ -16,6 +16,7 @@ from calibration.robot_description import load_robot_description
 from hil_sim.scenario import (
     DEFAULT_GROUND_CLEARANCE_M,
     Disc2D,
+    Pose2D,
     Rect2D,
     Scenario,
     ScenarioError,
@@ -23,6 +24,9 @@ from hil_sim.scenario import (
     check_scenario_against_robot,
     list_scenarios,
     load_scenario,
+    obstacle_footprint,
+    robot_footprint_at,
+    route_clearances,
     signed_gap_m,
 )
 
@@ -90,6 +94,23 @@ def test_load_by_path(tmp_path):
         ({"walls": [{"from": [0, 0], "to": [0, 0], "thickness_m": 0.1, "height_m": 1}]}, "walls.0", "same point"),
         ({"walls": [{"from": [0, 0], "to": [1, 0], "thickness_m": 0.1}]}, "walls.0.height_m", "Field required"),
         ({"goal": {"pose": {"x_m": 1.0, "y_m": 0.0}}}, "goal.tolerance_m", "Field required"),
+        # Raised geoms: only fixed ones; never below the floor; not for the robot's pose.
+        ({"obstacles": [{**BOX, "pose": {"x_m": 0.0, "y_m": 0.0, "z_m": 0.3}}]}, "obstacles.0.box",
+         "free body and stands on the floor: pose.z_m must be 0"),
+        ({"obstacles": [{**BOX, "class": "fixed", "mass_kg": None, "pose": {"x_m": 0.0, "y_m": 0.0, "z_m": -0.1}}]},
+         "obstacles.0.box.pose.z_m", "greater than or equal to 0"),
+        ({"robot": {"start": {"x_m": -1.0, "y_m": 0.0, "z_m": 0.1}}}, "robot.start.z_m", "Extra inputs"),
+        # Routes.
+        ({"route": {"waypoints": []}}, "route.waypoints", "at least 1 item"),
+        ({"route": {"waypoints": [[1.0, 0.0]], "speed_mps": 0.0}}, "route.speed_mps", "greater than 0"),
+        ({"route": {"waypoints": [[1.0, 0.0]], "speed_mps": 1.5}}, "route.speed_mps", "less than or equal to 1"),
+        ({"route": {"waypoints": [[1.0]]}}, "route.waypoints.0.1", "Field required"),
+        ({"route": {"waypoints": [[1.0, 0.0]], "speed": 0.4}}, "route.speed", "Extra inputs"),
+        ({"route": {"waypoints": [[0.0, 0.0], [1.5, 0.5], [9.0, 0.0]]}}, "(top level)",
+         "route.waypoints[2] (9.0, 0.0) lies outside the floor"),
+        ({"route": {"waypoints": [[0.0, 0.0], [0.0, 0.0]]}}, "(top level)",
+         "route.waypoints[1] is 0.0000 m from route.waypoints[0]"),
+        ({"route": {"waypoints": [[-1.0, 0.0]]}}, "(top level)", "route.waypoints[0] is 0.0000 m from robot.start"),
     ],
 )
 def test_invalid_files_name_field_and_reason(tmp_path, change, field, reason):
@@ -361,6 +382,138 @@ def test_randomization_that_can_reach_the_start_is_warned_about():
 def test_all_errors_in_one_line():
     text = rejected(scenario(obstacles=[fixed_box(x=1.0, size=(0.3, 0.3, 0.02))], robot=start(0.0, 0.95)))
     assert "robot.start:" in text and "goal.pose:" in text and "obstacles[0].size:" in text
+
+
+# --- Raised fixed geoms (pose.z_m): the checks that use a height use the top -------------------
+def raised_board(z: float, h: float = 0.02, name: str = "board") -> dict:
+    return {**fixed_box(name, x=0.0, y=-0.6, size=(0.6, 0.4, h)), "pose": {"x_m": 0.0, "y_m": -0.6, "z_m": z}}
+
+
+def test_a_raised_board_counts_with_its_top():
+    # 2 cm thick, far thinner than the ground cut, but raised: its top (0.52 m) is what the lidar sees.
+    assert check_scenario_against_robot(scenario(obstacles=[raised_board(0.5)]), ROBOT) == []
+    board = scenario(obstacles=[raised_board(0.5)]).obstacles[0]
+    assert (board.bottom_z_m, board.top_z_m) == (0.5, pytest.approx(0.52))
+    # Raised only a little: below the lowest beam at 0.5 m (0.139 m): warned about, naming its top.
+    mount_z = ROBOT.sensors.lidar.mount.xyz_m[2]
+    warnings = check_scenario_against_robot(scenario(obstacles=[raised_board(0.10)]), ROBOT)
+    assert len(warnings) == 1 and "obstacles[0].size: fixed obstacle 'board' (obstacles[0]) reaches 0.120 m above " \
+        "the floor (pose.z_m 0.100 + height 0.020), below the lidar's lowest beam" in warnings[0]
+    assert f"closer than {(mount_z - 0.12) / math.tan(math.radians(7.0)):.2f} m" in warnings[0]
+    # Its top at or below the ground cut: cut away with the ground.
+    text = rejected(scenario(obstacles=[raised_board(0.01)]))
+    assert "obstacles[0].size: fixed obstacle 'board' (obstacles[0]) reaches 0.030 m above the floor" in text
+    assert "ground cut 0.040 m" in text
+
+
+def test_a_free_body_under_a_table_top_is_not_inside_it():
+    box = {**BOX, "pose": {"x_m": 0.0, "y_m": -0.6}}  # 0.4 m high
+    assert check_scenario_against_robot(scenario(obstacles=[raised_board(0.45, h=0.03, name="top"), box]), ROBOT) == []
+    text = rejected(scenario(obstacles=[raised_board(0.3, h=0.03, name="top"), box]))
+    assert "obstacles[1].pose: movable obstacle 'b' (obstacles[1]) overlaps fixed obstacle 'top' (obstacles[0])" in text
+
+
+# --- Routes (driven by the odometry evaluation) -------------------------------------------------
+HALF_DIAGONAL = math.hypot(HALF_LENGTH, HALF_WIDTH)
+
+
+def route(*waypoints, speed=0.4) -> dict:
+    return {"waypoints": [list(p) for p in waypoints], "speed_mps": speed}
+
+
+def test_route_geometry_and_clearances():
+    scn = scenario(obstacles=[fixed_box(x=0.0, y=-0.6, size=(0.3, 0.3, 0.4))],
+                   route=route((0.5, 0.0), (0.5, -0.8), (1.0, -0.8)))
+    r, start = scn.route, (scn.robot.start.x_m, scn.robot.start.y_m)
+    assert r.polyline(start).tolist() == [[-1.0, 0.0], [0.5, 0.0], [0.5, -0.8], [1.0, -0.8]]
+    assert r.length_m(start) == pytest.approx(1.5 + 0.8 + 0.5)
+    assert r.headings_rad(start) == pytest.approx([0.0, -math.pi / 2, 0.0])
+    assert r.total_turn_rad(scn.robot.start) == pytest.approx(math.pi)  # right 90 deg, left 90 deg
+    assert check_scenario_against_robot(scn, ROBOT) == []
+    by_part = {(c.field, c.what.split(" ")[0]): c for c in route_clearances(scn, ROBOT)}
+    # Box faces: x = +-0.15, y = -0.45 .. -0.75.
+    first = by_part[("route.waypoints[0]", "the")]
+    assert (first.clearance_m, first.nearest) == (pytest.approx(0.45 - HALF_WIDTH), "fixed obstacle 'blk' (obstacles[0])")
+    assert by_part[("route.waypoints[1]", "the")].clearance_m == pytest.approx(0.5 - HALF_WIDTH - 0.15)
+    assert by_part[("route.waypoints[0]", "turning")].clearance_m == pytest.approx(
+        math.hypot(0.35, 0.45) - HALF_DIAGONAL)
+    assert by_part[("route.waypoints[1]", "turning")].clearance_m == pytest.approx(
+        math.hypot(0.35, 0.05) - HALF_DIAGONAL)  # the box's corner (0.15, -0.75)
+    assert by_part[("route.waypoints[2]", "the")].clearance_m == pytest.approx(0.5 - HALF_LENGTH - 0.15)
+    assert by_part[("robot.start", "turning")].clearance_m == pytest.approx(0.95 - HALF_DIAGONAL)  # the north wall
+    # A wider margin than the route leaves: every part that comes too close is named, in order.
+    with pytest.raises(ScenarioError) as err:
+        check_scenario_against_robot(scn, ROBOT, route_margin_m=0.3)
+    assert str(err.value) == (
+        "scenario mini: route.waypoints[1]: the footprint swept from (0.5, 0) to (0.5, -0.8) is "
+        f"{0.5 - HALF_WIDTH - 0.15:.3f} m from fixed obstacle 'blk' (obstacles[0]), less than the route margin 0.300 m; "
+        f"route.waypoints[1]: turning in place at (0.5, -0.8) (circle of radius {HALF_DIAGONAL:.3f} m) is "
+        f"{math.hypot(0.35, 0.05) - HALF_DIAGONAL:.3f} m from fixed obstacle 'blk' (obstacles[0]), less than the route "
+        "margin 0.300 m; route.waypoints[2]: the footprint swept from (0.5, -0.8) to (1, -0.8) is "
+        f"{0.5 - HALF_LENGTH - 0.15:.3f} m from fixed obstacle 'blk' (obstacles[0]), less than the route margin 0.300 m")
+    assert route_clearances(scenario(), ROBOT) == []  # no route
+
+
+def test_a_route_through_a_box_names_the_waypoint_and_the_box():
+    scn = scenario(obstacles=[fixed_box(x=0.0, y=-0.6)], route=route((-1.0, -0.6), (1.0, -0.6)))
+    text = rejected(scn)
+    assert ("route.waypoints[1]: the footprint swept from (-1, -0.6) to (1, -0.6) overlaps fixed obstacle 'blk' "
+            f"(obstacles[0]) by {0.2 + HALF_WIDTH:.3f} m") in text
+    assert "route.waypoints[0]" not in text and "robot.start" not in text
+
+
+def test_a_movable_box_on_the_route_blocks_it_too():
+    # The scripted operator that drives a route avoids nothing: every footprint blocks.
+    scn = scenario(obstacles=[{**BOX, "pose": {"x_m": 0.0, "y_m": 0.0}}], goal={
+        "pose": {"x_m": 1.0, "y_m": -0.6}, "tolerance_m": 0.1}, route=route((1.0, 0.0)))
+    assert "route.waypoints[0]: the footprint swept from (-1, 0) to (1, 0) overlaps movable obstacle 'b'" in rejected(scn)
+
+
+def test_turning_in_place_needs_the_circumscribed_circle():
+    # A box 0.14 m beside the robot's flank: the start footprint and the straight drive clear
+    # it, the corners of the robot turning in place (radius 0.195 m) come within 0.055 m.
+    side = fixed_box(x=-1.0, y=HALF_WIDTH + 0.14 + 0.1, size=(0.2, 0.2, 0.4))
+    scn = scenario(obstacles=[side], route=route((1.0, 0.0)))
+    text = rejected(scn)
+    assert text == (f"scenario mini: route (robot.start): turning in place at the start (-1, 0) (circle of radius "
+                    f"{HALF_DIAGONAL:.3f} m) is {HALF_WIDTH + 0.14 - HALF_DIAGONAL:.3f} m from fixed obstacle 'blk' "
+                    "(obstacles[0]), less than the route margin 0.100 m")
+    # The same box beside a waypoint.
+    at_wp = fixed_box(x=0.5, y=HALF_WIDTH + 0.14 + 0.1, size=(0.2, 0.2, 0.4))
+    text = rejected(scenario(obstacles=[at_wp], route=route((0.5, 0.0), (1.0, 0.0))))
+    assert text.startswith("scenario mini: route.waypoints[0]: turning in place at (0.5, 0) (circle of radius")
+    assert check_scenario_against_robot(scenario(obstacles=[at_wp], route=route((0.5, 0.0), (1.0, 0.0))), ROBOT,
+                                        route_margin_m=0.05) == []
+
+
+@settings(max_examples=40, deadline=None)
+@given(ax=st.floats(-1.5, 1.5), ay=st.floats(-0.8, 0.8), bx=st.floats(-1.5, 1.5), by=st.floats(-0.8, 0.8),
+       ox=st.floats(-1.5, 1.5), oy=st.floats(-0.8, 0.8), size=st.floats(0.05, 0.6), yaw=st.floats(-180, 180),
+       cylinder=st.booleans())
+def test_the_swept_footprint_is_the_union_of_the_footprints_along_the_segment(ax, ay, bx, by, ox, oy, size, yaw,
+                                                                                cylinder):
+    """route_clearances' swept rectangle against footprints placed every 5 mm along the segment."""
+    length = math.hypot(bx - ax, by - ay)
+    if length < 0.05:
+        return
+    if cylinder:
+        ob = {"name": "o", "shape": "cylinder", "size": {"radius_m": size / 2, "height_m": 0.5},
+              "pose": {"x_m": ox, "y_m": oy}, "class": "fixed"}
+    else:
+        ob = fixed_box("o", x=ox, y=oy, yaw=yaw, size=(size, size / 2, 0.5))
+    scn = Scenario.model_validate({**MINIMAL, "robot": start(ax, ay), "obstacles": [ob], "route": route((bx, by))})
+    swept = next(c for c in route_clearances(scn, ROBOT) if c.what.startswith("the footprint swept"))
+    heading = math.degrees(math.atan2(by - ay, bx - ax))
+    n = int(length / 0.005) + 2
+    shape = obstacle_footprint(scn.obstacles[0])
+    sampled = min(signed_gap_m(robot_footprint_at(Pose2D(x_m=ax + t * (bx - ax), y_m=ay + t * (by - ay),
+                                                         yaw_deg=heading), ROBOT.footprint), shape)
+                  for t in np.linspace(0.0, 1.0, n))
+    if sampled > 0.005:
+        assert swept.clearance_m == pytest.approx(sampled, abs=0.005)
+        assert swept.clearance_m <= sampled + 1e-9
+    elif sampled <= 0.0:
+        assert swept.clearance_m <= 1e-9
 
 
 # --- The plane geometry, against MuJoCo's own collision distance ---------------------------

@@ -194,3 +194,29 @@ def test_walls_are_the_boxes_the_scenario_check_measures(case1):
         gid = case1.obstacle_geom_id(name)
         np.testing.assert_allclose(case1.model.geom_size[gid][:2], wall_footprint(wall).half_extents_m)
         np.testing.assert_allclose(case1.data.geom_xpos[gid][:2], wall_footprint(wall).centre_xy_m)
+
+
+def _ray_m(w: World, origin, direction) -> tuple[float, str | None]:
+    """Distance along a ray to the first scene geom it hits, and that geom's name."""
+    gid = np.array([-1], dtype=np.int32)
+    dist = mujoco.mj_ray(w.model, w.data, np.asarray(origin, float), np.asarray(direction, float),
+                         np.array([1, 1, 0, 0, 0, 0], dtype=np.uint8), 1, -1, gid)
+    return dist, (mujoco.mj_id2name(w.model, mujoco.mjtObj.mjOBJ_GEOM, int(gid[0])) if gid[0] >= 0 else None)
+
+
+def test_a_raised_seat_is_where_its_pose_z_puts_it():
+    """pose.z_m is the bottom face: a chair seat 3 cm thick at 0.42 m has its top at 0.45 m, and
+    a ray just above the floor passes under it (the lidar sees the legs, not a block)."""
+    raw = load_scenario("case1").model_dump(by_alias=True)
+    raw["obstacles"].append({"name": "seat", "shape": "box", "size": {"xyz_m": [0.42, 0.42, 0.03]},
+                             "pose": {"x_m": 1.0, "y_m": -1.2, "yaw_deg": 30.0, "z_m": 0.42}, "class": "fixed"})
+    w = World(Scenario.model_validate(raw), ROBOT)
+    gid = w.obstacle_geom_id("seat")
+    assert w.data.geom_xpos[gid] == pytest.approx([1.0, -1.2, 0.435])
+    assert w.model.geom_size[gid] == pytest.approx([0.21, 0.21, 0.015])
+    assert _ray_m(w, [1.0, -1.2, 2.0], [0, 0, -1]) == (pytest.approx(2.0 - 0.45), "seat")   # from above: its top
+    assert _ray_m(w, [1.0, -1.2, 0.1], [0, 0, 1]) == (pytest.approx(0.42 - 0.1), "seat")    # from below: its bottom
+    dist, name = _ray_m(w, [1.0, -1.2 + 1.0, 0.2], [0, -1, 0])                              # sideways at 0.2 m: under it
+    assert name != "seat"
+    dist, name = _ray_m(w, [1.0, -1.2 + 1.0, 0.43], [0, -1, 0])                             # at seat height: its edge
+    assert name == "seat" and dist == pytest.approx(1.0 - 0.21 / math.cos(math.radians(30.0)), abs=1e-6)
