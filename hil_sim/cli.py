@@ -168,6 +168,28 @@ def sensors_command(frames: int, renders: int, boxes: int) -> None:
         click.echo(f"{key}: {value:.3f}" if isinstance(value, float) else f"{key}: {value}")
 
 
+@bench_group.command("odometry")
+@click.option("--scenario", default="odom_loop", show_default=True, help="Scenario with a route (recorded in lockstep).")
+@click.option("--seconds", default=30.0, show_default=True, type=click.FloatRange(1.0, 600.0))
+@click.option("--hog", "hogs", multiple=True, type=click.IntRange(0, 64), default=(0, 2), show_default=True,
+              help="Busy processes beside it (repeat for several runs).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the figures as JSON.")
+def odometry_bench_command(scenario: str, seconds: float, hogs: tuple[int, ...], json_path: Path | None) -> None:
+    """The odometry stage on the wall clock with 20k-point frames: time in the tick, ICP time
+    per frame in its worker process, pose latency (frame end -> pose), with N busy processes."""
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.odom_bench import print_odometry_benchmark
+
+    if json_path is not None:
+        try:
+            check_output_path(json_path, what="--json")
+        except OutputPathError as exc:
+            raise InputError(str(exc)) from exc
+    out = print_odometry_benchmark(scenario, seconds, hogs, click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
+
+
 @bench_group.command("planner")
 @click.option("--repeats", default=300, show_default=True, help="Planner steps per configuration.")
 @click.option("--cvxpy-repeats", default=30, show_default=True, help="cvxpy solves per configuration.")

@@ -69,6 +69,7 @@ class OdometryStage:
         self.covariance = np.zeros((3, 3))
         self.frames_submitted = 0
         self.compute_ms: list[float] = []
+        self.latency_ms: list[float] = []
         self.icp_age_s = float("inf")
         self._icp_lost = False
         self._degenerate = False
@@ -140,6 +141,10 @@ class OdometryStage:
 
     def _take(self, result, now_s: float) -> None:
         self.compute_ms.append(result.compute_s * 1e3)
+        if not self.lockstep:  # real time: the frame's end -> the tick that uses its correction
+            self.latency_ms.append((now_s - result.end_s) * 1e3)
+            if len(self.latency_ms) > 4000:
+                del self.latency_ms[:2000]
         if len(self.compute_ms) > 4000:
             del self.compute_ms[:2000]
         why = self.fusion.icp_update(result)
@@ -206,10 +211,12 @@ class OdometryStage:
         the worker's time per frame, and in real time the send-to-result round trip."""
         ms = np.asarray(self.compute_ms) if self.compute_ms else np.zeros(0)
         rt = np.asarray(getattr(self.worker, "round_trip_s", ()) or (), dtype=float) * 1e3
+        lat = np.asarray(self.latency_ms)
         pct = lambda a, q: round(float(np.percentile(a, q)), 3) if len(a) else None  # noqa: E731
         return {
             "icp_compute_ms": {"p50": pct(ms, 50), "p99": pct(ms, 99), "max": pct(ms, 100), "frames": int(len(ms))},
             "icp_round_trip_ms": {"p50": pct(rt, 50), "p99": pct(rt, 99), "max": pct(rt, 100)},
+            "pose_latency_ms": {"p50": pct(lat, 50), "p99": pct(lat, 99), "max": pct(lat, 100)},
         }
 
 

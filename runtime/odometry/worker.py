@@ -19,9 +19,11 @@ Two clocks (DESIGN.md section 6):
 """
 from __future__ import annotations
 
+import queue
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections import deque
 from typing import Callable, Protocol
@@ -124,6 +126,12 @@ class ProcessIcpWorker:
         theirs.close()
         self._conn = Connection(ours.detach())
         self._conn.send(engine_factory)
+        # Sending a 20k-point frame (320 kB) blocks while the worker is still registering the
+        # previous one (the socket buffer is smaller): a sender thread does it, the tick only
+        # queues (socket writes release the GIL).
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._sender = threading.Thread(target=self._send_loop, name="dct-icp-send", daemon=True)
+        self._sender.start()
         self.lockstep = lockstep
         self._start_timeout_s = start_timeout_s
         self._ready = False
@@ -137,14 +145,21 @@ class ProcessIcpWorker:
         self._sent_at: dict[int, float] = {}
 
     # -- plumbing ------------------------------------------------------------------------------
+    def _send_loop(self) -> None:
+        while True:
+            job = self._outbox.get()
+            try:
+                self._conn.send(job)
+            except (OSError, ValueError) as exc:
+                self.failed = self.failed or f"ICP worker gone ({exc})"
+                return
+            if job is None:
+                return
+
     def _send(self, job: IcpJob) -> None:
-        try:
-            self._conn.send(job)
-        except (OSError, ValueError, BrokenPipeError) as exc:
-            self.failed = f"ICP worker gone ({exc})"
-            return
         self._sent_at[job.seq] = time.perf_counter()
         self._in_flight.append(job)
+        self._outbox.put(job)
 
     def _receive(self, block: bool) -> bool:
         """Take one message; False when none (non-blocking) or the worker is gone."""
@@ -207,10 +222,8 @@ class ProcessIcpWorker:
         return bool(self._in_flight)
 
     def close(self) -> None:
-        try:
-            self._conn.send(None)
-        except (OSError, ValueError):
-            pass
+        self._outbox.put(None)
+        self._sender.join(timeout=2.0)
         try:
             self._proc.wait(timeout=2.0)
         except subprocess.TimeoutExpired:

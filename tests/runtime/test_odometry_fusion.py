@@ -1,0 +1,260 @@
+"""Odometry: planar pose algebra, degeneracy from the Hessian, the increment EKF, the ICP engine
+on synthetic scenes, and the worker's two clocks."""
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from runtime.odometry.degeneracy import DegeneracyConfig, planar_constraint
+from runtime.odometry.fusion import FusionConfig, PoseFusion
+from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult, deskew_with_motion
+from runtime.odometry.icp_config import IcpConfig
+from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse, wrap
+from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
+
+MOUNT = np.eye(4)
+MOUNT[:3, 3] = [0.05, 0.0, 0.20]
+
+finite = st.floats(-50, 50, allow_nan=False)
+angle = st.floats(-math.pi, math.pi, allow_nan=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(finite, finite, angle, finite, finite, angle)
+def test_se2_compose_between_and_inverse_agree(ax, ay, ath, bx, by, bth):
+    a, b = np.array([ax, ay, ath]), np.array([bx, by, bth])
+    np.testing.assert_allclose(se2_compose(a, se2_between(a, b))[:2], b[:2], atol=1e-9)
+    assert abs(wrap(se2_compose(a, se2_between(a, b))[2] - bth)) < 1e-9
+    np.testing.assert_allclose(se2_compose(a, se2_inverse(a)), [0, 0, 0], atol=1e-9)
+
+
+# -- synthetic scenes --------------------------------------------------------------------------
+
+def _wall(p0, p1, z0=0.0, z1=1.5, step=0.05):
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    n = max(int(np.linalg.norm(p1 - p0) / step), 2)
+    s = np.linspace(0, 1, n)
+    zs = np.arange(z0, z1, step)
+    xy = p0 + s[:, None] * (p1 - p0)
+    return np.array([[x, y, z] for x, y in xy for z in zs])
+
+
+def _cylinder(c, r, z1=1.0, step=0.05):
+    n = max(int(2 * math.pi * r / step), 8)
+    a = np.linspace(0, 2 * math.pi, n, endpoint=False)
+    zs = np.arange(0.0, z1, step)
+    return np.array([[c[0] + r * math.cos(t), c[1] + r * math.sin(t), z] for t in a for z in zs])
+
+
+def _floor(half=5.0, step=0.2):
+    g = np.arange(-half, half, step)
+    return np.array([[x, y, 0.0] for x in g for y in g])
+
+
+def test_a_straight_corridor_is_degenerate_along_its_axis_and_a_room_is_not():
+    corridor = np.vstack([_wall((-20, -1), (20, -1)), _wall((-20, 1), (20, 1)), _floor()])
+    c = planar_constraint(corridor)
+    assert c.degenerate_xy and not c.too_few_points
+    weak = c.weak_direction_xy
+    assert abs(weak[0]) > 0.99, weak  # along x, the corridor's axis
+    assert c.eigenvalues_xy[1] > 0.3  # across it: well constrained
+    room = np.vstack([corridor, _wall((-3, -1), (-3, 1)), _wall((3, -1), (3, 1)), _cylinder((1, 0.5), 0.1)])
+    r = planar_constraint(room)
+    assert not r.degenerate_xy and r.eigenvalues_xy[0] > 0.03
+    assert "well constrained" in r.describe() and "unconstrained along" in c.describe()
+
+
+def test_a_round_room_leaves_yaw_unconstrained_and_little_data_is_too_little():
+    round_room = np.vstack([_cylinder((0, 0), 3.0, z1=1.5), _floor()])
+    c = planar_constraint(round_room)
+    assert c.degenerate_yaw and not c.degenerate_xy
+    few = planar_constraint(_wall((1, -0.1), (1, 0.1), z1=0.2))
+    assert few.too_few_points and few.degenerate and "sees too little" in few.describe()
+    empty = planar_constraint(np.zeros((0, 3)))
+    assert empty.too_few_points
+
+
+# -- the fusion ----------------------------------------------------------------------------------
+
+def _result(seq, t_prev, t, delta, constraint=None, pose=np.zeros(3)):
+    return IcpResult(seq=seq, stamp_s=t - 0.1, end_s=t, ready_at_s=t + 0.1, pose_base=pose,
+                     delta_base=None if delta is None else np.asarray(delta, float), prev_end_s=t_prev,
+                     constraint=constraint, points_in=1000, points_registered=500, deskewed=True, compute_s=0.0)
+
+
+def _room_constraint():
+    return planar_constraint(np.vstack([_wall((-3, -2), (3, -2)), _wall((-3, 2), (3, 2)), _wall((-3, -2), (-3, 2)),
+                                        _wall((3, -2), (3, 2)), _cylinder((1, 1), 0.2)]))
+
+
+def _corridor_constraint():
+    return planar_constraint(np.vstack([_wall((-20, -1), (20, -1)), _wall((-20, 1), (20, 1))]))
+
+
+def _drive(fusion, steps, wheel_step, icp_step, constraint, dt=0.1):
+    """Straight drive: wheels report wheel_step per frame, ICP icp_step; returns the fused pose."""
+    d = np.zeros(3)
+    fusion.add_dead_reckoning(0.0, d.copy())
+    fusion.icp_update(_result(0, None, 0.0, None, constraint))  # the first frame: anchor only
+    for k in range(1, steps + 1):
+        d = se2_compose(d, np.asarray(wheel_step, float))
+        fusion.add_dead_reckoning(k * dt, d.copy())
+        assert fusion.icp_update(_result(k, (k - 1) * dt, k * dt, icp_step, constraint)) is None
+    return fusion.pose_now(d)
+
+
+def test_without_icp_the_pose_is_the_dead_reckoning_and_its_covariance_grows():
+    f = PoseFusion(FusionConfig())
+    f.add_dead_reckoning(0.0, np.zeros(3))
+    p0, c0 = f.pose_now(np.zeros(3))
+    pose, cov = f.pose_now(np.array([1.0, 0.2, 0.3]))
+    np.testing.assert_allclose(pose, [1.0, 0.2, 0.3], atol=1e-12)
+    assert np.all(np.diag(cov) > np.diag(c0))
+
+
+def test_in_a_room_the_fused_pose_follows_icp_when_the_wheels_overstate_the_distance():
+    # Wheels say 4.4 cm a frame (10% scale error, as a slipping base), ICP the true 4 cm.
+    pose, _ = _drive(PoseFusion(FusionConfig()), 50, [0.044, 0, 0], [0.040, 0, 0], _room_constraint())
+    assert abs(pose[0] - 2.0) < 0.03  # the wheels alone would say 2.2 m
+
+
+def test_in_a_corridor_the_wheels_carry_the_axis_and_icp_the_rest():
+    # ICP slides (says no motion along the axis) and corrects a sideways wheel error.
+    pose, cov = _drive(PoseFusion(FusionConfig()), 50, [0.04, 0.002, 0], [0.0, 0.0, 0], _corridor_constraint())
+    assert abs(pose[0] - 2.0) < 0.01  # along the axis: the wheels (ICP alone: 0 m)
+    assert abs(pose[1]) < 0.02  # across: ICP (the wheels alone: 0.1 m)
+    assert cov[0, 0] > 10 * cov[1, 1]  # and the covariance says which direction is weak
+
+
+def test_an_implausible_icp_increment_is_refused_and_named():
+    f = PoseFusion(FusionConfig())
+    f.add_dead_reckoning(0.0, np.zeros(3))
+    f.icp_update(_result(0, None, 0.0, None, _room_constraint()))
+    f.add_dead_reckoning(0.1, np.array([0.04, 0.0, 0.0]))
+    why = f.icp_update(_result(1, 0.0, 0.1, [0.60, 0.0, 0.0], _room_constraint()))
+    assert why is not None and "implausible" in why and f.stats.refused == 1
+    pose, _ = f.pose_now(np.array([0.04, 0.0, 0.0]))
+    assert abs(pose[0] - 0.04) < 1e-9  # the wheels' increment was used
+
+
+def test_a_result_older_than_the_history_is_dropped_not_fused():
+    f = PoseFusion(FusionConfig())
+    f.add_dead_reckoning(10.0, np.zeros(3))
+    why = f.icp_update(_result(0, None, 1.0, None, _room_constraint()))
+    assert why is not None and "history" in why and f.stats.too_old == 1
+
+
+# -- the ICP engine and the worker ---------------------------------------------------------------
+
+def _scene():
+    rng = np.random.default_rng(1)
+    parts = [_wall((-4, -3), (4, -3)), _wall((-4, 3), (4, 3)), _wall((-4, -3), (-4, 3)), _wall((4, -3), (4, 3)),
+             _floor(4.0, 0.15)]
+    for _ in range(12):
+        c = rng.uniform(-3, 3, 2)
+        parts.append(_cylinder(c, rng.uniform(0.05, 0.3)))
+    return np.vstack(parts)
+
+
+def _frames(n=6, step=(0.05, 0.0, 0.02), noise=0.005, seed=0):
+    """Frames of the synthetic scene seen by the lidar from a base moving `step` per frame."""
+    world = _scene()
+    rng = np.random.default_rng(seed)
+    pose = np.zeros(3)
+    frames = []
+    for k in range(n):
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        rel = world[:, :2] - pose[:2]
+        base = np.column_stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], world[:, 2]])
+        lidar = base - MOUNT[:3, 3]
+        keep = np.hypot(lidar[:, 0], lidar[:, 1]) < 12
+        pts = (lidar[keep] + rng.normal(0, noise, (keep.sum(), 3))).astype(np.float32)
+        offs = np.linspace(0, 0.099, len(pts)).astype(np.float32)
+        frames.append(IcpJob(seq=k, stamp_s=0.1 * k, end_s=0.1 * k + 0.099, points=pts, offsets_s=offs, duration_s=0.1,
+                             prior_base=np.asarray(step, float) if k else None, ready_at_s=0.1 * k + 0.2))
+        pose = se2_compose(pose, np.asarray(step, float))
+    return frames
+
+
+def _engine(deskew="off"):
+    return IcpEngine(IcpConfig(voxel_size_m=0.2, deskew=deskew), DegeneracyConfig(), MOUNT, True)
+
+
+def test_kiss_icp_recovers_the_motion_of_a_synthetic_scene():
+    engine = _engine()
+    results = [engine.process(j) for j in _frames()]
+    assert results[0].delta_base is None
+    for r in results[1:]:
+        np.testing.assert_allclose(r.delta_base[:2], [0.05, 0.0], atol=0.01)
+        assert abs(r.delta_base[2] - 0.02) < math.radians(0.3)
+        assert r.constraint is not None and not r.constraint.degenerate
+
+
+def test_deskew_with_motion_moves_each_point_to_the_frame_end():
+    # A wall point seen at t=0 from a base that then moves 0.1 m forward: at the end it is 0.1 m closer.
+    pts = np.array([[2.0, 0.0, 0.5], [2.0, 0.0, 0.5]])
+    motion = np.array([[0.0, 0.0, 0.0, 0.0], [0.1, 0.1, 0.0, 0.0]])
+    out = deskew_with_motion(pts, np.array([0.0, 0.1]), 0.1, motion, MOUNT)
+    np.testing.assert_allclose(out[0], [1.9, 0.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(out[1], [2.0, 0.0, 0.5], atol=1e-12)
+
+
+def test_a_frame_whose_times_do_not_span_the_sweep_is_not_deskewed_and_says_so():
+    job = _frames(1)[0]
+    flat = IcpJob(**{**job.__dict__, "offsets_s": np.zeros_like(job.offsets_s)})
+    r = _engine("kiss").process(flat)
+    assert not r.deskewed and any("no deskew" in n for n in r.notes)
+
+
+def test_lockstep_results_are_identical_from_the_process_and_inline_and_arrive_at_their_time():
+    factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2, deskew="kiss"), DegeneracyConfig(), MOUNT, True)
+    frames = _frames(5)
+    got = {}
+    for name, worker in (("inline", InlineIcpWorker(factory)), ("process", ProcessIcpWorker(factory, lockstep=True))):
+        try:
+            out = []
+            for job in frames:
+                worker.submit(job)
+                assert worker.poll(job.end_s) == []  # never before its simulated delivery time
+                worker.settle(job.ready_at_s)  # the simulator waits here, not the tick
+                res = worker.poll(job.ready_at_s)
+                assert [r.seq for r in res] == [job.seq]
+                out.append(res[0])
+            got[name] = out
+        finally:
+            worker.close()
+    for a, b in zip(got["inline"], got["process"]):
+        np.testing.assert_array_equal(a.pose_base, b.pose_base)
+
+
+def test_real_time_worker_keeps_only_the_newest_waiting_frame_and_names_a_dead_worker():
+    factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2), DegeneracyConfig(), MOUNT, True)
+    worker = ProcessIcpWorker(factory, lockstep=False)
+    try:
+        frames = _frames(4)
+        for job in frames:
+            worker.submit(job)  # returns at once: the first is sent, later ones wait (newest kept)
+        assert worker.dropped == 2
+        seen = []
+        for _ in range(600):
+            seen += [r.seq for r in worker.poll(0.0)]
+            if 3 in seen:
+                break
+            worker._conn.poll(0.05)
+        assert seen == [0, 3]
+        worker._proc.kill()
+        worker._proc.wait()
+        worker.submit(frames[0])
+        for _ in range(100):
+            worker.poll(0.0)
+            if worker.failed:
+                break
+            worker._conn.poll(0.05)
+        assert worker.failed and "ICP worker" in worker.failed
+    finally:
+        worker.close()
