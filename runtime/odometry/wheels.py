@@ -10,12 +10,21 @@ from runtime.geometry import Pose2D, wrap_angle
 
 
 class WheelOdometry:
-    """Integrates left/right wheel distance increments (midpoint rule) into a pose in the odom frame."""
+    """Integrates left/right wheel distance increments (midpoint rule) into a pose in the odom frame.
 
-    def __init__(self, track_m: float, effective_track_factor: float = 1.0) -> None:
+    The wheel distances are multiplied by `wheel_scale` (true distance / reported distance) and
+    their difference turns into yaw over track_m * effective_track_factor. Calibrated values
+    (`dct calibrate wheels`) come from calibration.wheel_odometry.wheel_params:
+    WheelOdometry(effective_track_m, wheel_scale=wheel_scale).
+    """
+
+    def __init__(self, track_m: float, effective_track_factor: float = 1.0, wheel_scale: float = 1.0) -> None:
         if track_m <= 0.0:
             raise ValueError(f"track must be positive, got {track_m} m")
+        if not (math.isfinite(wheel_scale) and wheel_scale > 0.0):
+            raise ValueError(f"wheel scale must be a positive number, got {wheel_scale}")
         self.effective_track_m = track_m * effective_track_factor
+        self.wheel_scale = wheel_scale
         self._last: tuple[float, float] | None = None
         self._x = self._y = self._yaw = 0.0
         self.distance_travelled_m = 0.0
@@ -33,8 +42,8 @@ class WheelOdometry:
         if self._last is None:
             self._last = (left_wheel_m, right_wheel_m)
             return self.pose
-        d_left = left_wheel_m - self._last[0]
-        d_right = right_wheel_m - self._last[1]
+        d_left = (left_wheel_m - self._last[0]) * self.wheel_scale
+        d_right = (right_wheel_m - self._last[1]) * self.wheel_scale
         self._last = (left_wheel_m, right_wheel_m)
         d_center = 0.5 * (d_left + d_right)
         d_yaw = (d_right - d_left) / self.effective_track_m
@@ -55,8 +64,8 @@ class WheelGyroOdometry(WheelOdometry):
     it is activated (`calibrate_bias`). Without IMU samples the wheel yaw is used.
     """
 
-    def __init__(self, track_m: float, effective_track_factor: float = 1.0) -> None:
-        super().__init__(track_m, effective_track_factor)
+    def __init__(self, track_m: float, effective_track_factor: float = 1.0, wheel_scale: float = 1.0) -> None:
+        super().__init__(track_m, effective_track_factor, wheel_scale)
         self.gyro_bias_radps = 0.0
         self._bias_sum = 0.0
         self._bias_n = 0
@@ -102,7 +111,7 @@ class WheelGyroOdometry(WheelOdometry):
             self._last = (left, right)
             self._yaw = wrap_angle(self._yaw + d_yaw)
             return self.pose
-        d_center = 0.5 * ((left - self._last[0]) + (right - self._last[1]))
+        d_center = 0.5 * ((left - self._last[0]) + (right - self._last[1])) * self.wheel_scale
         self._last = (left, right)
         mid_yaw = self._yaw + 0.5 * d_yaw
         self._x += d_center * math.cos(mid_yaw)
