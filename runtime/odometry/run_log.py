@@ -129,6 +129,15 @@ def _read_members(path: Path, where: str) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise RunLogError(f"{where}: no such file" if not path.exists() else f"{where}: is not a file")
     try:
+        with open(path, "rb") as f:
+            magic = f.read(6)
+    except OSError as exc:
+        raise RunLogError(f"{where}: cannot read file: {exc.strerror or exc}") from None
+    if magic == b"\x93NUMPY":
+        raise RunLogError(f"{where}: is a single .npy array, not an .npz run file")
+    if not magic.startswith(b"PK"):  # np.load would try it as a pickle and say so: misleading
+        raise RunLogError(f"{where}: is not an .npz file (no zip signature at the start)")
+    try:
         loaded = np.load(path, allow_pickle=False)
     except Exception as exc:  # noqa: BLE001 - see the docstring
         raise RunLogError(f"{where}: cannot be read as an .npz run file ({_exc_text(exc)})") from None

@@ -167,9 +167,13 @@ def test_not_a_run_file(tmp_path):
     np.save(tmp_path / "a.npy", np.zeros(3))
     with pytest.raises(RunLogError, match="single .npy array"):
         load_run_log(tmp_path / "a.npy")
-    (tmp_path / "empty.npz").write_bytes(b"")
-    with pytest.raises(RunLogError, match="cannot be read"):
-        load_run_log(tmp_path / "empty.npz")
+    for name, data in (("empty.npz", b""), ("text.npz", b"t_s,left\n0.0,0.0\n")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(RunLogError, match=r"is not an .npz file \(no zip signature"):
+            load_run_log(tmp_path / name)
+    (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04" + bytes(40))
+    with pytest.raises(RunLogError, match="cannot be read as an .npz run file"):
+        load_run_log(tmp_path / "cut.npz")
 
 
 # ---------------------------------------------------------------------------- any bytes
