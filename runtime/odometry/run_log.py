@@ -102,7 +102,8 @@ def load_run_log(path: str | Path) -> OdometryRunLog:
                           f"(got {_show(version)}); a newer recorder wrote it, or it is not a run file")
     unknown = sorted(set(raw) - set(ARRAY_FIELDS) - set(TEXT_FIELDS))
     if unknown:
-        raise RunLogError(f"{where}: unknown member(s) {', '.join(unknown)} (expected {', '.join(ARRAY_FIELDS + TEXT_FIELDS)})")
+        shown = ", ".join(ascii(name) for name in unknown[:5]) + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else "")
+        raise RunLogError(f"{where}: unknown member(s) {shown} (expected {', '.join(ARRAY_FIELDS + TEXT_FIELDS)})")
     missing = [name for name in ARRAY_FIELDS + TEXT_FIELDS if name not in raw]
     if missing:
         raise RunLogError(f"{where}: {', '.join(missing)}: missing")
@@ -150,7 +151,7 @@ def _read_members(path: Path, where: str) -> dict[str, np.ndarray]:
         raise RunLogError(f"{where}: cannot be read as an .npz run file ({_exc_text(exc)})") from None
     for name, value in members.items():
         if not isinstance(value, np.ndarray):  # NpzFile hands out a member without the .npy header as bytes
-            raise RunLogError(f"{where}: {name}: is not a numpy array (no .npy header)")
+            raise RunLogError(f"{where}: {ascii(name)[1:-1]}: is not a numpy array (no .npy header)")
     return members
 
 

@@ -132,7 +132,8 @@ def test_float32_file_loads_as_float64(tmp_path):
     (lambda m: m.pop("format_version"), "format_version: missing"),
     (lambda m: m.update(format_version=np.array(2)), "format_version: must be the integer 1"),
     (lambda m: m.update(format_version=np.array("1")), "format_version"),
-    (lambda m: m.update(extra=np.zeros(3)), "unknown member(s) extra"),
+    (lambda m: m.update(extra=np.zeros(3)), "unknown member(s) 'extra'"),
+    (lambda m: m.update({"a\nb": np.zeros(3)}), "unknown member(s) 'a\\nb'"),
     (lambda m: m.update(robot=np.array(["limo", "x"])), "robot: must be a text value"),
     (lambda m: m.update(reference=np.array(b"icp")), "reference: must be a text value"),
     (lambda m: m.update(reference=np.array("slam")), "reference: must be one of"),
@@ -256,7 +257,9 @@ def _npy_bytes(a: np.ndarray) -> bytes:
 
 
 @settings(max_examples=200, deadline=None)
-@given(members=st.dictionaries(st.sampled_from(_NAMES),
+@given(members=st.dictionaries(st.one_of(st.sampled_from(_NAMES),
+                                         st.text(st.characters(exclude_categories=("Cs",), exclude_characters="\x00"),
+                                                 max_size=8)),
                                st.one_of(st.binary(max_size=100), _npy.map(_npy_bytes)), max_size=len(_NAMES)),
        compression=st.sampled_from([zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED]))
 def test_zips_of_random_members_raise_only_run_log_error(scratch, members, compression):
