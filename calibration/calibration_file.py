@@ -19,6 +19,19 @@ Example::
       method: "checkerboard 9x6, 25 mm; calibrateCamera"
       intrinsics_rms_px: 0.21
       extrinsic_rms_m: 0.012
+    wheel_odometry:             # optional; written by `dct calibrate wheels`
+      effective_track_m: 0.524  # turns the wheel distance difference into yaw (skid-steer: > track_m)
+      wheel_scale: 0.985        # true distance / wheel distance
+      fit:
+        reference: icp          # or ground_truth
+        source: "hall loop 2025-01-02"
+        windows: 412
+        window_s: 0.5
+        distance_m: 38.2
+        rotation_deg: 1630.0
+        residual_distance_rms_m: 0.004
+        residual_yaw_rms_deg: 0.4
+        date: 2025-01-02T10:00:00
 
 rpy_deg uses the robot description's convention (extrinsic x-y-z: R = Rz(yaw) Ry(pitch) Rx(roll)).
 Every problem raises ConfigFileError naming the file, the field and the reason, on one line.
@@ -27,13 +40,15 @@ What is refused when the file loads: any non-finite number; a focal length that 
 a principal point outside the image; a lidar-camera translation longer than
 MAX_LIDAR_CAMERA_TRANSLATION_M (both sensors sit on one robot); rpy angles outside [-360, 360]
 degrees; a rotation_matrix that is not orthonormal (max |R R^T - I| > 1e-4) or is a reflection
-(det < 0); a quaternion whose norm is not 1 (within 1e-3).
+(det < 0); a quaternion whose norm is not 1 (within 1e-3); a wheel_odometry effective track that
+is not in (0, MAX_EFFECTIVE_TRACK_M] or a wheel scale outside WHEEL_SCALE_RANGE (the fit refuses
+values outside tighter, robot-relative ranges: calibration.wheel_odometry).
 """
 from __future__ import annotations
 
 import datetime as _dt
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Literal, Optional
 
 import numpy as np
 import yaml
@@ -47,6 +62,10 @@ from calibration.outputs import atomic_write_text
 #: T_camera<-lidar translations longer than this are refused: both sensors sit on one robot.
 MAX_LIDAR_CAMERA_TRANSLATION_M = 2.0
 MAX_ANGLE_DEG = 360.0
+#: wheel_odometry values beyond these are a typo (mm for m), not a robot. The robot description
+#: allows a track up to 3 m; the fit allows 5 x the geometric track.
+MAX_EFFECTIVE_TRACK_M = 15.0
+WHEEL_SCALE_RANGE = (0.8, 1.2)
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 AngleDeg = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_ANGLE_DEG, le=MAX_ANGLE_DEG)]
@@ -168,11 +187,35 @@ class Provenance(_Strict):
     notes: Optional[str] = None
 
 
+class WheelOdometryFitRecord(_Strict):
+    """How the wheel odometry values were found (calibration.wheel_odometry.fit_wheel_odometry)."""
+
+    reference: Literal["ground_truth", "icp"]
+    source: str = Field(min_length=1)
+    windows: int = Field(ge=1)
+    window_s: float = Field(gt=0.0, allow_inf_nan=False)
+    distance_m: float = Field(gt=0.0, allow_inf_nan=False)
+    rotation_deg: float = Field(gt=0.0, allow_inf_nan=False)
+    residual_distance_rms_m: float = Field(ge=0.0, allow_inf_nan=False)
+    residual_yaw_rms_deg: float = Field(ge=0.0, allow_inf_nan=False)
+    date: _dt.datetime
+
+
+class WheelOdometryCalibration(_Strict):
+    """Wheel odometry of this robot: yaw = wheel_scale * (dR - dL) / effective_track_m, distance =
+    wheel_scale * (dL + dR) / 2. Read at run time through calibration.wheel_odometry.wheel_params."""
+
+    effective_track_m: float = Field(gt=0.0, le=MAX_EFFECTIVE_TRACK_M, allow_inf_nan=False)
+    wheel_scale: float = Field(ge=WHEEL_SCALE_RANGE[0], le=WHEEL_SCALE_RANGE[1], allow_inf_nan=False)
+    fit: WheelOdometryFitRecord
+
+
 class CalibrationFile(_Strict):
     robot: str = Field(min_length=1)
     camera: CameraIntrinsics
     lidar_to_camera: Optional[RigidTransform] = None
     provenance: Provenance
+    wheel_odometry: Optional[WheelOdometryCalibration] = None
 
     def camera_model(self) -> CameraModel:
         return self.camera.camera_model()
@@ -273,5 +316,6 @@ def calibration_from_opencalib(
     return make_calibration(robot, K, dist, width_px, height_px, T, method="imported from OpenCalib JSON")
 
 
-__all__ = ["CalibrationFile", "CameraIntrinsics", "RigidTransform", "Provenance", "load_calibration",
+__all__ = ["CalibrationFile", "CameraIntrinsics", "RigidTransform", "Provenance", "WheelOdometryCalibration",
+           "WheelOdometryFitRecord", "MAX_EFFECTIVE_TRACK_M", "WHEEL_SCALE_RANGE", "load_calibration",
            "save_calibration", "calibration_yaml", "MAX_LIDAR_CAMERA_TRANSLATION_M", "make_calibration", "calibration_from_opencalib", "ConfigFileError"]

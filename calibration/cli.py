@@ -1,7 +1,8 @@
 """`dct calibrate`: camera intrinsics, lidar-camera extrinsics, projection overlay, report.
 
-Sub-commands from other packages (e.g. `hil-check` from hil_sim) come from the entry point group
-"dct.calibrate" and are imported only when invoked; this module never imports hil_sim or runtime.
+Sub-commands from other packages (`hil-check` from hil_sim, `wheels` from runtime.odometry: it reads
+a recorded run) come from the entry point group "dct.calibrate" and are imported only when invoked;
+this module never imports hil_sim or runtime.
 Heavy libraries (cv2) are imported inside the commands.
 
 Rules every sub-command follows:

@@ -10,15 +10,21 @@ from runtime.geometry import Pose2D, wrap_angle
 
 
 class WheelOdometry:
-    """Integrates left/right wheel distance increments (midpoint rule) into a pose in the odom frame."""
+    """Integrates left/right wheel distance increments (midpoint rule) into a pose in the odom frame.
+
+    The wheel distances are multiplied by `wheel_scale` (true distance / reported distance) and
+    their difference turns into yaw over track_m * effective_track_factor. Calibrated values
+    (`dct calibrate wheels`) come from calibration.wheel_odometry.wheel_params:
+    WheelOdometry(effective_track_m, wheel_scale=wheel_scale).
+    """
 
     def __init__(self, track_m: float, effective_track_factor: float = 1.0, wheel_scale: float = 1.0) -> None:
         if track_m <= 0.0:
             raise ValueError(f"track must be positive, got {track_m} m")
-        if not 0.5 <= wheel_scale <= 1.5:
-            raise ValueError(f"wheel scale must be in [0.5, 1.5], got {wheel_scale}")
+        if not (math.isfinite(wheel_scale) and wheel_scale > 0.0):
+            raise ValueError(f"wheel scale must be a positive number, got {wheel_scale}")
         self.effective_track_m = track_m * effective_track_factor
-        self.wheel_scale = float(wheel_scale)
+        self.wheel_scale = wheel_scale
         self._last: tuple[float, float] | None = None
         self._x = self._y = self._yaw = 0.0
         self.distance_travelled_m = 0.0
@@ -33,13 +39,11 @@ class WheelOdometry:
 
     def update(self, left_wheel_m: float, right_wheel_m: float) -> Pose2D:
         """Feed the cumulative wheel distances (m); returns the new pose."""
-        left_wheel_m *= self.wheel_scale
-        right_wheel_m *= self.wheel_scale
         if self._last is None:
             self._last = (left_wheel_m, right_wheel_m)
             return self.pose
-        d_left = left_wheel_m - self._last[0]
-        d_right = right_wheel_m - self._last[1]
+        d_left = (left_wheel_m - self._last[0]) * self.wheel_scale
+        d_right = (right_wheel_m - self._last[1]) * self.wheel_scale
         self._last = (left_wheel_m, right_wheel_m)
         d_center = 0.5 * (d_left + d_right)
         d_yaw = (d_right - d_left) / self.effective_track_m
@@ -102,12 +106,12 @@ class WheelGyroOdometry(WheelOdometry):
             return self.pose
         if not have_imu:
             return self.update(*wheels)
-        left, right = wheels[0] * self.wheel_scale, wheels[1] * self.wheel_scale
+        left, right = wheels
         if self._last is None:
             self._last = (left, right)
             self._yaw = wrap_angle(self._yaw + d_yaw)
             return self.pose
-        d_center = 0.5 * ((left - self._last[0]) + (right - self._last[1]))
+        d_center = 0.5 * ((left - self._last[0]) + (right - self._last[1])) * self.wheel_scale
         self._last = (left, right)
         mid_yaw = self._yaw + 0.5 * d_yaw
         self._x += d_center * math.cos(mid_yaw)
