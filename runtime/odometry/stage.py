@@ -35,6 +35,9 @@ class OdometryConfig(BaseModel):
     #: fused: wheels + gyro + KISS-ICP (the default); wheels_imu: dead reckoning only.
     source: Literal["fused", "wheels_imu"] = "fused"
     icp: IcpConfig = IcpConfig()
+    #: KISS-ICP's initial guess (and, with deskew "kiss", its deskew motion): "odometry" = the
+    #: wheel/gyro motion since the previous frame; "constant_velocity" = KISS-ICP's own.
+    icp_prior: Literal["odometry", "constant_velocity"] = "odometry"
     degeneracy: DegeneracyConfig = DegeneracyConfig()
     fusion: FusionConfig = FusionConfig()
     #: Where ICP runs in lockstep: "process" (beside the simulator) or "inline" (in the
@@ -82,7 +85,7 @@ class OdometryStage:
         if not self.icp_enabled or self.worker is not None:
             return
         c = self.config
-        factory = functools.partial(IcpEngine, c.icp, c.degeneracy, self.mount, True)
+        factory = functools.partial(IcpEngine, c.icp, c.degeneracy, self.mount, c.icp_prior == "odometry")
         if self.lockstep and c.lockstep_worker == "inline":
             self.worker = InlineIcpWorker(factory)
         else:
