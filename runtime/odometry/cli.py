@@ -8,9 +8,9 @@ is written; an output path is checked before the work, an existing file is refus
 `--scenario` runs in the simulator, which `runtime` must not import (DESIGN.md, section 4): its
 evaluation is found through the entry point group "dct.odom_scenario" (name "evaluate", in
 pyproject.toml: hil_sim.odom_eval:evaluate_scenario) and loaded only when asked for. Its
-contract: `evaluate_scenario(scenario: str, seed: int, progress: Callable[[int, int], None])
--> dict` (JSON-ready: `icp`, `wheels_imu`, `fused`, `stage_ms`, ...); bad input raises
-calibration.errors.ConfigFileError (exit 2).
+contract: `evaluate_scenario(scenario: str, seed: int, progress: Callable[[float, float], None])
+-> dict` (JSON-ready: `icp`, `wheels_imu`, `fused`, `stage_ms`, ...; progress(done, total) in
+any unit); bad input raises calibration.errors.ConfigFileError (exit 2).
 """
 from __future__ import annotations
 
@@ -85,19 +85,27 @@ def _checked_output(path: Path | None, what: str, inputs, force: bool) -> None:
 
 
 class _Bar:
-    """A click progress bar on stderr, created on the first report (its length is known then)."""
+    """A click progress bar on stderr, created on the first report (its length is known then).
+
+    Called as progress(done, total): frames (integers) or simulated seconds (floats, shown in
+    thousandths of the total)."""
 
     def __init__(self, label: str):
         self.label = label
         self.bar = None
-        self.done = 0
+        self.scale = 1.0
+        self.shown = 0
 
-    def __call__(self, done: int, total: int) -> None:
+    def __call__(self, done: float, total: float) -> None:
         if self.bar is None:
-            self.bar = click.progressbar(length=total, label=self.label, file=sys.stderr)
+            self.scale = 1.0 if float(total).is_integer() else 1000.0 / max(float(total), 1e-9)
+            length = max(1, round(float(total) * self.scale))
+            self.bar = click.progressbar(length=length, label=self.label, file=sys.stderr)
             self.bar.__enter__()
-        self.bar.update(done - self.done)
-        self.done = done
+        target = min(round(float(done) * self.scale), self.bar.length)
+        if target > self.shown:
+            self.bar.update(target - self.shown)
+            self.shown = target
 
     def close(self) -> None:
         if self.bar is not None:

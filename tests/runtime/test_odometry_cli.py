@@ -145,8 +145,8 @@ def evaluate_stand_in(scenario, seed, progress):
     """Stands in for hil_sim.odom_eval.evaluate_scenario (written elsewhere) to check the wiring."""
     if scenario == "bad":
         raise ConfigFileError("unknown scenario 'bad'")
-    for i in range(3):
-        progress(i + 1, 3)
+    for i in range(4):  # simulated seconds, as the simulator reports them
+        progress(0.1 * i, 0.3)
     stream = {"length_m": 2.0, "drift_percent": 1.0, "rpe_percent": 2.0, "rpe_deg_per_m": 0.1, "yaw_drift_deg": 0.5,
               "end_error_m": 0.02, "rpe_segments_m": [1.0, 2.0]}
     return {"scenario": scenario, "seed": seed, "icp": stream, "wheels_imu": stream, "fused": stream,
