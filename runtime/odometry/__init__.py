@@ -5,6 +5,9 @@
 - `degeneracy`: does a scan constrain the planar motion, and along which direction not.
 - `fusion`: one pose stream with a covariance from ICP, wheels and gyro.
 - `metrics`: drift and relative pose error against a reference trajectory.
+- `sequence`: KISS-ICP over a recorded sequence (scans, KITTI poses, times) against its poses.
+- `pair`: one scan registered onto another (the real HDL-32 pair check).
+- `cli`: `dct odom eval` and `dct odom register`.
 """
 from runtime.odometry.wheels import WheelGyroOdometry, WheelOdometry
 
