@@ -166,11 +166,14 @@ of the registration time per frame); a short summary goes to stdout.
 @click.option("--min-range", type=float, default=None, callback=_length, help="nearest point used (m) [default: 0.3]")
 @click.option("--deskew", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
               help="auto: deskew when the scans have per-point times; on: require them")
+@click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="with --scenario: also write the run (wheels, gyro, ground truth) as an .npz for "
+                   "`dct calibrate wheels`")
 @click.option("--trajectory", "trajectory_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="also write the estimated poses here (KITTI format; with --scans)")
 def eval_command(scans_dir: Path | None, poses_file: Path | None, times_file: Path | None, scenario: str | None,
                  seed: int | None, json_path: Path, force: bool, voxel_size: float | None, max_range: float | None,
-                 min_range: float | None, deskew: str, trajectory_path: Path | None) -> None:
+                 min_range: float | None, deskew: str, trajectory_path: Path | None, record_path: Path | None = None) -> None:
     """See EVAL_HELP."""
     if (scans_dir is None) == (scenario is None):
         raise InputError("dct odom eval: give exactly one of --scans DIR or --scenario NAME_OR_PATH (see --help)")
@@ -183,7 +186,7 @@ def eval_command(scans_dir: Path | None, poses_file: Path | None, times_file: Pa
         if given:
             raise InputError(f"dct odom eval: {', '.join(given)} go with --scans, not --scenario "
                              f"(the scenario's controller config sets the odometry)")
-        _eval_scenario(scenario, 0 if seed is None else seed, json_path, force)
+        _eval_scenario(scenario, 0 if seed is None else seed, json_path, force, record_path)
         return
     if seed is not None:
         raise InputError("dct odom eval: --seed goes with --scenario (a recorded sequence has no seed)")
@@ -235,19 +238,29 @@ def _scenario_evaluator():
                            f"loaded: {exc}") from None
 
 
-def _eval_scenario(scenario: str, seed: int, json_path: Path, force: bool) -> None:
+def _eval_scenario(scenario: str, seed: int, json_path: Path, force: bool, record_path: Path | None = None) -> None:
     from calibration.errors import ConfigFileError
     from calibration.outputs import atomic_write_json
 
     evaluate = _scenario_evaluator()
-    _checked_output(json_path, "--json", [Path(scenario)] if Path(scenario).is_file() else [], force)
+    inputs = [Path(scenario)] if Path(scenario).is_file() else []
+    _checked_output(json_path, "--json", inputs, force)
+    if record_path is not None:
+        _checked_output(record_path, "--record", inputs + [json_path], force)
     bar = _Bar(f"{scenario}")
+    record: dict | None = {} if record_path is not None else None
     try:
-        report = evaluate(scenario, seed=seed, progress=bar)
-    except ConfigFileError as exc:
+        report = evaluate(scenario, seed=seed, progress=bar, record=record)
+    except (ConfigFileError, ValueError) as exc:
         raise InputError(str(exc)) from None
     finally:
         bar.close()
+    if record_path is not None:
+        from runtime.odometry.run_log import OdometryRunLog
+
+        OdometryRunLog(t_s=record["t_s"], left_wheel_m=record["left_wheel_m"], right_wheel_m=record["right_wheel_m"],
+                       gyro_z_radps=record["gyro_z_radps"], ref_pose=record["ref_pose"], reference="ground_truth",
+                       robot=record["robot"], source=record["source"]).save(record_path, overwrite=force)
     atomic_write_json(json_path, report)
     for stream in ("icp", "wheels_imu", "fused"):
         if isinstance(report.get(stream), dict) and "length_m" in report[stream]:
