@@ -36,6 +36,9 @@ def list_command() -> None:
               help="Seed for every random source (deterministic).")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Controller config YAML.")
 @click.option("--robot", "robot_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Robot description YAML.")
+@click.option("--calibration", "calibration_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="The robot's calibration file: its wheel_odometry section (dct calibrate wheels) sets the "
+                   "odometry's effective track and wheel scale.")
 @click.option(
     "--planner",
     type=click.Choice(["pure-pursuit", "all-fixed"]),
@@ -48,7 +51,7 @@ def list_command() -> None:
 )
 def run_command(
     scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None,
-    planner: str | None, fault_texts: tuple[str, ...],
+    planner: str | None, fault_texts: tuple[str, ...], calibration_path: Path | None = None,
 ) -> None:
     """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path).
 
@@ -72,12 +75,22 @@ def run_command(
         config = load_controller_config(config_path)
         if planner is not None:
             config = config.with_planner_mode(planner)
+        wheel_calibration = None
+        if calibration_path is not None:
+            from calibration.calibration_file import load_calibration
+            from calibration.wheel_odometry import wheel_params
+
+            params = wheel_params(robot, load_calibration(calibration_path))
+            wheel_calibration = (params.effective_track_m, params.wheel_scale)
+            click.echo(f"wheel odometry: effective track {params.effective_track_m:.4f} m, scale "
+                       f"{params.wheel_scale:.4f} ({params.source})", err=True)
         from hil_sim.scenario import check_scenario_against_robot
 
         warnings = check_scenario_against_robot(
             sc, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m
         )
-        inputs = [p for p in (config_path, robot_path, Path(scenario)) if p is not None and Path(p).is_file()]
+        inputs = [p for p in (config_path, robot_path, calibration_path, Path(scenario))
+                  if p is not None and Path(p).is_file()]
         if json_path is not None:
             check_output_path(json_path, what="--json", inputs=inputs)
         if config.uses_mpc:  # the distance net must fit this robot (checked again at start-up)
@@ -95,7 +108,8 @@ def run_command(
     for w in warnings:
         click.echo(f"warning: {w}", err=True)
     try:
-        result = run_episode(sc, robot=robot, config=config, seed=seed, faults=faults)
+        result = run_episode(sc, robot=robot, config=config, seed=seed, faults=faults,
+                             wheel_calibration=wheel_calibration)
     except ConfigFileError as exc:  # a scenario the robot cannot start in, a bad model file
         raise InputError(str(exc)) from exc
     m = result.metrics

@@ -153,12 +153,14 @@ def run_episode(
     progress: Callable[[float], None] | None = None,
     sensors: "SensorRigConfig | None | bool" = None,
     faults: Iterable[FaultSpec] = (),
+    wheel_calibration: tuple[float, float] | None = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
     sensors: a SensorRigConfig, True for the default rig, False for none; None picks what the
     controller needs (lidar + IMU for the MPC, nothing for pure pursuit).
     faults: injected faults (hil_sim.faults), times from the start of the episode.
+    wheel_calibration: (effective track m, wheel scale) for the odometry (calibration file).
 
     Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
     What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
@@ -197,7 +199,7 @@ def run_episode(
     try:  # loads the distance net: a bad model file must not leave the buses open
         controller = NavigationController(
             robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now,
-            sensors=inbox if has_sensors else None, lockstep=True,
+            sensors=inbox if has_sensors else None, lockstep=True, wheel_calibration=wheel_calibration,
         )
     except BaseException:
         controller_bus.shutdown()
