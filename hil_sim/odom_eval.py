@@ -26,6 +26,7 @@ from typing import Callable
 
 import numpy as np
 
+from calibration.errors import ConfigFileError
 from calibration.robot_description import RobotDescription, load_robot_description
 from firmware_bridge.base_driver import AgileXBaseDriver
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
@@ -45,7 +46,7 @@ from runtime.sensor_inbox import SensorInbox
 EVAL_IMU = ImuConfig(gyro_bias_radps=(0.004, -0.003, 0.005), gyro_bias_walk_radps_per_sqrt_s=2e-5)
 
 
-class RouteError(ValueError):
+class RouteError(ConfigFileError):
     """The scenario has no route to drive."""
 
 

@@ -58,8 +58,8 @@ class FusionConfig(BaseModel):
     wheel_floor_m: float = Field(0.001, gt=0.0, le=1.0)  # per increment: nothing is exact
     wheel_floor_rad: float = Field(0.0003, gt=0.0, le=1.0)
     # ICP increment noise along well-constrained directions (its drift per frame, see above).
-    icp_sigma_m: float = Field(0.0005, gt=0.0, le=1.0)
-    icp_sigma_rad: float = Field(0.0002, gt=0.0, le=1.0)
+    icp_sigma_m: float = Field(0.002, gt=0.0, le=1.0)
+    icp_sigma_rad: float = Field(0.0005, gt=0.0, le=1.0)
     #: A constrained direction with a normalised eigenvalue of `reference_eigenvalue` gets
     #: icp_sigma; a weaker one proportionally more variance.
     reference_eigenvalue: float = Field(0.4, gt=0.0, le=1.0)
