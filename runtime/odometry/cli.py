@@ -250,7 +250,8 @@ def _eval_scenario(scenario: str, seed: int, json_path: Path, force: bool, recor
     bar = _Bar(f"{scenario}")
     record: dict | None = {} if record_path is not None else None
     try:
-        report = evaluate(scenario, seed=seed, progress=bar, record=record)
+        extra = {"record": record} if record is not None else {}
+        report = evaluate(scenario, seed=seed, progress=bar, **extra)
     except (ConfigFileError, ValueError) as exc:
         raise InputError(str(exc)) from None
     finally:
