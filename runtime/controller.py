@@ -180,6 +180,7 @@ class NavigationController:
         stages.mark(READ)
 
         self._update_odometry(now, inputs, sensors)
+        self._follow_correction(self.odometry.correction)
         stages.mark(ODOMETRY)
 
         scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
@@ -288,6 +289,16 @@ class NavigationController:
             self.odometry.calibrate_bias(imu)
             imu = ()
         self.pose = self.odometry.update(now, inputs.odometry, imu, self.monitor.good_scan)
+
+    def _follow_correction(self, correction: np.ndarray | None) -> None:
+        """An ICP correction moves the pose; P_fix, placed with the pose before it, moves with it,
+        so the robot-to-obstacle geometry the planner and the supervisor see does not jump."""
+        if correction is None or not len(self.points_fix):
+            return
+        c, s = math.cos(correction[2]), math.sin(correction[2])
+        p = self.points_fix
+        self.points_fix = np.column_stack([c * p[:, 0] - s * p[:, 1] + correction[0],
+                                           s * p[:, 0] + c * p[:, 1] + correction[1]])
 
     # -- planner stage -----------------------------------------------------------------------
     def _plan(self, now: float) -> tuple[float, float]:

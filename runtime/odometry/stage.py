@@ -24,6 +24,7 @@ from runtime.odometry.degeneracy import DegeneracyConfig
 from runtime.odometry.fusion import FusionConfig, PoseFusion
 from runtime.odometry.icp import IcpEngine, IcpJob
 from runtime.odometry.icp_config import IcpConfig
+from runtime.odometry.se2 import se2_compose, se2_inverse
 from runtime.odometry.wheels import WheelGyroOdometry
 from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
 from runtime.sensor_data import LidarScan
@@ -70,6 +71,9 @@ class OdometryStage:
         self._first_submit_s: float | None = None
         self.pose = Pose2D(0.0, 0.0, 0.0)
         self.covariance = np.zeros((3, 3))
+        #: This tick's ICP correction as a planar transform of the odom frame (None: none):
+        #: apply it to anything placed in the odom frame with the pose before it.
+        self.correction: np.ndarray | None = None
         self.frames_submitted = 0
         self.compute_ms: list[float] = []
         self.latency_ms: list[float] = []
@@ -114,12 +118,21 @@ class OdometryStage:
         d_now = _pose_vec(self.wheels.update_with_imu(wheels, imu_samples))
         fusion = self.fusion
         fusion.add_dead_reckoning(now_s, d_now)
+        self.correction = None
         if self.worker is not None:
             if good_scan is not None:
                 self._submit(good_scan)
-            for result in self.worker.poll(now_s):
-                self._take(result, now_s)
+            results = self.worker.poll(now_s)
+            if results:
+                before, _ = fusion.pose_now(d_now)
+                for result in results:
+                    self._take(result, now_s)
         pose, cov = fusion.pose_now(d_now)
+        if self.worker is not None and results:
+            # What the corrections did to the pose now, as a motion of the odom frame: whatever
+            # was placed in the odom frame with the pose before them (the obstacle points of the
+            # newest frame, which is younger than any ICP result) moves with it.
+            self.correction = se2_compose(pose, se2_inverse(before))
         self.pose = Pose2D(float(pose[0]), float(pose[1]), float(pose[2]))
         self.covariance = cov
         self._watch_age(now_s)

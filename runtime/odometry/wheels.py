@@ -1,6 +1,6 @@
 """Wheel odometry: dead reckoning from the base's cumulative wheel distances (0x311) and the gyro.
 
-Later steps fuse KISS-ICP lidar odometry and the IMU here; the tick only asks for a pose.
+The odometry stage (runtime.odometry.stage) fuses it with KISS-ICP; the tick only asks for a pose.
 """
 from __future__ import annotations
 
@@ -45,8 +45,10 @@ class WheelOdometry:
         d_left = (left_wheel_m - self._last[0]) * self.wheel_scale
         d_right = (right_wheel_m - self._last[1]) * self.wheel_scale
         self._last = (left_wheel_m, right_wheel_m)
-        d_center = 0.5 * (d_left + d_right)
-        d_yaw = (d_right - d_left) / self.effective_track_m
+        return self._advance(0.5 * (d_left + d_right), (d_right - d_left) / self.effective_track_m)
+
+    def _advance(self, d_center: float, d_yaw: float) -> Pose2D:
+        """Move by d_center along the mid-step heading and turn by d_yaw (midpoint rule)."""
         mid_yaw = self._yaw + 0.5 * d_yaw
         self._x += d_center * math.cos(mid_yaw)
         self._y += d_center * math.sin(mid_yaw)
@@ -113,9 +115,4 @@ class WheelGyroOdometry(WheelOdometry):
             return self.pose
         d_center = 0.5 * ((left - self._last[0]) + (right - self._last[1])) * self.wheel_scale
         self._last = (left, right)
-        mid_yaw = self._yaw + 0.5 * d_yaw
-        self._x += d_center * math.cos(mid_yaw)
-        self._y += d_center * math.sin(mid_yaw)
-        self._yaw = wrap_angle(self._yaw + d_yaw)
-        self.distance_travelled_m += abs(d_center)
-        return self.pose
+        return self._advance(d_center, d_yaw)

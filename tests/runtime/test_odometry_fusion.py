@@ -259,3 +259,41 @@ def test_real_time_worker_keeps_only_the_newest_waiting_frame_and_names_a_dead_w
         assert worker.failed and "ICP worker" in worker.failed
     finally:
         worker.close()
+
+
+def test_the_stage_reports_each_correction_so_obstacle_points_move_with_the_pose():
+    """Lockstep stage with the inline worker on synthetic frames whose wheels overstate the
+    motion: when an ICP result lands, `correction` maps the pose before it onto the pose after it
+    (the controller moves P_fix by it), and between results it is None."""
+    from runtime.odometry.stage import OdometryConfig, OdometryStage
+    from runtime.sensor_data import LidarScan
+
+    cfg = OdometryConfig(icp=IcpConfig(voxel_size_m=0.2, deskew="off"), lockstep_worker="inline",
+                         lockstep_latency_s=0.05)
+    stage = OdometryStage(cfg, 0.175, 3.0, MOUNT, lockstep=True)
+    stage.start()
+    frames = _frames(6, step=(0.05, 0.0, 0.0))
+    corrections = 0
+    wheel = 0.0
+    try:
+        for k in range(1, 13):  # 20 Hz ticks over 6 frames at 10 Hz
+            now = 0.05 * k + 0.0
+            wheel += 0.5 * 0.05 * 1.2  # the wheels say 1.2x the true 0.05 m a frame
+            job = frames[(k - 1) // 2] if k % 2 == 1 else None
+            scan = None
+            if job is not None:
+                scan = LidarScan(stamp_s=job.stamp_s, points_m=job.points, point_time_offsets_s=job.offsets_s,
+                                 frame_duration_s=0.1)
+            before = np.array([stage.pose.x_m, stage.pose.y_m, stage.pose.yaw_rad])
+            stage.settle(now)
+            stage.update(now, (wheel, wheel), (), scan)
+            after = np.array([stage.pose.x_m, stage.pose.y_m, stage.pose.yaw_rad])
+            if stage.correction is not None and np.linalg.norm(stage.correction[:2]) > 1e-4:
+                corrections += 1
+                assert stage.correction[0] < 0.0  # pulled back against the wheels' overstatement
+            assert np.all(np.isfinite(after)) and np.all(np.isfinite(before))
+        assert corrections >= 3 and stage.fusion.stats.fused >= 3
+        # ICP pulled the pose back from the wheels' 1.2x: below the wheels' 0.36 m.
+        assert stage.pose.x_m < 0.34
+    finally:
+        stage.close()
