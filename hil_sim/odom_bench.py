@@ -14,7 +14,8 @@ missed tick starts.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 
@@ -33,32 +34,15 @@ class RecordedTick:
 
 def record_ticks(scenario: str, seconds: float, seed: int = 0) -> tuple[list[RecordedTick], float]:
     """Drive the route for `seconds` (lockstep) and keep the stage's inputs per tick."""
-    import hil_sim.odom_eval as ev
-    from runtime.odometry import stage as stage_mod
-
-    ticks: list[RecordedTick] = []
-    original = stage_mod.OdometryStage.update
-
-    def spy(self, now_s, wheels, imu_samples, good_scan):
-        ticks.append(RecordedTick(now_s, wheels, tuple(imu_samples), good_scan))
-        return original(self, now_s, wheels, imu_samples, good_scan)
-
+    from hil_sim.odom_eval import evaluate_scenario
     from hil_sim.scenario import load_scenario
 
+    ticks: list[RecordedTick] = []
     sc = load_scenario(scenario)
     sc = sc.model_copy(update={"time_limit_s": min(sc.time_limit_s, seconds)})
-    stage_mod.OdometryStage.update = spy
-    try:
-        ev.evaluate_scenario(sc, seed=seed)
-    finally:
-        stage_mod.OdometryStage.update = original
+    evaluate_scenario(sc, seed=seed, on_tick=lambda t, w, imu, scan: ticks.append(RecordedTick(t, w, imu, scan)))
     points = [len(t.scan.points_m) for t in ticks if t.scan is not None]
     return ticks, float(np.mean(points)) if points else 0.0
-
-
-def _hog() -> None:  # pragma: no cover - a busy process
-    while True:
-        pass
 
 
 def _restamp(scan: LidarScan, shift_s: float) -> LidarScan:
@@ -73,8 +57,9 @@ def _imu_restamp(s: ImuSample, shift_s: float) -> ImuSample:
     return dataclasses.replace(s, stamp_s=s.stamp_s + shift_s)
 
 
-def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None) -> dict:
-    """Replay on the wall clock at the recorded tick times; returns the figures."""
+def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None, settle_s: float = 1.0) -> dict:
+    """Replay on the wall clock at the recorded tick times (the first settle_s standing still:
+    the gyro bias is learned, as at the controller's start); returns the figures."""
     from calibration.robot_description import load_robot_description
     from runtime.config import load_controller_config
     from runtime.odometry.stage import OdometryStage
@@ -84,9 +69,7 @@ def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None) ->
     stage = OdometryStage(config.odometry, robot.drive.track_m, robot.drive.skid_steer_yaw_factor,
                           robot.sensors.lidar.mount.transform(), lockstep=False)
     budget_ms = config.loop.stage_budgets_s.get("odometry", 0.01) * 1e3
-    hog_procs = [mp.get_context("spawn").Process(target=_hog, daemon=True) for _ in range(hogs)]
-    for p in hog_procs:
-        p.start()
+    hog_procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(hogs)]
     stage.start()
     stage_ms: list[float] = []
     late_starts = 0
@@ -107,6 +90,9 @@ def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None) ->
             scan = _restamp(tick.scan, shift) if tick.scan is not None else None
             imu = tuple(_imu_restamp(s, shift) for s in tick.imu)
             w0 = time.perf_counter()
+            if tick.t_s - t_rec0 < settle_s:
+                stage.calibrate_bias(imu)
+                imu = ()
             stage.update(now, tick.wheels, imu, scan)
             stage_ms.append((time.perf_counter() - w0) * 1e3)
         time.sleep(0.5)  # the last results
@@ -114,8 +100,8 @@ def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None) ->
     finally:
         stage.close()
         for p in hog_procs:
-            p.terminate()
-            p.join(timeout=1.0)
+            p.kill()
+            p.wait(timeout=5.0)
     ms = np.asarray(stage_ms)
     wc = stage.wall_clock()
     return {

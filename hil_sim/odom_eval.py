@@ -117,11 +117,14 @@ def evaluate_scenario(
     progress: Callable[[float, float], None] | None = None,
     settle_s: float = 1.0,
     record: dict | None = None,
+    on_tick: Callable[[float, tuple[float, float] | None, tuple, object], None] | None = None,
 ) -> dict:
     """Run the route of `scenario` and return the JSON-ready comparison (module docstring).
 
     record: if a dict, filled with the per-tick arrays of the run (for `--record`: wheels, gyro,
     ground truth and the fused pose).
+    on_tick: called every tick with what the odometry stage reads (time, wheel distances, IMU
+    samples, lidar frame or None): `dct bench odometry` records the run with it.
     """
     from hil_sim.sensor_rig import SensorRig, SensorRigConfig
 
@@ -176,6 +179,8 @@ def evaluate_scenario(
             snap = inbox.take()
             standing = now - t0 < settle_s
             imu = snap.imu
+            if on_tick is not None:
+                on_tick(now, inputs.odometry, tuple(imu), snap.scan)
             w0 = time.perf_counter()
             if standing:
                 stage.calibrate_bias(imu)
@@ -201,11 +206,8 @@ def evaluate_scenario(
                           odo[0], odo[1]))
             if progress is not None:
                 progress(now - t0, scenario.time_limit_s)
-            if operator.done or now >= limit:
-                if operator.done and now >= ticks[-1][0] and abs(inputs.linear_mps) < 1e-3:
-                    break
-                if now >= limit:
-                    break
+            if now >= limit or (operator.done and abs(inputs.linear_mps) < 1e-3):
+                break
             v, w = (0.0, 0.0) if standing else operator.command(gx, gy, gyaw)
             hardware.write(v, w)
             k += 1

@@ -86,7 +86,9 @@ class FusionStats:
 class PoseFusion:
     """EKF on increments: wheels + gyro predict, KISS-ICP increments correct (module docstring)."""
 
-    def __init__(self, config: FusionConfig, capacity: int = 512) -> None:
+    def __init__(self, config: FusionConfig, capacity: int = 1024) -> None:
+        """capacity: dead-reckoning samples kept (one per tick; 1024 = 51 s at 20 Hz, more than
+        history_s can ask for)."""
         self.config = config
         self._cap = capacity
         self._t = np.full(capacity, -np.inf)
@@ -117,6 +119,8 @@ class PoseFusion:
             return None
         order = np.argsort(self._t[:n]) if self._n > self._cap else np.arange(n)
         ts = self._t[:n][order]
+        if t_s < ts[-1] - self.config.history_s:
+            return None
         if t_s < ts[0] - 1e-9 or t_s > ts[-1] + 1e-9:
             # A little past the newest sample (the frame ended after the last tick): hold it.
             if ts[-1] < t_s <= ts[-1] + 0.06:
@@ -181,12 +185,11 @@ class PoseFusion:
             cov[:2, :2] = np.eye(2) * c.degenerate_variance
             cov[2, 2] = c.degenerate_variance
             return cov
-        var = []
-        for lam in con.eigenvalues_xy:
-            if con.degenerate_xy and lam == con.eigenvalues_xy[0]:
-                var.append(c.degenerate_variance)
-            else:
-                var.append(c.icp_sigma_m**2 * c.reference_eigenvalue / max(float(lam), 1e-6))
+        # Along each eigenvector: icp_sigma scaled by how much weaker than the reference it is;
+        # the weakest one not at all when it is degenerate (the eigenvalues are ascending).
+        var = [c.icp_sigma_m**2 * c.reference_eigenvalue / max(float(lam), 1e-6) for lam in con.eigenvalues_xy]
+        if con.degenerate_xy:
+            var[0] = c.degenerate_variance
         if con.too_few_points:
             var = [c.degenerate_variance, c.degenerate_variance]
         v = con.eigenvectors_xy
