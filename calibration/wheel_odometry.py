@@ -236,6 +236,9 @@ def wheel_params(robot: RobotDescription, calibration: CalibrationFile | None) -
         return WheelParams(drive.track_m * drive.skid_steer_yaw_factor, 1.0,
                            f"robot description '{robot.name}': track_m {drive.track_m} x skid_steer_yaw_factor "
                            f"{drive.skid_steer_yaw_factor} ({why})")
+    if calibration.robot != robot.name:
+        raise ConfigFileError(f"calibration is for robot '{calibration.robot}', the robot description is "
+                              f"'{robot.name}': its wheel_odometry section does not apply")
     lo, hi = drive.track_m, MAX_TRACK_FACTOR * drive.track_m
     if not lo <= section.effective_track_m <= hi:
         raise ConfigFileError(f"calibration for robot '{calibration.robot}': wheel_odometry.effective_track_m "

@@ -191,14 +191,18 @@ def sensors_command(frames: int, renders: int, boxes: int) -> None:
 def odometry_bench_command(scenario: str, seconds: float, hogs: tuple[int, ...], json_path: Path | None) -> None:
     """The odometry stage on the wall clock with 20k-point frames: time in the tick, ICP time
     per frame in its worker process, pose latency (frame end -> pose), with N busy processes."""
+    from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
     from hil_sim.odom_bench import print_odometry_benchmark
+    from hil_sim.scenario import load_scenario
 
-    if json_path is not None:
-        try:
+    try:
+        if load_scenario(scenario).route is None:
+            raise InputError(f"dct bench odometry: scenario {scenario} has no route to drive (odom_loop has one)")
+        if json_path is not None:
             check_output_path(json_path, what="--json")
-        except OutputPathError as exc:
-            raise InputError(str(exc)) from exc
+    except (ConfigFileError, OutputPathError) as exc:
+        raise InputError(str(exc)) from exc
     out = print_odometry_benchmark(scenario, seconds, hogs, click.echo)
     if json_path is not None:
         atomic_write_json(json_path, out)

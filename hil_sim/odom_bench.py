@@ -14,6 +14,7 @@ missed tick starts.
 """
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import time
@@ -45,16 +46,9 @@ def record_ticks(scenario: str, seconds: float, seed: int = 0) -> tuple[list[Rec
     return ticks, float(np.mean(points)) if points else 0.0
 
 
-def _restamp(scan: LidarScan, shift_s: float) -> LidarScan:
-    import dataclasses
-
-    return dataclasses.replace(scan, stamp_s=scan.stamp_s + shift_s)
-
-
-def _imu_restamp(s: ImuSample, shift_s: float) -> ImuSample:
-    import dataclasses
-
-    return dataclasses.replace(s, stamp_s=s.stamp_s + shift_s)
+def _restamp(item, shift_s: float):
+    """A scan or an IMU sample moved in time by shift_s (recorded time -> wall clock)."""
+    return dataclasses.replace(item, stamp_s=item.stamp_s + shift_s)
 
 
 def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None, settle_s: float = 1.0) -> dict:
@@ -69,11 +63,12 @@ def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None, se
     stage = OdometryStage(config.odometry, robot.drive.track_m, robot.drive.skid_steer_yaw_factor,
                           robot.sensors.lidar.mount.transform(), lockstep=False)
     budget_ms = config.loop.stage_budgets_s.get("odometry", 0.01) * 1e3
-    hog_procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(hogs)]
-    stage.start()
+    hog_procs: list[subprocess.Popen] = []
     stage_ms: list[float] = []
     late_starts = 0
     try:
+        hog_procs += [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(hogs)]
+        stage.start()
         # Wait for the worker to be up (its start is part of activation, not of a tick).
         time.sleep(1.5)
         t_rec0 = ticks[0].t_s
@@ -88,7 +83,7 @@ def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None, se
                 late_starts += 1
             now = time.perf_counter()
             scan = _restamp(tick.scan, shift) if tick.scan is not None else None
-            imu = tuple(_imu_restamp(s, shift) for s in tick.imu)
+            imu = tuple(_restamp(s, shift) for s in tick.imu)
             w0 = time.perf_counter()
             if tick.t_s - t_rec0 < settle_s:
                 stage.calibrate_bias(imu)

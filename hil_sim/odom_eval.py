@@ -37,7 +37,7 @@ from hil_sim.world import World
 from runtime.config import ControllerConfig, load_controller_config
 from runtime.hardware import AgileXBaseHardware
 from runtime.odometry.icp import IcpEngine, IcpJob
-from runtime.odometry.se2 import se2_between, wrap
+from runtime.odometry.se2 import wrap
 from runtime.odometry.stage import OdometryStage
 from runtime.odometry.worker import InlineIcpWorker
 from runtime.sensor_inbox import SensorInbox
@@ -90,23 +90,11 @@ class RouteOperator:
         return v, float(np.clip(2.5 * heading_err, -self.max_turn, self.max_turn))
 
 
-def _relative(poses: np.ndarray) -> np.ndarray:
-    """Planar poses (N, 3) expressed relative to the first."""
-    return np.array([se2_between(poses[0], p) for p in poses])
-
-
-def _interp_poses(t: np.ndarray, poses: np.ndarray, q: np.ndarray) -> np.ndarray:
-    yaw = np.unwrap(poses[:, 2])
-    return np.column_stack([np.interp(q, t, poses[:, 0]), np.interp(q, t, poses[:, 1]),
-                            np.interp(q, t, yaw)])
-
-
 def _stream_errors(estimate: np.ndarray, reference: np.ndarray) -> dict:
+    """Errors of planar poses (N, 3) against the reference (both taken relative to their first)."""
     from runtime.odometry.metrics import planar_to_se3, trajectory_errors
 
-    est = _relative(estimate)
-    ref = _relative(reference)
-    return trajectory_errors(planar_to_se3(est), planar_to_se3(ref))
+    return trajectory_errors(planar_to_se3(estimate), planar_to_se3(reference))
 
 
 def evaluate_scenario(
@@ -167,10 +155,10 @@ def evaluate_scenario(
     seq = 0
     gyro_rows: list[float] = []
     wall0 = time.perf_counter()
-    stage.start()
-    hardware.configure()
-    hardware.activate()
     try:
+        stage.start()
+        hardware.configure()
+        hardware.activate()
         k = 0
         while True:
             now = t0 + k * period
@@ -187,7 +175,7 @@ def evaluate_scenario(
                 imu = ()
             pose = stage.update(now, inputs.odometry, imu, snap.scan)
             stage_wall.append(time.perf_counter() - w0)
-            if snap.scan is not None:
+            if snap.scan is not None and snap.scan.num_points:
                 offs = snap.scan.point_time_offsets_s
                 end = snap.scan.stamp_s + float(offs.max())
                 icp_alone.submit(IcpJob(seq=seq, stamp_s=snap.scan.stamp_s, end_s=end, points=snap.scan.points_m,
@@ -238,8 +226,10 @@ def evaluate_scenario(
     icp = icp[(icp[:, 0] >= moving_from) & (icp[:, 0] <= t[-1])] if len(icp) else icp
     if len(icp) >= 2:
         # ICP's frame 0 is its origin: compare from the first frame after the start of the drive.
-        gt_at = _interp_poses(t, arr[:, 1:4], icp[:, 0])
-        out["icp"] = _stream_errors(icp[:, 1:4], gt_at)
+        from runtime.odometry.metrics import interpolate_poses, planar_to_se3, trajectory_errors
+
+        gt_at = interpolate_poses(t, planar_to_se3(arr[:, 1:4]), icp[:, 0])
+        out["icp"] = trajectory_errors(planar_to_se3(icp[:, 1:4]), gt_at)
         out["icp"]["frames"] = int(len(icp))
     else:
         out["icp"] = None
@@ -265,7 +255,7 @@ def evaluate_scenario(
                      "lockstep_latency_s": oc.lockstep_latency_s, "imu": EVAL_IMU.model_dump()}
     if record is not None:
         record.update(t_s=t[sel], left_wheel_m=arr[sel, 10], right_wheel_m=arr[sel, 11],
-                      gyro_z_radps=np.asarray(gyro_rows)[sel], ref_pose=gt, fused_pose=fused,
+                      gyro_z_radps=np.asarray(gyro_rows)[sel], ref_pose=gt,
                       source=f"{scenario.name} seed {seed}", robot=robot.name)
     return out
 

@@ -91,8 +91,9 @@ class LockstepSimulation:
 
 
 class LockstepBarrier(Protocol):
-    """Work beside the tick that delivers at a fixed simulated latency (ICP): the simulator
-    waits for whatever is due by t_s before time t_s is reached, instead of racing it."""
+    """Work beside the tick that delivers at a fixed simulated latency (ICP): once physics has
+    reached t_s, and before the tick at t_s runs, the simulator waits for whatever is due by
+    t_s instead of racing it."""
 
     def settle(self, t_s: float) -> None: ...
 
@@ -232,8 +233,8 @@ def run_episode(
         return False
 
     wall0 = time.perf_counter()
-    controller.activate()
     try:
+        controller.activate()
         loop.run(controller, should_stop)
     finally:
         controller.deactivate()

@@ -190,6 +190,9 @@ def eval_command(scans_dir: Path | None, poses_file: Path | None, times_file: Pa
         return
     if seed is not None:
         raise InputError("dct odom eval: --seed goes with --scenario (a recorded sequence has no seed)")
+    if record_path is not None:
+        raise InputError("dct odom eval: --record goes with --scenario (it records the simulated run's wheels, "
+                         "gyro and ground truth)")
     if poses_file is None:
         raise InputError("dct odom eval: --scans needs --poses FILE (the reference poses, KITTI format)")
     _eval_scans(scans_dir, poses_file, times_file, json_path, force, _icp_config(voxel_size, max_range, min_range),
@@ -252,7 +255,7 @@ def _eval_scenario(scenario: str, seed: int, json_path: Path, force: bool, recor
     try:
         extra = {"record": record} if record is not None else {}
         report = evaluate(scenario, seed=seed, progress=bar, **extra)
-    except (ConfigFileError, ValueError) as exc:
+    except ConfigFileError as exc:  # a scenario that cannot run (no route, robot does not fit, ...)
         raise InputError(str(exc)) from None
     finally:
         bar.close()

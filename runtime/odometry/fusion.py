@@ -42,14 +42,17 @@ from runtime.odometry.se2 import compose_jacobians, se2_between, se2_compose, wr
 class FusionConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    # Increment noise (1 sigma), per ICP frame (0.1 s). What matters for the fused pose is the
-    # part of each error that accumulates. Measured on odom_loop (725 frames against ground truth):
-    # wheels + gyro increments err 1.1 mm along / 0.3 mm across per frame, 7 mm sideways per
-    # radian turned, 0.37 mrad in yaw (gyro bias walk); KISS-ICP's increments jitter 6 mm and
-    # 1.7 mrad per frame, but frame-to-map registration does not let that accumulate (KISS-ICP
-    # alone drifts 0.05% and 0.16 deg over the 24 m loop, wheels + gyro 0.14% and 0.6 deg). So
-    # ICP's weight is set by its drift, not by its jitter, and it leads wherever the scan
-    # constrains the motion; wheels and gyro lead along a degenerate direction.
+    # Increment noise (1 sigma), per ICP frame (0.1 s). Measured on odom_loop (725 frames
+    # against ground truth): wheels + gyro increments err 1.1 mm along / 0.3 mm across per frame,
+    # 7 mm sideways per radian turned, 0.37 mrad in yaw (gyro bias walk); KISS-ICP's increments
+    # jitter 6 mm and 1.7 mrad per frame, but frame-to-map registration keeps that from
+    # accumulating (alone it drifts 0.05% and 0.16 deg over the 24 m loop, wheels + gyro 0.14% and
+    # 0.6 deg). The ICP sigmas are a choice between those, checked in HIL (README, Odometry):
+    # - translation 2 mm: ICP leads where the scan constrains it. At 0.5 mm (its drift alone) the
+    #   pose carried its jitter and, in gap_offset's wedge, one seed of five touched a block;
+    # - yaw 2 mrad (its jitter): the gyro leads. In sparse rooms ICP's yaw is weaker than the
+    #   gyro's (gap_offset: 2-3 deg off in the first fast turn; a pillar room: 0.43 deg against
+    #   the gyro's 0.14); wheels and gyro lead along a degenerate direction in any case.
     wheel_along_fraction: float = Field(0.03, gt=0.0, le=1.0)  # of the distance (skid, scale)
     wheel_across_fraction: float = Field(0.02, gt=0.0, le=1.0)  # of the distance (sideways slip)
     wheel_across_per_rad_m: float = Field(0.01, ge=0.0, le=1.0)  # sideways slip per radian turned
@@ -57,9 +60,9 @@ class FusionConfig(BaseModel):
     gyro_rate_sigma_radps: float = Field(0.003, ge=0.0, le=1.0)  # bias walk, as a rate
     wheel_floor_m: float = Field(0.001, gt=0.0, le=1.0)  # per increment: nothing is exact
     wheel_floor_rad: float = Field(0.0003, gt=0.0, le=1.0)
-    # ICP increment noise along well-constrained directions (its drift per frame, see above).
+    # ICP increment noise along well-constrained directions (see above).
     icp_sigma_m: float = Field(0.002, gt=0.0, le=1.0)
-    icp_sigma_rad: float = Field(0.0005, gt=0.0, le=1.0)
+    icp_sigma_rad: float = Field(0.002, gt=0.0, le=1.0)
     #: A constrained direction with a normalised eigenvalue of `reference_eigenvalue` gets
     #: icp_sigma; a weaker one proportionally more variance.
     reference_eigenvalue: float = Field(0.4, gt=0.0, le=1.0)
@@ -80,7 +83,6 @@ class FusionStats:
     refused: int = 0
     too_old: int = 0
     degenerate: int = 0
-    last_refusal: str | None = None
 
 
 class PoseFusion:
@@ -99,7 +101,8 @@ class PoseFusion:
         self.anchor_cov = np.zeros((3, 3))
         self._anchor_d = np.zeros(3)
         self.stats = FusionStats()
-        self.last_constraint = None
+        #: Time of the newest ICP result that was fused (None: none yet): the age of the correction.
+        self.last_fused_t: float | None = None
 
     # -- dead reckoning ------------------------------------------------------------------------
     def add_dead_reckoning(self, t_s: float, pose: np.ndarray) -> None:
@@ -112,7 +115,7 @@ class PoseFusion:
             self.anchor_t = t_s
             self._anchor_d = np.array(pose, dtype=float)
 
-    def _dead_reckoning_at(self, t_s: float) -> np.ndarray | None:
+    def dead_reckoning_at(self, t_s: float) -> np.ndarray | None:
         """D(t) interpolated from the history (None when t is outside it)."""
         n = min(self._n, self._cap)
         if n == 0:
@@ -139,7 +142,7 @@ class PoseFusion:
 
     def dead_reckoning_between(self, t0_s: float, t1_s: float) -> np.ndarray | None:
         """The wheel + gyro increment from t0 to t1, in the base frame at t0 (None: not in history)."""
-        a, b = self._dead_reckoning_at(t0_s), self._dead_reckoning_at(t1_s)
+        a, b = self.dead_reckoning_at(t0_s), self.dead_reckoning_at(t1_s)
         if a is None or b is None:
             return None
         return se2_between(a, b)
@@ -153,12 +156,13 @@ class PoseFusion:
         return out[np.argsort(out[:, 0])]
 
     # -- output --------------------------------------------------------------------------------
-    def pose_now(self, d_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def pose_now(self, d_now: np.ndarray, now_s: float) -> tuple[np.ndarray, np.ndarray]:
         """The fused pose for the dead-reckoning pose now, and its covariance."""
         inc = se2_between(self._anchor_d, d_now)
         pose = se2_compose(self.anchor_pose, inc)
         ja, jb = compose_jacobians(self.anchor_pose, inc)
-        cov = ja @ self.anchor_cov @ ja.T + jb @ self.wheel_covariance(inc, 0.0) @ jb.T
+        dt = max(0.0, now_s - self.anchor_t) if self.anchor_t is not None else 0.0
+        cov = ja @ self.anchor_cov @ ja.T + jb @ self.wheel_covariance(inc, dt) @ jb.T
         return pose, cov
 
     # -- noise models --------------------------------------------------------------------------
@@ -178,6 +182,8 @@ class PoseFusion:
         return cov
 
     def icp_covariance(self, result: IcpResult) -> np.ndarray:
+        """R of the ICP increment, in the base frame at the previous frame (where the increment is
+        expressed; the scan's constraint directions are in the base frame at this frame's end)."""
         c = self.config
         con = result.constraint
         cov = np.zeros((3, 3))
@@ -192,7 +198,9 @@ class PoseFusion:
             var[0] = c.degenerate_variance
         if con.too_few_points:
             var = [c.degenerate_variance, c.degenerate_variance]
-        v = con.eigenvectors_xy
+        turn = float(result.delta_base[2]) if result.delta_base is not None else 0.0
+        ct, st = math.cos(turn), math.sin(turn)
+        v = np.array([[ct, -st], [st, ct]]) @ con.eigenvectors_xy
         cov[:2, :2] = v @ np.diag(var) @ v.T
         cov[2, 2] = c.degenerate_variance if con.degenerate_yaw else (
             c.icp_sigma_rad**2 * c.reference_eigenvalue / max(con.yaw_eigenvalue, 1e-6))
@@ -202,13 +210,12 @@ class PoseFusion:
     def icp_update(self, result: IcpResult) -> str | None:
         """Fuse one ICP result; returns None when fused, else why it was not."""
         self.stats.results += 1
-        self.last_constraint = result.constraint
         if result.constraint is not None and result.constraint.degenerate:
             self.stats.degenerate += 1
         t_b = result.end_s
         if self.anchor_t is None:
             return self._refuse("no wheel odometry yet")
-        d_b = self._dead_reckoning_at(t_b)
+        d_b = self.dead_reckoning_at(t_b)
         if d_b is None:
             self.stats.too_old += 1
             return self._refuse(f"frame end {t_b:.3f} s is outside the {self.config.history_s:.1f} s odometry history")
@@ -216,7 +223,9 @@ class PoseFusion:
         if result.delta_base is None or result.prev_end_s is None or result.error is not None:
             # The first frame (or one ICP could not register): move the anchor with the wheels.
             self._move_anchor(t_b, d_b, d_w, self.wheel_covariance(d_w, t_b - self.anchor_t))
-            return result.error
+            if result.error is not None:
+                return self._refuse(f"ICP could not register the frame: {result.error}")
+            return None
         if abs(result.prev_end_s - self.anchor_t) > 1e-6:
             # The anchor is not at ICP's previous frame (a result was lost): wheels up to it.
             self._move_anchor(t_b, d_b, d_w, self.wheel_covariance(d_w, t_b - self.anchor_t))
@@ -240,6 +249,7 @@ class PoseFusion:
         d[2] = wrap(d[2])
         self._move_anchor(t_b, d_b, d, p)
         self.stats.fused += 1
+        self.last_fused_t = t_b
         return None
 
     def _move_anchor(self, t_b: float, d_b: np.ndarray, inc: np.ndarray, inc_cov: np.ndarray) -> None:
@@ -251,7 +261,6 @@ class PoseFusion:
 
     def _refuse(self, why: str) -> str:
         self.stats.refused += 1
-        self.stats.last_refusal = why
         return why
 
 

@@ -7,7 +7,7 @@ stall the tick if it ran in a thread). It uses the kiss-icp package's own pipeli
 
 - The initial guess. Before each frame, KISS-ICP's `last_delta` (its constant-velocity
   prediction, used for the initial guess and for its deskew) is replaced by the motion the wheels
-  and the gyro measured since the previous frame (`IcpJob.prior_base`), when there is one.
+  and the gyro measured since the previous registered frame (from `IcpJob.dead_reckoning_end`).
 - Deskew. "kiss": KISS-ICP's deskew (constant velocity over the sweep, from `last_delta`, i.e. from
   the wheels and gyro when a prior is given); "odometry": ours, every point moved by the wheel/gyro
   pose interpolated at its own time (`IcpJob.motion`), KISS-ICP's deskew off; "off". KISS-ICP
@@ -43,9 +43,9 @@ class IcpJob:
     points: np.ndarray  # (N, 3) float32, lidar frame, each at its own time
     offsets_s: np.ndarray  # (N,) float32, seconds since stamp_s
     duration_s: float
-    #: Planar motion (dx, dy, dyaw) of the base from the previous job's end_s to this end_s,
-    #: in the base frame at the previous end (wheels + gyro); None: KISS-ICP's own prediction.
-    prior_base: np.ndarray | None = None
+    #: The wheel + gyro (dead-reckoning) pose (x, y, yaw) at end_s; the engine's prior is the
+    #: motion between the frame it registered last and this one. None: KISS-ICP's own prediction.
+    dead_reckoning_end: np.ndarray | None = None
     #: Dead-reckoning poses (K, 4): t, x, y, yaw covering the sweep, for deskew="odometry".
     motion: np.ndarray | None = None
     #: Lockstep: the simulated time the result is delivered at (end_s + the fixed latency).
@@ -119,6 +119,7 @@ class IcpEngine:
         self._pre_plain = get_preprocessor(make_kiss_config(icp, deskew=False))
         self._prev_pose: np.ndarray | None = None
         self._prev_end: float | None = None
+        self._prev_dead_reckoning: np.ndarray | None = None
 
     def process(self, job: IcpJob) -> IcpResult:
         t0 = time.perf_counter()
@@ -132,11 +133,13 @@ class IcpEngine:
         if deskew and span < 0.5 * job.duration_s:
             deskew = False
             notes.append(f"point times span {span * 1e3:.0f} ms of a {job.duration_s * 1e3:.0f} ms frame: no deskew")
-        if self._prev_pose is not None and job.prior_base is not None and self.use_prior:
-            self.kiss.last_delta = _lidar_delta(np.asarray(job.prior_base, dtype=np.float64), self.mount,
-                                                self.mount_inv)
+        prior = None
+        if job.dead_reckoning_end is not None and self._prev_dead_reckoning is not None:
+            prior = se2_between(self._prev_dead_reckoning, np.asarray(job.dead_reckoning_end, dtype=np.float64))
+        if self._prev_pose is not None and prior is not None and self.use_prior:
+            self.kiss.last_delta = _lidar_delta(prior, self.mount, self.mount_inv)
         mode = self.config.deskew
-        if (mode == "kiss" and deskew and self._prev_end is not None and job.prior_base is not None
+        if (mode == "kiss" and deskew and self._prev_end is not None and prior is not None
                 and job.end_s - self._prev_end > 1.5 * job.duration_s):
             # KISS-ICP's deskew spreads last_delta over one sweep; after a gap (frames lost or
             # refused) the prior spans several, so this frame is deskewed with the wheels instead.
@@ -155,6 +158,7 @@ class IcpEngine:
         delta = None if self._prev_pose is None else se2_between(self._prev_pose, pose_base)
         prev_end = self._prev_end
         self._prev_pose, self._prev_end = pose_base, job.end_s
+        self._prev_dead_reckoning = None if job.dead_reckoning_end is None else np.asarray(job.dead_reckoning_end)
         constraint = None
         if len(frame):
             thin = voxel_down_sample(frame, self.degeneracy.voxel_m)

@@ -84,18 +84,26 @@ def check_poses(poses, what: str = "poses", tolerance: float = ROTATION_TOLERANC
     return arr
 
 
+def rotation_problem(R: np.ndarray, tolerance: float = ROTATION_TOLERANCE) -> str | None:
+    """Why a (3,3) matrix is not a rotation (None when it is one within `tolerance`)."""
+    R = np.asarray(R, dtype=np.float64)
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    if not dev <= tolerance:
+        return f"rotation is not orthonormal (largest |R^T R - I| entry {dev:.2g} > {tolerance:g})"
+    det = float(np.linalg.det(R))
+    if det < 0:
+        return f"rotation has determinant {det:.3f} (a reflection, not a rotation)"
+    return None
+
+
 def check_rotations(rotations: np.ndarray, what: str, tolerance: float = ROTATION_TOLERANCE) -> None:
     """ValueError unless every (3,3) matrix is orthonormal within `tolerance` with determinant +1."""
     R = np.asarray(rotations, dtype=np.float64)
     dev = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
-    if (dev > tolerance).any():
-        i = int(np.argmax(dev > tolerance))
-        raise ValueError(f"{what}: pose {i}: rotation is not orthonormal (largest |R^T R - I| entry "
-                         f"{dev[i]:.2g} > {tolerance:g})")
-    det = np.linalg.det(R)
-    if (det < 0).any():
-        i = int(np.argmax(det < 0))
-        raise ValueError(f"{what}: pose {i}: rotation has determinant {det[i]:.3f} (a reflection, not a rotation)")
+    bad = ~(dev <= tolerance) | (np.linalg.det(R) < 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"{what}: pose {i}: {rotation_problem(R[i], tolerance)}")
 
 
 # ---------------------------------------------------------------------------- conversions
@@ -263,6 +271,6 @@ def trajectory_errors(estimate, reference, segment_lengths_m: Sequence[float] | 
 __all__ = [
     "ROTATION_TOLERANCE", "RPE_CANDIDATE_LENGTHS_M", "RPE_MAX_SEGMENT_LENGTHS", "RPE_START_STEP_M",
     "check_poses", "check_rotations", "heading", "interpolate_poses", "path_distances", "planar_to_se3",
-    "relative_pose_errors", "relative_to_first", "rotation_angle_deg", "rpe_segment_lengths", "se3_to_planar",
+    "relative_pose_errors", "relative_to_first", "rotation_problem", "rotation_angle_deg", "rpe_segment_lengths", "se3_to_planar",
     "trajectory_errors", "wrap_deg",
 ]

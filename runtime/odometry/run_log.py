@@ -1,8 +1,9 @@
 """A recorded odometry run: one row per controller tick of wheel distances, gyro and a reference pose.
 
-Written by `dct odom eval --record RUN.npz` (HIL, reference = the simulator's ground truth) and by
-the robot's recorder (reference = KISS-ICP); read by `dct calibrate wheels` to fit the effective
-track width and the wheel scale (calibration.wheel_odometry), and by the odometry evaluation.
+Written by `dct odom eval --record RUN.npz` (HIL, reference = the simulator's ground truth; a
+recorder on the robot, with KISS-ICP as the reference, comes with the controller process of
+roadmap step 7); read by `dct calibrate wheels` to fit the effective track width and the wheel
+scale (calibration.wheel_odometry).
 
 File format: an .npz (numpy zip) holding only plain arrays, so it loads with allow_pickle=False
 (a run file from elsewhere cannot run code when it is read):

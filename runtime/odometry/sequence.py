@@ -50,7 +50,7 @@ from typing import Callable
 import numpy as np
 
 from runtime.odometry.icp_config import IcpConfig, new_kiss_icp
-from runtime.odometry.metrics import ROTATION_TOLERANCE, trajectory_errors
+from runtime.odometry.metrics import rotation_problem, trajectory_errors
 
 #: Per-point time fields, in the order they are looked for (see the module doc).
 POINT_TIME_FIELDS = ("t", "time", "timestamp", "timestamps", "offset_time")
@@ -127,14 +127,9 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
     poses[:, 3, 3] = 1.0
     for k, (lineno, text) in enumerate(lines):
         poses[k, :3, :] = np.array(_numbers(path, "poses file", lineno, text, 12)).reshape(3, 4)
-        R = poses[k, :3, :3]
-        dev = float(np.abs(R.T @ R - np.eye(3)).max())
-        if dev > ROTATION_TOLERANCE:
-            raise SequenceInputError(f"poses file {path} line {lineno}: the rotation is not orthonormal "
-                                     f"(largest |R^T R - I| entry {dev:.2g} > {ROTATION_TOLERANCE:g})")
-        if np.linalg.det(R) < 0:
-            raise SequenceInputError(f"poses file {path} line {lineno}: the rotation has determinant "
-                                     f"{np.linalg.det(R):.3f} (a reflection, not a rotation)")
+        problem = rotation_problem(poses[k, :3, :3])
+        if problem:
+            raise SequenceInputError(f"poses file {path} line {lineno}: the {problem}")
     return poses
 
 
@@ -149,11 +144,9 @@ def read_transform(path: str | Path, what: str = "transform file") -> np.ndarray
     T[:len(lines)] = [_numbers(path, what, n, text, 4) for n, text in lines]
     if np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
         raise SequenceInputError(f"{what} {path} line {lines[3][0]}: the last row must be 0 0 0 1")
-    R = T[:3, :3]
-    dev = float(np.abs(R.T @ R - np.eye(3)).max())
-    if dev > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
-        raise SequenceInputError(f"{what} {path}: the top-left 3x3 is not a rotation (largest |R^T R - I| entry "
-                                 f"{dev:.2g}, determinant {np.linalg.det(R):.3f})")
+    problem = rotation_problem(T[:3, :3])
+    if problem:
+        raise SequenceInputError(f"{what} {path}: the top-left 3x3 is not a rotation: {problem}")
     return T
 
 

@@ -13,6 +13,7 @@ worker's compute time, and the pose covariance.
 from __future__ import annotations
 
 import functools
+from collections import deque
 from typing import Literal
 
 import numpy as np
@@ -67,7 +68,6 @@ class OdometryStage:
         self.icp_enabled = config.source == "fused" and config.icp.enabled and uses_lidar
         self.worker = None
         self._seq = 0
-        self._last_job_end: float | None = None
         self._first_submit_s: float | None = None
         self.pose = Pose2D(0.0, 0.0, 0.0)
         self.covariance = np.zeros((3, 3))
@@ -75,8 +75,10 @@ class OdometryStage:
         #: apply it to anything placed in the odom frame with the pose before it.
         self.correction: np.ndarray | None = None
         self.frames_submitted = 0
-        self.compute_ms: list[float] = []
-        self.latency_ms: list[float] = []
+        self.compute_ms: deque[float] = deque(maxlen=4000)  # wall clock: measurements only
+        self.latency_ms: deque[float] = deque(maxlen=4000)
+        #: The worker's counters, kept when it is closed (reports are taken after the run).
+        self._worker_final: dict = {"dropped": 0, "failed": None, "round_trip_s": ()}
         self.icp_age_s = float("inf")
         self._icp_lost = False
         self._degenerate = False
@@ -97,11 +99,20 @@ class OdometryStage:
 
     def close(self) -> None:
         if self.worker is not None:
-            self.worker.close()
-            self.worker = None
+            w = self.worker
+            try:
+                w.close()
+            finally:
+                self._worker_final = {"dropped": w.dropped, "failed": w.failed,
+                                      "round_trip_s": tuple(getattr(w, "round_trip_s", ()))}
+                self.worker = None
+
+    def _worker_stat(self, name: str):
+        return getattr(self.worker, name) if self.worker is not None else self._worker_final[name]
 
     def settle(self, t_s: float) -> None:
-        """Lockstep: the simulator calls this before time t_s is reached (the ICP barrier)."""
+        """Lockstep: the simulator calls this once physics has reached t_s, before the tick at
+        t_s runs (the ICP barrier: every result due by t_s is then there)."""
         if self.worker is not None:
             self.worker.settle(t_s)
 
@@ -124,10 +135,10 @@ class OdometryStage:
                 self._submit(good_scan)
             results = self.worker.poll(now_s)
             if results:
-                before, _ = fusion.pose_now(d_now)
+                before, _ = fusion.pose_now(d_now, now_s)
                 for result in results:
                     self._take(result, now_s)
-        pose, cov = fusion.pose_now(d_now)
+        pose, cov = fusion.pose_now(d_now, now_s)
         if self.worker is not None and results:
             # What the corrections did to the pose now, as a motion of the odom frame: whatever
             # was placed in the odom frame with the pose before them (the obstacle points of the
@@ -141,17 +152,16 @@ class OdometryStage:
     def _submit(self, scan: LidarScan) -> None:
         offs = scan.point_time_offsets_s
         end = scan.stamp_s + (float(offs.max()) if len(offs) else scan.frame_duration_s)
-        prior = None
-        if self._last_job_end is not None:
-            prior = self.fusion.dead_reckoning_between(self._last_job_end, end)
+        # The dead-reckoning pose at the frame's end: the engine takes the prior between the
+        # frame it registered last and this one (a frame dropped on the way does not shorten it).
+        d_end = self.fusion.dead_reckoning_at(end)
         motion = self.fusion.motion_samples(scan.stamp_s, end)  # a few rows: for a wheel/gyro deskew
         job = IcpJob(seq=self._seq, stamp_s=scan.stamp_s, end_s=end, points=scan.points_m, offsets_s=offs,
-                     duration_s=scan.frame_duration_s, prior_base=prior, motion=motion,
+                     duration_s=scan.frame_duration_s, dead_reckoning_end=d_end, motion=motion,
                      ready_at_s=end + self.config.lockstep_latency_s)
         self._seq += 1
         if self._first_submit_s is None:
             self._first_submit_s = end
-        self._last_job_end = end
         self.frames_submitted += 1
         self.worker.submit(job)
 
@@ -159,15 +169,9 @@ class OdometryStage:
         self.compute_ms.append(result.compute_s * 1e3)
         if not self.lockstep:  # real time: the frame's end -> the tick that uses its correction
             self.latency_ms.append((now_s - result.end_s) * 1e3)
-            if len(self.latency_ms) > 4000:
-                del self.latency_ms[:2000]
-        if len(self.compute_ms) > 4000:
-            del self.compute_ms[:2000]
         why = self.fusion.icp_update(result)
         if why is not None:
             self.last_refusal = why
-        else:
-            self.icp_age_s = 0.0
         con = result.constraint
         degenerate = con is not None and con.degenerate
         if con is not None:
@@ -182,14 +186,13 @@ class OdometryStage:
     def _watch_age(self, now_s: float) -> None:
         if self.worker is None:
             return
-        t_a = self.fusion.anchor_t
-        fused_at = self.fusion.stats.fused
-        self.icp_age_s = now_s - t_a if (t_a is not None and fused_at) else float("inf")
+        t_f = self.fusion.last_fused_t  # refused and failed results do not count
+        self.icp_age_s = now_s - t_f if t_f is not None else float("inf")
         # Before the first correction, the age counts from the first frame handed to ICP.
-        since = self.icp_age_s if fused_at else (
+        since = self.icp_age_s if t_f is not None else (
             now_s - self._first_submit_s if self._first_submit_s is not None else 0.0)
         lost = since > self.config.max_icp_age_s
-        failed = getattr(self.worker, "failed", None)
+        failed = self.worker.failed
         if lost != self._icp_lost and self.events is not None:
             if lost:
                 why = failed or self.last_refusal or "no ICP result"
@@ -210,10 +213,11 @@ class OdometryStage:
             "icp_fused": s.fused,
             "icp_refused": s.refused,
             "icp_degenerate_frames": s.degenerate,
-            "icp_dropped": getattr(self.worker, "dropped", 0),
+            "icp_dropped": self._worker_stat("dropped"),
+            "icp_too_old": s.too_old,
             "icp_last_degeneracy": self.last_degeneracy,
             "icp_last_refusal": self.last_refusal,
-            "icp_worker_failed": getattr(self.worker, "failed", None),
+            "icp_worker_failed": self._worker_stat("failed"),
             "icp_age_s": None if not np.isfinite(self.icp_age_s) else round(float(self.icp_age_s), 4),
             "pose_sigma": [float(np.sqrt(max(self.covariance[i, i], 0.0))) for i in range(3)],
             "wheel_scale": self.wheels.wheel_scale,
@@ -226,7 +230,7 @@ class OdometryStage:
         """What ICP cost on this computer (a measurement, never in the deterministic metrics):
         the worker's time per frame, and in real time the send-to-result round trip."""
         ms = np.asarray(self.compute_ms) if self.compute_ms else np.zeros(0)
-        rt = np.asarray(getattr(self.worker, "round_trip_s", ()) or (), dtype=float) * 1e3
+        rt = np.asarray(self._worker_stat("round_trip_s"), dtype=float) * 1e3
         lat = np.asarray(self.latency_ms)
         pct = lambda a, q: round(float(np.percentile(a, q)), 3) if len(a) else None  # noqa: E731
         return {

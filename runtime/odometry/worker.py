@@ -60,14 +60,19 @@ def _serve(conn) -> None:
             return
         try:
             conn.send(("result", engine.process(job)))
-        except BaseException as exc:
-            conn.send(("error", (job, f"{type(exc).__name__}: {exc}")))
+        except BaseException as exc:  # only the job's identity goes back, never its points
+            conn.send(("error", (_identity(job), f"{type(exc).__name__}: {exc}")))
 
 
-def _failed(job: IcpJob, why: str) -> IcpResult:
-    return IcpResult(seq=job.seq, stamp_s=job.stamp_s, end_s=job.end_s, ready_at_s=job.ready_at_s,
-                     pose_base=np.zeros(3), delta_base=None, prev_end_s=None, constraint=None, points_in=len(job.points),
-                     points_registered=0, deskewed=False, compute_s=0.0, error=why)
+def _identity(job: IcpJob) -> tuple[int, float, float, float, int]:
+    return job.seq, job.stamp_s, job.end_s, job.ready_at_s, len(job.points)
+
+
+def _failed(identity: tuple[int, float, float, float, int], why: str) -> IcpResult:
+    seq, stamp_s, end_s, ready_at_s, n = identity
+    return IcpResult(seq=seq, stamp_s=stamp_s, end_s=end_s, ready_at_s=ready_at_s, pose_base=np.zeros(3),
+                     delta_base=None, prev_end_s=None, constraint=None, points_in=n, points_registered=0,
+                     deskewed=False, compute_s=0.0, error=why)
 
 
 class InlineIcpWorker:
@@ -78,8 +83,9 @@ class InlineIcpWorker:
         self._engine: IcpEngine | None = None
         self._jobs: deque[IcpJob] = deque()
         self._done: deque[IcpResult] = deque()
-        self.dropped = 0
+        self.dropped = 0  # never: every frame is registered
         self.failed: str | None = None
+        self.round_trip_s: deque[float] = deque()  # no round trip: computed in place
 
     def submit(self, job: IcpJob) -> None:
         self._jobs.append(job)
@@ -92,17 +98,13 @@ class InlineIcpWorker:
             try:
                 self._done.append(self._engine.process(job))
             except Exception as exc:  # a registration that raised: the frame is lost, named
-                self._done.append(_failed(job, f"{type(exc).__name__}: {exc}"))
+                self._done.append(_failed(_identity(job), f"{type(exc).__name__}: {exc}"))
 
     def poll(self, now_s: float) -> list[IcpResult]:
         out = []
         while self._done and self._done[0].ready_at_s <= now_s + 1e-9:
             out.append(self._done.popleft())
         return out
-
-    @property
-    def busy(self) -> bool:
-        return bool(self._jobs)
 
     def close(self) -> None:
         self._jobs.clear()
@@ -125,7 +127,13 @@ class ProcessIcpWorker:
         )
         theirs.close()
         self._conn = Connection(ours.detach())
-        self._conn.send(engine_factory)
+        try:
+            self._conn.send(engine_factory)
+        except BaseException:
+            self._proc.kill()
+            self._proc.wait()
+            self._conn.close()
+            raise
         # Sending a 20k-point frame (320 kB) blocks while the worker is still registering the
         # previous one (the socket buffer is smaller): a sender thread does it, the tick only
         # queues (socket writes release the GIL).
@@ -134,7 +142,6 @@ class ProcessIcpWorker:
         self._sender.start()
         self.lockstep = lockstep
         self._start_timeout_s = start_timeout_s
-        self._ready = False
         self._in_flight: deque[IcpJob] = deque()  # sent, result not received (in order)
         self._waiting: IcpJob | None = None  # real time: the newest frame while the worker is busy
         self._done: deque[IcpResult] = deque()
@@ -174,7 +181,7 @@ class ProcessIcpWorker:
             self.failed = self.failed or f"ICP worker gone ({type(exc).__name__})"
             return False
         if kind == "ready":
-            self._ready = True
+            pass
         elif kind == "fatal":
             self.failed = payload
         elif kind in ("result", "error"):
@@ -216,10 +223,6 @@ class ProcessIcpWorker:
         while not self.failed and self._in_flight and self._in_flight[0].ready_at_s <= t_s + 1e-9:
             if not self._receive(block=True):
                 break
-
-    @property
-    def busy(self) -> bool:
-        return bool(self._in_flight)
 
     def close(self) -> None:
         self._outbox.put(None)

@@ -257,3 +257,9 @@ def test_wheel_gyro_odometry_scales_the_distance_and_takes_yaw_from_the_gyro():
     odo.update_with_imu((0.0, 0.0), imu[:1])
     pose = odo.update_with_imu((1.0, 1.2), imu[1:])  # the wheels disagree, the gyro says straight
     assert (pose.x_m, pose.y_m, pose.yaw_rad) == (pytest.approx(1.21), 0.0, 0.0)
+
+
+def test_wheel_params_refuse_another_robots_calibration():
+    cal = _cal().model_copy(update={"robot": "scout", "wheel_odometry": _fit(simulate_run(0.56, 0.95)).calibration_section()})
+    with pytest.raises(ConfigFileError, match="calibration is for robot 'scout'"):
+        wheel_params(load_robot_description(), cal)

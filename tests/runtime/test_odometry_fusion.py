@@ -104,14 +104,14 @@ def _drive(fusion, steps, wheel_step, icp_step, constraint, dt=0.1):
         d = se2_compose(d, np.asarray(wheel_step, float))
         fusion.add_dead_reckoning(k * dt, d.copy())
         assert fusion.icp_update(_result(k, (k - 1) * dt, k * dt, icp_step, constraint)) is None
-    return fusion.pose_now(d)
+    return fusion.pose_now(d, steps * dt)
 
 
 def test_without_icp_the_pose_is_the_dead_reckoning_and_its_covariance_grows():
     f = PoseFusion(FusionConfig())
     f.add_dead_reckoning(0.0, np.zeros(3))
-    p0, c0 = f.pose_now(np.zeros(3))
-    pose, cov = f.pose_now(np.array([1.0, 0.2, 0.3]))
+    p0, c0 = f.pose_now(np.zeros(3), 0.0)
+    pose, cov = f.pose_now(np.array([1.0, 0.2, 0.3]), 0.0)
     np.testing.assert_allclose(pose, [1.0, 0.2, 0.3], atol=1e-12)
     assert np.all(np.diag(cov) > np.diag(c0))
 
@@ -139,7 +139,7 @@ def test_an_implausible_icp_increment_is_refused_and_named():
     f.add_dead_reckoning(0.1, np.array([0.04, 0.0, 0.0]))
     why = f.icp_update(_result(1, 0.0, 0.1, [0.60, 0.0, 0.0], _room_constraint()))
     assert why is not None and "implausible" in why and f.stats.refused == 1
-    pose, _ = f.pose_now(np.array([0.04, 0.0, 0.0]))
+    pose, _ = f.pose_now(np.array([0.04, 0.0, 0.0]), 0.1)
     assert abs(pose[0] - 0.04) < 1e-9  # the wheels' increment was used
 
 
@@ -177,7 +177,7 @@ def _frames(n=6, step=(0.05, 0.0, 0.02), noise=0.005, seed=0):
         pts = (lidar[keep] + rng.normal(0, noise, (keep.sum(), 3))).astype(np.float32)
         offs = np.linspace(0, 0.099, len(pts)).astype(np.float32)
         frames.append(IcpJob(seq=k, stamp_s=0.1 * k, end_s=0.1 * k + 0.099, points=pts, offsets_s=offs, duration_s=0.1,
-                             prior_base=np.asarray(step, float) if k else None, ready_at_s=0.1 * k + 0.2))
+                             dead_reckoning_end=pose.copy(), ready_at_s=0.1 * k + 0.2))
         pose = se2_compose(pose, np.asarray(step, float))
     return frames
 
@@ -261,39 +261,92 @@ def test_real_time_worker_keeps_only_the_newest_waiting_frame_and_names_a_dead_w
         worker.close()
 
 
-def test_the_stage_reports_each_correction_so_obstacle_points_move_with_the_pose():
-    """Lockstep stage with the inline worker on synthetic frames whose wheels overstate the
-    motion: when an ICP result lands, `correction` maps the pose before it onto the pose after it
-    (the controller moves P_fix by it), and between results it is None."""
-    from runtime.odometry.stage import OdometryConfig, OdometryStage
+def _scan_of(job):
     from runtime.sensor_data import LidarScan
 
+    return LidarScan(stamp_s=job.stamp_s, points_m=job.points, point_time_offsets_s=job.offsets_s, frame_duration_s=0.1)
+
+
+def _stage(**odometry):
+    from runtime.events import EventLog
+    from runtime.odometry.stage import OdometryConfig, OdometryStage
+
     cfg = OdometryConfig(icp=IcpConfig(voxel_size_m=0.2, deskew="off"), lockstep_worker="inline",
-                         lockstep_latency_s=0.05)
-    stage = OdometryStage(cfg, 0.175, 3.0, MOUNT, lockstep=True)
+                         lockstep_latency_s=0.05, **odometry)
+    stage = OdometryStage(cfg, 0.175, 3.0, MOUNT, lockstep=True, events=EventLog())
     stage.start()
+    return stage
+
+
+def _tick(stage, now, wheel_m, job):
+    stage.settle(now)
+    return stage.update(now, (wheel_m, wheel_m), (), _scan_of(job) if job is not None else None)
+
+
+def test_the_stage_reports_each_correction_so_obstacle_points_move_with_the_pose():
+    """When ICP results land, `correction` is exactly what they did to the pose now: applied to the
+    pose the stage would have predicted without them, it gives the pose it reports (the controller
+    moves P_fix by it). Synthetic frames, wheels overstating the motion by 20%."""
+    stage = _stage()
     frames = _frames(6, step=(0.05, 0.0, 0.0))
     corrections = 0
-    wheel = 0.0
     try:
         for k in range(1, 13):  # 20 Hz ticks over 6 frames at 10 Hz
-            now = 0.05 * k + 0.0
-            wheel += 0.5 * 0.05 * 1.2  # the wheels say 1.2x the true 0.05 m a frame
-            job = frames[(k - 1) // 2] if k % 2 == 1 else None
-            scan = None
-            if job is not None:
-                scan = LidarScan(stamp_s=job.stamp_s, points_m=job.points, point_time_offsets_s=job.offsets_s,
-                                 frame_duration_s=0.1)
-            before = np.array([stage.pose.x_m, stage.pose.y_m, stage.pose.yaw_rad])
-            stage.settle(now)
-            stage.update(now, (wheel, wheel), (), scan)
-            after = np.array([stage.pose.x_m, stage.pose.y_m, stage.pose.yaw_rad])
-            if stage.correction is not None and np.linalg.norm(stage.correction[:2]) > 1e-4:
+            f = stage.fusion
+            anchor_pose, anchor_d = f.anchor_pose.copy(), f._anchor_d.copy()
+            pose = _tick(stage, 0.05 * k, k * 0.5 * 0.05 * 1.2, frames[(k - 1) // 2] if k % 2 else None)
+            if stage.correction is None:
+                continue
+            d_now = np.array([stage.wheels.pose.x_m, stage.wheels.pose.y_m, stage.wheels.pose.yaw_rad])
+            predicted = se2_compose(anchor_pose, se2_between(anchor_d, d_now))
+            np.testing.assert_allclose(se2_compose(stage.correction, predicted), [pose.x_m, pose.y_m, pose.yaw_rad],
+                                       atol=1e-9)
+            if np.linalg.norm(stage.correction[:2]) > 1e-4:
                 corrections += 1
                 assert stage.correction[0] < 0.0  # pulled back against the wheels' overstatement
-            assert np.all(np.isfinite(after)) and np.all(np.isfinite(before))
         assert corrections >= 3 and stage.fusion.stats.fused >= 3
-        # ICP pulled the pose back from the wheels' 1.2x: below the wheels' 0.36 m.
-        assert stage.pose.x_m < 0.34
+        assert stage.pose.x_m < 0.34  # below the wheels' 0.36 m
     finally:
         stage.close()
+
+
+def test_icp_lost_is_named_when_results_stop_or_are_all_refused_and_restored_when_they_return():
+    frames = _frames(12, step=(0.05, 0.0, 0.0))
+    stage = _stage()
+    try:
+        t = 0.0
+        for k, job in enumerate(frames[:4]):  # good frames
+            t = 0.1 * k + 0.1
+            _tick(stage, t, 0.05 * k, job)
+        for j in range(1, 11):  # 1 s without frames (a silent lidar)
+            _tick(stage, t + 0.1 * j, 0.15, None)
+        kinds = [e["event"] for e in stage.events.to_list()]
+        assert "icp_lost" in kinds and stage.describe()["icp_age_s"] > 0.6
+        later = [IcpJob(**{**j.__dict__, "stamp_s": j.stamp_s + 1.0, "end_s": j.end_s + 1.0,
+                           "ready_at_s": j.ready_at_s + 1.0}) for j in frames[4:8]]
+        for k, job in enumerate(later):
+            _tick(stage, job.end_s + 0.06, 0.15 + 0.05 * k, job)
+        assert [e["event"] for e in stage.events.to_list()][-1] == "icp_restored"
+    finally:
+        stage.close()
+    # Wheels that claim 1 m a frame (and ICP left to its own prediction, not theirs): every ICP
+    # increment is refused; ICP is lost even though results keep arriving.
+    stage = _stage(icp_prior="constant_velocity")
+    try:
+        for k, job in enumerate(frames):
+            _tick(stage, job.end_s + 0.06, 1.0 * k, job)
+        d = stage.describe()
+        assert d["icp_refused"] >= 8 and d["icp_fused"] == 0
+        lost = [e for e in stage.events.to_list() if e["event"] == "icp_lost"]
+        assert lost and "implausible" in lost[0]["reason"]
+    finally:
+        stage.close()
+
+
+def test_after_a_dropped_frame_the_prior_spans_the_motion_since_the_frame_registered_last():
+    engine = _engine()
+    frames = _frames(5, step=(0.05, 0.0, 0.02))
+    results = [engine.process(j) for j in (frames[0], frames[1], frames[3], frames[4])]  # frame 2 dropped
+    np.testing.assert_allclose(results[2].delta_base[:2], se2_compose(np.array([0.05, 0, 0.02]),
+                                                                      np.array([0.05, 0, 0.02]))[:2], atol=0.01)
+    assert abs(results[2].delta_base[2] - 0.04) < math.radians(0.3)
