@@ -173,7 +173,10 @@ def evaluate_scenario(
             if standing:
                 stage.calibrate_bias(imu)
                 imu = ()
-            pose = stage.update(now, inputs.odometry, imu, snap.scan)
+            limits = config.inputs  # the controller's freshness rule for 0x311 and 0x221
+            wheels = inputs.odometry if inputs.odometry_age_s <= limits.odometry_timeout_s else None
+            speed = inputs.linear_mps if inputs.motion_state_age_s <= limits.motion_state_timeout_s else None
+            pose = stage.update(now, wheels, imu, snap.scan, speed)
             stage_wall.append(time.perf_counter() - w0)
             if snap.scan is not None and snap.scan.num_points:
                 offs = snap.scan.point_time_offsets_s

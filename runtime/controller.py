@@ -288,7 +288,10 @@ class NavigationController:
             # first map). After a restart the robot may still be rolling: keep integrating.
             self.odometry.calibrate_bias(imu)
             imu = ()
-        self.pose = self.odometry.update(now, inputs.odometry, imu, self.monitor.good_scan)
+        limits = self.config.inputs
+        wheels = inputs.odometry if inputs.odometry_age_s <= limits.odometry_timeout_s else None
+        speed = inputs.linear_mps if inputs.motion_state_age_s <= limits.motion_state_timeout_s else None
+        self.pose = self.odometry.update(now, wheels, imu, self.monitor.good_scan, speed)
 
     def _follow_correction(self, correction: np.ndarray | None) -> None:
         """An ICP correction moves the pose; P_fix, placed with the pose before it, moves with it,

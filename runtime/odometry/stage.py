@@ -69,6 +69,7 @@ class OdometryStage:
         self.worker = None
         self._seq = 0
         self._first_submit_s: float | None = None
+        self._last_update_s: float | None = None
         self.pose = Pose2D(0.0, 0.0, 0.0)
         self.covariance = np.zeros((3, 3))
         #: This tick's ICP correction as a planar transform of the odom frame (None: none):
@@ -125,8 +126,15 @@ class OdometryStage:
         return self.wheels.yaw_rate_radps
 
     def update(self, now_s: float, wheels: tuple[float, float] | None, imu_samples,
-               good_scan: LidarScan | None) -> Pose2D:
-        d_now = _pose_vec(self.wheels.update_with_imu(wheels, imu_samples))
+               good_scan: LidarScan | None, speed_mps: float | None = None) -> Pose2D:
+        """wheels: the cumulative wheel distances (0x311) when fresh, else None; speed_mps: the
+        base's reported linear speed (0x221) when fresh, else None: it carries the translation
+        while the wheel distances are missing (never "no data = standing still")."""
+        fallback = None
+        if wheels is None and speed_mps is not None and self._last_update_s is not None:
+            fallback = speed_mps * (now_s - self._last_update_s)
+        self._last_update_s = now_s
+        d_now = _pose_vec(self.wheels.update_with_imu(wheels, imu_samples, fallback))
         fusion = self.fusion
         fusion.add_dead_reckoning(now_s, d_now)
         self.correction = None

@@ -89,7 +89,12 @@ class WheelGyroOdometry(WheelOdometry):
         if self._bias_n:
             self.gyro_bias_radps = self._bias_sum / self._bias_n
 
-    def update_with_imu(self, wheels: tuple[float, float] | None, imu_samples) -> Pose2D:
+    def update_with_imu(self, wheels: tuple[float, float] | None, imu_samples,
+                        fallback_distance_m: float | None = None) -> Pose2D:
+        """wheels: the cumulative wheel distances (0x311), None when they are not fresh.
+        fallback_distance_m: without fresh wheel distances, the distance travelled since the last
+        update from the base's reported speed (0x221 x dt); the wheel distances then re-anchor
+        when they return (their jump over the gap is not counted twice). None: no translation."""
         d_yaw = 0.0
         have_imu = False
         for s in imu_samples:
@@ -103,6 +108,11 @@ class WheelGyroOdometry(WheelOdometry):
             have_imu = True
             self.imu_samples_used += 1
         if wheels is None:
+            if fallback_distance_m is not None:
+                self._last = None  # re-anchor on the next wheel reading
+                if not have_imu:  # yaw from nothing: hold it
+                    d_yaw = 0.0
+                return self._advance(fallback_distance_m * self.wheel_scale, d_yaw)
             if have_imu:
                 self._yaw = wrap_angle(self._yaw + d_yaw)
             return self.pose

@@ -6,6 +6,7 @@ import functools
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -350,3 +351,19 @@ def test_after_a_dropped_frame_the_prior_spans_the_motion_since_the_frame_regist
     np.testing.assert_allclose(results[2].delta_base[:2], se2_compose(np.array([0.05, 0, 0.02]),
                                                                       np.array([0.05, 0, 0.02]))[:2], atol=0.01)
     assert abs(results[2].delta_base[2] - 0.04) < math.radians(0.3)
+
+
+def test_without_fresh_wheel_distances_the_reported_speed_carries_the_translation_once():
+    from runtime.odometry.wheels import WheelGyroOdometry
+
+    odo = WheelGyroOdometry(0.175, 3.0)
+    odo.update_with_imu((0.0, 0.0), ())
+    odo.update_with_imu((0.10, 0.10), ())  # 0.10 m by the wheels
+    odo.update_with_imu(None, (), fallback_distance_m=0.05)  # 0x311 lost: 0x221 says 0.05 m
+    odo.update_with_imu(None, (), fallback_distance_m=0.05)
+    assert odo.pose.x_m == pytest.approx(0.20)
+    odo.update_with_imu((0.30, 0.30), ())  # back: re-anchored, its 0.20 m jump is not counted again
+    odo.update_with_imu((0.35, 0.35), ())
+    assert odo.pose.x_m == pytest.approx(0.25)
+    odo.update_with_imu(None, ())  # neither: the pose holds (no invented motion)
+    assert odo.pose.x_m == pytest.approx(0.25)
