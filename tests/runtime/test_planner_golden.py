@@ -2,12 +2,14 @@
 
 tests/data/planner_golden/golden.npz was recorded by make_golden.py (beside it) with the planner
 as of commit 5daa12b, before issue 12's optimizations: closed loops in a cluttered corridor
-(H = 10 and 20) and at an offset 40 cm gap, with the shipped distance net. Here each recorded
-tick's inputs go into a fresh planner (lockstep caps: iterations only) and its commands must
-match the recorded ones within the solver's tolerance. OSQP stops at eps_abs = eps_rel = 1e-3
-on a QP whose cost is flat in omega to within a few 1e-3 (small omega weights): differences in
-warm start or in the order of floating-point sums move the returned optimum by that much, not
-more. The first command (the one applied) is held tighter than the tail of the plan.
+(H = 10 and 20), at an offset 40 cm gap, and weaving through a 70 cm slalom (H = 10 and 30),
+with the shipped distance net. Here each recorded tick's inputs go into a fresh planner (lockstep
+caps: iterations only) and its commands must match the recorded ones within the solver's
+tolerance. OSQP stops at eps_abs = eps_rel = 1e-3, and the cost is flat in omega (small omega
+weights): solving the same QPs to 1e-4 instead moves the first omega by up to 0.04 rad/s and the
+tail of a plan by up to 0.2 rad/s, the first speed by under 1 mm/s. The bounds below sit there;
+speed, the best-determined output, is held tightest (a 25% change of one cost weight moves it
+by 5 mm/s and fails).
 """
 from __future__ import annotations
 
@@ -17,10 +19,12 @@ import numpy as np
 import pytest
 
 GOLDEN = Path(__file__).parents[1] / "data" / "planner_golden" / "golden.npz"
-CASES = ("corridor_h10", "corridor_h20", "gap_h10")
-#: First command: 1 cm/s and 0.02 rad/s; whole plan: 3 cm/s and 0.06 rad/s.
-TOL_FIRST = np.array([0.01, 0.02])
-TOL_PLAN = np.array([0.03, 0.06])
+CASES = ("corridor_h10", "corridor_h20", "gap_h10", "slalom_h10", "slalom_h30")
+#: Largest difference of the first command (v m/s, omega rad/s), and of any command of a plan.
+TOL_FIRST_MAX = np.array([0.003, 0.05])
+TOL_PLAN_MAX = np.array([0.02, 0.25])
+#: Mean difference of the first command over a drive.
+TOL_FIRST_MEAN = np.array([0.001, 0.01])
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +34,7 @@ def golden():
 
 
 @pytest.fixture(scope="module")
-def net():
+def robot_and_net():
     import torch
 
     from calibration.robot_description import load_robot_description
@@ -41,23 +45,44 @@ def net():
     return robot, DistanceNet.load(None, robot=robot)
 
 
-@pytest.mark.parametrize("case", CASES)
-def test_optimized_planner_matches_recorded_commands(golden, net, case):
+def replay(golden: dict, case: str, robot, model, **config) -> dict:
+    """Differences between a fresh planner's commands and the recorded ones over a case."""
     from runtime.planning.mpc import MpcConfig, MpcPlanner
 
-    robot, model = net
     horizon = int(golden[f"{case}/horizon"])
-    planner = MpcPlanner(MpcConfig(horizon_steps=horizon), robot, model, wall_clock_caps=False)
+    planner = MpcPlanner(MpcConfig(horizon_steps=horizon, **config), robot, model, wall_clock_caps=False)
     points = golden[f"{case}/points"]
     states, u_now = golden[f"{case}/state"], golden[f"{case}/u_now"]
     refs, expected = golden[f"{case}/reference"], golden[f"{case}/commands"]
-    assert len(states) >= 50  # the recording covers a real drive
-    first_err, plan_err = np.zeros(2), np.zeros(2)
+    first, plan, fallbacks = [], [], 0
     for k in range(len(states)):
         res = planner.plan(states[k], u_now[k], refs[k], points)
-        assert not res.fallback, f"{case} tick {k}: fell back ({res.solve_status})"
+        fallbacks += int(res.fallback)
         diff = np.abs(res.commands - expected[k])
-        first_err = np.maximum(first_err, diff[0])
-        plan_err = np.maximum(plan_err, diff.max(axis=0))
-    assert np.all(first_err <= TOL_FIRST), f"{case}: first command differs by {first_err} (v m/s, omega rad/s)"
-    assert np.all(plan_err <= TOL_PLAN), f"{case}: plan differs by {plan_err}"
+        first.append(diff[0])
+        plan.append(diff.max(axis=0))
+    return {
+        "ticks": len(states),
+        "fallbacks": fallbacks,
+        "first_max": np.max(first, axis=0),
+        "first_mean": np.mean(first, axis=0),
+        "plan_max": np.max(plan, axis=0),
+    }
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_optimized_planner_matches_recorded_commands(golden, robot_and_net, case):
+    out = replay(golden, case, *robot_and_net)
+    assert out["ticks"] >= 50  # the recording covers a real drive
+    assert out["fallbacks"] == int(golden[f"{case}/fallback"].sum()) == 0
+    assert np.all(out["first_max"] <= TOL_FIRST_MAX), f"{case}: first command differs by {out['first_max']}"
+    assert np.all(out["first_mean"] <= TOL_FIRST_MEAN), f"{case}: first command differs on average by {out['first_mean']}"
+    assert np.all(out["plan_max"] <= TOL_PLAN_MAX), f"{case}: plan differs by {out['plan_max']}"
+
+
+def test_golden_comparison_detects_a_changed_planner(golden, robot_and_net):
+    """The comparison has teeth: a 25% heavier speed-change weight fails it."""
+    from runtime.planning.mpc import MpcWeights
+
+    out = replay(golden, "slalom_h10", *robot_and_net, weights=MpcWeights(speed_change=2.5))
+    assert not np.all(out["first_max"] <= TOL_FIRST_MAX)

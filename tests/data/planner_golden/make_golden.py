@@ -31,6 +31,21 @@ def corridor_with_clutter(rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([walls, *boxes, clutter])
 
 
+def slalom(rng: np.random.Generator) -> np.ndarray:
+    """A 70 cm corridor, closed behind the start, with boards reaching 20 cm in from alternate sides: the robot weaves (the
+    collision rows bind on most ticks)."""
+    x = np.arange(-1.0, 7.0, 0.03)
+    walls = np.concatenate([np.stack([x, np.full_like(x, 0.35)], 1), np.stack([x, np.full_like(x, -0.35)], 1)])
+    boards = []
+    for i, cx in enumerate((1.2, 2.4, 3.6, 4.8)):
+        side = 1.0 if i % 2 == 0 else -1.0
+        y = np.arange(0.15, 0.35, 0.03) * side
+        boards.append(np.stack([np.full_like(y, cx), y], 1))
+    back = np.arange(-0.35, 0.36, 0.03)
+    pts = np.concatenate([walls, np.stack([np.full_like(back, -1.0), back], 1), *boards])
+    return pts + rng.normal(0.0, 0.003, pts.shape)
+
+
 def offset_gap(rng: np.random.Generator) -> np.ndarray:
     t = np.arange(-1.5, 1.5, 0.03)
     wall_a = np.stack([np.full_like(t, 1.5), t], 1)
@@ -78,6 +93,8 @@ def main(out: Path) -> None:
         "corridor_h10": (corridor_with_clutter(rng), 10, 80, np.array([7.0, 0.0]), np.array([0.0, 0.0, 0.0])),
         "corridor_h20": (corridor_with_clutter(rng), 20, 80, np.array([7.0, 0.0]), np.array([0.0, 0.0, 0.3])),
         "gap_h10": (offset_gap(rng), 10, 60, np.array([3.0, 0.15]), np.array([0.0, -0.4, 0.5])),
+        "slalom_h10": (slalom(rng), 10, 120, np.array([6.0, 0.0]), np.array([0.0, 0.0, 0.0])),
+        "slalom_h30": (slalom(rng), 30, 120, np.array([6.0, 0.0]), np.array([0.0, 0.0, 0.0])),
     }
     arrays = {}
     for name, (pts, h, ticks, goal, start) in cases.items():
