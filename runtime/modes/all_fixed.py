@@ -27,6 +27,8 @@ class AllFixedMode:
         return {
             "mpc_plans": self.mpc.plans,
             "mpc_capped_solves": self.mpc.capped_solves,
+            "mpc_qp_solves": self.mpc.qp_solves,
+            "mpc_qp_capped": self.mpc.qp_capped,
             "mpc_fallbacks": self.mpc.fallbacks,
             "reference_replans": self.reference.replans,
         }

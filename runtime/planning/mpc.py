@@ -177,6 +177,8 @@ class QpOutcome:
     iterations: int
     inputs: np.ndarray | None  # (H, 2)
     max_slack_m: float
+    build_ms: float = 0.0  # writing the QP's numbers into the solver (update)
+    solve_ms: float = 0.0  # the solver's own run
 
 
 class QpBackend(Protocol):
@@ -193,7 +195,7 @@ class PlanResult:
     iterations: int  # OSQP iterations over all alternations
     capped: bool  # some solve hit the iteration or time cap
     fallback: bool  # commands are the shifted previous plan (or a braking plan), not a fresh solve
-    timings_ms: dict[str, float]  # select, net, qp, check, total
+    timings_ms: dict[str, float]  # select, net, rows, build, solve, qp (= build + solve), check, total
     min_predicted_distance_m: float  # exact footprint distance of states[1:] to their constraint points
     max_slack_m: float
     constraint_points: int  # valid (point, pose) rows in the last QP
@@ -356,6 +358,7 @@ class OsqpMpcBackend:
 
     # -- one solve ----------------------------------------------------------------------------
     def solve(self, lin: MpcLinearization, time_limit_s: float | None = None) -> QpOutcome:
+        t_build = time.perf_counter()
         H, K, n_s, n_u = self.H, self.K, self.n_s, self.n_u
         w = self.config.weights
         vals, sl = self._values, self._slices
@@ -406,7 +409,9 @@ class OsqpMpcBackend:
         z[n_s : n_s + n_u] = lin.nominal_inputs.reshape(-1)
         z[n_s + n_u :] = 0.0
         solver.warm_start(x=z)
+        t_solve = time.perf_counter()
         res = solver.solve(raise_error=False)
+        t_done = time.perf_counter()
         status_val = res.info.status_val
         ok = status_val in (1, 2)  # solved, solved inaccurate
         capped = status_val in (7, 8)  # max iterations, time limit
@@ -415,7 +420,10 @@ class OsqpMpcBackend:
         if ok:
             inputs = res.x[n_s : n_s + n_u].reshape(H, 2).copy()
             max_slack = float(max(0.0, res.x[n_s + n_u :].max()))
-        return QpOutcome(ok, capped, str(res.info.status), int(res.info.iter), inputs, max_slack)
+        return QpOutcome(
+            ok, capped, str(res.info.status), int(res.info.iter), inputs, max_slack,
+            build_ms=(t_solve - t_build) * 1e3, solve_ms=(t_done - t_solve) * 1e3,
+        )
 
 
 class MpcPlanner:
@@ -453,8 +461,10 @@ class MpcPlanner:
         self._local = np.empty((H, K, 2))  # robot-frame points of the net's batch
         # Counters (never reset by plan()).
         self.plans = 0
-        self.capped_solves = 0
+        self.capped_solves = 0  # plans in which a solve hit its cap
         self.fallbacks = 0
+        self.qp_solves = 0  # every QP solve (alternations count one each)
+        self.qp_capped = 0  # solves that hit the iteration (or, in real time, the time) cap
         self.last_selection = None
 
     def reset(self) -> None:
@@ -473,10 +483,10 @@ class MpcPlanner:
         reference[:, 2] = v
         x = np.arange(-1.0, 3.0, 0.05)
         wall = np.concatenate([np.stack([x, np.full_like(x, 0.5)], 1), np.stack([x, np.full_like(x, -0.5)], 1)])
-        counters = (self.plans, self.capped_solves, self.fallbacks)
+        counters = (self.plans, self.capped_solves, self.fallbacks, self.qp_solves, self.qp_capped)
         for _ in range(plans):
             self.plan(np.zeros(3), np.array([v, 0.0]), reference, wall)
-        self.plans, self.capped_solves, self.fallbacks = counters
+        self.plans, self.capped_solves, self.fallbacks, self.qp_solves, self.qp_capped = counters
         self.reset()
         self.last_selection = None
 
@@ -642,6 +652,7 @@ class MpcPlanner:
         w = self.config.weights
         lin.coll_slack_weight[:] = np.where(required < self.config.d_min_m, w.slack_linear_holding, w.slack_linear)
         timings["net"] += (t2 - t1) * 1e3
+        timings["rows"] += (time.perf_counter() - t2) * 1e3
         return sel.count
 
     def _required_clearance(self, sel) -> np.ndarray:
@@ -707,7 +718,8 @@ class MpcPlanner:
                     f"MpcPlanner.plan: speed_bounds_mps {speed_bounds_mps} outside the robot's "
                     f"[{lim.v_min_mps}, {lim.v_max_mps}]"
                 )
-        timings = {"select": 0.0, "net": 0.0, "qp": 0.0, "check": 0.0, "total": 0.0}
+        timings = {"select": 0.0, "net": 0.0, "rows": 0.0, "build": 0.0, "solve": 0.0, "qp": 0.0,
+                   "check": 0.0, "total": 0.0}
         lin.state0[:] = state
         lin.u_lo[:] = (v_lo, -lim.omega_max_radps)
         lin.u_hi[:] = (v_hi, lim.omega_max_radps)
@@ -739,6 +751,10 @@ class MpcPlanner:
             t0 = time.perf_counter()
             out = self.backend.solve(lin, per_solve_limit)
             timings["qp"] += (time.perf_counter() - t0) * 1e3
+            timings["build"] += out.build_ms
+            timings["solve"] += out.solve_ms
+            self.qp_solves += 1
+            self.qp_capped += int(out.capped)
             iterations += out.iterations
             status = out.status
             if not out.ok:

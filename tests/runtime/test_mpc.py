@@ -159,7 +159,7 @@ def test_collision_rows_are_the_first_order_expansion_of_the_exact_distance(seed
     pts = rng.uniform(-1.0, 1.5, size=(30, 2))
     pts = pts[footprint_distance_to_points(np.zeros((1, 3)), pts, HL, HW)[0] > 0.05]
     nominal = np.array([[0.0, 0.0, 0.0], [0.1, 0.02, 0.1], [0.2, 0.05, 0.3], [0.3, 0.1, 0.4], [0.4, 0.1, 0.6]])
-    timings = {"select": 0.0, "net": 0.0}
+    timings = {"select": 0.0, "net": 0.0, "rows": 0.0}
     planner._linearize_collisions(nominal, pts, timings)
     lin, sel = planner.lin, planner.last_selection
     eps = 1e-6
@@ -285,7 +285,7 @@ def test_rows_of_points_already_inside_d_min_demand_the_current_distance() -> No
     planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
     planner.lin.state0[:] = start
     nominal = np.repeat(start[None], cfg.horizon_steps + 1, axis=0)  # standing still
-    planner._linearize_collisions(nominal, pts, {"select": 0.0, "net": 0.0})
+    planner._linearize_collisions(nominal, pts, {"select": 0.0, "net": 0.0, "rows": 0.0})
     lin, sel = planner.lin, planner.last_selection
     d_now = footprint_distance_to_points(start[None], sel.points_world.reshape(-1, 2), HL, HW).reshape(sel.valid.shape)
     row_at_standstill = np.einsum("hkj,j->hk", lin.coll_coef, start) - lin.coll_rhs
