@@ -59,6 +59,10 @@ class ReferenceUpdate:
     remaining_m: float  # path length left (inf when blocked)
 
 
+#: The 8-connected grid's moves (di, dj).
+_DIRECTIONS = ((1, 0), (0, 1), (-1, 0), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
+
+
 @dataclass
 class LocalGrid:
     origin_m: np.ndarray  # world position of cell (0, 0)'s corner
@@ -82,23 +86,35 @@ class ReferencePathPlanner:
         self.inflation_radius_m = robot.footprint.width_m / 2.0 + config.inflation_margin_m
         n = int(math.ceil(config.window_m / config.resolution_m))
         self.n = n
-        # The 8-connected grid graph: fixed for the window, built once.
-        i = np.arange(n * n)
-        ii, jj = np.divmod(i, n)
-        src, dst, length, ortho_a, ortho_b = [], [], [], [], []
-        for di, dj in ((1, 0), (0, 1), (-1, 0), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1)):
-            ok = (ii + di >= 0) & (ii + di < n) & (jj + dj >= 0) & (jj + dj < n)
-            src.append(i[ok])
-            dst.append(((ii + di) * n + jj + dj)[ok])
-            length.append(np.full(int(ok.sum()), math.hypot(di, dj) * config.resolution_m))
-            # For diagonal moves, the two orthogonal cells passed at the corner (no corner cutting).
-            ortho_a.append(((ii + di) * n + jj)[ok])
-            ortho_b.append((ii * n + jj + dj)[ok])
-        self._src = np.concatenate(src)
-        self._dst = np.concatenate(dst)
-        self._len = np.concatenate(length)
-        self._ortho_a = np.concatenate(ortho_a)
-        self._ortho_b = np.concatenate(ortho_b)
+        # The 8-connected grid graph has a fixed structure for the window: built once as a CSR
+        # matrix; each replan only writes the edge weights (data) in place. Edges are generated
+        # per direction as (n - |di|) x (n - |dj|) blocks, so that a replan computes every weight
+        # of a direction with array slices; `_data_order` maps that block order to CSR order.
+        idx = np.arange(n * n).reshape(n, n)
+        src, dst, length = [], [], []
+        self._blocks: list[tuple[slice, slice, slice, slice, slice, slice, slice, slice, float, slice]] = []
+        start = 0
+        for di, dj in _DIRECTIONS:
+            a = (slice(max(0, -di), n - max(0, di)), slice(max(0, -dj), n - max(0, dj)))  # source cells
+            b = (slice(max(0, di), n + min(0, di)), slice(max(0, dj), n + min(0, dj)))  # their neighbours
+            oa = (b[0], a[1])  # the two orthogonal cells passed at a diagonal's corner (no corner cutting)
+            ob = (a[0], b[1])
+            count = (n - abs(di)) * (n - abs(dj))
+            src.append(idx[a].ravel())
+            dst.append(idx[b].ravel())
+            length.append(math.hypot(di, dj) * config.resolution_m)
+            self._blocks.append((*a, *b, *oa, *ob, math.hypot(di, dj) * config.resolution_m,
+                                 slice(start, start + count)))
+            start += count
+        order_ids = np.arange(1, start + 1, dtype=np.float64)
+        graph = csr_matrix((order_ids, (np.concatenate(src), np.concatenate(dst))), shape=(n * n, n * n))
+        graph.sort_indices()
+        if graph.nnz != start:
+            raise AssertionError("ReferencePathPlanner: duplicate edges in the grid graph")
+        self._data_order = graph.data.astype(np.int64) - 1  # CSR position -> block-order edge
+        graph.data = np.zeros(start)
+        self._graph = graph
+        self._block_weights = np.empty(start)
         self._path: np.ndarray | None = None
         self._goal: np.ndarray | None = None
         self._ticks = 0
@@ -166,11 +182,7 @@ class ReferencePathPlanner:
             passable = passable | escape
             cost[escape & grid.lethal] = 1.0 + 4.0 * cfg.soft_cost
             passable[start[0], start[1]] = True
-        flat_pass = passable.ravel()
-        flat_cost = cost.ravel()
-        ok = flat_pass[self._src] & flat_pass[self._dst] & flat_pass[self._ortho_a] & flat_pass[self._ortho_b]
-        w = self._len[ok] * 0.5 * (flat_cost[self._src[ok]] + flat_cost[self._dst[ok]])
-        graph = csr_matrix((w, (self._src[ok], self._dst[ok])), shape=(n * n, n * n))
+        graph = self._edge_weights(passable, cost)
         s_idx = int(start[0] * n + start[1])
         dist, pred = dijkstra(graph, directed=True, indices=s_idx, return_predecessors=True)
         goal_cell = grid.cell_of(goal_xy)
@@ -202,6 +214,17 @@ class ReferencePathPlanner:
         if end_xy is not None:
             path[-1] = end_xy
         return path, "ok"
+
+    def _edge_weights(self, passable: np.ndarray, cost: np.ndarray) -> csr_matrix:
+        """The grid graph with this replan's weights: step length x mean cost of the two cells,
+        infinite (no edge) into, out of or diagonally past an impassable cell."""
+        w = self._block_weights
+        for ai, aj, bi, bj, oai, oaj, obi, obj, step, out in self._blocks:
+            ok = passable[ai, aj] & passable[bi, bj] & passable[oai, oaj] & passable[obi, obj]
+            wb = (0.5 * step) * (cost[ai, aj] + cost[bi, bj])
+            w[out] = np.where(ok, wb, np.inf).ravel()
+        np.take(w, self._data_order, out=self._graph.data)
+        return self._graph
 
     def _smooth(self, path: np.ndarray, points_world: np.ndarray) -> np.ndarray:
         w = self.config.smoothing_window
