@@ -209,11 +209,32 @@ def odometry_bench_command(scenario: str, seconds: float, hogs: tuple[int, ...],
 
 
 @bench_group.command("planner")
-@click.option("--repeats", default=300, show_default=True, help="Planner steps per configuration.")
-@click.option("--cvxpy-repeats", default=30, show_default=True, help="cvxpy solves per configuration.")
+@click.option("--repeats", default=300, show_default=True, type=click.IntRange(10, 100000),
+              help="Planner steps per (horizon, points).")
+@click.option("--cvxpy-repeats", default=20, show_default=True, type=click.IntRange(0, 10000),
+              help="cvxpy planner steps per (horizon, points); 0 skips cvxpy.")
+@click.option("--horizon", "horizons", multiple=True, type=click.IntRange(2, 60),
+              help="Horizon H (repeatable).  [default: 10, 20, 30]")
+@click.option("--points", "point_counts", multiple=True, type=click.IntRange(1, 1000000),
+              help="Points in range N (repeatable).  [default: 100, 300, 1000, 3000, 10000]")
 @click.option("--net", "net_path", type=click.Path(exists=True, dir_okay=False), help="Distance net (default: shipped).")
-def planner_command(repeats: int, cvxpy_repeats: int, net_path: str | None) -> None:
-    """Planner step time (net + QP) at H = 10, 20 with 100 and 1,000 points, against cvxpy (ECOS, Clarabel)."""
-    from hil_sim.planner_bench import print_planner_benchmark
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the rows as JSON.")
+def planner_command(repeats: int, cvxpy_repeats: int, horizons: tuple[int, ...], point_counts: tuple[int, ...],
+                    net_path: str | None, json_path: Path | None) -> None:
+    """Planner step time (selection + net + QP, one thread) against points in range and horizon,
+    with the share of each part and the constraint set's size, against cvxpy (ECOS, Clarabel)."""
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.planner_bench import HORIZONS, POINT_COUNTS, cap_warnings, print_planner_benchmark
 
-    print_planner_benchmark(repeats=repeats, cvxpy_repeats=cvxpy_repeats, distance_net_path=net_path)
+    if json_path is not None:
+        try:
+            check_output_path(json_path, what="--json")
+        except OutputPathError as exc:
+            raise InputError(str(exc)) from exc
+    rows = print_planner_benchmark(
+        echo=click.echo, repeats=repeats, cvxpy_repeats=cvxpy_repeats, distance_net_path=net_path,
+        horizons=tuple(sorted(set(horizons))) or HORIZONS, point_counts=tuple(sorted(set(point_counts))) or POINT_COUNTS,
+        progress=lambda what: click.echo(f"... {what}", err=True),
+    )
+    if json_path is not None:
+        atomic_write_json(json_path, {"rows": rows, "warnings": cap_warnings(rows)})

@@ -1,25 +1,42 @@
-"""`dct bench planner`: planner step time (distance net + OSQP QP), against the same problem
-written in cvxpy and solved with ECOS or Clarabel (the way NeuPAN solves it).
+"""`dct bench planner`: the planner step's time against the points in range and the horizon,
+against the same problem written in cvxpy and solved with ECOS or Clarabel (the way NeuPAN
+solves it).
 
-For each horizon H and constraint-point count n, the MPC gets K = ceil(n / H) points per pose,
-so each QP carries about n collision rows (K per pose x H poses) and the distance model runs on
-H x K (point, pose) pairs per alternation. The robot drives a straight corridor between two
-walls (plus clutter) at 1 m/s in closed loop (kinematic unicycle), planning every 50 ms with the
-default caps of MpcConfig. The cvxpy run uses the identical planner (same point selection, same
-net, same linearization, same cost and constraints) with the QP backend swapped for a cvxpy
-problem built once with Parameters and re-solved each alternation (cvxpy is benchmark-only).
+Work sizes: points in range N (P_fix within the obstacle range of the robot, 6 m: what the
+partition hands the planner each tick) in 100 .. 10,000 and horizon H in 10, 20, 30, with the
+controller's own MPC settings otherwise (K points per pose, corridor, thinning, caps). The robot
+drives a straight corridor (walls 0.9 m apart) through a cluttered room (boxes beyond the walls)
+at 1 m/s in closed loop (kinematic unicycle), planning every 50 ms; each tick the planner gets
+exactly N points drawn from the scene's points within range (a dense scene subsampled: the
+density grows with N, the geometry stays).
+
+Timing: the step (point selection + distance net + QP + bookkeeping, one thread), split into
+select, net (the forward pass), rows (collision rows from the net's duals), build (the QP's
+numbers written into OSQP) and solve. Caps: iteration counts only (lockstep caps), so a figure is
+the cost of the work; a solve that hits its iteration cap is counted (`capped_fraction`), and a
+figure with capped solves is flagged: it then describes the cap, not the planner.
+
+The cvxpy run uses the identical planner (same point selection, same net, same linearization,
+same cost and constraints) with the QP backend swapped for a cvxpy problem built once per H with
+Parameters and re-solved each alternation (cvxpy is benchmark-only).
 """
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import numpy as np
 
 from runtime.planning.mpc import MpcConfig, MpcLimits, MpcLinearization, MpcPlanner, OsqpMpcBackend, QpOutcome
-from runtime.planning.point_selection import PointSelectionConfig
 
 TICK_S = 0.05
+#: The controller's obstacle range (runtime.config ObstaclePointsConfig.max_range_m).
+RANGE_M = 6.0
+HORIZONS = (10, 20, 30)
+POINT_COUNTS = (100, 300, 1000, 3000, 10000)
+#: The parts of a step, as MpcPlanner.plan times them.
+PARTS = ("select", "net", "rows", "build", "solve")
 
 
 class CvxpyMpcBackend:
@@ -74,6 +91,7 @@ class CvxpyMpcBackend:
             raise AssertionError("CvxpyMpcBackend: the problem is not DPP; parameters would recompile each solve")
 
     def solve(self, lin: MpcLinearization, time_limit_s: float | None = None) -> QpOutcome:
+        t_build = time.perf_counter()
         p, H = self.p, self.H
         p["state0"].value = lin.state0
         p["u_prev"].value = lin.u_prev
@@ -90,16 +108,19 @@ class CvxpyMpcBackend:
         p["u_lo"].value = np.broadcast_to(lin.u_lo, (H, 2)).copy()
         p["u_hi"].value = np.broadcast_to(lin.u_hi, (H, 2)).copy()
         p["du"].value = np.broadcast_to(lin.du_max, (H, 2)).copy()
+        t_solve = time.perf_counter()
         try:
             self.problem.solve(solver=self.solver, warm_start=True)
         except self.cp.error.SolverError as exc:
             return QpOutcome(False, False, f"solver error: {exc}", 0, None, 0.0)
+        t_done = time.perf_counter()
         status = str(self.problem.status)
         ok = status in ("optimal", "optimal_inaccurate") and self.U.value is not None
         iters = int(getattr(self.problem.solver_stats, "num_iters", 0) or 0)
         inputs = np.array(self.U.value) if ok else None
         slack = float(max(0.0, np.max(self.E.value))) if ok else 0.0
-        return QpOutcome(ok, False, status, iters, inputs, slack)
+        return QpOutcome(ok, False, status, iters, inputs, slack,
+                         build_ms=(t_solve - t_build) * 1e3, solve_ms=(t_done - t_solve) * 1e3)
 
 
 def load_distance_model(robot, path: str | Path | None = None):
@@ -120,14 +141,35 @@ def load_distance_model(robot, path: str | Path | None = None):
         return DistanceNet(module, G, g, {"untrained": True}, Path("<untrained>")), f"UNTRAINED net ({type(exc).__name__})"
 
 
-def corridor_scene(length_m: float, rng: np.random.Generator) -> np.ndarray:
-    """Two walls at y = +-0.45 m (2 cm spacing) from x = -1 to length_m, plus clutter beyond them."""
-    x = np.arange(-1.0, length_m, 0.02)
-    walls = np.concatenate([np.stack([x, np.full_like(x, 0.45)], 1), np.stack([x, np.full_like(x, -0.45)], 1)])
-    n_clutter = int(len(x) / 2)
-    cx = rng.uniform(-1.0, length_m, n_clutter)
-    cy = np.sign(rng.uniform(-1, 1, n_clutter)) * rng.uniform(0.5, 1.2, n_clutter)
-    return np.concatenate([walls, np.stack([cx, cy], 1)])
+def cluttered_corridor(length_m: float, rng: np.random.Generator, spacing_m: float = 0.005) -> np.ndarray:
+    """A dense point scene (M, 2): walls at y = +-0.45 m from x = -RANGE_M to length_m + RANGE_M,
+    and box outlines (0.2-0.6 m, yawed) in the room beyond them (|y| from 0.8 to 5 m), points
+    every spacing_m (the benchmark subsamples it to N points in range per tick)."""
+    x = np.arange(-RANGE_M, length_m + RANGE_M, spacing_m)
+    walls = [np.stack([x, np.full_like(x, 0.45)], 1), np.stack([x, np.full_like(x, -0.45)], 1)]
+    boxes = []
+    n_boxes = int((length_m + 2 * RANGE_M) * 2.5)
+    for _ in range(n_boxes):
+        cx = rng.uniform(-RANGE_M, length_m + RANGE_M)
+        cy = rng.choice([-1.0, 1.0]) * rng.uniform(0.8, 5.0)
+        a, b = rng.uniform(0.1, 0.3, 2)
+        yaw = rng.uniform(0.0, math.pi)
+        t = np.arange(0.0, 4.0 * (a + b), spacing_m)  # arc length around the outline
+        side = np.minimum(t, 4.0 * (a + b) - 1e-9)
+        u = np.where(side < 2 * a, -a + side, np.where(side < 2 * a + 2 * b, a, np.where(side < 4 * a + 2 * b, a - (side - 2 * a - 2 * b), -a)))
+        v = np.where(side < 2 * a, -b, np.where(side < 2 * a + 2 * b, -b + (side - 2 * a), np.where(side < 4 * a + 2 * b, b, b - (side - 4 * a - 2 * b))))
+        c, s = math.cos(yaw), math.sin(yaw)
+        boxes.append(np.stack([cx + c * u - s * v, cy + s * u + c * v], 1))
+    return np.concatenate(walls + boxes)
+
+
+def points_in_range(scene: np.ndarray, xy: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Exactly n of the scene's points within RANGE_M of xy (all of them if fewer)."""
+    d2 = (scene[:, 0] - xy[0]) ** 2 + (scene[:, 1] - xy[1]) ** 2
+    near = np.flatnonzero(d2 <= RANGE_M * RANGE_M)
+    if near.size > n:
+        near = rng.choice(near, size=n, replace=False)
+    return scene[near]
 
 
 def _straight_reference(x0: float, H: int, step_s: float) -> np.ndarray:
@@ -137,137 +179,194 @@ def _straight_reference(x0: float, H: int, step_s: float) -> np.ndarray:
     return ref
 
 
-def _run_closed_loop(planner: MpcPlanner, points: np.ndarray, ticks: int) -> tuple[list[dict], list]:
+def _run_closed_loop(planner: MpcPlanner, scene: np.ndarray, n_points: int, ticks: int, seed: int) -> dict:
+    """Drive the corridor: per tick N points in range, one plan, 50 ms of the unicycle."""
     H, dt = planner.config.horizon_steps, planner.config.step_s
+    rng = np.random.default_rng(seed)
     state = np.zeros(3)
     u = np.array([1.0, 0.0])
-    rows, results = [], []
+    out: dict[str, list] = {k: [] for k in ("total", *PARTS, "rows_used", "reach", "cells", "expanded", "points",
+                                            "iterations")}
     for _ in range(ticks):
-        res = planner.plan(state, u, _straight_reference(state[0], H, dt), points)
-        rows.append(res.timings_ms)
-        results.append(res)
+        pts = points_in_range(scene, state[:2], n_points, rng)
+        res = planner.plan(state, u, _straight_reference(state[0], H, dt), pts)
+        for k in ("total", *PARTS):
+            out[k].append(res.timings_ms[k])
+        out["rows_used"].append(res.constraint_points)
+        sel = planner.last_selection
+        out["reach"].append(0 if sel is None else sel.points_in_reach)
+        out["cells"].append(0 if sel is None else sel.cells)
+        out["expanded"].append(0 if sel is None else sel.pairs_expanded)
+        out["points"].append(pts.shape[0])
+        out["iterations"].append(res.iterations)
         u = res.commands[0].copy()
         for _ in range(5):
             state = state + 0.01 * np.array([u[0] * math.cos(state[2]), u[0] * math.sin(state[2]), u[1]])
-    return rows, results
+    return {k: np.asarray(v, dtype=float) for k, v in out.items()}
 
 
-def _pct(values: list[float], q: float) -> float:
+def _pct(values, q: float) -> float:
     return float(np.percentile(np.asarray(values), q))
 
 
 def run_planner_benchmark(
-    horizons: tuple[int, ...] = (10, 20),
-    point_counts: tuple[int, ...] = (100, 1000),
+    horizons: tuple[int, ...] = HORIZONS,
+    point_counts: tuple[int, ...] = POINT_COUNTS,
     repeats: int = 300,
-    cvxpy_repeats: int = 40,
+    cvxpy_repeats: int = 20,
     cvxpy_solvers: tuple[str, ...] = ("ECOS", "CLARABEL"),
     seed: int = 0,
     distance_net_path: str | Path | None = None,
+    config: MpcConfig | None = None,
+    progress=None,
 ) -> list[dict]:
-    """Planner step time (select + net + QP) and the cvxpy formulation's, per (H, n); one dict each."""
+    """Planner step time per (H, N) and the cvxpy formulation's; one dict (row) each.
+
+    config: the MPC settings (default: the controller's, from its default config file); only
+    the horizon is varied."""
     import torch
 
     from calibration.robot_description import load_robot_description
+    from runtime.config import load_controller_config
 
     torch.set_num_threads(1)
     robot = load_robot_description()
     model, model_name = load_distance_model(robot, distance_net_path)
-    rng = np.random.default_rng(seed)
+    base = config or load_controller_config().planner.mpc
+    length = 2.0 + (repeats + 40) * TICK_S * 1.0 + 4.0
+    scene = cluttered_corridor(length, np.random.default_rng(seed))
     out = []
     for H in horizons:
+        cfg = base.model_copy(update={"horizon_steps": H, "tick_period_s": TICK_S})
+        cfg = MpcConfig.model_validate(cfg.model_dump())
+        cv_backends: dict[str, CvxpyMpcBackend] = {}
         for n in point_counts:
-            K = max(1, math.ceil(n / H))
-            cfg = MpcConfig(
-                horizon_steps=H,
-                tick_period_s=TICK_S,
-                points=PointSelectionConfig(points_per_pose=K, voxel_size_m=0.0),
-            )
-            length = 2.0 + (repeats + 20) * TICK_S * 1.0 + H * cfg.step_s
-            points = corridor_scene(length, rng)
-            planner = MpcPlanner(cfg, robot, model)
-            _run_closed_loop(planner, points, 10)  # warm-up (allocations, first solves)
-            planner.plans = planner.capped_solves = planner.fallbacks = 0
-            timings, results = _run_closed_loop(planner, points, repeats)
-            step = [t["total"] for t in timings]
+            if progress is not None:
+                progress(f"H={H} points={n}")
+            planner = MpcPlanner(cfg, robot, model, wall_clock_caps=False)
+            _run_closed_loop(planner, scene, n, 10, seed)  # warm-up (allocations, first solves)
+            planner.reset()
+            solves0, capped0, fallbacks0 = planner.qp_solves, planner.qp_capped, planner.fallbacks
+            t = _run_closed_loop(planner, scene, n, repeats, seed + 1)
+            solves = planner.qp_solves - solves0
+            total_mean = float(t["total"].mean())
             row = {
                 "horizon": H,
-                "constraint_points": n,
-                "points_per_pose": K,
-                "rows_used_median": float(np.median([r.constraint_points for r in results])),
+                "points": n,
+                "points_in_range_median": float(np.median(t["points"])),
+                "points_per_pose": cfg.points.points_per_pose,
+                "points_in_reach_median": float(np.median(t["reach"])),
+                "cells_median": float(np.median(t["cells"])),
+                "pairs_expanded_median": float(np.median(t["expanded"])),
+                "constraint_rows_median": float(np.median(t["rows_used"])),
+                "constraint_rows_max": int(t["rows_used"].max()),
                 "distance_model": model_name,
                 "repeats": repeats,
-                "step_median_ms": float(np.median(step)),
-                "step_p99_ms": _pct(step, 99),
-                "net_median_ms": float(np.median([t["net"] for t in timings])),
-                "net_qp_median_ms": float(np.median([t["net"] + t["qp"] for t in timings])),
-                "net_qp_p99_ms": _pct([t["net"] + t["qp"] for t in timings], 99),
-                "qp_median_ms": float(np.median([t["qp"] for t in timings])),
-                "qp_p99_ms": _pct([t["qp"] for t in timings], 99),
-                "select_median_ms": float(np.median([t["select"] for t in timings])),
-                "iterations_median": float(np.median([r.iterations for r in results])),
-                "capped": planner.capped_solves,
-                "fallbacks": planner.fallbacks,
+                "p50_ms": _pct(t["total"], 50),
+                "p90_ms": _pct(t["total"], 90),
+                "p99_ms": _pct(t["total"], 99),
+                "max_ms": float(t["total"].max()),
+                **{f"{k}_p50_ms": _pct(t[k], 50) for k in PARTS},
+                "share": {k: float(t[k].mean()) / total_mean for k in PARTS},
+                "iterations_median": float(np.median(t["iterations"])),
+                "qp_solves": solves,
+                "capped_solves": planner.qp_capped - capped0,
+                "capped_fraction": (planner.qp_capped - capped0) / max(solves, 1),
+                "fallbacks": planner.fallbacks - fallbacks0,
             }
             lin_snapshot = planner.lin  # the last QP, for the cross-check below
-            osqp_inputs = OsqpMpcBackend(cfg, planner.limits).solve(lin_snapshot, 1.0).inputs
+            osqp_inputs = OsqpMpcBackend(cfg, planner.limits, wall_clock_caps=False).solve(lin_snapshot).inputs
+            ratios = []
             for solver in cvxpy_solvers:
-                backend = CvxpyMpcBackend(cfg, planner.limits, solver)
+                if cvxpy_repeats <= 0:
+                    break
+                if solver not in cv_backends:  # the cvxpy problem depends on H and K only
+                    cv_backends[solver] = CvxpyMpcBackend(cfg, planner.limits, solver)
+                backend = cv_backends[solver]
                 check = backend.solve(lin_snapshot)
-                cv_planner = MpcPlanner(cfg, robot, model, qp_backend=backend)
-                _run_closed_loop(cv_planner, points, 2)
-                cv_timings, _ = _run_closed_loop(cv_planner, points, cvxpy_repeats)
-                cv_step = [t["total"] for t in cv_timings]
+                cv_planner = MpcPlanner(cfg, robot, model, qp_backend=backend, wall_clock_caps=False)
+                _run_closed_loop(cv_planner, scene, n, 2, seed)
+                cv_planner.reset()
+                cv = _run_closed_loop(cv_planner, scene, n, cvxpy_repeats, seed + 1)
                 key = solver.lower()
-                row[f"cvxpy_{key}_step_median_ms"] = float(np.median(cv_step))
-                row[f"cvxpy_{key}_step_p99_ms"] = _pct(cv_step, 99)
-                row[f"cvxpy_{key}_qp_median_ms"] = float(np.median([t["qp"] for t in cv_timings]))
-                row[f"cvxpy_{key}_net_qp_median_ms"] = float(np.median([t["net"] + t["qp"] for t in cv_timings]))
-                row[f"net_qp_speedup_vs_{key}"] = row[f"cvxpy_{key}_net_qp_median_ms"] / row["net_qp_median_ms"]
-                row[f"speedup_vs_{key}"] = row[f"cvxpy_{key}_step_median_ms"] / row["step_median_ms"]
-                row[f"qp_speedup_vs_{key}"] = row[f"cvxpy_{key}_qp_median_ms"] / row["qp_median_ms"]
-                row[f"max_input_diff_vs_{key}"] = (
+                row[f"cvxpy_{key}_p50_ms"] = _pct(cv["total"], 50)
+                row[f"cvxpy_{key}_solve_p50_ms"] = _pct(cv["build"] + cv["solve"], 50)
+                row[f"cvxpy_{key}_ratio"] = row[f"cvxpy_{key}_p50_ms"] / row["p50_ms"]
+                row[f"cvxpy_{key}_max_input_diff"] = (
                     float(np.abs(check.inputs - osqp_inputs).max())
                     if check.ok and osqp_inputs is not None else float("nan")
                 )
+                ratios.append(row[f"cvxpy_{key}_ratio"])
+            # The cvxpy ratio: the fastest cvxpy solver's step p50 over ours (how much faster we are).
+            row["cvxpy_ratio"] = min(ratios) if ratios else None
             out.append(row)
     return out
 
 
-def format_planner_table(rows: list[dict]) -> str:
-    """A plain-text table of run_planner_benchmark's rows.
+def cap_warnings(rows: list[dict]) -> list[str]:
+    """One warning per row whose figures are bounded by a cap (then they are not timings)."""
+    return [
+        f"WARNING: H={r['horizon']} points={r['points']}: {r['capped_solves']} of {r['qp_solves']} QP solves "
+        f"({100 * r['capped_fraction']:.1f}%) hit the iteration cap: these figures describe the cap, not the planner"
+        for r in rows if r["capped_solves"]
+    ]
 
-    step: the whole planning step (select + net + QP + bookkeeping); net+qp: the issue's "planner
-    step (net + QP)"; per cvxpy solver: its whole-step median and the speed-ups (x step, x net+qp,
-    x qp) of ours over it, and |du| the largest input difference between the two solutions of
-    the last QP (small weights on omega leave the optimum flat in omega: a few 1e-2 rad/s).
-    """
-    solvers = sorted({k[len("speedup_vs_"):] for r in rows for k in r if k.startswith("speedup_vs_")})
-    head = (f"{'H':>3} {'pts':>5} {'K':>4} {'step med':>9} {'step p99':>9} {'net+qp':>7} {'n+q p99':>8}"
-            f" {'net':>6} {'qp':>6} {'it':>4} {'cap':>4}")
-    for s in solvers:
-        head += f" | {s + ' step':>13} {'x step':>7} {'x n+q':>6} {'x qp':>6} {'|du|':>7}"
-    lines = [f"distance model: {rows[0]['distance_model'] if rows else '-'}; times in ms", head]
+
+def format_planner_table(rows: list[dict]) -> str:
+    """Plain-text tables of run_planner_benchmark's rows: per (H, N) the step's percentiles,
+    the constraint set and the share of each part; then the scaling pivot (p99 by N and H)."""
+    if not rows:
+        return "(no rows)"
+    solvers = sorted({k[len("cvxpy_"):-len("_ratio")] for r in rows for k in r
+                      if k.startswith("cvxpy_") and k.endswith("_ratio") and k != "cvxpy_ratio"})
+    lines = [
+        f"distance model: {rows[0]['distance_model']}; one thread; caps: iterations only; times in ms; "
+        f"K = {rows[0]['points_per_pose']} points per pose",
+        "step = select + net + rows + build + solve (+ bookkeeping); share = mean part / mean step; reach: points "
+        "within reach of the horizon, cells: their occupied cells, rows: constraint rows (at most H x K)",
+    ]
+    head = (f"{'H':>3} {'points':>6} {'reach':>5} {'cells':>5} {'rows':>5} {'p50':>6} {'p90':>6} {'p99':>6} {'max':>6} "
+            f"{'sel%':>5} {'net%':>5} {'row%':>5} {'bld%':>5} {'slv%':>5} {'it':>4} {'capped':>7}")
+    for sv in solvers:
+        head += f" | {sv + ' p50':>13} {'x':>6} {'|du|':>7}"
+    lines.append(head)
     for r in rows:
+        sh = r["share"]
         line = (
-            f"{r['horizon']:>3} {r['constraint_points']:>5} {r['points_per_pose']:>4} {r['step_median_ms']:>9.2f} "
-            f"{r['step_p99_ms']:>9.2f} {r['net_qp_median_ms']:>7.2f} {r['net_qp_p99_ms']:>8.2f} "
-            f"{r['net_median_ms']:>6.2f} {r['qp_median_ms']:>6.2f} {r['iterations_median']:>4.0f} {r['capped']:>4}"
+            f"{r['horizon']:>3} {r['points']:>6} {r['points_in_reach_median']:>5.0f} {r['cells_median']:>5.0f} "
+            f"{r['constraint_rows_median']:>5.0f} "
+            f"{r['p50_ms']:>6.2f} {r['p90_ms']:>6.2f} {r['p99_ms']:>6.2f} {r['max_ms']:>6.2f} "
+            f"{100 * sh['select']:>5.0f} {100 * sh['net']:>5.0f} {100 * sh['rows']:>5.0f} "
+            f"{100 * sh['build']:>5.0f} {100 * sh['solve']:>5.0f} {r['iterations_median']:>4.0f} "
+            f"{100 * r['capped_fraction']:>6.1f}%"
         )
-        for s in solvers:
-            line += (
-                f" | {r[f'cvxpy_{s}_step_median_ms']:>13.2f} {r[f'speedup_vs_{s}']:>7.1f}"
-                f" {r[f'net_qp_speedup_vs_{s}']:>6.1f} {r[f'qp_speedup_vs_{s}']:>6.1f}"
-                f" {r[f'max_input_diff_vs_{s}']:>7.1e}"
-            )
+        for sv in solvers:
+            if f"cvxpy_{sv}_p50_ms" in r:
+                line += f" | {r[f'cvxpy_{sv}_p50_ms']:>13.2f} {r[f'cvxpy_{sv}_ratio']:>6.1f} {r[f'cvxpy_{sv}_max_input_diff']:>7.1e}"
         lines.append(line)
+    horizons = sorted({r["horizon"] for r in rows})
+    counts = sorted({r["points"] for r in rows})
+    by = {(r["horizon"], r["points"]): r for r in rows}
+    lines.append("")
+    lines.append("scaling: step p50 / p99 (ms) against points in range (rows) and horizon (columns)")
+    lines.append(f"{'points':>6} " + " ".join(f"{'H=' + str(h):>13}" for h in horizons))
+    for n in counts:
+        cells = [f"{by[(h, n)]['p50_ms']:>6.2f}/{by[(h, n)]['p99_ms']:<6.2f}" if (h, n) in by else f"{'-':>13}"
+                 for h in horizons]
+        lines.append(f"{n:>6} " + " ".join(cells))
+    for h in horizons:
+        if (h, 1000) in by and (h, 10000) in by:
+            g50 = by[(h, 10000)]["p50_ms"] / by[(h, 1000)]["p50_ms"]
+            g99 = by[(h, 10000)]["p99_ms"] / by[(h, 1000)]["p99_ms"]
+            lines.append(f"H={h}: 1,000 -> 10,000 points: step p50 x{g50:.2f}, p99 x{g99:.2f}")
+    lines.extend(cap_warnings(rows))
     return "\n".join(lines)
 
 
-def print_planner_benchmark(**kwargs) -> list[dict]:
-    """Run the benchmark and print its table; returns the rows."""
+def print_planner_benchmark(echo=print, **kwargs) -> list[dict]:
+    """Run the benchmark and print its tables; returns the rows."""
     rows = run_planner_benchmark(**kwargs)
-    print(format_planner_table(rows))
+    echo(format_planner_table(rows))
     return rows
 
 
