@@ -247,6 +247,7 @@ def run_planner_benchmark(
             _run_closed_loop(planner, scene, n, 10, seed)  # warm-up (allocations, first solves)
             planner.reset()
             solves0, capped0, fallbacks0 = planner.qp_solves, planner.qp_capped, planner.fallbacks
+            skipped0 = planner.alternations_skipped
             t = _run_closed_loop(planner, scene, n, repeats, seed + 1)
             solves = planner.qp_solves - solves0
             total_mean = float(t["total"].mean())
@@ -273,6 +274,7 @@ def run_planner_benchmark(
                 "capped_solves": planner.qp_capped - capped0,
                 "capped_fraction": (planner.qp_capped - capped0) / max(solves, 1),
                 "fallbacks": planner.fallbacks - fallbacks0,
+                "alternations_skipped": planner.alternations_skipped - skipped0,
             }
             lin_snapshot = planner.lin  # the last QP, for the cross-check below
             osqp_inputs = OsqpMpcBackend(cfg, planner.limits, wall_clock_caps=False).solve(lin_snapshot).inputs
@@ -323,10 +325,11 @@ def format_planner_table(rows: list[dict]) -> str:
         f"distance model: {rows[0]['distance_model']}; one thread; caps: iterations only; times in ms; "
         f"K = {rows[0]['points_per_pose']} points per pose",
         "step = select + net + rows + build + solve (+ bookkeeping); share = mean part / mean step; reach: points "
-        "within reach of the horizon, cells: their occupied cells, rows: constraint rows (at most H x K)",
+        "within reach of the horizon, cells: their occupied cells, rows: constraint rows (at most H x K), "
+        "QPs: solves per step (net/QP alternations), it: OSQP iterations per step",
     ]
     head = (f"{'H':>3} {'points':>6} {'reach':>5} {'cells':>5} {'rows':>5} {'p50':>6} {'p90':>6} {'p99':>6} {'max':>6} "
-            f"{'sel%':>5} {'net%':>5} {'row%':>5} {'bld%':>5} {'slv%':>5} {'it':>4} {'capped':>7}")
+            f"{'sel%':>5} {'net%':>5} {'row%':>5} {'bld%':>5} {'slv%':>5} {'QPs':>4} {'it':>4} {'capped':>7}")
     for sv in solvers:
         head += f" | {sv + ' p50':>13} {'x':>6} {'|du|':>7}"
     lines.append(head)
@@ -337,7 +340,8 @@ def format_planner_table(rows: list[dict]) -> str:
             f"{r['constraint_rows_median']:>5.0f} "
             f"{r['p50_ms']:>6.2f} {r['p90_ms']:>6.2f} {r['p99_ms']:>6.2f} {r['max_ms']:>6.2f} "
             f"{100 * sh['select']:>5.0f} {100 * sh['net']:>5.0f} {100 * sh['rows']:>5.0f} "
-            f"{100 * sh['build']:>5.0f} {100 * sh['solve']:>5.0f} {r['iterations_median']:>4.0f} "
+            f"{100 * sh['build']:>5.0f} {100 * sh['solve']:>5.0f} {r['qp_solves'] / r['repeats']:>4.2f} "
+            f"{r['iterations_median']:>4.0f} "
             f"{100 * r['capped_fraction']:>6.1f}%"
         )
         for sv in solvers:

@@ -29,6 +29,7 @@ class AllFixedMode:
             "mpc_capped_solves": self.mpc.capped_solves,
             "mpc_qp_solves": self.mpc.qp_solves,
             "mpc_qp_capped": self.mpc.qp_capped,
+            "mpc_alternations_skipped": self.mpc.alternations_skipped,
             "mpc_fallbacks": self.mpc.fallbacks,
             "reference_replans": self.reference.replans,
         }

@@ -18,9 +18,10 @@ could not reach and a linearization about a standstill; the methods say which do
 
 The QP has a fixed sparsity pattern: all H*K collision rows are always present (unused ones have
 zero coefficients, kept as explicit entries, and a lower bound of -inf), so OSQP is set up once
-and each tick only `update(q, l, u, Ax)` + `warm_start` + `solve()`. Net and QP alternate
-`alternations` times (NeuPAN's PAN iterations). Each solve is capped in iterations, and in real
-time also by the wall clock (`qp_time_budget_s`); on a cap the planner falls back to the shifted
+and each tick only `update(q, l, u, Ax)` + `warm_start` + `solve()`. Net and QP alternate up to
+`alternations` times (NeuPAN's PAN iterations; the next is skipped when the solution stayed within
+a millimetre of the poses the QP was linearized about, see MpcPlanner._converged). Each solve is
+capped in iterations, and in real time also by the wall clock (`qp_time_budget_s`); on a cap the planner falls back to the shifted
 previous plan and counts it. In lockstep (`wall_clock_caps=False`) only the iteration cap
 applies, so the same inputs give the same plan under any machine load (DESIGN.md section 6).
 """
@@ -75,7 +76,14 @@ class MpcConfig(BaseModel):
     horizon_steps: int = Field(default=10, ge=2, le=60, description="H")
     step_s: float = Field(default=0.1, gt=0.0, le=1.0, description="dt of the prediction model")
     tick_period_s: float = Field(default=0.05, gt=0.0, le=1.0, description="shift of the previous plan per tick")
-    alternations: int = Field(default=2, ge=1, le=10, description="net/QP alternations per tick")
+    alternations: int = Field(default=2, ge=1, le=10, description="net/QP alternations per tick (at most)")
+    alternation_tolerance_m: float = Field(
+        default=0.001, ge=0.0, le=0.1,
+        description="stop alternating when the solution moved no predicted position farther than this from "
+        "the poses it was linearized about (and no heading more than alternation_tolerance_rad): the next "
+        "linearization would change the QP by less than its own tolerance (eps 1e-3). 0 = always alternate",
+    )
+    alternation_tolerance_rad: float = Field(default=0.001, ge=0.0, le=0.1)
     d_min_m: float = Field(default=0.03, ge=0.0, le=1.0, description="minimum footprint distance to P_fix")
     max_reverse_speed_mps: float = Field(default=0.3, ge=0.0, le=5.0, description="v_rev")
     linearize_heading: bool = Field(
@@ -465,6 +473,7 @@ class MpcPlanner:
         self.fallbacks = 0
         self.qp_solves = 0  # every QP solve (alternations count one each)
         self.qp_capped = 0  # solves that hit the iteration (or, in real time, the time) cap
+        self.alternations_skipped = 0  # alternations not needed (the linearization had converged)
         self.last_selection = None
 
     def reset(self) -> None:
@@ -483,10 +492,12 @@ class MpcPlanner:
         reference[:, 2] = v
         x = np.arange(-1.0, 3.0, 0.05)
         wall = np.concatenate([np.stack([x, np.full_like(x, 0.5)], 1), np.stack([x, np.full_like(x, -0.5)], 1)])
-        counters = (self.plans, self.capped_solves, self.fallbacks, self.qp_solves, self.qp_capped)
+        counters = (self.plans, self.capped_solves, self.fallbacks, self.qp_solves, self.qp_capped,
+                    self.alternations_skipped)
         for _ in range(plans):
             self.plan(np.zeros(3), np.array([v, 0.0]), reference, wall)
-        self.plans, self.capped_solves, self.fallbacks, self.qp_solves, self.qp_capped = counters
+        (self.plans, self.capped_solves, self.fallbacks, self.qp_solves, self.qp_capped,
+         self.alternations_skipped) = counters
         self.reset()
         self.last_selection = None
 
@@ -500,6 +511,14 @@ class MpcPlanner:
         prev = self._prev_commands
         grid = np.arange(H)
         return np.stack([np.interp(t, grid, prev[:, 0]), np.interp(t, grid, prev[:, 1])], axis=1)
+
+    def _converged(self, linearized_at: np.ndarray, solution_states: np.ndarray) -> bool:
+        """The solution stayed within the alternation tolerances of the poses the QP was
+        linearized about: another net/QP alternation would re-linearize at (almost) the same
+        poses, changing the QP by less than the solver's own tolerance (MpcConfig)."""
+        d = np.abs(solution_states - linearized_at)
+        return bool(d[:, :2].max() <= self.config.alternation_tolerance_m
+                    and d[:, 2].max() <= self.config.alternation_tolerance_rad)
 
     def _enforce_bounds(self, inputs: np.ndarray) -> np.ndarray:
         """Project a solution onto the box and rate bounds exactly (OSQP meets them to eps_abs)."""
@@ -764,7 +783,11 @@ class MpcPlanner:
             solution = self._enforce_bounds(out.inputs)
             max_slack = out.max_slack_m
             nominal_inputs = solution
+            previous_states = nominal_states
             nominal_states = unicycle_rollout(state, solution, cfg.step_s)
+            if done < cfg.alternations and self._converged(previous_states, nominal_states):
+                self.alternations_skipped += cfg.alternations - done
+                break
 
         self.plans += 1
         if capped:
