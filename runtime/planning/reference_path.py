@@ -67,9 +67,11 @@ _DIRECTIONS = ((1, 0), (0, 1), (-1, 0), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, 
 class LocalGrid:
     origin_m: np.ndarray  # world position of cell (0, 0)'s corner
     resolution_m: float
-    clearance_m: np.ndarray  # (n, n) distance of cell centres to the nearest point (capped)
+    clearance_m: np.ndarray  # (n, n) distance of cell centres to the nearest point (capped; exact
+    #                          where it decides lethal, else within half a cell diagonal)
     lethal: np.ndarray  # (n, n) bool
     cost: np.ndarray  # (n, n) >= 1
+    points_m: np.ndarray  # (M, 2) the points the grid was built from (those near the window)
 
     def cell_of(self, xy: np.ndarray) -> np.ndarray:
         return np.floor((np.asarray(xy) - self.origin_m) / self.resolution_m).astype(np.int64)
@@ -146,8 +148,12 @@ class ReferencePathPlanner:
             occ[ij[:, 0], ij[:, 1]] = True
             approx = ndimage.distance_transform_edt(~occ)[1:-1, 1:-1] * res
             clearance = np.minimum(approx, cap)
-            # ...then exact for cells near the lethal edge, where it decides passability.
-            band = approx < r_infl + res
+            # ...then exact where it decides passability. A point lies within half a cell diagonal
+            # of its cell's centre, so the exact clearance is within that of the approximate one:
+            # only cells whose approximate clearance is that near the inflation radius can be on
+            # either side of it (a ring one or two cells wide, not every cell near a point: 4x
+            # fewer queries).
+            band = np.abs(approx - r_infl) <= res * math.sqrt(0.5)
             if band.any():
                 bi, bj = np.nonzero(band)
                 centres = origin + (np.stack([bi, bj], axis=1) + 0.5) * res
@@ -161,7 +167,7 @@ class ReferencePathPlanner:
             cost = 1.0 + cfg.soft_cost * depth * depth
         else:
             cost = np.ones((n, n))
-        grid = LocalGrid(origin, res, clearance, lethal, cost)
+        grid = LocalGrid(origin, res, clearance, lethal, cost, pts)
         self.last_grid = grid
         return grid
 
@@ -176,9 +182,17 @@ class ReferencePathPlanner:
         cost = grid.cost.copy()
         if grid.lethal[start[0], start[1]] and cfg.escape_radius_m > 0:
             # Inside the inflation (e.g. close to a wall): let the robot leave through free space.
+            # Cells of the escape disc not right on top of a point (exact clearance over half a cell).
             ci = np.arange(n)
             d2 = (ci[:, None] - start[0]) ** 2 + (ci[None, :] - start[1]) ** 2
-            escape = (d2 * grid.resolution_m**2 <= cfg.escape_radius_m**2) & (grid.clearance_m > grid.resolution_m / 2)
+            disc = d2 * grid.resolution_m**2 <= cfg.escape_radius_m**2
+            escape = np.zeros_like(disc)
+            if grid.points_m.shape[0]:
+                di, dj = np.nonzero(disc)
+                d, _ = cKDTree(grid.points_m).query(grid.centre_of(np.stack([di, dj], axis=1)))
+                escape[di, dj] = d > grid.resolution_m / 2
+            else:
+                escape = disc
             passable = passable | escape
             cost[escape & grid.lethal] = 1.0 + 4.0 * cfg.soft_cost
             passable[start[0], start[1]] = True

@@ -90,21 +90,26 @@ def test_all_fixed_mpc_avoids_fixed_obstacles(scenario):
 
 
 def test_steep_approach_to_the_tight_gap_never_touches_even_when_it_stalls():
-    """Known limit (README): from 0.5 m off the gap's axis the robot wedges itself at the mouth.
-    Whatever it does, the supervisor keeps it off the blocks: no fixed contact, positive
-    ground-truth clearance; the stall recovery fires and the failure reason names the stall."""
-    result = run_episode("gap_offset", seed=0)
-    m = result.metrics
-    assert m["fixed_contacts"] == 0, m["obstacles"]
-    assert m["min_fixed_clearance_m"] > 0.0
-    assert result.controller["safety_stops"] + result.controller["safety_slowdowns"] > 0
-    # The first recovery: the stall is detected and the robot backs off along its path, then
-    # replans (it wedges again: the failure says so).
-    names = [e["event"] for e in m["events"] if e["event"] in ("stall", "backoff", "backoff_end")]
-    assert names[:3] == ["stall", "backoff", "backoff_end"], m["events"]
-    assert "supervisor_stop" in [e["event"] for e in m["events"]]  # the wedge: the supervisor stops it
-    assert result.controller["backoffs"] >= 1
-    assert m["failure_reason"].startswith("stalled without progress with a valid reference path")
+    """Known limit (README): from 0.5 m off the gap's axis the robot may wedge itself at the
+    mouth (a local minimum of the MPC; seed 3 of 0-4 does with the planner of issue 12, seeds 0
+    and 2 did before it: which seeds wedge moves with any change of the plan). Whatever it does,
+    the supervisor keeps it off the blocks: no fixed contact, positive ground-truth clearance;
+    when it stalls, the recovery fires and the failure reason names the stall."""
+    for seed in (0, 3):
+        result = run_episode("gap_offset", seed=seed)
+        m = result.metrics
+        assert m["fixed_contacts"] == 0, m["obstacles"]
+        assert m["min_fixed_clearance_m"] > 0.0
+        assert result.controller["safety_stops"] + result.controller["safety_slowdowns"] > 0
+        assert "supervisor_stop" in [e["event"] for e in m["events"]]  # the mouth: the supervisor stops it
+        if m["success"]:
+            continue
+        # The first recovery: the stall is detected and the robot backs off along its path, then
+        # replans (it wedges again: the failure says so).
+        names = [e["event"] for e in m["events"] if e["event"] in ("stall", "backoff", "backoff_end")]
+        assert names[:3] == ["stall", "backoff", "backoff_end"], m["events"]
+        assert result.controller["backoffs"] >= 1
+        assert m["failure_reason"].startswith("stalled without progress with a valid reference path")
 
 
 def test_a_walled_off_goal_fails_as_blocked_and_says_so():
