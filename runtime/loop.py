@@ -101,6 +101,10 @@ class LoopControlled(Protocol):
 
     def note_deadline(self, missed: bool) -> None: ...
 
+    def slack_work(self) -> None:
+        """Work that need not delay the command (a periodic replan): run after write(), in the
+        slack before the next tick, when enough of it is left (FixedRateLoop.slack_work_min_s)."""
+
     state_code: int  # recorded in telemetry
     command: tuple[float, float]  # (v_mps, omega_radps) written this tick
 
@@ -115,7 +119,11 @@ class FixedRateLoop:
         keepalive_period_s: float | None,
         telemetry: TickTelemetry | None = None,
         gc_every_ticks: int = 200,
+        slack_work_min_s: float = 0.02,
     ) -> None:
+        """slack_work_min_s: the controller's slack work runs after a tick only while at least
+        this much of the period is left on the loop's clock (in lockstep always: simulated time
+        stands still during a tick); otherwise it waits for the slack of a later tick."""
         if not (period_s > 0.0 and math.isfinite(period_s)):
             raise ValueError(f"loop period must be a positive number of seconds, got {period_s}")
         if keepalive_period_s is not None and not 0.0 < keepalive_period_s <= period_s:
@@ -131,6 +139,9 @@ class FixedRateLoop:
         budgets = np.array([stage_budgets_s.get(s, period_s) for s in self.telemetry.stages])
         self.stage_clock = StageClock(budgets, loop_clock=clock.now)
         self.gc_every_ticks = gc_every_ticks
+        self.slack_work_min_s = slack_work_min_s
+        self.slack_work_runs = 0
+        self.slack_work_postponed = 0
         self.keepalives_sent = 0
         #: The loop's clock is the wall clock (its lateness is real waiting time).
         self.wall_clock_loop = isinstance(clock, MonotonicClock)
@@ -150,6 +161,7 @@ class FixedRateLoop:
 
     def _run(self, controlled: LoopControlled, should_stop: Callable[[], bool], max_ticks: int | None) -> None:
         clock, telemetry, stages = self.clock, self.telemetry, self.stage_clock
+        slack_work = getattr(controlled, "slack_work", None)
         t0 = clock.now()
         k = 0
         ticks_run = 0
@@ -177,6 +189,14 @@ class FixedRateLoop:
             row["wall_command_latency_s"] = wall_latency
             row["wall_deadline_missed"] = wall_latency > self.command_deadline_s
             controlled.note_deadline(missed)
+            if slack_work is not None:
+                if t0 + (k + 1) * self.period_s - clock.now() >= self.slack_work_min_s:
+                    w0 = time.perf_counter_ns()
+                    slack_work()
+                    row["slack_work_s"] = (time.perf_counter_ns() - w0) * 1e-9
+                    self.slack_work_runs += 1
+                else:
+                    self.slack_work_postponed += 1
             telemetry.commit_tick(row)
             ticks_run += 1
 

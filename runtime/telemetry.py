@@ -24,6 +24,7 @@ def tick_record_dtype(n_stages: int) -> np.dtype:
             ("lateness_s", np.float64),  # actual start - scheduled start (wake-up latency)
             ("stage_s", np.float64, (n_stages,)),  # duration of each stage (monotonic clock)
             ("tick_s", np.float64),  # whole tick: start of read() to end of write()
+            ("slack_work_s", np.float64),  # work deferred to the slack after write() (replans); not in tick_s
             ("command_latency_s", np.float64),  # scheduled start -> command written (loop clock)
             ("overrun_mask", np.uint32),  # bit i set: stage i exceeded its budget (wall clock)
             ("deadline_missed", np.bool_),  # judged on the loop clock: what the controller acts on
@@ -76,6 +77,7 @@ class TickTelemetry:
         row["deadline_missed"] = False
         row["wall_deadline_missed"] = False
         row["wall_command_latency_s"] = 0.0
+        row["slack_work_s"] = 0.0
         return row
 
     def commit_tick(self, row: np.void) -> None:
@@ -121,6 +123,17 @@ class TickTelemetry:
             )
         return out
 
+    @staticmethod
+    def _slack_work_stats(records: np.ndarray) -> dict:
+        """Work done after write() in the slack (deferred replans): ticks with some, its times."""
+        ms = records["slack_work_s"][records["slack_work_s"] > 0.0] * 1e3
+        return {
+            "ticks": int(len(ms)),
+            "median_ms": float(np.median(ms)) if len(ms) else 0.0,
+            "p99_ms": float(np.percentile(ms, 99)) if len(ms) else 0.0,
+            "max_ms": float(ms.max()) if len(ms) else 0.0,
+        }
+
     def summary(self) -> dict:
         records = self.snapshot()
         tick_ms = records["tick_s"] * 1e3
@@ -136,4 +149,5 @@ class TickTelemetry:
                 s.name: {"median_ms": s.median_ms, "p99_ms": s.p99_ms, "max_ms": s.max_ms, "overruns": s.overruns}
                 for s in self.stage_stats()
             },
+            "slack_work": self._slack_work_stats(records),
         }

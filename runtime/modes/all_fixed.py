@@ -32,13 +32,20 @@ class AllFixedMode:
             "mpc_alternations_skipped": self.mpc.alternations_skipped,
             "mpc_fallbacks": self.mpc.fallbacks,
             "reference_replans": self.reference.replans,
+            "reference_replans_in_slack": self.reference.replans_in_slack,
         }
+
+    def slack_work(self) -> None:
+        """The reference replan this tick asked for (periodic, strayed, blocked ahead)."""
+        self.reference.replan_in_slack()
 
     def plan(self, s: Situation) -> ModeDecision:
         ref = self.reference.update(s.pose, s.goal_xy, s.points_fix)
         self.last_reference = ref
         if ref.goal_reached:
             return ModeDecision(at_goal=True, remaining_m=0.0)
+        if ref.waiting:  # no path yet: the search runs after this tick (slack_work); hold still
+            return ModeDecision(note=ref.reason)
         if ref.blocked:
             self.mpc.reset()  # the previous plan leads into what blocks the path
             return ModeDecision(blocked=True, note=ref.reason)

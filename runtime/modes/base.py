@@ -46,6 +46,9 @@ class NavigationMode(Protocol):
     def counters(self) -> dict[str, Any]:
         """JSON-ready counters for the episode report (plans, fallbacks, ...)."""
 
+    def slack_work(self) -> None:
+        """Work the last plan() deferred to the slack after the tick (a reference replan)."""
+
 
 @dataclass(frozen=True)
 class ModeContext:

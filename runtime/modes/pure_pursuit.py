@@ -21,6 +21,9 @@ class PurePursuitMode:
     def counters(self) -> dict:
         return {}
 
+    def slack_work(self) -> None:
+        """Nothing is deferred: pure pursuit plans in the tick."""
+
     def plan(self, s: Situation) -> ModeDecision:
         pose = Pose2D(float(s.pose[0]), float(s.pose[1]), float(s.pose[2]))
         cmd = self.planner.plan(pose, self.goal)

@@ -104,6 +104,10 @@ class ModeSelector:
         self.normal.reset()
         self.stall.restart(now_s)
 
+    def slack_work(self) -> None:
+        """The normal mode's deferred work (its reference replans), whichever mode drives now."""
+        self.normal.slack_work()
+
     def plan(self, s: Situation) -> ModeDecision:
         if self.active is self.normal:
             self.trail.record(s.pose)

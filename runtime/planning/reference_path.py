@@ -11,6 +11,17 @@ outside the window, the path goes to the reachable border cell minimizing cost-t
 straight-line distance to the goal. Replanned when blocked, when the goal changes, when the
 robot strays from the path, or every `replan_every_ticks` ticks. The path is then resampled at
 the target speed into the MPC's (H+1, 3) reference (x_m, y_m, v_mps), slowing down to the goal.
+
+Where a search runs (issue 12): it costs 5-7 ms (grid, Dijkstra over 25,600 cells), more than
+the rest of the planner stage together, and every tenth tick needs one. The tick never searches:
+it asks (`replan_pending`) and the loop runs the search in the slack after the tick's command is
+written (`replan_in_slack`, from that tick's pose and P_fix). Meanwhile a periodic, strayed or
+blocked-ahead replan follows the current path, one period at most (the MPC keeps clear of P_fix
+and the safety supervisor checks every command against the raw points); with no path at all
+(the first, after a reset, a new goal) the tick waits: zero command for that one period; after
+a search that found none, the tick reports blocked and the slack searches again. In lockstep the
+slack work runs at the same point of every period, so behaviour stays a function of simulated
+time. `replan_in_slack: false` searches in the tick, as before.
 """
 from __future__ import annotations
 
@@ -37,6 +48,12 @@ class ReferencePathConfig(BaseModel):
     soft_zone_m: float = Field(default=0.35, ge=0.0, le=5.0, description="extra-cost zone beyond inflation")
     soft_cost: float = Field(default=4.0, ge=0.0, le=100.0, description="extra cost factor at the lethal edge")
     replan_every_ticks: int = Field(default=10, ge=1, le=10000)
+    replan_in_slack: bool = Field(
+        default=True,
+        description="periodic, strayed and blocked-ahead replans run in the slack after the tick's command is "
+        "written (the tick follows the current path meanwhile); only a missing path (the first, after a "
+        "reset, a new goal) is searched in the tick. False: every replan in the tick",
+    )
     deviation_replan_m: float = Field(default=0.4, gt=0.0, le=10.0)
     blocked_check_ahead_m: float = Field(default=2.5, gt=0.0, le=50.0)
     escape_radius_m: float = Field(default=0.35, ge=0.0, le=5.0, description="start inside inflation: free cells this near")
@@ -57,6 +74,8 @@ class ReferenceUpdate:
     reason: str  # why it replanned (or why blocked)
     goal_reached: bool
     remaining_m: float  # path length left (inf when blocked)
+    #: No path yet: the search runs in the slack after this tick (hold still for this tick).
+    waiting: bool = False
 
 
 #: The 8-connected grid's moves (di, dj).
@@ -121,11 +140,17 @@ class ReferencePathPlanner:
         self._goal: np.ndarray | None = None
         self._ticks = 0
         self.replans = 0
+        self.replans_in_tick = 0
+        self.replans_in_slack = 0
+        self._pending: tuple[np.ndarray, np.ndarray, np.ndarray, str] | None = None
+        self._no_path_reason: str | None = None  # why the last search found no path
         self.last_grid: LocalGrid | None = None
 
     def reset(self) -> None:
         """Forget the current path: the next update replans (after a stop or a recovery)."""
         self._path = None
+        self._pending = None
+        self._no_path_reason = None
 
     # -- grid ---------------------------------------------------------------------------------
     def build_grid(self, centre_xy: np.ndarray, points_world: np.ndarray) -> LocalGrid:
@@ -323,11 +348,24 @@ class ReferencePathPlanner:
             ref[:, :2] = goal_xy
             return ReferenceUpdate(ref, self._path, False, False, "goal reached", True, 0.0)
 
-        reason = ""
+        reason, urgent = "", False
         if self._path is None:
-            reason = "no path"
+            if not cfg.replan_in_slack:
+                reason, urgent = "no path", True
+            elif self._no_path_reason is not None:
+                # The last search found no path: hold, and search again in the slack after this tick.
+                self._request(xy, goal_xy, points, "blocked: search again")
+                return self._blocked_update(xy, self._no_path_reason, False)
+            else:  # the first path, or the first after a reset: searched in the slack after this tick
+                self._request(xy, goal_xy, points, "no path")
+                return self._waiting_update(xy, "waiting for the first search")
         elif self._goal is None or math.hypot(*(self._goal - goal_xy)) > cfg.goal_tolerance_m:
-            reason = "new goal"
+            if not cfg.replan_in_slack:
+                reason, urgent = "new goal", True
+            else:  # the old path leads elsewhere: hold until the slack has searched
+                self._path = None
+                self._request(xy, goal_xy, points, "new goal")
+                return self._waiting_update(xy, "waiting for the search to the new goal")
         elif self._ticks >= cfg.replan_every_ticks:
             reason = "periodic"
         else:
@@ -336,24 +374,67 @@ class ReferencePathPlanner:
                 reason = "strayed from the path"
             elif self._blocked_ahead(self._path, s0, cum, points):
                 reason = "path blocked"
-        replanned = bool(reason)
-        if replanned:
-            self._ticks = 0
-            self.replans += 1
-            self._goal = goal_xy.copy()
-            grid = self.build_grid(xy, points)
-            path, why = self.search(grid, xy, goal_xy)
-            if path is None:
-                self._path = None
-                ref = np.zeros((cfg.horizon_steps + 1, 3))
-                ref[:, :2] = xy  # hold position; the MPC brakes within its rate limits
-                return ReferenceUpdate(ref, None, True, True, why, False, math.inf)
-            self._path = self._smooth(path, points)
+        replanned = False
+        if reason and (urgent or not cfg.replan_in_slack):
+            replanned = True
+            self.replans_in_tick += 1
+            why = self._replan(xy, goal_xy, points)
+            if why is not None:
+                return self._blocked_update(xy, why, True)
+        elif reason:
+            # Not urgent: this tick follows the current path (the MPC keeps clear of P_fix and
+            # the supervisor checks every command), the search runs in the slack after write().
+            self._request(xy, goal_xy, points, reason)
         s0, _, cum = self._projection(self._path, xy)
         at_goal = self._path_ends_at_goal(goal_xy)
         ref = self.resample(self._path, s0, cum, stop_at_end=at_goal)
         remaining = float(cum[-1] - s0) + (0.0 if at_goal else math.hypot(*(goal_xy - self._path[-1])))
-        return ReferenceUpdate(ref, self._path, False, replanned, reason or "kept", False, remaining)
+        note = reason if replanned else (f"kept ({reason}: replan after this tick)" if reason else "kept")
+        return ReferenceUpdate(ref, self._path, False, replanned, note, False, remaining)
+
+    def _waiting_update(self, xy: np.ndarray, why: str) -> ReferenceUpdate:
+        ref = np.zeros((self.config.horizon_steps + 1, 3))
+        ref[:, :2] = xy
+        return ReferenceUpdate(ref, None, False, False, why, False, math.inf, waiting=True)
+
+    def _blocked_update(self, xy: np.ndarray, why: str, replanned: bool) -> ReferenceUpdate:
+        ref = np.zeros((self.config.horizon_steps + 1, 3))
+        ref[:, :2] = xy  # hold position; the MPC brakes within its rate limits
+        return ReferenceUpdate(ref, None, True, replanned, why, False, math.inf)
+
+    def _replan(self, xy: np.ndarray, goal_xy: np.ndarray, points: np.ndarray) -> str | None:
+        """Search a new path now; returns why there is none (None: a path was found)."""
+        self._ticks = 0
+        self.replans += 1
+        self._goal = goal_xy.copy()
+        self._pending = None
+        grid = self.build_grid(xy, points)
+        path, why = self.search(grid, xy, goal_xy)
+        if path is None:
+            self._path, self._no_path_reason = None, why
+            return why
+        self._path, self._no_path_reason = self._smooth(path, points), None
+        return None
+
+    def _request(self, xy: np.ndarray, goal_xy: np.ndarray, points: np.ndarray, reason: str) -> None:
+        """Ask for a replan in the slack after this tick, from this tick's pose and P_fix."""
+        self._pending = (xy.copy(), goal_xy.copy(), points, reason)
+
+    @property
+    def replan_pending(self) -> str | None:
+        """Why a replan waits for the slack after the tick (None: none waits)."""
+        return None if self._pending is None else self._pending[3]
+
+    def replan_in_slack(self) -> bool:
+        """Run the replan the last update asked for (call after the tick's command is written,
+        before the next tick); returns whether one ran. The next update follows its path, or
+        reports blocked when it found none."""
+        if self._pending is None:
+            return False
+        xy, goal_xy, points, _ = self._pending
+        self.replans_in_slack += 1
+        self._replan(xy, goal_xy, points)
+        return True
 
     def _path_ends_at_goal(self, goal_xy: np.ndarray) -> bool:
         return self._path is not None and math.hypot(*(self._path[-1] - goal_xy)) <= self.config.goal_tolerance_m

@@ -151,6 +151,7 @@ def run_ticks(ctl, base, n, sensors=None, before_tick=None):
         row = tel.begin_tick()
         stages.start(row)
         ctl.tick(base.t, stages)
+        ctl.slack_work()  # as the loop runs it, after the command is written
         base.advance(DT)
 
 

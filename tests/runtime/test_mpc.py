@@ -39,6 +39,7 @@ def _simulate(pts, start, goal, horizon=10, ticks=160, mpc_kw=None):
         log["results"].append(res)
         log["inputs_before"].append(u.copy())
         u = res.commands[0].copy()
+        ref_planner.replan_in_slack()  # as the loop runs it, after the command is written
         for _ in range(int(TICK_S / 0.001)):
             state = state + 0.001 * np.array([u[0] * np.cos(state[2]), u[0] * np.sin(state[2]), u[1]])
             d = footprint_distance_to_points(state[None], pts, HL, HW).min()
@@ -241,6 +242,7 @@ def _simulate_supervised(pts, start, goal, ticks):
         decision = supervisor.check(state, plan.commands[0], pts)
         log["stops"] += int(decision.stopped)
         u = decision.command_out.copy()
+        reference.replan_in_slack()  # as the loop runs it, after the command is written
         for _ in range(int(TICK_S / 0.001)):
             state = state + 0.001 * np.array([u[0] * np.cos(state[2]), u[0] * np.sin(state[2]), u[1]])
             log["min_dist"] = min(log["min_dist"], footprint_distance_to_points(state[None], pts, HL, HW).min())

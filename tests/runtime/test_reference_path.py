@@ -25,10 +25,20 @@ def _planner(**kw) -> ReferencePathPlanner:
     return ReferencePathPlanner(ReferencePathConfig(**kw), ROBOT)
 
 
+def _plan(rp: ReferencePathPlanner, pose, goal, pts):
+    """One tick as the loop runs it when there is no path yet: the tick waits, the slack after
+    it searches, the next tick follows (or reports blocked)."""
+    up = rp.update(np.asarray(pose, float), np.asarray(goal, float), pts)
+    assert up.waiting and not up.blocked and rp.replan_pending == "no path"
+    assert np.all(up.reference[:, 2] == 0.0)  # hold still meanwhile
+    assert rp.replan_in_slack()
+    return rp.update(np.asarray(pose, float), np.asarray(goal, float), pts)
+
+
 def test_open_space_path_is_nearly_straight_and_reaches_the_goal() -> None:
     rp = _planner()
-    up = rp.update(np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0]), np.zeros((0, 2)))
-    assert not up.blocked and up.replanned
+    up = _plan(rp, [0.0, 0.0, 0.0], [2.0, 1.0], np.zeros((0, 2)))
+    assert not up.blocked and not up.waiting and rp.replans_in_slack == 1 and rp.replans_in_tick == 0
     np.testing.assert_allclose(up.path_world[-1], [2.0, 1.0])
     length = np.hypot(*np.diff(up.path_world, axis=0).T).sum()
     assert length < np.hypot(2.0, 1.0) * 1.1
@@ -38,7 +48,7 @@ def test_path_goes_around_a_wall_through_its_opening_with_clearance() -> None:
     # Wall at x = 1 from y = -2 to 2 with a 0.6 m opening centred at y = 1.2.
     pts = np.concatenate([_segment([1.0, -2.0], [1.0, 0.9]), _segment([1.0, 1.5], [1.0, 2.0])])
     rp = _planner()
-    up = rp.update(np.array([0.0, 0.0, 0.0]), np.array([2.0, 0.0]), pts)
+    up = _plan(rp, [0.0, 0.0, 0.0], [2.0, 0.0], pts)
     assert not up.blocked
     crossing = up.path_world[np.argmin(np.abs(up.path_world[:, 0] - 1.0))]
     assert 0.9 < crossing[1] < 1.5
@@ -50,30 +60,30 @@ def test_gap_ten_centimetres_wider_than_the_robot_is_passable() -> None:
     pts = np.concatenate([_segment([1.0, gap / 2], [1.0, 2.0]), _segment([1.0, -gap / 2], [1.0, -2.0])])
     # Make the wall thick (0.2 m) as a real obstacle.
     pts = np.concatenate([pts + [dx, 0.0] for dx in np.arange(0.0, 0.21, 0.02)])
-    up = _planner().update(np.array([0.0, 0.0, 0.0]), np.array([2.5, 0.0]), pts)
+    up = _plan(_planner(), [0.0, 0.0, 0.0], [2.5, 0.0], pts)
     assert not up.blocked
     at_gap = up.path_world[(up.path_world[:, 0] > 1.0) & (up.path_world[:, 0] < 1.2)]
     assert at_gap.size and np.abs(at_gap[:, 1]).max() < 0.03
     # A gap narrower than the robot is not.
     narrow = ROBOT.footprint.width_m - 0.02
     pts2 = np.concatenate([_segment([1.0, narrow / 2], [1.0, 4.0]), _segment([1.0, -narrow / 2], [1.0, -4.0])])
-    up2 = _planner().update(np.array([0.0, 0.0, 0.0]), np.array([2.5, 0.0]), pts2)
+    up2 = _plan(_planner(), [0.0, 0.0, 0.0], [2.5, 0.0], pts2)
     assert up2.blocked and up2.path_world is None
 
 
 def test_goal_inside_a_closed_ring_is_reported_blocked() -> None:
     ang = np.linspace(0, 2 * np.pi, 400)
     ring = np.stack([2.0 + 0.6 * np.cos(ang), 0.6 * np.sin(ang)], axis=1)
-    up = _planner().update(np.zeros(3), np.array([2.0, 0.0]), ring)
+    up = _plan(_planner(), np.zeros(3), [2.0, 0.0], ring)
     assert up.blocked and up.reason == "no path to the goal"
     assert np.all(up.reference[:, 2] == 0.0) and np.allclose(up.reference[:, :2], 0.0)
-    up2 = _planner().update(np.zeros(3), np.array([2.0, 0.6]), ring)
+    up2 = _plan(_planner(), np.zeros(3), [2.0, 0.6], ring)
     assert up2.blocked and "inflated" in up2.reason
 
 
 def test_goal_outside_the_window_heads_towards_it() -> None:
     rp = _planner(window_m=4.0)
-    up = rp.update(np.zeros(3), np.array([10.0, 0.0]), np.zeros((0, 2)))
+    up = _plan(rp, np.zeros(3), [10.0, 0.0], np.zeros((0, 2)))
     assert not up.blocked
     assert up.path_world[-1, 0] > 1.8 and abs(up.path_world[-1, 1]) < 0.2
     assert np.all(up.reference[:, 2] == pytest.approx(1.0))  # no slow-down at a window border
@@ -83,18 +93,58 @@ def test_replans_when_an_obstacle_appears_on_the_path() -> None:
     rp = _planner(replan_every_ticks=1000)
     pose = np.zeros(3)
     goal = np.array([3.0, 0.0])
-    first = rp.update(pose, goal, np.zeros((0, 2)))
+    first = _plan(rp, pose, goal, np.zeros((0, 2)))
     kept = rp.update(pose, goal, np.zeros((0, 2)))
-    assert first.replanned and not kept.replanned and kept.reason == "kept"
+    assert not kept.replanned and kept.reason == "kept"
+    assert rp.replans_in_slack == 1 and rp.replan_pending is None
+    box = _segment([1.5, -0.3], [1.5, 0.3])
+    # Not urgent: this tick keeps the old path and asks for a replan in the slack after it.
+    asked = rp.update(pose, goal, box)
+    assert not asked.replanned and rp.replan_pending == "path blocked"
+    np.testing.assert_array_equal(asked.path_world, first.path_world)
+    assert rp.replan_in_slack() and rp.replan_pending is None and not rp.replan_in_slack()
+    again = rp.update(pose, goal, box)
+    assert not again.blocked and rp.replans_in_slack == 2 and rp.replans_in_tick == 0
+    assert _path_clearance(again.path_world, box) >= rp.inflation_radius_m - 1e-9
+
+
+def test_without_slack_replans_every_replan_runs_in_the_tick() -> None:
+    rp = _planner(replan_every_ticks=1000, replan_in_slack=False)
+    pose, goal = np.zeros(3), np.array([3.0, 0.0])
+    rp.update(pose, goal, np.zeros((0, 2)))
     box = _segment([1.5, -0.3], [1.5, 0.3])
     again = rp.update(pose, goal, box)
-    assert again.replanned and again.reason == "path blocked"
+    assert again.replanned and again.reason == "path blocked" and rp.replan_pending is None
     assert _path_clearance(again.path_world, box) >= rp.inflation_radius_m - 1e-9
+
+
+def test_periodic_replans_wait_for_the_slack_and_a_blocked_search_is_retried_there() -> None:
+    rp = _planner(replan_every_ticks=3)
+    pose, goal = np.zeros(3), np.array([2.0, 0.0])
+    _plan(rp, pose, goal, np.zeros((0, 2)))
+    for _ in range(2):  # the third tick after the search is due
+        up = rp.update(pose, goal, np.zeros((0, 2)))
+    assert rp.replan_pending == "periodic" and not up.replanned and not up.blocked
+    # The goal gets walled in; the slack search finds no path ...
+    ang = np.linspace(0, 2 * np.pi, 400)
+    ring = np.stack([2.0 + 0.6 * np.cos(ang), 0.6 * np.sin(ang)], axis=1)
+    rp.update(pose, goal, ring)
+    searches = rp.replans
+    assert rp.replan_in_slack() and rp.replans == searches + 1
+    # ... so the next tick reports blocked without searching, and asks the slack again.
+    held = rp.update(pose, goal, ring)
+    assert held.blocked and held.reason == "no path to the goal" and rp.replans == searches + 1
+    assert rp.replan_pending is not None
+    # A reset (a stop, a recovery) forgets all of it: the next tick waits for a fresh search.
+    rp.reset()
+    assert rp.replan_pending is None
+    again = _plan(rp, pose, goal, ring)
+    assert again.blocked and rp.replans == searches + 2 and rp.replans_in_tick == 0
 
 
 def test_reference_is_resampled_at_the_target_speed_and_stops_at_the_goal() -> None:
     rp = _planner(target_speed_mps=0.8, decel_mps2=1.0, horizon_steps=20)
-    up = rp.update(np.zeros(3), np.array([1.0, 0.0]), np.zeros((0, 2)))
+    up = _plan(rp, np.zeros(3), [1.0, 0.0], np.zeros((0, 2)))
     ref = up.reference
     assert ref.shape == (21, 3)
     assert np.all(ref[:, 2] <= 0.8 + 1e-12) and ref[0, 2] == pytest.approx(0.8)
@@ -110,3 +160,14 @@ def test_bad_input_raises_named_errors() -> None:
         rp.update(np.zeros(3), np.array([np.nan, 0.0]), np.zeros((0, 2)))
     with pytest.raises(PlannerInputError, match="points"):
         rp.update(np.zeros(3), np.array([1.0, 0.0]), np.zeros((3,)))
+
+
+def test_a_new_goal_holds_for_one_tick_then_follows_the_path_to_it() -> None:
+    rp = _planner()
+    pose = np.zeros(3)
+    _plan(rp, pose, [2.0, 0.0], np.zeros((0, 2)))
+    up = rp.update(pose, np.array([0.0, 2.0]), np.zeros((0, 2)))
+    assert up.waiting and rp.replan_pending == "new goal" and np.all(up.reference[:, 2] == 0.0)
+    rp.replan_in_slack()
+    up = rp.update(pose, np.array([0.0, 2.0]), np.zeros((0, 2)))
+    assert not up.waiting and np.allclose(up.path_world[-1], [0.0, 2.0])
