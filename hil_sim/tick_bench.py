@@ -64,10 +64,6 @@ ACTIVE = 1  # runtime.controller.ControllerState.ACTIVE (the telemetry stores th
 MPC_PARTS = ("select", "net", "rows", "build", "solve", "check", "total")
 
 
-class TickBenchInputError(ValueError):
-    """Bad input to the benchmark (an unknown scene, a bad option): one line, nothing is run."""
-
-
 # -- scenes ---------------------------------------------------------------------------------------
 def resolve_scene(name: str) -> Scenario:
     """A library scene, a scenario YAML path, or one of SCENE_VARIANTS (ConfigFileError if none)."""
