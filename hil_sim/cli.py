@@ -208,6 +208,51 @@ def odometry_bench_command(scenario: str, seconds: float, hogs: tuple[int, ...],
         atomic_write_json(json_path, out)
 
 
+@bench_group.command("tick")
+@click.option("--scenario", "scenarios", multiple=True, metavar="NAME",
+              help="Scene to run (repeatable): a library name, a scenario .yaml, or odom_loop_far (odom_loop with "
+                   "its goal 5.8 m along its route). Default: corridor_boxes, case1, case3, odom_loop_far "
+                   "(increasing clutter).")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1),
+              help="Seed of the first run of each scene (run k uses seed + k).")
+@click.option("--runs", default=2, show_default=True, type=click.IntRange(1, 100), help="Episodes per scene.")
+@click.option("--hog", "hogs", default=0, show_default=True, type=click.IntRange(0, 64),
+              help="Busy processes beside the benchmark (the robot's other software), killed at the end.")
+@click.option("--seconds", type=click.FloatRange(0.5, 600.0),
+              help="Cap on each episode's simulated seconds (default: the scene's time limit; episodes end at "
+                   "the goal).")
+@click.option("--odometry-scaling/--no-odometry-scaling", default=True, show_default=True,
+              help="Also the odometry table: ICP time per frame against lidar points per frame.")
+@click.option("--scaling-rays", multiple=True, type=click.IntRange(100, 200_000), metavar="N",
+              help="Rays per frame of the odometry table (repeatable; default 5000, 10000, 20000, 40000).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the figures as JSON (checked before the run, written atomically after it).")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def tick_bench_command(scenarios: tuple[str, ...], seed: int, runs: int, hogs: int, seconds: float | None,
+                       odometry_scaling: bool, scaling_rays: tuple[int, ...], json_path: Path | None,
+                       force: bool) -> None:
+    """The whole controller tick (read, odometry, partition, planner, safety, write) on the wall clock,
+    in lockstep episodes with 20k-ray lidar frames: per stage and per tick p50/p90/p99/max against the
+    budgets, deadline misses, points per frame, capped QP solves; and ICP time against points per frame."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.tick_bench import DEFAULT_SCALING_RAYS, DEFAULT_SCENES, resolve_scene, run_tick_benchmark
+
+    names = scenarios or DEFAULT_SCENES
+    try:
+        for name in names:
+            resolve_scene(name)
+        if json_path is not None:
+            check_output_path(json_path, what="--json", inputs=[Path(n) for n in names if Path(n).is_file()],
+                              overwrite=force)
+    except (ConfigFileError, OutputPathError) as exc:
+        raise InputError(str(exc)) from exc
+    rays = (scaling_rays or DEFAULT_SCALING_RAYS) if odometry_scaling else ()
+    out = run_tick_benchmark(tuple(names), seed, runs, hogs, seconds, rays, echo=click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
+
+
 @bench_group.command("planner")
 @click.option("--repeats", default=300, show_default=True, type=click.IntRange(10, 100000),
               help="Planner steps per (horizon, points).")

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable, Iterable, Protocol
 
 import can
+import numpy as np
 
 from calibration.robot_description import RobotDescription, load_robot_description
 from firmware_bridge.base_driver import AgileXBaseDriver
@@ -132,6 +133,9 @@ class EpisodeResult:
     wall_time_s: float
     sim_time_s: float
     extra: dict = field(default_factory=dict)
+    #: The telemetry's per-tick records (runtime.telemetry.tick_record_dtype), oldest first:
+    #: what `dct bench tick` takes its percentiles from (the summary above has only a few).
+    tick_records: np.ndarray | None = None
 
     @property
     def realtime_factor(self) -> float:
@@ -155,6 +159,7 @@ def run_episode(
     sensors: "SensorRigConfig | None | bool" = None,
     faults: Iterable[FaultSpec] = (),
     wheel_calibration: tuple[float, float] | None = None,
+    observe: Callable[[NavigationController], None] | None = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -162,6 +167,8 @@ def run_episode(
     controller needs (lidar + IMU for the MPC, nothing for pure pursuit).
     faults: injected faults (hil_sim.faults), times from the start of the episode.
     wheel_calibration: (effective track m, wheel scale) for the odometry (calibration file).
+    observe: called with the controller once after every tick, outside the tick and its timing
+    (`dct bench tick` reads the frame's point counts and the planner's counters with it).
 
     Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
     What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
@@ -221,6 +228,8 @@ def run_episode(
     finished_at: list[float] = []
 
     def should_stop() -> bool:
+        if observe is not None and telemetry.ticks:
+            observe(controller)  # after each tick (the loop asks before every tick and once at the end)
         now = sim.time_s
         if progress is not None:
             progress(now)
@@ -285,6 +294,7 @@ def run_episode(
             "faults_applied": dict(injector.applied),
             "odometry_wall_clock": controller.odometry.wall_clock(),
         },
+        tick_records=telemetry.snapshot(),
     )
 
 
