@@ -19,8 +19,11 @@ Figures (measurements, printed; no pass/fail), per scene and pooled over every s
 - the share of QP solves that hit their iteration cap (lockstep caps are iterations, never the
   wall clock): when it is above 0 a WARNING says that the planner figures then describe the cap;
 - where the planner stage's time goes on ACTIVE ticks (the only ticks that plan): the ticks
-  with a reference-path replan against the others, and the MPC step's own split (select, net,
-  rows, build, solve) as `MpcPlanner.plan` reports it.
+  with a reference-path search in the tick (none with the default `replan_in_slack`) against the
+  others, and the MPC step's own split (select, net, rows, build, solve) as `MpcPlanner.plan`
+  reports it;
+- the work the loop runs in the slack after write() (reference searches, runtime.loop
+  `slack_work`): not part of the tick, but of its period, so tick + slack work is reported too.
 
 All ticks count in the stage and tick figures (start-up and goal ticks are ticks the robot runs
 too); the planner stage is also reported over ACTIVE ticks only, where it does work.
@@ -109,6 +112,7 @@ class TickProbe:
     returns: list[int] = field(default_factory=list)  # lidar returns of this tick's good frame (0: none)
     p_fix: list[int] = field(default_factory=list)  # P_fix points after the tick
     replans: list[int] = field(default_factory=list)  # cumulative reference-path replans
+    slack_replans: list[int] = field(default_factory=list)  # ... of them in the slack after a tick
     plans: list[int] = field(default_factory=list)  # cumulative MPC plans
     mpc_ms: list[tuple[float, ...]] = field(default_factory=list)  # MPC_PARTS of a fresh plan (NaN: none)
     keep_jobs: bool = False
@@ -122,6 +126,7 @@ class TickProbe:
         counters = controller.modes.counters()
         plans = int(counters.get("mpc_plans", 0))
         self.replans.append(int(counters.get("reference_replans", 0)))
+        self.slack_replans.append(int(counters.get("reference_replans_in_slack", 0)))
         fresh = plans > (self.plans[-1] if self.plans else 0)
         self.plans.append(plans)
         # The normal mode's newest plan (a backoff plans with the same MPC but keeps its own).
@@ -162,7 +167,9 @@ class EpisodeTicks:
     state: np.ndarray
     returns: np.ndarray
     p_fix: np.ndarray
-    replanned: np.ndarray
+    replanned: np.ndarray  # a reference search ran in the tick
+    slack_ms: np.ndarray  # work in the slack after the tick (runtime.loop: slack_work_s)
+    slack_replanned: np.ndarray  # a reference search ran in the slack after the tick
     mpc_ms: np.ndarray  # (T, len(MPC_PARTS)), NaN where no fresh plan
     qp_solves: int
     qp_capped: int
@@ -178,7 +185,8 @@ class EpisodeTicks:
         return EpisodeTicks(
             scene=scene, seed=-1, stage_ms=cat("stage_ms"), tick_ms=cat("tick_ms"), overrun_mask=cat("overrun_mask"),
             wall_missed=cat("wall_missed"), loop_missed=cat("loop_missed"), state=cat("state"),
-            returns=cat("returns"), p_fix=cat("p_fix"), replanned=cat("replanned"), mpc_ms=cat("mpc_ms"),
+            returns=cat("returns"), p_fix=cat("p_fix"), replanned=cat("replanned"), slack_ms=cat("slack_ms"),
+            slack_replanned=cat("slack_replanned"), mpc_ms=cat("mpc_ms"),
             qp_solves=sum(p.qp_solves for p in parts), qp_capped=sum(p.qp_capped for p in parts),
             success=all(p.success for p in parts), sim_s=sum(p.sim_s for p in parts),
             wall_s=sum(p.wall_s for p in parts), odometry_wall_clock={}, jobs=[],
@@ -196,15 +204,21 @@ def run_ticks(scene: Scenario, seed: int, config=None, sensors=None, keep_jobs: 
     if len(probe.returns) < n:
         raise RuntimeError(f"tick probe saw {len(probe.returns)} ticks, the telemetry has {n}")
     tail = slice(len(probe.returns) - n, None)  # the telemetry ring keeps the newest ticks
-    replans = np.asarray(probe.replans[tail])
-    replanned = np.diff(replans, prepend=probe.replans[tail.start - 1] if tail.start else 0) > 0
+    # Observed after each tick and the slack work that followed it: searches in the tick are
+    # all searches less those in the slack.
+    def increased(counts: list[int]) -> np.ndarray:
+        c = np.asarray(counts[tail])
+        return np.diff(c, prepend=counts[tail.start - 1] if tail.start else 0) > 0
+
+    in_tick = [a - b for a, b in zip(probe.replans, probe.slack_replans)]
+    replanned, slack_replanned = increased(in_tick), increased(probe.slack_replans)
     c = result.controller
     return EpisodeTicks(
         scene=scene.name, seed=seed,
         stage_ms=rec["stage_s"] * 1e3, tick_ms=rec["tick_s"] * 1e3, overrun_mask=rec["overrun_mask"].copy(),
         wall_missed=rec["wall_deadline_missed"].copy(), loop_missed=rec["deadline_missed"].copy(),
         state=rec["state"].copy(), returns=np.asarray(probe.returns[tail]), p_fix=np.asarray(probe.p_fix[tail]),
-        replanned=replanned, mpc_ms=np.asarray(probe.mpc_ms[tail], dtype=float).reshape(n, len(MPC_PARTS)),
+        replanned=replanned, slack_ms=rec["slack_work_s"] * 1e3, slack_replanned=slack_replanned, mpc_ms=np.asarray(probe.mpc_ms[tail], dtype=float).reshape(n, len(MPC_PARTS)),
         qp_solves=int(c.get("mpc_qp_solves", 0)), qp_capped=int(c.get("mpc_qp_capped", 0)),
         success=bool(result.metrics["success"]), sim_s=result.sim_time_s, wall_s=result.wall_time_s,
         odometry_wall_clock=result.extra.get("odometry_wall_clock") or {}, jobs=probe.jobs,
@@ -267,6 +281,10 @@ def figures(t: EpisodeTicks, budgets_s: dict, period_s: float, deadline_s: float
             "active": int(np.count_nonzero(slow & active)),
         },
         "replan_ticks": int(np.count_nonzero(t.replanned)),
+        # Work the loop ran after write(), before the next tick (reference searches): not in the
+        # tick, but in its period: tick + slack work must leave the loop time to sleep.
+        "slack_work": {**percentiles(t.slack_ms[t.slack_replanned]), "searches": int(np.count_nonzero(t.slack_replanned))},
+        "tick_plus_slack": percentiles(t.tick_ms + t.slack_ms),
     }
 
 
@@ -360,12 +378,16 @@ def print_details(fig: dict, echo: Callable[[str], None]) -> None:
          f"(capped fraction {fig['capped_fraction']:.4f})")
     r, o, x = pa["reference_replan_ticks"], pa["other_ticks"], pa["outside_mpc"]
     echo(f"planner on ACTIVE ticks ({fig['active_ticks']}): p50 {_f(pa['all']['p50_ms'])} p99 "
-         f"{_f(pa['all']['p99_ms'])} ms; with a reference replan ({r['count']} ticks) p50 {_f(r['p50_ms'])} "
+         f"{_f(pa['all']['p99_ms'])} ms; with a reference search in the tick ({r['count']} ticks) p50 {_f(r['p50_ms'])} "
          f"p99 {_f(r['p99_ms'])} max {_f(r['max_ms'])}; without ({o['count']}) p50 {_f(o['p50_ms'])} "
          f"p99 {_f(o['p99_ms'])} max {_f(o['max_ms'])}")
     parts = " ".join(f"{k} {_f(v['p50_ms'])}/{_f(v['p99_ms'])}" for k, v in pa["mpc_step"].items())
     echo(f"MPC step p50/p99 ms: {parts}; planner stage outside the MPC (reference path, glue) "
          f"{_f(x['p50_ms'])}/{_f(x['p99_ms'])}")
+    sw, tp = fig["slack_work"], fig["tick_plus_slack"]
+    echo(f"slack work after write() (reference searches, not in the tick): {sw['searches']} searches, p50 "
+         f"{_f(sw['p50_ms'])} p99 {_f(sw['p99_ms'])} max {_f(sw['max_ms'])} ms; tick + slack work per period p50 "
+         f"{_f(tp['p50_ms'])} p99 {_f(tp['p99_ms'])} max {_f(tp['max_ms'])} ms of {4 * fig['tick']['quarter_period_ms']:g}")
     echo(f"ticks over a quarter period ({fig['tick']['quarter_period_ms']:g} ms): {sl['count']}, of which "
          f"{sl['with_reference_replan']} with a reference replan, {sl['with_new_frame']} with a new frame "
          f"(partition), {sl['active']} ACTIVE")

@@ -154,6 +154,7 @@ def test_figures_count_overruns_from_the_loops_mask():
         wall_missed=np.array([False, False, True, False]), loop_missed=np.zeros(n, bool),
         state=np.array([0, 1, 1, 1], dtype=np.int8), returns=np.array([0, 9000, 0, 9100]),
         p_fix=np.array([0, 300, 300, 310]), replanned=np.array([False, True, False, False]),
+        slack_ms=np.array([0.0, 0.0, 6.0, 0.001]), slack_replanned=np.array([False, False, True, False]),
         mpc_ms=np.full((n, len(tick_bench.MPC_PARTS)), np.nan), qp_solves=10, qp_capped=1, success=True,
         sim_s=0.2, wall_s=0.1, odometry_wall_clock={}, jobs=[],
     )
@@ -166,3 +167,6 @@ def test_figures_count_overruns_from_the_loops_mask():
     assert f["points_per_frame"]["p50"] == 9050 and f["frames"] == 2
     assert f["capped_fraction"] == pytest.approx(0.1)
     assert tick_bench.cap_warning(f).startswith("WARNING")
+    # Slack work: the search after tick 2 (6 ms), and tick + slack per period.
+    assert f["slack_work"]["searches"] == 1 and f["slack_work"]["max_ms"] == 6.0
+    assert f["tick_plus_slack"]["max_ms"] == 36.0
