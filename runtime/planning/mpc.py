@@ -90,7 +90,11 @@ class MpcConfig(BaseModel):
         default=True,
         description="collision rows also depend on theta (the paper's rows are linear in position only)",
     )
-    max_iterations: int = Field(default=200, ge=10, le=100000, description="OSQP iterations per solve")
+    max_iterations: int = Field(
+        default=1000, ge=10, le=100000,
+        description="OSQP iterations per solve: the cap (measured need in the library's scenes: at most 515, "
+        "p99 under 380; 200 capped 15 of 283 solves at gap_offset)",
+    )
     qp_time_budget_s: float = Field(
         default=0.008, gt=0.0, le=1.0, description="all alternations together; wall clock, real time only"
     )
@@ -331,8 +335,13 @@ class OsqpMpcBackend:
             verbose=False, polishing=False, warm_starting=True,
             max_iter=config.max_iterations, eps_abs=config.eps_abs, eps_rel=config.eps_rel,
             time_limit=self._default_time_limit_s(),
-            check_termination=10,
+            # Measured on every QP of gap_offset, corridor_boxes, corridor_l and case2 replayed
+            # (issue 12): checking every 5 iterations and adapting rho when it is off by 2x
+            # (OSQP's default 5x) cut the most iterations any solve needed from 530-710 to
+            # 270-515 and the mean by 15-30%.
+            check_termination=5,
             adaptive_rho_interval=25,  # fixed, not time-based: the same inputs give the same plan
+            adaptive_rho_tolerance=2.0,
         )
         self._time_limit_s = self._default_time_limit_s()
 

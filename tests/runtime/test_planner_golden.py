@@ -7,9 +7,10 @@ with the shipped distance net. Here each recorded tick's inputs go into a fresh 
 caps: iterations only) and its commands must match the recorded ones within the solver's
 tolerance. OSQP stops at eps_abs = eps_rel = 1e-3, and the cost is flat in omega (small omega
 weights): solving the same QPs to 1e-4 instead moves the first omega by up to 0.04 rad/s and the
-tail of a plan by up to 0.2 rad/s, the first speed by under 1 mm/s. The bounds below sit there;
-speed, the best-determined output, is held tightest (a 25% change of one cost weight moves it
-by 5 mm/s and fails).
+tail of a plan by up to 0.2 rad/s; checking termination every 5 iterations instead of 10 (issue
+12) moves the first speed by up to 6 mm/s on single ticks, 0.3 mm/s on average over a drive. The
+bounds below sit there; the mean first speed, the best-determined output, is held tightest: a
+25% change of one cost weight (speed, speed change) moves it by 1 mm/s at the gap and fails.
 """
 from __future__ import annotations
 
@@ -21,10 +22,10 @@ import pytest
 GOLDEN = Path(__file__).parents[1] / "data" / "planner_golden" / "golden.npz"
 CASES = ("corridor_h10", "corridor_h20", "gap_h10", "slalom_h10", "slalom_h30")
 #: Largest difference of the first command (v m/s, omega rad/s), and of any command of a plan.
-TOL_FIRST_MAX = np.array([0.003, 0.05])
-TOL_PLAN_MAX = np.array([0.02, 0.25])
+TOL_FIRST_MAX = np.array([0.01, 0.05])
+TOL_PLAN_MAX = np.array([0.03, 0.25])
 #: Mean difference of the first command over a drive.
-TOL_FIRST_MEAN = np.array([0.001, 0.01])
+TOL_FIRST_MEAN = np.array([0.0005, 0.01])
 
 
 @pytest.fixture(scope="module")
@@ -84,5 +85,5 @@ def test_golden_comparison_detects_a_changed_planner(golden, robot_and_net):
     """The comparison has teeth: a 25% heavier speed-change weight fails it."""
     from runtime.planning.mpc import MpcWeights
 
-    out = replay(golden, "slalom_h10", *robot_and_net, weights=MpcWeights(speed_change=2.5))
-    assert not np.all(out["first_max"] <= TOL_FIRST_MAX)
+    out = replay(golden, "gap_h10", *robot_and_net, weights=MpcWeights(speed_change=2.5))
+    assert not np.all(out["first_mean"] <= TOL_FIRST_MEAN)
