@@ -326,7 +326,9 @@ def format_planner_table(rows: list[dict]) -> str:
         f"K = {rows[0]['points_per_pose']} points per pose",
         "step = select + net + rows + build + solve (+ bookkeeping); share = mean part / mean step; reach: points "
         "within reach of the horizon, cells: their occupied cells, rows: constraint rows (at most H x K), "
-        "QPs: solves per step (net/QP alternations), it: OSQP iterations per step",
+        "QPs: solves per step (net/QP alternations), it: OSQP iterations per step; per cvxpy solver: its step "
+        "p50, x = its p50 over ours, |du| = largest input difference of the two solutions of the last QP "
+        "(OSQP stops at eps 1e-3 and the cost is flat in omega: up to ~0.1 rad/s there)",
     ]
     head = (f"{'H':>3} {'points':>6} {'reach':>5} {'cells':>5} {'rows':>5} {'p50':>6} {'p90':>6} {'p99':>6} {'max':>6} "
             f"{'sel%':>5} {'net%':>5} {'row%':>5} {'bld%':>5} {'slv%':>5} {'QPs':>4} {'it':>4} {'capped':>7}")

@@ -222,6 +222,7 @@ def run_episode(
         command_deadline_s=config.loop.command_deadline_s,
         keepalive_period_s=config.loop.keepalive_period_s,
         telemetry=telemetry,
+        slack_work_min_s=config.loop.slack_work_min_s,
     )
     t_start = sim.time_s
     time_limit = t_start + scenario.time_limit_s

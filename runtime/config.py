@@ -26,6 +26,9 @@ class LoopConfig(_Strict):
     command_deadline_s: float = Field(gt=0.0, le=1.0)
     keepalive_period_s: float | None = Field(default=0.02, gt=0.0, le=0.5)
     stage_budgets_s: dict[str, float]
+    #: The controller's slack work (reference searches) runs after a tick's write() only while
+    #: at least this much of the period is left; else after a later tick (runtime.loop).
+    slack_work_min_s: float = Field(default=0.02, ge=0.0, le=1.0)
 
     @model_validator(mode="after")
     def _check(self) -> "LoopConfig":
@@ -35,6 +38,8 @@ class LoopConfig(_Strict):
         bad = {k: v for k, v in self.stage_budgets_s.items() if not 0.0 < v <= self.period_s}
         if bad:
             raise ValueError(f"stage budgets must be in (0, period_s={self.period_s}]: {bad}")
+        if self.slack_work_min_s > self.period_s:
+            raise ValueError(f"slack_work_min_s ({self.slack_work_min_s}) exceeds period_s ({self.period_s})")
         if self.command_deadline_s > self.period_s:
             raise ValueError(f"command_deadline_s ({self.command_deadline_s}) exceeds period_s ({self.period_s})")
         if self.keepalive_period_s is not None and self.keepalive_period_s > self.period_s:

@@ -91,8 +91,8 @@ def test_all_fixed_mpc_avoids_fixed_obstacles(scenario):
 
 def test_steep_approach_to_the_tight_gap_never_touches_even_when_it_stalls():
     """Known limit (README): from 0.5 m off the gap's axis the robot may wedge itself at the
-    mouth (a local minimum of the MPC; seed 3 of 0-4 does with the planner of issue 12, seeds 0
-    and 2 did before it: which seeds wedge moves with any change of the plan). Whatever it does,
+    mouth (a local minimum of the MPC; which seeds wedge moves with any change of the plan, the
+    README lists the current ones; 0 and 3 both did at issue 12). Whatever it does,
     the supervisor keeps it off the blocks: no fixed contact, positive ground-truth clearance;
     when it stalls, the recovery fires and the failure reason names the stall."""
     for seed in (0, 3):

@@ -191,3 +191,39 @@ def test_wall_clock_loop_runs_on_the_monotonic_grid():
 def test_invalid_period_is_rejected(bad):
     with pytest.raises(ValueError, match="period"):
         make_loop(FakeClock(), period=bad, keepalive=None)
+
+
+def test_slack_work_runs_after_write_outside_the_tick_time_and_waits_when_the_period_is_spent():
+    """The controller's slack work (reference searches) runs after the tick, before the next one
+    and its keep-alives; it is timed apart (slack_work_s, not in tick_s), and a tick that leaves
+    less than slack_work_min_s of its period postpones it to a later tick."""
+    clock = FakeClock(t0=0.0)
+    tel = TickTelemetry(capacity=16)
+    order: list[str] = []
+
+    class WithSlackWork(FakeControlled):
+        def tick(self, scheduled_s, stages):
+            order.append("tick")
+            super().tick(scheduled_s, stages)
+
+        def slack_work(self):
+            order.append("slack")
+            t_end = time.perf_counter() + 0.002
+            while time.perf_counter() < t_end:
+                pass
+
+        def keepalive(self, now_s):
+            order.append("keepalive")
+            super().keepalive(now_s)
+
+    # Tick 2 computes 40 ms of its 50 ms period (simulated): 10 ms left < 20 ms.
+    ctl = WithSlackWork(clock, lambda k: 0.04 if k == 2 else 0.001)
+    loop = FixedRateLoop(clock, period_s=0.05, stage_budgets_s={}, command_deadline_s=0.045,
+                         keepalive_period_s=0.02, telemetry=tel, slack_work_min_s=0.02)
+    loop.run(ctl, should_stop=lambda: False, max_ticks=4)
+    assert order[:4] == ["tick", "slack", "keepalive", "keepalive"]
+    assert loop.slack_work_runs == 3 and loop.slack_work_postponed == 1
+    rec = tel.snapshot()
+    assert (rec["slack_work_s"][[0, 1, 3]] >= 0.002).all() and rec["slack_work_s"][2] == 0.0
+    assert (rec["tick_s"] < 0.002).all()  # the slack work is not in the tick's time
+    assert tel.summary()["slack_work"]["ticks"] == 3
