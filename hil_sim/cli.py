@@ -264,8 +264,9 @@ def tick_bench_command(scenarios: tuple[str, ...], seed: int, runs: int, hogs: i
               help="Points in range N (repeatable).  [default: 100, 300, 1000, 3000, 10000]")
 @click.option("--net", "net_path", type=click.Path(exists=True, dir_okay=False), help="Distance net (default: shipped).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the rows as JSON.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
 def planner_command(repeats: int, cvxpy_repeats: int, horizons: tuple[int, ...], point_counts: tuple[int, ...],
-                    net_path: str | None, json_path: Path | None) -> None:
+                    net_path: str | None, json_path: Path | None, force: bool) -> None:
     """Planner step time (selection + net + QP, one thread) against points in range and horizon,
     with the share of each part and the constraint set's size, against cvxpy (ECOS, Clarabel)."""
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
@@ -273,7 +274,7 @@ def planner_command(repeats: int, cvxpy_repeats: int, horizons: tuple[int, ...],
 
     if json_path is not None:
         try:
-            check_output_path(json_path, what="--json")
+            check_output_path(json_path, what="--json", overwrite=force)
         except OutputPathError as exc:
             raise InputError(str(exc)) from exc
     rows = print_planner_benchmark(

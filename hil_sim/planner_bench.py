@@ -4,7 +4,7 @@ solves it).
 
 Work sizes: points in range N (P_fix within the obstacle range of the robot, 6 m: what the
 partition hands the planner each tick) in 100 .. 10,000 and horizon H in 10, 20, 30, with the
-controller's own MPC settings otherwise (K points per pose, corridor, thinning, caps). The robot
+controller's own MPC settings otherwise (K points per pose, thinning cells, reach, caps). The robot
 drives a straight corridor (walls 0.9 m apart) through a cluttered room (boxes beyond the walls)
 at 1 m/s in closed loop (kinematic unicycle), planning every 50 ms; each tick the planner gets
 exactly N points drawn from the scene's points within range (a dense scene subsampled: the
@@ -294,9 +294,9 @@ def run_planner_benchmark(
                 row[f"cvxpy_{key}_p50_ms"] = _pct(cv["total"], 50)
                 row[f"cvxpy_{key}_solve_p50_ms"] = _pct(cv["build"] + cv["solve"], 50)
                 row[f"cvxpy_{key}_ratio"] = row[f"cvxpy_{key}_p50_ms"] / row["p50_ms"]
-                row[f"cvxpy_{key}_max_input_diff"] = (
+                row[f"cvxpy_{key}_max_input_diff"] = (  # None: a solver failed the check (JSON has no NaN)
                     float(np.abs(check.inputs - osqp_inputs).max())
-                    if check.ok and osqp_inputs is not None else float("nan")
+                    if check.ok and osqp_inputs is not None else None
                 )
                 ratios.append(row[f"cvxpy_{key}_ratio"])
             # The cvxpy ratio: the fastest cvxpy solver's step p50 over ours (how much faster we are).
@@ -348,7 +348,9 @@ def format_planner_table(rows: list[dict]) -> str:
         )
         for sv in solvers:
             if f"cvxpy_{sv}_p50_ms" in r:
-                line += f" | {r[f'cvxpy_{sv}_p50_ms']:>13.2f} {r[f'cvxpy_{sv}_ratio']:>6.1f} {r[f'cvxpy_{sv}_max_input_diff']:>7.1e}"
+                du = r[f"cvxpy_{sv}_max_input_diff"]
+                du_text = "failed" if du is None else f"{du:.1e}"
+                line += f" | {r[f'cvxpy_{sv}_p50_ms']:>13.2f} {r[f'cvxpy_{sv}_ratio']:>6.1f} {du_text:>7}"
         lines.append(line)
     horizons = sorted({r["horizon"] for r in rows})
     counts = sorted({r["points"] for r in rows})

@@ -38,8 +38,9 @@ class LoopConfig(_Strict):
         bad = {k: v for k, v in self.stage_budgets_s.items() if not 0.0 < v <= self.period_s}
         if bad:
             raise ValueError(f"stage budgets must be in (0, period_s={self.period_s}]: {bad}")
-        if self.slack_work_min_s > self.period_s:
-            raise ValueError(f"slack_work_min_s ({self.slack_work_min_s}) exceeds period_s ({self.period_s})")
+        if self.slack_work_min_s > 0.5 * self.period_s:
+            raise ValueError(f"slack_work_min_s ({self.slack_work_min_s}) exceeds half of period_s ({self.period_s}): "
+                             "slack work would wait on most ticks")
         if self.command_deadline_s > self.period_s:
             raise ValueError(f"command_deadline_s ({self.command_deadline_s}) exceeds period_s ({self.period_s})")
         if self.keepalive_period_s is not None and self.keepalive_period_s > self.period_s:

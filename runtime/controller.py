@@ -369,10 +369,10 @@ class NavigationController:
         self.goal_reached_at_s = now
         self.events.add(now, "goal_reached", f"within {self._goal_distance_m():.2f} m of the goal (odometry)")
 
-    def slack_work(self) -> None:
-        """After the tick's command is written: the active mode's deferred work (a replan)."""
-        if self.state is ControllerState.ACTIVE:
-            self.modes.slack_work()
+    def slack_work(self) -> bool:
+        """After the tick's command is written: the mode's deferred work (a reference search);
+        returns whether there was any."""
+        return self.state is ControllerState.ACTIVE and self.modes.slack_work()
 
     def keepalive(self, now_s: float) -> None:
         """Re-send the current command between ticks (0x111 at the CAN command rate)."""

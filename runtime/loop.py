@@ -101,9 +101,10 @@ class LoopControlled(Protocol):
 
     def note_deadline(self, missed: bool) -> None: ...
 
-    def slack_work(self) -> None:
-        """Work that need not delay the command (a periodic replan): run after write(), in the
-        slack before the next tick, when enough of it is left (FixedRateLoop.slack_work_min_s)."""
+    def slack_work(self) -> bool:
+        """Work that need not delay the command (a reference search): run after write(), in the
+        slack before the next tick, when enough of it is left (FixedRateLoop.slack_work_min_s).
+        Returns whether there was any."""
 
     state_code: int  # recorded in telemetry
     command: tuple[float, float]  # (v_mps, omega_radps) written this tick
@@ -120,10 +121,14 @@ class FixedRateLoop:
         telemetry: TickTelemetry | None = None,
         gc_every_ticks: int = 200,
         slack_work_min_s: float = 0.02,
+        slack_work_max_postpone: int = 2,
     ) -> None:
         """slack_work_min_s: the controller's slack work runs after a tick only while at least
         this much of the period is left on the loop's clock (in lockstep always: simulated time
-        stands still during a tick); otherwise it waits for the slack of a later tick."""
+        stands still during a tick); otherwise it waits for the slack of a later tick, at most
+        slack_work_max_postpone ticks in a row: then it runs whatever is left (a search must not
+        starve: without a path the robot holds still), and a next tick that starts late is counted
+        as such (lateness, skipped ticks)."""
         if not (period_s > 0.0 and math.isfinite(period_s)):
             raise ValueError(f"loop period must be a positive number of seconds, got {period_s}")
         if keepalive_period_s is not None and not 0.0 < keepalive_period_s <= period_s:
@@ -140,8 +145,8 @@ class FixedRateLoop:
         self.stage_clock = StageClock(budgets, loop_clock=clock.now)
         self.gc_every_ticks = gc_every_ticks
         self.slack_work_min_s = slack_work_min_s
-        self.slack_work_runs = 0
-        self.slack_work_postponed = 0
+        self.slack_work_max_postpone = slack_work_max_postpone
+        self._postponed_in_row = 0
         self.keepalives_sent = 0
         #: The loop's clock is the wall clock (its lateness is real waiting time).
         self.wall_clock_loop = isinstance(clock, MonotonicClock)
@@ -190,13 +195,16 @@ class FixedRateLoop:
             row["wall_deadline_missed"] = wall_latency > self.command_deadline_s
             controlled.note_deadline(missed)
             if slack_work is not None:
-                if t0 + (k + 1) * self.period_s - clock.now() >= self.slack_work_min_s:
+                left = t0 + (k + 1) * self.period_s - clock.now()
+                if left >= self.slack_work_min_s or self._postponed_in_row >= self.slack_work_max_postpone:
+                    self._postponed_in_row = 0
                     w0 = time.perf_counter_ns()
-                    slack_work()
-                    row["slack_work_s"] = (time.perf_counter_ns() - w0) * 1e-9
-                    self.slack_work_runs += 1
+                    if slack_work():
+                        row["slack_work_s"] = (time.perf_counter_ns() - w0) * 1e-9
+                        telemetry.slack_work_runs += 1
                 else:
-                    self.slack_work_postponed += 1
+                    self._postponed_in_row += 1
+                    telemetry.slack_windows_skipped += 1
             telemetry.commit_tick(row)
             ticks_run += 1
 

@@ -65,6 +65,8 @@ class TickTelemetry:
         self.deadline_misses = 0
         self.wall_deadline_misses = 0
         self.ticks_skipped = 0  # scheduled ticks dropped because a tick ran past its period
+        self.slack_work_runs = 0  # ticks after which slack work ran and did something
+        self.slack_windows_skipped = 0  # ticks that left too little of the period for slack work
         self._lock = threading.Lock()
 
     def stage_index(self, name: str) -> int:
@@ -123,11 +125,12 @@ class TickTelemetry:
             )
         return out
 
-    @staticmethod
-    def _slack_work_stats(records: np.ndarray) -> dict:
-        """Work done after write() in the slack (deferred replans): ticks with some, its times."""
+    def _slack_work_stats(self, records: np.ndarray) -> dict:
+        """Work done after write() in the slack (reference searches): ticks with some, its times."""
         ms = records["slack_work_s"][records["slack_work_s"] > 0.0] * 1e3
         return {
+            "runs": int(self.slack_work_runs),
+            "windows_skipped": int(self.slack_windows_skipped),
             "ticks": int(len(ms)),
             "median_ms": float(np.median(ms)) if len(ms) else 0.0,
             "p99_ms": float(np.percentile(ms, 99)) if len(ms) else 0.0,

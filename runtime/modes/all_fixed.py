@@ -33,11 +33,12 @@ class AllFixedMode:
             "mpc_fallbacks": self.mpc.fallbacks,
             "reference_replans": self.reference.replans,
             "reference_replans_in_slack": self.reference.replans_in_slack,
+            "reference_replans_in_tick": self.reference.replans_in_tick,
         }
 
-    def slack_work(self) -> None:
-        """The reference replan this tick asked for (periodic, strayed, blocked ahead)."""
-        self.reference.replan_in_slack()
+    def slack_work(self) -> bool:
+        """The reference search this tick asked for (none yet, periodic, strayed, blocked ahead)."""
+        return self.reference.replan_in_slack()
 
     def plan(self, s: Situation) -> ModeDecision:
         ref = self.reference.update(s.pose, s.goal_xy, s.points_fix)

@@ -46,8 +46,9 @@ class NavigationMode(Protocol):
     def counters(self) -> dict[str, Any]:
         """JSON-ready counters for the episode report (plans, fallbacks, ...)."""
 
-    def slack_work(self) -> None:
-        """Work the last plan() deferred to the slack after the tick (a reference replan)."""
+    def slack_work(self) -> bool:
+        """Work the last plan() deferred to the slack after the tick (a reference search);
+        returns whether there was any."""
 
 
 @dataclass(frozen=True)

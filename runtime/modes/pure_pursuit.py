@@ -21,8 +21,9 @@ class PurePursuitMode:
     def counters(self) -> dict:
         return {}
 
-    def slack_work(self) -> None:
+    def slack_work(self) -> bool:
         """Nothing is deferred: pure pursuit plans in the tick."""
+        return False
 
     def plan(self, s: Situation) -> ModeDecision:
         pose = Pose2D(float(s.pose[0]), float(s.pose[1]), float(s.pose[2]))

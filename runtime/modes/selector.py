@@ -104,9 +104,10 @@ class ModeSelector:
         self.normal.reset()
         self.stall.restart(now_s)
 
-    def slack_work(self) -> None:
-        """The normal mode's deferred work (its reference replans), whichever mode drives now."""
-        self.normal.slack_work()
+    def slack_work(self) -> bool:
+        """The normal mode's deferred work (its reference searches); none during a recovery (the
+        normal mode is reset when it ends, which would throw the result away)."""
+        return self.active is self.normal and self.normal.slack_work()
 
     def plan(self, s: Situation) -> ModeDecision:
         if self.active is self.normal:

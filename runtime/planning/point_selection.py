@@ -105,8 +105,8 @@ class PointSelector:
         """poses (P, 3) x, y, yaw; points_world (N, 2) P_fix in the same (odom) frame
         (points_checked: the caller already ran check_points on them, this tick)."""
         poses = np.asarray(poses, dtype=np.float64)
-        if poses.ndim != 2 or poses.shape[1] != 3 or not np.isfinite(poses).all():
-            raise PlannerInputError(f"PointSelector.select: poses must be finite (P, 3), got {poses.shape}")
+        if poses.ndim != 2 or poses.shape[1] != 3 or poses.shape[0] == 0 or not np.isfinite(poses).all():
+            raise PlannerInputError(f"PointSelector.select: poses must be finite (P, 3) with P >= 1, got {poses.shape}")
         if not points_checked:
             points_world = check_points(points_world, "PointSelector.select: points_world")
         cfg = self.config

@@ -50,9 +50,9 @@ class ReferencePathConfig(BaseModel):
     replan_every_ticks: int = Field(default=10, ge=1, le=10000)
     replan_in_slack: bool = Field(
         default=True,
-        description="periodic, strayed and blocked-ahead replans run in the slack after the tick's command is "
-        "written (the tick follows the current path meanwhile); only a missing path (the first, after a "
-        "reset, a new goal) is searched in the tick. False: every replan in the tick",
+        description="every search runs in the slack after the tick's command is written: a periodic, strayed "
+        "or blocked-ahead replan follows the current path meanwhile, a missing path (the first, after a "
+        "reset, a new goal) holds still. False: every search in the tick",
     )
     deviation_replan_m: float = Field(default=0.4, gt=0.0, le=10.0)
     blocked_check_ahead_m: float = Field(default=2.5, gt=0.0, le=50.0)
@@ -136,6 +136,9 @@ class ReferencePathPlanner:
         graph.data = np.zeros(start)
         self._graph = graph
         self._block_weights = np.empty(start)
+        # Cells around the window in the distance transform: points this far out still count.
+        self._pad = int(math.ceil((self.inflation_radius_m + config.soft_zone_m + config.resolution_m)
+                                  / config.resolution_m)) + 1
         self._path: np.ndarray | None = None
         self._goal: np.ndarray | None = None
         self._ticks = 0
@@ -165,13 +168,15 @@ class ReferencePathPlanner:
         if pts.shape[0] == 0:
             clearance = np.full((n, n), cap)
         else:
-            # Approximate clearance from an exact Euclidean distance transform of occupied cells
-            # (cells one ring larger so that points just outside the window count)...
-            occ = np.zeros((n + 2, n + 2), dtype=bool)
-            ij = np.floor((pts - origin) / res).astype(np.int64) + 1
-            ij = np.clip(ij, 0, n + 1)
+            # Approximate clearance from an exact Euclidean distance transform of occupied cells,
+            # on a grid padded by `reach` so that every point near the window lies in its own cell
+            # (clipping them onto a border ring made free border cells lethal)...
+            pad = self._pad
+            occ = np.zeros((n + 2 * pad, n + 2 * pad), dtype=bool)
+            ij = np.floor((pts - origin) / res).astype(np.int64) + pad
+            ij = np.clip(ij, 0, n + 2 * pad - 1)  # (only rounding at the box's edge reaches the clip)
             occ[ij[:, 0], ij[:, 1]] = True
-            approx = ndimage.distance_transform_edt(~occ)[1:-1, 1:-1] * res
+            approx = ndimage.distance_transform_edt(~occ)[pad:-pad, pad:-pad] * res
             clearance = np.minimum(approx, cap)
             # ...then exact where it decides passability. A point lies within half a cell diagonal
             # of its cell's centre, so the exact clearance is within that of the approximate one:
@@ -343,6 +348,9 @@ class ReferencePathPlanner:
         cfg = self.config
         xy = pose[:2]
         self._ticks += 1
+        # Only this tick's request may run in the slack after it (one the slack could not run
+        # yet, in real time, would plan from where the robot was).
+        self._pending = None
         if math.hypot(*(goal_xy - xy)) <= cfg.goal_tolerance_m:
             ref = np.zeros((cfg.horizon_steps + 1, 3))
             ref[:, :2] = goal_xy
@@ -352,14 +360,14 @@ class ReferencePathPlanner:
         if self._path is None:
             if not cfg.replan_in_slack:
                 reason, urgent = "no path", True
-            elif self._no_path_reason is not None:
+            elif self._no_path_reason is not None and not self._goal_changed(goal_xy):
                 # The last search found no path: hold, and search again in the slack after this tick.
                 self._request(xy, goal_xy, points, "blocked: search again")
                 return self._blocked_update(xy, self._no_path_reason, False)
             else:  # the first path, or the first after a reset: searched in the slack after this tick
                 self._request(xy, goal_xy, points, "no path")
                 return self._waiting_update(xy, "waiting for the first search")
-        elif self._goal is None or math.hypot(*(self._goal - goal_xy)) > cfg.goal_tolerance_m:
+        elif self._goal_changed(goal_xy):
             if not cfg.replan_in_slack:
                 reason, urgent = "new goal", True
             else:  # the old path leads elsewhere: hold until the slack has searched
@@ -391,6 +399,10 @@ class ReferencePathPlanner:
         remaining = float(cum[-1] - s0) + (0.0 if at_goal else math.hypot(*(goal_xy - self._path[-1])))
         note = reason if replanned else (f"kept ({reason}: replan after this tick)" if reason else "kept")
         return ReferenceUpdate(ref, self._path, False, replanned, note, False, remaining)
+
+    def _goal_changed(self, goal_xy: np.ndarray) -> bool:
+        """The goal is not the one the last search was for."""
+        return self._goal is None or math.hypot(*(self._goal - goal_xy)) > self.config.goal_tolerance_m
 
     def _waiting_update(self, xy: np.ndarray, why: str) -> ReferenceUpdate:
         ref = np.zeros((self.config.horizon_steps + 1, 3))

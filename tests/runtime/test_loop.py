@@ -211,6 +211,7 @@ def test_slack_work_runs_after_write_outside_the_tick_time_and_waits_when_the_pe
             t_end = time.perf_counter() + 0.002
             while time.perf_counter() < t_end:
                 pass
+            return True
 
         def keepalive(self, now_s):
             order.append("keepalive")
@@ -222,8 +223,29 @@ def test_slack_work_runs_after_write_outside_the_tick_time_and_waits_when_the_pe
                          keepalive_period_s=0.02, telemetry=tel, slack_work_min_s=0.02)
     loop.run(ctl, should_stop=lambda: False, max_ticks=4)
     assert order[:4] == ["tick", "slack", "keepalive", "keepalive"]
-    assert loop.slack_work_runs == 3 and loop.slack_work_postponed == 1
+    assert tel.slack_work_runs == 3 and tel.slack_windows_skipped == 1
     rec = tel.snapshot()
     assert (rec["slack_work_s"][[0, 1, 3]] >= 0.002).all() and rec["slack_work_s"][2] == 0.0
     assert (rec["tick_s"] < 0.002).all()  # the slack work is not in the tick's time
-    assert tel.summary()["slack_work"]["ticks"] == 3
+    summary = tel.summary()["slack_work"]
+    assert summary["ticks"] == summary["runs"] == 3 and summary["windows_skipped"] == 1
+
+
+def test_slack_work_waits_at_most_two_ticks_then_runs_and_idle_calls_are_not_recorded():
+    """A search must not starve when ticks keep eating the period: after two skipped windows
+    it runs anyway. Calls with nothing to do are not timed as slack work."""
+    clock = FakeClock(t0=0.0)
+    tel = TickTelemetry(capacity=16)
+    calls: list[int] = []
+
+    class Busy(FakeControlled):
+        def slack_work(self):
+            calls.append(len(self.ticks) - 1)
+            return len(self.ticks) - 1 != 5  # nothing to do after tick 5
+
+    ctl = Busy(clock, lambda k: 0.045)  # every tick leaves 5 ms of its 50 ms period
+    loop = FixedRateLoop(clock, period_s=0.05, stage_budgets_s={}, command_deadline_s=0.049,
+                         keepalive_period_s=None, telemetry=tel, slack_work_min_s=0.02)
+    loop.run(ctl, should_stop=lambda: False, max_ticks=6)
+    assert calls == [2, 5]  # skipped after ticks 0, 1, run after 2; skipped 3, 4, run after 5
+    assert tel.slack_windows_skipped == 4 and tel.slack_work_runs == 1

@@ -131,3 +131,5 @@ def test_bad_points_raise_a_named_error() -> None:
         sel.select(np.zeros((2, 3)), np.array([[0.0, np.nan]]))
     with pytest.raises(PlannerInputError, match=r"\(N, 2\)"):
         sel.select(np.zeros((2, 3)), np.zeros((4, 3)))
+    with pytest.raises(PlannerInputError, match="P >= 1"):
+        sel.select(np.zeros((0, 3)), np.zeros((4, 2)))

@@ -171,3 +171,40 @@ def test_a_new_goal_holds_for_one_tick_then_follows_the_path_to_it() -> None:
     rp.replan_in_slack()
     up = rp.update(pose, np.array([0.0, 2.0]), np.zeros((0, 2)))
     assert not up.waiting and np.allclose(up.path_world[-1], [0.0, 2.0])
+
+
+def test_points_just_outside_the_window_do_not_block_its_border() -> None:
+    """A wall 0.3 m beyond the window's edge is 0.3 m from the border cells: not lethal (points
+    out there count in their own cells, not clipped onto the border ring)."""
+    rp = _planner(window_m=8.0)
+    wall = _segment([4.30, -5.0], [4.30, 5.0])
+    grid = rp.build_grid(np.zeros(2), wall)
+    assert not grid.lethal.any()
+    near = _segment([4.05, -5.0], [4.05, 5.0])  # 5 cm from the border cells' centres: lethal there
+    assert rp.build_grid(np.zeros(2), near).lethal[-1].all()
+    up = _plan(rp, np.zeros(3), [10.0, 0.0], wall)
+    assert abs(up.path_world[-1, 1]) < 0.1 and up.path_world[-1, 0] > 3.9
+
+
+def test_a_request_the_slack_did_not_run_is_dropped_by_the_next_tick() -> None:
+    """Real time may skip a slack window: the next tick's update stands on its own, a search
+    from where the robot was is never run later."""
+    rp = _planner(replan_every_ticks=1000, deviation_replan_m=0.3)
+    goal = np.array([3.0, 0.0])
+    _plan(rp, np.zeros(3), goal, np.zeros((0, 2)))
+    rp.update(np.array([0.5, 0.6, 0.0]), goal, np.zeros((0, 2)))
+    assert rp.replan_pending == "strayed from the path"
+    rp.update(np.array([0.6, 0.0, 0.0]), goal, np.zeros((0, 2)))  # back on the path: nothing to do
+    assert rp.replan_pending is None and not rp.replan_in_slack()
+
+
+def test_a_new_goal_after_a_failed_search_waits_for_its_own_search() -> None:
+    ang = np.linspace(0, 2 * np.pi, 400)
+    ring = np.stack([2.0 + 0.6 * np.cos(ang), 0.6 * np.sin(ang)], axis=1)
+    rp = _planner()
+    assert _plan(rp, np.zeros(3), [2.0, 0.0], ring).blocked
+    up = rp.update(np.zeros(3), np.array([-2.0, 0.0]), ring)
+    assert up.waiting and not up.blocked and rp.replan_pending == "no path"
+    rp.replan_in_slack()
+    up = rp.update(np.zeros(3), np.array([-2.0, 0.0]), ring)
+    assert not up.blocked and np.allclose(up.path_world[-1], [-2.0, 0.0])
