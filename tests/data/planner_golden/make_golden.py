@@ -32,8 +32,8 @@ def corridor_with_clutter(rng: np.random.Generator) -> np.ndarray:
 
 
 def slalom(rng: np.random.Generator) -> np.ndarray:
-    """A 70 cm corridor, closed behind the start, with boards reaching 20 cm in from alternate sides: the robot weaves (the
-    collision rows bind on most ticks)."""
+    """A 70 cm corridor, closed behind the start, with boards reaching 20 cm in from alternate
+    sides: the robot weaves."""
     x = np.arange(-1.0, 7.0, 0.03)
     walls = np.concatenate([np.stack([x, np.full_like(x, 0.35)], 1), np.stack([x, np.full_like(x, -0.35)], 1)])
     boards = []
@@ -44,6 +44,18 @@ def slalom(rng: np.random.Generator) -> np.ndarray:
     back = np.arange(-0.35, 0.36, 0.03)
     pts = np.concatenate([walls, np.stack([np.full_like(back, -1.0), back], 1), *boards])
     return pts + rng.normal(0.0, 0.003, pts.shape)
+
+
+def tight_s_bend(rng: np.random.Generator) -> np.ndarray:
+    """A corridor 36 cm wide (7 cm each side of the robot) that shifts 30 cm sideways over 1.5 m:
+    the footprint's corners come within d_min of the walls in the bend, so the collision rows
+    (and which points the selection gives them) decide the commands on most ticks of it."""
+    x = np.arange(-1.0, 5.0, 0.02)
+    centre = np.where(x < 1.0, 0.0, np.where(x > 2.5, 0.3, 0.15 * (1.0 - np.cos(np.pi * (x - 1.0) / 1.5))))
+    walls = np.concatenate([np.stack([x, centre + 0.18], 1), np.stack([x, centre - 0.18], 1)])
+    back = np.arange(-0.18, 0.19, 0.02)
+    pts = np.concatenate([walls, np.stack([np.full_like(back, -1.0), back], 1)])
+    return pts + rng.normal(0.0, 0.002, pts.shape)
 
 
 def offset_gap(rng: np.random.Generator) -> np.ndarray:
@@ -97,6 +109,7 @@ def main(out: Path) -> None:
         "gap_h10": (offset_gap(rng), 10, 60, np.array([3.0, 0.15]), np.array([0.0, -0.4, 0.5])),
         "slalom_h10": (slalom(rng), 10, 120, np.array([6.0, 0.0]), np.array([0.0, 0.0, 0.0])),
         "slalom_h30": (slalom(rng), 30, 120, np.array([6.0, 0.0]), np.array([0.0, 0.0, 0.0])),
+        "tight_h10": (tight_s_bend(rng), 10, 100, np.array([4.2, 0.3]), np.array([0.0, 0.0, 0.0])),
     }
     arrays = {}
     for name, (pts, h, ticks, goal, start) in cases.items():
