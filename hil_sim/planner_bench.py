@@ -276,6 +276,16 @@ def run_planner_benchmark(
                 "fallbacks": planner.fallbacks - fallbacks0,
                 "alternations_skipped": planner.alternations_skipped - skipped0,
             }
+            # The same with both net/QP alternations always run (alternation_tolerance 0): what a
+            # tick pays when the first solution moves (always, in the HIL scenes).
+            cfg2 = cfg.model_copy(update={"alternation_tolerance_m": 0.0, "alternation_tolerance_rad": 0.0})
+            planner2 = MpcPlanner(cfg2, robot, model, wall_clock_caps=False)
+            _run_closed_loop(planner2, scene, n, 10, seed)
+            planner2.reset()
+            t2 = _run_closed_loop(planner2, scene, n, repeats, seed + 1)
+            row["two_qps_p50_ms"] = _pct(t2["total"], 50)
+            row["two_qps_p99_ms"] = _pct(t2["total"], 99)
+            row["two_qps_capped_solves"] = planner2.qp_capped
             lin_snapshot = planner.lin  # the last QP, for the cross-check below
             osqp_inputs = OsqpMpcBackend(cfg, planner.limits, wall_clock_caps=False).solve(lin_snapshot).inputs
             ratios = []
@@ -311,6 +321,10 @@ def cap_warnings(rows: list[dict]) -> list[str]:
         f"WARNING: H={r['horizon']} points={r['points']}: {r['capped_solves']} of {r['qp_solves']} QP solves "
         f"({100 * r['capped_fraction']:.1f}%) hit the iteration cap: these figures describe the cap, not the planner"
         for r in rows if r["capped_solves"]
+    ] + [
+        f"WARNING: H={r['horizon']} points={r['points']}: {r['two_qps_capped_solves']} QP solves of the two-QP "
+        f"run hit the iteration cap: its figures describe the cap, not the planner"
+        for r in rows if r.get("two_qps_capped_solves")
     ]
 
 
@@ -326,12 +340,15 @@ def format_planner_table(rows: list[dict]) -> str:
         f"K = {rows[0]['points_per_pose']} points per pose",
         "step = select + net + rows + build + solve (+ bookkeeping); share = mean part / mean step; reach: points "
         "within reach of the horizon, cells: their occupied cells, rows: constraint rows (at most H x K), "
-        "QPs: solves per step (net/QP alternations), it: OSQP iterations per step; per cvxpy solver: its step "
+        "QPs: solves per step (net/QP alternations; the second is skipped when the first converged), "
+        "it: OSQP iterations per step; 2QP: the step with both alternations always run (as in the HIL scenes); "
+        "per cvxpy solver: its step "
         "p50, x = its p50 over ours, |du| = largest input difference of the two solutions of the last QP "
         "(OSQP stops at eps 1e-3 and the cost is flat in omega: up to ~0.1 rad/s there)",
     ]
     head = (f"{'H':>3} {'points':>6} {'reach':>5} {'cells':>5} {'rows':>5} {'p50':>6} {'p90':>6} {'p99':>6} {'max':>6} "
-            f"{'sel%':>5} {'net%':>5} {'row%':>5} {'bld%':>5} {'slv%':>5} {'QPs':>4} {'it':>4} {'capped':>7}")
+            f"{'sel%':>5} {'net%':>5} {'row%':>5} {'bld%':>5} {'slv%':>5} {'QPs':>4} {'it':>4} {'capped':>7} "
+            f"{'2QP p50':>7} {'p99':>6}")
     for sv in solvers:
         head += f" | {sv + ' p50':>13} {'x':>6} {'|du|':>7}"
     lines.append(head)
@@ -344,7 +361,7 @@ def format_planner_table(rows: list[dict]) -> str:
             f"{100 * sh['select']:>5.0f} {100 * sh['net']:>5.0f} {100 * sh['rows']:>5.0f} "
             f"{100 * sh['build']:>5.0f} {100 * sh['solve']:>5.0f} {r['qp_solves'] / r['repeats']:>4.2f} "
             f"{r['iterations_median']:>4.0f} "
-            f"{100 * r['capped_fraction']:>6.1f}%"
+            f"{100 * r['capped_fraction']:>6.1f}% {r['two_qps_p50_ms']:>7.2f} {r['two_qps_p99_ms']:>6.2f}"
         )
         for sv in solvers:
             if f"cvxpy_{sv}_p50_ms" in r:
