@@ -124,22 +124,24 @@ def _check_table(table: Mapping[int, OracleEntry]) -> tuple[np.ndarray, list[Ora
     order of their smallest id."""
     if not isinstance(table, Mapping):
         raise SimOracleError(f"sim-oracle table: expected a mapping id -> OracleEntry, got {type(table).__name__}")
+    for i in table:
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or i < 0:
+            raise SimOracleError(f"sim-oracle table[{i!r}]: ids must be integers >= 0")
     objects: list[OracleEntry] = []
     index: dict[str, int] = {}
     ids = sorted(table)
     for i in ids:
         e = table[i]
         where = f"sim-oracle table[{i!r}]"
-        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or i < 0:
-            raise SimOracleError(f"{where}: ids must be integers >= 0")
         if not isinstance(e, OracleEntry):
             raise SimOracleError(f"{where}: expected an OracleEntry, got {type(e).__name__}")
         if not isinstance(e.name, str) or not e.name.strip() or len(e.name) > 200:
             raise SimOracleError(f"{where}: name must be 1..200 characters of text, got {e.name!r:.60}")
         if e.obstacle_class not in _CLASSES:
             raise SimOracleError(f"{where}: class must be one of {', '.join(_CLASSES)}, got {e.obstacle_class!r}")
-        if e.contact_cost is not None and not (isinstance(e.contact_cost, (int, float)) and math.isfinite(e.contact_cost)
-                                               and MIN_CONTACT_COST <= e.contact_cost <= MAX_CONTACT_COST):
+        cost = e.contact_cost
+        if cost is not None and not (isinstance(cost, (int, float)) and not isinstance(cost, bool)
+                                     and math.isfinite(cost) and MIN_CONTACT_COST <= cost <= MAX_CONTACT_COST):
             raise SimOracleError(f"{where}: contact_cost must be a number in 0..10 or None, got {e.contact_cost!r}")
         if e.name in index:
             if objects[index[e.name]] != e:
@@ -201,7 +203,8 @@ class SimOracleBackend:
         """(H, W) int32 object index per pixel (-1: background or an id not in the table)."""
         seg = np.asarray(segmentation)
         if seg.ndim != 2 or seg.dtype.kind not in "iu":
-            raise VlmAnswerError(f"sim-oracle: segmentation must be an (H, W) integer image, got {seg.shape} {seg.dtype}")
+            raise VlmAnswerError(f"sim-oracle: segmentation must be an (H, W) integer image, "
+                                 f"got {seg.shape} {seg.dtype}")
         idx = seg.astype(np.int64) + 1
         inside = (idx >= 0) & (idx < len(self._lut))
         return np.where(inside, self._lut[np.clip(idx, 0, len(self._lut) - 1)], -1).astype(np.int32)
