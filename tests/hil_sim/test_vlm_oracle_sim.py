@@ -25,9 +25,13 @@ def _camera_pose_world(world: World) -> np.ndarray:
     return t
 
 
-@pytest.fixture(scope="module", params=["case2", "push_1kg"])
+@pytest.fixture(scope="module", params=["case1", "case2"])
 def frame(request):
-    world = World(load_scenario(request.param), ROBOT)
+    return _render(request.param)
+
+
+def _render(scenario: str):
+    world = World(load_scenario(scenario), ROBOT)
     cam = ROBOT.sensors.camera
     camera = SimCamera(world.model, world.data, world.camera_name, cam.width_px, cam.height_px,
                        hidden_geom_groups=world.camera_hidden_geom_groups)
@@ -89,3 +93,13 @@ def test_request_needs_segmentation(frame):
     plain = CameraImage(stamp_s=image.stamp_s, pixels=image.pixels, K=image.K, distortion=image.distortion)
     with pytest.raises(SimOracleError, match="no segmentation"):
         oracle_request(plain, np.eye(4))
+
+
+def test_heavy_look_alike_is_called_movable_unless_configured():
+    world, image = _render("push_30kg")
+    request = oracle_request(image, _camera_pose_world(world))
+    (crate,) = [o for o in oracle_backend(world).query(request).objects if o.label == "box"]
+    assert crate.movable and crate.contact_cost == 2.0  # looks like push_1kg's box
+    honest = oracle_backend(world, SimOracleConfig(heavy_looks_movable=False))
+    (crate,) = [o for o in honest.query(request).objects if o.label == "box"]
+    assert not crate.movable and crate.contact_cost == 10.0
