@@ -98,15 +98,22 @@ def validate_object(obj: DetectedObject, image_shape: tuple[int, int], where: st
         raise VlmAnswerError(f"{where}: label must be 1..200 characters of text, got {obj.label!r:.60}")
     if not isinstance(obj.movable, (bool, np.bool_)):
         raise VlmAnswerError(f"{where}: movable must be true or false, got {obj.movable!r:.40}")
-    cost = obj.contact_cost
-    if isinstance(cost, bool) or not isinstance(cost, (int, float, np.integer, np.floating)) or not math.isfinite(cost) \
-            or not MIN_CONTACT_COST <= cost <= MAX_CONTACT_COST:
-        raise VlmAnswerError(f"{where}: contact_cost must be a number in 0..10, got {cost!r:.40}")
-    conf = obj.confidence
-    if isinstance(conf, bool) or not isinstance(conf, (int, float, np.integer, np.floating)) or not math.isfinite(conf) \
-            or not 0.0 <= conf <= 1.0:
-        raise VlmAnswerError(f"{where}: confidence must be a number in 0..1, got {conf!r:.40}")
+    if not _number_in(obj.contact_cost, MIN_CONTACT_COST, MAX_CONTACT_COST):
+        raise VlmAnswerError(f"{where}: contact_cost must be a number in 0..10, got {obj.contact_cost!r:.40}")
+    if not _number_in(obj.confidence, 0.0, 1.0):
+        raise VlmAnswerError(f"{where}: confidence must be a number in 0..1, got {obj.confidence!r:.40}")
     return obj
+
+
+def _number_in(x, lo: float, hi: float) -> bool:
+    """x is a real number (not a bool) within [lo, hi]; an integer too large for a float is not."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        return False
+    try:
+        v = float(x)
+    except OverflowError:
+        return False
+    return math.isfinite(v) and lo <= v <= hi
 
 
 def validate_request(request: VlmRequest) -> VlmRequest:
