@@ -1,0 +1,1 @@
+"""VPP: the VLM point partition (DCT step 5): mask memory, homography warp, point partition."""
