@@ -397,3 +397,15 @@ def test_real_car_points_are_the_car(pandar, sloppy_px):
     on_car &= (np.abs(depth - car_depth) < 2.0) & (xyz[:, 2] > -2.0 + 0.12)
     assert on_car.sum() > 100
     assert mov[on_car].mean() >= 0.95, mov[on_car].mean()
+
+
+def test_float16_and_strided_points_give_the_same_labels():
+    pts, kind = scene()
+    m = box_mask(pts, kind)
+    ref = partition_points(pts, T_CL, CAM, [m], [7], [3.0], T_base_lidar=T_BL)
+    wide = np.zeros((len(pts), 4), np.float32)
+    wide[:, :3] = pts
+    strided = partition_points(wide[:, :3], T_CL, CAM, [m], [7], [3.0], T_base_lidar=T_BL)
+    np.testing.assert_array_equal(strided.label, ref.label)
+    half = partition_points(pts.astype(np.float16), T_CL, CAM, [m], [7], [3.0], T_base_lidar=T_BL)
+    assert (half.label[kind == 0] == MOVABLE).mean() > 0.95
