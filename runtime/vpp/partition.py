@@ -12,7 +12,9 @@ and an IMPACT-style contact cost 0..10):
 3. Gating (eqs. 8-9): a seen point whose nearest pixel centre is set in some mask is movable, with
    that mask's object id and cost; where masks overlap the highest cost wins (the conservative
    reading: touch it as gently as the strictest object there asks). Every other point is fixed
-   (object id -1, cost NaN).
+   (object id -1, cost NaN). Known limit: a point is clustered only with the mask that won it,
+   so where a sloppy high-cost mask overlaps another object, that object's points there can be
+   suppressed as the high-cost object's outliers and end fixed (safe, but lost recall).
 4. Cluster refinement, as the paper ("3D Euclidean clustering (e.g. DBSCAN with radius
    eps_cluster and minimum size N_min)"), per object so that two touching objects stay apart:
    - Clusters are the connected components of the graph "same object and 3-D distance <=
