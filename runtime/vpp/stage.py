@@ -1,0 +1,167 @@
+"""The VPP stage: DCT Algorithm 1 lines 3-13 for one tick, glued from the parts beside it.
+
+Per tick, in this order:
+1. answers the backend runner delivered by now (models/vlm/runner.py) are reconciled into the
+   mask memory (Phase II, eq. 5), each with the lidar points of the scan nearest its capture in
+   the capture camera's frame, for the plane of every fresh mask (mask_memory.py);
+2. a new camera image is sent to the backend when the trigger rule says so (line 3: moved more
+   than d_thres, or t_thres passed, or the memory is empty) and no request is in flight; the
+   camera pose at capture is the pose of the tick that received the image (at 20 Hz, at most
+   one period late: 5 cm at 1 m/s);
+3. a new scan is partitioned (Phase III, partition.py) against the memory's masks warped to the
+   camera pose now (Phase I, homography.py): only objects the backend called movable with a
+   contact cost below `never_touch_cost` become P_mov; everything else, and every point the
+   camera does not see and the label memory does not know, stays P_fix.
+
+The stage never waits: the runner answers beside the tick (lockstep: at a fixed simulated
+latency, `settle` is the simulator's barrier; real time: when the backend answers, or an error
+after its timeout). A backend that is down or slow means no new masks: the memory ages out and
+the points fall back to P_fix (issue 13).
+
+Frames: poses are 4x4 homogeneous transforms; T_a_b maps b coordinates to a. The camera frame
+is the optical frame (z forward, x right, y down), as the robot description mounts it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from calibration.camera_model import CameraModel
+from models.vlm.interface import VlmRequest
+from models.vlm.runner import BackendRunner, BackendRunnerConfig
+from runtime.sensor_data import CameraImage, LidarScan
+from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, ReconcileResult
+from runtime.vpp.partition import MOVABLE, PartitionConfig, PointPartition, PointPartitioner
+
+DEFAULT_PROMPT = (
+    "A small ground robot must drive to its goal through this scene. For each marked object, say "
+    "whether the robot may push it or brush past it, and how costly contact would be."
+)
+
+
+class VppConfig(BaseModel):
+    """The VPP stage's settings (controller config `vpp:`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    prompt: str = Field(DEFAULT_PROMPT, min_length=1, max_length=2000)
+    #: A movable object with at least this contact cost stays in P_fix (IMPACT: 8+ is fragile).
+    never_touch_cost: float = Field(8.0, ge=0.0, le=10.0)
+    memory: MaskMemoryConfig = MaskMemoryConfig()
+    partition: PartitionConfig = PartitionConfig()
+    runner: BackendRunnerConfig = BackendRunnerConfig()
+
+
+def pose_matrix(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
+    """T_odom_base (4x4) of a planar pose."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[0, 3], T[1, 3] = x_m, y_m
+    return T
+
+
+@dataclass(frozen=True)
+class VppFrame:
+    """One partitioned scan: per point of the scan, whether it stays fixed (P_fix), and the
+    partition itself (labels, object ids, costs)."""
+
+    stamp_s: float
+    partition: PointPartition
+    masks_used: int  # warped movable masks the scan was gated against
+
+    @property
+    def fixed(self) -> np.ndarray:
+        """(N,) bool: the scan points that constrain the planner (ground and unseen included:
+        the obstacle extractor drops the ground by height itself)."""
+        return self.partition.label != MOVABLE
+
+    @property
+    def movable_count(self) -> int:
+        return int(np.count_nonzero(self.partition.label == MOVABLE))
+
+
+class VppStage:
+    def __init__(self, config: VppConfig, camera: CameraModel, T_base_cam: np.ndarray, T_base_lidar: np.ndarray,
+                 runner: BackendRunner) -> None:
+        self.config = config
+        self.camera = camera
+        self.T_base_cam = np.asarray(T_base_cam, dtype=np.float64)
+        self.T_base_lidar = np.asarray(T_base_lidar, dtype=np.float64)
+        self.T_cam_lidar = np.linalg.inv(self.T_base_cam) @ self.T_base_lidar
+        self.runner = runner
+        self.memory = MaskMemory(camera, config.memory)
+        self.partitioner = PointPartitioner(config.partition)
+        self._points_cam_at: dict[float, np.ndarray] = {}  # request stamp -> scan points, capture camera frame
+        self._last_scan_cam: np.ndarray | None = None
+        self.last_frame: VppFrame | None = None
+        self.last_reconcile: ReconcileResult | None = None
+        # Counters (never reset).
+        self.requests = 0
+        self.answers = 0
+        self.failed_answers = 0
+        self.frames = 0
+
+    def settle(self, t_s: float) -> None:
+        """Lockstep barrier (the simulator calls it before time t_s): answers due are ready."""
+        self.runner.settle(t_s)
+
+    def close(self) -> None:
+        self.runner.close()
+
+    def _check_image(self, image: CameraImage) -> None:
+        cam = self.camera
+        if (image.width, image.height) != (cam.width_px, cam.height_px) or not np.allclose(image.K, cam.K, atol=1e-6):
+            raise ValueError(f"VPP: camera image {image.width}x{image.height} with K {image.K.tolist()} does not "
+                             f"match the calibrated camera {cam.width_px}x{cam.height_px} K {cam.K.tolist()}")
+
+    def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
+               scan: LidarScan | None) -> VppFrame | None:
+        """One tick (module docstring); returns the partition of `scan` (None without a scan)."""
+        T_odom_base = pose_matrix(*pose)
+        T_odom_cam = T_odom_base @ self.T_base_cam
+        for answer in self.runner.poll(now_s):
+            self.answers += 1
+            self.failed_answers += int(answer.error is not None)
+            points_cam = self._points_cam_at.pop(float(answer.stamp_s), None)
+            self.last_reconcile = self.memory.reconcile(answer, prompt=self.config.prompt, points_cam=points_cam,
+                                                        now_s=now_s)
+        if image is not None:
+            self._check_image(image)
+            if not self.runner.busy and self.memory.query_due(now_s, T_odom_cam):
+                request = VlmRequest(image=image.pixels, stamp_s=image.stamp_s, camera_pose_odom=T_odom_cam,
+                                     prompt=self.config.prompt, segmentation=image.segmentation)
+                self._points_cam_at = {} if self._last_scan_cam is None else {float(image.stamp_s): self._last_scan_cam}
+                self.runner.submit(request, now_s)
+                self.memory.note_query(image.stamp_s, T_odom_cam)
+                self.requests += 1
+        if scan is None:
+            return None
+        warped = self.memory.propagate(now_s, T_odom_cam)
+        use = [w for w in warped if w.entry.movable and w.entry.contact_cost < self.config.never_touch_cost
+               and w.mask.any()]
+        h, w = self.camera.height_px, self.camera.width_px
+        masks = np.stack([m.mask for m in use]) if use else np.zeros((0, h, w), bool)
+        part = self.partitioner.partition(
+            scan.points_m, self.T_cam_lidar, self.camera, masks, [m.object_id for m in use],
+            [m.entry.contact_cost for m in use], T_base_lidar=self.T_base_lidar,
+            T_odom_lidar=T_odom_base @ self.T_base_lidar, stamp_s=scan.stamp_s,
+        )
+        p = np.asarray(scan.points_m, dtype=np.float64)
+        self._last_scan_cam = p @ self.T_cam_lidar[:3, :3].T + self.T_cam_lidar[:3, 3]
+        self.frames += 1
+        self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
+        return self.last_frame
+
+    def describe(self) -> dict:
+        return {
+            "requests": self.requests, "answers": self.answers, "failed_answers": self.failed_answers,
+            "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
+            "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,
+        }
+
+
+__all__ = ["DEFAULT_PROMPT", "VppConfig", "VppFrame", "VppStage", "pose_matrix"]

@@ -1,0 +1,124 @@
+"""The VPP stage glue: requests on the trigger, answers reconciled, scans partitioned (lockstep)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.camera_model import CameraModel, transform_points
+from calibration.robot_description import load_robot_description
+from models.vlm.interface import DetectedObject, VlmAnswer, VlmRequest
+from models.vlm.runner import BackendRunner, BackendRunnerConfig
+from runtime.sensor_data import CameraImage, LidarScan
+from runtime.vpp.partition import MOVABLE
+from runtime.vpp.stage import VppConfig, VppStage
+
+ROBOT = load_robot_description()
+W, H = 640, 480
+K = ROBOT.sensors.camera.nominal_intrinsics()
+CAMERA = CameraModel(K, np.zeros(5), W, H)
+T_BASE_CAM = ROBOT.sensors.camera.mount.transform()
+T_BASE_LIDAR = ROBOT.sensors.lidar.mount.transform()
+
+
+def _grid(x0, x1, y0, y1, z0, z1, step):
+    g = np.mgrid[x0:x1 + 1e-9:step, y0:y1 + 1e-9:step, z0:z1 + 1e-9:step].reshape(3, -1).T
+    return g
+
+
+def scene_base():
+    """A box (0.3 m cube's front face and top) 1.5 m ahead and a wall 3 m ahead, base frame."""
+    box = np.concatenate([_grid(1.5, 1.5, -0.15, 0.15, 0.05, 0.3, 0.02), _grid(1.5, 1.8, -0.15, 0.15, 0.3, 0.3, 0.02)])
+    wall = _grid(3.0, 3.0, -1.5, 1.5, 0.05, 0.8, 0.03)
+    return box, wall
+
+
+def scan_at(t: float) -> tuple[LidarScan, int]:
+    box, wall = scene_base()
+    pts_base = np.concatenate([box, wall])
+    pts_lidar = transform_points(np.linalg.inv(T_BASE_LIDAR), pts_base).astype(np.float32)
+    n = len(pts_lidar)
+    return LidarScan(stamp_s=t, points_m=pts_lidar, point_time_offsets_s=np.zeros(n, np.float32),
+                     frame_duration_s=0.1), len(box)
+
+
+def box_mask() -> np.ndarray:
+    box, _ = scene_base()
+    uv, ok = CAMERA.project(transform_points(np.linalg.inv(T_BASE_CAM), box))
+    u0, v0 = np.floor(uv[ok].min(0)).astype(int) - 2
+    u1, v1 = np.ceil(uv[ok].max(0)).astype(int) + 2
+    m = np.zeros((H, W), bool)
+    m[max(v0, 0):v1 + 1, max(u0, 0):u1 + 1] = True
+    return m
+
+
+class FakeVlm:
+    """A backend that calls the box movable at the given cost (or fails)."""
+
+    name = "fake"
+
+    def __init__(self, cost: float = 2.0, fail: bool = False) -> None:
+        self.cost, self.fail, self.calls = cost, fail, 0
+
+    def query(self, request: VlmRequest) -> VlmAnswer:
+        self.calls += 1
+        if self.fail:
+            return VlmAnswer(request.stamp_s, request.camera_pose_odom, (), self.name, 0.0, error="down")
+        obj = DetectedObject(box_mask(), "box", True, self.cost, 0.9)
+        return VlmAnswer(request.stamp_s, request.camera_pose_odom, (obj,), self.name, 0.0)
+
+
+def image_at(t: float) -> CameraImage:
+    return CameraImage(stamp_s=t, pixels=np.zeros((H, W, 3), np.uint8), K=K, distortion=np.zeros(5))
+
+
+def make(backend) -> VppStage:
+    runner = BackendRunner(backend, BackendRunnerConfig(clock="lockstep", latency_s=0.5))
+    return VppStage(VppConfig(), CAMERA, T_BASE_CAM, T_BASE_LIDAR, runner)
+
+
+def test_points_are_fixed_until_the_answer_arrives_then_the_box_is_movable():
+    backend = FakeVlm(cost=2.0)
+    stage = make(backend)
+    scan, n_box = scan_at(0.0)
+    frame = stage.update(0.0, (0.0, 0.0, 0.0), image_at(0.0), scan)
+    assert stage.requests == 1 and frame.movable_count == 0 and frame.fixed.all()
+    frame = stage.update(0.3, (0.0, 0.0, 0.0), None, scan_at(0.3)[0])
+    assert frame.movable_count == 0  # the answer is due at 0.5 s (simulated latency)
+    stage.settle(0.55)
+    frame = stage.update(0.55, (0.0, 0.0, 0.0), None, scan_at(0.55)[0])
+    assert stage.answers == 1 and frame.masks_used == 1
+    label = frame.partition.label
+    assert (label[:n_box] == MOVABLE).mean() > 0.9  # the box
+    assert not (label[n_box:] == MOVABLE).any()  # the wall behind it, seen through the mask's edge
+    assert np.all(frame.partition.cost[:n_box][label[:n_box] == MOVABLE] == 2.0)
+    assert backend.calls == 1
+
+
+def test_a_fragile_object_stays_fixed_and_a_failing_backend_leaves_everything_fixed():
+    for backend in (FakeVlm(cost=9.0), FakeVlm(fail=True)):
+        stage = make(backend)
+        stage.update(0.0, (0.0, 0.0, 0.0), image_at(0.0), scan_at(0.0)[0])
+        stage.settle(0.6)
+        frame = stage.update(0.6, (0.0, 0.0, 0.0), None, scan_at(0.6)[0])
+        assert frame.movable_count == 0 and frame.fixed.all()
+    assert stage.failed_answers == 1
+
+
+def test_no_new_request_while_one_is_in_flight_or_before_the_trigger():
+    backend = FakeVlm()
+    stage = make(backend)
+    stage.update(0.0, (0.0, 0.0, 0.0), image_at(0.0), scan_at(0.0)[0])
+    stage.update(0.2, (0.0, 0.0, 0.0), image_at(0.2), None)  # in flight: not sent
+    assert stage.requests == 1
+    stage.settle(0.6)
+    stage.update(0.6, (0.0, 0.0, 0.0), image_at(0.6), None)  # memory not empty, not moved, t < t_thres
+    assert stage.requests == 1
+    stage.update(1.0, (0.6, 0.0, 0.0), image_at(1.0), None)  # moved 0.6 m > d_thres 0.5 m
+    assert stage.requests == 2
+
+
+def test_an_image_from_another_camera_is_refused_naming_it():
+    stage = make(FakeVlm())
+    other = CameraImage(stamp_s=0.0, pixels=np.zeros((H, W, 3), np.uint8), K=K * np.array([[2, 1, 1], [1, 2, 1], [1, 1, 1]]))
+    with pytest.raises(ValueError, match="does not match the calibrated camera"):
+        stage.update(0.0, (0.0, 0.0, 0.0), other, None)
