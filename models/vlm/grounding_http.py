@@ -211,19 +211,26 @@ def _box(value: Any, sent_hw: tuple[int, int], full_hw: tuple[int, int], tol: fl
 
 
 def grabcut_mask(image_rgb: np.ndarray, box: tuple[int, int, int, int], iterations: int = 3) -> np.ndarray | None:
-    """GrabCut's foreground inside `box` of the image, None if it finds none or cannot run."""
+    """GrabCut's foreground inside `box` of the image, None if it finds none or cannot run.
+    GrabCut runs on the box plus a margin of half its size (the background it learns from), not
+    on the whole image, so its cost follows the box, not the image."""
     x0, y0, x1, y1 = box
     h, w = image_rgb.shape[:2]
-    if x1 - x0 < 3 or y1 - y0 < 3 or (x0 == 0 and y0 == 0 and x1 == w and y1 == h):
-        return None  # too small to model, or no background outside the box to learn from
-    mask = np.zeros((h, w), np.uint8)
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return None  # too small to model
+    mx, my = max(8, (x1 - x0) // 2), max(8, (y1 - y0) // 2)
+    rx0, ry0, rx1, ry1 = max(0, x0 - mx), max(0, y0 - my), min(w, x1 + mx), min(h, y1 + my)
+    if (rx0, ry0, rx1, ry1) == (x0, y0, x1, y1):
+        return None  # no background around the box to learn from
+    roi = np.ascontiguousarray(image_rgb[ry0:ry1, rx0:rx1, ::-1])  # OpenCV wants BGR
+    mask = np.zeros(roi.shape[:2], np.uint8)
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     try:
-        cv2.grabCut(cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR), mask, (x0, y0, x1 - x0, y1 - y0), bgd, fgd,
-                    iterations, cv2.GC_INIT_WITH_RECT)
+        cv2.grabCut(roi, mask, (x0 - rx0, y0 - ry0, x1 - x0, y1 - y0), bgd, fgd, iterations, cv2.GC_INIT_WITH_RECT)
     except cv2.error:
         return None
-    fg = (mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)
+    fg = np.zeros((h, w), dtype=bool)
+    fg[ry0:ry1, rx0:rx1] = (mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)
     return fg if fg.any() else None
 
 

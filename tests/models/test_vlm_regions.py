@@ -394,6 +394,10 @@ def test_grabcut_refines_a_loose_box_to_the_object(server):
     (refined,) = proposer(server, refine="grabcut").propose(img, "box .")
     assert iou(refined.mask, masks[1]) >= 0.8
     assert iou(refined.mask, masks[1]) > iou(loose.mask, masks[1])
+    # A box over the whole image leaves GrabCut no background to learn from: the box mask.
+    server.script = [send(200, {"detections": [{"box_xyxy": [0, 0, W, H], "score": 0.8}]})]
+    (whole,) = proposer(server, refine="grabcut").propose(img, "box .")
+    assert whole.mask.all()
 
 
 @pytest.mark.parametrize("payload", [b"<html>oops", b'{"detections": [', b"[1, 2]", b'{"boxes": []}',
