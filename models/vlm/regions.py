@@ -17,11 +17,16 @@ OpenCV pipeline (deterministic: no global RNG, fixed k-means initialisation):
    down (`lightness_weight`: a shadow changes L far more than a and b).
 3. k-means (`n_colors` clusters, k-means++ seeded by `seed`, fit on a strided subsample).
 4. Canny edges on the blurred grey image, dilated once, cut the colour classes apart: two
-   objects of similar colour that touch are separated where an edge runs between them.
+   objects of similar colour that touch are separated where an edge runs between them. With
+   lidar depth, depth jumps (`depth_edges`: neighbouring points more than `depth_jump_frac`
+   apart in depth) cut them too: a grey box in front of a grey wall has no colour edge but
+   has an occluding contour.
 5. Connected components of each colour class minus edges become watershed seeds (components
    smaller than `seed_min_area_frac` are left unlabelled); `cv2.watershed` grows the seeds back
    over the edge pixels and the tiny fragments, so a region reaches its object's true outline.
-6. Regions are kept when their area is between `min_area_frac` and `max_area_frac` of the image
+6. Regions smaller than `min_area_frac` are merged into the neighbour of the closest mean
+   colour (`absorb_small_regions`: colour noise and texture leave fragments inside and along
+   objects). Regions are kept when their area is between `min_area_frac` and `max_area_frac` of the image
    (the floor and a wall are usually larger than any object), their box sides are at least
    `min_side_px`, and their fill ratio (area / box area) is at least `min_fill` (sprawling,
    stringy regions are texture or background, not objects).
@@ -32,8 +37,10 @@ OpenCV pipeline (deterministic: no global RNG, fixed k-means initialisation):
 
 Known limits: two touching objects of the same colour with no visible edge between them come out
 as one region; an object with strong internal texture (a printed box) may split into parts; a
-region larger than `max_area_frac` (a sofa filling the view) is dropped. Lidar depth is only
-attached, not used to split regions (a depth-discontinuity seeding of the watershed is not done).
+region larger than `max_area_frac` (a sofa filling the view) is dropped. Depth edges are as
+coarse as the lidar's spacing (they only cut seeds; the boundary follows the image), and a
+floor seen at a grazing angle may jump between scan lines and be cut into strips (it is
+background, usually dropped as too large or too stringy anyway).
 """
 from __future__ import annotations
 
@@ -200,6 +207,10 @@ class OpenCvProposerConfig(BaseModel):
     min_fill: float = Field(default=0.35, ge=0.0, le=1.0, description="area / box area")
     max_regions: int = Field(default=12, ge=1, le=256)
     min_depth_points: int = Field(default=3, ge=1)
+    depth_jump_frac: float | None = Field(
+        default=0.25, gt=0.0, le=10.0,
+        description="neighbouring lidar depths differing by more than this fraction cut regions; None: off")
+    depth_max_gap_px: float = Field(default=10.0, gt=0.0, description="no depth edge farther than this from a lidar point (work px)")
 
     @model_validator(mode="after")
     def _consistent(self) -> "OpenCvProposerConfig":
@@ -251,6 +262,88 @@ def _nearest(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return np.argmin(d, axis=1).astype(np.intp)
 
 
+def depth_edges(depth: SparseDepth | None, full_hw: tuple[int, int], work_hw: tuple[int, int],
+                jump_frac: float, max_gap_px: float) -> np.ndarray:
+    """(h, w) bool at work resolution: where the lidar depth jumps (an occluding contour).
+
+    Each work pixel takes the depth of its nearest lidar point (the nearest surface where two
+    points share a pixel); a pixel whose right or lower neighbour's depth differs by more than
+    `jump_frac` of the nearer one lies on a jump. Jumps farther than `max_gap_px` from any point
+    (the gaps between scan lines, regions the lidar does not see) are not trusted. The result is
+    coarse (a Voronoi line between points); it only cuts seeds, and the watershed puts the final
+    boundary where the image's gradient is."""
+    h, w = work_hw
+    rows, cols, d = depth_pixels(depth, full_hw)
+    edges = np.zeros((h, w), dtype=bool)
+    if d.size < 2:
+        return edges
+    H, W = full_hw
+    r = np.minimum(((rows + 0.5) * (h / H)).astype(np.intp), h - 1)
+    c = np.minimum(((cols + 0.5) * (w / W)).astype(np.intp), w - 1)
+    grid = np.full((h, w), np.inf)
+    np.minimum.at(grid, (r, c), d)
+    dist, (ir, ic) = ndimage.distance_transform_edt(~np.isfinite(grid), return_indices=True)
+    dense = grid[ir, ic]
+    jx = np.abs(dense[:, 1:] - dense[:, :-1]) > jump_frac * np.minimum(dense[:, 1:], dense[:, :-1])
+    jy = np.abs(dense[1:, :] - dense[:-1, :]) > jump_frac * np.minimum(dense[1:, :], dense[:-1, :])
+    edges[:, :-1] |= jx
+    edges[:, 1:] |= jx
+    edges[:-1, :] |= jy
+    edges[1:, :] |= jy
+    return edges & (dist <= max_gap_px)
+
+
+def absorb_small_regions(labels: np.ndarray, min_area: int, features: np.ndarray | None = None,
+                         max_passes: int = 4) -> np.ndarray:
+    """Labels with every region smaller than min_area merged into a neighbour: a large neighbour
+    before a small one, then the neighbour of the closest mean feature (colour; with no features
+    given, the one it shares the longest border with), ties by the longer border, then the lower
+    id. Why: colour noise and texture split an object into one large piece and fragments; the
+    fragments would be dropped as too small, leaving holes and a ragged outline. Merges only go
+    to a larger region (ties: the lower id), so there are no cycles. Label 0 (no region) is
+    neither merged nor merged into."""
+    labels = np.asarray(labels)
+    for _ in range(max_passes):
+        n = int(labels.max()) + 1
+        flat = labels.ravel()
+        area = np.bincount(flat, minlength=n)
+        small = (area > 0) & (area < min_area)
+        small[0] = False
+        if not small.any():
+            break
+        a = np.concatenate([labels[:, :-1].ravel(), labels[:-1, :].ravel()])
+        b = np.concatenate([labels[:, 1:].ravel(), labels[1:, :].ravel()])
+        differ = a != b
+        src = np.concatenate([a[differ], b[differ]]).astype(np.int64)
+        dst = np.concatenate([b[differ], a[differ]]).astype(np.int64)
+        ok = small[src] & (dst != 0) & ((area[dst] > area[src]) | ((area[dst] == area[src]) & (dst < src)))
+        src, dst = src[ok], dst[ok]
+        if src.size == 0:
+            break
+        pairs, border = np.unique(src * n + dst, return_counts=True)
+        s_, d_ = pairs // n, pairs % n
+        if features is not None:
+            f = features.reshape(flat.size, -1).astype(np.float64)
+            mean = np.stack([np.bincount(flat, weights=f[:, k], minlength=n) for k in range(f.shape[1])], axis=1)
+            mean /= np.maximum(area, 1)[:, None]
+            dist = np.linalg.norm(mean[s_] - mean[d_], axis=1)
+        else:
+            dist = np.zeros(s_.size)
+        order = np.lexsort((d_, -border, dist, small[d_], s_))  # last key first: by source, large first, ...
+        s_o, d_o = s_[order], d_[order]
+        first = np.ones(s_o.size, dtype=bool)
+        first[1:] = s_o[1:] != s_o[:-1]
+        lut = np.arange(n, dtype=labels.dtype)
+        lut[s_o[first]] = d_o[first]
+        for _ in range(64):  # follow chains a -> b -> c (acyclic: area grows along them)
+            nxt = lut[lut]
+            if np.array_equal(nxt, lut):
+                break
+            lut = nxt
+        labels = lut[labels]
+    return labels
+
+
 class OpenCvProposer:
     """Colour/edge segmentation proposer (module docstring). Thread-safe, stateless."""
 
@@ -259,8 +352,9 @@ class OpenCvProposer:
     def __init__(self, config: OpenCvProposerConfig | None = None):
         self.config = config or OpenCvProposerConfig()
 
-    def segment(self, image: np.ndarray) -> tuple[np.ndarray, list[int], list[float]]:
-        """(labels at work resolution (h, w) int32, kept ids best first, their scores). Steps 1..7."""
+    def segment(self, image: np.ndarray, depth: SparseDepth | None = None) -> tuple[np.ndarray, list[int], list[float]]:
+        """(labels at work resolution (h, w) int32, kept ids best first, their scores). Steps 1..7;
+        with depth (and depth_jump_frac set), lidar depth jumps cut seeds as image edges do."""
         cfg = self.config
         img = check_image(image, "opencv proposer")
         H, W = img.shape[:2]
@@ -275,6 +369,8 @@ class OpenCvProposer:
 
         grey = cv2.cvtColor(blur, cv2.COLOR_RGB2GRAY)
         edges = cv2.dilate(cv2.Canny(grey, cfg.canny_low, cfg.canny_high), np.ones((3, 3), np.uint8)) > 0
+        if depth is not None and cfg.depth_jump_frac is not None:
+            edges |= depth_edges(depth, (H, W), (h, w), cfg.depth_jump_frac, cfg.depth_max_gap_px)
 
         # Seeds: connected pieces of one colour class that no edge crosses.
         markers = np.zeros((h, w), np.int32)
@@ -304,6 +400,8 @@ class OpenCvProposer:
             grown = cv2.dilate(np.where(line, 0, markers).astype(np.float32), np.ones((3, 3), np.uint8))
             markers[line] = grown[line].astype(np.int32)
 
+        markers = absorb_small_regions(markers, max(1, int(cfg.min_area_frac * h * w)), lab)
+
         n_ids = next_id
         area = np.bincount(markers.ravel(), minlength=n_ids).astype(np.float64)
         ids, scores, keys = [], [], []
@@ -326,7 +424,7 @@ class OpenCvProposer:
         """Regions best first (module docstring). `prompt` is ignored: this proposer is not open-set."""
         img = check_image(image, "opencv proposer")
         sd = as_sparse_depth(depth)
-        markers, ids, scores = self.segment(img)
+        markers, ids, scores = self.segment(img, sd)
         if not ids:
             return ()
         H, W = img.shape[:2]
@@ -345,6 +443,8 @@ __all__ = [
     "SparseDepth",
     "as_sparse_depth",
     "check_image",
+    "absorb_small_regions",
+    "depth_edges",
     "depth_pixels",
     "kmeans_lab",
     "mask_box",

@@ -31,6 +31,8 @@ from models.vlm.grounding_http import (
 from models.vlm.interface import CandidateRegion
 from models.vlm.regions import (
     OpenCvProposer,
+    absorb_small_regions,
+    depth_edges,
     OpenCvProposerConfig,
     RegionProposalError,
     RegionProposer,
@@ -82,12 +84,12 @@ def synthetic_scene(seed: int = 0) -> tuple[np.ndarray, list[np.ndarray]]:
     return np.clip(img, 0, 255).astype(np.uint8), masks
 
 
-def synthetic_depth(masks: list[np.ndarray], step: int = 6) -> SparseDepth:
+def synthetic_depth(masks: list[np.ndarray], step: int = 6, depths=BOX_DEPTH_M) -> SparseDepth:
     """A lidar-like grid of points: each box at its depth, the rest at the background depth."""
     v, u = np.mgrid[1:H:step, 2:W:step]
     u, v = u.ravel().astype(float), v.ravel().astype(float)
     d = np.full(u.shape, BACKGROUND_DEPTH_M)
-    for m, z in zip(masks, BOX_DEPTH_M):
+    for m, z in zip(masks, depths, strict=True):
         d[m[v.astype(int), u.astype(int)]] = z
     # A few points that must be ignored: behind the camera, NaN, outside the image.
     u = np.concatenate([u, [10.0, np.nan, -50.0, W + 40.0]])
@@ -113,6 +115,50 @@ def test_opencv_proposer_finds_each_box_as_one_region_with_its_depth():
     # The three boxes are the largest compact regions: they rank first.
     top3 = {int(np.argmax([iou(r.mask, m) for r in regions])) for m in masks}
     assert top3 == {0, 1, 2}
+
+
+def test_lidar_depth_jumps_separate_a_box_the_colour_of_the_floor():
+    img, masks = synthetic_scene()
+    x0, y0, x1, y1 = 370, 250, 450, 330  # a floor-coloured box on the floor, no lines across it
+    rng = np.random.default_rng(5)
+    img[y0:y1, x0:x1] = np.clip(np.array((120, 100, 80)) + rng.integers(-25, 26, (y1 - y0, x1 - x0, 1)), 0, 255)
+    hidden = np.zeros((H, W), bool)
+    hidden[y0:y1, x0:x1] = True
+    depth = synthetic_depth(masks + [hidden], depths=[*BOX_DEPTH_M, 2.5])
+
+    def best(regions, m):
+        ious = [iou(r.mask, m) for r in regions]
+        return max(ious), regions[int(np.argmax(ious))]
+
+    without, _ = best(OpenCvProposer().propose(img, ""), hidden)
+    regions = OpenCvProposer().propose(img, "", depth)
+    with_depth, r = best(regions, hidden)
+    assert without < 0.6 and with_depth >= 0.75, (without, with_depth)
+    assert r.depth_m == pytest.approx(2.5)
+    for m in masks:  # the coloured boxes are still found
+        assert best(regions, m)[0] >= 0.8
+    off = OpenCvProposer(OpenCvProposerConfig(depth_jump_frac=None)).propose(img, "", depth)
+    assert best(off, hidden)[0] == pytest.approx(without)
+
+    e = depth_edges(depth, (H, W), (H // 2, W // 2), 0.25, 10.0)
+    assert e.shape == (H // 2, W // 2) and e.any()
+    assert not e[5:55, 5:235].any()  # the wall above the boxes has no jump
+    assert e[125:165, 183:187].any()  # the left side of the hidden box (x = 370 at full size) has one
+
+
+def test_absorb_small_regions_merges_fragments_into_the_closest_coloured_neighbour():
+    labels = np.ones((10, 12), np.int32)
+    labels[:, 6:] = 2
+    labels[4:6, 4:6] = 3  # a fragment touching 1 and 2 (4 border pixels with 1, 2 with 2)
+    labels[0, 0] = 0  # "no region" stays
+    feats = np.zeros((10, 12, 1))
+    feats[:, 6:] = 10.0
+    feats[4:6, 4:6] = 9.0  # coloured like region 2
+    out = absorb_small_regions(labels, min_area=5, features=feats)
+    assert (out[4:6, 4:6] == 2).all() and out[0, 0] == 0 and set(np.unique(out)) == {0, 1, 2}
+    out = absorb_small_regions(labels, min_area=5)  # no colours: the longest border wins
+    assert (out[4:6, 4:6] == 1).all()
+    np.testing.assert_array_equal(absorb_small_regions(labels, min_area=1), labels)
 
 
 def test_opencv_proposer_is_deterministic_and_honours_max_regions_and_depth_pairs():
