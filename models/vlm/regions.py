@@ -26,17 +26,18 @@ OpenCV pipeline (deterministic: no global RNG, fixed k-means initialisation):
    over the edge pixels and the tiny fragments, so a region reaches its object's true outline.
 6. Regions smaller than `min_area_frac` are merged into the neighbour of the closest mean
    colour (`absorb_small_regions`: colour noise and texture leave fragments inside and along
-   objects). Regions are kept when their area is between `min_area_frac` and `max_area_frac` of the image
-   (the floor and a wall are usually larger than any object), their box sides are at least
-   `min_side_px`, and their fill ratio (area / box area) is at least `min_fill` (sprawling,
-   stringy regions are texture or background, not objects).
+   objects). Regions are kept when their area is between `min_area_frac` and `max_area_frac`
+   of the image (the floor and a wall are usually larger than any object), their box sides are
+   at least `min_side_px`, and their fill ratio (area / box area) is at least `min_fill`
+   (sprawling, stringy regions are texture or background, not objects).
 7. score = fill ratio (0..1); ranking by area * fill (large and compact first); at most
    `max_regions`.
 8. With lidar depth, each region carries the median camera-frame depth of the lidar points that
    fall inside it (at least `min_depth_points`, else None).
 
-Known limits: two touching objects of the same colour with no visible edge between them come out
-as one region; an object with strong internal texture (a printed box) may split into parts; a
+Known limits: two touching objects of the same colour with no visible edge (and no lidar depth
+jump) between them come out as one region; a small fragment is merged by colour, not depth, so
+it may cross a depth edge; an object with strong internal texture (a printed box) may split into parts; a
 region larger than `max_area_frac` (a sofa filling the view) is dropped. Depth edges are as
 coarse as the lidar's spacing (they only cut seeds; the boundary follows the image), and a
 floor seen at a grazing angle may jump between scan lines and be cut into strips (it is
@@ -44,7 +45,6 @@ background, usually dropped as too large or too stringy anyway).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Protocol, Sequence
 
