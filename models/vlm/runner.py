@@ -45,9 +45,11 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numpy as np
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from models.vlm.interface import VlmAnswer, VlmBackend, VlmRequest
+from models.vlm.interface import VlmAnswer, VlmAnswerError, VlmBackend, VlmRequest, validate_object
 
 _EPS_S = 1e-9
 
@@ -99,6 +101,10 @@ class BackendRunner:
         lat = c.latency_s if c.latency_s is not None else float(getattr(backend, "latency_s", 0.0) or 0.0)
         if c.clock == "realtime" and lat >= c.timeout_s:
             raise ValueError(f"BackendRunner: latency_s {lat} (the backend's) must be below timeout_s {c.timeout_s}")
+        worst = getattr(getattr(backend, "config", None), "worst_case_s", None)
+        if c.clock == "realtime" and callable(worst) and worst() > c.timeout_s:
+            raise ValueError(f"BackendRunner: the backend may take up to {worst():.1f} s (its timeout x retries), more "
+                             f"than the runner's timeout_s {c.timeout_s}: its answers would be abandoned")
         self.latency_s = lat
         self.lockstep = c.clock == "lockstep"
         self._in_flight: _Job | None = None
@@ -133,11 +139,28 @@ class BackendRunner:
             if not isinstance(answer, VlmAnswer):
                 answer = self._error(job.request, f"{self.name}: backend returned {type(answer).__name__}, "
                                                   "not a VlmAnswer", 0.0)
+            else:
+                answer = self._validated(job.request, answer)
         except Exception as exc:  # a backend that raises: an error answer, never the caller's exception
             answer = self._error(job.request, f"{self.name}: {type(exc).__name__}: {exc}"[:500], 0.0)
         job.answer = answer
         job.finished_wall_s = time.monotonic()
         job.done.set()
+
+    def _validated(self, request: VlmRequest, answer: VlmAnswer) -> VlmAnswer:
+        """Every object checked where it enters (interface.validate_object, against the request's
+        image): a bad one is dropped and named in `rejected`, the others pass; whatever the
+        backend's own checks were."""
+        shape = np.asarray(request.image).shape[:2]
+        keep, rejected = [], list(answer.rejected)
+        for i, obj in enumerate(answer.objects):
+            try:
+                keep.append(validate_object(obj, shape, f"{self.name} object {i}"))
+            except VlmAnswerError as exc:
+                rejected.append(str(exc))
+        if len(keep) == len(answer.objects):
+            return answer
+        return dataclasses.replace(answer, objects=tuple(keep), rejected=tuple(rejected))
 
     def _start_thread(self, job: _Job) -> None:
         job.thread = threading.Thread(target=self._call, args=(job,), name="dct-vlm-backend", daemon=True)

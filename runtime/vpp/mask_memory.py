@@ -245,6 +245,10 @@ class MaskMemory:
                 raise MaskMemoryError(f"points_cam: expected an (N, 3) array, got shape {p.shape}")
         if answer.error is not None:
             return ReconcileResult(ignored=f"backend failed: {answer.error}")
+        if now_s is not None and now_s - answer.stamp_s > self.config.max_age_s:
+            # Its masks would age out at once, after dropping every entry they did not match.
+            return ReconcileResult(ignored=f"answer captured {now_s - answer.stamp_s:.1f} s ago, older than "
+                                           f"max_age_s {self.config.max_age_s}")
         if self.last_answer_s is not None and answer.stamp_s < self.last_answer_s:
             return ReconcileResult(
                 ignored=f"answer captured at {answer.stamp_s} is older than the last one ({self.last_answer_s})")

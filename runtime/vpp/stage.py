@@ -33,7 +33,7 @@ from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
 from runtime.sensor_data import CameraImage, LidarScan
-from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, ReconcileResult
+from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, MaskMemoryError, ReconcileResult
 from runtime.vpp.partition import MOVABLE, PartitionConfig, PointPartition, PointPartitioner
 
 DEFAULT_PROMPT = (
@@ -103,6 +103,8 @@ class VppStage:
         self.requests = 0
         self.answers = 0
         self.failed_answers = 0
+        self.rejected_answers = 0  # answers the memory refused (named in last_rejection)
+        self.last_rejection: str | None = None
         self.frames = 0
 
     def settle(self, t_s: float) -> None:
@@ -127,8 +129,12 @@ class VppStage:
             self.answers += 1
             self.failed_answers += int(answer.error is not None)
             points_cam = self._points_cam_at.pop(float(answer.stamp_s), None)
-            self.last_reconcile = self.memory.reconcile(answer, prompt=self.config.prompt, points_cam=points_cam,
-                                                        now_s=now_s)
+            try:
+                self.last_reconcile = self.memory.reconcile(answer, prompt=self.config.prompt,
+                                                            points_cam=points_cam, now_s=now_s)
+            except MaskMemoryError as exc:  # the memory stays as it was; the answer is named, not raised
+                self.rejected_answers += 1
+                self.last_rejection = str(exc)
         if image is not None:
             self._check_image(image)
             if not self.runner.busy and self.memory.query_due(now_s, T_odom_cam):
@@ -159,6 +165,7 @@ class VppStage:
     def describe(self) -> dict:
         return {
             "requests": self.requests, "answers": self.answers, "failed_answers": self.failed_answers,
+            "rejected_answers": self.rejected_answers, "last_rejection": self.last_rejection,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,
         }

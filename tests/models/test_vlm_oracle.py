@@ -370,3 +370,44 @@ def test_runner_config_errors():
     r.close()
     with pytest.raises(RuntimeError, match="after close"):
         r.submit(_req(0.0))
+
+
+def test_runner_validates_objects_where_they_enter_dropping_bad_ones_by_name():
+    """Whatever a backend's own checks, the runner checks each object against the request's
+    image: a non-bool movable, a wrong-size or non-bool mask is dropped and named, the rest pass."""
+    from models.vlm.interface import DetectedObject, VlmAnswer, VlmRequest
+    from models.vlm.runner import BackendRunner, BackendRunnerConfig
+
+    class Sloppy:
+        name = "sloppy"
+
+        def query(self, request):
+            good = DetectedObject(np.ones((4, 6), bool), "box", True, 2.0, 0.9)
+            bad = (DetectedObject(np.ones((4, 6), bool), "wall", "false", 2.0, 0.9),
+                   DetectedObject(np.ones((8, 12), bool), "box", True, 2.0, 0.9),
+                   DetectedObject(np.ones((4, 6), np.uint8), "box", True, 2.0, 0.9))
+            return VlmAnswer(request.stamp_s, request.camera_pose_odom, (good, *bad), self.name, 0.0)
+
+    runner = BackendRunner(Sloppy(), BackendRunnerConfig(clock="lockstep", latency_s=0.1))
+    runner.submit(VlmRequest(np.zeros((4, 6, 3), np.uint8), 0.0, np.eye(4), "p"))
+    (answer,) = runner.poll(0.2)
+    assert [o.label for o in answer.objects] == ["box"] and len(answer.rejected) == 3
+    assert any("movable" in r for r in answer.rejected) and any("mask shape" in r for r in answer.rejected)
+    assert any("dtype" in r for r in answer.rejected)
+
+
+def test_a_real_time_runner_refuses_a_backend_slower_than_its_timeout():
+    from models.vlm.runner import BackendRunner, BackendRunnerConfig
+
+    class Cfg:
+        def worst_case_s(self):
+            return 61.5
+
+    class Slow:
+        name, config = "slow", Cfg()
+
+        def query(self, request):  # pragma: no cover - never called
+            raise AssertionError
+
+    with pytest.raises(ValueError, match="up to 61.5 s"):
+        BackendRunner(Slow(), BackendRunnerConfig(clock="realtime", timeout_s=5.0))

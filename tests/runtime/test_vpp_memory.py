@@ -402,9 +402,13 @@ def test_entries_age_out():
     assert len(mem.propagate(4.9, np.eye(4))) == 2
     assert [w.object_id for w in mem.propagate(7.9, np.eye(4))] == [0, 1]
     assert mem.propagate(8.1, np.eye(4)) == [] and mem.entries == []
-    mem.reconcile(answer(0.0 + 10, np.eye(4), [rect(0, 0, 50, 50)]), now_s=100.0)
-    assert len(mem.entries) == 1  # inserted after ageing; the next propagate forgets it
-    assert mem.propagate(100.0, np.eye(4)) == []
+    mem.reconcile(answer(0.0 + 10, np.eye(4), [rect(0, 0, 50, 50)]), now_s=12.0)
+    assert len(mem.entries) == 1
+    # An answer captured longer ago than max_age_s is ignored (its masks would age out at once,
+    # after dropping every entry they did not match).
+    late = mem.reconcile(answer(8.5, np.eye(4), [rect(100, 100, 150, 150)]), now_s=14.0)
+    assert late.ignored is not None and "older than max_age_s" in late.ignored
+    assert [e.object_id for e in mem.entries] == [2]
 
 
 # ---------------------------------------------------------------- bad inputs
