@@ -41,8 +41,9 @@ def list_command() -> None:
                    "odometry's effective track and wheel scale.")
 @click.option(
     "--planner",
-    type=click.Choice(["pure-pursuit", "all-fixed"]),
-    help="Override the config's planner mode (all-fixed: MPC with every lidar point fixed, the NeuPAN-like baseline).",
+    type=click.Choice(["pure-pursuit", "all-fixed", "dct"]),
+    help="Override the config's planner mode (all-fixed: MPC with every lidar point fixed, the NeuPAN-like baseline; "
+         "dct: only the VLM partition's P_fix, with the sim-oracle and a 2 Hz camera; in progress, issue 13).",
 )
 @click.option(
     "--fault", "fault_texts", multiple=True, metavar="NAME:START_S[:DURATION_S]",

@@ -33,6 +33,10 @@ from runtime.telemetry import TickTelemetry
 
 if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
     from hil_sim.sensor_rig import SensorRigConfig
+    from models.vlm.sim_oracle import SimOracleConfig
+
+#: Camera frames per second in planner mode dct (the VLM answers about once a second).
+DCT_CAMERA_RATE_HZ = 2.0
 
 
 class SimulatedDevice(Protocol):
@@ -160,6 +164,7 @@ def run_episode(
     faults: Iterable[FaultSpec] = (),
     wheel_calibration: tuple[float, float] | None = None,
     observe: Callable[[NavigationController], None] | None = None,
+    oracle: "SimOracleConfig | None" = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -198,7 +203,17 @@ def run_episode(
         from hil_sim.sensor_rig import SensorRig, SensorRigConfig
 
         rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
+        if config.planner.mode == "dct" and sensors is True:
+            # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle.
+            rig_config = rig_config.model_copy(update={"camera_rate_hz": DCT_CAMERA_RATE_HZ,
+                                                       "camera_segmentation": True})
         devices.append(SensorRig(world, robot, injector, rig_config))
+    vlm_backend = None
+    if config.planner.mode == "dct":
+        from hil_sim.vlm_oracle import oracle_backend
+        from models.vlm.sim_oracle import SimOracleConfig
+
+        vlm_backend = oracle_backend(world, oracle or SimOracleConfig(seed=seed))
     sim = LockstepSimulation(world, firmware, metrics, devices, controls=[injector])
     clock = LockstepClock(sim)
 
@@ -208,12 +223,14 @@ def run_episode(
         controller = NavigationController(
             robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now,
             sensors=inbox if has_sensors else None, lockstep=True, wheel_calibration=wheel_calibration,
+            vlm_backend=vlm_backend,
         )
     except BaseException:
         controller_bus.shutdown()
         sim_bus.shutdown()
         raise
     clock.barriers.append(controller.odometry)
+    clock.barriers.append(controller)  # the VLM answers due (mode dct; nothing otherwise)
     telemetry = TickTelemetry()
     loop = FixedRateLoop(
         clock,

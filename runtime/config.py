@@ -14,6 +14,7 @@ from runtime.odometry.stage import OdometryConfig
 from runtime.planning.mpc import MpcConfig
 from runtime.planning.reference_path import ReferencePathConfig
 from runtime.safety_supervisor import SafetySupervisorConfig
+from runtime.vpp.stage import VppConfig
 from runtime.telemetry import STAGES
 
 
@@ -80,7 +81,9 @@ class PlannerConfig(_Strict):
     #: all-fixed: reference path + OSQP MPC with the distance net + safety supervisor on lidar
     #: points, every point treated as P_fix (the NeuPAN-like baseline; the VLM partition of
     #: roadmap step 5 adds the DCT mode next to it).
-    mode: Literal["pure-pursuit", "all-fixed"]
+    #: dct: as all-fixed, with only the VPP partition's P_fix as obstacles (`vpp:`; a VLM
+    #: backend is required: the sim-oracle in HIL).
+    mode: Literal["pure-pursuit", "all-fixed", "dct"]
     pure_pursuit: PurePursuitConfig
     distance_net_path: str | None = None  # None: the shipped artifact for the robot
     obstacle_points: ObstaclePointsConfig = ObstaclePointsConfig()
@@ -110,6 +113,8 @@ class ControllerConfig(_Strict):
     recovery: RecoveryConfig = RecoveryConfig()
     #: Wheels + gyro + KISS-ICP, fused (runtime.odometry).
     odometry: OdometryConfig = OdometryConfig()
+    #: The VLM point partition (runtime.vpp; planner mode dct).
+    vpp: VppConfig = VppConfig()
 
     @model_validator(mode="after")
     def _tick_matches_mpc(self) -> "ControllerConfig":

@@ -77,12 +77,15 @@ class NavigationController:
         sensors: SensorInbox | None = None,
         lockstep: bool = False,
         wheel_calibration: tuple[float, float] | None = None,
+        vlm_backend=None,
     ) -> None:
         """lockstep: the clock is simulated time; nothing that decides behaviour may read the wall
         clock (solver caps are iteration counts, ICP results arrive at a fixed simulated latency).
         False on the robot and in real-time HIL.
         wheel_calibration: (effective track m, wheel scale) from the robot's calibration file
-        (`dct calibrate wheels`); None: the robot description's track x skid_steer_yaw_factor, 1.0."""
+        (`dct calibrate wheels`); None: the robot description's track x skid_steer_yaw_factor, 1.0.
+        vlm_backend: the contact-tolerance backend (models.vlm) of planner mode dct (the
+        sim-oracle in HIL); it runs beside the tick (models.vlm.runner)."""
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
@@ -105,8 +108,9 @@ class NavigationController:
         )
         op = config.planner.obstacle_points
         self.monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=uses_sensors, uses_imu=uses_sensors)
-        # P_fix in the odom frame (every lidar point is fixed until the VPP partition lands).
+        # P_fix in the odom frame: every lidar point, or (mode dct) those the VPP partition keeps.
         self.points_fix = _NO_POINTS
+        self.vpp = self._build_vpp(config, robot, vlm_backend, lockstep) if config.planner.mode == "dct" else None
         self.obstacles = ObstaclePointExtractor(
             robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
         )
@@ -158,6 +162,30 @@ class NavigationController:
             self.hardware.deactivate()
         finally:
             self.odometry.close()
+            if self.vpp is not None:
+                self.vpp.close()
+
+    @staticmethod
+    def _build_vpp(config: ControllerConfig, robot: RobotDescription, backend, lockstep: bool):
+        """The VPP stage of mode dct: the robot's camera (nominal intrinsics until a calibration
+        file gives its own), its mounts, the backend in a runner on this controller's clock."""
+        from calibration.camera_model import CameraModel
+        from models.vlm.runner import BackendRunner
+        from runtime.vpp.stage import VppStage
+
+        if backend is None:
+            raise ValueError("planner mode dct needs a contact-tolerance backend (models.vlm): the sim-oracle in "
+                             "HIL; none was given")
+        cam = robot.sensors.camera
+        runner_config = config.vpp.runner.model_copy(update={"clock": "lockstep" if lockstep else "realtime"})
+        return VppStage(config.vpp, CameraModel(cam.nominal_intrinsics(), np.zeros(5), cam.width_px, cam.height_px),
+                        cam.mount.transform(), robot.sensors.lidar.mount.transform(),
+                        BackendRunner(backend, runner_config))
+
+    def settle(self, t_s: float) -> None:
+        """Lockstep barrier (the simulator calls it before time t_s): the VLM answers due."""
+        if self.vpp is not None:
+            self.vpp.settle(t_s)
 
     @property
     def finished(self) -> bool:
@@ -184,17 +212,19 @@ class NavigationController:
         stages.mark(ODOMETRY)
 
         scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
+        only = None
+        if self.vpp is not None:  # mode dct: the movable points leave P_fix
+            frame = self.vpp.update(now, (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad), sensors.image, scan)
+            only = frame.fixed if frame is not None else None
         if scan is not None:
-            # Partition (VPP, roadmap step 5) will split P_mov from P_fix here; for now every
-            # point is P_fix (the NeuPAN-like all-fixed baseline).
             self.points_fix = self.obstacles.extract(
-                scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps
+                scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps, only=only
             )
         stages.mark(PARTITION)
 
         v, omega = 0.0, 0.0
-        if self.state is ControllerState.ACTIVE:
-            v, omega = self._plan(now)
+        if self.state is ControllerState.ACTIVE and (self.vpp is None or self.vpp.ready):
+            v, omega = self._plan(now)  # (mode dct waits for the VLM's first answer, or its failure)
         stages.mark(PLANNER)
 
         v, omega = self._safety(v, omega)
@@ -426,6 +456,8 @@ class NavigationController:
             "events_dropped": self.events.dropped,
             "odometry": self.odometry.describe(),
         }
+        if self.vpp is not None:
+            out["vpp"] = self.vpp.describe()
         out.update(self.modes.counters())
         if self.supervisor is not None:
             out.update(safety_stops=self.supervisor.stops, safety_slowdowns=self.supervisor.slowdowns)

@@ -71,10 +71,14 @@ class ObstaclePointExtractor:
         self.points_in = 0
         self.points_out = 0
 
-    def extract(self, scan: LidarScan, pose_now: Pose2D, now_s: float, v_mps: float, omega_radps: float) -> np.ndarray:
-        """P (N, 2) in the odom frame, deskewed to `now_s` with the twist (v, omega)."""
+    def extract(self, scan: LidarScan, pose_now: Pose2D, now_s: float, v_mps: float, omega_radps: float,
+                only: np.ndarray | None = None) -> np.ndarray:
+        """P (N, 2) in the odom frame, deskewed to `now_s` with the twist (v, omega). only: (N,)
+        bool, the scan points to use (the VPP's P_fix); None: all of them."""
         q = scan.points_m.astype(np.float64) @ self.R_base_lidar.T + self.t_base_lidar  # base_link at cast time
         keep = (q[:, 2] > self.min_z_m) & (q[:, 2] < self.max_z_m)
+        if only is not None:
+            keep &= only
         keep &= (q[:, 0] ** 2 + q[:, 1] ** 2) < self.max_range_m**2
         q = q[keep]
         dt = (scan.stamp_s + scan.point_time_offsets_s[keep].astype(np.float64)) - now_s  # <= 0: cast in the past

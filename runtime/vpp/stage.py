@@ -97,6 +97,7 @@ class VppStage:
         self.partitioner = PointPartitioner(config.partition)
         self._points_cam_at: dict[float, np.ndarray] = {}  # request stamp -> scan points, capture camera frame
         self._last_scan_cam: np.ndarray | None = None
+        self._image: tuple[CameraImage, np.ndarray] | None = None
         self.last_frame: VppFrame | None = None
         self.last_reconcile: ReconcileResult | None = None
         # Counters (never reset).
@@ -137,14 +138,9 @@ class VppStage:
                 self.last_rejection = str(exc)
         if image is not None:
             self._check_image(image)
-            if not self.runner.busy and self.memory.query_due(now_s, T_odom_cam):
-                request = VlmRequest(image=image.pixels, stamp_s=image.stamp_s, camera_pose_odom=T_odom_cam,
-                                     prompt=self.config.prompt, segmentation=image.segmentation)
-                self._points_cam_at = {} if self._last_scan_cam is None else {float(image.stamp_s): self._last_scan_cam}
-                self.runner.submit(request, now_s)
-                self.memory.note_query(image.stamp_s, T_odom_cam)
-                self.requests += 1
+            self._image = (image, T_odom_cam)  # the newest image and the camera pose that received it
         if scan is None:
+            self._maybe_ask(now_s)
             return None
         warped = self.memory.propagate(now_s, T_odom_cam)
         use = [w for w in warped if w.entry.movable and w.entry.contact_cost < self.config.never_touch_cost
@@ -158,9 +154,33 @@ class VppStage:
         )
         p = np.asarray(scan.points_m, dtype=np.float64)
         self._last_scan_cam = p @ self.T_cam_lidar[:3, :3].T + self.T_cam_lidar[:3, 3]
+        self._maybe_ask(now_s)
         self.frames += 1
         self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
         return self.last_frame
+
+    def _maybe_ask(self, now_s: float) -> None:
+        """Send the newest image when the trigger rule says so and nothing is in flight; not
+        before a scan was seen (a mask without the lidar points at capture has no plane, and the
+        rotation-only warp loses it within a few decimetres of travel)."""
+        if self._image is None or self._last_scan_cam is None or self.runner.busy:
+            return
+        image, T_odom_cam = self._image
+        if not self.memory.query_due(now_s, T_odom_cam):
+            return
+        self._image = None
+        request = VlmRequest(image=image.pixels, stamp_s=image.stamp_s, camera_pose_odom=T_odom_cam,
+                             prompt=self.config.prompt, segmentation=image.segmentation)
+        self._points_cam_at = {float(image.stamp_s): self._last_scan_cam}
+        self.runner.submit(request, now_s)
+        self.memory.note_query(image.stamp_s, T_odom_cam)
+        self.requests += 1
+
+    @property
+    def ready(self) -> bool:
+        """A first answer (or failure) has come back: before it, the stage knows nothing the
+        all-fixed partition does not, and the controller waits rather than commit to a detour."""
+        return self.answers > 0
 
     def describe(self) -> dict:
         return {
