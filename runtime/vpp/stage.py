@@ -50,6 +50,11 @@ class VppConfig(BaseModel):
     prompt: str = Field(DEFAULT_PROMPT, min_length=1, max_length=2000)
     #: A movable object with at least this contact cost stays in P_fix (IMPACT: 8+ is fragile).
     never_touch_cost: float = Field(8.0, ge=0.0, le=10.0)
+    #: A warped mask grown to more than this many times its captured area (the camera came close
+    #: to the object's plane, or the object moved: a pushed box stays in front of the robot while
+    #: the warp assumes it stood still) is not trusted: its points stay P_fix. Without it a mask
+    #: swells over the whole image and gates fixed objects as movable.
+    max_mask_growth: float = Field(2.5, gt=1.0, le=100.0)
     memory: MaskMemoryConfig = MaskMemoryConfig()
     partition: PartitionConfig = PartitionConfig()
     runner: BackendRunnerConfig = BackendRunnerConfig()
@@ -105,6 +110,7 @@ class VppStage:
         self.answers = 0
         self.failed_answers = 0
         self.rejected_answers = 0  # answers the memory refused (named in last_rejection)
+        self.masks_distrusted = 0  # warped masks grown past max_mask_growth (kept out of the gate)
         self.last_rejection: str | None = None
         self.frames = 0
 
@@ -143,8 +149,14 @@ class VppStage:
             self._maybe_ask(now_s)
             return None
         warped = self.memory.propagate(now_s, T_odom_cam)
-        use = [w for w in warped if w.entry.movable and w.entry.contact_cost < self.config.never_touch_cost
-               and w.mask.any()]
+        use = []
+        for w in warped:
+            if not (w.entry.movable and w.entry.contact_cost < self.config.never_touch_cost and w.mask.any()):
+                continue
+            if np.count_nonzero(w.mask) > self.config.max_mask_growth * np.count_nonzero(w.entry.mask):
+                self.masks_distrusted += 1
+                continue
+            use.append(w)
         h, w = self.camera.height_px, self.camera.width_px
         masks = np.stack([m.mask for m in use]) if use else np.zeros((0, h, w), bool)
         part = self.partitioner.partition(
@@ -186,6 +198,7 @@ class VppStage:
         return {
             "requests": self.requests, "answers": self.answers, "failed_answers": self.failed_answers,
             "rejected_answers": self.rejected_answers, "last_rejection": self.last_rejection,
+            "masks_distrusted": self.masks_distrusted,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,
         }

@@ -122,3 +122,16 @@ def test_an_image_from_another_camera_is_refused_naming_it():
     other = CameraImage(stamp_s=0.0, pixels=np.zeros((H, W, 3), np.uint8), K=K * np.array([[2, 1, 1], [1, 2, 1], [1, 1, 1]]))
     with pytest.raises(ValueError, match="does not match the calibrated camera"):
         stage.update(0.0, (0.0, 0.0, 0.0), other, None)
+
+
+def test_a_mask_the_warp_swells_is_not_trusted():
+    """Driving up to the box (1.5 m ahead) the plane warp enlarges its mask as the box nears; past
+    max_mask_growth (2.5x the captured area, about 0.9 m closer) its points go back to P_fix,
+    before the mask can swell over the image and gate fixed points as movable."""
+    stage = make(FakeVlm())
+    stage.update(0.0, (0.0, 0.0, 0.0), image_at(0.0), scan_at(0.0)[0])
+    stage.settle(0.6)
+    near = stage.update(0.6, (0.3, 0.0, 0.0), None, scan_at(0.6)[0])
+    assert near.masks_used == 1 and stage.masks_distrusted == 0
+    close = stage.update(0.7, (1.0, 0.0, 0.0), None, scan_at(0.7)[0])
+    assert close.masks_used == 0 and stage.masks_distrusted == 1
