@@ -3,8 +3,8 @@ ground-truth segmentation, the sim-oracle beside the tick (1.5 s simulated laten
 warp and partition in the tick, the MPC on the partition's P_fix only.
 
 What it does today (README): it waits for the first answer, then drives at the box the oracle
-calls movable and pushes it; case2 does not pass yet (the mask of a pushed box is warped as if the
-box stood still, and leaves it). These tests pin the pipeline, not success."""
+calls movable and pushes it (point tracking keeps the pushed box movable); case2 does not pass yet
+(it ends 0.23 m past the goal). These tests pin the pipeline, not success."""
 from __future__ import annotations
 
 from hil_sim.runner import run_episode
