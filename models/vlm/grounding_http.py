@@ -49,7 +49,7 @@ Validation (strict, per detection; a bad one is dropped and named, the others ke
 * More than `max_detections` detections: the best by score are kept, the rest named.
 A body that is not JSON or has no ``detections`` list: `RegionProposalError` (not retried).
 
-Transport: the openai-compatible client's (`openai_compatible._Attempt`): each attempt is
+Transport: the openai-compatible client's (`openai_compatible.Attempt`): each attempt is
 bounded end to end by `timeout_s` (connect, send, headers, body), timeouts, refused/closed
 connections, 429 and 5xx are retried up to `max_retries` times with `backoff_s * 2**k` sleeps,
 other 4xx are not. `propose` returns or raises within `config.worst_case_s()` plus scheduling
@@ -69,10 +69,10 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import ConfigDict, Field
 
 from models.vlm.interface import CandidateRegion
-from models.vlm.openai_compatible import _Attempt, _error_message, _Permanent, _Transient
+from models.vlm.http_transport import Attempt, HttpServiceConfig, PermanentError, TransientError, error_message
 from models.vlm.regions import (
     DepthInput,
     RegionProposalError,
@@ -89,7 +89,7 @@ PROPOSER_NAME = "grounding-http"
 MAX_LABEL_CHARS = 200
 
 
-class GroundingHttpConfig(BaseModel):
+class GroundingHttpConfig(HttpServiceConfig):
     """Where the detector is, its thresholds and how long to wait (module docstring)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -110,17 +110,6 @@ class GroundingHttpConfig(BaseModel):
     min_depth_points: int = Field(default=3, ge=1)
     max_response_bytes: int = Field(default=32 << 20, ge=1024, description="a longer body is an error, not read on")
 
-    @field_validator("base_url")
-    @classmethod
-    def _http_url(cls, v: str) -> str:
-        u = urllib.parse.urlsplit(v)
-        if u.scheme not in ("http", "https") or not u.hostname or u.query or u.fragment:
-            raise ValueError(f"base_url must be http(s)://host[:port][/path] without query, got {v!r}")
-        return v.rstrip("/")
-
-    def worst_case_s(self) -> float:
-        """The longest `propose` may take (all attempts time out), before scheduling noise."""
-        return (self.max_retries + 1) * self.timeout_s + self.backoff_s * (2**self.max_retries - 1)
 
 
 def detector_prompt(phrases: list[str] | tuple[str, ...]) -> str:
@@ -401,19 +390,19 @@ class GroundingHttpProposer:
             if k > 0:
                 time.sleep(cfg.backoff_s * 2 ** (k - 1))
             try:
-                status, resp = _Attempt(self._url, self._path, payload, headers, cfg.timeout_s, cfg.max_response_bytes).run()
-            except _Transient as e:
+                status, resp = Attempt(self._url, self._path, payload, headers, cfg.timeout_s, cfg.max_response_bytes).run()
+            except TransientError as e:
                 last = str(e)
                 logger.info("%s attempt %d/%d: %s", self.name, k + 1, attempts, last)
                 continue
-            except _Permanent as e:
+            except PermanentError as e:
                 raise RegionProposalError(f"grounding-http: {e}") from None
             if status == 429 or status >= 500:
-                last = _error_message(status, resp)
+                last = error_message(status, resp)
                 logger.info("%s attempt %d/%d: %s", self.name, k + 1, attempts, last)
                 continue
             if not 200 <= status < 300:
-                raise RegionProposalError(f"grounding-http: {_error_message(status, resp)}")
+                raise RegionProposalError(f"grounding-http: {error_message(status, resp)}")
             parsed = parse_detections(resp, img.shape[:2], sent.shape[:2], cfg, sent, sd)
             if parsed.error is not None:
                 raise RegionProposalError(f"grounding-http: {parsed.error}")

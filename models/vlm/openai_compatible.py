@@ -68,20 +68,17 @@ after `query` has returned, and it ends with the lookup).
 """
 from __future__ import annotations
 
-import http.client
 import json
 import logging
 import math
 import os
-import socket
-import threading
 import time
 import urllib.parse
 from dataclasses import dataclass
 from typing import Any, Literal, Sequence
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import ConfigDict, Field
 
 from models.vlm.interface import (
     CandidateRegion,
@@ -93,6 +90,7 @@ from models.vlm.interface import (
     validate_object,
     validate_request,
 )
+from models.vlm.http_transport import Attempt, HttpServiceConfig, PermanentError, TransientError, error_message
 from models.vlm.set_of_mark import draw_marks, encode_data_url
 
 logger = logging.getLogger(__name__)
@@ -120,7 +118,7 @@ For each mark that shows a real object (skip marks on floor, wall-less backgroun
 Give each mark at most once. Reply with JSON only, in the requested schema."""
 
 
-class OpenAICompatibleConfig(BaseModel):
+class OpenAICompatibleConfig(HttpServiceConfig):
     """Where the server is and how long to wait for it (controller config, `vlm:` section)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -138,17 +136,6 @@ class OpenAICompatibleConfig(BaseModel):
     max_tokens: int | None = Field(default=None, ge=16, description="sent only when set")
     max_response_bytes: int = Field(default=4 << 20, ge=1024, description="a longer body is an error, not read on")
 
-    @field_validator("base_url")
-    @classmethod
-    def _http_url(cls, v: str) -> str:
-        u = urllib.parse.urlsplit(v)
-        if u.scheme not in ("http", "https") or not u.hostname or u.query or u.fragment:
-            raise ValueError(f"base_url must be http(s)://host[:port][/path] without query, got {v!r}")
-        return v.rstrip("/")
-
-    def worst_case_s(self) -> float:
-        """The longest `query` may take (all attempts time out), before scheduling noise."""
-        return (self.max_retries + 1) * self.timeout_s + self.backoff_s * (2**self.max_retries - 1)
 
 
 # --------------------------------------------------------------------------------- the question
@@ -325,102 +312,6 @@ def message_content(body: bytes) -> tuple[Any, str | None]:
     return content, None
 
 
-def _error_message(status: int, body: bytes) -> str:
-    """'HTTP 401: <the server's error message>'."""
-    detail = body[:200].decode("utf-8", "replace")
-    try:
-        data = json.loads(body)
-        if isinstance(data, dict) and isinstance(data.get("error"), dict) and "message" in data["error"]:
-            detail = str(data["error"]["message"])[:200]
-    except (ValueError, RecursionError):
-        pass
-    return f"HTTP {status}: {detail}"
-
-
-# ------------------------------------------------------------------------------------ transport
-
-
-class _Transient(Exception):
-    """Worth retrying: timeout, connection trouble, 429, 5xx."""
-
-
-class _Permanent(Exception):
-    """Not worth retrying: other 4xx, an oversized body."""
-
-
-class _Attempt:
-    """One POST in a daemon thread; `run` waits at most timeout_s and then kills the socket."""
-
-    def __init__(self, url: urllib.parse.SplitResult, path: str, body: bytes, headers: dict[str, str],
-                 timeout_s: float, max_bytes: int):
-        self._url, self._path, self._body, self._headers = url, path, body, headers
-        self._timeout_s, self._max_bytes = timeout_s, max_bytes
-        self._conn: http.client.HTTPConnection | None = None
-        self._result: tuple[int, bytes] | None = None
-        self._exc: BaseException | None = None
-        self._lock = threading.Lock()
-        self._abandoned = False
-
-    def _work(self) -> None:
-        try:
-            cls = http.client.HTTPSConnection if self._url.scheme == "https" else http.client.HTTPConnection
-            conn = cls(self._url.hostname, self._url.port, timeout=self._timeout_s)
-            with self._lock:
-                if self._abandoned:
-                    return
-                self._conn = conn
-            conn.connect()  # bounded by timeout_s (DNS excepted: see the module docstring)
-            with self._lock:
-                if self._abandoned:  # the caller gave up while we connected
-                    return
-            conn.request("POST", self._path, body=self._body, headers=self._headers)
-            resp = conn.getresponse()
-            chunks, total = [], 0
-            while True:
-                chunk = resp.read(65536)
-                if not chunk:
-                    break
-                chunks.append(chunk)
-                total += len(chunk)
-                if total > self._max_bytes:
-                    raise _Permanent(f"response larger than {self._max_bytes} bytes")
-            self._result = (resp.status, b"".join(chunks))
-        except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
-            self._exc = e
-        finally:
-            with self._lock:
-                conn, self._conn = self._conn, None
-            if conn is not None:
-                conn.close()
-
-    def run(self) -> tuple[int, bytes]:
-        t = threading.Thread(target=self._work, name="vlm-http", daemon=True)
-        t.start()
-        t.join(self._timeout_s)
-        if t.is_alive():
-            with self._lock:
-                self._abandoned = True
-                conn = self._conn
-            sock = getattr(conn, "sock", None) if conn is not None else None
-            if sock is not None:
-                try:
-                    sock.shutdown(socket.SHUT_RDWR)  # wakes the blocked recv/send in _work
-                except OSError:
-                    pass
-            raise _Transient(f"no complete answer within {self._timeout_s:g} s")
-        if self._exc is not None:
-            e = self._exc
-            if isinstance(e, _Permanent):
-                raise e
-            if isinstance(e, (TimeoutError, socket.timeout)):
-                raise _Transient(f"no complete answer within {self._timeout_s:g} s")
-            if isinstance(e, (OSError, http.client.HTTPException)):
-                raise _Transient(f"connection failed ({type(e).__name__}: {str(e)[:80]})")
-            raise _Permanent(f"{type(e).__name__}: {str(e)[:80]}")
-        assert self._result is not None
-        return self._result
-
-
 # -------------------------------------------------------------------------------------- backend
 
 
@@ -477,21 +368,21 @@ class OpenAICompatibleBackend(VlmBackend):
             if k > 0:
                 time.sleep(self.config.backoff_s * 2 ** (k - 1))
             try:
-                status, resp_body = _Attempt(
+                status, resp_body = Attempt(
                     self._url, self._path, body, headers, self.config.timeout_s, self.config.max_response_bytes
                 ).run()
-            except _Transient as e:
+            except TransientError as e:
                 last = str(e)
                 logger.info("%s attempt %d/%d: %s", self.name, k + 1, attempts, last)
                 continue
-            except _Permanent as e:
+            except PermanentError as e:
                 return self._answer(request, t0, error=str(e))
             if status == 429 or status >= 500:
-                last = _error_message(status, resp_body)
+                last = error_message(status, resp_body)
                 logger.info("%s attempt %d/%d: %s", self.name, k + 1, attempts, last)
                 continue
             if not 200 <= status < 300:
-                return self._answer(request, t0, error=_error_message(status, resp_body))
+                return self._answer(request, t0, error=error_message(status, resp_body))
             content, why = message_content(resp_body)
             if why is not None:
                 return self._answer(request, t0, error=why)
