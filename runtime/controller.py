@@ -366,6 +366,13 @@ class NavigationController:
         if state is ControllerState.ACTIVE:
             if self.supervisor is not None:
                 v, omega = self._supervise(v, omega)
+                if self.last_safety.stopped:
+                    # A stop is zero now, as a hold is (the base brakes at its own limits), not a
+                    # ramp: ramping from the command before it, a stop that cleared the next tick
+                    # let the robot drive on at 90% of its speed into what it had stopped for
+                    # (mode dct, case2: a pushed box back in P_fix, a stop every other tick).
+                    self.limiter.reset()
+                    return 0.0, 0.0
             return self.limiter.limit(v, omega, self.period_s)
         if state is ControllerState.GOAL_REACHED:
             return self.limiter.limit(0.0, 0.0, self.period_s)  # ramp down at the limits
