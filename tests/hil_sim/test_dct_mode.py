@@ -3,8 +3,8 @@ ground-truth segmentation, the sim-oracle beside the tick (1.5 s simulated laten
 warp and partition in the tick, the MPC on the partition's P_fix only.
 
 What it does today (README): it waits for the first answer, then drives at the box the oracle
-calls movable and pushes it (point tracking keeps the pushed box movable); case2 does not pass yet
-(it passes on 2 of 5 seeds). These tests pin the pipeline, not success."""
+calls movable and pushes it (point tracking keeps the pushed box movable); case2 passes on 2 of
+5 seeds only. These tests pin the pipeline, not success."""
 from __future__ import annotations
 
 from hil_sim.runner import run_episode
