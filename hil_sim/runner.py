@@ -203,7 +203,7 @@ def run_episode(
         from hil_sim.sensor_rig import SensorRig, SensorRigConfig
 
         rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
-        if config.planner.mode == "dct" and sensors is True:
+        if config.planner.mode == "dct":
             # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle.
             rig_config = rig_config.model_copy(update={"camera_rate_hz": DCT_CAMERA_RATE_HZ,
                                                        "camera_segmentation": True})

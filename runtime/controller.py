@@ -223,7 +223,7 @@ class NavigationController:
         stages.mark(PARTITION)
 
         v, omega = 0.0, 0.0
-        if self.state is ControllerState.ACTIVE and (self.vpp is None or self.vpp.ready):
+        if self.state is ControllerState.ACTIVE and (self.vpp is None or self.vpp.ready(now)):
             v, omega = self._plan(now)  # (mode dct waits for the VLM's first answer, or its failure)
         stages.mark(PLANNER)
 

@@ -2,8 +2,8 @@
 
 Per tick, in this order:
 1. answers the backend runner delivered by now (models/vlm/runner.py) are reconciled into the
-   mask memory (Phase II, eq. 5), each with the lidar points of the scan nearest its capture in
-   the capture camera's frame, for the plane of every fresh mask (mask_memory.py);
+   mask memory (Phase II, eq. 5), each with the newest scan at its request, placed in the
+   capture camera's frame through the odom frame, for the plane of every fresh mask;
 2. a new camera image is sent to the backend when the trigger rule says so (line 3: moved more
    than d_thres, or t_thres passed, or the memory is empty) and no request is in flight; the
    camera pose at capture is the pose of the tick that received the image (at 20 Hz, at most
@@ -66,6 +66,9 @@ class VppConfig(BaseModel):
     track_radius_m: float = Field(0.08, ge=0.0, le=0.5)
     track_max_s: float = Field(8.0, ge=0.0, le=60.0)
     track_extent_margin_m: float = Field(0.25, ge=0.0, le=5.0)
+    #: The controller waits for the first answer (mode dct); after this long without one it drives
+    #: on what it has (every point P_fix), and says so.
+    first_answer_timeout_s: float = Field(5.0, gt=0.0, le=120.0)
     memory: MaskMemoryConfig = MaskMemoryConfig()
     partition: PartitionConfig = PartitionConfig()
     runner: BackendRunnerConfig = BackendRunnerConfig()
@@ -117,8 +120,11 @@ class VppStage:
         self.memory = MaskMemory(camera, config.memory)
         self.partitioner = PointPartitioner(config.partition)
         self._points_cam_at: dict[float, np.ndarray] = {}  # request stamp -> scan points, capture camera frame
-        self._last_scan_cam: np.ndarray | None = None
+        self._last_scan_odom: np.ndarray | None = None
         self._image: tuple[CameraImage, np.ndarray] | None = None
+        self._first_tick_s: float | None = None
+        self.gave_up_waiting = False
+        self.images_refused = 0  # images from another camera than the calibrated one (named)
         self._tracked: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # odom points, ids, costs
         self._confirmed: dict[int, tuple[float, float]] = {}  # object id -> (last masked, its extent then)
         self.points_tracked = 0
@@ -162,8 +168,12 @@ class VppStage:
                 self.rejected_answers += 1
                 self.last_rejection = str(exc)
         if image is not None:
-            self._check_image(image)
-            self._image = (image, T_odom_cam)  # the newest image and the camera pose that received it
+            try:
+                self._check_image(image)
+                self._image = (image, T_odom_cam)  # the newest image and the camera pose that received it
+            except ValueError as exc:  # counted and named; the tick goes on with what it has
+                self.images_refused += 1
+                self.last_rejection = str(exc)
         if scan is None:
             self._maybe_ask(now_s)
             return None
@@ -184,8 +194,9 @@ class VppStage:
             T_odom_lidar=T_odom_base @ self.T_base_lidar, stamp_s=scan.stamp_s,
         )
         p = np.asarray(scan.points_m, dtype=np.float64)
-        self._track(now_s, part, p, T_odom_base @ self.T_base_lidar)
-        self._last_scan_cam = p @ self.T_cam_lidar[:3, :3].T + self.T_cam_lidar[:3, 3]
+        T_odom_lidar = T_odom_base @ self.T_base_lidar
+        self._track(now_s, part, p, T_odom_lidar)
+        self._last_scan_odom = p @ T_odom_lidar[:3, :3].T + T_odom_lidar[:3, 3]
         self._maybe_ask(now_s)
         self.frames += 1
         self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
@@ -196,7 +207,7 @@ class VppStage:
         VppConfig.track_*); updates `part`'s arrays in place."""
         c = self.config
         label, oid, cost = part.label, part.object_id, part.cost
-        masked = label == MOVABLE
+        masked = (label == MOVABLE) & part.in_view & ~part.from_memory  # labelled by a mask this scan
         p_odom = p_lidar @ T_odom_lidar[:3, :3].T + T_odom_lidar[:3, 3]
         for k in np.unique(oid[masked]):  # objects a mask labelled this scan: confirmed now, with their extent
             self._confirmed[int(k)] = (now_s, _extent(p_odom[oid == k]))
@@ -224,7 +235,7 @@ class VppStage:
         """Send the newest image when the trigger rule says so and nothing is in flight; not
         before a scan was seen (a mask without the lidar points at capture has no plane, and the
         rotation-only warp loses it within a few decimetres of travel)."""
-        if self._image is None or self._last_scan_cam is None or self.runner.busy:
+        if self._image is None or self._last_scan_odom is None or self.runner.busy:
             return
         image, T_odom_cam = self._image
         if not self.memory.query_due(now_s, T_odom_cam):
@@ -232,22 +243,35 @@ class VppStage:
         self._image = None
         request = VlmRequest(image=image.pixels, stamp_s=image.stamp_s, camera_pose_odom=T_odom_cam,
                              prompt=self.config.prompt, segmentation=image.segmentation)
-        self._points_cam_at = {float(image.stamp_s): self._last_scan_cam}
+        # The newest scan, in the camera frame at capture (the scan was placed in the odom frame
+        # with its own pose: the two may be up to a camera period apart).
+        T_cam_odom = np.linalg.inv(T_odom_cam)
+        self._points_cam_at = {float(image.stamp_s):
+                               self._last_scan_odom @ T_cam_odom[:3, :3].T + T_cam_odom[:3, 3]}
         self.runner.submit(request, now_s)
         self.memory.note_query(image.stamp_s, T_odom_cam)
         self.requests += 1
 
-    @property
-    def ready(self) -> bool:
-        """A first answer (or failure) has come back: before it, the stage knows nothing the
-        all-fixed partition does not, and the controller waits rather than commit to a detour."""
-        return self.answers > 0
+    def ready(self, now_s: float) -> bool:
+        """A first answer (or failure) has come back, or first_answer_timeout_s passed since the
+        stage's first tick: before that the stage knows nothing the all-fixed partition does not,
+        and the controller waits rather than commit to a detour (with no camera images or no
+        backend it would wait forever: the timeout ends it, `gave_up_waiting` says so)."""
+        if self._first_tick_s is None:
+            self._first_tick_s = now_s
+        if self.answers > 0:
+            return True
+        if now_s - self._first_tick_s > self.config.first_answer_timeout_s:
+            self.gave_up_waiting = True
+            return True
+        return False
 
     def describe(self) -> dict:
         return {
             "requests": self.requests, "answers": self.answers, "failed_answers": self.failed_answers,
             "rejected_answers": self.rejected_answers, "last_rejection": self.last_rejection,
             "masks_distrusted": self.masks_distrusted, "points_tracked": self.points_tracked,
+            "images_refused": self.images_refused, "gave_up_waiting": self.gave_up_waiting,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,
         }

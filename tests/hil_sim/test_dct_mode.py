@@ -20,11 +20,12 @@ def test_dct_mode_partitions_the_box_as_movable_and_never_touches_a_fixed_object
     def observe(controller):
         frame = controller.vpp.last_frame
         movable_points.append(0 if frame is None else frame.movable_count)
-        waited.append(not controller.vpp.ready and controller.command == (0.0, 0.0))
+        waited.append(controller.vpp.answers == 0 and controller.command == (0.0, 0.0))
 
     result = run_episode(scenario, config=cfg, seed=0, observe=observe)
     vpp = result.controller["vpp"]
     assert vpp["requests"] >= 1 and vpp["answers"] >= 1 and vpp["failed_answers"] == 0
+    assert not vpp["gave_up_waiting"] and vpp["images_refused"] == 0
     assert max(movable_points) > 100  # the box's points left P_fix once the answer came
     assert sum(waited) >= 20  # ~1.5 s at 20 Hz: no driving before the first answer
     assert result.metrics["fixed_contacts"] == 0

@@ -117,11 +117,33 @@ def test_no_new_request_while_one_is_in_flight_or_before_the_trigger():
     assert stage.requests == 2
 
 
-def test_an_image_from_another_camera_is_refused_naming_it():
+def test_an_image_from_another_camera_is_refused_naming_it_and_the_tick_goes_on():
     stage = make(FakeVlm())
     other = CameraImage(stamp_s=0.0, pixels=np.zeros((H, W, 3), np.uint8), K=K * np.array([[2, 1, 1], [1, 2, 1], [1, 1, 1]]))
-    with pytest.raises(ValueError, match="does not match the calibrated camera"):
-        stage.update(0.0, (0.0, 0.0, 0.0), other, None)
+    frame = stage.update(0.0, (0.0, 0.0, 0.0), other, scan_at(0.0)[0])
+    assert frame is not None and frame.fixed.all() and stage.requests == 0
+    assert stage.images_refused == 1 and "does not match the calibrated camera" in stage.last_rejection
+
+
+def test_without_any_answer_the_wait_ends_after_the_timeout_and_says_so():
+    stage = make(FakeVlm())  # no image ever: no request, no answer
+    assert not stage.ready(0.0) and not stage.ready(4.9)
+    assert stage.ready(5.1) and stage.gave_up_waiting
+
+
+def test_the_plane_points_of_a_request_are_the_scan_in_the_capture_camera_frame():
+    """The scan placed in the odom frame with its own pose, then in the camera at capture: a scan
+    taken 0.3 m further on still lands where the capture camera sees those points."""
+    stage = make(FakeVlm())
+    scan, n_box = scan_at(0.0)
+    stage.update(0.0, (0.3, 0.0, 0.0), None, scan)  # the scan, from 0.3 m ahead
+    stage.update(0.05, (0.0, 0.0, 0.0), image_at(0.05), None)  # the image, captured at 0
+    (pts,) = stage._points_cam_at.values()
+    from calibration.camera_model import transform_points
+
+    box, _ = scene_base()
+    expect = transform_points(np.linalg.inv(T_BASE_CAM), box + [0.3, 0.0, 0.0])
+    np.testing.assert_allclose(pts[:n_box], expect, atol=1e-5)
 
 
 def test_a_mask_the_warp_swells_is_not_trusted():
