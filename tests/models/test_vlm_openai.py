@@ -9,10 +9,7 @@ from __future__ import annotations
 
 import json
 import socket
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -28,6 +25,8 @@ from models.vlm.openai_compatible import (
     parse_answer,
 )
 from models.vlm.set_of_mark import PALETTE, decode_data_url, draw_marks, encode_data_url, mark_anchor
+from tests.models import http_fakes
+from tests.models.http_fakes import Behaviour, ScriptedServer, close_connection, hang, send
 
 H, W = 120, 160
 SLACK_S = 3.0  # scheduling noise on a slow shared machine; the bound itself is the config's
@@ -35,52 +34,8 @@ SLACK_S = 3.0  # scheduling noise on a slow shared machine; the bound itself is 
 
 # ------------------------------------------------------------------------------- the fake server
 
-Behaviour = Callable[[BaseHTTPRequestHandler], None]
-
-
-class FakeChatServer:
-    """A chat-completions server on 127.0.0.1 that plays one scripted behaviour per request
-    (the last one repeats) and records every request it got."""
-
-    def __init__(self) -> None:
-        self.script: list[Behaviour] = []
-        self.requests: list[dict] = []
-        self.release = threading.Event()  # set at teardown: hanging handlers return
-        server = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802 - http.server's name
-                n = int(self.headers.get("Content-Length", "0"))
-                raw = self.rfile.read(n)
-                server.requests.append({"path": self.path, "headers": dict(self.headers), "body": json.loads(raw)})
-                i = min(len(server.requests) - 1, len(server.script) - 1)
-                server.script[i](self)
-
-            def log_message(self, *args) -> None:
-                pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.httpd.daemon_threads = True
-        self.thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True)
-        self.thread.start()
-        self.base_url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
-
-    def close(self) -> None:
-        self.release.set()
-        self.httpd.shutdown()
-        self.httpd.server_close()
-
-
-def send_json(status: int, obj) -> Behaviour:
-    def act(h: BaseHTTPRequestHandler) -> None:
-        data = json.dumps(obj).encode()
-        h.send_response(status)
-        h.send_header("Content-Type", "application/json")
-        h.send_header("Content-Length", str(len(data)))
-        h.end_headers()
-        h.wfile.write(data)
-
-    return act
+FakeChatServer = ScriptedServer
+send_json = send
 
 
 def chat(content) -> Behaviour:
@@ -91,41 +46,13 @@ def chat(content) -> Behaviour:
                                         "message": {"role": "assistant", "content": text, "refusal": None}}]})
 
 
-def drip(server: FakeChatServer, interval_s: float) -> Behaviour:
-    """Headers at once, then the body one byte per interval: every read is quick, the whole is slow."""
-    body = json.dumps({"choices": [{"message": {"content": '{"objects": []}'}}]}).encode()
-
-    def act(h: BaseHTTPRequestHandler) -> None:
-        h.send_response(200)
-        h.send_header("Content-Length", str(len(body)))
-        h.end_headers()
-        try:
-            for b in body:
-                if server.release.wait(interval_s):
-                    return
-                h.wfile.write(bytes([b]))
-                h.wfile.flush()
-        except OSError:
-            pass
-
-    return act
-
-
-def hang(server: FakeChatServer) -> Behaviour:
-    def act(h: BaseHTTPRequestHandler) -> None:
-        server.release.wait(60)
-
-    return act
-
-
-def close_connection(h: BaseHTTPRequestHandler) -> None:
-    """Read the request, answer nothing, close (HTTP/1.0 handler closes after do_POST)."""
-    h.close_connection = True
+def drip(server: ScriptedServer, interval_s: float) -> Behaviour:
+    return http_fakes.drip(server, interval_s, json.dumps({"choices": [{"message": {"content": '{"objects": []}'}}]}).encode())
 
 
 @pytest.fixture
 def server():
-    s = FakeChatServer()
+    s = ScriptedServer("/v1")
     yield s
     s.close()
 

@@ -8,11 +8,8 @@ from __future__ import annotations
 
 import base64
 import json
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -39,6 +36,8 @@ from models.vlm.regions import (
     SparseDepth,
     mask_box,
 )
+from tests.models import http_fakes
+from tests.models.http_fakes import Behaviour, ScriptedServer, close_connection, hang, send
 
 PANDAR = Path(__file__).resolve().parents[1] / "data" / "real" / "pandar64_camera_opencalib"
 SLACK_S = 3.0
@@ -247,83 +246,16 @@ def test_opencv_proposer_on_the_real_image_with_real_lidar_depth(real_image_and_
 
 # ----------------------------------------------------------------------------- the fake server
 
-Behaviour = Callable[[BaseHTTPRequestHandler], None]
+FakeDetector = ScriptedServer
 
 
-class FakeDetector:
-    """A /detect server on 127.0.0.1 (port 0) playing one scripted behaviour per request (the
-    last one repeats); records each request's path and JSON body."""
-
-    def __init__(self) -> None:
-        self.script: list[Behaviour] = []
-        self.requests: list[dict] = []
-        self.release = threading.Event()
-        server = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802 - http.server's name
-                raw = self.rfile.read(int(self.headers.get("Content-Length", "0")))
-                server.requests.append({"path": self.path, "body": json.loads(raw)})
-                server.script[min(len(server.requests), len(server.script)) - 1](self)
-
-            def log_message(self, *args) -> None:
-                pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.httpd.daemon_threads = True
-        self.thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True)
-        self.thread.start()
-        self.base_url = f"http://127.0.0.1:{self.httpd.server_address[1]}/gd"
-
-    def close(self) -> None:
-        self.release.set()
-        self.httpd.shutdown()
-        self.httpd.server_close()
-
-
-def send(status: int, payload) -> Behaviour:
-    data = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
-
-    def act(h: BaseHTTPRequestHandler) -> None:
-        h.send_response(status)
-        h.send_header("Content-Type", "application/json")
-        h.send_header("Content-Length", str(len(data)))
-        h.end_headers()
-        h.wfile.write(data)
-
-    return act
-
-
-def hang(server: FakeDetector) -> Behaviour:
-    return lambda h: server.release.wait(60)
-
-
-def drip(server: FakeDetector, interval_s: float) -> Behaviour:
-    body = json.dumps({"detections": []}).encode() + b" " * 40
-
-    def act(h: BaseHTTPRequestHandler) -> None:
-        h.send_response(200)
-        h.send_header("Content-Length", str(len(body)))
-        h.end_headers()
-        try:
-            for b in body:
-                if server.release.wait(interval_s):
-                    return
-                h.wfile.write(bytes([b]))
-                h.wfile.flush()
-        except OSError:
-            pass
-
-    return act
-
-
-def close_connection(h: BaseHTTPRequestHandler) -> None:
-    h.close_connection = True
+def drip(server: ScriptedServer, interval_s: float) -> Behaviour:
+    return http_fakes.drip(server, interval_s, json.dumps({"detections": []}).encode() + b" " * 40)
 
 
 @pytest.fixture
 def server():
-    s = FakeDetector()
+    s = ScriptedServer("/gd")
     yield s
     s.close()
 
