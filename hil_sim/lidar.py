@@ -57,6 +57,9 @@ class LidarConfig(BaseModel):
     # Six 0/1 flags: which geom groups the rays can hit (None: all groups).
     geomgroup: tuple[int, int, int, int, int, int] | None = None
     max_queued_frames: int = Field(4, gt=0, le=1000)
+    #: Evaluation only: keep the geom id each point hit for this many recent frames
+    #: (SimLidar.ground_truth_geom_ids); 0 = none kept (the default: nothing extra is copied).
+    ground_truth_frames: int = Field(0, ge=0, le=1000)
 
     @model_validator(mode="after")
     def _consistent(self) -> "LidarConfig":
@@ -154,6 +157,8 @@ class SimLidar:
         self._last_t: float | None = None
         self._pts = np.empty((n, 3), dtype=np.float32)
         self._offs = np.empty(n, dtype=np.float32)
+        self._gids = np.empty(n, dtype=np.int32) if c.ground_truth_frames else None
+        self._truth: deque[tuple[float, np.ndarray]] = deque(maxlen=max(c.ground_truth_frames, 1))
         self._count = 0
         self._done: deque[LidarScan] = deque()
         self.late_slices = 0
@@ -242,6 +247,8 @@ class SimLidar:
             s = self._count
             self._pts[s:s + k] = dl[keep] * r[keep, None]
             self._offs[s:s + k] = offset_s
+            if self._gids is not None:
+                self._gids[s:s + k] = geomid[keep]
             self._count += k
         return True
 
@@ -251,7 +258,10 @@ class SimLidar:
         offs = self._offs[:k].copy()
         pts.flags.writeable = False       # hand over ownership: LidarScan keeps them without copying
         offs.flags.writeable = False
-        scan = LidarScan(stamp_s=self._due_s(self._frame, 0), points_m=pts, point_time_offsets_s=offs,
+        stamp_s = self._due_s(self._frame, 0)
+        if self._gids is not None:
+            self._truth.append((stamp_s, self._gids[:k].copy()))
+        scan = LidarScan(stamp_s=stamp_s, points_m=pts, point_time_offsets_s=offs,
                          frame_duration_s=self._period_s, frame_id=self.config.frame_id, nothing_seen=(k == 0))
         if len(self._done) >= self.config.max_queued_frames:
             self._done.popleft()
@@ -261,6 +271,14 @@ class SimLidar:
         self._frame += 1
         self._slice = 0
         self._count = 0
+
+    def ground_truth_geom_ids(self, stamp_s: float) -> np.ndarray | None:
+        """(N,) int32: the MuJoCo geom id each point of the frame stamped stamp_s hit, in the
+        frame's point order; None if that frame is not among the last `ground_truth_frames`."""
+        for stamp, gids in reversed(self._truth):
+            if stamp == stamp_s:
+                return gids
+        return None
 
     def pop_frame(self) -> LidarScan | None:
         """The oldest completed frame, or None."""

@@ -165,6 +165,7 @@ def run_episode(
     wheel_calibration: tuple[float, float] | None = None,
     observe: Callable[[NavigationController], None] | None = None,
     oracle: "SimOracleConfig | None" = None,
+    on_start: "Callable[[LockstepSimulation, NavigationController], None] | None" = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -174,6 +175,8 @@ def run_episode(
     wheel_calibration: (effective track m, wheel scale) for the odometry (calibration file).
     observe: called with the controller once after every tick, outside the tick and its timing
     (`dct bench tick` reads the frame's point counts and the planner's counters with it).
+    on_start: called once with the simulation and the controller before the first tick
+    (evaluations attach to the sensor rig's listeners: `dct vpp eval`).
 
     Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
     What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
@@ -205,8 +208,9 @@ def run_episode(
         rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
         if config.planner.mode == "dct":
             # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle.
-            rig_config = rig_config.model_copy(update={"camera_rate_hz": DCT_CAMERA_RATE_HZ,
-                                                       "camera_segmentation": True})
+            # (A rig config that asks for a camera rate of its own keeps it: `dct vpp eval`.)
+            rate = rig_config.camera_rate_hz or DCT_CAMERA_RATE_HZ
+            rig_config = rig_config.model_copy(update={"camera_rate_hz": rate, "camera_segmentation": True})
         devices.append(SensorRig(world, robot, injector, rig_config))
     vlm_backend = None
     if config.planner.mode == "dct":
@@ -261,6 +265,8 @@ def run_episode(
 
     wall0 = time.perf_counter()
     try:
+        if on_start is not None:
+            on_start(sim, controller)
         controller.activate()
         loop.run(controller, should_stop)
     finally:

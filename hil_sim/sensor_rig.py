@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -36,7 +37,7 @@ from calibration.robot_description import RobotDescription
 from hil_sim.imu import ImuConfig, SimImu
 from hil_sim.lidar import LidarConfig, SimLidar
 from hil_sim.world import ROBOT_OWN_GEOM_GROUPS, World
-from runtime.sensor_data import CameraImage
+from runtime.sensor_data import CameraImage, LidarScan
 from runtime.sensor_inbox import SensorInbox
 
 _EPS_S = 1e-9
@@ -106,6 +107,9 @@ class SensorRig:
                                     hidden_geom_groups=world.camera_hidden_geom_groups)
 
         self._last_t: float | None = None
+        #: Called with every scan and image the rig produces, before the inbox gets it, in the
+        #: simulator's time (evaluations read the ground truth beside them: `dct vpp eval`).
+        self.listeners: list[Callable[[LidarScan | CameraImage], None]] = []
         self.scans_produced = 0
         self.images_produced = 0
         self.imu_samples_produced = 0
@@ -137,6 +141,8 @@ class SensorRig:
             scan = self.lidar.pop_frame()
             while scan is not None:
                 self.scans_produced += 1
+                for listener in self.listeners:
+                    listener(scan)
                 if not inbox.put_scan(scan):
                     self.rejected["lidar"] += 1
                 scan = self.lidar.pop_frame()
@@ -168,6 +174,8 @@ class SensorRig:
 
     def _deliver_image(self, image: CameraImage) -> None:
         self.images_produced += 1
+        for listener in self.listeners:
+            listener(image)
         if not self.inbox.put_image(image):
             self.rejected["camera"] += 1
 

@@ -15,38 +15,23 @@ any unit); bad input raises calibration.errors.ConfigFileError (exit 2).
 from __future__ import annotations
 
 import math
-import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
 import click
 
-from calibration.cli import OneLineCommand, OneLineError
+from calibration.cli import OneLineError
+from runtime.cli_support import InputError, OneLineGroup
+from runtime.cli_support import ProgressBar as _Bar
+from runtime.cli_support import checked_output as _checked_output
 
 #: The entry point group (and name) of the scenario evaluation (module doc).
 SCENARIO_EVAL_GROUP = "dct.odom_scenario"
 SCENARIO_EVAL_NAME = "evaluate"
 
 
-class InputError(OneLineError):
-    """Bad input (file, option): one line on stderr, exit status 2."""
-
-    exit_code = 2
-
-
-class OdomGroup(click.Group):
-    command_class = OneLineCommand
-
-    def resolve_command(self, ctx: click.Context, args: list[str]):
-        try:
-            return super().resolve_command(ctx, args)
-        except click.UsageError as exc:
-            err = OneLineError(f"{ctx.command_path}: {exc.format_message()} (see --help)")
-            err.exit_code = exc.exit_code
-            raise err from None
-
-
-@click.group(name="odom", cls=OdomGroup)
+# (The one-line errors, output checks and progress bar are runtime.cli_support's, shared with `dct vpp`.)
+@click.group(name="odom", cls=OneLineGroup)
 def odom_group() -> None:
     """Lidar odometry (KISS-ICP): drift on recorded sequences and scenarios, scan-pair registration."""
 
@@ -71,45 +56,6 @@ def _icp_config(voxel_size: float | None, max_range: float | None, min_range: fl
         return IcpConfig.model_validate({**base.model_dump(), **overrides})
     except ValidationError as exc:
         raise InputError(f"--voxel-size/--max-range/--min-range: {format_validation_error(exc)}") from None
-
-
-def _checked_output(path: Path | None, what: str, inputs, force: bool) -> None:
-    from calibration.outputs import OutputPathError, check_output_path
-
-    if path is None:
-        return
-    try:
-        check_output_path(path, what=what, inputs=[p for p in inputs if p is not None], overwrite=force)
-    except OutputPathError as exc:
-        raise InputError(str(exc)) from None
-
-
-class _Bar:
-    """A click progress bar on stderr, created on the first report (its length is known then).
-
-    Called as progress(done, total): frames (integers) or simulated seconds (floats, shown in
-    thousandths of the total)."""
-
-    def __init__(self, label: str):
-        self.label = label
-        self.bar = None
-        self.scale = 1.0
-        self.shown = 0
-
-    def __call__(self, done: float, total: float) -> None:
-        if self.bar is None:
-            self.scale = 1.0 if float(total).is_integer() else 1000.0 / max(float(total), 1e-9)
-            length = max(1, round(float(total) * self.scale))
-            self.bar = click.progressbar(length=length, label=self.label, file=sys.stderr)
-            self.bar.__enter__()
-        target = min(round(float(done) * self.scale), self.bar.length)
-        if target > self.shown:
-            self.bar.update(target - self.shown)
-            self.shown = target
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.__exit__(None, None, None)
 
 
 def _fmt(value, spec: str, unit: str = "") -> str:
