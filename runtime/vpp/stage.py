@@ -28,14 +28,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial import cKDTree
 
 from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
 from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, MaskMemoryError, ReconcileResult
-from runtime.vpp.partition import FIXED, MOVABLE, PartitionConfig, PointPartition, PointPartitioner
+from runtime.vpp.partition import MOVABLE, PartitionConfig, PointPartition, PointPartitioner
+from runtime.vpp.tracking import ObjectTracker, TrackingConfig
 
 DEFAULT_PROMPT = (
     "A small ground robot must drive to its goal through this scene. For each marked object, say "
@@ -56,27 +56,17 @@ class VppConfig(BaseModel):
     #: the warp assumes it stood still) is not trusted: its points stay P_fix. Without it a mask
     #: swells over the whole image and gates fixed objects as movable.
     max_mask_growth: float = Field(2.5, gt=1.0, le=100.0)
-    #: Movable objects tracked by their points between scans (a pushed box leaves its mask: the
-    #: warp assumes it stands still): a point the masks leave fixed, within track_radius_m of the
-    #: previous scan's points of a movable object (odom frame; a 10 Hz scan at 0.5 m/s moves 5 cm),
-    #: takes that object's label (the parts of it the camera does not see join it too), for at
-    #: most track_max_s after a mask last labelled the object, and only while the object's points
-    #: span no more than the extent they had then plus track_extent_margin_m (a fixed structure
-    #: the object touches would stretch it: then nothing is added).
-    track_radius_m: float = Field(0.08, ge=0.0, le=0.5)
-    track_max_s: float = Field(8.0, ge=0.0, le=60.0)
-    track_extent_margin_m: float = Field(0.25, ge=0.0, le=5.0)
+    #: A tracked object that moved more than this since a mask's capture: that mask is not
+    #: trusted (the tracker labels the object instead); one that did not is trusted whatever its growth.
+    moved_tolerance_m: float = Field(0.05, gt=0.0, le=1.0)
+    #: Movable objects followed between masks (a pushed box leaves its mask): tracking.py.
+    tracking: TrackingConfig = TrackingConfig()
     #: The controller waits for the first answer (mode dct); after this long without one it drives
     #: on what it has (every point P_fix), and says so.
     first_answer_timeout_s: float = Field(5.0, gt=0.0, le=120.0)
     memory: MaskMemoryConfig = MaskMemoryConfig()
     partition: PartitionConfig = PartitionConfig()
     runner: BackendRunnerConfig = BackendRunnerConfig()
-
-
-def _extent(points: np.ndarray) -> float:
-    """Diagonal of the points' axis-aligned box (m); 0 for fewer than two."""
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) > 1 else 0.0
 
 
 def pose_matrix(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
@@ -125,9 +115,7 @@ class VppStage:
         self._first_tick_s: float | None = None
         self.gave_up_waiting = False
         self.images_refused = 0  # images from another camera than the calibrated one (named)
-        self._tracked: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # odom points, ids, costs
-        self._confirmed: dict[int, tuple[float, float]] = {}  # object id -> (last masked, its extent then)
-        self.points_tracked = 0
+        self.tracker = ObjectTracker(config.tracking)
         self.last_frame: VppFrame | None = None
         self.last_reconcile: ReconcileResult | None = None
         # Counters (never reset).
@@ -135,7 +123,7 @@ class VppStage:
         self.answers = 0
         self.failed_answers = 0
         self.rejected_answers = 0  # answers the memory refused (named in last_rejection)
-        self.masks_distrusted = 0  # warped masks grown past max_mask_growth (kept out of the gate)
+        self.masks_distrusted = 0  # warped masks of moved (or, untracked, grown) objects kept out of the gate
         self.last_rejection: str | None = None
         self.frames = 0
 
@@ -182,7 +170,15 @@ class VppStage:
         for w in warped:
             if not (w.entry.movable and w.entry.contact_cost < self.config.never_touch_cost and w.mask.any()):
                 continue
-            if np.count_nonzero(w.mask) > self.config.max_mask_growth * np.count_nonzero(w.entry.mask):
+            # The warp assumes the object stood still since capture. The tracker knows whether it
+            # did: a moved one is not warped but tracked; a still one is trusted however much the
+            # camera's approach grew it. Untracked: the growth rule (see max_mask_growth).
+            moved = self.tracker.moved_since(w.object_id, w.entry.stamp_s)
+            if moved is not None:
+                distrust = moved > self.config.moved_tolerance_m
+            else:
+                distrust = np.count_nonzero(w.mask) > self.config.max_mask_growth * np.count_nonzero(w.entry.mask)
+            if distrust:
                 self.masks_distrusted += 1
                 continue
             use.append(w)
@@ -195,41 +191,12 @@ class VppStage:
         )
         p = np.asarray(scan.points_m, dtype=np.float64)
         T_odom_lidar = T_odom_base @ self.T_base_lidar
-        self._track(now_s, part, p, T_odom_lidar)
         self._last_scan_odom = p @ T_odom_lidar[:3, :3].T + T_odom_lidar[:3, 3]
+        self.tracker.update(now_s, part, self._last_scan_odom)
         self._maybe_ask(now_s)
         self.frames += 1
         self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
         return self.last_frame
-
-    def _track(self, now_s: float, part: PointPartition, p_lidar: np.ndarray, T_odom_lidar: np.ndarray) -> None:
-        """Carry movable labels to the points near the previous scan's movable points (see
-        VppConfig.track_*); updates `part`'s arrays in place."""
-        c = self.config
-        label, oid, cost = part.label, part.object_id, part.cost
-        masked = (label == MOVABLE) & part.in_view & ~part.from_memory  # labelled by a mask this scan
-        p_odom = p_lidar @ T_odom_lidar[:3, :3].T + T_odom_lidar[:3, 3]
-        for k in np.unique(oid[masked]):  # objects a mask labelled this scan: confirmed now, with their extent
-            self._confirmed[int(k)] = (now_s, _extent(p_odom[oid == k]))
-        prev = self._tracked
-        if prev is not None and c.track_radius_m > 0.0:
-            pts, ids, costs = prev
-            lo, hi = pts.min(axis=0) - c.track_radius_m, pts.max(axis=0) + c.track_radius_m
-            cand = np.flatnonzero((label == FIXED) & np.all((p_odom >= lo) & (p_odom <= hi), axis=1))
-            if cand.size:
-                d, j = cKDTree(pts).query(p_odom[cand], distance_upper_bound=c.track_radius_m)
-                hit = np.isfinite(d)
-                cand, j = cand[hit], j[hit]
-                for k in np.unique(ids[j]):
-                    since, extent = self._confirmed.get(int(k), (-math.inf, 0.0))
-                    take = cand[ids[j] == k]
-                    if now_s - since > c.track_max_s or \
-                            _extent(np.concatenate([p_odom[oid == k], p_odom[take]])) > extent + c.track_extent_margin_m:
-                        continue
-                    label[take], oid[take], cost[take] = MOVABLE, k, costs[j][ids[j] == k][0]
-                    self.points_tracked += int(take.size)
-        mov = label == MOVABLE
-        self._tracked = (p_odom[mov], oid[mov].copy(), cost[mov].copy()) if mov.any() else None
 
     def _maybe_ask(self, now_s: float) -> None:
         """Send the newest image when the trigger rule says so and nothing is in flight; not
@@ -270,7 +237,9 @@ class VppStage:
         return {
             "requests": self.requests, "answers": self.answers, "failed_answers": self.failed_answers,
             "rejected_answers": self.rejected_answers, "last_rejection": self.last_rejection,
-            "masks_distrusted": self.masks_distrusted, "points_tracked": self.points_tracked,
+            "masks_distrusted": self.masks_distrusted, "points_tracked": self.tracker.points_tracked,
+            "tracking": {"objects": len(self.tracker.objects), "registrations": self.tracker.registrations,
+                         "lost": self.tracker.lost, "handovers": self.tracker.handovers},
             "images_refused": self.images_refused, "gave_up_waiting": self.gave_up_waiting,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,

@@ -1,0 +1,181 @@
+"""The movable-object tracker: a pushed box stays P_mov between masks, and never walks into the wall
+it is pressed against."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from runtime.vpp.partition import FIXED, MOVABLE, PointPartition
+from runtime.vpp.tracking import ObjectTracker, TrackingConfig
+
+
+def _box(cx: float, cy: float, size: float = 0.4, step: float = 0.03, yaw: float = 0.0) -> np.ndarray:
+    """The points of a box's four sides and top (odom frame)."""
+    h = size / 2
+    s = np.arange(-h, h + 1e-9, step)
+    z = np.arange(0.05, size + 1e-9, step)
+    faces = []
+    for fx, fy in ((-h, None), (h, None), (None, -h), (None, h)):
+        a, b = np.meshgrid(s, z)
+        if fx is not None:
+            faces.append(np.c_[np.full(a.size, fx), a.ravel(), b.ravel()])
+        else:
+            faces.append(np.c_[a.ravel(), np.full(a.size, fy), b.ravel()])
+    a, b = np.meshgrid(s, s)
+    faces.append(np.c_[a.ravel(), b.ravel(), np.full(a.size, size)])
+    p = np.concatenate(faces)
+    c, si = np.cos(yaw), np.sin(yaw)
+    p[:, :2] = p[:, :2] @ np.array([[c, -si], [si, c]]).T
+    return p + [cx, cy, 0.0]
+
+
+def _wall(x: float) -> np.ndarray:
+    """A wall at x (its face), 2 m wide, 0.8 m high."""
+    y, z = np.meshgrid(np.arange(-1.0, 1.0, 0.03), np.arange(0.05, 0.8, 0.03))
+    return np.c_[np.full(y.size, x), y.ravel(), z.ravel()]
+
+
+def _part(n: int, movable: np.ndarray | None = None, object_id: int = 7, cost: float = 2.0) -> PointPartition:
+    label = np.full(n, FIXED, np.int8)
+    oid = np.full(n, -1, np.int32)
+    c = np.full(n, np.nan, np.float32)
+    if movable is not None:
+        label[movable], oid[movable], c[movable] = MOVABLE, object_id, cost
+    return PointPartition(label, oid, c, np.ones(n, bool), np.zeros(n, bool), 0, 0)
+
+
+def test_a_pushed_box_stays_movable_between_masks_and_stops_at_the_wall():
+    tracker = ObjectTracker()
+    wall = _wall(1.0)
+    box = _box(0.0, 0.0)
+    pts = np.concatenate([box, wall])
+    tracker.update(0.0, _part(len(pts), np.arange(len(box))), pts)  # a mask confirms the box
+    assert 7 in tracker.objects
+    x, t = 0.0, 0.0
+    wall_taken = []
+    for _ in range(40):  # pushed at 0.5 m/s (5 cm a scan) until its face touches the wall, then pressed there
+        x = min(x + 0.05, 1.0 - 0.2)
+        t += 0.1
+        box = _box(x, 0.0)
+        pts = np.concatenate([box, wall])
+        part = _part(len(pts))  # no mask: the warp distrusts it, or the camera does not see it
+        tracker.update(t, part, pts)
+        nb = len(box)
+        assert np.all(part.label[:nb] == MOVABLE), f"box points lost at x = {x:.2f}"
+        assert np.all(part.object_id[:nb] == 7) and np.allclose(part.cost[:nb], 2.0)
+        wall_taken.append(int(np.count_nonzero(part.label[nb:] == MOVABLE)))
+    # Pressed against the wall for 2 s: only the wall points within label_radius of the box face
+    # join it (a band that does not grow), never the wall.
+    band = np.abs(wall[:, 1]) <= 0.2 + 0.06
+    assert max(wall_taken) <= np.count_nonzero(band & (wall[:, 2] <= 0.4 + 0.06))
+    assert wall_taken[-1] == wall_taken[-10]
+    assert tracker.registrations == 40 and tracker.lost == 0
+
+
+def test_a_rotating_box_is_followed():
+    tracker = ObjectTracker()
+    box = _box(0.0, 0.0)
+    tracker.update(0.0, _part(len(box), np.arange(len(box))), box)
+    for i in range(1, 15):  # 3 degrees and 2 cm a scan: a box pushed off-centre
+        box = _box(0.02 * i, 0.0, yaw=np.radians(3.0 * i))
+        part = _part(len(box))
+        tracker.update(0.1 * i, part, box)
+        assert np.mean(part.label == MOVABLE) > 0.97
+
+
+def test_an_object_not_confirmed_for_too_long_is_dropped():
+    tracker = ObjectTracker(TrackingConfig(max_unconfirmed_s=1.0))
+    box = _box(0.0, 0.0)
+    tracker.update(0.0, _part(len(box), np.arange(len(box))), box)
+    part = _part(len(box))
+    tracker.update(0.9, part, box)
+    assert np.all(part.label == MOVABLE)
+    part = _part(len(box))
+    tracker.update(1.2, part, box)
+    assert np.all(part.label == FIXED) and not tracker.objects
+
+
+def test_a_step_larger_than_max_step_is_refused_and_a_far_box_is_not_taken():
+    tracker = ObjectTracker(TrackingConfig(max_step_m=0.05))
+    box = _box(0.0, 0.0)
+    tracker.update(0.0, _part(len(box), np.arange(len(box))), box)
+    before = tracker.objects[7].centre()
+    moved = _box(0.09, 0.0)  # ICP finds it, but farther than an object can go in one scan
+    tracker.update(0.1, _part(len(moved)), moved)
+    # Not moved (the points it took near where it was may spread it, by less than the step).
+    assert tracker.lost == 1 and np.linalg.norm(tracker.objects[7].centre() - before) < 0.045
+    far = _box(1.0, 0.0)  # nothing near the template: nothing to register, nothing taken
+    part = _part(len(far))
+    tracker.update(0.2, part, far)
+    assert np.all(part.label == FIXED)
+
+
+def test_only_fixed_points_are_taken_and_disabled_does_nothing():
+    box = _box(0.0, 0.0)
+    tracker = ObjectTracker()
+    tracker.update(0.0, _part(len(box), np.arange(len(box))), box)
+    part = _part(len(box), np.arange(10), object_id=9, cost=5.0)  # another object's points stay its own
+    part.label[10:20] = -1  # ground stays ground
+    tracker.update(0.1, part, box)
+    assert np.all(part.object_id[:10] == 9) and np.all(part.label[10:20] == -1)
+    assert np.all(part.label[20:] == MOVABLE)
+    off = ObjectTracker(TrackingConfig(enabled=False))
+    off.update(0.0, _part(len(box), np.arange(len(box))), box)
+    part = _part(len(box))
+    assert off.update(0.1, part, box) == 0 and np.all(part.label == FIXED)
+
+
+def test_a_far_view_and_a_near_view_make_one_template_without_ghosts():
+    tracker = ObjectTracker()
+    box = _box(0.0, 0.0)
+    front = box[box[:, 0] < -0.19]  # seen from far: the front face
+    tracker.update(0.0, _part(len(front), np.arange(len(front))), front)
+    n_front = len(tracker.objects[7].template)
+    top = box[box[:, 2] > 0.39]  # seen from near: the top, in the mask too
+    tracker.update(0.5, _part(len(top), np.arange(len(top))), top)
+    assert len(tracker.objects[7].template) > n_front  # the union
+    # A confirmation far from the template (the object moved while unseen) replaces it.
+    moved = _box(2.0, 0.0)
+    tracker.update(1.0, _part(len(moved), np.arange(len(moved))), moved)
+    assert tracker.objects[7].template[:, 0].min() > 1.5
+
+
+@pytest.mark.parametrize("field,value", [("label_radius_m", 0.0), ("icp_iterations", 0), ("min_pairs", 1)])
+def test_config_rejects_impossible_values(field, value):
+    with pytest.raises(ValueError, match=field):
+        TrackingConfig(**{field: value})
+
+
+def test_moved_since_says_how_far_a_tracked_object_went_and_none_before_it_was_tracked():
+    tracker = ObjectTracker()
+    box = _box(0.0, 0.0)
+    tracker.update(1.0, _part(len(box), np.arange(len(box))), box)
+    for i in range(1, 5):
+        moved = _box(0.04 * i, 0.0)
+        tracker.update(1.0 + 0.1 * i, _part(len(moved)), moved)
+    assert tracker.moved_since(7, 1.0) == pytest.approx(0.16, abs=0.02)
+    assert tracker.moved_since(7, 1.25) == pytest.approx(0.08, abs=0.02)  # since the scan at 1.2
+    assert tracker.moved_since(7, 0.5) is None  # not tracked then
+    assert tracker.moved_since(99, 1.0) is None  # never tracked
+
+
+def test_faces_the_camera_never_saw_join_the_object_but_a_wall_it_touches_only_a_band():
+    cfg = TrackingConfig()
+    tracker = ObjectTracker(cfg)
+    box = _box(0.0, 0.0)
+    front = box[box[:, 0] < -0.19]  # the camera saw the front face only
+    tracker.update(0.0, _part(len(front), np.arange(len(front))), front)
+    wall = _wall(0.2 + 0.01)  # the box's back face against a wall
+    pts = np.concatenate([box, wall])
+    for i in range(1, 30):
+        part = _part(len(pts))
+        tracker.update(0.1 * i, part, pts)
+    nb = len(box)
+    # The sides and top next to the front face joined it, up to max_spread_m beyond the view's
+    # extent (0.53 m; the whole box spans 0.67 m: its far corner stays out).
+    assert np.mean(part.label[:nb] == MOVABLE) > 0.7
+    assert np.all(part.label[:nb][box[:, 0] < 0.0] == MOVABLE)
+    y_band = np.abs(wall[:, 1]) <= 0.2 + cfg.max_spread_m + cfg.label_radius_m
+    z_band = wall[:, 2] <= 0.4 + cfg.max_spread_m + cfg.label_radius_m
+    taken = part.label[nb:] == MOVABLE
+    assert not np.any(taken & ~(y_band & z_band))  # never more of the wall than the spread allows
