@@ -18,6 +18,7 @@ Used by any loop: `attach()` returns the per-tick hook (FixedRateLoop's `after_t
 from __future__ import annotations
 
 import base64
+import io
 import json
 import math
 import os
@@ -103,6 +104,8 @@ class RunRecorder:
         self.tmp_path = Path(tmp)
         # opener: tests put a slow or failing file object here (full disk, slow disk).
         self._file = opener(tmp) if opener is not None else open(tmp, "wb")
+        if isinstance(self._file, io.RawIOBase):  # our buffer, so that close() flushes it
+            self._file = io.BufferedWriter(self._file)
         self._writer = Writer(self._file, chunk_size=chunk_size,
                               compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                                            "none": CompressionType.NONE}[compression])
@@ -335,6 +338,11 @@ class RunRecorder:
         except OSError as exc:
             self.write_error = f"{type(exc).__name__}: {exc}"
         finally:
+            try:
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except (OSError, ValueError, io.UnsupportedOperation):
+                pass
             try:
                 self._file.close()
             except OSError as exc:
