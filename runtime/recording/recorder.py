@@ -291,6 +291,7 @@ class RunRecorder:
                 continue
             try:
                 self._write_item(item)
+                time.sleep(0)  # hand the GIL to the loop thread if it waits (else up to the 5 ms switch interval)
                 now = time.monotonic()
                 if now - last_flush >= self.flush_interval_s:
                     self._writer.flush()  # closes the chunk: a power loss loses at most this much

@@ -114,7 +114,12 @@ def sensor_histogram(d: TickData, title: str = "") -> bytes | None:
         return None
     plt = _plt()
     fig, ax = plt.subplots(figsize=(11, 3.0), layout="constrained")
-    ax.hist(x, bins=50, color="#55a868")
+    x = np.round(x, 3)  # to the microsecond: a lockstep run's identical latencies stay one bar
+    lo, hi = float(x.min()), float(x.max())
+    if hi - lo < 0.1:
+        lo, hi = lo - 0.5, hi + 0.5
+    ax.hist(x, bins=50, range=(lo, hi), color="#55a868")
+    ax.ticklabel_format(axis="x", useOffset=False)
     ax.set_xlabel("lidar frame end -> command (ms, loop clock)")
     ax.set_ylabel("frames")
     ax.set_title(title or f"sensor-to-command latency: p50 {np.percentile(x, 50):.2f} ms, p99 {np.percentile(x, 99):.2f} ms")

@@ -142,3 +142,41 @@ def test_refusals_are_one_line(recording, tmp_path):
     assert existing.read_text() == "{}"
     res = runner.invoke(report_group, ["latency", str(path), "--json", str(existing), "--force"])
     assert res.exit_code == 0 and "stages" in json.loads(existing.read_text())
+
+
+def test_a_deadline_miss_is_listed_with_the_stage_that_ran_long_and_the_ticks_before(tmp_path):
+    """Synthetic ticks (the recorder fed by hand): tick 6 misses its deadline because the planner ran
+    40 ms against its 20 ms budget; the report names the planner and shows ticks 3-5 before it."""
+    from types import SimpleNamespace
+
+    from runtime.reports.latency import latency_report, load_ticks
+    from runtime.telemetry import TickTelemetry
+
+    cfg = load_controller_config()
+    path = tmp_path / "miss.mcap"
+    rec = RunRecorder(path)
+    ctl = SimpleNamespace(pose=SimpleNamespace(x_m=0.0, y_m=0.0, yaw_rad=0.0), monitor=SimpleNamespace(good_scan=None))
+    hook = rec.attach(ctl, cfg, {"clock": "wall"})
+    tel = TickTelemetry(capacity=64)
+    planner = STAGES.index("planner")
+    for k in range(10):
+        row = tel.begin_tick()
+        row["tick"], row["scheduled_s"] = k, 0.05 * k
+        row["stage_s"][:] = 0.001
+        if k == 6:
+            row["stage_s"][planner] = 0.040
+            row["overrun_mask"] = 1 << planner
+            row["deadline_missed"] = row["wall_deadline_missed"] = True
+            row["command_latency_s"] = 0.045
+        row["tick_s"] = row["stage_s"].sum()
+        tel.commit_tick(row)
+        hook(row)
+    rec.close()
+    rep = latency_report(load_ticks(path))
+    assert rep["deadline_misses"]["count"] == 1 and rep["stages"]["planner"]["overruns"] == 1
+    (e,) = rep["deadline_misses"]["events"]
+    assert e["tick"] == 6 and e["ran_long"] == "planner" and e["stages_over_budget"] == ["planner"]
+    assert e["ran_long_ms"] == pytest.approx(40.0) and e["command_latency_ms"] == pytest.approx(45.0)
+    assert [b["tick"] for b in e["before"]] == [3, 4, 5]
+    assert rep["sensor_to_command_ms"]["recorded"] is False and "no tick" in rep["sensor_to_command_ms"]["why"]
+    assert rep["tick"]["overruns"] == 1  # 40 ms + 5 x 1 ms over the 40 ms command deadline
