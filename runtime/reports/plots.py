@@ -31,6 +31,8 @@ def _png(fig) -> bytes:
 def stage_histograms(d: TickData, title: str = "") -> bytes:
     """One histogram per stage (log time axis, so the budget and the bulk both show), budget in red."""
     plt = _plt()
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
     n = len(d.stages)
     cols = 3
     rows = (n + cols - 1) // cols
@@ -45,6 +47,11 @@ def stage_histograms(d: TickData, title: str = "") -> bytes:
             hi = max(x.max(), budget if np.isfinite(budget) else x.max()) * 1.2
             ax.hist(x, bins=np.geomspace(lo, hi, 50), color="#4c72b0")
             ax.set_xscale("log")
+            # Ticks at 1, 2, 5 x 10^k written as plain numbers (the default crowds a short range).
+            subs = (1.0, 2.0, 5.0) if hi / lo < 100.0 else (1.0,)
+            ax.xaxis.set_major_locator(LogLocator(base=10, subs=subs))
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            ax.xaxis.set_minor_formatter(NullFormatter())
         if np.isfinite(budget):
             ax.axvline(budget, color="#c0392b", linestyle="--", linewidth=2, label=f"budget {budget:g} ms")
             ax.legend(loc="upper left", fontsize=9)
