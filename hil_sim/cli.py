@@ -127,10 +127,13 @@ def run_command(
         try:
             result = run_episode(sc, robot=robot, config=config, seed=seed, faults=faults,
                                  wheel_calibration=wheel_calibration, recorder=recorder)
-        finally:
+        except BaseException as exc:  # the log of a failed run is kept (it says how it ended)
             if recorder is not None:
-                recorder.note_run_end(sys.exc_info()[1])
-                click.echo(recording_line(recorder.close()), err=True)
+                recorder.note_run_end(exc)
+                close_recording(recorder)
+            raise
+        if recorder is not None:
+            close_recording(recorder)
     except ConfigFileError as exc:  # a scenario the robot cannot start in, a bad model file
         raise InputError(str(exc)) from exc
     m = result.metrics
@@ -141,6 +144,16 @@ def run_command(
     click.echo(summary_line(sc.name, m, result.realtime_factor))
     if not m["success"]:
         sys.exit(1)
+
+
+def close_recording(recorder) -> None:
+    """Finish the MCAP file and say on stderr what it holds (or why it is not where asked)."""
+    from runtime.recording import RecordingError
+
+    try:
+        click.echo(recording_line(recorder.close()), err=True)
+    except RecordingError as exc:  # the output appeared during the run: the recording is kept beside it
+        click.echo(f"error: {exc}", err=True)
 
 
 def recording_line(summary: dict) -> str:
