@@ -4,7 +4,9 @@
 PY ?= python3
 VENV := .venv
 STAMP := $(VENV)/.stamp-install
-APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0
+# Mesa for MuJoCo's offscreen rendering; chromium (and a font for it) for the test that opens
+# `dct report latency`'s HTML in a real headless browser.
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 chromium fonts-dejavu-core
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
@@ -28,7 +30,7 @@ $(STAMP): pyproject.toml
 	$(VENV)/bin/python -m pip install --quiet -e '.[test,bench]'
 	touch $@
 
-# Mesa for MuJoCo's offscreen (EGL) rendering, and venv support; installed only when missing.
+# The APT_PACKAGES above, and venv support; installed only when missing.
 sysdeps:
 	@missing=""; \
 	for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \

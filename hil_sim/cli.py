@@ -50,9 +50,14 @@ def list_command() -> None:
     help="Inject a fault (repeatable): lidar-blind, lidar-far, lidar-frozen, drop-0x311, drop-0x211, drop-0x221, "
          "imu-silent, estop. Times in simulated seconds from the start; no duration = to the end.",
 )
+@click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Record the run to this MCAP file (ticks, poses, CAN frames, P_fix, plan); "
+                   "`dct report latency` reads it. Written under a temporary name, renamed at the end.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --record file.")
 def run_command(
     scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None,
     planner: str | None, fault_texts: tuple[str, ...], calibration_path: Path | None = None,
+    record_path: Path | None = None, force: bool = False,
 ) -> None:
     """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path).
 
@@ -108,9 +113,27 @@ def run_command(
                  for f in faults if f.start_s >= sc.time_limit_s]
     for w in warnings:
         click.echo(f"warning: {w}", err=True)
+    recorder = None
+    if record_path is not None:
+        from runtime.recording import RecordingError, RunRecorder
+
+        if json_path is not None and record_path.resolve() == json_path.resolve():
+            raise InputError(f"--record {record_path} is also the --json file; write them to two files")
+        try:
+            recorder = RunRecorder(record_path, force=force)
+        except RecordingError as exc:
+            raise InputError(str(exc)) from exc
     try:
-        result = run_episode(sc, robot=robot, config=config, seed=seed, faults=faults,
-                             wheel_calibration=wheel_calibration)
+        try:
+            result = run_episode(sc, robot=robot, config=config, seed=seed, faults=faults,
+                                 wheel_calibration=wheel_calibration, recorder=recorder)
+        except BaseException as exc:  # the log of a failed run is kept (it says how it ended)
+            if recorder is not None:
+                recorder.note_run_end(exc)
+                close_recording(recorder)
+            raise
+        if recorder is not None:
+            close_recording(recorder)
     except ConfigFileError as exc:  # a scenario the robot cannot start in, a bad model file
         raise InputError(str(exc)) from exc
     m = result.metrics
@@ -121,6 +144,28 @@ def run_command(
     click.echo(summary_line(sc.name, m, result.realtime_factor))
     if not m["success"]:
         sys.exit(1)
+
+
+def close_recording(recorder) -> None:
+    """Finish the MCAP file and say on stderr what it holds (or why it is not where asked)."""
+    from runtime.recording import RecordingError
+
+    try:
+        click.echo(recording_line(recorder.close()), err=True)
+    except RecordingError as exc:  # the output appeared during the run: the recording is kept beside it
+        click.echo(f"error: {exc}", err=True)
+
+
+def recording_line(summary: dict) -> str:
+    """One line about a finished recording: what it holds and what it had to drop."""
+    line = (f"recorded {summary['path']}: {summary['written']['tick']} ticks, {summary['written']['can']} CAN frames, "
+            f"{summary['written']['points']} point sets, {summary['written']['plan']} plans; "
+            f"dropped {summary['dropped_total']}")
+    if summary["dropped_total"]:
+        line += f" (queue full: {summary['dropped_queue_full']}, write error: {summary['dropped_write_error']})"
+    if summary["write_error"]:
+        line += f"; write error: {summary['write_error']}"
+    return line
 
 
 def wall_clock_report(result) -> dict:

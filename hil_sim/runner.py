@@ -34,6 +34,7 @@ from runtime.telemetry import TickTelemetry
 if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
     from hil_sim.sensor_rig import SensorRigConfig
     from models.vlm.sim_oracle import SimOracleConfig
+    from runtime.recording import RunRecorder
 
 #: Camera frames per second in planner mode dct (the VLM answers about once a second).
 DCT_CAMERA_RATE_HZ = 2.0
@@ -166,6 +167,7 @@ def run_episode(
     observe: Callable[[NavigationController], None] | None = None,
     oracle: "SimOracleConfig | None" = None,
     on_start: "Callable[[LockstepSimulation, NavigationController], None] | None" = None,
+    recorder: "RunRecorder | None" = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -177,6 +179,8 @@ def run_episode(
     (`dct bench tick` reads the frame's point counts and the planner's counters with it).
     on_start: called once with the simulation and the controller before the first tick
     (evaluations attach to the sensor rig's listeners: `dct vpp eval`).
+    recorder: records the ticks, poses, CAN frames, P_fix and plan to MCAP (runtime.recording);
+    the caller closes it. Recording changes no metric.
 
     Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
     What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
@@ -221,7 +225,8 @@ def run_episode(
     sim = LockstepSimulation(world, firmware, metrics, devices, controls=[injector])
     clock = LockstepClock(sim)
 
-    driver = AgileXBaseDriver(controller_bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
+    bus = recorder.wrap_bus(controller_bus, clock.now) if recorder is not None else controller_bus
+    driver = AgileXBaseDriver(bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
     hardware = AgileXBaseHardware(driver, robot.drive.skid_steer_yaw_factor)
     try:  # loads the distance net: a bad model file must not leave the buses open
         controller = NavigationController(
@@ -244,6 +249,8 @@ def run_episode(
         keepalive_period_s=config.loop.keepalive_period_s,
         telemetry=telemetry,
         slack_work_min_s=config.loop.slack_work_min_s,
+        after_tick=recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed, "clock": "lockstep"})
+        if recorder is not None else None,
     )
     t_start = sim.time_s
     time_limit = t_start + scenario.time_limit_s

@@ -122,13 +122,16 @@ class FixedRateLoop:
         gc_every_ticks: int = 200,
         slack_work_min_s: float = 0.02,
         slack_work_max_postpone: int = 2,
+        after_tick: Callable[[np.void], None] | None = None,
     ) -> None:
         """slack_work_min_s: the controller's slack work runs after a tick only while at least
         this much of the period is left on the loop's clock (in lockstep always: simulated time
         stands still during a tick); otherwise it waits for the slack of a later tick, at most
         slack_work_max_postpone ticks in a row: then it runs whatever is left (a search must not
         starve: without a path the robot holds still), and a next tick that starts late is counted
-        as such (lateness, skipped ticks)."""
+        as such (lateness, skipped ticks).
+        after_tick: called with each tick's committed telemetry row, outside the tick's timings (a
+        recorder copies it into its queue: runtime.recording); it must be short and must not block."""
         if not (period_s > 0.0 and math.isfinite(period_s)):
             raise ValueError(f"loop period must be a positive number of seconds, got {period_s}")
         if keepalive_period_s is not None and not 0.0 < keepalive_period_s <= period_s:
@@ -146,6 +149,7 @@ class FixedRateLoop:
         self.gc_every_ticks = gc_every_ticks
         self.slack_work_min_s = slack_work_min_s
         self.slack_work_max_postpone = slack_work_max_postpone
+        self.after_tick = after_tick
         self._postponed_in_row = 0
         self.keepalives_sent = 0
         #: The loop's clock is the wall clock (its lateness is real waiting time).
@@ -206,6 +210,8 @@ class FixedRateLoop:
                     self._postponed_in_row += 1
                     telemetry.slack_windows_skipped += 1
             telemetry.commit_tick(row)
+            if self.after_tick is not None:
+                self.after_tick(row)
             ticks_run += 1
 
             # Next grid point; skip (and count) grid points that have already passed.

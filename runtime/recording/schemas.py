@@ -1,0 +1,144 @@
+"""The JSON schemas of the recorded channels (MCAP `jsonschema` encoding, JSON messages).
+
+JSON rather than ROS 2 CDR: Foxglove opens jsonschema channels with no plug-in, the writer needs no
+message compiler, and `json.loads` is all a reader needs. The pose, point cloud and path channels
+use Foxglove's well-known schema names and shapes (foxglove.PoseInFrame, foxglove.PointCloud,
+foxglove.PosesInFrame) so the 3D panel draws them; the rest are ours (`dct.*`) and plot as fields.
+"""
+from __future__ import annotations
+
+import json
+
+TOPIC_TICK = "/dct/tick"
+TOPIC_POSE = "/dct/pose"
+TOPIC_CAN = "/dct/can"
+TOPIC_PARTITION = "/dct/partition"
+TOPIC_P_FIX = "/dct/p_fix"
+TOPIC_PLAN = "/dct/plan"
+TOPIC_REFERENCE = "/dct/reference_path"
+
+#: Metadata record names: the run (written first, so a cut-off file keeps it) and the recorder's
+#: own account (written at the end: records written and dropped).
+META_RUN = "dct.run"
+META_RECORDING = "dct.recording"
+
+_NUM = {"type": "number"}
+_NUM_OR_NULL = {"type": ["number", "null"]}
+_TIME = {
+    "type": "object",
+    "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0}},
+}
+_VEC3 = {"type": "object", "properties": {"x": _NUM, "y": _NUM, "z": _NUM}}
+_QUAT = {"type": "object", "properties": {"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM}}
+_POSE = {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}}
+
+
+def tick_schema(stages: tuple[str, ...]) -> dict:
+    """One record of the telemetry ring buffer (runtime.telemetry.tick_record_dtype), in ms."""
+    return {
+        "title": "dct.Tick",
+        "description": "One control tick: stage durations (wall clock), lateness, deadline flags, state, command.",
+        "type": "object",
+        "properties": {
+            "timestamp": _TIME,
+            "tick": {"type": "integer"},
+            "scheduled_s": _NUM,
+            "lateness_ms": _NUM,
+            "stage_ms": {"type": "object", "properties": {s: _NUM for s in stages}},
+            "tick_ms": _NUM,
+            "slack_work_ms": _NUM,
+            "command_latency_ms": {**_NUM, "description": "scheduled start -> command written, loop clock"},
+            "overrun_stages": {"type": "array", "items": {"type": "string"}},
+            "deadline_missed": {"type": "boolean"},
+            "wall_command_latency_ms": _NUM,
+            "wall_deadline_missed": {"type": "boolean"},
+            "state": {"type": "string"},
+            "v_cmd_mps": _NUM,
+            "omega_cmd_radps": _NUM,
+            "lidar_frame_end_s": {**_NUM_OR_NULL, "description": "end of the lidar frame this tick used (null: none)"},
+            "sensor_to_command_ms": {**_NUM_OR_NULL, "description": "lidar frame end -> this tick's command"},
+        },
+    }
+
+
+POSE_IN_FRAME = {
+    "title": "foxglove.PoseInFrame",
+    "type": "object",
+    "properties": {"timestamp": _TIME, "frame_id": {"type": "string"}, "pose": _POSE},
+}
+
+POSES_IN_FRAME = {
+    "title": "foxglove.PosesInFrame",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "frame_id": {"type": "string"},
+        "poses": {"type": "array", "items": _POSE},
+    },
+}
+
+POINT_CLOUD = {
+    "title": "foxglove.PointCloud",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "frame_id": {"type": "string"},
+        "pose": _POSE,
+        "point_stride": {"type": "integer", "minimum": 0},
+        "fields": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "name": {"type": "string"},
+                    "offset": {"type": "integer", "minimum": 0},
+                    "type": {"type": "integer", "description": "foxglove NumericType (7 = FLOAT32)"},
+                },
+            },
+        },
+        "data": {"type": "string", "contentEncoding": "base64"},
+    },
+}
+
+CAN_FRAME = {
+    "title": "dct.CanFrame",
+    "description": "A CAN frame the controller sent (tx) or received (rx), stamped on the loop clock.",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "direction": {"type": "string", "enum": ["tx", "rx"]},
+        "id": {"type": "integer"},
+        "id_hex": {"type": "string"},
+        "dlc": {"type": "integer"},
+        "data_hex": {"type": "string"},
+    },
+}
+
+PARTITION = {
+    "title": "dct.Partition",
+    "description": "Point counts at a lower rate: lidar returns, P_fix (constrains the planner), P_mov (movable).",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "tick": {"type": "integer"},
+        "lidar_returns": {"type": "integer"},
+        "p_fix": {"type": "integer"},
+        "p_mov": {"type": ["integer", "null"]},
+    },
+}
+
+#: topic -> (schema name, schema); the tick schema depends on the stage names.
+def channel_schemas(stages: tuple[str, ...]) -> dict[str, tuple[str, dict]]:
+    return {
+        TOPIC_TICK: ("dct.Tick", tick_schema(stages)),
+        TOPIC_POSE: ("foxglove.PoseInFrame", POSE_IN_FRAME),
+        TOPIC_CAN: ("dct.CanFrame", CAN_FRAME),
+        TOPIC_PARTITION: ("dct.Partition", PARTITION),
+        TOPIC_P_FIX: ("foxglove.PointCloud", POINT_CLOUD),
+        TOPIC_PLAN: ("foxglove.PosesInFrame", POSES_IN_FRAME),
+        TOPIC_REFERENCE: ("foxglove.PosesInFrame", POSES_IN_FRAME),
+    }
+
+
+def schema_bytes(schema: dict) -> bytes:
+    return json.dumps(schema, separators=(",", ":")).encode()
