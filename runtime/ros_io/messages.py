@@ -27,7 +27,7 @@ from typing import TypeVar
 
 import numpy as np
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, float32, float64, int32, sequence, uint8, uint32, uint64
+from cyclonedds.idl.types import array, byte, float32, float64, int32, sequence, uint8, uint32, uint64
 
 from runtime.sensor_data import SensorDataError
 
@@ -198,7 +198,7 @@ DIAG_OK, DIAG_WARN, DIAG_ERROR, DIAG_STALE = 0, 1, 2, 3
 
 @dataclass
 class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticStatus_"):
-    level: uint8 = DIAG_OK
+    level: byte = DIAG_OK           # ROS `byte`: an IDL octet
     name: str = ""
     message: str = ""
     hardware_id: str = ""
@@ -397,7 +397,10 @@ def encode_custom_msg(header: Header, timebase: int, points: np.ndarray, *, lida
                       rsvd: bytes = b"\x00\x00\x00", point_num: int | None = None) -> bytes:
     """A CustomMsg as ROS 2 CDR bytes (little endian) from a CUSTOM_POINT_DTYPE array: the same
     bytes as `to_cdr(CustomMsg(...))`, at numpy speed (what a simulated Livox publishes)."""
-    pts = np.ascontiguousarray(points, dtype=CUSTOM_POINT_DTYPE)
+    src = np.asarray(points)
+    pts = np.zeros(len(src), dtype=CUSTOM_POINT_DTYPE)    # zeroed: the pad bytes go on the wire
+    for name in CUSTOM_POINT_DTYPE.names:
+        pts[name] = src[name]
     head = to_cdr(CustomMsg(header=header, timebase=timebase,
                             point_num=len(pts) if point_num is None else point_num,
                             lidar_id=lidar_id, rsvd=rsvd))
@@ -420,5 +423,5 @@ class PreSerialized:
 
 
 __all__ = [name for name in list(globals()) if not name.startswith("_") and name not in (
-    "dataclass", "field", "TypeVar", "struct", "np", "SensorDataError", "IdlStruct", "array", "float32", "float64", "int32", "sequence", "uint8",
+    "dataclass", "field", "TypeVar", "struct", "np", "SensorDataError", "IdlStruct", "array", "byte", "float32", "float64", "int32", "sequence", "uint8",
     "uint32", "uint64")]
