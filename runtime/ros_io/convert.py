@@ -372,10 +372,10 @@ def path_msg(stamp_s: float, poses: np.ndarray, *, frame_id: str = "odom") -> Pa
     arr = np.asarray(poses, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] not in (2, 3):
         raise ValueError(f"path_msg: poses must be (N, 2) or (N, 3), got {arr.shape}")
-    if arr.shape[1] == 2:
+    if arr.shape[1] == 2:          # heading of each segment; the last pose keeps the last heading
         d = np.diff(arr, axis=0)
-        yaw = np.arctan2(d[:, 1], d[:, 0]) if len(d) else np.zeros(0)
-        yaw = np.append(yaw, yaw[-1] if len(yaw) else 0.0)
+        yaw = np.arctan2(d[:, 1], d[:, 0])
+        yaw = np.append(yaw, yaw[-1] if len(yaw) else 0.0)[:len(arr)]
         arr = np.column_stack([arr, yaw])
     header = _header(stamp_s, frame_id)
     return Path(header=header, poses=[

@@ -278,8 +278,15 @@ def to_cdr(msg: IdlStruct) -> bytes:
 
 
 def from_cdr(cls: type[_T], data: bytes | bytearray | memoryview) -> _T:
-    """Decode ROS 2 CDR bytes (either endianness; the encapsulation header says which) as `cls`."""
-    return cls.deserialize(bytes(data), has_header=True)
+    """Decode ROS 2 CDR bytes (either endianness; the encapsulation header says which) as `cls`.
+
+    The header is checked here: cyclonedds decodes b"" as a default-valued message."""
+    data = bytes(data)
+    if len(data) < 4 or data[:2] not in (b"\x00\x00", b"\x00\x01"):
+        raise RosMessageError(f"{len(data)} bytes starting {data[:4].hex() or '(nothing)'}: not plain CDR "
+                              "(encapsulation 0000 or 0001)", name="bad_encoding",
+                              field_name=f"{ros_type_name(cls)}.(header)")
+    return cls.deserialize(data, has_header=True)
 
 
 def stamp_to_time(stamp_s: float) -> Time:
@@ -416,7 +423,7 @@ class PreSerialized:
 
     @staticmethod
     def of(cls: type[_T], cdr: bytes) -> _T:
-        sample = cls()
+        sample = cls.__new__(cls)      # no field values needed: only serialize() is called
         # An instance attribute shadows the class's serialize: cyclonedds' writer uses this one.
         sample.serialize = lambda *args, **kwargs: cdr  # type: ignore[method-assign]
         return sample
