@@ -326,7 +326,7 @@ def pose_stamped_to_goal(msg: PoseStamped, *, max_tilt_rad: float = 0.35, max_ab
     comps = np.array([q.x, q.y, q.z, q.w])
     if not np.isfinite(comps).all():
         _fail(t, "pose.orientation", f"non-finite quaternion {comps.tolist()}", "non_finite")
-    norm = float(np.linalg.norm(comps))
+    norm = math.hypot(*comps)
     if abs(norm - 1.0) > 1e-3:
         _fail(t, "pose.orientation", f"quaternion norm {norm:.6g}, not a rotation", "bad_quaternion")
     x, y, z, w = comps / norm

@@ -18,7 +18,7 @@ Fixed `uint8[3]` arrays are `bytes` of length 3 for the same reason (cyclonedds'
 Use `to_cdr` / `from_cdr` rather than `.serialize()` / `.deserialize()`: they pin XCDR1, the
 representation ROS 2 speaks (cyclonedds picks XCDR2 for some types when left to choose), and
 DDS entities for these types need `Policy.DataRepresentation(use_cdrv0_representation=True)`
-(see `ros_qos` in receiver.py).
+(see `ros_qos` in dds.py).
 """
 
 import struct

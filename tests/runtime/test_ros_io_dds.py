@@ -176,3 +176,19 @@ def test_bad_samples_are_counted_named_and_reach_the_tick(domain_id):
     assert "sensor_msgs/msg/CompressedImage.data" in by_stream["camera"].message
     assert inbox.error_counts.get("lidar.missing_field", 0) >= 1
     assert "\n" not in rx.last_error
+
+
+def test_a_converter_crash_is_counted_not_fatal(domain_id):
+    cfg = RosInputConfig(domain_id=domain_id, imu=ImuTopic(topic="/imu_crash"))
+    inbox = SensorInbox()
+    rx = RosSensorReceiver(cfg, inbox)
+
+    def boom(msg):
+        raise ZeroDivisionError("a bug")
+
+    data = M.to_cdr(M.Imu(header=M.Header(M.Time(1, 0), "imu")))
+    assert rx.process("imu", "sensor_msgs/msg/Imu", data, boom) is False
+    assert rx.error_counts == {"imu.internal_error": 1} and "ZeroDivisionError" in rx.last_error
+    assert inbox.take().rejected[0].name == "internal_error"
+    assert rx.process("imu", "sensor_msgs/msg/Imu", b"\x00\x01\x00\x00", lambda m: None) is False
+    assert rx.error_counts["imu.undecodable"] == 1

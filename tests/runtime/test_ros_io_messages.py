@@ -241,3 +241,24 @@ def test_pre_serialized_serializes_to_given_bytes():
     data = M.to_cdr(M.CustomMsg(point_num=3))
     sample = M.PreSerialized.of(M.CustomMsg, data)
     assert isinstance(sample, M.CustomMsg) and sample.serialize(use_version_2=False) == data
+
+
+@pytest.mark.parametrize("cls", [M.PointCloud2, M.Image, M.CompressedImage], ids=lambda c: c.__name__)
+def test_wire_twin_is_the_same_type_on_the_wire(cls):
+    """Topics register a sequence<uint8> twin of the bytes-typed structs (dds.wire_type): same DDS
+    name, same fields, same bytes for the same message."""
+    from runtime.ros_io.dds import wire_type
+
+    twin = wire_type(cls)
+    assert twin is not cls and twin.__idl_typename__ == cls.__idl_typename__
+    assert [f.name for f in dataclasses.fields(twin)] == [f.name for f in dataclasses.fields(cls)]
+
+    @settings(max_examples=30, deadline=None)
+    @given(strategy_for(cls))
+    def check(msg):
+        values = {f.name: (list(getattr(msg, f.name)) if isinstance(getattr(msg, f.name), bytes)
+                           else getattr(msg, f.name)) for f in dataclasses.fields(cls)}
+        assert M.to_cdr(twin(**values)) == M.to_cdr(msg)
+
+    check()
+    assert wire_type(M.Imu) is M.Imu
