@@ -29,7 +29,7 @@ import numpy as np
 from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.util import duration
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from runtime.ros_io import convert
 from runtime.ros_io.dds import RawDataReader, dds_topic_name, raw_reader, ros_qos
@@ -73,6 +73,12 @@ class LidarTopic(_Topic):
     time_unit_s: float = Field(default=1.0, gt=0.0)
     time_is_absolute: bool = False
     nominal_frame_duration_s: float = Field(default=convert.DEFAULT_FRAME_DURATION_S, gt=0.0, le=1.0)
+
+    @model_validator(mode="after")
+    def _time_field_only_for_pointcloud2(self) -> "LidarTopic":
+        if self.type != "sensor_msgs/msg/PointCloud2" and (self.time_field is not None or self.time_is_absolute):
+            raise ValueError("time_field / time_is_absolute apply to PointCloud2 only (CustomMsg has offset_time)")
+        return self
 
 
 class CameraTopic(_Topic):
@@ -126,8 +132,7 @@ class RosSensorReceiver:
     """
 
     def __init__(self, config: RosInputConfig, inbox: SensorInbox, *, camera_K: np.ndarray | None = None,
-                 camera_distortion: np.ndarray | None = None, participant: DomainParticipant | None = None,
-                 clock: Callable[[], float] | None = None) -> None:
+                 camera_distortion: np.ndarray | None = None, participant: DomainParticipant | None = None) -> None:
         if config.camera is not None and camera_K is None:
             raise ValueError("RosSensorReceiver: a camera topic is configured but no camera_K was given")
         self.config = config

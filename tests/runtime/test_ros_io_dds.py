@@ -62,7 +62,8 @@ def test_config_validation():
     for bad in ({"lidar": {"topic": "/a", "type": "sensor_msgs/msg/Image"}},
                 {"lidar": {"topic": "/a//b", "type": "sensor_msgs/msg/PointCloud2"}},
                 {"imu": {"topic": "/imu", "qos": {"reliability": "sometimes"}}},
-                {"imu": {"topic": "/imu", "rate": 200}}):
+                {"imu": {"topic": "/imu", "rate": 200}},
+                {"lidar": {"topic": "/l", "type": "livox_ros_driver2/msg/CustomMsg", "time_field": "t"}}):
         with pytest.raises(ValidationError):
             RosInputConfig.model_validate(bad)
     with pytest.raises(ValueError, match="camera_K"):
