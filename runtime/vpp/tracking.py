@@ -117,8 +117,15 @@ class TrackedObject:
     confirmed_s: float
     tracked_scans: int = 0
     view_extent_m: float = 0.0  # the largest extent a confirming view had
-    #: (time, template centre x, y) after every scan: where the object was when (moved_since).
+    #: A point fixed to the object (x, y), moved only by the registrations' rigid motions (the
+    #: template's centre also shifts as views and spread add points: not a motion).
+    anchor: np.ndarray | None = None
+    #: (time, anchor x, y) after every scan: where the object was when (moved_since).
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_SCANS))
+
+    def __post_init__(self) -> None:
+        if self.anchor is None:
+            self.anchor = self.centre()
 
     def centre(self) -> np.ndarray:
         return self.template[:, :2].mean(axis=0)
@@ -159,27 +166,29 @@ class ObjectTracker:
             self._confirm(k, now_s, points_odom[sel], float(cost[sel][0]))
         for obj in self.objects.values():
             added += self._label(obj, label, oid, cost, points_odom)
-            obj.history.append((float(now_s), *obj.centre()))
+            obj.history.append((float(now_s), *obj.anchor))
         self.points_tracked += added
         return added
 
     def moved_since(self, object_id: int, t_s: float) -> float | None:
-        """How far (m) object_id's template centre moved since time t_s; None when the tracker did
-        not follow it then (not tracked, or tracked only since later)."""
+        """How far (m) object_id moved since time t_s (its anchor: rigid motions only); None when
+        the tracker did not follow it then: not tracked, or tracked only since later (a mask's
+        capture precedes the answer that starts the track by the backend's latency; what the
+        object did in between is unknown, and a mask warped from then gets the growth rule)."""
         obj = self.objects.get(int(object_id))
         if obj is None or not obj.history or obj.history[0][0] > t_s:
             return None
-        then = next((h for h in reversed(obj.history) if h[0] <= t_s), None)
-        if then is None:
-            return None
-        return float(np.hypot(*(obj.centre() - then[1:])))
+        then = next(h for h in reversed(obj.history) if h[0] <= t_s)
+        return float(np.hypot(*(obj.anchor - then[1:])))
 
     def _confirm(self, k: int, now_s: float, points: np.ndarray, cost: float) -> None:
         """Merge a mask's view of object k into its template (registered to this scan already)."""
         c = self.config
         new = _thin(points, c.template_voxel_m)
         old = self.objects.get(k) or self._hand_over(k, new)
+        anchor = None
         if old is not None and len(old.template):
+            anchor = old.anchor
             d, _ = cKDTree(new).query(old.template, distance_upper_bound=2 * c.template_voxel_m)
             extra = old.template[~np.isfinite(d)]
             union = np.concatenate([new, extra]) if len(extra) else new
@@ -187,10 +196,11 @@ class ObjectTracker:
                 new = union  # a far view's face and a near view's top: one object
             elif len(new) < len(old.template) // 2:
                 new = old.template  # a sliver that disagrees (at the image border): keep the object
-            # else: the view disagrees and is substantial (the object moved unseen): take the view
+            else:  # the view disagrees and is substantial (the object moved unseen): take the view
+                anchor = None  # (its centre: a jump the history shows as a motion)
         view = _extent(points)
         obj = TrackedObject(k, cost, new, now_s, 0 if old is None else old.tracked_scans,
-                            view if old is None else max(view, old.view_extent_m))
+                            view if old is None else max(view, old.view_extent_m), anchor)
         if old is not None:
             obj.history = old.history
         self.objects[k] = obj
@@ -236,6 +246,7 @@ class ObjectTracker:
             return
         self.registrations += 1
         obj.template = moved
+        obj.anchor = R_total @ obj.anchor + t_total
         obj.tracked_scans += 1
 
     def _label(self, obj: TrackedObject, label, oid, cost, points_odom: np.ndarray) -> int:

@@ -146,7 +146,7 @@ def test_config_rejects_impossible_values(field, value):
         TrackingConfig(**{field: value})
 
 
-def test_moved_since_says_how_far_a_tracked_object_went_and_none_before_it_was_tracked():
+def test_moved_since_says_how_far_a_tracked_object_went():
     tracker = ObjectTracker()
     box = _box(0.0, 0.0)
     tracker.update(1.0, _part(len(box), np.arange(len(box))), box)
@@ -155,7 +155,7 @@ def test_moved_since_says_how_far_a_tracked_object_went_and_none_before_it_was_t
         tracker.update(1.0 + 0.1 * i, _part(len(moved)), moved)
     assert tracker.moved_since(7, 1.0) == pytest.approx(0.16, abs=0.02)
     assert tracker.moved_since(7, 1.25) == pytest.approx(0.08, abs=0.02)  # since the scan at 1.2
-    assert tracker.moved_since(7, 0.5) is None  # not tracked then
+    assert tracker.moved_since(7, 0.5) is None  # not tracked then: unknown
     assert tracker.moved_since(99, 1.0) is None  # never tracked
 
 
