@@ -27,7 +27,7 @@ its memory's masks and planes), against ground truth the controller never sees:
   camera through the odom frame; its points that fall in the capture mask within
   `REPROJECTION_DEPTH_GATE_M` of their median depth, projected into the current image, filled as
   their convex hull). A capture gives one sample per travel distance d (robot path length since
-  capture): the first image at or past d, if it is within max(0.1 m, d / 4) past d. Samples are
+  capture): the image nearest to d of travel, if it is within max(0.1 m, d / 4) of d. Samples are
   left out, and counted, when the object moved since capture (a pushed box: the warp assumes a
   static object, tracking handles moving ones), when it is out of view (fewer than
   `min_pixels` true pixels), or when the mask had no plane (so the three methods are compared on
@@ -111,6 +111,7 @@ class VppProbe:
         self.iou: dict[str, dict[float, list[float]]] = {m: {d: [] for d in self.distances} for m in METHODS}
         self.left_out = {"moved": 0, "out_of_view": 0, "no_plane": 0, "no_image_near_distance": 0}
         self.stage_s: list[float] = []
+        self.samples: list[dict] = []  # every scored (capture, distance): object, IoU per method
         self._travel = 0.0
         self._last_xy: tuple[float, float] | None = None
         self._last_frame_stamp: float | None = None
@@ -127,6 +128,7 @@ class VppProbe:
         self.warper = MaskWarper(self.stage.camera)
         names = [n for n in self.world.obstacle_names if n not in set(self.world.scenario.wall_names())]
         self.geom_of = {n: int(self.world.obstacle_geom_id(n)) for n in names}
+        self.name_of = {g: n for n, g in self.geom_of.items()}
         self.objects = set(self.geom_of.values())
         self.movable = np.array(sorted(g for n, g in self.geom_of.items()
                                        if self.world.obstacle_class(n) == "movable"), dtype=np.int32)
@@ -231,13 +233,18 @@ class VppProbe:
                         cap.done.add(d)  # the run ended first: no sample
                     continue
                 cap.done.add(d)
-                self._score_one(cap, past[0], d)
+                # The image nearest to d of travel: the first past it or the last before it.
+                before = [v for v in later if v.travel_m - cap.travel_m < d]
+                near = past[0]
+                if before and d - (before[-1].travel_m - cap.travel_m) < (near.travel_m - cap.travel_m) - d:
+                    near = before[-1]
+                self._score_one(cap, near, d)
             if len(cap.done) < len(self.distances):
                 still.append(cap)
         self.open = still
 
     def _score_one(self, cap: _Capture, view: _View, d: float) -> None:
-        if view.travel_m - cap.travel_m > d + max(0.1, d / 4):
+        if abs(view.travel_m - cap.travel_m - d) > max(0.1, d / 4):
             self.left_out["no_image_near_distance"] += 1
             return
         if np.linalg.norm(view.positions[cap.geom] - cap.positions[cap.geom]) > MOVED_TOLERANCE_M:
@@ -256,9 +263,14 @@ class VppProbe:
             "rotation": self.warper.warp(cap.mask, R, t, None),
             "reprojection": self._reproject(cap, view),
         }
+        sample = {"object": self.name_of[cap.geom], "capture_s": round(cap.stamp_s, 3), "after_m": d,
+                  "travelled_m": round(view.travel_m - cap.travel_m, 3), "true_pixels": int(np.count_nonzero(truth))}
         for method, mask in masks.items():
             union = np.count_nonzero(mask | truth)
-            self.iou[method][d].append(np.count_nonzero(mask & truth) / union if union else 0.0)
+            iou = np.count_nonzero(mask & truth) / union if union else 0.0
+            self.iou[method][d].append(iou)
+            sample[method] = round(iou, 4)
+        self.samples.append(sample)
 
     def _reproject(self, cap: _Capture, view: _View) -> np.ndarray:
         camera = self.stage.camera
@@ -303,6 +315,7 @@ class VppProbe:
                                 for m, per in self.iou.items()},
             "iou_samples": {f"{d:g}": len(v) for d, v in self.iou["plane"].items()},
             "iou_left_out": dict(self.left_out),
+            "iou_sample_list": self.samples,
             "captures": sum(c is not None for c in self.captures.values()),
             "stage_ms": {
                 "p50": float(np.percentile(stage_ms, 50)) if stage_ms.size else None,
