@@ -150,6 +150,8 @@ class FixedRateLoop:
         self.slack_work_min_s = slack_work_min_s
         self.slack_work_max_postpone = slack_work_max_postpone
         self.after_tick = after_tick
+        self.after_tick_errors = 0
+        self.after_tick_error: str | None = None
         self._postponed_in_row = 0
         self.keepalives_sent = 0
         #: The loop's clock is the wall clock (its lateness is real waiting time).
@@ -211,7 +213,12 @@ class FixedRateLoop:
                     telemetry.slack_windows_skipped += 1
             telemetry.commit_tick(row)
             if self.after_tick is not None:
-                self.after_tick(row)
+                try:
+                    self.after_tick(row)
+                except Exception as exc:  # noqa: BLE001 - an observer (a recorder) never ends the loop
+                    self.after_tick_errors += 1
+                    self.after_tick_error = f"{type(exc).__name__}: {exc}"
+                    self.after_tick = None  # off for the rest of the run; said in after_tick_error
             ticks_run += 1
 
             # Next grid point; skip (and count) grid points that have already passed.

@@ -300,7 +300,7 @@ class RunRecorder:
                 self.write_error = f"{type(exc).__name__}: {exc}"
                 if item[0] != "meta":
                     self.dropped_write_error += 1
-            except (ValueError, TypeError) as exc:  # one record that would not serialise: skip it
+            except Exception as exc:  # noqa: BLE001 - one record that would not serialise: skip it, never die
                 self.bad_records += 1
                 self.bad_record_error = f"{item[0]}: {type(exc).__name__}: {exc}"
 

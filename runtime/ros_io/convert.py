@@ -25,8 +25,11 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import io
+
 import cv2
 import numpy as np
+import PIL.Image
 
 from runtime.geometry import Pose2D
 from runtime.ros_io.messages import (
@@ -247,6 +250,10 @@ def image_to_camera(msg: Image, K: np.ndarray, distortion: np.ndarray | None = N
     return _camera(t, "data", stamp, np.ascontiguousarray(px), K, distortion, _frame_id(t, msg.header, default_frame_id))
 
 
+#: The largest image a CompressedImage may decode to (16 Mpx: 48 MB of RGB), checked on its header.
+MAX_COMPRESSED_PIXELS = 4096 * 4096
+
+
 def compressed_image_to_camera(msg: CompressedImage, K: np.ndarray, distortion: np.ndarray | None = None, *,
                                default_frame_id: str = "camera") -> CameraImage:
     """A sensor_msgs/CompressedImage (JPEG, PNG: whatever cv2.imdecode reads) as an RGB CameraImage."""
@@ -254,7 +261,18 @@ def compressed_image_to_camera(msg: CompressedImage, K: np.ndarray, distortion: 
     stamp = _stamp_of(t, msg.header)
     if not msg.data:
         _fail(t, "data", "empty", "bad_size")
-    bgr = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    # Size from the header before decoding: a small PNG can hold a huge image (a decode bomb).
+    try:
+        with PIL.Image.open(io.BytesIO(bytes(msg.data))) as header:
+            w, h = header.size
+    except (OSError, ValueError, PIL.Image.DecompressionBombError) as exc:
+        _fail(t, "data", f"{len(msg.data)} bytes whose image header cannot be read (format {msg.format!r}): "
+                         f"{type(exc).__name__}", "undecodable")
+    if not (0 < w <= MAX_IMAGE_SIDE_PX and 0 < h <= MAX_IMAGE_SIDE_PX) or w * h > MAX_COMPRESSED_PIXELS:
+        _fail(t, "data", f"header says {w}x{h} px: outside 1..{MAX_IMAGE_SIDE_PX} per side or over "
+                         f"{MAX_COMPRESSED_PIXELS} pixels", "bad_size")
+    # IGNORE_ORIENTATION: an EXIF rotation would turn the image under the camera's calibration.
+    bgr = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         _fail(t, "data", f"{len(msg.data)} bytes that cv2.imdecode cannot read (format {msg.format!r})",
               "undecodable")

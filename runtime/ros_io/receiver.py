@@ -161,6 +161,8 @@ class RosSensorReceiver:
             self._readers.append((stream, topic.type, reader, self._handler(stream, topic)))
             self.received[stream] = 0
         self._stop = threading.Event()
+        self.thread_errors = 0  # exceptions the receiver thread survived (last_thread_error names the last)
+        self.last_thread_error: str | None = None
         self._thread: threading.Thread | None = None
 
     # -- conversion per stream
@@ -240,14 +242,22 @@ class RosSensorReceiver:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.poll(timeout_s=0.1)
+            try:
+                self.poll(timeout_s=0.1)
+            except Exception as exc:  # noqa: BLE001 - a DDS take that fails must not end the thread silently
+                self.thread_errors += 1
+                self.last_thread_error = f"{type(exc).__name__}: {exc}"
+                self._stop.wait(0.1)  # back off; the inbox goes stale meanwhile and the monitor holds the robot
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
         self._wake.set(True)
         if self._thread is not None:
             self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                raise RuntimeError(f"RosSensorReceiver: the receiver thread did not stop within {timeout_s} s")
             self._thread = None
+        self._stop.clear()
 
     def __enter__(self) -> "RosSensorReceiver":
         return self.start()

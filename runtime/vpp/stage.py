@@ -192,7 +192,7 @@ class VppStage:
         p = np.asarray(scan.points_m, dtype=np.float64)
         T_odom_lidar = T_odom_base @ self.T_base_lidar
         self._last_scan_odom = p @ T_odom_lidar[:3, :3].T + T_odom_lidar[:3, 3]
-        self.tracker.update(now_s, part, self._last_scan_odom)
+        self.tracker.update(float(scan.stamp_s), part, self._last_scan_odom)  # sensor time, as capture stamps
         self._maybe_ask(now_s)
         self.frames += 1
         self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
@@ -239,7 +239,8 @@ class VppStage:
             "rejected_answers": self.rejected_answers, "last_rejection": self.last_rejection,
             "masks_distrusted": self.masks_distrusted, "points_tracked": self.tracker.points_tracked,
             "tracking": {"objects": len(self.tracker.objects), "registrations": self.tracker.registrations,
-                         "lost": self.tracker.lost, "handovers": self.tracker.handovers},
+                         "lost": self.tracker.lost, "unseen": self.tracker.unseen,
+                         "handovers": self.tracker.handovers},
             "images_refused": self.images_refused, "gave_up_waiting": self.gave_up_waiting,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,

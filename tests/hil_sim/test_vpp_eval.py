@@ -112,7 +112,8 @@ def test_a_worse_oracle_gives_worse_recall():
     # Recall 0.3: most answers miss the box; its points stay P_fix for long stretches.
     r = evaluate_scenario("case1", seed=0, oracle=SimOracleConfig(recall=0.3))
     assert r["oracle"]["recall"] == 0.3
-    assert r["point_recall"] is None or r["point_recall"] < 0.9
+    assert r["frames"] > 20  # answers came (and were scored): the figure is about them
+    assert r["point_recall"] is not None and r["point_recall"] < 0.9
 
 
 def test_cli_refuses_bad_options_and_existing_output(tmp_path):

@@ -181,7 +181,9 @@ def test_wall_clock_loop_runs_on_the_monotonic_grid():
     t0 = time.monotonic()
     loop.run(ctl, should_stop=lambda: False, max_ticks=20)
     ticks = np.array(ctl.ticks)
-    assert np.allclose(np.diff(ticks), 0.01)
+    # On the grid (a loaded machine may skip grid points; the loop counts them, never drifts).
+    k = np.round((ticks - ticks[0]) / 0.01)
+    assert np.allclose(ticks - ticks[0], k * 0.01) and np.all(np.diff(k) >= 1)
     assert ticks[0] >= t0
     rec = loop.telemetry.snapshot()
     assert np.all(rec["lateness_s"] >= 0.0)
@@ -249,3 +251,20 @@ def test_slack_work_waits_at_most_two_ticks_then_runs_and_idle_calls_are_not_rec
     loop.run(ctl, should_stop=lambda: False, max_ticks=6)
     assert calls == [2, 5]  # skipped after ticks 0, 1, run after 2; skipped 3, 4, run after 5
     assert tel.slack_windows_skipped == 4 and tel.slack_work_runs == 1
+
+
+def test_an_after_tick_hook_that_raises_is_switched_off_and_the_loop_goes_on():
+    """An observer (the recorder) that fails must not end the control loop."""
+    calls = []
+
+    def hook(row):
+        calls.append(row)
+        raise KeyError("boom")
+
+    clock = FakeClock()
+    loop = make_loop(clock, telemetry=TickTelemetry())
+    loop.after_tick = hook
+    ctl = FakeControlled(clock, lambda i: 0.001)
+    loop.run(ctl, lambda: len(ctl.ticks) >= 5)
+    assert len(ctl.ticks) == 5 and len(calls) == 1
+    assert loop.after_tick_errors == 1 and "KeyError" in loop.after_tick_error

@@ -413,3 +413,33 @@ def test_real_camera_image_as_image_and_compressed_image(store):
     img = M.from_cdr(M.Image, raw)
     assert M.to_cdr(img) == raw
     np.testing.assert_array_equal(C.image_to_camera(img, Kr).pixels, bgr[:, :, ::-1])
+
+
+def test_compressed_image_size_is_checked_on_its_header_before_decoding():
+    """(A reviewer's case) a small PNG that decodes to a huge image is refused unread."""
+    import io
+
+    import PIL.Image
+
+    buf = io.BytesIO()
+    PIL.Image.new("L", (5000, 5000)).save(buf, format="PNG")  # 25 Mpx of black: ~25 kB compressed
+    assert len(buf.getvalue()) < 200_000
+    rejects(C.compressed_image_to_camera, M.CompressedImage(hdr(), "png", buf.getvalue()), K, name="bad_size")
+
+
+def test_a_jpeg_exif_rotation_is_not_applied():
+    """An EXIF orientation would turn the image under the camera's calibration."""
+    import io
+
+    import PIL.Image
+
+    px = np.zeros((40, 60, 3), np.uint8)
+    px[:10, :10] = (255, 0, 0)  # a red corner, top left
+    img = PIL.Image.fromarray(px)
+    exif = PIL.Image.Exif()
+    exif[0x0112] = 3  # Orientation: rotate 180
+    buf = io.BytesIO()
+    img.save(buf, format="JPEG", quality=95, exif=exif)
+    cam = C.compressed_image_to_camera(M.CompressedImage(hdr(), "jpeg", buf.getvalue()), K)
+    assert cam.pixels.shape == (40, 60, 3)
+    assert cam.pixels[2, 2, 0] > 200 and cam.pixels[-3, -3, 0] < 50  # still top left

@@ -179,3 +179,31 @@ def test_faces_the_camera_never_saw_join_the_object_but_a_wall_it_touches_only_a
     z_band = wall[:, 2] <= 0.4 + cfg.max_spread_m + cfg.label_radius_m
     taken = part.label[nb:] == MOVABLE
     assert not np.any(taken & ~(y_band & z_band))  # never more of the wall than the spread allows
+
+
+def test_an_object_the_scans_stop_showing_has_an_unknown_motion_not_zero():
+    """(A reviewer's case) the box was confirmed, then every scan shows it 3 m away: the tracker
+    must not say it stood still, or the stage would trust its stale, swollen mask."""
+    tracker = ObjectTracker()
+    box = _box(0.0, 0.0)
+    tracker.update(0.0, _part(len(box), np.arange(len(box))), box)
+    gone = _box(3.0, 0.0)
+    for i in range(1, 4):
+        tracker.update(0.1 * i, _part(len(gone)), gone)
+    assert tracker.moved_since(7, 0.0) is None
+    assert tracker.unseen == 3
+
+
+def test_a_box_knocked_further_than_icp_can_follow_is_not_followed_and_its_motion_is_unknown():
+    """Knocked 0.6 m in one scan: no registration (refused or nothing to match), the anchor stays,
+    and moved_since says unknown. (A jump under half the object's size can converge on the
+    overlap: ICP's known limit, bounded by max_step_m and max_rms_m.)"""
+    tracker = ObjectTracker()
+    box = _box(0.0, 0.0)
+    tracker.update(0.0, _part(len(box), np.arange(len(box))), box)
+    anchor = tracker.objects[7].anchor.copy()
+    knocked = _box(0.6, 0.0)
+    tracker.update(0.1, _part(len(knocked)), knocked)
+    assert tracker.registrations == 0 and tracker.lost + tracker.unseen == 1
+    assert tracker.moved_since(7, 0.0) is None
+    assert np.array_equal(tracker.objects[7].anchor, anchor)
