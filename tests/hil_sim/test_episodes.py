@@ -19,11 +19,13 @@ REQUIRED_KEYS = {
 }
 
 
-def test_default_config_runs_the_mpc_and_reaches_the_case1_goal():
+def test_default_config_runs_dct_and_reaches_the_case1_goal():
     result = run_episode("case1", seed=0)
     m = result.metrics
     assert REQUIRED_KEYS <= set(m)
-    assert result.controller["mode"] == "all-fixed" and result.controller["mpc_plans"] > 20
+    assert result.controller["mode"] == "dct" and result.controller["mpc_plans"] > 20
+    vpp = result.controller["vpp"]  # the sim-oracle answered: the partition ran on its masks
+    assert vpp["answers"] >= 1 and vpp["failed_answers"] == 0 and not vpp["gave_up_waiting"]
     assert m["success"] and m["fixed_contacts"] == 0
     assert result.extra["firmware_frames_rejected"] == 0 and result.extra["sensor_errors"] == {}
     assert result.extra["keepalives_sent"] >= result.telemetry["ticks"]  # 0x111 at >= 50 Hz
