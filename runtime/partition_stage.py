@@ -27,6 +27,9 @@ from runtime.sensor_data import CameraImage, LidarScan
 
 class PartitionStage(Protocol):
     name: str
+    #: The VPP stage behind it (runtime.vpp.stage.VppStage), None when there is none: its
+    #: counters and last frame are read outside the tick (controller.vpp: tests, benches).
+    vpp: object | None
 
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
                scan: LidarScan | None) -> np.ndarray | None:
