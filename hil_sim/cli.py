@@ -42,8 +42,9 @@ def list_command() -> None:
 @click.option(
     "--planner",
     type=click.Choice(["pure-pursuit", "all-fixed", "dct"]),
-    help="Override the config's planner mode (all-fixed: MPC with every lidar point fixed, the NeuPAN-like baseline; "
-         "dct: only the VLM partition's P_fix, with the sim-oracle and a 2 Hz camera; in progress, issue 13).",
+    help="Override the config's planner mode (default dct: the MPC on the VLM partition's P_fix only, with the "
+         "config's backend (the sim-oracle) and a 2 Hz camera; all-fixed: every lidar point fixed, the NeuPAN-like "
+         "baseline; pure-pursuit: the blind placeholder).",
 )
 @click.option(
     "--fault", "fault_texts", multiple=True, metavar="NAME:START_S[:DURATION_S]",

@@ -181,6 +181,9 @@ def run_episode(
     (evaluations attach to the sensor rig's listeners: `dct vpp eval`).
     recorder: records the ticks, poses, CAN frames, P_fix and plan to MCAP (runtime.recording);
     the caller closes it. Recording changes no metric.
+    oracle: planner mode dct's sim-oracle settings, used as given (its seed too) instead of the
+    config's `vpp.backend` (whose seed is added to the episode seed). With no `oracle` and a
+    backend other than the sim-oracle in the config, the controller builds that backend.
 
     Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
     What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
@@ -217,11 +220,12 @@ def run_episode(
             rig_config = rig_config.model_copy(update={"camera_rate_hz": rate, "camera_segmentation": True})
         devices.append(SensorRig(world, robot, injector, rig_config))
     vlm_backend = None
-    if config.planner.mode == "dct":
+    if config.planner.mode == "dct" and (oracle is not None or config.vpp.backend.kind == "sim-oracle"):
+        # The sim-oracle needs this world's object table: built here, passed to the controller.
+        # Any other backend the controller builds from the config itself.
         from hil_sim.vlm_oracle import oracle_backend
-        from models.vlm.sim_oracle import SimOracleConfig
 
-        vlm_backend = oracle_backend(world, oracle or SimOracleConfig(seed=seed))
+        vlm_backend = oracle_backend(world, oracle or config.vpp.backend.oracle_config(episode_seed=seed))
     sim = LockstepSimulation(world, firmware, metrics, devices, controls=[injector])
     clock = LockstepClock(sim)
 

@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from calibration.errors import ConfigFileError, load_yaml_model
+from models.vlm.factory import BackendConfig, SimOracleBackendConfig
 from runtime.input_monitor import InputsConfig
 from runtime.modes.selector import RecoveryConfig
 from runtime.odometry.stage import OdometryConfig
@@ -77,13 +78,12 @@ class ObstaclePointsConfig(_Strict):
 
 
 class PlannerConfig(_Strict):
+    #: dct (the default): reference path + OSQP MPC with the distance net + safety supervisor on
+    #: the VPP partition's P_fix only (`vpp:`: the VLM backend in `vpp.backend`, the sim-oracle
+    #: in HIL).
+    #: all-fixed: the same with every lidar point treated as P_fix (the NeuPAN-like baseline).
     #: pure-pursuit: the step-1 placeholder (straight line, no obstacles).
-    #: all-fixed: reference path + OSQP MPC with the distance net + safety supervisor on lidar
-    #: points, every point treated as P_fix (the NeuPAN-like baseline; the VLM partition of
-    #: roadmap step 5 adds the DCT mode next to it).
-    #: dct: as all-fixed, with only the VPP partition's P_fix as obstacles (`vpp:`; a VLM
-    #: backend is required: the sim-oracle in HIL).
-    mode: Literal["pure-pursuit", "all-fixed", "dct"]
+    mode: Literal["pure-pursuit", "all-fixed", "dct"] = "dct"
     pure_pursuit: PurePursuitConfig
     distance_net_path: str | None = None  # None: the shipped artifact for the robot
     obstacle_points: ObstaclePointsConfig = ObstaclePointsConfig()
@@ -103,6 +103,13 @@ class PlannerConfig(_Strict):
         return self
 
 
+class VppSettings(VppConfig):
+    """The VPP stage's settings (runtime.vpp.stage.VppConfig) and the backend it asks
+    (`backend:`, models.vlm.factory: kind sim-oracle in HIL, openai-compatible elsewhere)."""
+
+    backend: BackendConfig = SimOracleBackendConfig()
+
+
 class ControllerConfig(_Strict):
     loop: LoopConfig
     safety_stop: SafetyStopConfig
@@ -113,8 +120,8 @@ class ControllerConfig(_Strict):
     recovery: RecoveryConfig = RecoveryConfig()
     #: Wheels + gyro + KISS-ICP, fused (runtime.odometry).
     odometry: OdometryConfig = OdometryConfig()
-    #: The VLM point partition (runtime.vpp; planner mode dct).
-    vpp: VppConfig = VppConfig()
+    #: The VLM point partition and its backend (runtime.vpp, models.vlm.factory; planner mode dct).
+    vpp: VppSettings = VppSettings()
 
     @model_validator(mode="after")
     def _tick_matches_mpc(self) -> "ControllerConfig":

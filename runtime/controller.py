@@ -19,7 +19,9 @@ fails the robot holds still with the failing inputs named in the event log, and 
 itself when they are good again. An E-stop (or any vehicle state that is not normal) is also
 a hold, but clearing it does not resume driving at the last command: the controller re-enters
 its start-up sequence. Which planner drives while ACTIVE is a navigation mode chosen by
-`runtime.modes.selector.ModeSelector` (the all-fixed MPC, pure pursuit, or the stall recovery).
+`runtime.modes.selector.ModeSelector` (the all-fixed MPC, pure pursuit, or the stall recovery);
+which lidar points it must not touch (P_fix) is the partition stage the planner mode brings
+(`runtime.partition_stage`: every point, or the VLM partition of mode dct).
 """
 from __future__ import annotations
 
@@ -84,8 +86,9 @@ class NavigationController:
         False on the robot and in real-time HIL.
         wheel_calibration: (effective track m, wheel scale) from the robot's calibration file
         (`dct calibrate wheels`); None: the robot description's track x skid_steer_yaw_factor, 1.0.
-        vlm_backend: the contact-tolerance backend (models.vlm) of planner mode dct (the
-        sim-oracle in HIL); it runs beside the tick (models.vlm.runner)."""
+        vlm_backend: the contact-tolerance backend (models.vlm) of planner mode dct: the simulator
+        passes its sim-oracle; None builds the one the config names (`vpp.backend`,
+        models.vlm.factory). It runs beside the tick (models.vlm.runner)."""
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
@@ -110,11 +113,13 @@ class NavigationController:
         self.monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=uses_sensors, uses_imu=uses_sensors)
         # P_fix in the odom frame: every lidar point, or (mode dct) those the VPP partition keeps.
         self.points_fix = _NO_POINTS
-        self.vpp = self._build_vpp(config, robot, vlm_backend, lockstep) if config.planner.mode == "dct" else None
         self.obstacles = ObstaclePointExtractor(
             robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
         )
-        stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps))
+        stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps, vlm_backend))
+        #: Which lidar points are P_fix, and whether the planner may drive yet: chosen once, by
+        #: the mode (runtime.partition_stage: every point, or the VLM partition of mode dct).
+        self.partition = stack.partition
         self.supervisor = stack.supervisor
         self.last_safety = None
         self.modes = ModeSelector(stack.normal, stack.recovery, config.recovery, self.events)
@@ -162,30 +167,17 @@ class NavigationController:
             self.hardware.deactivate()
         finally:
             self.odometry.close()
-            if self.vpp is not None:
-                self.vpp.close()
+            self.partition.close()
 
-    @staticmethod
-    def _build_vpp(config: ControllerConfig, robot: RobotDescription, backend, lockstep: bool):
-        """The VPP stage of mode dct: the robot's camera (nominal intrinsics until a calibration
-        file gives its own), its mounts, the backend in a runner on this controller's clock."""
-        from calibration.camera_model import CameraModel
-        from models.vlm.runner import BackendRunner
-        from runtime.vpp.stage import VppStage
-
-        if backend is None:
-            raise ValueError("planner mode dct needs a contact-tolerance backend (models.vlm): the sim-oracle in "
-                             "HIL; none was given")
-        cam = robot.sensors.camera
-        runner_config = config.vpp.runner.model_copy(update={"clock": "lockstep" if lockstep else "realtime"})
-        return VppStage(config.vpp, CameraModel(cam.nominal_intrinsics(), np.zeros(5), cam.width_px, cam.height_px),
-                        cam.mount.transform(), robot.sensors.lidar.mount.transform(),
-                        BackendRunner(backend, runner_config))
+    @property
+    def vpp(self):
+        """The VPP stage of mode dct (runtime.vpp.stage.VppStage), None in the other modes: its
+        counters and last frame, for tests and telemetry (the tick goes through `partition`)."""
+        return self.partition.vpp
 
     def settle(self, t_s: float) -> None:
         """Lockstep barrier (the simulator calls it before time t_s): the VLM answers due."""
-        if self.vpp is not None:
-            self.vpp.settle(t_s)
+        self.partition.settle(t_s)
 
     @property
     def finished(self) -> bool:
@@ -212,10 +204,7 @@ class NavigationController:
         stages.mark(ODOMETRY)
 
         scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
-        only = None
-        if self.vpp is not None:  # mode dct: the movable points leave P_fix
-            frame = self.vpp.update(now, (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad), sensors.image, scan)
-            only = frame.fixed if frame is not None else None
+        only = self.partition.update(now, (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad), sensors.image, scan)
         if scan is not None:
             self.points_fix = self.obstacles.extract(
                 scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps, only=only
@@ -223,7 +212,7 @@ class NavigationController:
         stages.mark(PARTITION)
 
         v, omega = 0.0, 0.0
-        if self.state is ControllerState.ACTIVE and (self.vpp is None or self.vpp.ready(now)):
+        if self.state is ControllerState.ACTIVE and self.partition.ready(now):
             v, omega = self._plan(now)  # (mode dct waits for the VLM's first answer, or its failure)
         stages.mark(PLANNER)
 
@@ -463,8 +452,7 @@ class NavigationController:
             "events_dropped": self.events.dropped,
             "odometry": self.odometry.describe(),
         }
-        if self.vpp is not None:
-            out["vpp"] = self.vpp.describe()
+        out.update(self.partition.describe())
         out.update(self.modes.counters())
         if self.supervisor is not None:
             out.update(safety_stops=self.supervisor.stops, safety_slowdowns=self.supervisor.slowdowns)

@@ -2,6 +2,8 @@
 
 - `pure-pursuit` (pure_pursuit.py): the step-1 placeholder, blind to obstacles.
 - `all-fixed` (all_fixed.py): reference path + OSQP MPC with every lidar point in P_fix.
+- `dct` (dct.py): the all-fixed planner with the VLM partition stage (runtime.partition_stage):
+  only the points the VPP keeps fixed are P_fix.
 - `backoff` (backoff.py): the stall recovery: reverse along the recorded path, then replan
   (the seed of the paper's correcting mode).
 

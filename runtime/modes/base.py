@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+
+from runtime.partition_stage import AllFixedPartition, PartitionStage
 
 
 @dataclass(frozen=True)
@@ -59,13 +61,18 @@ class ModeContext:
     config: Any  # runtime.config.ControllerConfig
     goal: Any  # runtime.geometry.Pose2D in the odom frame
     wall_clock_caps: bool  # False in lockstep: iteration caps only
+    #: The contact-tolerance backend (models.vlm) a mode with a VLM partition uses: the simulator
+    #: passes its sim-oracle; None: the mode builds the one the config names (`vpp.backend`).
+    vlm_backend: Any = None
 
 
 @dataclass
 class ModeStack:
-    """A planner mode as the controller runs it: the mode, its stall recovery (or None), and the
-    safety supervisor that checks its commands against P_fix (or None for a sensorless mode)."""
+    """A planner mode as the controller runs it: the mode, its stall recovery (or None), the
+    safety supervisor that checks its commands against P_fix (or None for a sensorless mode), and
+    the partition stage that says which lidar points are P_fix (runtime.partition_stage)."""
 
     normal: NavigationMode
     recovery: Any = None  # runtime.modes.backoff.BackoffMode
     supervisor: Any = None  # runtime.safety_supervisor.SafetySupervisor
+    partition: PartitionStage = field(default_factory=AllFixedPartition)

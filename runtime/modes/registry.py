@@ -11,8 +11,8 @@ from runtime.modes.base import ModeContext, ModeStack
 MODES = {
     "pure-pursuit": "runtime.modes.pure_pursuit",
     "all-fixed": "runtime.modes.all_fixed",
-    # The same planner; the partition stage hands it only the VPP's P_fix (runtime.controller).
-    "dct": "runtime.modes.all_fixed",
+    # The same planner, with the VLM partition stage: only the VPP's P_fix reaches it.
+    "dct": "runtime.modes.dct",
 }
 
 

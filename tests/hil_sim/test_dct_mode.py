@@ -1,10 +1,10 @@
-"""Planner mode dct end to end in HIL (opt-in; issue 13 in progress): camera at 2 Hz with
-ground-truth segmentation, the sim-oracle beside the tick (1.5 s simulated latency), mask memory,
-warp and partition in the tick, the MPC on the partition's P_fix only.
+"""Planner mode dct (the default) end to end in HIL: camera at 2 Hz with ground-truth
+segmentation, the sim-oracle beside the tick (1.5 s simulated latency), mask memory, warp and
+partition in the tick, the MPC on the partition's P_fix only.
 
-What it does today (README): it waits for the first answer, then drives at the box the oracle
-calls movable and pushes it (point tracking keeps the pushed box movable); case2 passes on 2 of
-5 seeds only. These tests pin the pipeline, not success."""
+It waits for the first answer, then drives at the box the oracle calls movable and pushes it
+(point tracking keeps the pushed box movable). These tests pin the pipeline; whole episodes are
+in test_episodes.py and the slow campaigns."""
 from __future__ import annotations
 
 from hil_sim.runner import run_episode
@@ -34,8 +34,13 @@ def test_dct_mode_partitions_the_box_as_movable_and_never_touches_a_fixed_object
     assert x > 0.5 and abs(y) < 0.2
 
 
-def test_default_mode_has_no_vpp_and_runs_without_a_camera():
+def test_the_default_mode_is_dct_with_the_sim_oracle():
     cfg = load_controller_config()
-    assert cfg.planner.mode == "all-fixed"
+    assert cfg.planner.mode == "dct" and cfg.vpp.backend.kind == "sim-oracle"
+
+
+def test_all_fixed_mode_has_no_vpp_and_runs_without_a_camera():
+    cfg = load_controller_config().with_planner_mode("all-fixed")
     result = run_episode(load_scenario("case1").model_copy(update={"time_limit_s": 1.0}), config=cfg, seed=0)
-    assert "vpp" not in result.controller
+    assert "vpp" not in result.controller and result.controller["mode"] == "all-fixed"
+    assert result.extra["sensor_frames"]["camera"] == 0, result.extra["sensor_frames"]

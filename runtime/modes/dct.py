@@ -1,0 +1,24 @@
+"""`dct`: the all-fixed planner (reference path + OSQP MPC + supervisor) on the VLM partition's
+P_fix only (DCT Algorithm 1): the points of objects the backend called movable and cheap to
+touch leave P_fix (runtime.vpp, `vpp:` in the controller config).
+
+The backend: the one the simulator passes in (its sim-oracle), else the one `vpp.backend` names
+(models.vlm.factory; the sim-oracle cannot be built outside the simulator: a clear error at start).
+"""
+from __future__ import annotations
+
+from runtime.modes import all_fixed
+from runtime.modes.base import ModeContext, ModeStack
+from runtime.partition_stage import build_vpp_partition
+
+
+def build(ctx: ModeContext) -> ModeStack:
+    backend = ctx.vlm_backend
+    if backend is None:
+        from models.vlm.factory import build_backend
+
+        backend = build_backend(ctx.config.vpp.backend)
+    stack = all_fixed.build(ctx)
+    stack.partition = build_vpp_partition(ctx.config, ctx.robot, backend, lockstep=not ctx.wall_clock_caps)
+    stack.normal.name = "dct"
+    return stack

@@ -1,0 +1,122 @@
+"""The partition stage of the tick (Algorithm 1 lines 3-13): which lidar points are P_fix.
+
+A strategy with one interface, chosen once when the controller is built (by the planner mode's
+builder, runtime.modes; DESIGN.md section 11: modes are objects, not `if mode` branches in the
+tick):
+
+* `AllFixedPartition`: every point is P_fix and the planner may always drive (modes all-fixed
+  and pure-pursuit; the NeuPAN-like baseline).
+* `VppPartition`: the VLM point partition (runtime.vpp.stage.VppStage): the points of objects
+  the backend called movable and cheap to touch leave P_fix; the planner waits for the first
+  answer (or its failure, or the stage's timeout) before it drives (mode dct).
+
+Per tick the controller calls `update(now, pose, image, scan)`, which returns the `only` mask of
+the obstacle extractor (runtime.obstacle_points: (N,) bool per scan point, True = P_fix) or None
+for "every point"; then `ready(now)` says whether the planner may drive yet. `settle(t_s)` is the
+simulator's lockstep barrier, `close()` ends work beside the tick, `describe()` adds the stage's
+counters to the episode report.
+"""
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from runtime.sensor_data import CameraImage, LidarScan
+
+
+class PartitionStage(Protocol):
+    name: str
+    #: The VPP stage behind it (runtime.vpp.stage.VppStage), None when there is none: its
+    #: counters and last frame are read outside the tick (controller.vpp: tests, benches).
+    vpp: object | None
+
+    def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
+               scan: LidarScan | None) -> np.ndarray | None:
+        """This tick's partition of `scan`: (N,) bool, True = P_fix; None = every point P_fix."""
+
+    def ready(self, now_s: float) -> bool:
+        """Whether the planner may drive on what the stage knows by now."""
+
+    def settle(self, t_s: float) -> None:
+        """Lockstep barrier (the simulator calls it before time t_s): work due by t_s is done."""
+
+    def close(self) -> None:
+        """End the work beside the tick (a backend runner)."""
+
+    def describe(self) -> dict:
+        """JSON-ready entries for the controller's report ({} when there is nothing to say)."""
+
+
+class AllFixedPartition:
+    """Every point is P_fix; nothing runs beside the tick; the planner never waits."""
+
+    name = "all-fixed"
+    vpp = None  # no VPP stage (controller.vpp reads it)
+
+    def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
+               scan: LidarScan | None) -> np.ndarray | None:
+        return None
+
+    def ready(self, now_s: float) -> bool:
+        return True
+
+    def settle(self, t_s: float) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def describe(self) -> dict:
+        return {}
+
+
+class VppPartition:
+    """The VLM point partition (runtime.vpp.stage.VppStage, its public API only)."""
+
+    name = "vpp"
+
+    def __init__(self, stage) -> None:
+        self.vpp = stage  # runtime.vpp.stage.VppStage: tests and telemetry read its counters
+
+    def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
+               scan: LidarScan | None) -> np.ndarray | None:
+        frame = self.vpp.update(now_s, pose, image, scan)
+        return frame.fixed if frame is not None else None
+
+    def ready(self, now_s: float) -> bool:
+        """The VLM's first answer (or failure) came back, or the stage stopped waiting for it:
+        before that the partition knows nothing the all-fixed one does not, and the controller
+        waits rather than commit to a detour."""
+        return self.vpp.ready(now_s)
+
+    def settle(self, t_s: float) -> None:
+        self.vpp.settle(t_s)
+
+    def close(self) -> None:
+        self.vpp.close()
+
+    def describe(self) -> dict:
+        return {"vpp": self.vpp.describe()}
+
+
+def build_vpp_partition(config, robot, backend, lockstep: bool) -> VppPartition:
+    """The VPP stage of mode dct: the robot's camera (nominal intrinsics until a calibration
+    file gives its own), its mounts, the backend in a runner on the controller's clock
+    (simulated time in lockstep, the wall clock otherwise).
+
+    config: runtime.config.ControllerConfig; robot: calibration.robot_description.RobotDescription;
+    backend: a models.vlm backend (VlmBackend)."""
+    from calibration.camera_model import CameraModel
+    from models.vlm.runner import BackendRunner
+    from runtime.vpp.stage import VppStage
+
+    cam = robot.sensors.camera
+    runner_config = config.vpp.runner.model_copy(update={"clock": "lockstep" if lockstep else "realtime"})
+    stage = VppStage(config.vpp, CameraModel(cam.nominal_intrinsics(), np.zeros(5), cam.width_px, cam.height_px),
+                     cam.mount.transform(), robot.sensors.lidar.mount.transform(),
+                     BackendRunner(backend, runner_config))
+    return VppPartition(stage)
+
+
+__all__ = ["AllFixedPartition", "PartitionStage", "VppPartition", "build_vpp_partition"]
