@@ -34,6 +34,7 @@ from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
 from runtime.sensor_data import CameraImage, LidarScan
+from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, MaskMemoryError, ReconcileResult
 from runtime.vpp.partition import FIXED, MOVABLE, PartitionConfig, PointPartition, PointPartitioner
 
@@ -119,6 +120,9 @@ class VppStage:
         self.runner = runner
         self.memory = MaskMemory(camera, config.memory)
         self.partitioner = PointPartitioner(config.partition)
+        self._per_pixel = lookup_supported(camera)
+        if self._per_pixel:
+            pixel_rays(camera)  # once per camera (~0.1 s with distortion): here, not in the first tick
         self._points_cam_at: dict[float, np.ndarray] = {}  # request stamp -> scan points, capture camera frame
         self._last_scan_odom: np.ndarray | None = None
         self._image: tuple[CameraImage, np.ndarray] | None = None
@@ -177,20 +181,10 @@ class VppStage:
         if scan is None:
             self._maybe_ask(now_s)
             return None
-        warped = self.memory.propagate(now_s, T_odom_cam)
-        use = []
-        for w in warped:
-            if not (w.entry.movable and w.entry.contact_cost < self.config.never_touch_cost and w.mask.any()):
-                continue
-            if np.count_nonzero(w.mask) > self.config.max_mask_growth * np.count_nonzero(w.entry.mask):
-                self.masks_distrusted += 1
-                continue
-            use.append(w)
-        h, w = self.camera.height_px, self.camera.width_px
-        masks = np.stack([m.mask for m in use]) if use else np.zeros((0, h, w), bool)
+        masks, use = self._masks_now(now_s, T_odom_cam)
         part = self.partitioner.partition(
-            scan.points_m, self.T_cam_lidar, self.camera, masks, [m.object_id for m in use],
-            [m.entry.contact_cost for m in use], T_base_lidar=self.T_base_lidar,
+            scan.points_m, self.T_cam_lidar, self.camera, masks, [e.object_id for e in use],
+            [e.contact_cost for e in use], T_base_lidar=self.T_base_lidar,
             T_odom_lidar=T_odom_base @ self.T_base_lidar, stamp_s=scan.stamp_s,
         )
         p = np.asarray(scan.points_m, dtype=np.float64)
@@ -201,6 +195,35 @@ class VppStage:
         self.frames += 1
         self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
         return self.last_frame
+
+    def _gates(self, entry, warped_px: float, captured_px: float) -> bool:
+        """Does this entry's warped mask gate points this scan? Movable, below never_touch_cost,
+        not empty, and not grown past max_mask_growth times its captured area (counted, then
+        distrusted)."""
+        if not (entry.movable and entry.contact_cost < self.config.never_touch_cost and warped_px > 0):
+            return False
+        if warped_px > self.config.max_mask_growth * captured_px:
+            self.masks_distrusted += 1
+            return False
+        return True
+
+    def _masks_now(self, now_s: float, T_odom_cam: np.ndarray):
+        """Phase I for this scan: (masks for the partition, their entries). The memory's masks are
+        carried to the camera pose now per pixel (MaskMemory.lookup: a WarpLookup, looked up by
+        the partition only at the points' pixels); a camera whose distortion the per-pixel warp
+        does not implement (the 14-coefficient tilted model) gets full-image warps (propagate).
+        The growth test takes the warped area from the lookup (exact for a warped mask whose
+        bounding box has at most homography.AREA_SAMPLES pixels, else estimated on a grid)."""
+        if self._per_pixel:
+            entries, lk = self.memory.lookup(now_s, T_odom_cam)
+            px = self.memory.mask_px()
+            use = [k for k, e in enumerate(entries) if self._gates(e, float(lk.area_px[k]), float(px[k]))]
+            return lk.select(use), [entries[k] for k in use]
+        warped = [w for w in self.memory.propagate(now_s, T_odom_cam)
+                  if self._gates(w.entry, np.count_nonzero(w.mask), np.count_nonzero(w.entry.mask))]
+        h, w = self.camera.height_px, self.camera.width_px
+        masks = np.stack([m.mask for m in warped]) if warped else np.zeros((0, h, w), bool)
+        return masks, [m.entry for m in warped]
 
     def _track(self, now_s: float, part: PointPartition, p_lidar: np.ndarray, T_odom_lidar: np.ndarray) -> None:
         """Carry movable labels to the points near the previous scan's movable points (see
