@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
@@ -36,7 +37,7 @@ from models.vlm.runner import BackendRunner, BackendRunnerConfig
 from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, MaskMemoryError, ReconcileResult
-from runtime.vpp.partition import FIXED, MOVABLE, PartitionConfig, PointPartition, PointPartitioner
+from runtime.vpp.partition import FIXED, MOVABLE, PartitionConfig, PointPartition, PointPartitioner, _transform
 
 DEFAULT_PROMPT = (
     "A small ground robot must drive to its goal through this scene. For each marked object, say "
@@ -75,9 +76,42 @@ class VppConfig(BaseModel):
     runner: BackendRunnerConfig = BackendRunnerConfig()
 
 
-def _extent(points: np.ndarray) -> float:
-    """Diagonal of the points' axis-aligned box (m); 0 for fewer than two."""
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) > 1 else 0.0
+@njit(cache=True, nogil=True)
+def _id_boxes(p, label, oid):  # pragma: no cover - compiled
+    """(ids, lo, hi): the sorted object ids of the movable points and each id's axis-aligned box."""
+    n = p.shape[0]
+    k = 0
+    for i in range(n):
+        if label[i] == 1:
+            k += 1
+    ids = np.empty(k, np.int64)
+    k = 0
+    for i in range(n):
+        if label[i] == 1:
+            ids[k] = oid[i]
+            k += 1
+    uniq = np.unique(ids)
+    lo = np.full((uniq.shape[0], 3), np.inf)
+    hi = np.full((uniq.shape[0], 3), -np.inf)
+    for i in range(n):
+        if label[i] == 1:
+            j = np.searchsorted(uniq, oid[i])
+            for a in range(3):
+                lo[j, a] = min(lo[j, a], p[i, a])
+                hi[j, a] = max(hi[j, a], p[i, a])
+    return uniq, lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _fixed_in_box(p, label, lo, hi):  # pragma: no cover - compiled
+    """Indices of the fixed points inside the box [lo, hi]."""
+    out = np.empty(p.shape[0], np.int64)
+    k = 0
+    for i in range(p.shape[0]):
+        if label[i] == 0 and lo[0] <= p[i, 0] <= hi[0] and lo[1] <= p[i, 1] <= hi[1] and lo[2] <= p[i, 2] <= hi[2]:
+            out[k] = i
+            k += 1
+    return out[:k]
 
 
 def pose_matrix(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
@@ -129,7 +163,7 @@ class VppStage:
         self._first_tick_s: float | None = None
         self.gave_up_waiting = False
         self.images_refused = 0  # images from another camera than the calibrated one (named)
-        self._tracked: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # odom points, ids, costs
+        self._tracked: tuple[np.ndarray, ...] | None = None  # odom points, ids, costs, their box (lo, hi)
         self._confirmed: dict[int, tuple[float, float]] = {}  # object id -> (last masked, its extent then)
         self.points_tracked = 0
         self.last_frame: VppFrame | None = None
@@ -187,10 +221,9 @@ class VppStage:
             [e.contact_cost for e in use], T_base_lidar=self.T_base_lidar,
             T_odom_lidar=T_odom_base @ self.T_base_lidar, stamp_s=scan.stamp_s,
         )
-        p = np.asarray(scan.points_m, dtype=np.float64)
-        T_odom_lidar = T_odom_base @ self.T_base_lidar
-        self._track(now_s, part, p, T_odom_lidar)
-        self._last_scan_odom = p @ T_odom_lidar[:3, :3].T + T_odom_lidar[:3, 3]
+        p_odom = _transform(np.ascontiguousarray(scan.points_m), T_odom_base @ self.T_base_lidar)  # numba: 5x numpy's
+        self._track(now_s, part, p_odom)
+        self._last_scan_odom = p_odom
         self._maybe_ask(now_s)
         self.frames += 1
         self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
@@ -225,34 +258,68 @@ class VppStage:
         masks = np.stack([m.mask for m in warped]) if warped else np.zeros((0, h, w), bool)
         return masks, [m.entry for m in warped]
 
-    def _track(self, now_s: float, part: PointPartition, p_lidar: np.ndarray, T_odom_lidar: np.ndarray) -> None:
+    def _track(self, now_s: float, part: PointPartition, p_odom: np.ndarray) -> None:
         """Carry movable labels to the points near the previous scan's movable points (see
-        VppConfig.track_*); updates `part`'s arrays in place."""
+        VppConfig.track_*); updates `part`'s arrays in place. p_odom: the scan in the odom frame.
+
+        Per-point work in numba (every object's box in one pass: an extent is a box diagonal),
+        and the k-d tree is built only on the previous scan's movable points that can be within
+        track_radius_m of a candidate: the same labels as a tree over all of them (a nearest
+        neighbour within the radius lies in that box)."""
         c = self.config
+        r = c.track_radius_m
         label, oid, cost = part.label, part.object_id, part.cost
+        ids_now, lo_now, hi_now = _id_boxes(p_odom, label, oid)
+        ext_now = np.sqrt(((hi_now - lo_now) ** 2).sum(axis=1)).tolist()
+        row = {int(k): i for i, k in enumerate(ids_now)}
         masked = (label == MOVABLE) & part.in_view & ~part.from_memory  # labelled by a mask this scan
-        p_odom = p_lidar @ T_odom_lidar[:3, :3].T + T_odom_lidar[:3, 3]
-        for k in np.unique(oid[masked]):  # objects a mask labelled this scan: confirmed now, with their extent
-            self._confirmed[int(k)] = (now_s, _extent(p_odom[oid == k]))
+        for k in np.unique(oid[masked]).tolist():  # objects a mask labelled this scan: confirmed now, with their extent
+            self._confirmed[k] = (now_s, ext_now[row[k]])
         prev = self._tracked
-        if prev is not None and c.track_radius_m > 0.0:
-            pts, ids, costs = prev
-            lo, hi = pts.min(axis=0) - c.track_radius_m, pts.max(axis=0) + c.track_radius_m
-            cand = np.flatnonzero((label == FIXED) & np.all((p_odom >= lo) & (p_odom <= hi), axis=1))
+        if prev is not None and r > 0.0:
+            pts, ids, costs, lo, hi = prev
+            cand = _fixed_in_box(p_odom, label, lo - r, hi + r)
             if cand.size:
-                d, j = cKDTree(pts).query(p_odom[cand], distance_upper_bound=c.track_radius_m)
-                hit = np.isfinite(d)
-                cand, j = cand[hit], j[hit]
-                for k in np.unique(ids[j]):
-                    since, extent = self._confirmed.get(int(k), (-math.inf, 0.0))
-                    take = cand[ids[j] == k]
-                    if now_s - since > c.track_max_s or \
-                            _extent(np.concatenate([p_odom[oid == k], p_odom[take]])) > extent + c.track_extent_margin_m:
-                        continue
-                    label[take], oid[take], cost[take] = MOVABLE, k, costs[j][ids[j] == k][0]
-                    self.points_tracked += int(take.size)
-        mov = label == MOVABLE
-        self._tracked = (p_odom[mov], oid[mov].copy(), cost[mov].copy()) if mov.any() else None
+                q = p_odom[cand]
+                near = np.flatnonzero(np.all((pts >= q.min(axis=0) - r) & (pts <= q.max(axis=0) + r), axis=1))
+                if near.size:
+                    d, j = cKDTree(pts[near]).query(q, distance_upper_bound=r)
+                    hit = np.isfinite(d)
+                    cand, j = cand[hit], near[j[hit]]
+                else:
+                    cand, j = cand[:0], near
+                if cand.size:  # per object (one group of candidates each), all at once
+                    gid = ids[j]
+                    order = np.argsort(gid, kind="stable")
+                    gs, cs, js = gid[order], cand[order], j[order]
+                    start = np.flatnonzero(np.r_[True, gs[1:] != gs[:-1]])
+                    counts = np.diff(np.r_[start, gs.size])
+                    ks = gs[start]
+                    tq = p_odom[cs]
+                    lo_t, hi_t = np.minimum.reduceat(tq, start, axis=0), np.maximum.reduceat(tq, start, axis=0)
+                    at = np.minimum(np.searchsorted(ids_now, ks), max(ids_now.size - 1, 0))
+                    has = (ids_now[at] == ks) if ids_now.size else np.zeros(ks.size, bool)
+                    # the object's points this scan, with the ones it would take
+                    lo_t[has] = np.minimum(lo_t[has], lo_now[at[has]])
+                    hi_t[has] = np.maximum(hi_t[has], hi_now[at[has]])
+                    conf = [self._confirmed.get(k, (-math.inf, 0.0)) for k in ks.tolist()]
+                    since = np.array([x[0] for x in conf])
+                    extent = np.array([x[1] for x in conf])
+                    ok = (now_s - since <= c.track_max_s) & \
+                        (np.sqrt(((hi_t - lo_t) ** 2).sum(axis=1)) <= extent + c.track_extent_margin_m)
+                    if ok.any():
+                        pt_ok = np.repeat(ok, counts)
+                        take = cs[pt_ok]
+                        label[take] = MOVABLE
+                        oid[take] = gs[pt_ok]
+                        cost[take] = np.repeat(costs[js[start]], counts)[pt_ok]  # the first match's cost
+                        self.points_tracked += int(take.size)
+        mov = np.flatnonzero(label == MOVABLE)
+        if mov.size:
+            pts = p_odom[mov]
+            self._tracked = (pts, oid[mov], cost[mov], pts.min(axis=0), pts.max(axis=0))
+        else:
+            self._tracked = None
 
     def _maybe_ask(self, now_s: float) -> None:
         """Send the newest image when the trigger rule says so and nothing is in flight; not
