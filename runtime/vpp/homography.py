@@ -302,17 +302,17 @@ def _distort(x, y, d):  # pragma: no cover - compiled
 def warp_hit(masks, e, u, v, rays, Hinv, rows, m, K, d, r2max):  # pragma: no cover - compiled
     """Is current pixel (u, v) set in the warp of capture mask masks[e]? The MaskWarper map at
     that pixel, evaluated exactly: the pixel's ray (rays[v, u]) must pass the two half-planes
-    rows (in front of both cameras; a row (0, 0, 1) always passes), its source Hinv ray must lie
-    in the distortion model's domain, and the nearest pixel of its distorted source must be set
-    in masks[e]. Hinv and rows are (M, 3, 3) and (M, 2, 3), m the warp to use (indexed, not
-    sliced: a slice per call costs a reference count). Branch-free (selects, not ifs): about 3x faster than the same with early
-    returns, which kept LLVM from overlapping the divisions of successive pixels.""" 
+    rows[m] (in front of both cameras; rows[m, 1] is Hinv[m, 2], the source's depth, so it is
+    evaluated as that; a row (0, 0, 1) always passes), its source Hinv ray must lie in the
+    distortion model's domain, and the nearest pixel of its distorted source must be set in
+    masks[e]. Hinv and rows are (M, 3, 3) and (M, 2, 3), m the warp to use (indexed, not sliced:
+    a slice per call costs a reference count). Branch-free (selects, not ifs): about 3x faster
+    than the same with early returns, which kept LLVM from overlapping successive pixels."""
     x = rays[v, u, 0]
     y = rays[v, u, 1]
     a0 = rows[m, 0, 0] * x + rows[m, 0, 1] * y + rows[m, 0, 2]
-    a1 = rows[m, 1, 0] * x + rows[m, 1, 1] * y + rows[m, 1, 2]
-    sz = Hinv[m, 2, 0] * x + Hinv[m, 2, 1] * y + Hinv[m, 2, 2]
-    ok = (a0 > 0.0) & (a1 > 0.0) & (sz > 0.0)
+    sz = Hinv[m, 2, 0] * x + Hinv[m, 2, 1] * y + Hinv[m, 2, 2]  # = rows[m, 1] . ray (the second half-plane)
+    ok = (a0 > 0.0) & (sz > 0.0)
     iz = 1.0 / (sz if ok else 1.0)
     sx = (Hinv[m, 0, 0] * x + Hinv[m, 0, 1] * y + Hinv[m, 0, 2]) * iz
     sy = (Hinv[m, 1, 0] * x + Hinv[m, 1, 1] * y + Hinv[m, 1, 2]) * iz
