@@ -26,6 +26,14 @@ per-camera grid computed once), map it through Hn^-1 to the capture camera, dist
 camera model and sample the capture mask there (one cv2.remap, nearest neighbour). A camera
 without distortion takes the plain path, cv2.warpPerspective with H (nearest neighbour).
 
+Per scan the stage does not warp images at all (WarpLookup, WarpSource): Phase III needs a
+warped mask only at the pixels its lidar points fall on, so it evaluates the same map there,
+exactly (current pixel -> its undistorted ray, cached per camera -> Hn^-1 -> capture normalized
+-> distort -> nearest capture pixel -> the capture mask), with the same half-planes. A bounding
+box per warped mask (the capture outline carried forward) prunes the lookups, and the warped
+area the stage's growth test needs is counted in that box (on a stride grid when the box is
+large). Full-image warps remain for Phase II (once per answer) and for evaluation.
+
 Safety: a pixel of the current image is set only if its ray meets the plane in front of the
 current camera and that point lies in front of the capture camera (both half-planes of the
 image, linear in the pixel); a homography otherwise maps points from behind a camera to mirrored
