@@ -281,8 +281,11 @@ def vpp_bench_command(mask_counts: tuple[int, ...], repeats: int, n_points: int,
             check_output_path(json_path, what="--json", overwrite=force)
     except OutputPathError as exc:
         raise InputError(str(exc)) from exc
-    out = run_vpp_benchmark(tuple(sorted(set(mask_counts))) or DEFAULT_MASK_COUNTS, repeats, n_points, seed, cpu,
-                            echo=click.echo)
+    counts = tuple(sorted(set(mask_counts))) or DEFAULT_MASK_COUNTS
+    if n_points // 4 // max(counts) < 32:  # synthetic_frame: a quarter of the points on the boxes
+        raise InputError(f"--points {n_points}: too few for {max(counts)} masks (each box needs 32 points for its "
+                         f"plane; at least {128 * max(counts)})")
+    out = run_vpp_benchmark(counts, repeats, n_points, seed, cpu, echo=click.echo)
     if json_path is not None:
         atomic_write_json(json_path, out)
 

@@ -46,6 +46,9 @@ from runtime.vpp.homography import (
 )
 
 
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 class MaskMemoryError(ValueError):
     """Bad input to the mask memory; the message names the field."""
 
@@ -222,8 +225,9 @@ class MaskMemory:
         (stacked masks, outlines) is prepared once per set of entries. Returns (entries, lookup),
         lookup index k = entries[k]."""
         T = np.asarray(camera_pose_odom, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all() or T[3, 3] != 1.0 or \
-                float(np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max()) > 1e-5:  # cheap: check_rigid is 0.1 ms
+        if T.shape != (4, 4) or not np.isfinite(T).all() or np.any(T[3] != _LAST_ROW) or \
+                float(np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max()) > 1e-5 or np.linalg.det(T[:3, :3]) < 0.0:
+            # (cheap first: check_rigid's np.allclose costs 0.1 ms)
             _check_pose(T, "camera_pose_odom")  # names what is wrong (or passes within its tolerance)
         self.expire(now_s)
         entries = tuple(self.entries)

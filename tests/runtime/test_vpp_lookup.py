@@ -276,3 +276,16 @@ def test_a_camera_the_lookup_does_not_model_gets_full_image_warps():
                      frame_duration_s=0.1)
     frame = stage.update(0.1, (0.0, 0.0, 0.0), None, scan)  # camera = base = lidar, at the capture pose
     assert frame.masks_used == 1 and frame.movable_count == len(face)
+
+
+def test_lookup_names_a_bad_camera_pose():
+    import pytest
+
+    from runtime.vpp.mask_memory import MaskMemory, MaskMemoryError
+
+    mem = MaskMemory(CAMERAS["distorted"])
+    assert mem.lookup(0.0, np.eye(4))[0] == []
+    for bad, why in ((np.eye(3), "4x4"), (np.diag([1.0, 1.0, -1.0, 1.0]), "proper rotation"),
+                     (np.r_[np.eye(4)[:3], [[0.5, 0.0, 0.0, 1.0]]], "last row"), (np.full((4, 4), np.nan), "finite")):
+        with pytest.raises(MaskMemoryError, match=why):
+            mem.lookup(0.0, bad)
