@@ -33,7 +33,6 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial import cKDTree
 
 from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmRequest
@@ -81,8 +80,9 @@ class VppConfig(BaseModel):
 
 
 @njit(cache=True, nogil=True)
-def _id_boxes(p, label, oid):  # pragma: no cover - compiled
-    """(ids, lo, hi): the sorted object ids of the movable points and each id's axis-aligned box."""
+def _id_boxes(p, label, oid, in_view, from_memory):  # pragma: no cover - compiled
+    """(ids, lo, hi, masked): the sorted object ids of the movable points, each id's axis-aligned
+    box, and whether a mask labelled some of its points this scan (in view, not from memory)."""
     n = p.shape[0]
     k = 0
     for i in range(n):
@@ -97,25 +97,161 @@ def _id_boxes(p, label, oid):  # pragma: no cover - compiled
     uniq = np.unique(ids)
     lo = np.full((uniq.shape[0], 3), np.inf)
     hi = np.full((uniq.shape[0], 3), -np.inf)
+    masked = np.zeros(uniq.shape[0], np.bool_)
     for i in range(n):
         if label[i] == 1:
             j = np.searchsorted(uniq, oid[i])
+            if in_view[i] and not from_memory[i]:
+                masked[j] = True
             for a in range(3):
                 lo[j, a] = min(lo[j, a], p[i, a])
                 hi[j, a] = max(hi[j, a], p[i, a])
-    return uniq, lo, hi
+    return uniq, lo, hi, masked
 
 
 @njit(cache=True, nogil=True)
-def _fixed_in_box(p, label, lo, hi):  # pragma: no cover - compiled
-    """Indices of the fixed points inside the box [lo, hi]."""
-    out = np.empty(p.shape[0], np.int64)
+def _movable_points(p, label, oid, cost):  # pragma: no cover - compiled
+    """The movable points (their odom positions, ids, costs) and their box (lo, hi)."""
     k = 0
     for i in range(p.shape[0]):
-        if label[i] == 0 and lo[0] <= p[i, 0] <= hi[0] and lo[1] <= p[i, 1] <= hi[1] and lo[2] <= p[i, 2] <= hi[2]:
-            out[k] = i
+        if label[i] == 1:
             k += 1
-    return out[:k]
+    pts = np.empty((k, 3))
+    ids = np.empty(k, oid.dtype)
+    cst = np.empty(k, cost.dtype)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    k = 0
+    for i in range(p.shape[0]):
+        if label[i] == 1:
+            for a in range(3):
+                pts[k, a] = p[i, a]
+                lo[a] = min(lo[a], p[i, a])
+                hi[a] = max(hi[a], p[i, a])
+            ids[k] = oid[i]
+            cst[k] = cost[i]
+            k += 1
+    return pts, ids, cst, lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _track_kernel(p, label, oid, cost, prev_pts, prev_ids, prev_costs, lo, hi, r, ids_now, lo_now, hi_now,
+                  conf_ids, conf_since, conf_ext, now, max_s, margin):  # pragma: no cover - compiled
+    """VppStage._track's search and takeover (its docstring); returns the points taken.
+
+    Candidates: fixed points in the previous movable points' box grown by r. Each takes the
+    object of its nearest previous movable point closer than r (a grid of cells of side r over
+    the previous points near the candidates: the nearest within r is in one of the 27 cells
+    around the candidate's), grouped per object; a group is taken when its object was confirmed
+    by a mask within max_s and the object's points now plus the group span at most its extent
+    then plus margin (box diagonals), at the cost of the group's first candidate's match."""
+    n = p.shape[0]
+    cand = np.empty(n, np.int64)
+    nc = 0
+    qlo = np.full(3, np.inf)
+    qhi = np.full(3, -np.inf)
+    for i in range(n):
+        if label[i] == 0 and lo[0] - r <= p[i, 0] <= hi[0] + r and lo[1] - r <= p[i, 1] <= hi[1] + r \
+                and lo[2] - r <= p[i, 2] <= hi[2] + r:
+            cand[nc] = i
+            nc += 1
+            for a in range(3):
+                qlo[a] = min(qlo[a], p[i, a])
+                qhi[a] = max(qhi[a], p[i, a])
+    if nc == 0:
+        return 0
+    # grid over the previous points that can be within r of a candidate
+    P = prev_pts.shape[0]
+    keys = np.empty(P, np.int64)
+    idx = np.empty(P, np.int64)
+    k = 0
+    inv = 1.0 / r
+    for j in range(P):
+        x, y, z = prev_pts[j, 0], prev_pts[j, 1], prev_pts[j, 2]
+        if qlo[0] - r <= x <= qhi[0] + r and qlo[1] - r <= y <= qhi[1] + r and qlo[2] - r <= z <= qhi[2] + r:
+            cx = int(math.floor((x - qlo[0]) * inv)) + 1
+            cy = int(math.floor((y - qlo[1]) * inv)) + 1
+            cz = int(math.floor((z - qlo[2]) * inv)) + 1
+            keys[k] = (np.int64(cx) << 42) | (np.int64(cy) << 21) | np.int64(cz)
+            idx[k] = j
+            k += 1
+    if k == 0:
+        return 0
+    order = np.argsort(keys[:k])
+    skeys = keys[:k][order]
+    sidx = idx[:k][order]
+    r2 = r * r
+    hit_i = np.empty(nc, np.int64)
+    hit_j = np.empty(nc, np.int64)
+    nh = 0
+    for a in range(nc):
+        i = cand[a]
+        cx = int(math.floor((p[i, 0] - qlo[0]) * inv)) + 1
+        cy = int(math.floor((p[i, 1] - qlo[1]) * inv)) + 1
+        cz = int(math.floor((p[i, 2] - qlo[2]) * inv)) + 1
+        best = -1
+        bd = r2
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    key = (np.int64(cx + dx) << 42) | (np.int64(cy + dy) << 21) | np.int64(cz + dz)
+                    b = np.searchsorted(skeys, key)
+                    while b < k and skeys[b] == key:
+                        j = sidx[b]
+                        d0 = p[i, 0] - prev_pts[j, 0]
+                        d1 = p[i, 1] - prev_pts[j, 1]
+                        d2 = p[i, 2] - prev_pts[j, 2]
+                        d = d0 * d0 + d1 * d1 + d2 * d2
+                        if d < bd or (d == bd and best >= 0 and j < best):
+                            bd = d
+                            best = j
+                        b += 1
+        if best >= 0:
+            hit_i[nh] = i
+            hit_j[nh] = best
+            nh += 1
+    if nh == 0:
+        return 0
+    gids = np.unique(prev_ids[hit_j[:nh]])
+    G = gids.shape[0]
+    glo = np.full((G, 3), np.inf)
+    ghi = np.full((G, 3), -np.inf)
+    gfirst = np.full(G, -1, np.int64)
+    for a in range(nh):
+        g = np.searchsorted(gids, prev_ids[hit_j[a]])
+        if gfirst[g] < 0:
+            gfirst[g] = hit_j[a]
+        for c in range(3):
+            glo[g, c] = min(glo[g, c], p[hit_i[a], c])
+            ghi[g, c] = max(ghi[g, c], p[hit_i[a], c])
+    ok = np.zeros(G, np.bool_)
+    for g in range(G):
+        kid = gids[g]
+        t = np.searchsorted(ids_now, kid)
+        if t < ids_now.shape[0] and ids_now[t] == kid:  # the object's points this scan, with the group
+            for c in range(3):
+                glo[g, c] = min(glo[g, c], lo_now[t, c])
+                ghi[g, c] = max(ghi[g, c], hi_now[t, c])
+        since = -np.inf
+        ext = 0.0
+        t = np.searchsorted(conf_ids, kid)
+        if t < conf_ids.shape[0] and conf_ids[t] == kid:
+            since = conf_since[t]
+            ext = conf_ext[t]
+        e2 = 0.0
+        for c in range(3):
+            e2 += (ghi[g, c] - glo[g, c]) ** 2
+        ok[g] = now - since <= max_s and math.sqrt(e2) <= ext + margin
+    taken = 0
+    for a in range(nh):
+        g = np.searchsorted(gids, prev_ids[hit_j[a]])
+        if ok[g]:
+            i = hit_i[a]
+            label[i] = 1
+            oid[i] = gids[g]
+            cost[i] = prev_costs[gfirst[g]]
+            taken += 1
+    return taken
 
 
 def pose_matrix(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
@@ -266,64 +402,31 @@ class VppStage:
         """Carry movable labels to the points near the previous scan's movable points (see
         VppConfig.track_*); updates `part`'s arrays in place. p_odom: the scan in the odom frame.
 
-        Per-point work in numba (every object's box in one pass: an extent is a box diagonal),
-        and the k-d tree is built only on the previous scan's movable points that can be within
-        track_radius_m of a candidate: the same labels as a tree over all of them (a nearest
-        neighbour within the radius lies in that box)."""
+        Per-point work in numba (_id_boxes, _track_kernel: every object's box in one pass, as an
+        extent is a box diagonal; the nearest previous movable point from a grid of cells of side
+        track_radius_m rather than a k-d tree): the labels of the per-object loop it replaced.
+        """
         c = self.config
         r = c.track_radius_m
         label, oid, cost = part.label, part.object_id, part.cost
-        ids_now, lo_now, hi_now = _id_boxes(p_odom, label, oid)
-        ext_now = np.sqrt(((hi_now - lo_now) ** 2).sum(axis=1)).tolist()
-        row = {int(k): i for i, k in enumerate(ids_now)}
-        masked = (label == MOVABLE) & part.in_view & ~part.from_memory  # labelled by a mask this scan
-        for k in np.unique(oid[masked]).tolist():  # objects a mask labelled this scan: confirmed now, with their extent
-            self._confirmed[k] = (now_s, ext_now[row[k]])
+        ids_now, lo_now, hi_now, masked = _id_boxes(p_odom, label, oid, part.in_view, part.from_memory)
+        ext_now = np.sqrt(((hi_now - lo_now) ** 2).sum(axis=1))
+        for k, e in zip(ids_now[masked].tolist(), ext_now[masked].tolist()):
+            self._confirmed[k] = (now_s, e)  # a mask labelled it this scan: confirmed now, with its extent
+        # a confirmation older than track_max_s allows nothing (as none at all): forget it
+        self._confirmed = {k: v for k, v in self._confirmed.items() if now_s - v[0] <= c.track_max_s}
         prev = self._tracked
         if prev is not None and r > 0.0:
             pts, ids, costs, lo, hi = prev
-            cand = _fixed_in_box(p_odom, label, lo - r, hi + r)
-            if cand.size:
-                q = p_odom[cand]
-                near = np.flatnonzero(np.all((pts >= q.min(axis=0) - r) & (pts <= q.max(axis=0) + r), axis=1))
-                if near.size:
-                    d, j = cKDTree(pts[near]).query(q, distance_upper_bound=r)
-                    hit = np.isfinite(d)
-                    cand, j = cand[hit], near[j[hit]]
-                else:
-                    cand, j = cand[:0], near
-                if cand.size:  # per object (one group of candidates each), all at once
-                    gid = ids[j]
-                    order = np.argsort(gid, kind="stable")
-                    gs, cs, js = gid[order], cand[order], j[order]
-                    start = np.flatnonzero(np.r_[True, gs[1:] != gs[:-1]])
-                    counts = np.diff(np.r_[start, gs.size])
-                    ks = gs[start]
-                    tq = p_odom[cs]
-                    lo_t, hi_t = np.minimum.reduceat(tq, start, axis=0), np.maximum.reduceat(tq, start, axis=0)
-                    at = np.minimum(np.searchsorted(ids_now, ks), max(ids_now.size - 1, 0))
-                    has = (ids_now[at] == ks) if ids_now.size else np.zeros(ks.size, bool)
-                    # the object's points this scan, with the ones it would take
-                    lo_t[has] = np.minimum(lo_t[has], lo_now[at[has]])
-                    hi_t[has] = np.maximum(hi_t[has], hi_now[at[has]])
-                    conf = [self._confirmed.get(k, (-math.inf, 0.0)) for k in ks.tolist()]
-                    since = np.array([x[0] for x in conf])
-                    extent = np.array([x[1] for x in conf])
-                    ok = (now_s - since <= c.track_max_s) & \
-                        (np.sqrt(((hi_t - lo_t) ** 2).sum(axis=1)) <= extent + c.track_extent_margin_m)
-                    if ok.any():
-                        pt_ok = np.repeat(ok, counts)
-                        take = cs[pt_ok]
-                        label[take] = MOVABLE
-                        oid[take] = gs[pt_ok]
-                        cost[take] = np.repeat(costs[js[start]], counts)[pt_ok]  # the first match's cost
-                        self.points_tracked += int(take.size)
-        mov = np.flatnonzero(label == MOVABLE)
-        if mov.size:
-            pts = p_odom[mov]
-            self._tracked = (pts, oid[mov], cost[mov], pts.min(axis=0), pts.max(axis=0))
-        else:
-            self._tracked = None
+            conf_ids = np.array(sorted(self._confirmed), dtype=np.int64)
+            conf = [self._confirmed[k] for k in conf_ids.tolist()]
+            since = np.array([x[0] for x in conf], dtype=np.float64)
+            extent = np.array([x[1] for x in conf], dtype=np.float64)
+            self.points_tracked += int(_track_kernel(
+                p_odom, label, oid, cost, pts, ids, costs, lo, hi, float(r), ids_now, lo_now, hi_now,
+                conf_ids, since, extent, float(now_s), float(c.track_max_s), float(c.track_extent_margin_m)))
+        tracked = _movable_points(p_odom, label, oid, cost)
+        self._tracked = tracked if tracked[0].shape[0] else None
 
     def _maybe_ask(self, now_s: float) -> None:
         """Send the newest image when the trigger rule says so and nothing is in flight; not
