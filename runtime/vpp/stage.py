@@ -316,6 +316,21 @@ class VppStage:
         self.masks_distrusted = 0  # warped masks grown past max_mask_growth (kept out of the gate)
         self.last_rejection: str | None = None
         self.frames = 0
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Run the tracking kernels once on a tiny frame (numba compiles or loads them from its
+        cache on first use: here, at start-up, not in the first tick that tracks)."""
+        n = 4
+        p = np.array([[1.0, 0.0, 0.0], [1.01, 0.0, 0.0], [1.02, 0.0, 0.0], [3.0, 0.0, 0.0]], np.float32)
+        p_odom = _transform(p, np.eye(4))
+        for step in range(2):
+            label = np.array([1, 1, 0, 0], np.int8)
+            part = PointPartition(label, np.array([0, 0, -1, -1], np.int32),
+                                  np.array([1.0, 1.0, np.nan, np.nan], np.float32), np.ones(n, bool), np.zeros(n, bool),
+                                  0, 0)
+            self._track(0.1 * step, part, p_odom)
+        self._tracked, self._confirmed, self.points_tracked = None, {}, 0
 
     def settle(self, t_s: float) -> None:
         """Lockstep barrier (the simulator calls it before time t_s): answers due are ready."""
