@@ -300,6 +300,42 @@ def tick_bench_command(scenarios: tuple[str, ...], seed: int, runs: int, hogs: i
         atomic_write_json(json_path, out)
 
 
+@bench_group.command("vpp")
+@click.option("--masks", "mask_counts", multiple=True, type=click.IntRange(1, 64), metavar="N",
+              help="Movable masks in memory (repeatable).  [default: 1, 4, 8]")
+@click.option("--repeats", default=300, show_default=True, type=click.IntRange(10, 100000), help="Timed scans per row.")
+@click.option("--points", "n_points", default=20000, show_default=True, type=click.IntRange(100, 1000000),
+              help="Lidar points per scan.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--cpu", type=click.IntRange(0, 1023), help="Pin the process to this core.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the figures as JSON (checked before the run, written atomically after it).")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def vpp_bench_command(mask_counts: tuple[int, ...], repeats: int, n_points: int, seed: int, cpu: int | None,
+                      json_path: Path | None, force: bool) -> None:
+    """The whole VPP stage per scan (VppStage.update: Phase I, partition, tracking), single-threaded,
+    with 1, 4 and 8 movable masks in memory and the camera moving: p50/p99/max and the split."""
+    import os
+
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.vpp_bench import DEFAULT_MASK_COUNTS, run_vpp_benchmark
+
+    try:
+        if cpu is not None and cpu not in os.sched_getaffinity(0):
+            raise InputError(f"--cpu {cpu}: not one of this process's cores {sorted(os.sched_getaffinity(0))}")
+        if json_path is not None:
+            check_output_path(json_path, what="--json", overwrite=force)
+    except OutputPathError as exc:
+        raise InputError(str(exc)) from exc
+    counts = tuple(sorted(set(mask_counts))) or DEFAULT_MASK_COUNTS
+    if n_points // 4 // max(counts) < 32:  # synthetic_frame: a quarter of the points on the boxes
+        raise InputError(f"--points {n_points}: too few for {max(counts)} masks (each box needs 32 points for its "
+                         f"plane; at least {128 * max(counts)})")
+    out = run_vpp_benchmark(counts, repeats, n_points, seed, cpu, echo=click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
+
+
 @bench_group.command("planner")
 @click.option("--repeats", default=300, show_default=True, type=click.IntRange(10, 100000),
               help="Planner steps per (horizon, points).")

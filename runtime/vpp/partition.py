@@ -47,6 +47,10 @@ Budget (issue 13: 3 ms p99, 20k points, 8 masks of 640x480, one core): `python -
 runtime.vpp.partition` prints time_partition(); on the 2-core dev box under other load,
 taskset -c 1, 1000 scans: p50 1.9 ms / p99 2.4 ms with the label memory, p50 1.5 ms / p99 1.7-1.9
 ms without. The projection (CameraModel.project, numpy) is the biggest single piece (~0.3 ms).
+The whole stage per scan (Phase I lookup, this partition, tracking): `dct bench vpp`
+(hil_sim/vpp_bench.py). The stage passes its masks as a homography.WarpLookup (the capture
+masks looked up through their warp at each point's pixel; no warped image is made): the same
+labels as the warped images the lookup replaces, at about 0.1-0.3 ms more here than bitmaps.
 """
 from __future__ import annotations
 
@@ -60,6 +64,7 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.camera_model import CameraModel, transform_points
+from runtime.vpp.homography import Plane, WarpLookup, warp_hit, warp_lookup
 
 #: Point labels.
 IGNORED = np.int8(-1)  # ground or caller-ignored: not an obstacle for the planner
@@ -269,6 +274,55 @@ def _mask_lookup(masks, costs, uv, seen, midx, pix):  # pragma: no cover - compi
 
 
 @njit(cache=True, nogil=True)
+def _mask_lookup_warp(wm, sel, Hinv, rows, box, rays, K, d, r2max, costs, uv, seen, midx, pix):  # pragma: no cover
+    """_mask_lookup against masks warped per pixel (WarpLookup): the same pixel, the same rule
+    (highest cost wins), the mask bit looked up through the warp instead of in a warped image."""
+    M = sel.shape[0]
+    H = rays.shape[0]
+    W = rays.shape[1]
+    for i in range(uv.shape[0]):
+        midx[i] = -1
+        if not seen[i]:
+            pix[i, 0] = -1
+            pix[i, 1] = -1
+            continue
+        u = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
+        v = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
+        pix[i, 0] = u
+        pix[i, 1] = v
+        best = -1
+        bc = -1.0
+        for m in range(M):
+            if costs[m] > bc and box[m, 0] <= u and u <= box[m, 2] and box[m, 1] <= v and v <= box[m, 3] \
+                    and warp_hit(wm, sel[m], u, v, rays, Hinv, rows, m, K, d, r2max):
+                best = m
+                bc = costs[m]
+        midx[i] = best
+
+
+@njit(cache=True, nogil=True)
+def _near_warp(wm, sel, Hinv, rows, box, rays, K, d, r2max, m, u, v, r):  # pragma: no cover - compiled
+    """_near_mask for a warped mask: is pixel (u, v) within the (2r+1)^2 square of a set pixel of
+    warped mask m? Only the part of the square inside the mask's box is looked up (outside it
+    the warp is empty), nearest rows first."""
+    u0 = max(u - r, box[m, 0])
+    u1 = min(u + r, box[m, 2])
+    v0 = max(v - r, box[m, 1])
+    v1 = min(v + r, box[m, 3])
+    if u0 > u1 or v0 > v1:
+        return False
+    e = sel[m]
+    for k in range(2 * r + 1):  # v, v+1, v-1, v+2, ...
+        vv = v + (k + 1) // 2 if k % 2 else v - k // 2
+        if vv < v0 or vv > v1:
+            continue
+        for uu in range(u0, u1 + 1):
+            if warp_hit(wm, e, uu, vv, rays, Hinv, rows, m, K, d, r2max):
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def _cell(x, inv):  # pragma: no cover - compiled
     c = int(math.floor(x * inv))
     return min(max(c, -_OFF), _OFF - 1) + _OFF
@@ -350,7 +404,8 @@ def _cells_touch(pts, sp, s0, e0, s1, e1, eps2):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth_gap, complete, dilate_px, half):  # pragma: no cover
+def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth_gap, complete, dilate_px, half,
+            warped, wm, sel, Hinv, rows, box, rays, K, dist12, r2max):  # pragma: no cover
     """Cluster refinement (module docstring, step 4). Returns (new midx, n removed, n added).
 
     Exact eps-connectivity on a grid of cells of side eps/2, one grid per object (the object's
@@ -358,7 +413,9 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
     (diagonal 0.87 eps), so a cell is one node; two cells up to 2 apart are joined when any pair
     of their points is within eps (checked only while they are still apart, first hit wins).
     Cost grows with the number of occupied cells, not with the points per cell. sk, sp: the
-    sorted cell keys of the movable points and their point indices (_cell_keys).
+    sorted cell keys of the movable points and their point indices (_cell_keys). warped: the
+    masks are a WarpLookup's (wm .. r2max; `masks` is then a placeholder of M masks), looked up
+    per pixel for the completion's dilated-mask test.
     """
     n = pts.shape[0]
     M = masks.shape[0]
@@ -478,7 +535,8 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
                             if d0 * d0 + d1 * d1 + d2 * d2 <= eps2:
                                 hit = True
                                 break
-            if hit and _near_mask(masks, m, pix[i, 0], pix[i, 1], dilate_px):
+            if hit and (_near_warp(wm, sel, Hinv, rows, box, rays, K, dist12, r2max, m, pix[i, 0], pix[i, 1], dilate_px)
+                        if warped else _near_mask(masks, m, pix[i, 0], pix[i, 1], dilate_px)):
                 best = m
                 bc = costs[m]
         if best >= 0:
@@ -638,6 +696,11 @@ class LabelMemory:
 
 
 # --------------------------------------------------------------------------- the partition
+#: The warp arguments of the kernels when the masks are bitmaps (typed placeholders, never read).
+_NO_WARP = (np.zeros((1, 1, 1), np.bool_), np.zeros(0, np.int64), np.zeros((0, 3, 3)), np.zeros((0, 2, 3)),
+            np.zeros((0, 4), np.int64), np.zeros((1, 1, 2)), np.eye(3), np.zeros(12), 0.0)
+
+
 class PointPartitioner:
     """Phase III for a stream of scans; holds the odom-frame label memory between them."""
 
@@ -659,6 +722,10 @@ class PointPartitioner:
             masks[0, 3:5, 3:5] = True
             self.partition(pts, np.eye(4), cam, masks, [0], [1.0], T_base_lidar=np.eye(4), T_odom_lidar=np.eye(4),
                            stamp_s=0.0)
+            for dist in (np.zeros(5), np.array([-0.05, 0.01, 0.0, 0.0, 0.0])):  # the per-pixel warp path
+                wcam = CameraModel(cam.K, dist, 8, 8)
+                lk = warp_lookup(wcam, masks, np.eye(4)[None], [Plane(np.array([0.0, 0.0, 1.0]), 2.0)], np.eye(4))
+                self.partition(pts, np.eye(4), wcam, lk, [0], [1.0], T_base_lidar=np.eye(4))
             self.memory._rebuild(0.0, 0)
         finally:
             self.memory = memory
@@ -680,7 +747,9 @@ class PointPartitioner:
         """Label every point of one scan (module docstring).
 
         points_lidar: (N, 3) float, lidar frame. T_cam_lidar: 4x4, p_cam = T p_lidar. masks:
-        (M, H, W) bool (or a list of (H, W)), H x W the camera's image size; object_ids (M,)
+        (M, H, W) bool (or a list of (H, W)), H x W the camera's image size, or a WarpLookup
+        (homography.py: capture masks looked up through their warp at each point's pixel, the
+        stage's per-scan path: no warped image is made); object_ids (M,)
         distinct ints >= 0; costs (M,) in [0, 10]. Ground: points with z below
         config.ground_max_z_m after T_base_lidar (skipped without it), plus `ignore` (N,) bool.
         Memory: with T_odom_lidar (4x4, the lidar pose at the scan) and stamp_s, unseen points
@@ -691,7 +760,19 @@ class PointPartitioner:
         T = _check_transform(T_cam_lidar, "T_cam_lidar")
         if not isinstance(camera, CameraModel):
             raise _fail("camera", f"must be a CameraModel, got {type(camera).__name__}")
-        m = stack_masks(masks, camera)
+        warped = isinstance(masks, WarpLookup)
+        if warped:
+            lk = masks
+            if lk.rays.shape[:2] != (camera.height_px, camera.width_px):
+                raise _fail("masks", f"warp lookup for a {lk.rays.shape[1]}x{lk.rays.shape[0]} image, the camera is "
+                                     f"{camera.width_px}x{camera.height_px}")
+            if len(lk) > MAX_MASKS:
+                raise _fail("masks", f"at most {MAX_MASKS} masks, got {len(lk)}")
+            m = np.zeros((len(lk), 1, 1), bool)  # placeholder: the kernels read the lookup
+            wargs = (lk.masks, lk.sel, lk.Hinv, lk.rows, lk.box, lk.rays, lk.K, lk.dist12, lk.r2_max)
+        else:
+            m = stack_masks(masks, camera)
+            wargs = _NO_WARP
         ids, cst = _check_ids_costs(object_ids, costs, m.shape[0])
         n = p.shape[0]
         ground = np.zeros(n, bool)
@@ -720,7 +801,10 @@ class PointPartitioner:
         seen = in_view & ~ground
         midx = np.empty(n, np.int32)
         pix = np.empty((n, 2), np.int64)
-        _mask_lookup(m, cst, uv, seen, midx, pix)
+        if warped:
+            _mask_lookup_warp(*wargs, cst, uv, seen, midx, pix)
+        else:
+            _mask_lookup(m, cst, uv, seen, midx, pix)
         removed = added = 0
         if m.shape[0] and (midx >= 0).any():
             # clustered in the camera frame: a rigid transform keeps distances, and p_cam is float64
@@ -728,7 +812,7 @@ class PointPartitioner:
             midx, removed, added = _refine(
                 p_cam, p_cam[:, 2], midx, sk, sp, pix, seen, m, cst, c.eps_cluster_m, c.n_min,
                 c.max_depth_gap_m if c.max_depth_gap_m is not None else -1.0, c.completion, c.completion_dilate_px,
-                _HALF)
+                _HALF, warped, *wargs)
         label = np.empty(n, np.int8)
         object_id = np.empty(n, np.int32)
         cost = np.empty(n, np.float32)
