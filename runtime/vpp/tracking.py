@@ -45,10 +45,11 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
-from runtime.vpp.partition import FIXED, MOVABLE, PointPartition
+from runtime.vpp.partition import MOVABLE, PointPartition
 
 
 class TrackingConfig(BaseModel):
@@ -61,8 +62,9 @@ class TrackingConfig(BaseModel):
     max_unconfirmed_s: float = Field(8.0, gt=0.0, le=120.0)
     #: Fewer mask-labelled points than this do not confirm (a sliver at the image border).
     min_confirm_points: int = Field(10, ge=3, le=100000)
-    #: Template thinning (m).
+    #: Template thinning (m), and its size cap (points; a 0.4 m box at 3 cm: ~600).
     template_voxel_m: float = Field(0.03, gt=0.0, le=1.0)
+    max_template_points: int = Field(600, ge=10, le=100000)
     #: Fixed points within this of the template's box (odom frame) are candidates (m): the
     #: object's motion in one scan (0.1 s) at most.
     search_margin_m: float = Field(0.25, gt=0.0, le=2.0)
@@ -92,13 +94,35 @@ def _extent(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) > 1 else 0.0
 
 
-def _thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """One point per voxel (the first), in a stable order."""
+def _thin(points: np.ndarray, voxel_m: float, max_points: int = 0) -> np.ndarray:
+    """One point per voxel (the first), in a stable order; then at most max_points (0: no cap) by
+    an even stride. Voxel keys packed into one int64 (21 bits an axis: 63 km at 3 cm), so the
+    deduplication is a 1-D np.unique (np.unique over rows sorts records: 10x slower)."""
     if len(points) == 0:
         return points
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return points[np.sort(first)]
+    k = np.floor(points / voxel_m).astype(np.int64)
+    k -= k.min(axis=0)
+    packed = (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+    _, first = np.unique(packed, return_index=True)
+    out = points[np.sort(first)]
+    if max_points and len(out) > max_points:
+        out = out[np.linspace(0, len(out) - 1, max_points).astype(np.intp)]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _box_candidates(p, label, oid, object_id, lo, hi):  # pragma: no cover - compiled
+    """Indices of the points inside the box [lo, hi] that are FIXED (or object_id's own when
+    object_id >= 0): one pass (numpy's masks over 20k x 3 points cost ~0.3 ms an object)."""
+    out = np.empty(p.shape[0], np.int64)
+    n = 0
+    for i in range(p.shape[0]):
+        if not (label[i] == 0 or (object_id >= 0 and oid[i] == object_id)):
+            continue
+        if lo[0] <= p[i, 0] <= hi[0] and lo[1] <= p[i, 1] <= hi[1] and lo[2] <= p[i, 2] <= hi[2]:
+            out[n] = i
+            n += 1
+    return out[:n]
 
 
 def _rigid_2d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -196,7 +220,7 @@ class ObjectTracker:
     def _confirm(self, k: int, now_s: float, points: np.ndarray, cost: float) -> None:
         """Merge a mask's view of object k into its template (registered to this scan already)."""
         c = self.config
-        new = _thin(points, c.template_voxel_m)
+        new = _thin(points, c.template_voxel_m, c.max_template_points)
         old = self.objects.get(k) or self._hand_over(k, new)
         anchor = None
         if old is not None and len(old.template):
@@ -205,7 +229,7 @@ class ObjectTracker:
             extra = old.template[~np.isfinite(d)]
             union = np.concatenate([new, extra]) if len(extra) else new
             if _extent(union) <= max(_extent(new), _extent(old.template)) + c.max_growth_m:
-                new = union  # a far view's face and a near view's top: one object
+                new = _thin(union, c.template_voxel_m, c.max_template_points)  # a far view's face and a near view's top
             elif len(new) < len(old.template) // 2:
                 new = old.template  # a sliver that disagrees (at the image border): keep the object
             else:  # the view disagrees and is substantial (the object moved unseen): take the view
@@ -236,8 +260,7 @@ class ObjectTracker:
         tpl = obj.template
         lo = tpl.min(axis=0) - c.search_margin_m
         hi = tpl.max(axis=0) + c.search_margin_m
-        cand = np.flatnonzero(((label == FIXED) | (oid == obj.object_id))
-                              & np.all((points_odom >= lo) & (points_odom <= hi), axis=1))
+        cand = _box_candidates(points_odom, label, oid, obj.object_id, lo, hi)
         if len(cand) < c.min_pairs:
             self.unseen += 1
             return False  # not in this scan (occluded, out of range, gone)
@@ -254,6 +277,8 @@ class ObjectTracker:
             R, t = _rigid_2d(moved[ok, :2], pts[j[ok], :2])
             moved[:, :2] = moved[:, :2] @ R.T + t
             R_total, t_total = R @ R_total, R @ t_total + t
+            if abs(t[0]) + abs(t[1]) < 5e-4 and abs(R[1, 0]) < 5e-4:
+                break  # converged (under 0.5 mm and 0.03 degrees)
         centre = tpl[:, :2].mean(axis=0)
         d, _ = tree.query(moved, distance_upper_bound=c.max_correspondence_m)
         inliers = np.isfinite(d)
@@ -276,16 +301,16 @@ class ObjectTracker:
         tpl = obj.template
         lo = tpl.min(axis=0) - c.label_radius_m
         hi = tpl.max(axis=0) + c.label_radius_m
-        cand = np.flatnonzero((label == FIXED) & np.all((points_odom >= lo) & (points_odom <= hi), axis=1))
+        cand = _box_candidates(points_odom, label, oid, -1, lo, hi)
         if not len(cand):
             return 0
         d, _ = cKDTree(tpl).query(points_odom[cand], distance_upper_bound=c.label_radius_m)
         take = cand[np.isfinite(d)]
         label[take], oid[take], cost[take] = MOVABLE, obj.object_id, obj.cost
         if c.max_spread_m > 0.0 and take.size:
-            grown = np.concatenate([tpl, _thin(points_odom[take], c.template_voxel_m)])
+            grown = np.concatenate([tpl, points_odom[take]])
             if _extent(grown) <= obj.view_extent_m + c.max_spread_m:
-                obj.template = _thin(grown, c.template_voxel_m)
+                obj.template = _thin(grown, c.template_voxel_m, c.max_template_points)
         return int(take.size)
 
 
