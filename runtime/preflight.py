@@ -668,8 +668,9 @@ def _command():
     @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None,
                   help='write {"checks": [{"name", "ok", "message"}, ...]} here')
     @click.option("--sys-root", default="/", hidden=True, help="root of /sys (tests)")
-    def preflight_command(robot, calibration, config, can_interface, can_channel, can_udp_port, ros_domain,
-                          listen_s, log_dir, min_free_gb, skip, json_path, sys_root) -> int:
+    @click.pass_context
+    def preflight_command(ctx, robot, calibration, config, can_interface, can_channel, can_udp_port, ros_domain,
+                          listen_s, log_dir, min_free_gb, skip, json_path, sys_root) -> None:
         """Check this computer, the robot's files, CAN, the base and the sensors before driving.
 
         One line per check (PASS / WARN / FAIL, and how to fix it). Exit code 0 only when no
@@ -690,7 +691,7 @@ def _command():
         click.echo(summary_line(checks))
         if json_path is not None:
             atomic_write_json(json_path, checks_json(checks))
-        return 0 if all(c.ok for c in checks) else 1
+        ctx.exit(0 if all(c.ok for c in checks) else 1)
 
     return preflight_command
 
