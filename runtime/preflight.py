@@ -110,11 +110,10 @@ def check_files(robot_path: str | Path | None, calibration_path: str | Path | No
     from runtime.config import load_controller_config
 
     out = LoadedFiles()
-    shown = {None: "(shipped LIMO description)"}
     try:
         out.robot = load_robot_description(robot_path)
         out.checks.append(Check("robot", "PASS", f"robot description '{out.robot.name}' "
-                                f"{robot_path if robot_path else shown[None]}: valid"))
+                                f"{robot_path or '(shipped LIMO description)'}: valid"))
     except ConfigFileError as exc:
         out.checks.append(Check("robot", "FAIL", _one_line(exc), "correct the robot description file"))
     try:
@@ -197,8 +196,7 @@ def _check_distance_net(robot: Any, config: Any) -> Check:
         net = DistanceNet.load(path, robot=robot)
     except FootprintMismatchError as exc:
         return Check("distance_net", "FAIL", f"wrong model footprint: {_one_line(exc)}",
-                     f"use the distance net trained for '{robot.name}' (planner.distance_net_path) "
-                     "or retrain it: dct models train-distance")
+                     f"point planner.distance_net_path at the net trained for '{robot.name}'")
     except (DistanceNetError, OSError, ValueError) as exc:
         return Check("distance_net", "FAIL", _one_line(exc), "reinstall the bundle or retrain: dct models train-distance")
     fp = net.metadata.get("footprint", {})
