@@ -14,6 +14,7 @@ from runtime.modes.selector import RecoveryConfig
 from runtime.odometry.stage import OdometryConfig
 from runtime.planning.mpc import MpcConfig
 from runtime.planning.reference_path import ReferencePathConfig
+from runtime.realtime_setup import RealtimeConfig
 from runtime.safety_supervisor import SafetySupervisorConfig
 from runtime.vpp.stage import VppConfig
 from runtime.telemetry import STAGES
@@ -122,6 +123,8 @@ class ControllerConfig(_Strict):
     odometry: OdometryConfig = OdometryConfig()
     #: The VLM point partition and its backend (runtime.vpp, models.vlm.factory; planner mode dct).
     vpp: VppSettings = VppSettings()
+    #: SCHED_FIFO and CPU pinning of the loop thread, asked for when allowed (runtime.realtime_setup).
+    realtime: RealtimeConfig = RealtimeConfig()
 
     @model_validator(mode="after")
     def _tick_matches_mpc(self) -> "ControllerConfig":
