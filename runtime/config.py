@@ -16,6 +16,8 @@ from runtime.planning.reference_path import ReferencePathConfig
 from runtime.safety_supervisor import SafetySupervisorConfig
 from runtime.vpp.stage import VppConfig
 from runtime.telemetry import STAGES
+from firmware_bridge.buses import BusConfig
+from runtime.ros_io.settings import RosConfig
 
 
 class _Strict(BaseModel):
@@ -115,6 +117,11 @@ class ControllerConfig(_Strict):
     odometry: OdometryConfig = OdometryConfig()
     #: The VLM point partition (runtime.vpp; planner mode dct).
     vpp: VppConfig = VppConfig()
+    #: The controller process (`dct run`): the ROS 2 topics it reads and publishes over DDS
+    #: (runtime.ros_io.settings) and the CAN bus to the base (firmware_bridge.buses). Unused in
+    #: lockstep HIL, where the simulator hands both over in its own process.
+    ros: RosConfig = RosConfig()
+    can_bus: BusConfig = BusConfig(interface="limo_serial", channel="/dev/ttyTHS1")
 
     @model_validator(mode="after")
     def _tick_matches_mpc(self) -> "ControllerConfig":
