@@ -307,6 +307,33 @@ def sim_speed_command(scenario: str, seconds: float, repeats: int, sensors: bool
     run_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)
 
 
+@bench_group.command("realtime")
+@click.option("--scenario", default="case3", show_default=True)
+@click.option("--runs", default=10, show_default=True, type=click.IntRange(1, 100))
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1),
+              help="Seed of the first run (run k uses seed + k).")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the figures as JSON.")
+def realtime_bench_command(scenario: str, runs: int, seed: int, config_path: Path | None, json_path: Path | None) -> None:
+    """Real-time HIL episodes in a row (`dct hil run --realtime`, two processes each): success count, the
+    controller's tick and sensor-to-command latency (end of lidar frame -> the 0x111 written from it), deadline
+    misses, simulator lag."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.realtime import run_realtime_benchmark
+    from hil_sim.scenario import load_scenario
+
+    try:
+        load_scenario(scenario)
+        if json_path is not None:
+            check_output_path(json_path, what="--json", overwrite=True)
+    except (ConfigFileError, OutputPathError) as exc:
+        raise InputError(str(exc)) from exc
+    out = run_realtime_benchmark(scenario, runs, seed, config_path, echo=click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
+
+
 @bench_group.command("sensors")
 @click.option("--frames", default=10, show_default=True, help="Lidar frames to time.")
 @click.option("--renders", default=10, show_default=True, help="RGB and segmentation renders to time.")

@@ -179,4 +179,63 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
     return m
 
 
-__all__ = ["run_realtime_episode", "merge", "unique_channels"]
+__all__ = ["run_realtime_episode", "run_realtime_benchmark", "merge", "unique_channels"]
+
+
+def run_realtime_benchmark(scenario: str, runs: int, seed: int = 0, config_path: Path | None = None,
+                           echo=print) -> dict:
+    """`dct bench realtime`: `runs` real-time episodes in a row; prints each and the aggregate
+    (success count; tick, sensor-to-command and simulator-lag percentiles over all runs' maxima and
+    medians; deadline misses). Figures only: nothing passes or fails on them."""
+    rows = []
+    for k in range(runs):
+        try:
+            m = run_realtime_episode(scenario, seed + k, config_path)
+        except RuntimeError as exc:
+            echo(f"run {k + 1}/{runs} seed {seed + k}: could not run: {exc}")
+            rows.append({"seed": seed + k, "error": str(exc)})
+            continue
+        rt = m["realtime"]
+        row = {"seed": seed + k, "success": m["success"], "failure_reason": m["failure_reason"],
+               "fixed_contacts": m["fixed_contacts"], "navigation_time_s": m["navigation_time_s"],
+               "tick_ms": rt["tick_ms"], "sensor_to_command_ms": rt["sensor_to_command_ms"],
+               "deadline_misses": rt["deadline_misses"], "ticks": rt["ticks"],
+               "simulator_lag_ms": rt["simulator_lag_ms"], "pids": rt["pids"]}
+        rows.append(row)
+        echo(f"run {k + 1}/{runs} seed {seed + k}: {'SUCCESS' if m['success'] else 'FAIL (' + str(m['failure_reason']) + ')'}"
+             f" time {m['navigation_time_s']:.2f} s fixed_contacts {m['fixed_contacts']}; tick ms "
+             f"{_fmt(rt['tick_ms'])}; sensor-to-command ms {_fmt(rt['sensor_to_command_ms'])}; deadline misses "
+             f"{rt['deadline_misses']}; sim lag ms {_fmt(rt['simulator_lag_ms'])}")
+    ok = [r for r in rows if "error" not in r]
+
+    def agg(key: str) -> dict:
+        vals = {q: [r[key][q] for r in ok if r[key].get(q) is not None] for q in ("p50", "p99", "max")}
+        return {"median_of_p50": _median(vals["p50"]), "max_of_p99": max(vals["p99"], default=None),
+                "max": max(vals["max"], default=None)}
+
+    out = {"scenario": scenario, "runs": runs, "successes": sum(1 for r in ok if r["success"]),
+           "deadline_misses_total": sum(r["deadline_misses"] for r in ok),
+           "tick_ms": agg("tick_ms"), "sensor_to_command_ms": agg("sensor_to_command_ms"),
+           "simulator_lag_ms": agg("simulator_lag_ms"), "rows": rows}
+    echo(f"{scenario}: {out['successes']}/{runs} successes; deadline misses {out['deadline_misses_total']} in all; "
+         f"tick ms p50 (median over runs) {_num(out['tick_ms']['median_of_p50'])}, p99 (worst run) "
+         f"{_num(out['tick_ms']['max_of_p99'])}, max {_num(out['tick_ms']['max'])}; sensor-to-command ms p50 "
+         f"{_num(out['sensor_to_command_ms']['median_of_p50'])}, p99 {_num(out['sensor_to_command_ms']['max_of_p99'])}"
+         f", max {_num(out['sensor_to_command_ms']['max'])}")
+    return out
+
+
+def _median(v: list) -> float | None:
+    import statistics
+
+    return statistics.median(v) if v else None
+
+
+def _num(v) -> str:
+    return "-" if v is None else f"{v:.1f}"
+
+
+def _fmt(d: dict | None) -> str:
+    if not d:
+        return "-"
+    return "/".join(_num(d.get(k)) for k in ("p50", "p99", "max")) + " (p50/p99/max)"

@@ -233,7 +233,9 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     nav_time = (t_goal if t_goal is not None else t_end) - started
     lags = lag_samples[: min(n_lag, len(lag_samples))] * 1e3
     out = metrics.to_dict(
-        goal_reached=end_reason == "goal",
+        # As in lockstep: where the robot is when the episode ends (a goal reached just before the
+        # time limit counts; `dct hil run --realtime` also needs the controller's GOAL_REACHED).
+        goal_reached=end_reason == "goal" or world_goal_reached(world, scenario),
         navigation_time_s=nav_time,
         deadline_misses=0,
         extra={
@@ -246,6 +248,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
             "simulator": {
                 "pid": os.getpid(),
                 "wall_time_s": wall,
+                "cpu_time_s": time.process_time(),
                 "sim_time_total_s": t_end - sim_t0,
                 "realtime_factor": (t_end - sim_t0) / wall if wall > 0 else None,
                 "physics_steps": sim.steps,

@@ -52,6 +52,10 @@ class RunInputError(ValueError):
     """Bad input to `dct run`: one line naming the file and the field (exit status 2)."""
 
 
+class _StoppedBeforeStart(Exception):
+    """SIGINT/SIGTERM while waiting for the first goal: nothing to stop, exit 0."""
+
+
 class EpochMonotonicClock(MonotonicClock):
     """time.monotonic shifted once onto the system clock (ROS time): see the module docstring.
     A MonotonicClock, so the loop treats it as the wall clock."""
@@ -232,7 +236,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
     except BusOpenError as exc:
         if recorder is not None:
             recorder.close()
-        raise RunInputError(f"can_bus: {exc}") from None
+        raise RunInputError(f"{opts.config_path or 'the shipped controller config'}: can_bus: {exc}") from None
 
     ros = config.ros
     participant = DomainParticipant(ros.inputs.domain_id)
@@ -251,14 +255,16 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
             t_end = None if opts.goal_wait_s is None else time.monotonic() + opts.goal_wait_s
             while goal is None and not stop.is_set() and (t_end is None or time.monotonic() < t_end):
                 g = receiver.take_goal()
-                if g is not None:
+                if g is not None and g.frame_id not in ("", ros.outputs.odom_frame):
+                    echo(f"dct run: goal in frame {g.frame_id!r} ignored: goals are taken in the odometry frame "
+                         f"({ros.outputs.odom_frame!r}); there is no map frame yet")
+                elif g is not None:
                     goal = (g.pose.x_m, g.pose.y_m, g.pose.yaw_rad)
                 else:
                     stop.wait(0.05)
             if goal is None and stop.is_set():
-                echo("dct run: stopped before any goal arrived; the base was never enabled")
-                return {"pid": __import__("os").getpid(), "state": "NOT_STARTED"}
-            if goal is None:
+                raise _StoppedBeforeStart
+            elif goal is None:
                 raise RunInputError("no goal: give --goal X Y YAW or publish a geometry_msgs/PoseStamped on "
                                     f"{ros.inputs.goal.topic if ros.inputs.goal else 'the goal topic'}")
         driver_bus = recorder.wrap_bus(bus, clock.now) if recorder is not None else bus
@@ -331,6 +337,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
             "goal_reached_at_s": controller.goal_reached_at_s,
             "activated_at_s": controller._activated_at_s,
             "wall_time_s": wall,
+            "cpu_time_s": time.process_time(),  # this process (the ICP worker's is its own)
             "controller": report,
             "events": controller.events.to_list(t0_s=controller._activated_at_s),
             "stop_reason": controller.stop_reason,
@@ -353,6 +360,9 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
             "goals_ignored": ignored_goals[0],
             "keepalives_sent": loop.keepalives_sent,
         }
+    except _StoppedBeforeStart:
+        echo("dct run: stopped before any goal arrived; the base was never enabled")
+        summary = {"state": "NOT_STARTED"}
     finally:
         receiver.stop()
         publisher.close()
