@@ -99,22 +99,28 @@ def test_controller_process_drives_and_stops_on_sigterm(tmp_path):
     listener = open_bus(BusConfig(interface="udp_multicast", channel=group, udp_port=port))
     from cyclonedds.domain import DomainParticipant
 
-    from runtime.ros_io.dds import raw_reader
-    from runtime.ros_io.messages import Odometry
+    from runtime.ros_io.dds import RosWriter, raw_reader, ros_qos
+    from runtime.ros_io.messages import Header, Odometry, Point, Pose, PoseStamped, Quaternion, stamp_to_time
 
-    odom_reader = raw_reader(DomainParticipant(domain), "/dct/odom", Odometry)
+    participant = DomainParticipant(domain)
+    odom_reader = raw_reader(participant, "/dct/odom", Odometry)
+    goal_writer = RosWriter(participant, "/goal_pose", PoseStamped, ros_qos("reliable", 1))
+    goal = PoseStamped(Header(stamp_to_time(time.time()), "odom"), Pose(Point(5.0, 0.0, 0.0), Quaternion(0, 0, 0, 1)))
     base.start()
     summary = tmp_path / "summary.json"
     ctl = subprocess.Popen(
-        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--goal", "5", "0", "0",
-             "--json", str(summary), "--domain-id", str(domain), "--can-interface", "udp_multicast",
+        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--json", str(summary), "--domain-id", str(domain), "--can-interface", "udp_multicast",
              "--can-channel", group, "--can-port", str(port)),
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         decoder = p.FrameDecoder()
         moving = False
         t_end = time.monotonic() + 90
+        next_goal = 0.0
         while not moving and time.monotonic() < t_end and ctl.poll() is None:
+            if time.monotonic() > next_goal:  # the goal as RViz sends it (until the reader has matched)
+                goal_writer.write(goal)
+                next_goal = time.monotonic() + 0.5
             msg = listener.recv(timeout=0.1)
             rec = decoder.decode(msg) if msg is not None else None
             moving = isinstance(rec, p.MotionCommand) and rec.linear_mps > 0.05
@@ -146,5 +152,23 @@ def test_controller_process_drives_and_stops_on_sigterm(tmp_path):
     assert commands and commands[-1] == (0.0, 0.0), commands[-5:]
     s = json.loads(summary.read_text())
     assert s["pid"] == ctl.pid and s["state"] in ("ACTIVE", "GOAL_REACHED")
+    assert s["goal_odom"] == [5.0, 0.0, 0.0]  # from /goal_pose
     assert s["realtime"]["ticks"] > 0 and s["publisher"]["published"] > 0
     assert os.path.getsize(summary) > 0
+
+
+def test_sigterm_while_waiting_for_a_goal_exits_0(tmp_path):
+    domain, group, port = unique_channels()
+    ctl = subprocess.Popen(
+        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--domain-id", str(domain),
+             "--can-interface", "udp_multicast", "--can-channel", group, "--can-port", str(port)),
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        line = ctl.stderr.readline()
+        assert "waiting for a goal" in line, line
+        ctl.send_signal(signal.SIGTERM)
+        _, err = ctl.communicate(timeout=30)
+    finally:
+        if ctl.poll() is None:
+            ctl.kill()
+    assert ctl.returncode == 0 and "never enabled" in err, err
