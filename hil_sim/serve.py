@@ -16,9 +16,13 @@ Stamps: ROS time, i.e. the system clock, through runtime.run_process.EpochMonoto
 same clock the controller runs on).
 
 The episode: starts when the controller puts the base into CAN command mode (0x421), so the
-controller's start-up time is not counted; ends when the robot stands still inside the goal
-tolerance for `settle_s`, when the scenario's time limit has passed since the start, when no
-controller has connected within `connect_timeout_s`, or on SIGINT/SIGTERM. The metrics
+controller's start-up time is not counted; ends `settle_s` after the controller says it has
+finished (at the goal with a zero command, or stopped), as lockstep's episode does: the
+simulator reads what an operator would, the controller's DiagnosticArray (its `finished` value)
+on the configured diagnostics topic. It also ends when the scenario's time limit has passed
+since the start, when no controller has connected within `connect_timeout_s`, or on
+SIGINT/SIGTERM. (A robot that merely stands still in the goal region is not finished: it may be
+holding for stale data, as it does when this simulator falls behind.) The metrics
 (hil_sim.metrics) are then written atomically, as lockstep writes them, with `end_reason`.
 What the controller knows (its state, deadline misses) is not here: `dct hil run --realtime`
 adds it from the controller's own summary.
@@ -34,9 +38,6 @@ from pathlib import Path
 
 import numpy as np
 
-#: Robot speeds below these count as standing still (goal settle).
-STILL_MPS = 0.02
-STILL_RADPS = 0.05
 
 
 @dataclass
@@ -128,6 +129,23 @@ class DdsSensorSink:
         return True
 
 
+def _controller_finished(reader) -> bool:
+    """Whether the newest DiagnosticArray from the controller says `finished` = True."""
+    from runtime.ros_io.messages import DiagnosticArray, from_cdr
+
+    samples = reader.take_raw()
+    for data in reversed(samples):
+        try:
+            msg = from_cdr(DiagnosticArray, data)
+        except Exception:  # noqa: BLE001 - not ours to judge; the next one will do
+            continue
+        for status in msg.status:
+            for kv in status.values:
+                if kv.key == "finished":
+                    return kv.value == "True"
+    return False
+
+
 def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -> dict:
     """Run one real-time episode of opts.scenario until it ends (module docstring); returns the
     metrics (also written to opts.json_path)."""
@@ -168,6 +186,12 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
         return wall_t0[0] + (t_sim - sim_t0)
 
     sink = DdsSensorSink(participant, inputs, to_wall)
+    diagnostics = None
+    if config.ros.outputs.diagnostics:
+        from runtime.ros_io.dds import raw_reader, ros_qos
+        from runtime.ros_io.messages import DiagnosticArray
+
+        diagnostics = raw_reader(participant, config.ros.outputs.diagnostics, DiagnosticArray, ros_qos("best_effort", 4))
     rig = SensorRig(world, robot, sink, SensorRigConfig(seed=opts.seed, camera_rate_hz=opts.camera_rate_hz))
     firmware = EmulatedBaseFirmware(bus, robot)
     sim = LockstepSimulation(world, firmware, metrics, [rig])
@@ -176,7 +200,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     lag_samples = np.zeros(1 << 16)
     n_lag = 0
     t_start: float | None = None
-    still_since: float | None = None
+    finished_at: float | None = None
     end_reason = "signal"
     t_goal: float | None = None
     echo(f"dct hil serve: {scenario.name} seed {opts.seed} serving: CAN udp_multicast {bus_config.channel}:"
@@ -204,17 +228,12 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
                     end_reason = "no_controller"
                     break
             else:
-                if world_goal_reached(world, scenario):
-                    v, w = firmware.measured_motion()
-                    if abs(v) < STILL_MPS and abs(w) < STILL_RADPS:
-                        still_since = t if still_since is None else still_since
-                        if t - still_since >= opts.settle_s:
-                            end_reason, t_goal = "goal", still_since
-                            break
-                    else:
-                        still_since = None
-                else:
-                    still_since = None
+                if finished_at is None and diagnostics is not None and _controller_finished(diagnostics):
+                    finished_at = t
+                    echo(f"dct hil serve: the controller says it has finished at t={t - t_start:.2f} s")
+                if finished_at is not None and t - finished_at >= opts.settle_s:
+                    end_reason, t_goal = "controller_finished", finished_at
+                    break
                 if t - t_start >= scenario.time_limit_s:
                     end_reason = "time_limit"
                     break
@@ -231,7 +250,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     out = metrics.to_dict(
         # As in lockstep: where the robot is when the episode ends (a goal reached just before the
         # time limit counts; `dct hil run --realtime` also needs the controller's GOAL_REACHED).
-        goal_reached=end_reason == "goal" or world_goal_reached(world, scenario),
+        goal_reached=world_goal_reached(world, scenario),
         navigation_time_s=nav_time,
         deadline_misses=0,
         extra={

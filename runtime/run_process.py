@@ -304,7 +304,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
                 stage_ms={s: float(row["stage_s"][i]) * 1e3 for i, s in enumerate(telemetry.stages)},
                 tick_ms=float(row["tick_s"]) * 1e3,
                 extra={"deadline_misses": telemetry.deadline_misses, "hold_reason": controller.hold_reason or "",
-                       "active_mode": controller.modes.mode_name},
+                       "active_mode": controller.modes.mode_name, "finished": controller.finished},
                 points_fix=controller.points_fix if clouds else None,
                 plan_states=plan.states if clouds and plan is not None else None,
                 points_mov=mov,
