@@ -29,7 +29,6 @@ adds it from the controller's own summary.
 """
 from __future__ import annotations
 
-import math
 import os
 import threading
 import time
@@ -61,7 +60,7 @@ class DdsSensorSink:
 
     def __init__(self, participant, inputs, to_wall) -> None:
         from runtime.ros_io.dds import RosWriter, ros_qos
-        from runtime.ros_io.messages import CustomMsg, Image, Imu, PointCloud2
+        from runtime.ros_io.messages import CustomMsg, Image, Imu
 
         self.to_wall = to_wall
         self._lidar = self._imu = self._camera = None
@@ -76,7 +75,6 @@ class DdsSensorSink:
                                                                              inputs.imu.qos.depth))
         if inputs.camera is not None and inputs.camera.type == "sensor_msgs/msg/Image":
             self._camera = RosWriter(participant, inputs.camera.topic, Image, ros_qos(inputs.camera.qos.reliability, 1))
-        del PointCloud2
         self.published = {"lidar": 0, "imu": 0, "camera": 0}
         self.skipped_empty_scans = 0
         self.publish_s = {"lidar": 0.0, "imu": 0.0, "camera": 0.0}
