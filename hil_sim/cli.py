@@ -55,10 +55,14 @@ def list_command() -> None:
               help="Record the run to this MCAP file (ticks, poses, CAN frames, P_fix, plan); "
                    "`dct report latency` reads it. Written under a temporary name, renamed at the end.")
 @click.option("--force", is_flag=True, help="Overwrite an existing --record file.")
+@click.option("--realtime", is_flag=True,
+              help="Two processes on the wall clock, as on the robot: `dct hil serve` (simulator, CAN over "
+                   "udp_multicast, sensors over DDS) and `dct run` (the controller). The JSON adds `realtime` "
+                   "(tick and sensor-to-command latency, deadline misses, pids). Not deterministic.")
 def run_command(
     scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None,
     planner: str | None, fault_texts: tuple[str, ...], calibration_path: Path | None = None,
-    record_path: Path | None = None, force: bool = False,
+    record_path: Path | None = None, force: bool = False, realtime: bool = False,
 ) -> None:
     """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path).
 
@@ -114,6 +118,10 @@ def run_command(
                  for f in faults if f.start_s >= sc.time_limit_s]
     for w in warnings:
         click.echo(f"warning: {w}", err=True)
+    if realtime:
+        _run_realtime(sc, scenario, seed, json_path, config_path, robot_path, calibration_path, planner,
+                      fault_texts, record_path)
+        return
     recorder = None
     if record_path is not None:
         from runtime.recording import RecordingError, RunRecorder
@@ -145,6 +153,90 @@ def run_command(
     click.echo(summary_line(sc.name, m, result.realtime_factor))
     if not m["success"]:
         sys.exit(1)
+
+
+def _run_realtime(sc, scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
+                  robot_path: Path | None, calibration_path: Path | None, planner: str | None,
+                  fault_texts: tuple[str, ...], record_path: Path | None) -> None:
+    """`dct hil run --realtime`: hil_sim.realtime (two processes)."""
+    from calibration.outputs import atomic_write_json
+    from hil_sim.realtime import run_realtime_episode
+
+    for what, given in (("--planner", planner), ("--fault", fault_texts), ("--record", record_path)):
+        if given:
+            raise InputError(f"{what} is not supported with --realtime yet (set the planner in --config; "
+                             "record with `dct run --record`)")
+    try:
+        m = run_realtime_episode(scenario, seed, config_path, robot_path, calibration_path,
+                                 echo=lambda s: click.echo(s, err=True))
+    except RuntimeError as exc:
+        raise click.ClickException(str(exc)) from None
+    if json_path is not None:
+        atomic_write_json(json_path, m)
+    click.echo(realtime_line(sc.name, m))
+    if not m["success"]:
+        sys.exit(1)
+
+
+def realtime_line(name: str, m: dict) -> str:
+    """summary_line plus the real-time figures."""
+    rt = m["realtime"]
+
+    def f(d):
+        return "/".join("-" if d[k] is None else f"{d[k]:.1f}" for k in ("p50", "p99", "max"))
+
+    line = summary_line(name, m, 1.0).rsplit(" realtime=", 1)[0]
+    return (f"{line} realtime: tick_ms(p50/p99/max)={f(rt['tick_ms'])} "
+            f"sensor_to_command_ms={f(rt['sensor_to_command_ms'])} pids={rt['pids']['simulator']},"
+            f"{rt['pids']['controller']}")
+
+
+@hil_group.command("serve")
+@click.argument("scenario")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the episode metrics here when it ends (goal, time limit, SIGINT/SIGTERM).")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Controller config YAML: its ros.inputs topics are what the simulator publishes.")
+@click.option("--robot", "robot_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Robot description YAML.")
+@click.option("--domain-id", type=click.IntRange(0, 232), help="DDS domain (default: the config's).")
+@click.option("--can-channel", help="CAN udp_multicast group (default: python-can's).")
+@click.option("--can-port", type=click.IntRange(1, 65535), help="CAN udp_multicast port.")
+@click.option("--camera-rate", "camera_rate_hz", default=0.0, show_default=True, type=click.FloatRange(0.0, 30.0),
+              help="Camera images per second (0: no camera; rendering is costly).")
+@click.option("--connect-timeout", "connect_timeout_s", default=120.0, show_default=True,
+              type=click.FloatRange(1.0, 3600.0), help="End the episode if no controller enables the base by then.")
+def serve_command(scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
+                  robot_path: Path | None, domain_id: int | None, can_channel: str | None, can_port: int | None,
+                  camera_rate_hz: float, connect_timeout_s: float) -> None:
+    """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
+    the sensors as ROS 2 DDS topics (Livox CustomMsg, Imu, Image). The episode starts when a controller enables
+    the base; the metrics are written when it ends. Exit 0 when it ran (whatever the outcome), 2 on bad input."""
+    import signal
+    import threading
+
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import OutputPathError, check_output_path
+    from hil_sim.scenario import load_scenario
+    from hil_sim.serve import ServeOptions, serve
+
+    try:
+        load_scenario(scenario)
+        if json_path is not None:
+            check_output_path(json_path, what="--json", overwrite=True)
+    except (ConfigFileError, OutputPathError) as exc:
+        raise InputError(str(exc)) from exc
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        m = serve(ServeOptions(scenario, seed, json_path, robot_path, config_path, domain_id, can_channel, can_port,
+                               camera_rate_hz, connect_timeout_s), stop, echo=lambda s: click.echo(s, err=True))
+    except (ConfigFileError, ValueError) as exc:
+        raise InputError(str(exc)) from exc
+    click.echo(f"dct hil serve: episode ended ({m['end_reason']}): goal_reached(world)={m['goal_reached']} "
+               f"fixed_contacts={m['fixed_contacts']} time={m['navigation_time_s']:.2f}s", err=True)
 
 
 def close_recording(recorder) -> None:
@@ -214,6 +306,33 @@ def sim_speed_command(scenario: str, seconds: float, repeats: int, sensors: bool
     from hil_sim.sim_bench import run_sim_speed_benchmark
 
     run_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)
+
+
+@bench_group.command("realtime")
+@click.option("--scenario", default="case3", show_default=True)
+@click.option("--runs", default=10, show_default=True, type=click.IntRange(1, 100))
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1),
+              help="Seed of the first run (run k uses seed + k).")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the figures as JSON.")
+def realtime_bench_command(scenario: str, runs: int, seed: int, config_path: Path | None, json_path: Path | None) -> None:
+    """Real-time HIL episodes in a row (`dct hil run --realtime`, two processes each): success count, the
+    controller's tick and sensor-to-command latency (end of lidar frame -> the 0x111 written from it), deadline
+    misses, simulator lag."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.realtime import run_realtime_benchmark
+    from hil_sim.scenario import load_scenario
+
+    try:
+        load_scenario(scenario)
+        if json_path is not None:
+            check_output_path(json_path, what="--json", overwrite=True)
+    except (ConfigFileError, OutputPathError) as exc:
+        raise InputError(str(exc)) from exc
+    out = run_realtime_benchmark(scenario, runs, seed, config_path, echo=click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
 
 
 @bench_group.command("sensors")

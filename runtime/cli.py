@@ -11,13 +11,20 @@ from __future__ import annotations
 
 import os
 import sys
-from importlib.metadata import entry_points
+from importlib.metadata import EntryPoint, entry_points
 
 import click
 
 
 def _command_entry_points() -> dict:
-    return {ep.name: ep for ep in entry_points(group="dct.commands")}
+    eps = {ep.name: ep for ep in entry_points(group="dct.commands")}
+    for name, value in _RUNTIME_COMMANDS.items():  # runtime's own, loaded as lazily as the groups
+        eps.setdefault(name, EntryPoint(name=name, value=value, group="dct.commands"))
+    return eps
+
+
+#: Commands of this package itself: `dct run` (the controller process, runtime.run_process).
+_RUNTIME_COMMANDS = {"run": "runtime.run_process:run_command"}
 
 
 class LazyGroup(click.Group):

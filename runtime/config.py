@@ -18,6 +18,8 @@ from runtime.realtime_setup import RealtimeConfig
 from runtime.safety_supervisor import SafetySupervisorConfig
 from runtime.vpp.stage import VppConfig
 from runtime.telemetry import STAGES
+from firmware_bridge.buses import BusConfig
+from runtime.ros_io.settings import RosConfig
 
 
 class _Strict(BaseModel):
@@ -125,6 +127,11 @@ class ControllerConfig(_Strict):
     vpp: VppSettings = VppSettings()
     #: SCHED_FIFO and CPU pinning of the loop thread, asked for when allowed (runtime.realtime_setup).
     realtime: RealtimeConfig = RealtimeConfig()
+    #: The controller process (`dct run`): the ROS 2 topics it reads and publishes over DDS
+    #: (runtime.ros_io.settings) and the CAN bus to the base (firmware_bridge.buses). Unused in
+    #: lockstep HIL, where the simulator hands both over in its own process.
+    ros: RosConfig = RosConfig()
+    can_bus: BusConfig = BusConfig(interface="limo_serial", channel="/dev/ttyTHS1")
 
     @model_validator(mode="after")
     def _tick_matches_mpc(self) -> "ControllerConfig":

@@ -113,6 +113,14 @@ def decode_cdr(type_name: str, data: bytes):
     """CDR bytes -> our IDL struct (CustomMsg: the numpy CustomMsgArrays); every failure a RosMessageError."""
     if type_name == "livox_ros_driver2/msg/CustomMsg":
         return decode_custom_msg(data)
+    if type_name == "sensor_msgs/msg/Imu":  # 200 Hz: struct, not the generic decoder (fast_imu.py)
+        from runtime.ros_io.fast_imu import decode_imu
+
+        try:
+            return decode_imu(data)
+        except RosMessageError as exc:  # named as the generic decoder's failures are
+            raise RosMessageError(f"undecodable CDR ({exc})"[:200], name="undecodable",
+                                  field_name=exc.field_name) from exc
     try:
         return from_cdr(ROS_TYPES[type_name], data)
     except Exception as exc:    # cyclonedds' parser on untrusted bytes: struct.error, UnicodeDecodeError, ...

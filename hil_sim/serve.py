@@ -1,0 +1,285 @@
+"""`dct hil serve`: the simulator in real time, as its own process, looking like the robot.
+
+To a controller process (`dct run`) it is indistinguishable from the LIMO: the emulated base
+firmware (firmware_bridge.firmware_emulator) answers on a CAN bus (udp_multicast: python-can's
+bus between processes), and the sensors are ROS 2 topics over DDS with the types the real
+drivers publish: livox_ros_driver2/CustomMsg (per-point offset_time, ros_io's numpy encoder),
+sensor_msgs/Imu, sensor_msgs/Image (only when a camera rate is asked for: rendering is costly).
+
+Physics is paced to the wall clock: every loop iteration steps the world until simulated time
+catches up with the time elapsed since start, then sleeps. When the machine cannot keep up, the
+simulation runs late rather than skipping physics (the lag is measured: `sim_lag_ms`), and the
+sensor stamps follow simulated time mapped onto the wall clock, so a late simulator looks to the
+controller like late sensor data, which is what it is.
+
+Stamps: ROS time, i.e. the system clock, through runtime.run_process.EpochMonotonicClock (the
+same clock the controller runs on).
+
+The episode: starts when the controller puts the base into CAN command mode (0x421), so the
+controller's start-up time is not counted; ends `settle_s` after the controller says it has
+finished (at the goal with a zero command, or stopped), as lockstep's episode does: the
+simulator reads what an operator would, the controller's DiagnosticArray (its `finished` value)
+on the configured diagnostics topic. It also ends when the scenario's time limit has passed
+since the start, when no controller has connected within `connect_timeout_s`, or on
+SIGINT/SIGTERM. (A robot that merely stands still in the goal region is not finished: it may be
+holding for stale data, as it does when this simulator falls behind.) The metrics
+(hil_sim.metrics) are then written atomically, as lockstep writes them, with `end_reason`.
+What the controller knows (its state, deadline misses) is not here: `dct hil run --realtime`
+adds it from the controller's own summary.
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+
+@dataclass
+class ServeOptions:
+    scenario: str
+    seed: int = 0
+    json_path: Path | None = None
+    robot_path: Path | None = None
+    config_path: Path | None = None
+    domain_id: int | None = None
+    can_channel: str | None = None
+    can_port: int | None = None
+    camera_rate_hz: float = 0.0
+    connect_timeout_s: float = 120.0
+    settle_s: float = 0.5
+
+
+class DdsSensorSink:
+    """Stands where the lockstep rig's SensorInbox stands (put_scan / put_imu / put_image) and
+    publishes each piece as the robot's drivers would (module docstring)."""
+
+    def __init__(self, participant, inputs, to_wall) -> None:
+        from runtime.ros_io.dds import RosWriter, ros_qos
+        from runtime.ros_io.messages import CustomMsg, Image, Imu
+
+        self.to_wall = to_wall
+        self._lidar = self._imu = self._camera = None
+        if inputs.lidar is not None:
+            if inputs.lidar.type != "livox_ros_driver2/msg/CustomMsg":
+                raise ValueError("dct hil serve publishes the lidar as livox_ros_driver2/msg/CustomMsg; "
+                                 f"ros.inputs.lidar.type is {inputs.lidar.type}")
+            self._lidar = RosWriter(participant, inputs.lidar.topic, CustomMsg,
+                                    ros_qos(inputs.lidar.qos.reliability, inputs.lidar.qos.depth))
+        if inputs.imu is not None:
+            self._imu = RosWriter(participant, inputs.imu.topic, Imu, ros_qos(inputs.imu.qos.reliability,
+                                                                             inputs.imu.qos.depth))
+        if inputs.camera is not None and inputs.camera.type == "sensor_msgs/msg/Image":
+            self._camera = RosWriter(participant, inputs.camera.topic, Image, ros_qos(inputs.camera.qos.reliability, 1))
+        self.published = {"lidar": 0, "imu": 0, "camera": 0}
+        self.skipped_empty_scans = 0
+        self.publish_s = {"lidar": 0.0, "imu": 0.0, "camera": 0.0}
+
+    def put_scan(self, scan) -> bool:
+        from runtime.ros_io.messages import CUSTOM_POINT_DTYPE, Header, encode_custom_msg, stamp_to_time
+
+        if self._lidar is None:
+            return True
+        if scan.num_points == 0:  # a Livox driver never sends an empty frame (nothing seen: no frame)
+            self.skipped_empty_scans += 1
+            return True
+        t0 = time.perf_counter()
+        stamp = self.to_wall(scan.stamp_s)
+        timebase = int(round(stamp * 1e9))
+        pts = np.zeros(scan.num_points, dtype=CUSTOM_POINT_DTYPE)
+        pts["offset_time"] = np.round(scan.point_time_offsets_s.astype(np.float64) * 1e9).astype(np.uint32)
+        pts["x"], pts["y"], pts["z"] = scan.points_m[:, 0], scan.points_m[:, 1], scan.points_m[:, 2]
+        pts["reflectivity"] = 100
+        header = Header(stamp_to_time(timebase * 1e-9), scan.frame_id or "livox_frame")
+        self._lidar.write_cdr(encode_custom_msg(header, timebase, pts))
+        self.published["lidar"] += 1
+        self.publish_s["lidar"] += time.perf_counter() - t0
+        return True
+
+    def put_imu(self, sample) -> bool:
+        from runtime.ros_io.fast_imu import encode_imu
+
+        if self._imu is None:
+            return True
+        t0 = time.perf_counter()
+        # No orientation (covariance[0] = -1, the ROS convention); the bytes of to_cdr(Imu(...)).
+        self._imu.write_cdr(encode_imu(self.to_wall(sample.stamp_s), "imu", sample.gyro_radps, sample.accel_mps2))
+        self.published["imu"] += 1
+        self.publish_s["imu"] += time.perf_counter() - t0
+        return True
+
+    def put_image(self, image) -> bool:
+        from runtime.ros_io.messages import Header, Image, stamp_to_time
+
+        if self._camera is None:
+            return True
+        t0 = time.perf_counter()
+        h, w = image.pixels.shape[:2]
+        self._camera.write(Image(header=Header(stamp_to_time(self.to_wall(image.stamp_s)), image.frame_id),
+                                 height=h, width=w, encoding="rgb8", is_bigendian=0, step=3 * w,
+                                 data=np.ascontiguousarray(image.pixels).tobytes()))
+        self.published["camera"] += 1
+        self.publish_s["camera"] += time.perf_counter() - t0
+        return True
+
+
+def _controller_finished(reader) -> bool:
+    """Whether the newest DiagnosticArray from the controller says `finished` = True."""
+    from runtime.ros_io.messages import DiagnosticArray, from_cdr
+
+    samples = reader.take_raw()
+    for data in reversed(samples):
+        try:
+            msg = from_cdr(DiagnosticArray, data)
+        except Exception:  # noqa: BLE001 - not ours to judge; the next one will do
+            continue
+        for status in msg.status:
+            for kv in status.values:
+                if kv.key == "finished":
+                    return kv.value == "True"
+    return False
+
+
+def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -> dict:
+    """Run one real-time episode of opts.scenario until it ends (module docstring); returns the
+    metrics (also written to opts.json_path)."""
+    from cyclonedds.domain import DomainParticipant
+
+    from calibration.robot_description import load_robot_description
+    from firmware_bridge import protocol
+    from firmware_bridge.buses import DEFAULT_UDP_GROUP, DEFAULT_UDP_PORT, BusConfig, open_bus
+    from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+    from hil_sim.metrics import EpisodeMetrics
+    from hil_sim.runner import LockstepSimulation, world_distance_to_goal, world_goal_reached
+    from hil_sim.scenario import load_scenario
+    from hil_sim.sensor_rig import SensorRig, SensorRigConfig
+    from hil_sim.world import World
+    from runtime.config import load_controller_config
+    from runtime.run_process import EpochMonotonicClock
+
+    stop = stop or threading.Event()
+    scenario = load_scenario(opts.scenario)
+    robot = load_robot_description(opts.robot_path)
+    config = load_controller_config(opts.config_path)
+    inputs = config.ros.inputs
+    if opts.domain_id is not None:
+        inputs = inputs.model_copy(update={"domain_id": opts.domain_id})
+    bus_config = BusConfig(interface="udp_multicast", channel=opts.can_channel or DEFAULT_UDP_GROUP,
+                           udp_port=opts.can_port or DEFAULT_UDP_PORT)
+
+    world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
+    world.reset(opts.seed)
+    metrics = EpisodeMetrics(world, scenario, opts.seed)
+    clock = EpochMonotonicClock()
+    bus = open_bus(bus_config)
+    participant = DomainParticipant(inputs.domain_id)
+    sim_t0 = world.time_s
+    wall_t0 = [clock.now()]
+
+    def to_wall(t_sim: float) -> float:
+        return wall_t0[0] + (t_sim - sim_t0)
+
+    sink = DdsSensorSink(participant, inputs, to_wall)
+    diagnostics = None
+    if config.ros.outputs.diagnostics:
+        from runtime.ros_io.dds import raw_reader, ros_qos
+        from runtime.ros_io.messages import DiagnosticArray
+
+        diagnostics = raw_reader(participant, config.ros.outputs.diagnostics, DiagnosticArray, ros_qos("best_effort", 4))
+    rig = SensorRig(world, robot, sink, SensorRigConfig(seed=opts.seed, camera_rate_hz=opts.camera_rate_hz))
+    firmware = EmulatedBaseFirmware(bus, robot)
+    sim = LockstepSimulation(world, firmware, metrics, [rig])
+    dt = world.timestep_s
+    half = 0.5 * dt
+    lag_samples = np.zeros(1 << 16)
+    n_lag = 0
+    t_start: float | None = None
+    finished_at: float | None = None
+    end_reason = "signal"
+    t_goal: float | None = None
+    echo(f"dct hil serve: {scenario.name} seed {opts.seed} serving: CAN udp_multicast {bus_config.channel}:"
+         f"{bus_config.udp_port}, DDS domain {inputs.domain_id}, pid {os.getpid()}")
+    wall_t0[0] = clock.now()
+    wall_start = time.monotonic()
+    try:
+        while not stop.is_set():
+            now = clock.now()
+            target = sim_t0 + (now - wall_t0[0])
+            behind = target - world.time_s  # how late physics is before this catch-up
+            stepped = 0
+            while world.time_s < target - half and stepped < 200:
+                sim.step()
+                stepped += 1
+            if stepped:
+                lag_samples[n_lag % len(lag_samples)] = max(0.0, behind)
+                n_lag += 1
+            t = world.time_s
+            if t_start is None:
+                if firmware.control_mode == protocol.CONTROL_MODE_CAN:
+                    t_start = t
+                    echo(f"dct hil serve: controller connected at t={t - sim_t0:.2f} s; episode starts")
+                elif t - sim_t0 > opts.connect_timeout_s:
+                    end_reason = "no_controller"
+                    break
+            else:
+                if finished_at is None and diagnostics is not None and _controller_finished(diagnostics):
+                    finished_at = t
+                    echo(f"dct hil serve: the controller says it has finished at t={t - t_start:.2f} s")
+                if finished_at is not None and t - finished_at >= opts.settle_s:
+                    end_reason, t_goal = "controller_finished", finished_at
+                    break
+                if t - t_start >= scenario.time_limit_s:
+                    end_reason = "time_limit"
+                    break
+            if not stepped:
+                time.sleep(0.5 * dt)  # the next step is due within dt
+    finally:
+        wall = time.monotonic() - wall_start
+        rig.close()
+        bus.shutdown()
+    t_end = world.time_s
+    started = t_start if t_start is not None else t_end
+    nav_time = (t_goal if t_goal is not None else t_end) - started
+    lags = lag_samples[: min(n_lag, len(lag_samples))] * 1e3
+    out = metrics.to_dict(
+        # As in lockstep: where the robot is when the episode ends (a goal reached just before the
+        # time limit counts; `dct hil run --realtime` also needs the controller's GOAL_REACHED).
+        goal_reached=world_goal_reached(world, scenario),
+        navigation_time_s=nav_time,
+        deadline_misses=0,
+        extra={
+            "end_reason": end_reason,
+            "final_distance_to_goal_m": world_distance_to_goal(world, scenario),
+            "final_pose_world": [float(v) for v in world.robot_pose()],
+            "sim_time_s": t_end - started,
+            "scenario_warnings": list(world.scenario_warnings),
+            "firmware_frames_rejected": firmware.frames_rejected,
+            "simulator": {
+                "pid": os.getpid(),
+                "wall_time_s": wall,
+                "cpu_time_s": time.process_time(),
+                "sim_time_total_s": t_end - sim_t0,
+                "realtime_factor": (t_end - sim_t0) / wall if wall > 0 else None,
+                "physics_steps": sim.steps,
+                "controller_connected_after_s": None if t_start is None else t_start - sim_t0,
+                "sim_lag_ms": {"p50": float(np.percentile(lags, 50)) if len(lags) else None,
+                               "p99": float(np.percentile(lags, 99)) if len(lags) else None,
+                               "max": float(lags.max()) if len(lags) else None},
+                "published": dict(sink.published),
+                "publish_ms_total": {k: v * 1e3 for k, v in sink.publish_s.items()},
+                "sensors": rig.stats(),
+            },
+        },
+    )
+    if opts.json_path is not None:
+        from calibration.outputs import atomic_write_json
+
+        atomic_write_json(opts.json_path, out)
+    return out
+
+
+__all__ = ["serve", "ServeOptions", "DdsSensorSink"]
