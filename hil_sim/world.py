@@ -29,7 +29,8 @@ import numpy as np  # noqa: E402
 from calibration.robot_description import RobotDescription  # noqa: E402
 from hil_sim.camera import add_camera_to_spec, ensure_offscreen_buffer
 from hil_sim.imu import add_imu_to_spec
-from hil_sim.scenario import DEFAULT_GROUND_CLEARANCE_M, Scenario, check_scenario_against_robot
+from hil_sim.scenario import (DEFAULT_GROUND_CLEARANCE_M, BoxObstacle, CylinderObstacle, Scenario,
+                              check_scenario_against_robot)
 
 #: Physics step. 1 ms: the firmware's discrete wheel-speed loop (run once per step) on the
 #: light wheel inertia needs it to stop a wheel within a few ms without chatter (see the
@@ -179,7 +180,7 @@ def build_spec(scenario: Scenario, robot: RobotDescription) -> mujoco.MjSpec:
     return spec
 
 
-def curtain_slat_layout(ob) -> tuple[np.ndarray, float, float]:
+def curtain_slat_layout(ob: BoxObstacle) -> tuple[np.ndarray, float, float]:
     """A curtain's slats: ((N, 2) hinge centres in the world xy, slat width m, slat length m).
 
     The box `size` is (depth, width, height): the slats span the width (the curtain's local y)
@@ -194,7 +195,7 @@ def curtain_slat_layout(ob) -> tuple[np.ndarray, float, float]:
     return centres, max(pitch - CURTAIN_SLAT_GAP_M, 0.25 * pitch), height - CURTAIN_BOTTOM_CLEARANCE_M
 
 
-def _add_curtain(world: mujoco.MjsBody, ob) -> None:
+def _add_curtain(world: mujoco.MjsBody, ob: BoxObstacle) -> None:
     """Light hinged slats (cheaper and steadier than a flex in MuJoCo, and seen as boxes by
     mj_multiRay and the renderer): each a body hanging from a hinge along the curtain's width.
     The slats touch the robot and free bodies, not each other, the floor or the walls."""
@@ -348,14 +349,12 @@ class World:
         #: Contact cost 0..10 per obstacle (obstacle_names order; walls 10).
         costs = scenario.contact_costs()
         self.obstacle_costs: np.ndarray = np.array([costs[n] for n in self.obstacle_names], dtype=float)
-        # People: mocap index and the walk's polyline (cumulative arc length) per person.
-        self._people: list[tuple[str, int, np.ndarray, np.ndarray, object]] = []
-        for o in scenario.obstacles:
-            if o.obstacle_class != "person":
-                continue
-            mocap = int(m.body_mocapid[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, o.name)])
-            start = (o.pose.x_m, o.pose.y_m)
-            self._people.append((o.name, mocap, np.array([start[0], start[1], o.height_m / 2]), np.zeros(2), o))
+        # People: (name, mocap index, pose xy, the scenario obstacle with its walk).
+        self._people: list[tuple[str, int, tuple[float, float], CylinderObstacle]] = [
+            (o.name, int(m.body_mocapid[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, o.name)]),
+             (o.pose.x_m, o.pose.y_m), o)
+            for o in scenario.obstacles if o.obstacle_class == "person"
+        ]
 
         self.camera_name: str = CAMERA_NAME
         self.camera_id: int = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
@@ -388,21 +387,19 @@ class World:
         mujoco.mj_forward(m, d)
 
     def _move_people(self, t_s: float) -> None:
-        for _, mocap, start, _, ob in self._people:
-            if ob.walk is None:
-                continue
-            xy = ob.walk.positions((start[0], start[1]), t_s)[0]
-            self.data.mocap_pos[mocap, :2] = xy
+        for _, mocap, start, ob in self._people:
+            if ob.walk is not None:
+                self.data.mocap_pos[mocap, :2] = ob.walk.positions(start, t_s)[0]
 
     def person_position(self, name: str, t_s: float | None = None) -> np.ndarray:
         """(x, y) of a person now, or where its walk puts it at time t_s."""
-        for pname, mocap, start, _, ob in self._people:
+        for pname, mocap, start, ob in self._people:
             if pname == name:
                 if t_s is None:
                     return self.data.mocap_pos[mocap, :2].copy()
                 if ob.walk is None:
-                    return start[:2].copy()
-                return ob.walk.positions((start[0], start[1]), t_s)[0]
+                    return np.array(start, dtype=float)
+                return ob.walk.positions(start, t_s)[0]
         raise WorldError(f"no person named '{name}'; people: {', '.join(p[0] for p in self._people) or '(none)'}")
 
     def step(self) -> None:
@@ -495,4 +492,5 @@ __all__ = [
     "LIDAR_GEOMGROUP",
     "CAMERA_NAME",
     "IMU_NAME",
+    "curtain_slat_layout",
 ]
