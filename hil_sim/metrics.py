@@ -12,7 +12,8 @@ neither fixed nor movable contacts (`deformable_contacts`, `fragile_contacts`).
 IMPACT's metrics (contact cost 0..10 per object, hil_sim.scenario.CLASS_DEFAULT_COST unless the
 file sets one): `path_cost` is the sum of the costs of the objects the robot touched, each object
 once however often; `high_cost_displacement_m` the summed displacement of objects of cost >=
-HIGH_COST_THRESHOLD (8); each obstacle's `contact_duration_s` is also in `contact_duration_s` by
+HIGH_COST_THRESHOLD (8) but people (who walk by themselves; a person's `displacement_m` is
+where it walked); each obstacle's `contact_duration_s` is also in `contact_duration_s` by
 name. Fragile damage: a contact force (normal, N) on a fragile object above its
 `damage_force_n`, from anything but the floor (the robot, or a box the robot pushes into it), is
 one damage event until the force has stayed at or below the threshold for CONTACT_RELEASE_S
@@ -228,8 +229,10 @@ class EpisodeMetrics:
         return float(self.costs[self.contact_count > 0].sum())
 
     def high_cost_displacement_m(self, displacements: np.ndarray) -> float:
-        """Summed displacement of the objects of cost >= HIGH_COST_THRESHOLD."""
-        return float(displacements[self.costs >= HIGH_COST_THRESHOLD].sum())
+        """Summed displacement of the objects of cost >= HIGH_COST_THRESHOLD (people excluded:
+        they walk by themselves)."""
+        mask = (self.costs >= HIGH_COST_THRESHOLD) & np.array([c != "person" for c in self.classes], dtype=bool)
+        return float(displacements[mask].sum())
 
     def to_dict(
         self,

@@ -172,6 +172,13 @@ def test_the_person_walks_its_waypoints_at_its_speed():
     entry = oracle_table(world)[gid]
     assert entry.obstacle_class == "fixed" and entry.contact_cost == 10.0
     assert world.model.body_mocapid[world.model.geom_bodyid[gid]] >= 0
+    # Walking is not a high-cost displacement (the robot did not move it).
+    metrics = EpisodeMetrics(world)
+    for _ in range(200):
+        world.step()
+        metrics.update(world)
+    out = metrics.to_dict(goal_reached=False, navigation_time_s=0.2)
+    assert out["obstacles"][0]["displacement_m"] > 0.1 and out["high_cost_displacement_m"] == 0.0
 
 
 def test_walk_modes_once_loop_and_delay():
