@@ -619,7 +619,8 @@ def scenario_yaml(scenario: Scenario) -> str:
     """The scenario as a YAML file of the library's schema."""
     import yaml
 
-    return yaml.safe_dump(scenario.model_dump(by_alias=True, exclude_none=True, mode="json"), sort_keys=False)
+    return yaml.safe_dump(scenario.model_dump(by_alias=True, exclude_none=True, mode="json"), sort_keys=False,
+                          default_flow_style=None, width=110)
 
 
 def main(argv: list[str] | None = None) -> int:
