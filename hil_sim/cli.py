@@ -26,6 +26,11 @@ def list_command() -> None:
     for name in list_scenarios():
         sc = load_scenario(name)
         click.echo(f"{name:12s} {sc.description or ''}".rstrip())
+    from hil_sim.scene_generators import GENERATORS, list_generators
+
+    click.echo("generated from --seed (hil_sim/scene_generators.py):")
+    for name in list_generators():
+        click.echo(f"{name:26s} {GENERATORS[name].summary}")
 
 
 @hil_group.command("run")
@@ -81,7 +86,7 @@ def run_command(
 
     try:
         faults = [FaultSpec.parse(t) for t in fault_texts]
-        sc = load_scenario(scenario)
+        sc = load_scenario(scenario, seed=seed)  # a generated scene (dct_f2m2) is drawn from the seed
         robot = load_robot_description(robot_path)
         config = load_controller_config(config_path)
         if planner is not None:

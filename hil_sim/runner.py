@@ -191,7 +191,7 @@ def run_episode(
     """
     faults = tuple(faults)
     if isinstance(scenario, str):
-        scenario = load_scenario(scenario)
+        scenario = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
     robot = robot or load_robot_description()
     config = config or load_controller_config()
 

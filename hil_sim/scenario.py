@@ -9,7 +9,16 @@ Obstacle classes (DESIGN.md section 7):
 * ``movable``: a free body with mass and friction; the robot may push it.
 * ``heavy``: a free body that looks like a movable one but is too heavy to push; contact
   counts as a fixed contact.
-Later classes (fragile, deformable) slot into `ObstacleClass` and `FREE_BODY_CLASSES`.
+* ``fragile``: must not be hit hard: contact forces above its `damage_force_n` are damage
+  events in the metrics. A free body when the file gives mass_kg and friction (it looks
+  movable), a static geom otherwise.
+* ``deformable``: a curtain of light slats hanging from hinges along its top edge; the robot
+  passes through it (hil_sim.world builds it; the box `size` is its depth, width, height).
+* ``person``: a cylinder walking `walk.waypoints` at `walk.speed_mps` (a kinematic mocap body:
+  never pushed, whatever pushes it). Contact counts as a fixed contact and as a person contact.
+
+Every obstacle has a contact cost 0..10 (IMPACT's graded cost: 0 touch freely, 10 never):
+`contact_cost` in the file, else CLASS_DEFAULT_COST of its class (`Obstacle.cost`).
 
 Fixed obstacles may be raised off the floor (`pose.z_m`: chair seats, shelf boards, table tops;
 hil_sim/scene_builder.py builds such furniture). An optional `route` is the path an odometry
@@ -30,12 +39,27 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from calibration.errors import ConfigFileError, load_yaml_model
 from calibration.robot_description import Footprint, Mount, RobotDescription
 
-ObstacleClass = Literal["fixed", "movable", "heavy"]
-#: Classes simulated as free bodies (they carry mass_kg and friction).
+ObstacleClass = Literal["fixed", "movable", "heavy", "fragile", "deformable", "person"]
+#: Classes always simulated as free bodies (they carry mass_kg and friction); a fragile obstacle
+#: is one too when its file gives mass_kg and friction (`is_free_body`).
 FREE_BODY_CLASSES: frozenset[str] = frozenset({"movable", "heavy"})
-#: Classes whose contacts count as "fixed contacts" in the metrics (anything not pushable).
-NON_MOVABLE_CLASSES: frozenset[str] = frozenset({"fixed", "heavy"})
+#: Classes whose contacts count as "fixed contacts" in the metrics (must not be touched and do
+#: not give way: success requires none). Person contacts are also counted on their own.
+NON_MOVABLE_CLASSES: frozenset[str] = frozenset({"fixed", "heavy", "person"})
+#: Classes the robot may pass through or push (they never block a path on purpose).
+PASSABLE_CLASSES: frozenset[str] = frozenset({"movable", "deformable"})
+#: Contact cost of an obstacle whose file gives none (IMPACT's 0..10; walls count as fixed).
+#: heavy: the look-alike box does no harm when touched, it just does not move (its true cost is
+#: a box's; the oracle's answer about it is what misleads).
+CLASS_DEFAULT_COST: dict[str, float] = {
+    "fixed": 10.0, "movable": 2.0, "heavy": 2.0, "fragile": 9.0, "deformable": 1.0, "person": 10.0,
+}
+#: Objects with at least this cost are "high cost": the metrics report their displacement.
+HIGH_COST_THRESHOLD = 8.0
+#: A person's walking speed range (m/s) the generators draw from; the schema allows PERSON_SPEED_LIMITS.
+PERSON_SPEED_LIMITS_MPS: tuple[float, float] = (0.1, 2.0)
 
+_FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 _NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_\-]*$"
 #: Names the simulator uses itself (MuJoCo names must be unique).
 RESERVED_NAMES: frozenset[str] = frozenset({"floor", "base_link", "world"})
@@ -134,6 +158,42 @@ class CylinderSize(_Strict):
     height_m: float = Field(gt=0.0, le=10.0)
 
 
+class PersonWalk(_Strict):
+    """How a person walks: from its pose through the waypoints at speed_mps (straight segments,
+    no stop at the corners), after waiting start_delay_s.
+
+    mode: ``once`` (stay at the last waypoint), ``back_and_forth`` (retrace the polyline back to
+    the pose, and again), ``loop`` (straight back from the last waypoint to the pose, and again).
+    """
+
+    waypoints: list[tuple[_FiniteFloat, _FiniteFloat]] = Field(min_length=1, max_length=100)
+    speed_mps: float = Field(gt=PERSON_SPEED_LIMITS_MPS[0], le=PERSON_SPEED_LIMITS_MPS[1])
+    mode: Literal["once", "back_and_forth", "loop"] = "back_and_forth"
+    start_delay_s: float = Field(default=0.0, ge=0.0, le=3600.0)
+
+    def polyline(self, start_xy: tuple[float, float]) -> np.ndarray:
+        """(K, 2): the person's pose, then the waypoints (one lap's corners)."""
+        pts = np.vstack([np.asarray(start_xy, dtype=float).reshape(1, 2), np.asarray(self.waypoints, dtype=float)])
+        if self.mode == "back_and_forth":
+            pts = np.vstack([pts, pts[-2::-1]])
+        elif self.mode == "loop":
+            pts = np.vstack([pts, pts[:1]])
+        return pts
+
+    def positions(self, start_xy: tuple[float, float], t_s: np.ndarray | float) -> np.ndarray:
+        """(N, 2) positions at times t_s (seconds from the start of the episode), vectorised:
+        arc length speed * (t - delay) along the polyline, wrapped per lap unless mode once."""
+        pts = self.polyline(start_xy)
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        s = np.maximum(np.atleast_1d(np.asarray(t_s, dtype=float)) - self.start_delay_s, 0.0) * self.speed_mps
+        lap = cum[-1]
+        if lap <= 0.0:
+            return np.repeat(pts[:1], s.size, axis=0)
+        s = np.minimum(s, lap) if self.mode == "once" else np.mod(s, lap)
+        return np.stack([np.interp(s, cum, pts[:, 0]), np.interp(s, cum, pts[:, 1])], axis=1)
+
+
 class _ObstacleBase(_Strict):
     name: str = Field(pattern=_NAME_PATTERN, max_length=64)
     pose: ObstaclePose
@@ -141,9 +201,55 @@ class _ObstacleBase(_Strict):
     mass_kg: float | None = Field(default=None, gt=0.0, le=10000.0)
     friction: float | None = Field(default=None, gt=0.0, le=3.0)
     rgba: tuple[float, float, float, float] | None = None
+    #: IMPACT's graded contact cost 0..10 (None: CLASS_DEFAULT_COST of the class; a person is 10).
+    contact_cost: float | None = Field(default=None, ge=0.0, le=10.0)
+    #: fragile only (required there): a contact force above this (N) is a damage event.
+    damage_force_n: float | None = Field(default=None, gt=0.0, le=100000.0)
+    #: deformable only: number of slats across the curtain's width (default: one per 10 cm).
+    slats: int | None = Field(default=None, ge=1, le=100)
+    #: person only: the walk (a person without one stands still at its pose).
+    walk: PersonWalk | None = None
 
     @model_validator(mode="after")
-    def _mass_and_friction_match_the_class(self) -> "_ObstacleBase":
+    def _class_fields(self) -> "_ObstacleBase":
+        cls = self.obstacle_class
+        for key, owner in (("damage_force_n", "fragile"), ("slats", "deformable"), ("walk", "person")):
+            if getattr(self, key) is not None and cls != owner:
+                raise ValueError(f"obstacle '{self.name}': {key} is only for class {owner} (class is {cls})")
+        if cls == "fragile" and self.damage_force_n is None:
+            raise ValueError(f"obstacle '{self.name}' of class fragile needs damage_force_n (the contact force, N, "
+                             "above which a contact damages it)")
+        if cls == "person":
+            if self.shape != "cylinder":  # type: ignore[attr-defined]
+                raise ValueError(f"obstacle '{self.name}' of class person: shape must be cylinder (got {self.shape})")  # type: ignore[attr-defined]
+            if self.contact_cost is not None and self.contact_cost != 10.0:
+                raise ValueError(f"obstacle '{self.name}' of class person: contact_cost is always 10 (never touched), "
+                                 f"got {self.contact_cost}")
+            for key in ("mass_kg", "friction"):
+                if getattr(self, key) is not None:
+                    raise ValueError(f"obstacle '{self.name}' of class person: {key} is not used (a person walks "
+                                     "its waypoints whatever pushes it)")
+            if self.pose.z_m != 0.0:
+                raise ValueError(f"obstacle '{self.name}' of class person stands on the floor: pose.z_m must be 0")
+        if cls == "deformable":
+            if self.shape != "box":  # type: ignore[attr-defined]
+                raise ValueError(f"obstacle '{self.name}' of class deformable: shape must be box (depth, width, height "
+                                 f"of the curtain), got {self.shape}")  # type: ignore[attr-defined]
+            if self.friction is not None:
+                raise ValueError(f"obstacle '{self.name}' of class deformable: friction is not used")
+            if self.pose.z_m != 0.0:
+                raise ValueError(f"obstacle '{self.name}' of class deformable hangs to the floor: pose.z_m must be 0")
+        if cls == "fragile":
+            given = [k for k in ("mass_kg", "friction") if getattr(self, k) is not None]
+            if len(given) == 1:
+                raise ValueError(f"obstacle '{self.name}' of class fragile: give both mass_kg and friction (a free "
+                                 f"body that looks movable) or neither (a static one); got only {given[0]}")
+            if given and self.pose.z_m != 0.0:
+                raise ValueError(f"obstacle '{self.name}' of class fragile is a free body and stands on the floor: "
+                                 f"pose.z_m must be 0 (got {self.pose.z_m})")
+            return self
+        if cls in ("person", "deformable"):
+            return self
         if self.obstacle_class in FREE_BODY_CLASSES:
             missing = [k for k in ("mass_kg", "friction") if getattr(self, k) is None]
             if missing:
@@ -165,7 +271,22 @@ class _ObstacleBase(_Strict):
 
     @property
     def is_free_body(self) -> bool:
-        return self.obstacle_class in FREE_BODY_CLASSES
+        """Simulated as a free body: movable, heavy, and a fragile one with mass_kg."""
+        return self.obstacle_class in FREE_BODY_CLASSES or (self.obstacle_class == "fragile"
+                                                            and self.mass_kg is not None)
+
+    @property
+    def cost(self) -> float:
+        """Contact cost 0..10: contact_cost, else the class default (CLASS_DEFAULT_COST)."""
+        return float(self.contact_cost) if self.contact_cost is not None else CLASS_DEFAULT_COST[self.obstacle_class]
+
+    @property
+    def slat_count(self) -> int:
+        """deformable: the slats across its width (slats, else one per 10 cm, at least 2)."""
+        if self.slats is not None:
+            return self.slats
+        width = self.size.xyz_m[1]  # type: ignore[attr-defined]
+        return max(2, int(round(width / 0.10)))
 
     @property
     def height_m(self) -> float:
@@ -241,7 +362,6 @@ class Randomization(_Strict):
     free_body_yaw_noise_deg: float = Field(default=0.0, ge=0.0, le=180.0)
 
 
-_FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 #: Consecutive route points closer than this make a segment without a direction.
 MIN_ROUTE_SEGMENT_M = 0.01
 
@@ -308,9 +428,13 @@ class Scenario(_Strict):
                     f"{what} ({pose.x_m}, {pose.y_m}) lies outside the floor of size {self.floor.size_m} "
                     "centred at the origin"
                 )
-        for o in self.obstacles:
+        for i, o in enumerate(self.obstacles):
             if not self.floor.contains(o.pose.x_m, o.pose.y_m):
                 raise ValueError(f"obstacle '{o.name}' at ({o.pose.x_m}, {o.pose.y_m}) lies outside the floor")
+            for j, (x, y) in enumerate(o.walk.waypoints if o.walk is not None else ()):
+                if not self.floor.contains(x, y):
+                    raise ValueError(f"obstacles[{i}].walk.waypoints[{j}] ({x}, {y}) of person '{o.name}' lies "
+                                     f"outside the floor of size {self.floor.size_m} centred at the origin")
         if self.route is not None:
             self._check_route_points()
         return self
@@ -336,6 +460,12 @@ class Scenario(_Strict):
     def wall_names(self) -> list[str]:
         """Wall names: the given name, or wall_<index>."""
         return [w.name if w.name is not None else f"wall_{i}" for i, w in enumerate(self.walls)]
+
+    def contact_costs(self) -> dict[str, float]:
+        """Name -> contact cost 0..10 of every obstacle (Obstacle.cost) and wall (fixed: 10)."""
+        out = {o.name: o.cost for o in self.obstacles}
+        out.update({n: CLASS_DEFAULT_COST["fixed"] for n in self.wall_names()})
+        return out
 
     def obstacle(self, name: str) -> BoxObstacle | CylinderObstacle:
         for o in self.obstacles:
@@ -491,8 +621,8 @@ class _SceneItem:
     shape: Shape2D
     height_field: str     # the field holding its height
     height_m: float       # the geom's own height
-    movable: bool         # the robot may push it (class movable)
-    free_body: bool       # simulated as a free body (movable or heavy)
+    movable: bool         # the robot may push it or pass through it (PASSABLE_CLASSES)
+    free_body: bool       # simulated as a free body (movable, heavy, a fragile one with mass)
     bottom_z_m: float = 0.0  # its bottom face above the floor (pose.z_m)
 
     @property
@@ -510,7 +640,8 @@ class _SceneItem:
 def _scene_items(scenario: Scenario) -> list[_SceneItem]:
     items = [
         _SceneItem(f"obstacles[{i}]", f"{o.obstacle_class} obstacle '{o.name}' (obstacles[{i}])", obstacle_footprint(o),
-                   f"obstacles[{i}].size", o.height_m, o.obstacle_class == "movable", o.is_free_body, o.bottom_z_m)
+                   f"obstacles[{i}].size", o.height_m, o.obstacle_class in PASSABLE_CLASSES, o.is_free_body,
+                   o.bottom_z_m)
         for i, o in enumerate(scenario.obstacles)
     ]
     items += [
@@ -749,11 +880,12 @@ def list_scenarios() -> list[str]:
     return sorted(p.stem for p in _library_dir().glob("*.yaml"))
 
 
-def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Load a scenario by library name ('case1') or by path to a .yaml file.
+def load_scenario(name_or_path: str | Path, seed: int = 0) -> Scenario:
+    """Load a scenario by library name ('case1'), by scene generator name ('dct_f2m2': the scene
+    drawn from `seed`, hil_sim.scene_generators) or by path to a .yaml file (seed unused).
 
-    Raises UnknownScenarioError (listing the library) for an unknown name, and
-    ConfigFileError naming the file, field and reason for an invalid file.
+    Raises UnknownScenarioError (listing the library and the generators) for an unknown name,
+    and ConfigFileError naming the file, field and reason for an invalid file.
     """
     text = str(name_or_path)
     path = Path(text)
@@ -761,9 +893,13 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     if not looks_like_path:
         path = _library_dir() / f"{text}.yaml"
         if not path.is_file():
+            from hil_sim.scene_generators import GENERATORS, generate_scene, list_generators
+
+            if text in GENERATORS:
+                return generate_scene(text, seed)
             raise UnknownScenarioError(
-                f"unknown scenario '{text}'; available: {', '.join(list_scenarios()) or '(none)'} "
-                "(or give a path to a .yaml file)"
+                f"unknown scenario '{text}'; available: {', '.join(list_scenarios()) or '(none)'}; "
+                f"generated from --seed: {', '.join(list_generators())} (or give a path to a .yaml file)"
             )
     elif not path.is_file():
         raise UnknownScenarioError(f"scenario file {path} does not exist")
@@ -789,7 +925,11 @@ __all__ = [
     "RobotStart",
     "Randomization",
     "ObstacleClass",
+    "PersonWalk",
     "FREE_BODY_CLASSES",
+    "PASSABLE_CLASSES",
+    "CLASS_DEFAULT_COST",
+    "HIGH_COST_THRESHOLD",
     "NON_MOVABLE_CLASSES",
     "UnknownScenarioError",
     "ScenarioError",

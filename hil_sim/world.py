@@ -1,7 +1,10 @@
 """The MuJoCo world of one scenario, built with `mujoco.MjSpec` (no MJCF strings).
 
 Contents: a floor plane, walls and fixed obstacles (static geoms of the world body), movable
-and heavy obstacles (free bodies), and the robot: a chassis with a free joint and four wheels on
+and heavy obstacles (free bodies), fragile ones (free bodies or static geoms, as the file says),
+deformable ones (a curtain: light slats on hinge joints along its top edge, which the robot
+swings aside), people (kinematic mocap cylinders walking their waypoints: World.step moves
+them before each physics step; nothing pushes them), and the robot: a chassis with a free joint and four wheels on
 hinge joints driven by torque (motor) actuators. The firmware emulator closes the wheel-speed
 loop; this module only applies the torques it computes.
 
@@ -26,7 +29,8 @@ import numpy as np  # noqa: E402
 from calibration.robot_description import RobotDescription  # noqa: E402
 from hil_sim.camera import add_camera_to_spec, ensure_offscreen_buffer
 from hil_sim.imu import add_imu_to_spec
-from hil_sim.scenario import DEFAULT_GROUND_CLEARANCE_M, FREE_BODY_CLASSES, Scenario, check_scenario_against_robot
+from hil_sim.scenario import (DEFAULT_GROUND_CLEARANCE_M, BoxObstacle, CylinderObstacle, Scenario,
+                              check_scenario_against_robot)
 
 #: Physics step. 1 ms: the firmware's discrete wheel-speed loop (run once per step) on the
 #: light wheel inertia needs it to stop a wheel within a few ms without chatter (see the
@@ -78,6 +82,18 @@ _FIXED_RGBA = (0.45, 0.35, 0.25, 1.0)
 _FREE_RGBA = (0.85, 0.6, 0.25, 1.0)  # movable and heavy look alike on purpose
 _ROBOT_RGBA = (0.2, 0.2, 0.22, 1.0)
 _WHEEL_RGBA = (0.05, 0.05, 0.05, 1.0)
+_CURTAIN_RGBA = (0.55, 0.2, 0.25, 1.0)
+_PERSON_RGBA = (0.25, 0.4, 0.75, 1.0)
+
+#: Curtain slats: the gap between neighbours (m), the free space under them (m, above the
+#: controller's ground cut so that the lidar keeps their points), mass of one slat when the
+#: file gives no mass_kg (kg), hinge damping (N m s/rad) so that a swung slat settles in a
+#: second or two, and their friction (low: the slats slide over the robot's cover).
+CURTAIN_SLAT_GAP_M = 0.004
+CURTAIN_BOTTOM_CLEARANCE_M = 0.05
+CURTAIN_SLAT_MASS_KG = 0.05
+CURTAIN_HINGE_DAMPING = 0.01
+CURTAIN_FRICTION = 0.15
 
 
 class WorldError(ValueError):
@@ -125,13 +141,26 @@ def build_spec(scenario: Scenario, robot: RobotDescription) -> mujoco.MjSpec:
         )
 
     for ob in scenario.obstacles:
+        if ob.obstacle_class == "deformable":
+            _add_curtain(world, ob)
+            continue
+        if ob.obstacle_class == "person":
+            # A kinematic body: its position is set before every step (World.step), so a
+            # contact never moves it (and, a child of the world body, it ignores walls).
+            body = world.add_body(name=ob.name, mocap=True, pos=[ob.pose.x_m, ob.pose.y_m, ob.height_m / 2])
+            body.add_geom(
+                name=ob.name, type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[ob.size.radius_m, ob.height_m / 2, 0.0],
+                friction=[FIXED_DEFAULT_FRICTION, 0.005, 0.0001], rgba=ob.rgba or _PERSON_RGBA,
+                group=FREE_BODY_GEOM_GROUP, contype=_BIT_OBJECT, conaffinity=_BIT_OBJECT,
+            )
+            continue
         if ob.shape == "box":
             gtype, size = mujoco.mjtGeom.mjGEOM_BOX, [v / 2 for v in ob.size.xyz_m]
         else:
             gtype, size = mujoco.mjtGeom.mjGEOM_CYLINDER, [ob.size.radius_m, ob.size.height_m / 2, 0.0]
         # The geom's bottom face at pose.z_m (0 but for raised fixed geoms: seats, shelf boards).
         pos = [ob.pose.x_m, ob.pose.y_m, ob.bottom_z_m + ob.height_m / 2]
-        if ob.is_free_body:
+        if ob.is_free_body:  # movable, heavy, a fragile one with mass
             body = world.add_body(name=ob.name, pos=pos, quat=_yaw_quat(ob.pose.yaw_rad))
             body.add_freejoint(name=f"{ob.name}_free")
             body.add_geom(
@@ -149,6 +178,40 @@ def build_spec(scenario: Scenario, robot: RobotDescription) -> mujoco.MjSpec:
 
     _add_robot(spec, scenario, robot)
     return spec
+
+
+def curtain_slat_layout(ob: BoxObstacle) -> tuple[np.ndarray, float, float]:
+    """A curtain's slats: ((N, 2) hinge centres in the world xy, slat width m, slat length m).
+
+    The box `size` is (depth, width, height): the slats span the width (the curtain's local y)
+    and hang from hinges at the top (z = height) down to CURTAIN_BOTTOM_CLEARANCE_M.
+    """
+    depth, width, height = ob.size.xyz_m
+    n = ob.slat_count
+    pitch = width / n
+    offsets = (np.arange(n) + 0.5) * pitch - width / 2
+    c, s = math.cos(ob.pose.yaw_rad), math.sin(ob.pose.yaw_rad)
+    centres = np.stack([ob.pose.x_m - s * offsets, ob.pose.y_m + c * offsets], axis=1)
+    return centres, max(pitch - CURTAIN_SLAT_GAP_M, 0.25 * pitch), height - CURTAIN_BOTTOM_CLEARANCE_M
+
+
+def _add_curtain(world: mujoco.MjsBody, ob: BoxObstacle) -> None:
+    """Light hinged slats (cheaper and steadier than a flex in MuJoCo, and seen as boxes by
+    mj_multiRay and the renderer): each a body hanging from a hinge along the curtain's width.
+    The slats touch the robot and free bodies, not each other, the floor or the walls."""
+    depth, _, height = ob.size.xyz_m
+    centres, slat_w, slat_len = curtain_slat_layout(ob)
+    mass = (ob.mass_kg / len(centres)) if ob.mass_kg is not None else CURTAIN_SLAT_MASS_KG
+    for k, (x, y) in enumerate(centres):
+        body = world.add_body(name=f"{ob.name}/slat_{k}", pos=[float(x), float(y), height], quat=_yaw_quat(ob.pose.yaw_rad))
+        body.add_joint(name=f"{ob.name}/hinge_{k}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0],
+                       damping=CURTAIN_HINGE_DAMPING, range=[-170.0, 170.0])
+        body.add_geom(
+            name=f"{ob.name}/slat_{k}", type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[depth / 2, slat_w / 2, slat_len / 2], pos=[0.0, 0.0, -slat_len / 2], mass=mass, priority=1,
+            friction=[CURTAIN_FRICTION, 0.005, 0.0001], rgba=ob.rgba or _CURTAIN_RGBA,
+            group=FREE_BODY_GEOM_GROUP, contype=0, conaffinity=_BIT_OBJECT,
+        )
 
 
 def _add_robot(spec: mujoco.MjSpec, scenario: Scenario, robot: RobotDescription) -> None:
@@ -268,14 +331,30 @@ class World:
         #: geom id -> obstacle index (-1: not an obstacle: floor or robot).
         self.geom_obstacle_index = np.full(m.ngeom, -1, dtype=np.int64)
         self._obstacle_body: dict[str, int] = {}
-        self._obstacle_geom: dict[str, int] = {}
+        self._obstacle_geoms: dict[str, list[int]] = {}
+        free = {o.name for o in scenario.obstacles if o.is_free_body}
+        curtains = {o.name: o for o in scenario.obstacles if o.obstacle_class == "deformable"}
         for name, i in self._index.items():
-            gid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name)
-            self.geom_obstacle_index[gid] = i
-            self._obstacle_geom[name] = gid
-            if self._class[name] in FREE_BODY_CLASSES:
-                self._obstacle_body[name] = int(m.geom_bodyid[gid])
+            if name in curtains:  # one geom per slat
+                gids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{name}/slat_{k}")
+                        for k in range(curtains[name].slat_count)]
+            else:
+                gids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name)]
+            self.geom_obstacle_index[gids] = i
+            self._obstacle_geoms[name] = gids
+            if name in free:
+                self._obstacle_body[name] = int(m.geom_bodyid[gids[0]])
+        self._obstacle_geom: dict[str, int] = {n: g[0] for n, g in self._obstacle_geoms.items()}
         self.obstacle_classes: list[str] = [self._class[n] for n in self.obstacle_names]
+        #: Contact cost 0..10 per obstacle (obstacle_names order; walls 10).
+        costs = scenario.contact_costs()
+        self.obstacle_costs: np.ndarray = np.array([costs[n] for n in self.obstacle_names], dtype=float)
+        # People: (name, mocap index, pose xy, the scenario obstacle with its walk).
+        self._people: list[tuple[str, int, tuple[float, float], CylinderObstacle]] = [
+            (o.name, int(m.body_mocapid[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, o.name)]),
+             (o.pose.x_m, o.pose.y_m), o)
+            for o in scenario.obstacles if o.obstacle_class == "person"
+        ]
 
         self.camera_name: str = CAMERA_NAME
         self.camera_id: int = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
@@ -304,10 +383,30 @@ class World:
             dyaw = math.radians(rng.normal(0.0, rnd.free_body_yaw_noise_deg)) if rnd.free_body_yaw_noise_deg > 0 else 0.0
             d.qpos[adr:adr + 3] = [ob.pose.x_m + dx, ob.pose.y_m + dy, ob.height_m / 2]
             d.qpos[adr + 3:adr + 7] = _yaw_quat(ob.pose.yaw_rad + dyaw)
+        self._move_people(float(d.time))
         mujoco.mj_forward(m, d)
 
+    def _move_people(self, t_s: float) -> None:
+        for _, mocap, start, ob in self._people:
+            if ob.walk is not None:
+                self.data.mocap_pos[mocap, :2] = ob.walk.positions(start, t_s)[0]
+
+    def person_position(self, name: str, t_s: float | None = None) -> np.ndarray:
+        """(x, y) of a person now, or where its walk puts it at time t_s."""
+        for pname, mocap, start, ob in self._people:
+            if pname == name:
+                if t_s is None:
+                    return self.data.mocap_pos[mocap, :2].copy()
+                if ob.walk is None:
+                    return np.array(start, dtype=float)
+                return ob.walk.positions(start, t_s)[0]
+        raise WorldError(f"no person named '{name}'; people: {', '.join(p[0] for p in self._people) or '(none)'}")
+
     def step(self) -> None:
-        """One physics step (mj_step) with the torques last set."""
+        """One physics step (mj_step) with the torques last set; people first walk to where
+        their waypoints put them at this step's time."""
+        if self._people:
+            self._move_people(float(self.data.time))
         mujoco.mj_step(self.model, self.data)
 
     @property
@@ -350,7 +449,7 @@ class World:
 
     # --- obstacles -------------------------------------------------------------------------
     def obstacle_class(self, name: str) -> str:
-        """'fixed', 'movable' or 'heavy' (walls are 'fixed')."""
+        """The scenario class: fixed, movable, heavy, fragile, deformable or person (walls: fixed)."""
         try:
             return self._class[name]
         except KeyError:
@@ -358,14 +457,25 @@ class World:
 
     def obstacle_position(self, name: str) -> np.ndarray:
         """Current (x, y, z) of an obstacle's centre in the world (walls: the wall's centre)."""
-        self.obstacle_class(name)
+        cls = self.obstacle_class(name)
         if name in self._obstacle_body:
             return self.data.xpos[self._obstacle_body[name]].copy()
+        if cls == "person":
+            return self.data.mocap_pos[self.model.body_mocapid[self.model.geom_bodyid[self._obstacle_geom[name]]]].copy()
+        if cls == "deformable":  # where it hangs (its slats swing, the curtain stays)
+            ob = self.scenario.obstacle(name)
+            return np.array([ob.pose.x_m, ob.pose.y_m, ob.height_m / 2])
         return self.data.geom_xpos[self._obstacle_geom[name]].copy()
 
     def obstacle_geom_id(self, name: str) -> int:
+        """The obstacle's geom (a curtain's first slat: see obstacle_geom_ids)."""
         self.obstacle_class(name)
         return self._obstacle_geom[name]
+
+    def obstacle_geom_ids(self, name: str) -> list[int]:
+        """Every geom of the obstacle (one, or a curtain's slats)."""
+        self.obstacle_class(name)
+        return list(self._obstacle_geoms[name])
 
 
 __all__ = [
@@ -382,4 +492,5 @@ __all__ = [
     "LIDAR_GEOMGROUP",
     "CAMERA_NAME",
     "IMU_NAME",
+    "curtain_slat_layout",
 ]

@@ -14,6 +14,9 @@ REQUIRED_KEYS = {
     "success", "goal_reached", "navigation_time_s", "path_length_m", "average_speed_mps",
     "fixed_contacts", "movable_contacts", "deadline_misses", "obstacles", "scenario", "seed",
     "min_fixed_clearance_m",
+    # issue 14: IMPACT's graded-cost metrics, people and fragile objects.
+    "path_cost", "person_contacts", "fragile_contacts", "deformable_contacts", "fragile_damage_events",
+    "fragile_damage", "high_cost_displacement_m", "contact_duration_s",
 }
 
 
@@ -76,6 +79,9 @@ def test_fixed_contact_fails_the_episode_and_events_are_counted_per_touch():
     assert block["displacement_m"] == 0.0 and block["contact_duration_s"] > 0.2
     # Back and forth: path length counts both directions.
     assert out["path_length_m"] > abs(world.robot_pose()[0]) + 0.2
+    # Path cost counts the block once (cost 10, a fixed object's default), however often touched.
+    assert out["path_cost"] == 10.0 and block["contact_cost"] == 10.0
+    assert out["contact_duration_s"] == {"block": block["contact_duration_s"]}
 
 
 def test_min_clearance_is_the_ground_truth_gap_to_the_block():
@@ -119,3 +125,35 @@ def test_extra_cannot_overwrite_a_metric():
         m.to_dict(goal_reached=True, navigation_time_s=1.0, extra={"success": False})
     out = m.to_dict(goal_reached=True, navigation_time_s=0.0)
     assert out["average_speed_mps"] == 0.0 and out["success"] is True
+
+
+def test_path_cost_sums_each_touched_object_once_with_the_file_costs():
+    """Push one box (cost 3 from the file) twice, and with it a second box: the path cost is 3,
+    not a sum per contact; objects the robot did not touch itself and walls add nothing."""
+    raw = fixed_block_ahead().model_dump(by_alias=True, exclude_none=True)
+    raw["obstacles"] = [
+        {"name": "first", "shape": "box", "size": {"xyz_m": [0.3, 0.3, 0.3]}, "pose": {"x_m": 0.4, "y_m": 0.0},
+         "class": "movable", "mass_kg": 1.0, "friction": 0.5, "contact_cost": 3.0},
+        {"name": "second", "shape": "box", "size": {"xyz_m": [0.3, 0.3, 0.3]}, "pose": {"x_m": 1.6, "y_m": 0.0},
+         "class": "movable", "mass_kg": 1.0, "friction": 0.5},
+        {"name": "far", "shape": "box", "size": {"xyz_m": [0.3, 0.3, 0.5]}, "pose": {"x_m": -1.5, "y_m": 1.0},
+         "class": "fixed", "contact_cost": 9.0},
+    ]
+    world = World(Scenario.model_validate(raw), ROBOT)
+
+    def forward_back_forward(t: float):
+        return (0.4, 0.0) if t < 2.0 else (-0.3, 0.0) if t < 2.6 else (0.4, 0.0)
+
+    m = run(world, forward_back_forward, 5.5)
+    out = m.to_dict(goal_reached=True, navigation_time_s=5.5)
+    first = next(o for o in out["obstacles"] if o["name"] == "first")
+    assert first["contact_count"] == 2 and first["contact_cost"] == 3.0
+    second = next(o for o in out["obstacles"] if o["name"] == "second")
+    # The robot touched only the first box (twice); the first pushed the second, which the
+    # robot itself never touched: not a contact of the robot's, not in the path cost.
+    assert second["contact_count"] == 0 and second["displacement_m"] > 0.05
+    assert out["path_cost"] == 3.0
+    assert set(out["contact_duration_s"]) == {"first"}
+    # Nothing of cost >= 8 moved (far: fixed, cost 9; walls: 10).
+    assert out["high_cost_displacement_m"] == 0.0
+    assert out["person_contacts"] == 0 and out["fragile_damage_events"] == 0 and out["fragile_damage"] == []

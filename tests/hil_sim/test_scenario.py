@@ -84,7 +84,7 @@ def test_load_by_path(tmp_path):
         ({"obstacles": [{**BOX, "mass_kg": None}]}, "obstacles.0.box", "needs mass_kg"),
         ({"obstacles": [{**BOX, "friction": None, "mass_kg": None}]}, "obstacles.0.box", "mass_kg and friction"),
         ({"obstacles": [{**BOX, "class": "fixed"}]}, "obstacles.0.box", "static: mass_kg is only for free bodies"),
-        ({"obstacles": [{**BOX, "class": "fragile"}]}, "obstacles.0.box.class", "'fixed', 'movable' or 'heavy'"),
+        ({"obstacles": [{**BOX, "class": "glass"}]}, "obstacles.0.box.class", "'deformable' or 'person'"),
         ({"obstacles": [{**BOX, "shape": "cylinder"}]}, "obstacles.0.cylinder.size.radius_m", "Field required"),
         ({"obstacles": [{**BOX, "shape": "cone"}]}, "obstacles.0", "does not match any of the expected tags"),
         ({"obstacles": [BOX, BOX]}, "(top level)", "repeated: b"),
