@@ -88,7 +88,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         sim_json, ctl_json = work / "simulator.json", work / "controller.json"
         serve_cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json),
                          "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port), *common)
-        run_cmd = _dct("run", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
+        # all-fixed: the sim-oracle lives in lockstep's process only (runtime/run_process.py docstring).
+        run_cmd = _dct("run", "--planner", "all-fixed", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
                        "--domain-id", str(domain), "--can-interface", "udp_multicast", "--can-channel", group,
                        "--can-port", str(port), *common)
         if calibration_path is not None:

@@ -28,9 +28,10 @@ geometry_msgs/PoseStamped on the goal topic (Nav2's /goal_pose) when none is giv
 controller takes one goal per run: a later /goal_pose is counted and logged, not followed
 (NavigationController has no goal change yet).
 
-Planner mode dct needs a contact-tolerance backend it can build outside the simulator; the
-sim-oracle exists only inside the simulator's process, so `dct run` refuses mode dct for now
-(all-fixed and pure-pursuit run).
+Planner mode dct needs a contact-tolerance backend it can build outside the simulator (vpp.backend
+kind openai-compatible); the sim-oracle exists only inside the lockstep simulator's process, so
+`dct run` refuses mode dct with it, and `dct hil run --realtime` runs `--planner all-fixed` until
+`dct hil serve` offers its oracle over HTTP (not built yet). All-fixed and pure-pursuit run.
 """
 from __future__ import annotations
 
@@ -90,6 +91,8 @@ class RunOptions:
     can_port: int | None = None
     #: Without --goal: how long to wait for the first goal on the goal topic (None: forever).
     goal_wait_s: float | None = None
+    #: Override of planner.mode (`dct hil run --realtime` runs all-fixed: see the module docstring).
+    planner: str | None = None
 
 
 @dataclass
@@ -131,9 +134,12 @@ def load_inputs(opts: RunOptions) -> Loaded:
         K, dist = np.asarray(cal.camera_model().K, float), np.asarray(cal.camera_model().dist, float)
     else:
         K, dist = robot.sensors.camera.nominal_intrinsics(), np.zeros(5)
-    if config.planner.mode == "dct":
-        raise RunInputError(f"{cfg_name}: planner.mode: dct needs a contact-tolerance backend that `dct run` can "
-                            "build; the sim-oracle exists only inside the simulator's process (use all-fixed)")
+    if opts.planner is not None:
+        config = config.with_planner_mode(opts.planner)
+    if config.planner.mode == "dct" and config.vpp.backend.kind == "sim-oracle":
+        raise RunInputError(f"{cfg_name}: planner.mode dct with vpp.backend.kind sim-oracle: the sim-oracle exists "
+                            "only inside the lockstep simulator's process; set vpp.backend.kind: openai-compatible "
+                            "(README, Choosing the VLM backend) or run --planner all-fixed")
     if opts.goal is not None and not all(math.isfinite(v) for v in opts.goal):
         raise RunInputError(f"--goal: {opts.goal} is not three finite numbers (x_m y_m yaw_rad)")
     # The bus: the config's, with the command line's overrides.
@@ -431,17 +437,19 @@ def _make_command():
                   help="Override can_bus.interface (the channel then defaults for it).")
     @click.option("--can-channel", help="Override can_bus.channel.")
     @click.option("--can-port", type=click.IntRange(1, 65535), help="Override can_bus.udp_port (udp_multicast).")
+    @click.option("--planner", type=click.Choice(["dct", "all-fixed", "pure-pursuit"]), default=None,
+                  help="Override the config's planner.mode.")
     @click.option("--goal-wait", "goal_wait_s", type=click.FloatRange(0.0, None),
                   help="Without --goal: give up after this many seconds without a goal (default: wait).")
     def run_command(robot_path, calibration_path, config_path, goal, record_path, json_path, force, domain_id,
-                    can_interface, can_channel, can_port, goal_wait_s) -> None:
+                    can_interface, can_channel, can_port, goal_wait_s, planner) -> None:
         """The controller process: sensors over ROS 2 DDS, the base over CAN, the fixed-rate loop on the wall
         clock until SIGINT/SIGTERM (then: zero command, deactivate, flush, exit 0). Exit 2 on bad input."""
         for what, p in (("--robot", robot_path), ("--calibration", calibration_path), ("--config", config_path)):
             if p is not None and not p.is_file():
                 raise InputError(f"{what}: {p}: no such file")
         opts = RunOptions(robot_path, calibration_path, config_path, tuple(goal) if goal else None, record_path,
-                          json_path, force, domain_id, can_interface, can_channel, can_port, goal_wait_s)
+                          json_path, force, domain_id, can_interface, can_channel, can_port, goal_wait_s, planner)
         stop = threading.Event()
         install_stop_signals(stop)
         try:

@@ -63,11 +63,11 @@ def test_bad_config_exits_2_with_one_line(tmp_path):
     assert len(lines) == 1 and "ros.inputs.lidar.topic" in lines[0], r.stderr
 
 
-def test_planner_mode_dct_is_refused_clearly(tmp_path):
+def test_planner_mode_dct_with_the_sim_oracle_is_refused_clearly(tmp_path):
     r = subprocess.run(_dct("run", "--config", str(_config(tmp_path, mode="dct")), "--goal", "1", "0", "0"),
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
-    assert "planner.mode: dct" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert "planner.mode dct with vpp.backend.kind sim-oracle" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 class _Base(threading.Thread):
