@@ -69,13 +69,18 @@ def test_calibration_for_another_robot_or_camera_fails(tmp_path, nominal_cal):
     assert c.status == "FAIL" and "1280x720" in c.message and "640x480" in c.message
 
 
-def test_calibration_far_from_the_mounts_warns_and_a_missing_one_warns(tmp_path, nominal_cal):
+def test_calibration_far_from_the_mounts_warns_and_a_missing_one_depends_on_the_mode(tmp_path, nominal_cal):
     cal = yaml.safe_load(nominal_cal.read_text())
     cal["lidar_to_camera"]["xyz_m"] = [0.3, 0.0, 0.0]
     cal["provenance"]["method"] = "checkerboard"
     c = by_name(pf.check_files(None, write_yaml(tmp_path / "far.yaml", cal), None).checks)["calibration"]
     assert c.status == "WARN" and "from the robot description's mounts" in c.message
-    assert by_name(pf.check_files(None, None, None).checks)["calibration"].status == "WARN"
+    # No calibration at all: mode dct projects points into the camera (FAIL: the shipped default
+    # mode); all-fixed does not need the camera (WARN).
+    assert by_name(pf.check_files(None, None, None).checks)["calibration"].status == "FAIL"
+    shipped = yaml.safe_load((Path(pf.__file__).parent / "config" / "default.yaml").read_text())
+    all_fixed = write_yaml(tmp_path / "all_fixed.yaml", {**shipped, "planner": {**shipped["planner"], "mode": "all-fixed"}})
+    assert by_name(pf.check_files(None, None, all_fixed).checks)["calibration"].status == "WARN"
 
 
 def test_an_invalid_config_fails(tmp_path):

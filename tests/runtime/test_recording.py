@@ -32,9 +32,11 @@ def recorded(tmp_path_factory):
     """One recorded episode (small chunks, so that a cut lands in a file of many chunks) and
     the same episode unrecorded."""
     out = tmp_path_factory.mktemp("rec") / "run.mcap"
+    # all-fixed: mode dct waits 1.5 s for the VLM's first answer, the whole of this short run.
+    config = load_controller_config().with_planner_mode("all-fixed")
     with RunRecorder(out, chunk_size=4096) as rec:
-        with_rec = run_episode(_short(), seed=0, recorder=rec)
-    without = run_episode(_short(), seed=0)
+        with_rec = run_episode(_short(), seed=0, recorder=rec, config=config)
+    without = run_episode(_short(), seed=0, config=config)
     return out, rec.summary(), with_rec, without
 
 
