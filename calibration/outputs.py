@@ -15,12 +15,13 @@ models and hil_sim all load their YAML through `calibration.errors`).
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, BinaryIO, Iterable, Iterator
 
 #: Our packages; a file inside one of them is a shipped artifact.
 PACKAGES = ("firmware_bridge", "runtime", "models", "calibration", "hil_sim")
@@ -86,14 +87,17 @@ def check_output_path(
     return p
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write `data` to `path` atomically (temporary file in the same folder, fsync, rename)."""
+@contextlib.contextmanager
+def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
+    """A binary file that becomes `path` only when the block ends without an error (temporary
+    file in the same folder, fsync, rename); on an error the temporary file is removed and
+    `path` is untouched. For outputs written as a stream (a tar archive)."""
     p = Path(path)
     parent = p.parent if str(p.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            yield f
             f.flush()
             os.fsync(f.fileno())
         # mkstemp creates 0600; give the file the permissions a plain open() would.
@@ -107,7 +111,13 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
         except FileNotFoundError:
             pass
         raise
-    return p
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write `data` to `path` atomically (atomic_file)."""
+    with atomic_file(path) as f:
+        f.write(data)
+    return Path(path)
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:

@@ -212,9 +212,10 @@ def realtime_line(name: str, m: dict) -> str:
               help="Camera images per second (0: no camera; rendering is costly).")
 @click.option("--connect-timeout", "connect_timeout_s", default=120.0, show_default=True,
               type=click.FloatRange(1.0, 3600.0), help="End the episode if no controller enables the base by then.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
 def serve_command(scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
                   robot_path: Path | None, domain_id: int | None, can_channel: str | None, can_port: int | None,
-                  camera_rate_hz: float, connect_timeout_s: float) -> None:
+                  camera_rate_hz: float, connect_timeout_s: float, force: bool) -> None:
     """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
     the sensors as ROS 2 DDS topics (Livox CustomMsg, Imu, Image). The episode starts when a controller enables
     the base; the metrics are written when it ends. Exit 0 when it ran (whatever the outcome), 2 on bad input."""
@@ -229,7 +230,7 @@ def serve_command(scenario: str, seed: int, json_path: Path | None, config_path:
     try:
         load_scenario(scenario)
         if json_path is not None:
-            check_output_path(json_path, what="--json", overwrite=True)
+            check_output_path(json_path, what="--json", overwrite=force)
     except (ConfigFileError, OutputPathError) as exc:
         raise InputError(str(exc)) from exc
     stop = threading.Event()
@@ -320,7 +321,9 @@ def sim_speed_command(scenario: str, seconds: float, repeats: int, sensors: bool
               help="Seed of the first run (run k uses seed + k).")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the figures as JSON.")
-def realtime_bench_command(scenario: str, runs: int, seed: int, config_path: Path | None, json_path: Path | None) -> None:
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def realtime_bench_command(scenario: str, runs: int, seed: int, config_path: Path | None, json_path: Path | None,
+                           force: bool) -> None:
     """Real-time HIL episodes in a row (`dct hil run --realtime`, two processes each): success count, the
     controller's tick and sensor-to-command latency (end of lidar frame -> the 0x111 written from it), deadline
     misses, simulator lag."""
@@ -332,7 +335,7 @@ def realtime_bench_command(scenario: str, runs: int, seed: int, config_path: Pat
     try:
         load_scenario(scenario)
         if json_path is not None:
-            check_output_path(json_path, what="--json", overwrite=True)
+            check_output_path(json_path, what="--json", overwrite=force)
     except (ConfigFileError, OutputPathError) as exc:
         raise InputError(str(exc)) from exc
     out = run_realtime_benchmark(scenario, runs, seed, config_path, echo=click.echo)

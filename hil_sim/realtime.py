@@ -86,7 +86,7 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
     with tempfile.TemporaryDirectory(prefix="dct-rt-") as tmp:
         work = Path(keep_dir) if keep_dir is not None else Path(tmp)
         sim_json, ctl_json = work / "simulator.json", work / "controller.json"
-        serve_cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json),
+        serve_cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json), "--force",
                          "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port), *common)
         # all-fixed: the sim-oracle lives in lockstep's process only (runtime/run_process.py docstring).
         run_cmd = _dct("run", "--planner", "all-fixed", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),

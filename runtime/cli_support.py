@@ -7,6 +7,7 @@ is written; an output path is checked before the work, an existing file is refus
 from __future__ import annotations
 
 import sys
+from importlib.metadata import entry_points
 from pathlib import Path
 
 import click
@@ -74,4 +75,19 @@ class ProgressBar:
             self.bar.__exit__(None, None, None)
 
 
-__all__ = ["InputError", "OneLineGroup", "ProgressBar", "checked_output"]
+def scenario_evaluator(group: str, name: str, command: str):
+    """The simulator's evaluation function behind `command --scenario` (runtime must not import
+    hil_sim: it is found through the entry point `name` of `group` and loaded only when asked for);
+    a one-line error when it is not installed or does not load."""
+    eps = [ep for ep in entry_points(group=group) if ep.name == name]
+    if not eps:
+        raise OneLineError(f"{command} --scenario: no scenario evaluation is installed (entry point "
+                           f"'{name}' in group '{group}'; the simulator package hil_sim provides it)")
+    try:
+        return eps[0].load()
+    except (ImportError, AttributeError) as exc:
+        raise OneLineError(f"{command} --scenario: the scenario evaluation ({eps[0].value}) cannot be "
+                           f"loaded: {exc}") from None
+
+
+__all__ = ["InputError", "OneLineGroup", "ProgressBar", "checked_output", "scenario_evaluator"]

@@ -23,7 +23,6 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
-import os
 import platform
 import shutil
 import subprocess
@@ -36,6 +35,7 @@ from dataclasses import dataclass, field
 from importlib import metadata, resources
 from pathlib import Path
 
+from calibration.outputs import atomic_file
 from runtime.deploy import templates
 
 PROJECT = "dct-controller"
@@ -330,20 +330,9 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
 
         t = time.perf_counter()
         echo(f"archive: writing {out} (gzip level {compresslevel})")
-        fd, tmp_out = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent if str(out.parent) else ".")
-        try:
-            with os.fdopen(fd, "wb") as raw:
-                with tarfile.open(fileobj=raw, mode="w:gz", compresslevel=compresslevel) as tar:
-                    tar.add(folder, arcname=folder_name)
-                raw.flush()
-                os.fsync(raw.fileno())
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp_out, 0o666 & ~umask)
-            os.replace(tmp_out, out)
-        except BaseException:
-            Path(tmp_out).unlink(missing_ok=True)
-            raise
+        with atomic_file(out) as raw:
+            with tarfile.open(fileobj=raw, mode="w:gz", compresslevel=compresslevel) as tar:
+                tar.add(folder, arcname=folder_name)
         times["archive_s"] = time.perf_counter() - t
     return BundleResult(path=out, folder=folder_name, files=len(manifest["files"]) + 1, size_bytes=out.stat().st_size,
                         wheels=len(wheels), seconds=times, notes=notes)

@@ -15,13 +15,11 @@ any unit); bad input raises calibration.errors.ConfigFileError (exit 2).
 from __future__ import annotations
 
 import math
-from importlib.metadata import entry_points
 from pathlib import Path
 
 import click
 
-from calibration.cli import OneLineError
-from runtime.cli_support import InputError, OneLineGroup
+from runtime.cli_support import InputError, OneLineGroup, scenario_evaluator
 from runtime.cli_support import ProgressBar as _Bar
 from runtime.cli_support import checked_output as _checked_output
 
@@ -175,16 +173,7 @@ def _eval_scans(scans_dir: Path, poses_file: Path, times_file: Path | None, json
 
 def _scenario_evaluator():
     """hil_sim's evaluate_scenario, through its entry point (module doc)."""
-    eps = [ep for ep in entry_points(group=SCENARIO_EVAL_GROUP) if ep.name == SCENARIO_EVAL_NAME]
-    if not eps:
-        raise OneLineError(f"dct odom eval --scenario: no scenario evaluation is installed (entry point "
-                           f"'{SCENARIO_EVAL_NAME}' in group '{SCENARIO_EVAL_GROUP}'; the simulator package "
-                           f"hil_sim provides it)")
-    try:
-        return eps[0].load()
-    except (ImportError, AttributeError) as exc:
-        raise OneLineError(f"dct odom eval --scenario: the scenario evaluation ({eps[0].value}) cannot be "
-                           f"loaded: {exc}") from None
+    return scenario_evaluator(SCENARIO_EVAL_GROUP, SCENARIO_EVAL_NAME, "dct odom eval")
 
 
 def _eval_scenario(scenario: str, seed: int, json_path: Path, force: bool, record_path: Path | None = None) -> None:

@@ -10,13 +10,11 @@ raises calibration.errors.ConfigFileError (exit 2).
 """
 from __future__ import annotations
 
-from importlib.metadata import entry_points
 from pathlib import Path
 
 import click
 
-from calibration.cli import OneLineError
-from runtime.cli_support import InputError, OneLineGroup, ProgressBar, checked_output
+from runtime.cli_support import InputError, OneLineGroup, ProgressBar, checked_output, scenario_evaluator
 
 SCENARIO_EVAL_GROUP = "dct.vpp_scenario"
 SCENARIO_EVAL_NAME = "evaluate"
@@ -60,19 +58,6 @@ def summary_lines(report: dict) -> list[str]:
     return lines
 
 
-def _scenario_evaluator():
-    eps = [ep for ep in entry_points(group=SCENARIO_EVAL_GROUP) if ep.name == SCENARIO_EVAL_NAME]
-    if not eps:
-        raise OneLineError(f"dct vpp eval --scenario: no scenario evaluation is installed (entry point "
-                           f"'{SCENARIO_EVAL_NAME}' in group '{SCENARIO_EVAL_GROUP}'; the simulator package "
-                           f"hil_sim provides it)")
-    try:
-        return eps[0].load()
-    except (ImportError, AttributeError) as exc:
-        raise OneLineError(f"dct vpp eval --scenario: the scenario evaluation ({eps[0].value}) cannot be "
-                           f"loaded: {exc}") from None
-
-
 @vpp_group.command("eval")
 @click.option("--scenario", required=True, metavar="NAME_OR_PATH", help="a scenario of the library, or a YAML file")
 @click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True, help="scenario and oracle seed")
@@ -103,7 +88,7 @@ def eval_command(scenario: str, seed: int, preset: str, oracle_precision: float 
 
     overrides = {k: v for k, v in (("precision", oracle_precision), ("recall", oracle_recall)) if v is not None}
     oracle = SimOracleConfig.from_preset(preset, seed=seed, **overrides)
-    evaluate = _scenario_evaluator()
+    evaluate = scenario_evaluator(SCENARIO_EVAL_GROUP, SCENARIO_EVAL_NAME, "dct vpp eval")
     checked_output(json_path, "--json", [Path(scenario)] if Path(scenario).is_file() else [], force)
     bar = ProgressBar(scenario)
     try:

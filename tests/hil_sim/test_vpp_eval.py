@@ -144,3 +144,11 @@ def test_listeners_get_every_scan_and_image():
         rig.close()
     assert sum(isinstance(m, LidarScan) for m in got) == rig.scans_produced >= 2
     assert sum(isinstance(m, CameraImage) for m in got) == rig.images_produced >= 2
+
+
+def test_cli_without_the_simulators_evaluation_says_so(monkeypatch, tmp_path):
+    from runtime import cli_support
+
+    monkeypatch.setattr(cli_support, "entry_points", lambda group: [])
+    res = CliRunner().invoke(vpp_group, ["eval", "--scenario", "case1", "--json", str(tmp_path / "z.json")])
+    assert res.exit_code != 0 and "no scenario evaluation is installed" in res.output

@@ -9,6 +9,7 @@ from click.testing import CliRunner
 
 from calibration.errors import ConfigFileError
 from runtime import cli as dct_cli
+from runtime import cli_support
 from runtime.odometry import cli as odom_cli
 from runtime.odometry.cli import odom_group
 from runtime.odometry.metrics import trajectory_errors
@@ -155,7 +156,7 @@ def evaluate_stand_in(scenario, seed, progress):
 
 def _entry_point(monkeypatch, value):
     ep = EntryPoint(name=odom_cli.SCENARIO_EVAL_NAME, value=value, group=odom_cli.SCENARIO_EVAL_GROUP)
-    monkeypatch.setattr(odom_cli, "entry_points", lambda group: [ep] if group == odom_cli.SCENARIO_EVAL_GROUP else [])
+    monkeypatch.setattr(cli_support, "entry_points", lambda group: [ep] if group == odom_cli.SCENARIO_EVAL_GROUP else [])
 
 
 def test_scenario_mode_calls_the_simulators_evaluation(monkeypatch, tmp_path):
@@ -174,7 +175,7 @@ def test_scenario_mode_without_the_simulators_evaluation_says_so(monkeypatch, tm
     _entry_point(monkeypatch, "hil_sim.no_such_module:evaluate_scenario")
     err = one_line_error(invoke("eval", "--scenario", "case1", "--json", tmp_path / "s.json"), code=1)
     assert "the scenario evaluation (hil_sim.no_such_module:evaluate_scenario) cannot be loaded" in err
-    monkeypatch.setattr(odom_cli, "entry_points", lambda group: [])
+    monkeypatch.setattr(cli_support, "entry_points", lambda group: [])
     err = one_line_error(invoke("eval", "--scenario", "case1", "--json", tmp_path / "s.json"), code=1)
     assert "no scenario evaluation is installed" in err
 
