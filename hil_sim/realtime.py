@@ -68,6 +68,28 @@ class _Lines(threading.Thread):
                 self.echo(f"[{self.prefix}] {line}")
 
 
+def _stop(p: subprocess.Popen | None) -> None:
+    """SIGTERM (the process writes its files and exits), SIGKILL after STOP_TIMEOUT_S."""
+    if p is None or p.poll() is not None:
+        return
+    p.send_signal(signal.SIGTERM)
+    try:
+        p.wait(STOP_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.wait()
+
+
+def _sigterm_raises() -> None:
+    """In the main thread: SIGTERM raises KeyboardInterrupt, so that the children are stopped (the
+    default action would end this process at once and leave them running)."""
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        def handler(signum, frame):  # noqa: ARG001
+            raise KeyboardInterrupt("SIGTERM")
+
+        signal.signal(signal.SIGTERM, handler)
+
+
 def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None = None,
                          robot_path: Path | None = None, calibration_path: Path | None = None,
                          echo=None, keep_dir: Path | None = None) -> dict:
@@ -75,7 +97,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
     Raises RuntimeError when a process could not run (the message says which and its last words)."""
     from hil_sim.scenario import load_scenario
 
-    sc = load_scenario(scenario)
+    sc = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
+    _sigterm_raises()
     goal = goal_in_odom_frame(sc)
     domain, group, port = unique_channels()
     common: list[str] = []
@@ -89,15 +112,17 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         serve_cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json), "--force",
                          "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port), *common)
         # all-fixed: the sim-oracle lives in lockstep's process only (runtime/run_process.py docstring).
-        run_cmd = _dct("run", "--planner", "all-fixed", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
+        run_cmd = _dct("run", "--planner", "all-fixed", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
                        "--domain-id", str(domain), "--can-interface", "udp_multicast", "--can-channel", group,
                        "--can-port", str(port), *common)
         if calibration_path is not None:
             run_cmd += ["--calibration", str(calibration_path)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         t0 = time.monotonic()
+        # Own sessions: a Ctrl-C in the terminal reaches this process only, which stops both
+        # children in order (SIGTERM, then SIGKILL after STOP_TIMEOUT_S) so that they write their files.
         sim = subprocess.Popen(serve_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, text=True, env=env)
+                               stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
         sim_log = _Lines(sim.stderr, "sim", echo)
         ctl = None
         try:
@@ -106,33 +131,20 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                     raise RuntimeError(f"dct hil serve did not start (exit {sim.poll()}): "
                                        f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
             ctl = subprocess.Popen(run_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                   stderr=subprocess.PIPE, text=True, env=env)
+                                   stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
             ctl_log = _Lines(ctl.stderr, "ctl", echo)
             limit = SERVE_READY_TIMEOUT_S + sc.time_limit_s + 120.0
             while sim.poll() is None:
-                if ctl.poll() is not None:  # the controller ended first: end the episode
-                    sim.send_signal(signal.SIGTERM)
-                    sim.wait(STOP_TIMEOUT_S)
-                    break
-                if time.monotonic() - t0 > limit:
-                    sim.send_signal(signal.SIGTERM)
-                    sim.wait(STOP_TIMEOUT_S)
-                    break
+                if ctl.poll() is not None or time.monotonic() - t0 > limit:
+                    break  # the controller ended first, or the episode overran: end it
                 time.sleep(0.1)
-            if ctl.poll() is None:
-                ctl.send_signal(signal.SIGTERM)
-                try:
-                    ctl.wait(STOP_TIMEOUT_S)
-                except subprocess.TimeoutExpired:
-                    ctl.kill()
-                    ctl.wait()
+            _stop(sim)
+            _stop(ctl)
             ctl_log.join(2.0)
             sim_log.join(2.0)
-        finally:
-            for p in (ctl, sim):
-                if p is not None and p.poll() is None:
-                    p.kill()
-                    p.wait()
+        finally:  # also on an exception or a SIGINT/SIGTERM of this process
+            _stop(ctl)
+            _stop(sim)
         if not sim_json.is_file():
             raise RuntimeError(f"dct hil serve (exit {sim.returncode}) wrote no metrics: "
                                f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")

@@ -162,7 +162,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     from runtime.run_process import EpochMonotonicClock
 
     stop = stop or threading.Event()
-    scenario = load_scenario(opts.scenario)
+    scenario = load_scenario(opts.scenario, seed=opts.seed)  # a generated scene is drawn from the seed
     robot = load_robot_description(opts.robot_path)
     config = load_controller_config(opts.config_path)
     inputs = config.ros.inputs

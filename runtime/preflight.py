@@ -366,6 +366,7 @@ def default_topics(domain_id: int = 0):
 def topics_from_config(config: Any, domain_id: int | None = None):
     """The config's `ros:` section when it has one, else DEFAULT topics; `domain_id` overrides."""
     ros = getattr(config, "ros", None) if config is not None else None
+    ros = getattr(ros, "inputs", ros)  # ControllerConfig.ros is a RosConfig: its inputs are the topics
     if ros is None:
         ros = default_topics()
     if domain_id is not None:

@@ -93,6 +93,11 @@ class RunOptions:
     goal_wait_s: float | None = None
     #: Override of planner.mode (`dct hil run --realtime` runs all-fixed: see the module docstring).
     planner: str | None = None
+    #: Leave the loop thread at normal priority (config `realtime:` not asked for): real-time HIL
+    #: on a machine shared with the simulator, where SCHED_FIFO could starve it.
+    normal_priority: bool = False
+    #: Let planner mode pure-pursuit run (it has no obstacle awareness: tests and benches only).
+    allow_pure_pursuit: bool = False
 
 
 @dataclass
@@ -136,6 +141,9 @@ def load_inputs(opts: RunOptions) -> Loaded:
         K, dist = robot.sensors.camera.nominal_intrinsics(), np.zeros(5)
     if opts.planner is not None:
         config = config.with_planner_mode(opts.planner)
+    if config.planner.mode == "pure-pursuit" and not opts.allow_pure_pursuit:
+        raise RunInputError(f"{cfg_name}: planner.mode pure-pursuit has no obstacle awareness (it drives at the goal "
+                            "through whatever is there): only with --allow-pure-pursuit, never on a robot among people")
     if config.planner.mode == "dct" and config.vpp.backend.kind == "sim-oracle":
         raise RunInputError(f"{cfg_name}: planner.mode dct with vpp.backend.kind sim-oracle: the sim-oracle exists "
                             "only inside the lockstep simulator's process; set vpp.backend.kind: openai-compatible "
@@ -226,7 +234,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
 
         try:
             if opts.json_path is not None:
-                check_output_path(opts.json_path, what="--json", overwrite=True)
+                check_output_path(opts.json_path, what="--json", overwrite=opts.force)
         except OutputPathError as exc:
             raise RunInputError(str(exc)) from None
     recorder = None
@@ -254,6 +262,12 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
     clock = EpochMonotonicClock()
     summary: dict = {"pid": None}
     controller = None
+    # systemd (the deploy bundle's unit: Type=notify, WatchdogSec): ready once inputs are up, a
+    # watchdog ping every tick and while waiting for a goal; a no-op outside systemd.
+    from runtime.deploy.sd_notify import SystemdNotifier
+
+    notifier = SystemdNotifier()
+    notifier.ready()
     try:
         goal = opts.goal
         if goal is None:
@@ -267,6 +281,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
                 elif g is not None:
                     goal = (g.pose.x_m, g.pose.y_m, g.pose.yaw_rad)
                 else:
+                    notifier.watchdog()
                     stop.wait(0.05)
             if goal is None and stop.is_set():
                 raise _StoppedBeforeStart
@@ -317,6 +332,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
             ))
             if receiver.take_goal() is not None:
                 ignored_goals[0] += 1
+            notifier.watchdog()
 
         loop = FixedRateLoop(
             clock, period_s=config.loop.period_s, stage_budgets_s=config.loop.stage_budgets_s,
@@ -327,6 +343,13 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
         echo(f"dct run: goal {goal[0]:.3f} {goal[1]:.3f} {goal[2]:.3f} (odom frame); bus "
              f"{loaded.bus_config.interface}:{loaded.bus_config.channel}; DDS domain {ros.inputs.domain_id}; "
              f"planner {config.planner.mode}")
+        # SCHED_FIFO and CPU pinning for this (the loop's) thread, when allowed; said at start.
+        from runtime.realtime_setup import request_realtime_from_config
+
+        if opts.normal_priority:
+            echo("dct run: real-time: not asked for (--normal-priority): the loop thread stays SCHED_OTHER")
+        else:
+            echo(f"dct run: {request_realtime_from_config(config.realtime).summary()}")
         wall0 = time.monotonic()
         try:
             controller.activate()
@@ -370,8 +393,15 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
         echo("dct run: stopped before any goal arrived; the base was never enabled")
         summary = {"state": "NOT_STARTED"}
     finally:
-        receiver.stop()
-        publisher.close()
+        # Each step on its own: one that fails (a receiver thread that will not stop) must not skip
+        # the others (the recording's rename, the bus) nor hide the error that brought us here.
+        notifier.stopping()
+        cleanup_errors = []
+        for name, step in (("receiver", receiver.stop), ("publisher", publisher.close)):
+            try:
+                step()
+            except Exception as exc:  # noqa: BLE001 - recorded in the summary
+                cleanup_errors.append(f"{name}: {type(exc).__name__}: {exc}")
         if summary.get("state") is not None:
             summary["publisher"] = publisher.stats()
         if recorder is not None:
@@ -380,7 +410,12 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
                 summary["recording"] = {"path": str(rec.get("path")), "dropped": rec.get("dropped_total")}
             except Exception as exc:  # noqa: BLE001 - the summary is still written
                 summary["recording"] = {"error": str(exc)}
-        bus.shutdown()
+        try:
+            bus.shutdown()
+        except Exception as exc:  # noqa: BLE001 - recorded in the summary
+            cleanup_errors.append(f"bus: {type(exc).__name__}: {exc}")
+        if cleanup_errors:
+            summary["cleanup_errors"] = cleanup_errors
     import os
 
     summary["pid"] = os.getpid()
@@ -431,25 +466,31 @@ def _make_command():
                   help="Record the run to this MCAP file (`dct report latency` reads it).")
     @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
                   help="Write the run's summary here at exit (state, tick and sensor-to-command latency).")
-    @click.option("--force", is_flag=True, help="Overwrite an existing --record file.")
+    @click.option("--force", is_flag=True, help="Overwrite an existing --record or --json file.")
     @click.option("--domain-id", type=click.IntRange(0, 232), help="Override ros.inputs.domain_id.")
     @click.option("--can-interface", type=click.Choice(["socketcan", "limo_serial", "udp_multicast", "virtual"]),
                   help="Override can_bus.interface (the channel then defaults for it).")
     @click.option("--can-channel", help="Override can_bus.channel.")
     @click.option("--can-port", type=click.IntRange(1, 65535), help="Override can_bus.udp_port (udp_multicast).")
-    @click.option("--planner", type=click.Choice(["dct", "all-fixed", "pure-pursuit"]), default=None,
+    @click.option("--planner", type=click.Choice(["dct", "all-fixed"]), default=None,
                   help="Override the config's planner.mode.")
+    @click.option("--allow-pure-pursuit", is_flag=True,
+                  help="Let planner mode pure-pursuit run: no obstacle awareness (tests and benches only).")
+    @click.option("--normal-priority", is_flag=True,
+                  help="Do not ask for SCHED_FIFO / CPU pinning (config realtime:), e.g. beside a simulator.")
     @click.option("--goal-wait", "goal_wait_s", type=click.FloatRange(0.0, None),
                   help="Without --goal: give up after this many seconds without a goal (default: wait).")
     def run_command(robot_path, calibration_path, config_path, goal, record_path, json_path, force, domain_id,
-                    can_interface, can_channel, can_port, goal_wait_s, planner) -> None:
+                    can_interface, can_channel, can_port, goal_wait_s, planner, normal_priority,
+                    allow_pure_pursuit) -> None:
         """The controller process: sensors over ROS 2 DDS, the base over CAN, the fixed-rate loop on the wall
         clock until SIGINT/SIGTERM (then: zero command, deactivate, flush, exit 0). Exit 2 on bad input."""
         for what, p in (("--robot", robot_path), ("--calibration", calibration_path), ("--config", config_path)):
             if p is not None and not p.is_file():
                 raise InputError(f"{what}: {p}: no such file")
         opts = RunOptions(robot_path, calibration_path, config_path, tuple(goal) if goal else None, record_path,
-                          json_path, force, domain_id, can_interface, can_channel, can_port, goal_wait_s, planner)
+                          json_path, force, domain_id, can_interface, can_channel, can_port, goal_wait_s, planner,
+                          normal_priority, allow_pure_pursuit)
         stop = threading.Event()
         install_stop_signals(stop)
         try:

@@ -93,6 +93,9 @@ PYEOF
 # -- 2. the target folder and the venv
 mkdir -p "$TARGET"
 TARGET="$(cd "$TARGET" && pwd)"
+case "$TARGET" in
+  *[[:space:]%]*) echo "install.sh: the target folder '$TARGET' has a space or a %: systemd would split or expand it in the unit; choose another" >&2; exit 2 ;;
+esac
 for sub in venv robot; do
   if [ -e "$TARGET/$sub" ]; then
     if [ "$FORCE" = 1 ]; then rm -rf "${TARGET:?}/$sub"
@@ -134,8 +137,8 @@ UNIT = """# DCT controller for robot '@@ROBOT@@' (made by `dct deploy bundle`; i
 #          && sudo systemctl enable --now @@UNIT@@
 [Unit]
 Description=DCT contact-tolerant navigation controller (robot @@ROBOT@@)
-After=network-online.target
-Wants=network-online.target
+After=network-online.target time-sync.target
+Wants=network-online.target time-sync.target
 # A controller that keeps failing stops being restarted after 5 tries in 2 minutes.
 StartLimitIntervalSec=120
 StartLimitBurst=5

@@ -105,7 +105,10 @@ def test_unit_has_restart_watchdog_rtprio_affinity_and_preflight(fake_bundle):
 
 def test_install_offline_into_a_fresh_venv(fake_bundle, tmp_path):
     folder = fake_bundle[1]
-    target = tmp_path / "robot computer" / "dct"          # a space in the path on purpose
+    # A space would be split (and a % expanded) by systemd in the unit's ExecStart: refused.
+    refused = run_install(folder, tmp_path / "robot computer" / "dct")
+    assert refused.returncode == 2 and "has a space or a %" in refused.stderr
+    target = tmp_path / "robot_computer" / "dct"
     done = run_install(folder, target)
     assert done.returncode == 0, done.stderr
     assert "files match MANIFEST.json" in done.stdout

@@ -63,6 +63,12 @@ def test_bad_config_exits_2_with_one_line(tmp_path):
     assert len(lines) == 1 and "ros.inputs.lidar.topic" in lines[0], r.stderr
 
 
+def test_planner_mode_pure_pursuit_is_refused_without_its_flag(tmp_path):
+    r = subprocess.run(_dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--goal", "1", "0", "0"),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--allow-pure-pursuit" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
 def test_planner_mode_dct_with_the_sim_oracle_is_refused_clearly(tmp_path):
     r = subprocess.run(_dct("run", "--config", str(_config(tmp_path, mode="dct")), "--goal", "1", "0", "0"),
                        capture_output=True, text=True, timeout=120)
@@ -109,7 +115,7 @@ def test_controller_process_drives_and_stops_on_sigterm(tmp_path):
     base.start()
     summary = tmp_path / "summary.json"
     ctl = subprocess.Popen(
-        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--json", str(summary), "--domain-id", str(domain), "--can-interface", "udp_multicast",
+        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--allow-pure-pursuit", "--normal-priority", "--json", str(summary), "--domain-id", str(domain), "--can-interface", "udp_multicast",
              "--can-channel", group, "--can-port", str(port)),
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
@@ -160,7 +166,7 @@ def test_controller_process_drives_and_stops_on_sigterm(tmp_path):
 def test_sigterm_while_waiting_for_a_goal_exits_0(tmp_path):
     domain, group, port = unique_channels()
     ctl = subprocess.Popen(
-        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--domain-id", str(domain),
+        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--allow-pure-pursuit", "--normal-priority", "--domain-id", str(domain),
              "--can-interface", "udp_multicast", "--can-channel", group, "--can-port", str(port)),
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
