@@ -284,3 +284,12 @@ def test_command_exit_code_and_json(tmp_path, nominal_cal):
     assert res.exit_code == 1 and "FAIL  base" in res.output and "NOT ready to drive" in res.output
     doc = json.loads(out.read_text())
     assert [c["name"] for c in doc["checks"] if not c["ok"]] == ["base"]
+
+
+def test_topics_come_from_the_controller_configs_ros_inputs():
+    """(A reviewer's case) the shipped config's `ros:` is a RosConfig; the topic check needs its
+    inputs (it crashed on every real start)."""
+    from runtime.config import load_controller_config
+
+    topics = pf.topics_from_config(load_controller_config(None), 7)
+    assert topics.domain_id == 7 and topics.lidar.topic == load_controller_config(None).ros.inputs.lidar.topic
