@@ -360,7 +360,7 @@ def default_topics(domain_id: int = 0):
     return RosInputConfig(domain_id=domain_id,
                           lidar=LidarTopic(topic="/livox/lidar", type="livox_ros_driver2/msg/CustomMsg"),
                           imu=ImuTopic(topic="/livox/imu"),
-                          camera=CameraTopic(topic="/camera/image_raw", type="sensor_msgs/msg/Image"))
+                          camera=CameraTopic(topic="/camera/color/image_raw", type="sensor_msgs/msg/Image"))
 
 
 def topics_from_config(config: Any, domain_id: int | None = None):

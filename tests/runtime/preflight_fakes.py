@@ -54,7 +54,7 @@ class EmulatedBase:
 
 
 class SensorPublisher:
-    """Publishes the default preflight topics at `rates_hz` (stream -> Hz) on `domain_id`."""
+    """Publishes the shipped controller config's sensor topics (ros.inputs) at `rates_hz` (stream -> Hz) on `domain_id`."""
 
     def __init__(self, domain_id: int, rates_hz: dict[str, float]) -> None:
         from cyclonedds.domain import DomainParticipant
@@ -62,15 +62,18 @@ class SensorPublisher:
         from runtime.ros_io import messages as M
         from runtime.ros_io.dds import RosWriter, ros_qos
 
+        from runtime.config import load_controller_config
+
         self.M = M
+        topics = load_controller_config(None).ros.inputs  # what preflight reads from the shipped config
         dp = DomainParticipant(domain_id)
         self.writers = {}
         if "lidar" in rates_hz:
-            self.writers["lidar"] = RosWriter(dp, "/livox/lidar", M.CustomMsg, ros_qos())
+            self.writers["lidar"] = RosWriter(dp, topics.lidar.topic, M.CustomMsg, ros_qos())
         if "imu" in rates_hz:
-            self.writers["imu"] = RosWriter(dp, "/livox/imu", M.Imu, ros_qos(depth=50))
+            self.writers["imu"] = RosWriter(dp, topics.imu.topic, M.Imu, ros_qos(depth=50))
         if "camera" in rates_hz:
-            self.writers["camera"] = RosWriter(dp, "/camera/image_raw", M.Image, ros_qos())
+            self.writers["camera"] = RosWriter(dp, topics.camera.topic, M.Image, ros_qos())
         self.rates_hz = rates_hz
         self.sent = {s: 0 for s in rates_hz}
         self._stop = threading.Event()

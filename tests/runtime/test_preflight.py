@@ -185,7 +185,7 @@ def test_topics_alive_pass_and_a_silent_topic_fails():
     cam = checks["topic:camera"]          # not required by planner mode all-fixed: a WARN
     assert cam.status == "WARN" and "sensor topic silent" in cam.message
     checks = by_name(pf.check_topics(ros, rates, listen_s=0.5, required=("lidar", "imu", "camera")))
-    assert checks["topic:camera"].status == "FAIL" and "/camera/image_raw" in checks["topic:camera"].message
+    assert checks["topic:camera"].status == "FAIL" and "/camera/color/image_raw" in checks["topic:camera"].message
     assert checks["topic:lidar"].status == "FAIL" and "start the lidar driver" in checks["topic:lidar"].text()
 
 
