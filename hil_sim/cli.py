@@ -196,6 +196,21 @@ def realtime_line(name: str, m: dict) -> str:
             f"{rt['pids']['controller']}")
 
 
+def _check_scenario_and_output(scenario: str, seed: int, json_path: Path | None, force: bool) -> None:
+    """Before a long real-time run: the scenario loads (a generated one from its seed) and the
+    --json output may be written (an existing file only with --force); else one line, exit 2."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import OutputPathError, check_output_path
+    from hil_sim.scenario import load_scenario
+
+    try:
+        load_scenario(scenario, seed=seed)
+        if json_path is not None:
+            check_output_path(json_path, what="--json", overwrite=force)
+    except (ConfigFileError, OutputPathError) as exc:
+        raise InputError(str(exc)) from exc
+
+
 @hil_group.command("serve")
 @click.argument("scenario")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
@@ -223,16 +238,9 @@ def serve_command(scenario: str, seed: int, json_path: Path | None, config_path:
     import threading
 
     from calibration.errors import ConfigFileError
-    from calibration.outputs import OutputPathError, check_output_path
-    from hil_sim.scenario import load_scenario
     from hil_sim.serve import ServeOptions, serve
 
-    try:
-        load_scenario(scenario)
-        if json_path is not None:
-            check_output_path(json_path, what="--json", overwrite=force)
-    except (ConfigFileError, OutputPathError) as exc:
-        raise InputError(str(exc)) from exc
+    _check_scenario_and_output(scenario, seed, json_path, force)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -327,17 +335,10 @@ def realtime_bench_command(scenario: str, runs: int, seed: int, config_path: Pat
     """Real-time HIL episodes in a row (`dct hil run --realtime`, two processes each): success count, the
     controller's tick and sensor-to-command latency (end of lidar frame -> the 0x111 written from it), deadline
     misses, simulator lag."""
-    from calibration.errors import ConfigFileError
-    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from calibration.outputs import atomic_write_json
     from hil_sim.realtime import run_realtime_benchmark
-    from hil_sim.scenario import load_scenario
 
-    try:
-        load_scenario(scenario)
-        if json_path is not None:
-            check_output_path(json_path, what="--json", overwrite=force)
-    except (ConfigFileError, OutputPathError) as exc:
-        raise InputError(str(exc)) from exc
+    _check_scenario_and_output(scenario, seed, json_path, force)
     out = run_realtime_benchmark(scenario, runs, seed, config_path, echo=click.echo)
     if json_path is not None:
         atomic_write_json(json_path, out)
