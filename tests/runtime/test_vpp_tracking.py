@@ -207,3 +207,49 @@ def test_a_box_knocked_further_than_icp_can_follow_is_not_followed_and_its_motio
     assert tracker.registrations == 0 and tracker.lost + tracker.unseen == 1
     assert tracker.moved_since(7, 0.0) is None
     assert np.array_equal(tracker.objects[7].anchor, anchor)
+
+
+# ---------------------------------------------------------------- the compiled kernels against references
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra.numpy import arrays  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+
+from runtime.vpp.tracking import _grid, _near_any, _nearest, _thin  # noqa: E402
+
+_coords = arrays(np.float64, st.tuples(st.integers(1, 200), st.just(3)),
+                 elements=st.floats(-1.0, 1.0, allow_nan=False, width=32))
+
+
+@settings(max_examples=60, deadline=None)
+@given(ref=_coords, query=_coords, r=st.sampled_from([0.01, 0.06, 0.1, 0.5]), split=st.sampled_from([1, 2]))
+def test_grid_nearest_is_the_kd_trees_nearest_within_r(ref, query, r, split):
+    """The grid's nearest neighbour within r is cKDTree's (same distance; ties may pick another
+    index), also for queries outside the grid's box; none when cKDTree finds none."""
+    d_ref, _ = cKDTree(ref).query(query, distance_upper_bound=r)
+    lo, cell, reach, dims, start, order = _grid(ref, r, split)
+    for i, q in enumerate(query):
+        j, d2 = _nearest(ref, lo, cell, reach, dims, start, order, q[0], q[1], q[2], r * r)
+        if np.isfinite(d_ref[i]) and d_ref[i] < r * (1 - 1e-9):
+            assert j >= 0 and np.isclose(np.sqrt(d2), d_ref[i], rtol=1e-9, atol=1e-12)
+        elif not np.isfinite(d_ref[i]):
+            assert j == -1
+    near = _near_any(query, ref, r)
+    assert near[d_ref < r * (1 - 1e-9)].all()
+    assert not near[~np.isfinite(d_ref)].any()
+
+
+def _thin_reference(points: np.ndarray, voxel_m: float, max_points: int) -> np.ndarray:
+    """The first point per voxel in their order (np.unique), then an even stride."""
+    k = np.floor(points / voxel_m).astype(np.int64)
+    _, first = np.unique(k, axis=0, return_index=True)
+    out = points[np.sort(first)]
+    if max_points and len(out) > max_points:
+        out = out[np.linspace(0, len(out) - 1, max_points).astype(np.intp)]
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(points=_coords, voxel=st.sampled_from([0.01, 0.03, 0.3]), cap=st.sampled_from([0, 5, 50]))
+def test_thin_keeps_the_first_point_of_each_voxel_in_order(points, voxel, cap):
+    assert np.array_equal(_thin(points, voxel, cap), _thin_reference(points, voxel, cap))
