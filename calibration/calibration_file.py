@@ -227,6 +227,20 @@ class CalibrationFile(_Strict):
         return self.lidar_to_camera.matrix()
 
 
+def camera_for_robot(cal: CalibrationFile, robot, path: str | Path) -> tuple[CameraModel, np.ndarray | None]:
+    """(camera model, T_cam_lidar or None without the extrinsic) of a calibration for `robot`
+    (a RobotDescription), for the controller's VPP partition; ConfigFileError naming the file
+    and field when the calibration is another robot's or another camera's."""
+    if cal.robot != robot.name:
+        raise ConfigFileError(f"{path}: robot: the calibration is for robot '{cal.robot}', the robot description "
+                              f"is '{robot.name}'")
+    cam = robot.sensors.camera
+    if (cal.camera.width_px, cal.camera.height_px) != (cam.width_px, cam.height_px):
+        raise ConfigFileError(f"{path}: camera: {cal.camera.width_px}x{cal.camera.height_px} px, the robot's camera "
+                              f"is {cam.width_px}x{cam.height_px} px")
+    return cal.camera_model(), (cal.T_cam_lidar() if cal.lidar_to_camera is not None else None)
+
+
 def load_calibration(path: str | Path) -> CalibrationFile:
     """Load and validate a calibration file; any problem raises ConfigFileError."""
     return load_yaml_model(Path(path), CalibrationFile, what="calibration file")
@@ -317,5 +331,5 @@ def calibration_from_opencalib(
 
 
 __all__ = ["CalibrationFile", "CameraIntrinsics", "RigidTransform", "Provenance", "WheelOdometryCalibration",
-           "WheelOdometryFitRecord", "MAX_EFFECTIVE_TRACK_M", "WHEEL_SCALE_RANGE", "load_calibration",
+           "WheelOdometryFitRecord", "MAX_EFFECTIVE_TRACK_M", "camera_for_robot", "WHEEL_SCALE_RANGE", "load_calibration",
            "save_calibration", "calibration_yaml", "MAX_LIDAR_CAMERA_TRANSLATION_M", "make_calibration", "calibration_from_opencalib", "ConfigFileError"]

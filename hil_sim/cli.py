@@ -91,12 +91,14 @@ def run_command(
         config = load_controller_config(config_path)
         if planner is not None:
             config = config.with_planner_mode(planner)
-        wheel_calibration = None
+        wheel_calibration = camera_calibration = None
         if calibration_path is not None:
-            from calibration.calibration_file import load_calibration
+            from calibration.calibration_file import camera_for_robot, load_calibration
             from calibration.wheel_odometry import wheel_params
 
-            params = wheel_params(robot, load_calibration(calibration_path))
+            cal = load_calibration(calibration_path)
+            camera_calibration = camera_for_robot(cal, robot, calibration_path)
+            params = wheel_params(robot, cal)
             wheel_calibration = (params.effective_track_m, params.wheel_scale)
             click.echo(f"wheel odometry: effective track {params.effective_track_m:.4f} m, scale "
                        f"{params.wheel_scale:.4f} ({params.source})", err=True)
@@ -140,7 +142,8 @@ def run_command(
     try:
         try:
             result = run_episode(sc, robot=robot, config=config, seed=seed, faults=faults,
-                                 wheel_calibration=wheel_calibration, recorder=recorder)
+                                 wheel_calibration=wheel_calibration, recorder=recorder,
+                                 camera_calibration=camera_calibration)
         except BaseException as exc:  # the log of a failed run is kept (it says how it ended)
             if recorder is not None:
                 recorder.note_run_end(exc)

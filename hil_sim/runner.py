@@ -32,6 +32,7 @@ from runtime.sensor_inbox import SensorInbox
 from runtime.telemetry import TickTelemetry
 
 if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
+    from calibration.camera_model import CameraModel
     from hil_sim.sensor_rig import SensorRigConfig
     from models.vlm.sim_oracle import SimOracleConfig
     from runtime.recording import RunRecorder
@@ -168,6 +169,7 @@ def run_episode(
     oracle: "SimOracleConfig | None" = None,
     on_start: "Callable[[LockstepSimulation, NavigationController], None] | None" = None,
     recorder: "RunRecorder | None" = None,
+    camera_calibration: "tuple[CameraModel, np.ndarray | None] | None" = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -175,6 +177,9 @@ def run_episode(
     controller needs (lidar + IMU for the MPC, nothing for pure pursuit).
     faults: injected faults (hil_sim.faults), times from the start of the episode.
     wheel_calibration: (effective track m, wheel scale) for the odometry (calibration file).
+    camera_calibration: (camera model, T_cam_lidar or None) from the calibration file: the
+    controller's VPP partition projects with them, and the images reach it carrying them (the
+    simulated camera renders with its true intrinsics: a calibration's error is real here).
     observe: called with the controller once after every tick, outside the tick and its timing
     (`dct bench tick` reads the frame's point counts and the planner's counters with it).
     on_start: called once with the simulation and the controller before the first tick
@@ -218,7 +223,10 @@ def run_episode(
             # (A rig config that asks for a camera rate of its own keeps it: `dct vpp eval`.)
             rate = rig_config.camera_rate_hz or DCT_CAMERA_RATE_HZ
             rig_config = rig_config.model_copy(update={"camera_rate_hz": rate, "camera_segmentation": True})
-        devices.append(SensorRig(world, robot, injector, rig_config))
+        intrinsics = None
+        if camera_calibration is not None:
+            intrinsics = (camera_calibration[0].K, camera_calibration[0].dist)
+        devices.append(SensorRig(world, robot, injector, rig_config, intrinsics=intrinsics))
     vlm_backend = None
     if config.planner.mode == "dct" and (oracle is not None or config.vpp.backend.kind == "sim-oracle"):
         # The sim-oracle needs this world's object table: built here, passed to the controller.
@@ -237,6 +245,8 @@ def run_episode(
             robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now,
             sensors=inbox if has_sensors else None, lockstep=True, wheel_calibration=wheel_calibration,
             vlm_backend=vlm_backend,
+            camera=camera_calibration[0] if camera_calibration is not None else None,
+            T_cam_lidar=camera_calibration[1] if camera_calibration is not None else None,
         )
     except BaseException:
         controller_bus.shutdown()

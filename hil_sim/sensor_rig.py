@@ -26,6 +26,8 @@ and hidden from the camera: both mounts lie inside the coarse chassis boxes.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import time
 from collections.abc import Callable
@@ -68,7 +70,12 @@ class SensorRig:
     """Lidar + IMU + camera of the robot in a World, feeding a SensorInbox (see module docstring)."""
 
     def __init__(self, world: World, robot: RobotDescription, inbox: SensorInbox,
-                 config: SensorRigConfig | None = None) -> None:
+                 config: SensorRigConfig | None = None, intrinsics: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """intrinsics: (K, distortion) the images reach the inbox with: the controller's
+        calibration, as on the robot, where the camera driver's image carries none and the
+        controller attaches its calibration's (runtime.ros_io.convert). None: the simulated
+        camera's true ones. Listeners get the true ones (ground truth for evaluations)."""
+        self._intrinsics = intrinsics
         self.world = world
         self.robot = robot
         self.inbox = inbox
@@ -176,6 +183,8 @@ class SensorRig:
         self.images_produced += 1
         for listener in self.listeners:
             listener(image)
+        if self._intrinsics is not None:
+            image = dataclasses.replace(image, K=self._intrinsics[0], distortion=self._intrinsics[1])
         if not self.inbox.put_image(image):
             self.rejected["camera"] += 1
 

@@ -80,6 +80,8 @@ class NavigationController:
         lockstep: bool = False,
         wheel_calibration: tuple[float, float] | None = None,
         vlm_backend=None,
+        camera=None,
+        T_cam_lidar: np.ndarray | None = None,
     ) -> None:
         """lockstep: the clock is simulated time; nothing that decides behaviour may read the wall
         clock (solver caps are iteration counts, ICP results arrive at a fixed simulated latency).
@@ -88,7 +90,10 @@ class NavigationController:
         (`dct calibrate wheels`); None: the robot description's track x skid_steer_yaw_factor, 1.0.
         vlm_backend: the contact-tolerance backend (models.vlm) of planner mode dct: the simulator
         passes its sim-oracle; None builds the one the config names (`vpp.backend`,
-        models.vlm.factory). It runs beside the tick (models.vlm.runner)."""
+        models.vlm.factory). It runs beside the tick (models.vlm.runner).
+        camera, T_cam_lidar: the calibration file's camera (CameraModel) and lidar-to-camera
+        extrinsic, for the VPP partition (runtime.partition_stage.build_vpp_partition); None:
+        the robot description's nominal camera and mounts."""
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
@@ -116,7 +121,8 @@ class NavigationController:
         self.obstacles = ObstaclePointExtractor(
             robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
         )
-        stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps, vlm_backend))
+        stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps, vlm_backend,
+                                                              camera, T_cam_lidar))
         #: Which lidar points are P_fix, and whether the planner may drive yet: chosen once, by
         #: the mode (runtime.partition_stage: every point, or the VLM partition of mode dct).
         self.partition = stack.partition

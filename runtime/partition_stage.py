@@ -100,22 +100,30 @@ class VppPartition:
         return {"vpp": self.vpp.describe()}
 
 
-def build_vpp_partition(config, robot, backend, lockstep: bool) -> VppPartition:
-    """The VPP stage of mode dct: the robot's camera (nominal intrinsics until a calibration
-    file gives its own), its mounts, the backend in a runner on the controller's clock
-    (simulated time in lockstep, the wall clock otherwise).
+def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_cam_lidar=None) -> VppPartition:
+    """The VPP stage of mode dct: the robot's camera, the backend in a runner on the
+    controller's clock (simulated time in lockstep, the wall clock otherwise).
 
     config: runtime.config.ControllerConfig; robot: calibration.robot_description.RobotDescription;
-    backend: a models.vlm backend (VlmBackend)."""
+    backend: a models.vlm backend (VlmBackend). camera: the calibration file's CameraModel (its
+    intrinsics and distortion: Phase III projects with them, and the stage takes only images
+    that carry them); None: the robot description's nominal intrinsics, no distortion.
+    T_cam_lidar: the calibration's lidar-to-camera extrinsic (4x4); the camera's pose on the
+    base is then the lidar mount's composed with it. None: the description's camera mount."""
     from calibration.camera_model import CameraModel
     from models.vlm.runner import BackendRunner
     from runtime.vpp.stage import VppStage
 
     cam = robot.sensors.camera
+    if camera is None:
+        camera = CameraModel(cam.nominal_intrinsics(), np.zeros(5), cam.width_px, cam.height_px)
+    elif (camera.width_px, camera.height_px) != (cam.width_px, cam.height_px):
+        raise ValueError(f"calibration camera: {camera.width_px}x{camera.height_px} px, the robot's camera "
+                         f"({robot.name}) is {cam.width_px}x{cam.height_px} px: a calibration of another camera")
+    T_base_lidar = robot.sensors.lidar.mount.transform()
+    T_base_cam = cam.mount.transform() if T_cam_lidar is None else T_base_lidar @ np.linalg.inv(T_cam_lidar)
     runner_config = config.vpp.runner.model_copy(update={"clock": "lockstep" if lockstep else "realtime"})
-    stage = VppStage(config.vpp, CameraModel(cam.nominal_intrinsics(), np.zeros(5), cam.width_px, cam.height_px),
-                     cam.mount.transform(), robot.sensors.lidar.mount.transform(),
-                     BackendRunner(backend, runner_config))
+    stage = VppStage(config.vpp, camera, T_base_cam, T_base_lidar, BackendRunner(backend, runner_config))
     return VppPartition(stage)
 
 

@@ -108,6 +108,10 @@ class Loaded:
     camera_K: np.ndarray
     camera_dist: np.ndarray
     bus_config: object
+    #: The calibration file's camera (CameraModel) and lidar-to-camera extrinsic (4x4) for the
+    #: VPP partition; None: the robot description's nominal camera and mounts.
+    camera: object = None
+    T_cam_lidar: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
 
 
@@ -135,8 +139,15 @@ def load_inputs(opts: RunOptions) -> Loaded:
     except ConfigFileError as exc:
         raise RunInputError(str(exc)) from None
     cfg_name = str(opts.config_path or "the shipped controller config")
+    camera = T_cam_lidar = None
     if cal is not None:
-        K, dist = np.asarray(cal.camera_model().K, float), np.asarray(cal.camera_model().dist, float)
+        from calibration.calibration_file import camera_for_robot
+
+        try:
+            camera, T_cam_lidar = camera_for_robot(cal, robot, opts.calibration_path)
+        except ConfigFileError as exc:
+            raise RunInputError(str(exc)) from None
+        K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
     else:
         K, dist = robot.sensors.camera.nominal_intrinsics(), np.zeros(5)
     if opts.planner is not None:
@@ -177,7 +188,7 @@ def load_inputs(opts: RunOptions) -> Loaded:
             DistanceNet.load(config.planner.distance_net_path, robot=robot)
         except DistanceNetError as exc:
             raise RunInputError(f"{cfg_name}: planner.distance_net_path: {exc}") from None
-    return Loaded(robot, config, wheel_calibration, K, dist, bus_config)
+    return Loaded(robot, config, wheel_calibration, K, dist, bus_config, camera=camera, T_cam_lidar=T_cam_lidar)
 
 
 def _percentiles(values_s: np.ndarray) -> dict:
@@ -294,7 +305,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
         controller = NavigationController(
             robot, config, hardware, Pose2D(*goal), clock=clock.now,
             sensors=inbox if config.uses_mpc else None, lockstep=False,
-            wheel_calibration=loaded.wheel_calibration,
+            wheel_calibration=loaded.wheel_calibration, camera=loaded.camera, T_cam_lidar=loaded.T_cam_lidar,
         )
         telemetry = TickTelemetry()
         latency = LatencyTracker()

@@ -64,6 +64,11 @@ class ModeContext:
     #: The contact-tolerance backend (models.vlm) a mode with a VLM partition uses: the simulator
     #: passes its sim-oracle; None: the mode builds the one the config names (`vpp.backend`).
     vlm_backend: Any = None
+    #: The camera as the robot's calibration file gives it (calibration.camera_model.CameraModel:
+    #: intrinsics and distortion) and the lidar-to-camera extrinsic (4x4 T_cam_lidar); None: the
+    #: robot description's nominal intrinsics and its mounts.
+    camera: Any = None
+    T_cam_lidar: Any = None
 
 
 @dataclass

@@ -19,6 +19,7 @@ def build(ctx: ModeContext) -> ModeStack:
 
         backend = build_backend(ctx.config.vpp.backend)
     stack = all_fixed.build(ctx)
-    stack.partition = build_vpp_partition(ctx.config, ctx.robot, backend, lockstep=not ctx.wall_clock_caps)
+    stack.partition = build_vpp_partition(ctx.config, ctx.robot, backend, lockstep=not ctx.wall_clock_caps,
+                                          camera=ctx.camera, T_cam_lidar=ctx.T_cam_lidar)
     stack.normal.name = "dct"
     return stack

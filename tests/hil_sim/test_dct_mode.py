@@ -44,3 +44,32 @@ def test_all_fixed_mode_has_no_vpp_and_runs_without_a_camera():
     result = run_episode(load_scenario("case1").model_copy(update={"time_limit_s": 1.0}), config=cfg, seed=0)
     assert "vpp" not in result.controller and result.controller["mode"] == "all-fixed"
     assert result.extra["sensor_frames"]["camera"] == 0, result.extra["sensor_frames"]
+
+
+def test_a_calibrated_camera_reaches_the_vpp_stage_and_its_images_are_taken():
+    """With a calibration file's camera (intrinsics 1% off the nominal ones, some distortion),
+    the VPP stage projects with the calibration's model and the images reach it carrying it
+    (as the ROS conversion does on the robot): none refused, the box still leaves P_fix."""
+    import numpy as np
+
+    from calibration.camera_model import CameraModel
+    from calibration.robot_description import load_robot_description
+
+    cam = load_robot_description().sensors.camera
+    K = cam.nominal_intrinsics() * np.array([[1.01, 1, 1], [1, 1.01, 1], [1, 1, 1]])
+    calibrated = CameraModel(K, np.array([-0.02, 0.005, 0.0, 0.0, 0.0]), cam.width_px, cam.height_px)
+    cfg = load_controller_config().with_planner_mode("dct")
+    scenario = load_scenario("case2").model_copy(update={"time_limit_s": 3.5})
+    movable, stage_K = [], []
+
+    def observe(controller):
+        frame = controller.vpp.last_frame
+        movable.append(0 if frame is None else frame.movable_count)
+        stage_K.append(controller.vpp.camera.K)
+
+    result = run_episode(scenario, config=cfg, seed=0, observe=observe, camera_calibration=(calibrated, None))
+    vpp = result.controller["vpp"]
+    assert vpp["images_refused"] == 0 and vpp["answers"] >= 1
+    assert np.array_equal(stage_K[-1], K)
+    assert max(movable) > 100
+    assert result.metrics["fixed_contacts"] == 0

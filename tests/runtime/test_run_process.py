@@ -76,6 +76,21 @@ def test_planner_mode_dct_with_the_sim_oracle_is_refused_clearly(tmp_path):
     assert "planner.mode dct with vpp.backend.kind sim-oracle" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
+def test_a_calibration_of_another_robot_or_camera_exits_2_naming_it(tmp_path):
+    from runtime.deploy.bundle import nominal_calibration_yaml
+
+    cal = yaml.safe_load(nominal_calibration_yaml(load_robot_description()))
+    for field, change in (("robot", {"robot": "another_robot"}),
+                          ("camera", {"camera": {**cal["camera"], "width_px": cal["camera"]["width_px"] // 2}})):
+        path = tmp_path / f"cal_{field}.yaml"
+        path.write_text(yaml.safe_dump({**cal, **change}))
+        r = subprocess.run(_dct("run", "--calibration", str(path), "--planner", "all-fixed", "--goal", "1", "0", "0"),
+                           capture_output=True, text=True, timeout=120)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1, r.stderr
+        assert f"{path}: {field}:" in lines[0], r.stderr
+
+
 class _Base(threading.Thread):
     """The emulated firmware on udp_multicast, stepped at 1 kHz; wheels follow their targets."""
 
