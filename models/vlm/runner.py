@@ -28,6 +28,11 @@ Two clocks (DESIGN.md section 6), as runtime.odometry.worker:
   `max_abandoned` abandoned threads are still running, new requests get an error answer at once
   instead of a thread (a hung backend does not pile up threads).
 
+Post-processing beside the tick: `post(request, answer)`, if set, is called with every valid
+answer (no error) right after the backend's, where the backend ran (the worker thread, or
+inline in settle in lockstep), before the answer is ready: the VPP stage prepares Phase II there
+(runtime.vpp.stage). An exception from it turns the answer into an error answer (named).
+
 Every answer carries the request's stamp and camera pose. `latency_s` of an answer: simulated
 in lockstep, the wall time from start to delivery-ready in real time.
 
@@ -43,7 +48,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 
@@ -107,6 +112,8 @@ class BackendRunner:
                              f"than the runner's timeout_s {c.timeout_s}: its answers would be abandoned")
         self.latency_s = lat
         self.lockstep = c.clock == "lockstep"
+        #: Called beside the tick with (request, answer) for every valid answer (module docstring).
+        self.post: Callable[[VlmRequest, VlmAnswer], None] | None = None
         self._in_flight: _Job | None = None
         self._waiting: _Job | None = None
         self._done: deque[tuple[float, VlmAnswer]] = deque()  # (ready time, answer), in order
@@ -143,6 +150,11 @@ class BackendRunner:
                 answer = self._validated(job.request, answer)
         except Exception as exc:  # a backend that raises: an error answer, never the caller's exception
             answer = self._error(job.request, f"{self.name}: {type(exc).__name__}: {exc}"[:500], 0.0)
+        if self.post is not None and answer.error is None:
+            try:
+                self.post(job.request, answer)
+            except Exception as exc:  # a bug in the post-processing: named, and the answer not used
+                answer = self._error(job.request, f"post-processing: {type(exc).__name__}: {exc}"[:500], 0.0)
         job.answer = answer
         job.finished_wall_s = time.monotonic()
         job.done.set()

@@ -25,7 +25,7 @@ that stopped answering degrades to "no masks" (all points P_fix), never to stale
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -168,12 +168,15 @@ def _check_pose(T: np.ndarray, name: str) -> np.ndarray:
 
 class MaskMemory:
     """The memory list of Algorithm 1 with Phases I and II. Not thread-safe: the tick owns it;
-    answers reach it through the runner's queue and are reconciled in the tick."""
+    answers reach it through the runner's queue, prepared beside the tick (AnswerPreparer), and
+    are applied in the tick."""
 
     def __init__(self, camera: CameraModel, config: MaskMemoryConfig | None = None) -> None:
         self.camera = camera
         self.config = config or MaskMemoryConfig()
         self.warper = MaskWarper(camera)
+        #: Phase II's image work, for `reconcile` (the stage runs its own beside the tick).
+        self.preparer = AnswerPreparer(camera, self.config)
         self.entries: list[MaskEntry] = []
         self._source: tuple[tuple[MaskEntry, ...], WarpSource] | None = None  # lookup() of these entries
         self._outlines: dict[int, tuple[MaskEntry, np.ndarray]] = {}  # id(entry) -> (entry, mask_outline)
@@ -250,33 +253,12 @@ class MaskMemory:
         return self._source[1].mask_px if self._source is not None else np.zeros(0)
 
     # ------------------------------------------------------------------ Phase II
-    def _plane_for(self, mask: np.ndarray, points_cam: np.ndarray | None) -> Plane | None:
-        if points_cam is None:
-            return None
-        c = self.config
-        return estimate_plane(self.camera, mask, points_cam, method=c.plane_method, min_points=c.plane_min_points,
-                              depth_gate_m=c.plane_depth_gate_m, max_rms_m=c.plane_max_rms_m)
-
-    def _entry_from(self, object_id: int, obj, answer: VlmAnswer, T: np.ndarray, prompt: str,
-                    points_cam: np.ndarray | None, where: str) -> MaskEntry:
-        try:
-            mask = self.warper.check_mask(obj.mask, f"{where} mask")
-        except HomographyError as e:
-            raise MaskMemoryError(str(e)) from None
-        if not mask.any():
-            raise MaskMemoryError(f"{where} mask: empty")
-        cost = float(obj.contact_cost)
-        if not MIN_CONTACT_COST <= cost <= MAX_CONTACT_COST:
-            raise MaskMemoryError(f"{where} contact_cost: must be in 0..10, got {cost}")
-        conf = float(obj.confidence)
-        if not 0.0 <= conf <= 1.0:
-            raise MaskMemoryError(f"{where} confidence: must be in 0..1, got {conf}")
-        return MaskEntry(object_id, prompt, str(obj.label), bool(obj.movable), cost, conf, mask.copy(), T.copy(),
-                         float(answer.stamp_s), self._plane_for(mask, points_cam))
-
     def reconcile(self, answer: VlmAnswer, *, prompt: str = "", points_cam: np.ndarray | None = None,
                   now_s: float | None = None) -> ReconcileResult:
-        """Phase II: merge a fresh answer into the memory (see the module docstring).
+        """Phase II: merge a fresh answer into the memory (see the module docstring), both halves
+        here: `prepare` (the planes, the warps and the IoU) and `apply`. The VPP stage runs the
+        first beside the tick (AnswerPreparer in the backend runner's worker) and only `apply`
+        in the tick.
 
         points_cam: the lidar points nearest the answer's capture time, in the CAPTURE camera
         frame (N, 3), used to estimate each fresh mask's plane; None = depth unknown
@@ -284,13 +266,20 @@ class MaskMemory:
         """
         if now_s is not None:
             self.expire(now_s)
-        if not math.isfinite(answer.stamp_s):
-            raise MaskMemoryError(f"answer stamp_s: not finite ({answer.stamp_s})")
-        T = _check_pose(answer.camera_pose_odom, "answer camera_pose_odom")
-        if points_cam is not None:
-            p = np.asarray(points_cam)
-            if p.ndim != 2 or p.shape[1] != 3:
-                raise MaskMemoryError(f"points_cam: expected an (N, 3) array, got shape {p.shape}")
+        return self.apply(self.preparer.prepare(answer, tuple(self.entries), prompt=prompt, points_cam=points_cam),
+                          now_s)
+
+    def apply(self, prepared: "PreparedAnswer", now_s: float | None = None) -> ReconcileResult:
+        """Phase II's bookkeeping for an answer prepared beside the tick (AnswerPreparer): age
+        out (now_s), the checks that ignore an answer (failed, too old, out of order), then the
+        matching of eq. 5 on the prepared IoU of the entries still here (an entry aged out since
+        the preparation has no row). Cheap: no image work. MaskMemoryError when the answer or one
+        of its objects was invalid (the memory unchanged)."""
+        if now_s is not None:
+            self.expire(now_s)
+        answer = prepared.answer
+        if prepared.input_error is not None:
+            raise prepared.input_error
         if answer.error is not None:
             return ReconcileResult(ignored=f"backend failed: {answer.error}")
         if now_s is not None and now_s - answer.stamp_s > self.config.max_age_s:
@@ -300,16 +289,20 @@ class MaskMemory:
         if self.last_answer_s is not None and answer.stamp_s < self.last_answer_s:
             return ReconcileResult(
                 ignored=f"answer captured at {answer.stamp_s} is older than the last one ({self.last_answer_s})")
-        # Validate every fresh object before touching the memory (all or nothing).
-        fresh = [self._entry_from(-1, o, answer, T, prompt, points_cam, f"answer object {i}")
-                 for i, o in enumerate(answer.objects)]
+        if prepared.object_error is not None:  # all or nothing: no object of a bad answer enters
+            raise prepared.object_error
+        fresh = prepared.fresh
         self.last_answer_s = float(answer.stamp_s)
         old = self.entries
+        row = {id(e): k for k, e in enumerate(prepared.old)}
         matched = []
         claimed: dict[int, tuple[int, float]] = {}  # fresh index -> (entry index, IoU)
         if old and fresh:
-            warped = np.stack([self.warp_entry(e, T).mask for e in old])
-            iou = iou_matrix(warped, np.stack([f.mask for f in fresh]))
+            iou = np.zeros((len(old), len(fresh)))
+            for j, e in enumerate(old):
+                k = row.get(id(e))
+                if k is not None and prepared.old[k] is e:
+                    iou[j] = prepared.iou[k]
             best = iou.argmax(axis=1)
             best_iou = iou[np.arange(len(old)), best]
             for j in np.argsort(-best_iou, kind="stable"):  # higher IoU claims first
@@ -334,11 +327,97 @@ class MaskMemory:
         return ReconcileResult(tuple(sorted(matched)), tuple(dropped), tuple(inserted))
 
 
+@dataclass(frozen=True, eq=False)
+class PreparedAnswer:
+    """Phase II's heavy half for one answer (AnswerPreparer.prepare): its objects as entries
+    (id -1; each with its plane from the lidar points), and the IoU of every remembered entry it
+    was prepared against, warped to the answer's capture pose, with every fresh mask. An invalid
+    answer carries its error instead (raised by MaskMemory.apply, in the tick)."""
+
+    answer: VlmAnswer
+    fresh: tuple[MaskEntry, ...] = ()
+    old: tuple[MaskEntry, ...] = ()  # the entries the IoU rows belong to (by identity)
+    iou: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (len(old), len(fresh))
+    input_error: MaskMemoryError | None = None  # stamp, pose, points: nothing prepared
+    object_error: MaskMemoryError | None = None  # an object of the answer (mask, cost, confidence)
+
+
+class AnswerPreparer:
+    """Phase II's image work for an answer: validates its objects, estimates their planes from
+    the lidar points at capture, warps the remembered masks to the capture pose and computes the
+    IoU matrix (tens of ms with 8 masks: beside the tick, never in it). Owns its camera model
+    and warper (their work buffers are not shared with the tick's), reads the entries it is
+    given (immutable) and changes nothing else: safe in the backend runner's worker thread."""
+
+    def __init__(self, camera: CameraModel, config: MaskMemoryConfig | None = None) -> None:
+        self.camera = CameraModel(np.array(camera.K, dtype=np.float64), np.array(camera.dist, dtype=np.float64),
+                                  camera.width_px, camera.height_px)
+        self.config = config or MaskMemoryConfig()
+        self.warper = MaskWarper(self.camera)
+
+    def prepare(self, answer: VlmAnswer, entries: tuple[MaskEntry, ...], *, prompt: str = "",
+                points_cam: np.ndarray | None = None) -> PreparedAnswer:
+        try:
+            if not math.isfinite(answer.stamp_s):
+                raise MaskMemoryError(f"answer stamp_s: not finite ({answer.stamp_s})")
+            T = _check_pose(answer.camera_pose_odom, "answer camera_pose_odom")
+            if points_cam is not None:
+                p = np.asarray(points_cam)
+                if p.ndim != 2 or p.shape[1] != 3:
+                    raise MaskMemoryError(f"points_cam: expected an (N, 3) array, got shape {p.shape}")
+        except MaskMemoryError as exc:
+            return PreparedAnswer(answer, input_error=exc)
+        if answer.error is not None:
+            return PreparedAnswer(answer)
+        # Validate every fresh object before touching the memory (all or nothing).
+        try:
+            fresh = tuple(self._entry_from(-1, o, answer, T, prompt, points_cam, f"answer object {i}")
+                          for i, o in enumerate(answer.objects))
+        except MaskMemoryError as exc:
+            return PreparedAnswer(answer, object_error=exc)
+        old = tuple(entries)
+        iou = np.zeros((len(old), len(fresh)))
+        if old and fresh:
+            warped = np.stack([self.warp_entry(e, T) for e in old])
+            iou = iou_matrix(warped, np.stack([f.mask for f in fresh]))
+        return PreparedAnswer(answer, fresh, old, iou)
+
+    def warp_entry(self, entry: MaskEntry, camera_pose_odom: np.ndarray) -> np.ndarray:
+        R, t = relative_motion(entry.camera_pose_odom, camera_pose_odom)
+        return self.warper.warp(entry.mask, R, t, entry.plane)
+
+    def _plane_for(self, mask: np.ndarray, points_cam: np.ndarray | None) -> Plane | None:
+        if points_cam is None:
+            return None
+        c = self.config
+        return estimate_plane(self.camera, mask, points_cam, method=c.plane_method, min_points=c.plane_min_points,
+                              depth_gate_m=c.plane_depth_gate_m, max_rms_m=c.plane_max_rms_m)
+
+    def _entry_from(self, object_id: int, obj, answer: VlmAnswer, T: np.ndarray, prompt: str,
+                    points_cam: np.ndarray | None, where: str) -> MaskEntry:
+        try:
+            mask = self.warper.check_mask(obj.mask, f"{where} mask")
+        except HomographyError as e:
+            raise MaskMemoryError(str(e)) from None
+        if not mask.any():
+            raise MaskMemoryError(f"{where} mask: empty")
+        cost = float(obj.contact_cost)
+        if not MIN_CONTACT_COST <= cost <= MAX_CONTACT_COST:
+            raise MaskMemoryError(f"{where} contact_cost: must be in 0..10, got {cost}")
+        conf = float(obj.confidence)
+        if not 0.0 <= conf <= 1.0:
+            raise MaskMemoryError(f"{where} confidence: must be in 0..1, got {conf}")
+        return MaskEntry(object_id, prompt, str(obj.label), bool(obj.movable), cost, conf, mask.copy(), T.copy(),
+                         float(answer.stamp_s), self._plane_for(mask, points_cam))
+
+
 __all__ = [
+    "AnswerPreparer",
     "MaskEntry",
     "MaskMemory",
     "MaskMemoryConfig",
     "MaskMemoryError",
+    "PreparedAnswer",
     "ReconcileResult",
     "WarpedMask",
     "iou_matrix",

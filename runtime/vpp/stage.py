@@ -2,8 +2,11 @@
 
 Per tick, in this order:
 1. answers the backend runner delivered by now (models/vlm/runner.py) are reconciled into the
-   mask memory (Phase II, eq. 5), each with the newest scan at its request, placed in the
-   capture camera's frame through the odom frame, for the plane of every fresh mask;
+   mask memory (Phase II, eq. 5). Its image work (the plane of every fresh mask from the newest
+   scan at the request, placed in the capture camera's frame through the odom frame; every
+   remembered mask warped to the capture pose; the IoU matrix: tens of ms) was done beside the
+   tick, in the runner's worker when the answer came (`_prepare`, mask_memory.AnswerPreparer);
+   the tick only applies it (MaskMemory.apply: the matching, ids, entries);
 2. a new camera image is sent to the backend when the trigger rule says so (line 3: moved more
    than d_thres, or t_thres passed, or the memory is empty) and no request is in flight; the
    camera pose at capture is the pose of the tick that received the image (at 20 Hz, at most
@@ -27,6 +30,7 @@ is the optical frame (z forward, x right, y down), as the robot description moun
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -34,11 +38,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.camera_model import CameraModel
-from models.vlm.interface import VlmRequest
+from models.vlm.interface import VlmAnswer, VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
 from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
-from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, MaskMemoryError, ReconcileResult
+from runtime.vpp.mask_memory import (AnswerPreparer, MaskMemory, MaskMemoryConfig, MaskMemoryError,
+                                     PreparedAnswer, ReconcileResult)
 from runtime.vpp.partition import MOVABLE, PartitionConfig, PointPartition, PointPartitioner, _transform
 from runtime.vpp.tracking import ObjectTracker, TrackingConfig
 
@@ -113,6 +118,10 @@ class VppStage:
         self.T_cam_lidar = np.linalg.inv(self.T_base_cam) @ self.T_base_lidar
         self.runner = runner
         self.memory = MaskMemory(camera, config.memory)
+        # Phase II's image work beside the tick: its own camera model and warper (not the tick's)
+        self._preparer = AnswerPreparer(camera, config.memory)
+        self._prepared: dict[float, PreparedAnswer] = {}  # answer stamp -> prepared (worker writes, tick pops)
+        runner.post = self._prepare
         self.partitioner = PointPartitioner(config.partition)
         self._per_pixel = lookup_supported(camera)
         if self._per_pixel:
@@ -156,10 +165,15 @@ class VppStage:
         for answer in self.runner.poll(now_s):
             self.answers += 1
             self.failed_answers += int(answer.error is not None)
-            points_cam = self._points_cam_at.pop(float(answer.stamp_s), None)
+            stamp = float(answer.stamp_s)
+            points_cam = self._points_cam_at.pop(stamp, None)
+            prepared = self._prepared.pop(stamp, None)
+            if prepared is None or prepared.answer.objects is not answer.objects:
+                # not prepared beside the tick (an error answer: nothing to prepare, cheap)
+                prepared = self._preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
+                                                  points_cam=points_cam)
             try:
-                self.last_reconcile = self.memory.reconcile(answer, prompt=self.config.prompt,
-                                                            points_cam=points_cam, now_s=now_s)
+                self.last_reconcile = self.memory.apply(prepared, now_s)
             except MaskMemoryError as exc:  # the memory stays as it was; the answer is named, not raised
                 self.rejected_answers += 1
                 self.last_rejection = str(exc)
@@ -186,6 +200,17 @@ class VppStage:
         self.frames += 1
         self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
         return self.last_frame
+
+    def _prepare(self, request: VlmRequest, answer: VlmAnswer) -> None:
+        """Phase II's image work for an answer, in the runner's worker (lockstep: in settle, the
+        simulator's barrier): against the entries the memory holds now (only the tick changes
+        them, by applying answers, one in flight at a time, and by ageing out: an entry gone by
+        the time the tick applies this has no IoU row then)."""
+        # the answer as the runner will deliver it: the request's stamp and camera pose
+        answer = dataclasses.replace(answer, stamp_s=request.stamp_s, camera_pose_odom=request.camera_pose_odom)
+        stamp = float(answer.stamp_s)
+        self._prepared[stamp] = self._preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
+                                                       points_cam=self._points_cam_at.get(stamp))
 
     def _gates(self, entry, warped_px: float, captured_px: float) -> bool:
         """Does this entry's warped mask gate points this scan? Movable, below never_touch_cost,

@@ -157,3 +157,66 @@ def test_a_mask_the_warp_swells_is_not_trusted():
     assert near.masks_used == 1 and stage.masks_distrusted == 0
     close = stage.update(0.7, (1.0, 0.0, 0.0), None, scan_at(0.7)[0])
     assert close.masks_used == 0 and stage.masks_distrusted == 1
+
+
+def test_phase_two_image_work_runs_beside_the_tick_and_the_tick_only_applies_it(monkeypatch):
+    """The planes, warps and IoU of an answer are computed where the backend ran (lockstep: in
+    settle, the simulator's barrier; real time: the runner's worker), never in update; an answer
+    for a memory that already holds the box matches it (same id) after a second answer."""
+    from runtime.vpp import mask_memory
+
+    stage = make(FakeVlm(cost=2.0))
+    in_update, prepared_in = [False], []
+    real_prepare, real_update = mask_memory.AnswerPreparer.prepare, VppStage.update
+
+    def prepare(self, *a, **k):
+        prepared_in.append("update" if in_update[0] else "beside")
+        return real_prepare(self, *a, **k)
+
+    def update(self, *a, **k):
+        in_update[0] = True
+        try:
+            return real_update(self, *a, **k)
+        finally:
+            in_update[0] = False
+
+    monkeypatch.setattr(mask_memory.AnswerPreparer, "prepare", prepare)
+    monkeypatch.setattr(VppStage, "update", update)
+    stage.update(0.0, (0.0, 0.0, 0.0), image_at(0.0), scan_at(0.0)[0])
+    stage.settle(0.55)
+    assert prepared_in == ["beside"]
+    frame = stage.update(0.55, (0.0, 0.0, 0.0), image_at(0.55), scan_at(0.55)[0])
+    assert stage.answers == 1 and frame.masks_used == 1
+    first_id = stage.memory.entries[0].object_id
+    stage.update(2.7, (0.0, 0.0, 0.0), image_at(2.7), scan_at(2.7)[0])  # t_thres passed: asks again
+    stage.settle(3.25)
+    stage.update(3.25, (0.0, 0.0, 0.0), None, scan_at(3.25)[0])
+    assert stage.answers == 2 and prepared_in == ["beside", "beside"]
+    assert [e.object_id for e in stage.memory.entries] == [first_id]  # matched by IoU, not re-inserted
+    assert stage.last_reconcile.matched and not stage.last_reconcile.inserted
+
+
+def test_the_real_time_runner_prepares_phase_two_in_its_worker_thread():
+    import threading
+    import time
+
+    seen = []
+
+    runner = BackendRunner(FakeVlm(), BackendRunnerConfig(clock="realtime", latency_s=0.0, timeout_s=5.0))
+    stage = VppStage(VppConfig(), CAMERA, T_BASE_CAM, T_BASE_LIDAR, runner)
+    real = stage._preparer.prepare
+
+    def prepare(*a, **k):
+        seen.append(threading.current_thread() is threading.main_thread())
+        return real(*a, **k)
+
+    stage._preparer.prepare = prepare
+    stage.update(0.0, (0.0, 0.0, 0.0), image_at(0.0), scan_at(0.0)[0])
+    deadline = time.monotonic() + 10.0
+    while stage.answers == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+        stage.update(0.1, (0.0, 0.0, 0.0), None, scan_at(0.1)[0])
+    stage.close()
+    assert stage.answers == 1 and stage.rejected_answers == 0
+    assert seen == [False]  # in the worker, not in the tick's thread
+    assert len(stage.memory.entries) == 1
