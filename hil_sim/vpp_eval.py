@@ -34,7 +34,9 @@ its memory's masks and planes), against ground truth the controller never sees:
   the same samples). Walls are not evaluated (obstacles only).
 
 `stage_ms`: wall-clock time of VppStage.update on the ticks with a new scan (a measurement of this
-machine, beside the deterministic figures).
+machine, beside the deterministic figures); `stage_cpu_ms` the same calls' CPU time (the thread's:
+what they cost a core, without the time other processes took it). Phase II's image work is not
+in them: it runs beside the tick, in the backend runner's worker (runtime/vpp/stage.py).
 """
 from __future__ import annotations
 
@@ -111,6 +113,7 @@ class VppProbe:
         self.iou: dict[str, dict[float, list[float]]] = {m: {d: [] for d in self.distances} for m in METHODS}
         self.left_out = {"moved": 0, "out_of_view": 0, "no_plane": 0, "no_image_near_distance": 0}
         self.stage_s: list[float] = []
+        self.stage_cpu_s: list[float] = []
         self.samples: list[dict] = []  # every scored (capture, distance): object, IoU per method
         self._travel = 0.0
         self._last_xy: tuple[float, float] | None = None
@@ -139,10 +142,11 @@ class VppProbe:
         update = self.stage.update
 
         def timed_update(now_s, pose, image, scan):  # the stage's own work, timed on scan ticks
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             out = update(now_s, pose, image, scan)
             if scan is not None:
                 self.stage_s.append(time.perf_counter() - t0)
+                self.stage_cpu_s.append(time.thread_time() - c0)
             return out
 
         self.stage.update = timed_update
@@ -301,6 +305,7 @@ class VppProbe:
             return a / b if b else None
 
         stage_ms = np.asarray(self.stage_s) * 1e3
+        cpu_ms = np.asarray(self.stage_cpu_s) * 1e3
         return {
             "frames": self.frames,
             "frames_before_first_answer": self.frames_before_answer,
@@ -323,6 +328,11 @@ class VppProbe:
                 "max": float(stage_ms.max()) if stage_ms.size else None,
                 "frames": int(stage_ms.size),
             },
+            "stage_cpu_ms": {
+                "p50": float(np.percentile(cpu_ms, 50)) if cpu_ms.size else None,
+                "p99": float(np.percentile(cpu_ms, 99)) if cpu_ms.size else None,
+                "max": float(cpu_ms.max()) if cpu_ms.size else None,
+            },
         }
 
 
@@ -330,7 +340,7 @@ def evaluate_scenario(scenario: str, seed: int = 0, oracle: SimOracleConfig | No
                       progress: Callable[[float, float], None] | None = None,
                       camera_rate_hz: float = 10.0, distances_m=DISTANCES_M) -> dict:
     """One closed-loop dct episode with the probe attached (module docstring); JSON-ready figures."""
-    sc = load_scenario(scenario)
+    sc = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
     config = load_controller_config()
     config = config.with_planner_mode("dct")
     oracle = (oracle or SimOracleConfig()).model_copy(update={"seed": seed})

@@ -49,9 +49,9 @@ def summary_lines(report: dict) -> list[str]:
         lines.append(f"  warped-mask IoU, {method:<12} {cells}")
     lines.append("  samples per distance: " + ", ".join(f"{d} m {n}" for d, n in samples.items())
                  + "; left out: " + ", ".join(f"{k} {v}" for k, v in report["iou_left_out"].items()))
-    s = report["stage_ms"]
+    s, c = report["stage_ms"], report["stage_cpu_ms"]
     lines.append(f"  VPP stage (this machine) p50 {_fmt(s['p50'], '.2f')} ms, p99 {_fmt(s['p99'], '.2f')} ms "
-                 f"over {s['frames']} scans")
+                 f"over {s['frames']} scans; CPU p50 {_fmt(c['p50'], '.2f')} ms, p99 {_fmt(c['p99'], '.2f')} ms")
     e = report["episode"]
     lines.append(f"  episode: {'success' if e['success'] else 'FAILED'} in {e['navigation_time_s']:.2f} s, "
                  f"{e['fixed_contacts']} fixed contacts" + (f" ({e['failure_reason']})" if e['failure_reason'] else ""))
