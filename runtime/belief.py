@@ -1,0 +1,251 @@
+"""What the controller believes each touchable obstacle is, and how contact changes it (BEACON,
+../shared/seeds/003_*, sections III-B and III-C; the resistance estimate after the NAMO paper, 004_*).
+
+Per obstacle (an object id of the VPP stage), a categorical belief over the interaction classes
+C = {movable, heavy, fragile}:
+- movable: it gives way to a push of the robot (a curtain, an empty box);
+- heavy: it does not (the backend said movable; it is full, or fixed to the floor);
+- fragile: contact would damage it (cost >= the never-touch cost: never pushed).
+
+Prior (BEACON eq. 2: the backend's scores, normalised): the backend's answer is a movable flag
+and an IMPACT contact cost 0..10 with a confidence. A movable object below the never-touch cost
+starts at `confidence` on movable, the rest split between heavy and fragile by how close its cost
+is to the never-touch cost; a movable object at or above it starts on fragile; an object the
+backend called not movable starts on heavy.
+
+Evidence (BEACON eq. 3, Bayes' rule b'(c) ~ P(e | c) b(c), then normalised):
+- push outcome: after the robot pushed on the object for a while (the correcting mode's stall
+  test or a push that went on `push_window_s`), whether the tracker saw it move more than
+  `moved_m` (runtime/vpp/tracking.py), with likelihoods `p_moved` per class;
+- resistance: during contact, the force the wheels put out beyond what the robot's own motion
+  needs (PushResistanceEstimator below, from the motor currents of 0x251-0x254, the torque
+  constant and the wheel radius of the robot description) against the robot's acceleration.
+  Its likelihood per class is a Gaussian on the force: light for movable and fragile objects,
+  near the drive's limit for heavy ones.
+
+Decisions the controller takes from it (runtime/vpp/stage.py): an object is treated as fixed when
+P(heavy) or P(fragile) reaches `fixed_above` (it leaves P_mov; fragile ones are never contacted),
+and its contact cost in the reference path is the belief's expected cost. With the belief
+switched off (`enabled: false`, the `fixed-labels` ablation) the backend's label is final.
+
+Everything is on the controller's clock; no wall clock (lockstep determinism).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+CLASSES = ("movable", "heavy", "fragile")
+MOVABLE, HEAVY, FRAGILE = range(3)
+
+
+class BeliefConfig(BaseModel):
+    """Settings of the per-obstacle belief (controller config `vpp.belief`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    #: False: the backend's labels are final (the `fixed-labels` ablation of issue 14).
+    enabled: bool = True
+    #: P(moved | class) for a push outcome, per class in CLASSES order.
+    p_moved: tuple[float, float, float] = (0.9, 0.05, 0.6)
+    #: A push that displaced the object (tracker anchor) at least this far: "moved" (m).
+    moved_m: float = Field(0.05, gt=0.0, le=1.0)
+    #: Resistance likelihood: Gaussian mean and sigma per class, as fractions of the drive's
+    #: force limit (movable and fragile: light; heavy: at the limit).
+    resistance_mean: tuple[float, float, float] = (0.15, 0.9, 0.15)
+    resistance_sigma: tuple[float, float, float] = (0.2, 0.25, 0.2)
+    #: An object whose P(heavy) or P(fragile) reaches this is treated as fixed.
+    fixed_above: float = Field(0.7, gt=0.0, le=1.0)
+    #: A class probability never goes below this (one wrong observation must be recoverable).
+    floor: float = Field(0.01, ge=0.0, lt=0.3)
+    #: Risk per class (BEACON R(c)) on the IMPACT 0..10 scale, for the expected contact cost:
+    #: movable takes the backend's own cost.
+    heavy_cost: float = Field(10.0, ge=0.0, le=10.0)
+    fragile_cost: float = Field(10.0, ge=0.0, le=10.0)
+    #: Trace entries kept per obstacle (telemetry).
+    max_trace: int = Field(200, ge=1, le=100000)
+
+    @model_validator(mode="after")
+    def _probabilities(self) -> "BeliefConfig":
+        for name in ("p_moved",):
+            if not all(0.0 < p < 1.0 for p in getattr(self, name)):
+                raise ValueError(f"{name}: every likelihood must be in (0, 1), got {getattr(self, name)}")
+        if not all(s > 0.0 for s in self.resistance_sigma):
+            raise ValueError(f"resistance_sigma: must be > 0, got {self.resistance_sigma}")
+        return self
+
+
+@dataclass
+class ObjectBelief:
+    """One obstacle's belief and how it came to be (trace: (time s, evidence, probabilities))."""
+
+    object_id: int
+    probs: np.ndarray  # (3,) over CLASSES, sums to 1
+    backend_cost: float  # the backend's contact cost (0..10)
+    trace: list[tuple[float, str, tuple[float, float, float]]] = field(default_factory=list)
+
+    def most_likely(self) -> str:
+        return CLASSES[int(np.argmax(self.probs))]
+
+    def as_dict(self) -> dict:
+        return {"object_id": self.object_id, "probs": dict(zip(CLASSES, (round(float(p), 4) for p in self.probs))),
+                "backend_cost": self.backend_cost, "trace": [list(t) for t in self.trace]}
+
+
+class BeliefTable:
+    """The beliefs of every obstacle the backend named (module docstring)."""
+
+    def __init__(self, config: BeliefConfig | None = None, never_touch_cost: float = 8.0) -> None:
+        self.config = config or BeliefConfig()
+        self.never_touch_cost = float(never_touch_cost)
+        self.beliefs: dict[int, ObjectBelief] = {}
+        self.updates = 0  # evidence applied (counter)
+
+    # ------------------------------------------------------------------ prior
+    def prior(self, movable: bool, cost: float, confidence: float) -> np.ndarray:
+        """BEACON's pi_0 from the backend's answer (module docstring)."""
+        conf = min(max(float(confidence), 0.0), 1.0)
+        if not movable:
+            p = np.array([(1.0 - conf) / 2, conf, (1.0 - conf) / 2])
+        elif cost >= self.never_touch_cost:
+            p = np.array([(1.0 - conf) / 2, (1.0 - conf) / 2, conf])
+        else:
+            frag = min(max(cost / self.never_touch_cost, 0.0), 1.0)  # 0: brush freely .. 1: at the limit
+            p = np.array([conf, (1.0 - conf) * (1.0 - frag), (1.0 - conf) * frag])
+        return self._normalised(p)
+
+    def observe_answer(self, object_id: int, movable: bool, cost: float, confidence: float, t_s: float) -> ObjectBelief:
+        """A backend answer about object_id: a new object starts from the prior; a known one
+        keeps what contact taught it (an answer is a prior, not evidence about pushes) and takes
+        the answer's cost."""
+        b = self.beliefs.get(int(object_id))
+        if b is None:
+            b = ObjectBelief(int(object_id), self.prior(movable, cost, confidence), float(cost))
+            self.beliefs[int(object_id)] = b
+            self._trace(b, t_s, "prior")
+        else:
+            b.backend_cost = float(cost)
+        return b
+
+    def rename(self, old_id: int, new_id: int) -> None:
+        """The stage gave the object a new id (a re-identification): its belief follows."""
+        b = self.beliefs.pop(int(old_id), None)
+        if b is not None and int(new_id) not in self.beliefs:
+            b.object_id = int(new_id)
+            self.beliefs[int(new_id)] = b
+
+    # ------------------------------------------------------------------ evidence
+    def observe_push(self, object_id: int, moved: bool, t_s: float) -> ObjectBelief | None:
+        """A push outcome (BEACON eq. 3)."""
+        b = self.beliefs.get(int(object_id))
+        if b is None or not self.config.enabled:
+            return b
+        like = np.asarray(self.config.p_moved)
+        self._update(b, like if moved else 1.0 - like, t_s, "moved" if moved else "not moved")
+        return b
+
+    def observe_resistance(self, object_id: int, force_fraction: float, t_s: float) -> ObjectBelief | None:
+        """The push force the object resisted with, as a fraction of the drive's force limit."""
+        b = self.beliefs.get(int(object_id))
+        if b is None or not self.config.enabled or not math.isfinite(force_fraction):
+            return b
+        m = np.asarray(self.config.resistance_mean)
+        s = np.asarray(self.config.resistance_sigma)
+        like = np.exp(-0.5 * ((float(force_fraction) - m) / s) ** 2) / s
+        self._update(b, like, t_s, f"resistance {force_fraction:.2f}")
+        return b
+
+    # ------------------------------------------------------------------ decisions
+    def is_fixed(self, object_id: int) -> bool:
+        """Treat object_id as fixed: P(heavy) or P(fragile) reached fixed_above."""
+        b = self.beliefs.get(int(object_id))
+        if b is None or not self.config.enabled:
+            return False
+        return bool(max(b.probs[HEAVY], b.probs[FRAGILE]) >= self.config.fixed_above)
+
+    def expected_cost(self, object_id: int, backend_cost: float) -> float:
+        """BEACON's E_c[R(c)] on the IMPACT scale: the backend's cost for movable, the configured
+        costs for heavy and fragile. Without a belief (or switched off): the backend's cost."""
+        b = self.beliefs.get(int(object_id))
+        if b is None or not self.config.enabled:
+            return float(backend_cost)
+        c = self.config
+        return float(b.probs @ np.array([backend_cost, c.heavy_cost, c.fragile_cost]))
+
+    def describe(self) -> dict:
+        return {"enabled": self.config.enabled, "updates": self.updates,
+                "objects": {str(k): b.as_dict() for k, b in sorted(self.beliefs.items())}}
+
+    # ------------------------------------------------------------------ helpers
+    def _normalised(self, p: np.ndarray) -> np.ndarray:
+        """A distribution whose classes all keep at least about `floor` (p sums to 1 already)."""
+        p = np.maximum(np.asarray(p, dtype=np.float64), self.config.floor)
+        return p / p.sum()
+
+    def _update(self, b: ObjectBelief, likelihood: np.ndarray, t_s: float, what: str) -> None:
+        post = b.probs * likelihood
+        b.probs = self._normalised(post / post.sum())
+        self.updates += 1
+        self._trace(b, t_s, what)
+
+    def _trace(self, b: ObjectBelief, t_s: float, what: str) -> None:
+        b.trace.append((round(float(t_s), 3), what, tuple(round(float(p), 4) for p in b.probs)))
+        if len(b.trace) > self.config.max_trace:
+            del b.trace[: len(b.trace) - self.config.max_trace]
+
+
+class PushResistanceEstimator:
+    """The force an obstacle opposes to the robot, from the wheel motor currents (0x251-0x254)
+    against the robot's acceleration (NAMO's interaction-based estimate, with the robot's mass as
+    the known body): F_wheels = sum(kt * i_k) / r_wheel; F_obstacle = F_wheels - m a - F_free(v),
+    where F_free is what the robot needs to drive itself at speed v on this floor (rolling and
+    drive losses), learned online from the ticks without contact (an exponential mean per speed
+    bin). Returned as a fraction of the drive's force limit (n_motors kt i_limit / r_wheel)."""
+
+    SPEED_BINS = (0.0, 0.1, 0.25, 0.5, 0.75, 10.0)
+
+    def __init__(self, robot, alpha: float = 0.05) -> None:
+        mot = robot.motors
+        self.kt = float(mot.torque_constant_nm_per_a)
+        self.r = float(robot.drive.wheel_radius_m)
+        self.mass = float(robot.mass_kg)
+        self.f_max = mot.count * self.kt * float(mot.current_limit_a) / self.r
+        self.alpha = float(alpha)
+        self._free = np.zeros(len(self.SPEED_BINS) - 1)
+        self._free_n = np.zeros(len(self.SPEED_BINS) - 1, dtype=np.int64)
+        self._last_v: tuple[float, float] | None = None  # (time, speed)
+
+    def _bin(self, v: float) -> int:
+        return int(np.clip(np.searchsorted(self.SPEED_BINS, abs(v), side="right") - 1, 0, len(self._free) - 1))
+
+    def update(self, t_s: float, v_mps: float, currents_a, in_contact: bool) -> float | None:
+        """One tick: the forward speed, the four motor currents (signed as the wheels drive the
+        robot forward: left and right wheels both positive when driving forward) and whether the
+        robot is touching an obstacle. Returns the obstacle's force fraction in contact (None
+        otherwise, or before an acceleration can be formed, or without currents)."""
+        if currents_a is None or not math.isfinite(v_mps):
+            self._last_v = None
+            return None
+        i = np.asarray(currents_a, dtype=np.float64)
+        if i.shape != (4,) or not np.isfinite(i).all():
+            self._last_v = None
+            return None
+        if self._last_v is None or t_s <= self._last_v[0]:
+            self._last_v = (t_s, v_mps)
+            return None
+        a = (v_mps - self._last_v[1]) / (t_s - self._last_v[0])
+        self._last_v = (t_s, v_mps)
+        f_wheels = self.kt * float(i.sum()) / self.r
+        excess = f_wheels - self.mass * a
+        k = self._bin(v_mps)
+        if not in_contact:
+            self._free[k] += self.alpha * (excess - self._free[k]) if self._free_n[k] else excess - self._free[k]
+            self._free_n[k] += 1
+            return None
+        return max(excess - self._free[k], 0.0) / self.f_max
+
+
+__all__ = ["CLASSES", "BeliefConfig", "BeliefTable", "ObjectBelief", "PushResistanceEstimator"]
