@@ -175,6 +175,16 @@ class AgileXBaseDriver:
         st = self._other.get("odometry")
         return None if st is None else st.record
 
+    def motor_currents_a(self, now_s: float, max_age_s: float) -> tuple[float, ...] | None:
+        """The four motors' currents (A, from 0x251-0x254, in motor order), None unless every one
+        arrived within max_age_s of now_s (a stale current is no evidence of a push)."""
+        out = []
+        for st in self._hs:
+            if st is None or now_s - st.stamp_s > max_age_s:
+                return None
+            out.append(float(st.record.current_a))
+        return tuple(out)
+
     @property
     def feedback_age_s(self) -> float:
         """Seconds since the last 0x221 (inf before the first)."""

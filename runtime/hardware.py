@@ -51,6 +51,9 @@ class BaseInputs:
     vehicle_state: int | None = protocol.VEHICLE_STATE_NORMAL  # 0x211 byte 0; None before any 0x211
     system_state_flags: tuple[str, ...] = ()  # 0x211 fields outside their documented range
     control_mode: int | None = protocol.CONTROL_MODE_CAN  # 0x211 byte 1; None before any 0x211
+    #: The four wheel motors' currents (A; 0x251-0x254), None unless all are fresh (within the
+    #: feedback timeout): the push resistance estimate (runtime.belief) reads them.
+    motor_currents_a: tuple[float, ...] | None = None
 
     @property
     def ready(self) -> bool:
@@ -149,6 +152,7 @@ class AgileXBaseHardware:
             linear_mps=motion.linear_mps if motion is not None else 0.0,
             angular_radps=motion.angular_radps / self.yaw_factor if motion is not None else 0.0,
             odometry=(odom.left_wheel_m, odom.right_wheel_m) if odom is not None else None,
+            motor_currents_a=driver.motor_currents_a(now_s, driver.feedback_timeout_s),
         )
 
     def write(self, v_mps: float, omega_radps: float) -> None:

@@ -112,6 +112,21 @@ def test_actuator_and_odometry_feedback(virtual_pair, clock):
     assert [s.record.rpm for s in fb.actuator_hs] == [100, 200, 300, 400]
     assert [s.record.motor_index for s in fb.actuator_ls] == [0, 1, 2, 3]
     assert fb.odometry.record == p.Odometry(1.5, 1.6) and fb.odometry.stamp_s == 2.5
+    assert drv.motor_currents_a(2.55, 0.1) == (0.5, 0.5, 0.5, 0.5)
+    assert drv.motor_currents_a(2.7, 0.1) is None  # stale: no evidence of a push
+
+
+def test_motor_currents_need_all_four_motors(virtual_pair, clock):
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock)
+    clock.t = 1.0
+    for i in range(3):
+        peer.send(p.encode(p.ActuatorHighSpeed(i, 100, -1.2, 0)))
+    drv.poll()
+    assert drv.motor_currents_a(1.0, 0.1) is None
+    peer.send(p.encode(p.ActuatorHighSpeed(3, 100, 2.4, 0)))
+    drv.poll()
+    assert drv.motor_currents_a(1.0, 0.1) == (-1.2, -1.2, -1.2, 2.4)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, np.float32("nan"), 33.0, -40.0, "1", None, True])
