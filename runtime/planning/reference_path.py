@@ -22,6 +22,15 @@ and the safety supervisor checks every command against the raw points); with no 
 a search that found none, the tick reports blocked and the slack searches again. In lockstep the
 slack work runs at the same point of every period, so behaviour stays a function of simulated
 time. `replan_in_slack: false` searches in the tick, as before.
+
+Touchable objects (issue 14; IMPACT's graded cost, BEACON's push-versus-detour rule): the
+points of P_mov come with their object's contact cost (0..10; objects at or above the
+never-touch cost are P_fix already, lethal here). With P_mov near the window a replan searches
+twice: "push", where cells within the inflation radius of a P_mov point cost `contact_cost_weight`
+x cost / 10 more per metre (a curtain at cost 0 is free to pass, a box at 5 costs half as much
+again as free floor), and "detour", where they are lethal as P_fix. BEACON's rule picks: push
+if C_push - push_bias_m < C_detour + detour_margin_m (C: the search's cost, metres weighted by
+the cells' costs), detour otherwise, and push when no detour exists. `last_choice` says which.
 """
 from __future__ import annotations
 
@@ -63,6 +72,15 @@ class ReferencePathConfig(BaseModel):
     horizon_steps: int = Field(default=10, ge=1, le=200)
     step_s: float = Field(default=0.1, gt=0.0, le=1.0)
     smoothing_window: int = Field(default=5, ge=1, le=51, description="moving average of the cell path")
+    contact_cost_weight: float = Field(
+        default=2.5, ge=0.0, le=100.0,
+        description="a metre through a touchable object's zone costs this x its contact cost / 10 extra metres "
+        "(BEACON's semantic weight lambda_sem, Table I)")
+    # BEACON's push bias and detour margin (Table I: 0.35 and 0.5 in its objective's units); here
+    # in metres of cost-weighted path, scaled to a 0.3 m robot: a push is taken over a detour
+    # that is up to their sum cheaper.
+    push_bias_m: float = Field(default=0.1, ge=0.0, le=100.0, description="BEACON's push bias b_push")
+    detour_margin_m: float = Field(default=0.15, ge=0.0, le=100.0, description="BEACON's detour margin m_detour")
 
 
 @dataclass
@@ -91,6 +109,9 @@ class LocalGrid:
     lethal: np.ndarray  # (n, n) bool
     cost: np.ndarray  # (n, n) >= 1
     points_m: np.ndarray  # (M, 2) the points the grid was built from (those near the window)
+    #: (n, n) the highest contact cost (0..10) of a P_mov point within the inflation radius of
+    #: each cell, -1 where none (None: no P_mov given)
+    contact_cost: np.ndarray | None = None
 
     def cell_of(self, xy: np.ndarray) -> np.ndarray:
         return np.floor((np.asarray(xy) - self.origin_m) / self.resolution_m).astype(np.int64)
@@ -148,6 +169,14 @@ class ReferencePathPlanner:
         self._pending: tuple[np.ndarray, np.ndarray, np.ndarray, str] | None = None
         self._no_path_reason: str | None = None  # why the last search found no path
         self.last_grid: LocalGrid | None = None
+        self._movable: tuple[np.ndarray, np.ndarray] | None = None  # this tick's P_mov and costs
+        self.last_search_cost = math.inf  # the cost of the last path search found
+        #: The last replan's choice with P_mov in the window: "push" or "detour" (None: no P_mov);
+        #: and the two costs it compared (inf: no such path).
+        self.last_choice: str | None = None
+        self.last_costs: tuple[float, float] = (math.inf, math.inf)
+        self.pushes_chosen = 0
+        self.detours_chosen = 0
 
     def reset(self) -> None:
         """Forget the current path: the next update replans (after a stop or a recovery)."""
@@ -156,8 +185,10 @@ class ReferencePathPlanner:
         self._no_path_reason = None
 
     # -- grid ---------------------------------------------------------------------------------
-    def build_grid(self, centre_xy: np.ndarray, points_world: np.ndarray) -> LocalGrid:
-        """Local grid around centre_xy: clearance (exact near the lethal edge), lethal mask, costs."""
+    def build_grid(self, centre_xy: np.ndarray, points_world: np.ndarray,
+                   movable: tuple[np.ndarray, np.ndarray] | None = None) -> LocalGrid:
+        """Local grid around centre_xy: clearance (exact near the lethal edge), lethal mask, costs;
+        with movable (P_mov (M, 2), their contact costs (M,)), each cell's contact cost."""
         cfg, n, res = self.config, self.n, self.config.resolution_m
         origin = np.floor((centre_xy - cfg.window_m / 2.0) / res) * res
         r_infl = self.inflation_radius_m
@@ -197,9 +228,28 @@ class ReferencePathPlanner:
             cost = 1.0 + cfg.soft_cost * depth * depth
         else:
             cost = np.ones((n, n))
-        grid = LocalGrid(origin, res, clearance, lethal, cost, pts)
+        grid = LocalGrid(origin, res, clearance, lethal, cost, pts, self._contact_cost(origin, movable))
         self.last_grid = grid
         return grid
+
+    def _contact_cost(self, origin: np.ndarray, movable: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray | None:
+        """(n, n): the highest contact cost of a P_mov point within the inflation radius of each
+        cell (a point's cell, dilated by a disc of that radius), -1 elsewhere; None without P_mov
+        in the window."""
+        if movable is None or not len(movable[0]):
+            return None
+        n, res = self.n, self.config.resolution_m
+        pts, costs = movable
+        ij = np.floor((pts - origin) / res).astype(np.int64)
+        k = int(math.ceil(self.inflation_radius_m / res))
+        inside = (ij[:, 0] >= -k) & (ij[:, 0] < n + k) & (ij[:, 1] >= -k) & (ij[:, 1] < n + k)
+        if not inside.any():
+            return None
+        raster = np.full((n + 2 * k, n + 2 * k), -1.0)
+        np.maximum.at(raster, (ij[inside, 0] + k, ij[inside, 1] + k), costs[inside].astype(np.float64))
+        di, dj = np.mgrid[-k:k + 1, -k:k + 1]
+        disc = (di * di + dj * dj) * res * res <= self.inflation_radius_m ** 2
+        return ndimage.grey_dilation(raster, footprint=disc, mode="constant", cval=-1.0)[k:-k, k:-k]
 
     # -- search -------------------------------------------------------------------------------
     def search(self, grid: LocalGrid, start_xy: np.ndarray, goal_xy: np.ndarray) -> tuple[np.ndarray | None, str]:
@@ -237,6 +287,7 @@ class ReferencePathPlanner:
             if not np.isfinite(dist[g_idx]):
                 return None, "no path to the goal"
             target, end_xy = g_idx, goal_xy
+            self.last_search_cost = float(dist[g_idx])
         else:
             border = np.zeros((n, n), dtype=bool)
             border[[0, -1], :] = True
@@ -248,6 +299,7 @@ class ReferencePathPlanner:
             centres = grid.origin_m + (np.stack([ci, cj], axis=1) + 0.5) * grid.resolution_m
             score = dist[cand] + np.hypot(centres[:, 0] - goal_xy[0], centres[:, 1] - goal_xy[1])
             target, end_xy = int(cand[np.argmin(score)]), None
+            self.last_search_cost = float(score.min())
         cells = [target]
         while cells[-1] != s_idx:  # path length in cells, not points
             cells.append(int(pred[cells[-1]]))
@@ -337,14 +389,23 @@ class ReferencePathPlanner:
         y = np.interp(s, cum, path[:, 1])
         return np.stack([x, y, v], axis=1)
 
-    def update(self, pose: np.ndarray, goal: np.ndarray, points_fix_world: np.ndarray) -> ReferenceUpdate:
-        """pose (x_m, y_m, yaw_rad), goal (x_m, y_m[, yaw]), P_fix (N, 2) in the odom frame."""
+    def update(self, pose: np.ndarray, goal: np.ndarray, points_fix_world: np.ndarray,
+               movable: tuple[np.ndarray, np.ndarray] | None = None) -> ReferenceUpdate:
+        """pose (x_m, y_m, yaw_rad), goal (x_m, y_m[, yaw]), P_fix (N, 2) in the odom frame;
+        movable: (P_mov (M, 2), their contact costs (M,) in 0..10) or None (module docstring)."""
         pose = check_vector(pose, 3, "ReferencePathPlanner.update", "pose")
         goal_arr = np.asarray(goal, dtype=np.float64).reshape(-1)
         if goal_arr.size not in (2, 3):
             raise PlannerInputError(f"ReferencePathPlanner.update: goal must be (x, y) or (x, y, yaw), got {goal_arr.shape}")
         goal_xy = check_vector(goal_arr[:2], 2, "ReferencePathPlanner.update", "goal")
         points = check_points(points_fix_world, "ReferencePathPlanner.update: points_fix_world")
+        if movable is not None:
+            mov = check_points(movable[0], "ReferencePathPlanner.update: movable points")
+            mcost = np.asarray(movable[1], dtype=np.float64).reshape(-1)
+            if mcost.shape != (mov.shape[0],) or not np.all((mcost >= 0.0) & (mcost <= 10.0)):
+                raise PlannerInputError("ReferencePathPlanner.update: movable costs must be one per point, in 0..10")
+            movable = (mov, mcost)
+        self._movable = movable
         cfg = self.config
         xy = pose[:2]
         self._ticks += 1
@@ -386,7 +447,7 @@ class ReferencePathPlanner:
         if reason and (urgent or not cfg.replan_in_slack):
             replanned = True
             self.replans_in_tick += 1
-            why = self._replan(xy, goal_xy, points)
+            why = self._replan(xy, goal_xy, points, movable)
             if why is not None:
                 return self._blocked_update(xy, why, True)
         elif reason:
@@ -414,23 +475,69 @@ class ReferencePathPlanner:
         ref[:, :2] = xy  # hold position; the MPC brakes within its rate limits
         return ReferenceUpdate(ref, None, True, replanned, why, False, math.inf)
 
-    def _replan(self, xy: np.ndarray, goal_xy: np.ndarray, points: np.ndarray) -> str | None:
+    def _replan(self, xy: np.ndarray, goal_xy: np.ndarray, points: np.ndarray,
+                movable: tuple[np.ndarray, np.ndarray] | None = None) -> str | None:
         """Search a new path now; returns why there is none (None: a path was found)."""
         self._ticks = 0
         self.replans += 1
         self._goal = goal_xy.copy()
         self._pending = None
-        grid = self.build_grid(xy, points)
-        path, why = self.search(grid, xy, goal_xy)
+        grid = self.build_grid(xy, points, movable)
+        path, why = self._push_or_detour(grid, xy, goal_xy)
         if path is None:
             self._path, self._no_path_reason = None, why
             return why
         self._path, self._no_path_reason = self._smooth(path, points), None
         return None
 
+    def _push_or_detour(self, grid: LocalGrid, xy: np.ndarray, goal_xy: np.ndarray) -> tuple[np.ndarray | None, str]:
+        """One search without P_mov in the window; with it, the push and the detour searches and
+        BEACON's choice between them (module docstring)."""
+        if grid.contact_cost is None or not (grid.contact_cost >= 0.0).any():
+            self.last_choice = None
+            return self.search(grid, xy, goal_xy)
+        cfg = self.config
+        touch = grid.contact_cost >= 0.0
+        base_cost, base_lethal = grid.cost, grid.lethal
+        try:
+            grid.lethal = base_lethal | touch
+            detour, why_detour = self.search(grid, xy, goal_xy)
+            c_detour = self.last_search_cost if detour is not None else math.inf
+            grid.lethal = base_lethal
+            grid.cost = base_cost + np.where(touch, cfg.contact_cost_weight * grid.contact_cost / 10.0, 0.0)
+            push, why_push = self.search(grid, xy, goal_xy)
+            c_push = self.last_search_cost if push is not None else math.inf
+        finally:
+            grid.cost, grid.lethal = base_cost, base_lethal
+        self.last_costs = (c_push, c_detour)
+        if push is not None and not self._touches(grid, push, touch):
+            # the cheapest path with contact allowed makes none: it is a detour
+            self.last_choice, self.last_search_cost = "detour", c_push
+            self.detours_chosen += 1
+            return push, why_push
+        if push is not None and (detour is None or c_push - cfg.push_bias_m < c_detour + cfg.detour_margin_m):
+            self.last_choice, self.last_search_cost = "push", c_push
+            self.pushes_chosen += 1
+            return push, why_push
+        if detour is not None:
+            self.last_choice, self.last_search_cost = "detour", c_detour
+            self.detours_chosen += 1
+            return detour, why_detour
+        self.last_choice = None
+        return None, why_push
+
+    @staticmethod
+    def _touches(grid: LocalGrid, path: np.ndarray, touch: np.ndarray) -> bool:
+        """Does the cell path pass through a touchable object's zone (after its first cell: the
+        robot may start in one, pushing)?"""
+        ij = grid.cell_of(path[1:])
+        n = touch.shape[0]
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < n) & (ij[:, 1] >= 0) & (ij[:, 1] < n)
+        return bool(touch[ij[ok, 0], ij[ok, 1]].any())
+
     def _request(self, xy: np.ndarray, goal_xy: np.ndarray, points: np.ndarray, reason: str) -> None:
-        """Ask for a replan in the slack after this tick, from this tick's pose and P_fix."""
-        self._pending = (xy.copy(), goal_xy.copy(), points, reason)
+        """Ask for a replan in the slack after this tick, from this tick's pose and P_fix (and P_mov)."""
+        self._pending = (xy.copy(), goal_xy.copy(), points, reason, self._movable)
 
     @property
     def replan_pending(self) -> str | None:
@@ -443,9 +550,9 @@ class ReferencePathPlanner:
         reports blocked when it found none."""
         if self._pending is None:
             return False
-        xy, goal_xy, points, _ = self._pending
+        xy, goal_xy, points, _, movable = self._pending
         self.replans_in_slack += 1
-        self._replan(xy, goal_xy, points)
+        self._replan(xy, goal_xy, points, movable)
         return True
 
     def _path_ends_at_goal(self, goal_xy: np.ndarray) -> bool:

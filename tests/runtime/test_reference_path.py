@@ -208,3 +208,53 @@ def test_a_new_goal_after_a_failed_search_waits_for_its_own_search() -> None:
     rp.replan_in_slack()
     up = rp.update(np.zeros(3), np.array([-2.0, 0.0]), ring)
     assert not up.blocked and np.allclose(up.path_world[-1], [-2.0, 0.0])
+
+
+# ---------------------------------------------------------------- touchable objects (issue 14)
+def _box_points(cx, cy, half):
+    """The outline of a square box (P_mov), 2 cm spacing."""
+    c = [(cx - half, cy - half), (cx + half, cy - half), (cx + half, cy + half), (cx - half, cy + half)]
+    return np.concatenate([_segment(c[k], c[(k + 1) % 4]) for k in range(4)])
+
+
+def _plan_with(rp, pose, goal, fix, movable):
+    pose, goal = np.asarray(pose, float), np.asarray(goal, float)
+    rp.update(pose, goal, fix, movable)
+    assert rp.replan_in_slack()
+    return rp.update(pose, goal, fix, movable)
+
+
+def _crosses(path, cx, cy, half):
+    return bool(((np.abs(path[:, 0] - cx) < half) & (np.abs(path[:, 1] - cy) < half)).any())
+
+
+def test_a_cheap_detour_beats_a_push_and_a_free_curtain_is_passed_through() -> None:
+    """A 0.4 m box on the straight line in open space: going round costs a few decimetres, less
+    than pushing a cost-6 box; a cost-0 curtain of the same size is passed through."""
+    box = _box_points(1.5, 0.0, 0.2)
+    rp = _planner()
+    up = _plan_with(rp, [0.0, 0.0, 0.0], [3.0, 0.0], np.zeros((0, 2)), (box, np.full(len(box), 6.0)))
+    assert rp.last_choice == "detour" and not _crosses(up.path_world, 1.5, 0.0, 0.2)
+    assert rp.detours_chosen == 1 and rp.pushes_chosen == 0
+    rp = _planner()
+    up = _plan_with(rp, [0.0, 0.0, 0.0], [3.0, 0.0], np.zeros((0, 2)), (box, np.zeros(len(box))))
+    assert rp.last_choice == "push" and _crosses(up.path_world, 1.5, 0.0, 0.2)
+
+
+def test_in_a_corridor_the_only_way_is_through_the_box_and_none_with_it_fixed() -> None:
+    """A box filling a corridor: the push is the only path (the detour search finds none); the
+    same box as P_fix blocks the corridor."""
+    walls = np.concatenate([_segment([-5.0, 0.3], [8.0, 0.3]), _segment([-5.0, -0.3], [8.0, -0.3])])
+    box = _box_points(1.5, 0.0, 0.2)
+    rp = _planner()
+    up = _plan_with(rp, [0.0, 0.0, 0.0], [3.0, 0.0], walls, (box, np.full(len(box), 7.0)))
+    assert not up.blocked and rp.last_choice == "push" and rp.last_costs[1] == np.inf
+    rp = _planner()
+    up = _plan_with(rp, [0.0, 0.0, 0.0], [3.0, 0.0], np.concatenate([walls, box]), None)
+    assert up.blocked
+
+
+def test_movable_costs_out_of_range_are_refused() -> None:
+    rp = _planner()
+    with pytest.raises(PlannerInputError, match="movable costs"):
+        rp.update(np.zeros(3), np.array([1.0, 0.0]), np.zeros((0, 2)), (np.zeros((2, 2)), np.array([1.0, 11.0])))
