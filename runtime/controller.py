@@ -118,6 +118,10 @@ class NavigationController:
         self.monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=uses_sensors, uses_imu=uses_sensors)
         # P_fix in the odom frame: every lidar point, or (mode dct) those the VPP partition keeps.
         self.points_fix = _NO_POINTS
+        # P_mov in the odom frame (mode dct) and its points' contact costs: the reference path's
+        # graded cost (runtime.planning.reference_path); never a constraint of the MPC.
+        self.points_mov = _NO_POINTS
+        self.costs_mov = np.zeros(0)
         self.obstacles = ObstaclePointExtractor(
             robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
         )
@@ -215,6 +219,13 @@ class NavigationController:
             self.points_fix = self.obstacles.extract(
                 scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps, only=only
             )
+            movable = self.partition.movable()
+            if movable is None:
+                self.points_mov, self.costs_mov = _NO_POINTS, np.zeros(0)
+            else:
+                self.points_mov, index = self.obstacles.extract_indexed(
+                    scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps, only=movable[0])
+                self.costs_mov = movable[1][index].astype(np.float64)
         stages.mark(PARTITION)
 
         v, omega = 0.0, 0.0
@@ -321,17 +332,20 @@ class NavigationController:
     def _follow_correction(self, correction: np.ndarray | None) -> None:
         """An ICP correction moves the pose; P_fix, placed with the pose before it, moves with it,
         so the robot-to-obstacle geometry the planner and the supervisor see does not jump."""
-        if correction is None or not len(self.points_fix):
+        if correction is None:
             return
         c, s = math.cos(correction[2]), math.sin(correction[2])
-        p = self.points_fix
-        self.points_fix = np.column_stack([c * p[:, 0] - s * p[:, 1] + correction[0],
-                                           s * p[:, 0] + c * p[:, 1] + correction[1]])
+        for name in ("points_fix", "points_mov"):
+            p = getattr(self, name)
+            if len(p):
+                setattr(self, name, np.column_stack([c * p[:, 0] - s * p[:, 1] + correction[0],
+                                                     s * p[:, 0] + c * p[:, 1] + correction[1]]))
 
     # -- planner stage -----------------------------------------------------------------------
     def _plan(self, now: float) -> tuple[float, float]:
         pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
-        situation = Situation(now, pose, np.asarray(self.command), self.points_fix, self._goal_xy)
+        situation = Situation(now, pose, np.asarray(self.command), self.points_fix, self._goal_xy,
+                              self.points_mov, self.costs_mov)
         d = self.modes.plan(situation)
         self.last_decision = d
         if d.at_goal:

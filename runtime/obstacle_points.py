@@ -75,11 +75,27 @@ class ObstaclePointExtractor:
                 only: np.ndarray | None = None) -> np.ndarray:
         """P (N, 2) in the odom frame, deskewed to `now_s` with the twist (v, omega). only: (N,)
         bool, the scan points to use (the VPP's P_fix); None: all of them."""
+        pts, _ = self._deskewed(scan, pose_now, now_s, v_mps, omega_radps, only)
+        self.points_in = int(scan.num_points)
+        if self.voxel_m > 0.0 and pts.shape[0]:
+            pts = voxel_filter(pts, self.voxel_m, self.min_support_ratio)
+        self.points_out = int(pts.shape[0])
+        return pts
+
+    def extract_indexed(self, scan: LidarScan, pose_now: Pose2D, now_s: float, v_mps: float, omega_radps: float,
+                        only: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As extract, without the voxel filter: (P (M, 2) odom frame, the scan indices of its
+        points), for points that carry a value of their own (P_mov and its contact costs)."""
+        return self._deskewed(scan, pose_now, now_s, v_mps, omega_radps, only)
+
+    def _deskewed(self, scan: LidarScan, pose_now: Pose2D, now_s: float, v_mps: float, omega_radps: float,
+                  only: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         q = scan.points_m.astype(np.float64) @ self.R_base_lidar.T + self.t_base_lidar  # base_link at cast time
         keep = (q[:, 2] > self.min_z_m) & (q[:, 2] < self.max_z_m)
         if only is not None:
             keep &= only
         keep &= (q[:, 0] ** 2 + q[:, 1] ** 2) < self.max_range_m**2
+        index = np.flatnonzero(keep)
         q = q[keep]
         dt = (scan.stamp_s + scan.point_time_offsets_s[keep].astype(np.float64)) - now_s  # <= 0: cast in the past
         # Pose at cast time relative to the pose now, constant twist: yaw_i, and the chord.
@@ -95,8 +111,4 @@ class ObstaclePointExtractor:
         pts = np.empty((bx.shape[0], 2))
         pts[:, 0] = pose_now.x_m + cy * bx - sy * by
         pts[:, 1] = pose_now.y_m + sy * bx + cy * by
-        self.points_in = int(scan.num_points)
-        if self.voxel_m > 0.0 and pts.shape[0]:
-            pts = voxel_filter(pts, self.voxel_m, self.min_support_ratio)
-        self.points_out = int(pts.shape[0])
-        return pts
+        return pts, index

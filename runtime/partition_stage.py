@@ -35,6 +35,10 @@ class PartitionStage(Protocol):
                scan: LidarScan | None) -> np.ndarray | None:
         """This tick's partition of `scan`: (N,) bool, True = P_fix; None = every point P_fix."""
 
+    def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The last partitioned scan's P_mov: ((N,) bool over its points, (N,) contact costs
+        0..10); None when nothing is touchable."""
+
     def ready(self, now_s: float) -> bool:
         """Whether the planner may drive on what the stage knows by now."""
 
@@ -56,6 +60,9 @@ class AllFixedPartition:
 
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
                scan: LidarScan | None) -> np.ndarray | None:
+        return None
+
+    def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
         return None
 
     def ready(self, now_s: float) -> bool:
@@ -83,6 +90,13 @@ class VppPartition:
                scan: LidarScan | None) -> np.ndarray | None:
         frame = self.vpp.update(now_s, pose, image, scan)
         return frame.fixed if frame is not None else None
+
+    def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
+        frame = self.vpp.last_frame
+        if frame is None:
+            return None
+        mov = ~frame.fixed  # P_mov: the points of touchable objects
+        return (mov, frame.partition.cost) if mov.any() else None
 
     def ready(self, now_s: float) -> bool:
         """The VLM's first answer (or failure) came back, or the stage stopped waiting for it:

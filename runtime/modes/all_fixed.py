@@ -34,6 +34,9 @@ class AllFixedMode:
             "reference_replans": self.reference.replans,
             "reference_replans_in_slack": self.reference.replans_in_slack,
             "reference_replans_in_tick": self.reference.replans_in_tick,
+            # replans with touchable objects in the window: BEACON's push-versus-detour choices
+            "reference_pushes": self.reference.pushes_chosen,
+            "reference_detours": self.reference.detours_chosen,
         }
 
     def slack_work(self) -> bool:
@@ -41,7 +44,8 @@ class AllFixedMode:
         return self.reference.replan_in_slack()
 
     def plan(self, s: Situation) -> ModeDecision:
-        ref = self.reference.update(s.pose, s.goal_xy, s.points_fix)
+        ref = self.reference.update(s.pose, s.goal_xy, s.points_fix,
+                                    (s.points_mov, s.costs_mov) if len(s.points_mov) else None)
         self.last_reference = ref
         if ref.goal_reached:
             return ModeDecision(at_goal=True, remaining_m=0.0)

@@ -19,6 +19,10 @@ class Situation:
     command: np.ndarray  # (2,) v_mps, omega_radps being applied now
     points_fix: np.ndarray  # (N, 2) P_fix
     goal_xy: np.ndarray  # (2,)
+    #: (M, 2) P_mov (touchable objects' points) and their contact costs (M,) 0..10: they cost in
+    #: the reference path (IMPACT's graded cost), they never constrain the MPC
+    points_mov: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    costs_mov: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)

@@ -27,8 +27,8 @@ Touchable objects (issue 14; IMPACT's graded cost, BEACON's push-versus-detour r
 points of P_mov come with their object's contact cost (0..10; objects at or above the
 never-touch cost are P_fix already, lethal here). With P_mov near the window a replan searches
 twice: "push", where cells within the inflation radius of a P_mov point cost `contact_cost_weight`
-x cost / 10 more per metre (a curtain at cost 0 is free to pass, a box at 5 costs half as much
-again as free floor), and "detour", where they are lethal as P_fix. BEACON's rule picks: push
+x cost / 10 more per metre (a curtain at cost 0 is free to pass, a box at 5 costs half a metre
+more per metre at the default weight 1), and "detour", where they are lethal as P_fix. BEACON's rule picks: push
 if C_push - push_bias_m < C_detour + detour_margin_m (C: the search's cost, metres weighted by
 the cells' costs), detour otherwise, and push when no detour exists. `last_choice` says which.
 """
@@ -73,9 +73,10 @@ class ReferencePathConfig(BaseModel):
     step_s: float = Field(default=0.1, gt=0.0, le=1.0)
     smoothing_window: int = Field(default=5, ge=1, le=51, description="moving average of the cell path")
     contact_cost_weight: float = Field(
-        default=2.5, ge=0.0, le=100.0,
+        default=1.0, ge=0.0, le=100.0,
         description="a metre through a touchable object's zone costs this x its contact cost / 10 extra metres "
-        "(BEACON's semantic weight lambda_sem, Table I)")
+        "(BEACON's semantic weight lambda_sem, 2.5 in its units; 1.0 here: pushing a cost-2 box 0.6 m costs "
+        "0.12 m, so a detour must be shorter than that plus the bias and margin to win)")
     # BEACON's push bias and detour margin (Table I: 0.35 and 0.5 in its objective's units); here
     # in metres of cost-weighted path, scaled to a 0.3 m robot: a push is taken over a detour
     # that is up to their sum cheaper.

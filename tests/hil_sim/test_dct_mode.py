@@ -7,6 +7,8 @@ It waits for the first answer, then drives at the box the oracle calls movable a
 in test_episodes.py and the slow campaigns."""
 from __future__ import annotations
 
+import numpy as np
+
 from hil_sim.runner import run_episode
 from hil_sim.scenario import load_scenario
 from runtime.config import load_controller_config
@@ -17,10 +19,13 @@ def test_dct_mode_partitions_the_box_as_movable_and_never_touches_a_fixed_object
     scenario = load_scenario("case2").model_copy(update={"time_limit_s": 3.5})
     movable_points, waited = [], []
 
+    mov_costs = []
+
     def observe(controller):
         frame = controller.vpp.last_frame
         movable_points.append(0 if frame is None else frame.movable_count)
         waited.append(controller.vpp.answers == 0 and controller.command == (0.0, 0.0))
+        mov_costs.extend(np.unique(controller.costs_mov).tolist())
 
     result = run_episode(scenario, config=cfg, seed=0, observe=observe)
     vpp = result.controller["vpp"]
@@ -29,6 +34,9 @@ def test_dct_mode_partitions_the_box_as_movable_and_never_touches_a_fixed_object
     assert max(movable_points) > 100  # the box's points left P_fix once the answer came
     assert sum(waited) >= 20  # ~1.5 s at 20 Hz: no driving before the first answer
     assert result.metrics["fixed_contacts"] == 0
+    # P_mov reached the reference path with the box's contact cost, and it chose to push
+    assert set(mov_costs) == {2.0}  # the sim-oracle's movable_cost
+    assert result.controller["reference_pushes"] >= 1
     # Moved straight at the box instead of detouring: the pose's x grew, y stayed near the axis.
     x, y, _ = result.controller["pose_odom"]
     assert x > 0.5 and abs(y) < 0.2
