@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -220,20 +220,22 @@ class MaskMemory:
         self.expire(now_s)
         return [self.warp_entry(e, T) for e in self.entries]
 
-    def lookup(self, now_s: float, camera_pose_odom: np.ndarray) -> tuple[list[MaskEntry], WarpLookup]:
+    def lookup(self, now_s: float, camera_pose_odom: np.ndarray,
+               select: "Callable[[MaskEntry], bool] | None" = None) -> tuple[list[MaskEntry], WarpLookup]:
         """Phase I for a scan: age out, then every entry set up for per-pixel lookup at the current
         camera pose (homography.WarpLookup: the same warp as propagate, evaluated only where
         Phase III asks, exactly rather than on MaskWarper's interpolated grid). No image is
         warped: about 0.1 ms for 8 entries instead of 0.3-0.9 ms per entry. The capture side
         (stacked masks, outlines) is prepared once per set of entries. Returns (entries, lookup),
-        lookup index k = entries[k]."""
+        lookup index k = entries[k]. select: only the entries it accepts (the stage's: those that
+        can gate points; a wall's mask spans the image, and its warp costs milliseconds)."""
         T = np.asarray(camera_pose_odom, dtype=np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all() or np.any(T[3] != _LAST_ROW) or \
                 float(np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max()) > 1e-5 or np.linalg.det(T[:3, :3]) < 0.0:
             # (cheap first: check_rigid's np.allclose costs 0.1 ms)
             _check_pose(T, "camera_pose_odom")  # names what is wrong (or passes within its tolerance)
         self.expire(now_s)
-        entries = tuple(self.entries)
+        entries = tuple(e for e in self.entries if select is None or select(e))
         if self._source is None or len(self._source[0]) != len(entries) or \
                 any(a is not b for a, b in zip(self._source[0], entries)):
             outlines = {}

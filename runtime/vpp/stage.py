@@ -212,6 +212,11 @@ class VppStage:
         self._prepared[stamp] = self._preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
                                                        points_cam=self._points_cam_at.get(stamp))
 
+    def _may_gate(self, entry) -> bool:
+        """An entry that can gate points at all (movable, below never_touch_cost): the others are
+        not warped per scan."""
+        return entry.movable and entry.contact_cost < self.config.never_touch_cost
+
     def _gates(self, entry, warped_px: float, captured_px: float) -> bool:
         """Does this entry's warped mask gate points this scan? Movable, below never_touch_cost,
         not empty, and trusted: the warp assumes the object stood still since capture. The
@@ -238,7 +243,7 @@ class VppStage:
         The growth test takes the warped area from the lookup (exact for a warped mask whose
         bounding box has at most homography.AREA_SAMPLES pixels, else estimated on a grid)."""
         if self._per_pixel:
-            entries, lk = self.memory.lookup(now_s, T_odom_cam)
+            entries, lk = self.memory.lookup(now_s, T_odom_cam, select=self._may_gate)
             px = self.memory.mask_px()
             use = [k for k, e in enumerate(entries) if self._gates(e, float(lk.area_px[k]), float(px[k]))]
             return lk.select(use), [entries[k] for k in use]
