@@ -248,4 +248,48 @@ class PushResistanceEstimator:
         return max(excess - self._free[k], 0.0) / self.f_max
 
 
-__all__ = ["CLASSES", "BeliefConfig", "BeliefTable", "ObjectBelief", "PushResistanceEstimator"]
+class ContactEvidence:
+    """Turns the ticks of a push into evidence for the belief: while the robot drives forward
+    against one object (the stage's P_mov in front of it), the resistance fractions of
+    PushResistanceEstimator are averaged and the object's displacement is followed (the
+    tracker's anchor, runtime/vpp/tracking.py); every `window_s` of continuous contact gives one
+    resistance observation and one push outcome (moved at least `moved_m`, or not), so that the
+    belief moves by evidence, not by the tick rate. Contact that ends early gives nothing."""
+
+    def __init__(self, table: BeliefTable, estimator: PushResistanceEstimator | None,
+                 window_s: float = 1.0) -> None:
+        self.table = table
+        self.estimator = estimator
+        self.window_s = float(window_s)
+        self._object: int | None = None
+        self._start_s = 0.0
+        self._forces: list[float] = []
+        self.windows = 0  # evidence windows completed (counter)
+
+    def update(self, t_s: float, v_mps: float, currents_a, object_id: int | None, moved_m) -> None:
+        """One tick. object_id: the touchable object in contact in front of the robot (None:
+        none, or not driving forward); moved_m(object_id, since_s) -> metres the object moved
+        since then (None: unknown)."""
+        pushing = object_id is not None and v_mps > 0.02
+        force = None
+        if self.estimator is not None:
+            force = self.estimator.update(t_s, v_mps, currents_a, in_contact=pushing)
+        if not pushing or object_id != self._object:
+            self._object = object_id if pushing else None
+            self._start_s, self._forces = t_s, []
+            return
+        if force is not None:
+            self._forces.append(force)
+        if t_s - self._start_s < self.window_s:
+            return
+        oid = int(object_id)
+        if self._forces:
+            self.table.observe_resistance(oid, float(np.mean(self._forces)), t_s)
+        moved = moved_m(oid, self._start_s)
+        if moved is not None:
+            self.table.observe_push(oid, moved >= self.table.config.moved_m, t_s)
+        self.windows += 1
+        self._start_s, self._forces = t_s, []
+
+
+__all__ = ["CLASSES", "BeliefConfig", "BeliefTable", "ContactEvidence", "ObjectBelief", "PushResistanceEstimator"]

@@ -92,3 +92,27 @@ def test_push_resistance_is_the_force_beyond_what_the_robot_needs_for_itself():
     t += 0.05
     assert est.update(t, 0.4, [free_current + extra] * 4, in_contact=True) == pytest.approx(push_n / est.f_max, rel=1e-6)
     assert est.update(t + 0.05, 0.4, None, in_contact=True) is None  # no currents: no estimate
+
+
+def test_contact_evidence_updates_the_belief_once_per_window_of_continuous_push():
+    from runtime.belief import ContactEvidence
+
+    robot = load_robot_description()
+    table = BeliefTable()
+    table.observe_answer(5, True, 2.0, 0.8, 0.0)
+    est = PushResistanceEstimator(robot)
+    ev = ContactEvidence(table, est, window_s=1.0)
+    kt, r = robot.motors.torque_constant_nm_per_a, robot.drive.wheel_radius_m
+    t = 0.0
+    for _ in range(40):  # free driving first
+        t += 0.05
+        ev.update(t, 0.3, [0.4] * 4, None, lambda o, s: None)
+    assert table.updates == 0
+    stalled = 0.4 + 0.95 * est.f_max * r / kt / 4  # the drive at 95% of its force, the box not moving
+    for _ in range(22):  # 1.05 s of contact
+        t += 0.05
+        ev.update(t, 0.3, [stalled] * 4, 5, lambda o, s: 0.0)
+    assert ev.windows == 1 and table.updates == 2  # one resistance and one push outcome
+    assert table.is_fixed(5) and table.beliefs[5].most_likely() == "heavy"
+    ev.update(t + 0.05, 0.0, [0.4] * 4, None, lambda o, s: 0.0)  # stopped: the window restarts
+    assert ev.windows == 1
