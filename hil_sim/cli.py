@@ -46,10 +46,11 @@ def list_command() -> None:
                    "odometry's effective track and wheel scale.")
 @click.option(
     "--planner",
-    type=click.Choice(["pure-pursuit", "all-fixed", "dct"]),
+    type=click.Choice(["pure-pursuit", "all-fixed", "dct", "grid-astar"]),
     help="Override the config's planner mode (default dct: the MPC on the VLM partition's P_fix only, with the "
          "config's backend (the sim-oracle) and a 2 Hz camera; all-fixed: every lidar point fixed, the NeuPAN-like "
-         "baseline; pure-pursuit: the blind placeholder).",
+         "baseline; grid-astar: inflated occupancy grid + A* + pure pursuit, the Ellis22-like baseline; "
+         "pure-pursuit: the blind placeholder).",
 )
 @click.option(
     "--fault", "fault_texts", multiple=True, metavar="NAME:START_S[:DURATION_S]",

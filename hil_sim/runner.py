@@ -172,7 +172,7 @@ def run_episode(
     """Run one lockstep episode of the navigation controller in a scenario.
 
     sensors: a SensorRigConfig, True for the default rig, False for none; None picks what the
-    controller needs (lidar + IMU for the MPC, nothing for pure pursuit).
+    controller needs (lidar + IMU for the MPC and grid-astar, nothing for pure pursuit).
     faults: injected faults (hil_sim.faults), times from the start of the episode.
     wheel_calibration: (effective track m, wheel scale) for the odometry (calibration file).
     observe: called with the controller once after every tick, outside the tick and its timing
@@ -207,7 +207,7 @@ def run_episode(
     )
     devices: list = []
     if sensors is None:
-        sensors = config.uses_mpc
+        sensors = config.uses_lidar
     has_sensors = sensors is not False
     if has_sensors:
         from hil_sim.sensor_rig import SensorRig, SensorRigConfig
