@@ -237,7 +237,9 @@ class GridAStarPlanner:
         found = astar(passable, start, goal, cfg.max_expansions, factor)
         if found.cells is None:
             return GridPlan(None, found.reason, found.expansions, found.capped, grid)
-        path = grid.centres(np.array(found.cells))
+        # The cell centres, from the robot to the goal themselves (two points when they share a cell).
+        cells = found.cells if len(found.cells) > 1 else found.cells * 2
+        path = grid.centres(np.array(cells))
         path[0] = np.asarray(start_xy, dtype=np.float64)[:2]
         path[-1] = goal_xy
         return GridPlan(path, "ok", found.expansions, False, grid)

@@ -84,3 +84,9 @@ def test_grid_astar_holds_still_and_says_why_when_the_goal_is_walled_off(tmp_pat
     assert m["path_length_m"] < 0.3  # it never drove off towards a goal it cannot reach
     blocked = [e for e in m["events"] if e["event"] == "blocked"]
     assert blocked and "unreachable" in blocked[0]["reason"]
+
+
+def test_a_path_has_two_points_when_the_robot_shares_the_goal_cell():
+    planner = GridAStarPlanner(GridAStarConfig(), load_robot_description())
+    plan = planner.plan(np.array([7.025, 0.077]), np.array([7.09, 0.0]), np.zeros((0, 2)))
+    assert plan.path_m.tolist() == [[7.025, 0.077], [7.09, 0.0]]
