@@ -46,10 +46,11 @@ def list_command() -> None:
                    "odometry's effective track and wheel scale.")
 @click.option(
     "--planner",
-    type=click.Choice(["pure-pursuit", "all-fixed", "dct"]),
+    type=click.Choice(["pure-pursuit", "all-fixed", "dct", "grid-astar"]),
     help="Override the config's planner mode (default dct: the MPC on the VLM partition's P_fix only, with the "
          "config's backend (the sim-oracle) and a 2 Hz camera; all-fixed: every lidar point fixed, the NeuPAN-like "
-         "baseline; pure-pursuit: the blind placeholder).",
+         "baseline; grid-astar: inflated occupancy grid + A* + pure pursuit, the Ellis22-like baseline; "
+         "pure-pursuit: the blind placeholder).",
 )
 @click.option(
     "--fault", "fault_texts", multiple=True, metavar="NAME:START_S[:DURATION_S]",
@@ -498,3 +499,95 @@ def planner_command(repeats: int, cvxpy_repeats: int, horizons: tuple[int, ...],
     )
     if json_path is not None:
         atomic_write_json(json_path, {"rows": rows, "warnings": cap_warnings(rows)})
+
+
+def _campaign_options(func):
+    """The options `dct bench paper` and `dct bench beacon` share."""
+    options = [
+        click.option("--seeds", default=10, show_default=True, type=click.IntRange(1, 10000),
+                     help="Episodes per row (seeds --seed .. --seed + N - 1)."),
+        click.option("--seed", "first_seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1),
+                     help="Seed of the first episode of each row."),
+        click.option("--methods", default=None, metavar="M1,M2",
+                     help="Comma-separated methods: dct, all-fixed, grid-astar, fixed-labels.  [default: all]"),
+        click.option("--only", multiple=True, metavar="SCENE",
+                     help="Run only this scene of the campaign (repeatable; e.g. case1, F2M2, sparse)."),
+        click.option("--workers", type=click.IntRange(1, 1024),
+                     help="Episodes in parallel (worker processes; the rows do not depend on it).  [default: all "
+                          "cores]"),
+        click.option("--ray", "ray_address", metavar="ADDRESS",
+                     help="Run the episodes as Ray tasks: 'local' (a private Ray on this machine, --workers CPUs), "
+                          "'auto', 'ray://HEAD:10001' or 'HEAD:6379' (optional dependency: the [ray] extra)."),
+        click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+                     help="Base controller config (each method sets its planner mode and belief switch on it)."),
+        click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+                     help="Write rows, episodes and the papers' figures as JSON (checked before the run, written "
+                          "atomically after it)."),
+        click.option("--force", is_flag=True, help="Overwrite an existing --json file."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def _run_campaign_command(name: str, seeds: int, first_seed: int, methods: str | None, only: tuple[str, ...],
+                          workers: int | None, ray_address: str | None, config_path: Path | None,
+                          json_path: Path | None, force: bool) -> None:
+    """Check the inputs (one line, exit 2), run with a rich progress bar, print the table, write the JSON."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import atomic_write_json
+    from hil_sim.campaign import CAMPAIGNS, CampaignError, RichProgress, format_table, parse_methods, \
+        run_campaign, select_scenes
+    from runtime.cli_support import checked_output
+    from runtime.config import load_controller_config
+
+    try:
+        method_list = parse_methods(methods)
+        select_scenes(CAMPAIGNS[name], only)
+        load_controller_config(config_path)
+    except (CampaignError, ConfigFileError) as exc:
+        raise InputError(str(exc)) from None
+    if ray_address is not None:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise InputError("--ray: Ray is not installed (pip install 'dct-controller[ray]', or run without --ray "
+                             "for local worker processes)") from None
+    checked_output(json_path, "--json", [config_path], force)
+    progress = RichProgress(name)
+    try:
+        result = run_campaign(name, method_list, seeds, first_seed, workers, ray_address, only,
+                              str(config_path) if config_path is not None else None,
+                              on_done=progress.done, on_start=progress.start)
+    except CampaignError as exc:
+        raise InputError(str(exc)) from None
+    finally:
+        progress.close()
+    for line in format_table(result):
+        click.echo(line)
+    if json_path is not None:
+        atomic_write_json(json_path, result)
+
+
+@bench_group.command("paper")
+@click.option("--table", type=click.Choice(["1", "2"]), required=True,
+              help="1: DCT Table I (cases 1-3); 2: DCT Table II (layouts F4M0, F3M1, F2M2, F1M3, drawn per seed).")
+@_campaign_options
+def paper_command(table: str, seeds: int, first_seed: int, methods: str | None, only: tuple[str, ...],
+                  workers: int | None, ray_address: str | None, config_path: Path | None, json_path: Path | None,
+                  force: bool) -> None:
+    """The DCT paper's tables in the simulator: success, navigation time, average speed, navigation distance
+    (plus fixed contacts, path cost, fragile damage, correcting events, deadline misses) for dct, all-fixed
+    (NeuPAN-like), grid-astar (Ellis22-like) and fixed-labels, next to the paper's figures."""
+    _run_campaign_command(f"table{table}", seeds, first_seed, methods, only, workers, ray_address, config_path,
+                          json_path, force)
+
+
+@bench_group.command("beacon")
+@_campaign_options
+def beacon_command(seeds: int, first_seed: int, methods: str | None, only: tuple[str, ...], workers: int | None,
+                   ray_address: str | None, config_path: Path | None, json_path: Path | None, force: bool) -> None:
+    """BEACON's four families (sparse, cluttered, collision-required, collision-shortcut), drawn per seed: the
+    same figures per family and overall, next to BEACON's published success and path length."""
+    _run_campaign_command("beacon", seeds, first_seed, methods, only, workers, ray_address, config_path,
+                          json_path, force)

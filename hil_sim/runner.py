@@ -174,7 +174,7 @@ def run_episode(
     """Run one lockstep episode of the navigation controller in a scenario.
 
     sensors: a SensorRigConfig, True for the default rig, False for none; None picks what the
-    controller needs (lidar + IMU for the MPC, nothing for pure pursuit).
+    controller needs (lidar + IMU for the MPC and grid-astar, nothing for pure pursuit).
     faults: injected faults (hil_sim.faults), times from the start of the episode.
     wheel_calibration: (effective track m, wheel scale) for the odometry (calibration file).
     camera_calibration: (camera model, T_cam_lidar or None) from the calibration file: the
@@ -212,7 +212,7 @@ def run_episode(
     )
     devices: list = []
     if sensors is None:
-        sensors = config.uses_mpc
+        sensors = config.uses_lidar
     has_sensors = sensors is not False
     if has_sensors:
         from hil_sim.sensor_rig import SensorRig, SensorRigConfig

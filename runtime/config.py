@@ -12,6 +12,7 @@ from models.vlm.factory import BackendConfig, SimOracleBackendConfig
 from runtime.input_monitor import InputsConfig
 from runtime.modes.selector import RecoveryConfig
 from runtime.odometry.stage import OdometryConfig
+from runtime.planning.grid_astar import GridAStarConfig
 from runtime.planning.mpc import MpcConfig
 from runtime.planning.reference_path import ReferencePathConfig
 from runtime.realtime_setup import RealtimeConfig
@@ -86,8 +87,11 @@ class PlannerConfig(_Strict):
     #: in HIL).
     #: all-fixed: the same with every lidar point treated as P_fix (the NeuPAN-like baseline).
     #: pure-pursuit: the step-1 placeholder (straight line, no obstacles).
-    mode: Literal["pure-pursuit", "all-fixed", "dct"] = "dct"
+    #: grid-astar: occupancy grid from every lidar point, inflated, A*, pure pursuit (the Ellis22-like
+    #: baseline, runtime.modes.grid_astar; `grid_astar:`).
+    mode: Literal["pure-pursuit", "all-fixed", "dct", "grid-astar"] = "dct"
     pure_pursuit: PurePursuitConfig
+    grid_astar: GridAStarConfig = GridAStarConfig()
     distance_net_path: str | None = None  # None: the shipped artifact for the robot
     obstacle_points: ObstaclePointsConfig = ObstaclePointsConfig()
     mpc: MpcConfig = MpcConfig()
@@ -106,11 +110,24 @@ class PlannerConfig(_Strict):
         return self
 
 
+class BeliefConfig(_Strict):
+    """`vpp.belief`: the per-obstacle belief over {movable, heavy, fragile} updated from push
+    outcomes and wheel currents (DESIGN.md 5.5, issue 14). `enabled: false` keeps the backend's
+    labels as they are: the `fixed-labels` method of `dct bench paper` (the ablation).
+
+    The belief itself is not built yet: until it lands the switch only records which method ran,
+    and fixed-labels behaves exactly as dct."""
+
+    enabled: bool = True
+
+
 class VppSettings(VppConfig):
-    """The VPP stage's settings (runtime.vpp.stage.VppConfig) and the backend it asks
-    (`backend:`, models.vlm.factory: kind sim-oracle in HIL, openai-compatible elsewhere)."""
+    """The VPP stage's settings (runtime.vpp.stage.VppConfig), the backend it asks (`backend:`,
+    models.vlm.factory: kind sim-oracle in HIL, openai-compatible elsewhere) and the belief
+    switch (`belief:`)."""
 
     backend: BackendConfig = SimOracleBackendConfig()
+    belief: BeliefConfig = BeliefConfig()
 
 
 class ControllerConfig(_Strict):
@@ -143,10 +160,21 @@ class ControllerConfig(_Strict):
 
     @property
     def uses_mpc(self) -> bool:
+        """The MPC and its distance net (modes all-fixed and dct)."""
+        return self.planner.mode in ("all-fixed", "dct")
+
+    @property
+    def uses_lidar(self) -> bool:
+        """Lidar and IMU (every mode but the blind pure-pursuit)."""
         return self.planner.mode != "pure-pursuit"
 
     def with_planner_mode(self, mode: str) -> "ControllerConfig":
         return self.model_copy(update={"planner": self.planner.model_copy(update={"mode": mode})})
+
+    def with_belief(self, enabled: bool) -> "ControllerConfig":
+        """The same config with `vpp.belief.enabled` set (fixed-labels: False)."""
+        belief = self.vpp.belief.model_copy(update={"enabled": enabled})
+        return self.model_copy(update={"vpp": self.vpp.model_copy(update={"belief": belief})})
 
 
 def load_controller_config(path: str | Path | None = None) -> ControllerConfig:

@@ -178,7 +178,7 @@ def load_inputs(opts: RunOptions) -> Loaded:
     if opts.domain_id is not None:
         inputs = config.ros.inputs.model_copy(update={"domain_id": opts.domain_id})
         config = config.model_copy(update={"ros": config.ros.model_copy(update={"inputs": inputs})})
-    if config.ros.inputs.lidar is None and config.uses_mpc:
+    if config.ros.inputs.lidar is None and config.uses_lidar:
         raise RunInputError(f"{cfg_name}: ros.inputs.lidar: planner mode {config.planner.mode} needs a lidar topic")
     if config.uses_mpc:  # the distance net must fit this robot
         from models.distance_net import DistanceNet
@@ -304,7 +304,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
         hardware = AgileXBaseHardware(driver, robot.drive.skid_steer_yaw_factor)
         controller = NavigationController(
             robot, config, hardware, Pose2D(*goal), clock=clock.now,
-            sensors=inbox if config.uses_mpc else None, lockstep=False,
+            sensors=inbox if config.uses_lidar else None, lockstep=False,
             wheel_calibration=loaded.wheel_calibration, camera=loaded.camera, T_cam_lidar=loaded.T_cam_lidar,
         )
         telemetry = TickTelemetry()

@@ -4,6 +4,8 @@
 - `all-fixed` (all_fixed.py): reference path + OSQP MPC with every lidar point in P_fix.
 - `dct` (dct.py): the all-fixed planner with the VLM partition stage (runtime.partition_stage):
   only the points the VPP keeps fixed are P_fix.
+- `grid-astar` (grid_astar.py): inflated occupancy grid from every point, A*, pure pursuit along the
+  path (the Ellis22-like baseline of DCT Table I).
 - `backoff` (backoff.py): the stall recovery: reverse along the recorded path, then replan
   (the seed of the paper's correcting mode).
 

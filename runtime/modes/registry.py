@@ -13,6 +13,8 @@ MODES = {
     "all-fixed": "runtime.modes.all_fixed",
     # The same planner, with the VLM partition stage: only the VPP's P_fix reaches it.
     "dct": "runtime.modes.dct",
+    # Occupancy grid + A* + pure pursuit, every point fixed: the Ellis22-like baseline.
+    "grid-astar": "runtime.modes.grid_astar",
 }
 
 

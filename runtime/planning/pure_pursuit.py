@@ -1,4 +1,4 @@
-"""Pure pursuit towards the goal along the straight start-goal line.
+"""Pure pursuit towards the goal along the straight start-goal line (`steer` also follows any path).
 
 The placeholder planner of roadmap step 1 (no obstacle awareness); the MPC of step 3
 replaces it. Kept as a baseline planner mode.
@@ -57,6 +57,12 @@ class PurePursuitPlanner:
             along = (pose.x_m - sx) * ux + (pose.y_m - sy) * uy
             s = min(length, max(0.0, along) + self.lookahead_m)
             tx, ty = sx + s * ux, sy + s * uy
+        return self.steer(pose, tx, ty, remaining)
+
+    def steer(self, pose: Pose2D, tx: float, ty: float, remaining: float) -> PurePursuitCommand:
+        """The command along the arc through the lookahead point (tx, ty), `remaining` m from the
+        goal: the speed law and the curvature of pure pursuit (also runtime.modes.grid_astar's,
+        whose lookahead point lies on an A* path instead of the start-goal line)."""
         # Curvature of the arc through the lookahead point (pure pursuit).
         c, s_ = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
         lx = c * (tx - pose.x_m) + s_ * (ty - pose.y_m)
