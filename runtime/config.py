@@ -110,24 +110,13 @@ class PlannerConfig(_Strict):
         return self
 
 
-class BeliefConfig(_Strict):
-    """`vpp.belief`: the per-obstacle belief over {movable, heavy, fragile} updated from push
-    outcomes and wheel currents (DESIGN.md 5.5, issue 14). `enabled: false` keeps the backend's
-    labels as they are: the `fixed-labels` method of `dct bench paper` (the ablation).
-
-    The belief itself is not built yet: until it lands the switch only records which method ran,
-    and fixed-labels behaves exactly as dct."""
-
-    enabled: bool = True
-
-
 class VppSettings(VppConfig):
     """The VPP stage's settings (runtime.vpp.stage.VppConfig), the backend it asks (`backend:`,
-    models.vlm.factory: kind sim-oracle in HIL, openai-compatible elsewhere) and the belief
-    switch (`belief:`)."""
+    models.vlm.factory: kind sim-oracle in HIL, openai-compatible elsewhere). The belief
+    (`belief:`, runtime.belief.BeliefConfig) is the stage's: `enabled: false` keeps the
+    backend's labels as they are, the `fixed-labels` method of `dct bench paper`."""
 
     backend: BackendConfig = SimOracleBackendConfig()
-    belief: BeliefConfig = BeliefConfig()
 
 
 class ControllerConfig(_Strict):

@@ -40,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmAnswer, VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
+from runtime.belief import BeliefConfig
 from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import (AnswerPreparer, MaskMemory, MaskMemoryConfig, MaskMemoryError,
@@ -71,6 +72,8 @@ class VppConfig(BaseModel):
     moved_tolerance_m: float = Field(0.05, gt=0.0, le=1.0)
     #: Movable objects followed between masks (a pushed box leaves its mask): tracking.py.
     tracking: TrackingConfig = TrackingConfig()
+    #: The per-obstacle belief over movable / heavy / fragile (runtime.belief; BEACON).
+    belief: BeliefConfig = BeliefConfig()
     #: The controller waits for the first answer (mode dct); after this long without one it drives
     #: on what it has (every point P_fix), and says so.
     first_answer_timeout_s: float = Field(5.0, gt=0.0, le=120.0)
