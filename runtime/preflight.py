@@ -616,7 +616,8 @@ def can_settings(opts: PreflightOptions, config: Any) -> tuple[dict[str, Any], s
     elif from_config:
         source = f"bus from {opts.config} can_bus with the command line's --can-* options"
     else:
-        source = "bus from the command line" + ("" if cli_given else " (default socketcan)")
+        source = "bus from the command line" + ("" if cli_given else " (default socketcan)") + (
+            "; the --config did not load" if opts.config is not None else "")
     return bus, source
 
 
