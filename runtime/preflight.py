@@ -685,8 +685,8 @@ def _command():
                   help="controller config YAML (default: the shipped one)")
     @click.option("--can-interface", type=click.Choice(["socketcan", "udp_multicast", "virtual", "limo_serial"]),
                   default=None, help="default: the --config's can_bus when --config is given, else socketcan")
-    @click.option("--can-channel", default=None, help="can0, a multicast group or a serial port (default per interface, "
-                  "or the --config's can_bus.channel)")
+    @click.option("--can-channel", default=None,
+                  help="can0, a multicast group or a serial port (default per interface, or the --config's can_bus)")
     @click.option("--can-udp-port", type=click.IntRange(1, 65535), default=None, help="udp_multicast port")
     @click.option("--ros-domain", type=click.IntRange(0, 232), default=None,
                   help="DDS domain of the sensor topics (default: the config's, else 0)")
