@@ -22,7 +22,8 @@ def report_group() -> None:
 @click.option("--html", "html_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Write the report as one self-contained HTML page (figures inline).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
-              help="Write the figures as JSON (stages, tick, jitter_ms, deadline_misses, sensor_to_command_ms).")
+              help="Write the figures as JSON (stages, tick, jitter_ms, deadline_misses, sensor_to_command_ms, "
+                   "image_to_mask_ms, threads).")
 @click.option("--compare", "compare_path", type=click.Path(dir_okay=False, path_type=Path),
               help="A second recording to put beside RUN (before and after a change).")
 @click.option("--force", is_flag=True, help="Overwrite existing --html / --json files.")

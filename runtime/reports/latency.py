@@ -1,5 +1,6 @@
 """The latency report of a recorded run: per-stage percentiles against budgets, the whole tick,
-period jitter, deadline misses with their context, sensor-to-command latency.
+period jitter, deadline misses with their context, sensor-to-command latency, image capture -> the
+mask that came of it (`/dct/vpp/answer`), CPU time per thread (`/dct/threads`).
 
 Input: an MCAP written by runtime.recording (its `/dct/tick` channel and the `dct.run` metadata,
 which holds the stage budgets in force when it was recorded: a report judges a run by its own
