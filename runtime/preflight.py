@@ -34,7 +34,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -312,7 +312,7 @@ def check_base_answers(bus: Any, *, timeout_s: float = BASE_ANSWER_TIMEOUT_S,
 
 def check_can(interface: str, channel: str | None, *, bitrate_bps: int, udp_port: int | None = None,
               sys_root: str | Path = "/", ip_link_json: Callable[[str], str | None] = _ip_link_json,
-              check_base: bool = True) -> list[Check]:
+              check_base: bool = True, serial_baud: int | None = None) -> list[Check]:
     """`can_link` and `base` for any bus interface."""
     import pydantic
 
@@ -321,6 +321,8 @@ def check_can(interface: str, channel: str | None, *, bitrate_bps: int, udp_port
     kw: dict[str, Any] = {"interface": interface, "channel": channel, "bitrate": bitrate_bps}
     if udp_port is not None:
         kw["udp_port"] = udp_port
+    if serial_baud is not None:
+        kw["serial_baud"] = serial_baud
     try:
         cfg = BusConfig(**kw)
     except pydantic.ValidationError as exc:
@@ -581,7 +583,7 @@ class PreflightOptions:
     robot: str | None = None
     calibration: str | None = None
     config: str | None = None
-    can_interface: str = "socketcan"
+    can_interface: str | None = None  # None: the config's can_bus when --config is given, else socketcan
     can_channel: str | None = None
     can_udp_port: int | None = None
     ros_domain: int | None = None
@@ -590,6 +592,33 @@ class PreflightOptions:
     min_free_gb: float = DEFAULT_MIN_FREE_GB
     sys_root: str = "/"
     skip: tuple[str, ...] = ()
+
+
+def can_settings(opts: PreflightOptions, config: Any) -> tuple[dict[str, Any], str]:
+    """The bus to check and where it came from. With --config and no --can-* option: the config's
+    can_bus (the bus `dct run --config` opens); the command line's options override it as they do
+    in `dct run`; without --config, the command line's (socketcan by default)."""
+    cli_given = any(v is not None for v in (opts.can_interface, opts.can_channel, opts.can_udp_port))
+    from_config = opts.config is not None and config is not None
+    if from_config:
+        bus = config.can_bus.model_dump()
+        bus = {k: bus[k] for k in ("interface", "channel", "udp_port", "serial_baud")}
+    else:
+        bus = {"interface": "socketcan", "channel": None, "udp_port": None, "serial_baud": None}
+    if opts.can_interface is not None:
+        bus.update(interface=opts.can_interface, channel=None, udp_port=None, serial_baud=None)
+    if opts.can_channel is not None:
+        bus["channel"] = opts.can_channel
+    if opts.can_udp_port is not None:
+        bus["udp_port"] = opts.can_udp_port
+    if from_config and not cli_given:
+        source = f"bus from {opts.config} can_bus"
+    elif from_config:
+        source = f"bus from {opts.config} can_bus with the command line's --can-* options"
+    else:
+        source = "bus from the command line" + ("" if cli_given else " (default socketcan)") + (
+            "; the --config did not load" if opts.config is not None else "")
+    return bus, source
 
 
 def run_preflight(opts: PreflightOptions, echo: Callable[[str], None] | None = None) -> list[Check]:
@@ -611,8 +640,11 @@ def run_preflight(opts: PreflightOptions, echo: Callable[[str], None] | None = N
     if "can" in opts.skip:
         add([skipped("can_link", "can"), skipped("base", "can")])
     else:
-        add(check_can(opts.can_interface, opts.can_channel, bitrate_bps=bitrate, udp_port=opts.can_udp_port,
-                      sys_root=opts.sys_root, check_base="base" not in opts.skip))
+        bus, source = can_settings(opts, files.config)
+        can_checks = check_can(bus["interface"], bus["channel"], bitrate_bps=bitrate, udp_port=bus["udp_port"],
+                               serial_baud=bus["serial_baud"], sys_root=opts.sys_root,
+                               check_base="base" not in opts.skip)
+        add([replace(c, message=f"{c.message} ({source})") if c.name == "can_link" else c for c in can_checks])
         if "base" in opts.skip:
             add(skipped("base", "base"))
     if "sensors" in opts.skip:
@@ -652,8 +684,9 @@ def _command():
     @click.option("--config", "config", type=click.Path(dir_okay=False), default=None,
                   help="controller config YAML (default: the shipped one)")
     @click.option("--can-interface", type=click.Choice(["socketcan", "udp_multicast", "virtual", "limo_serial"]),
-                  default="socketcan", show_default=True)
-    @click.option("--can-channel", default=None, help="can0, a multicast group or a serial port (default per interface)")
+                  default=None, help="default: the --config's can_bus when --config is given, else socketcan")
+    @click.option("--can-channel", default=None,
+                  help="can0, a multicast group or a serial port (default per interface, or the --config's can_bus)")
     @click.option("--can-udp-port", type=click.IntRange(1, 65535), default=None, help="udp_multicast port")
     @click.option("--ros-domain", type=click.IntRange(0, 232), default=None,
                   help="DDS domain of the sensor topics (default: the config's, else 0)")

@@ -12,6 +12,14 @@ chunks are small (`chunk_size`) and the writer also closes a chunk every `flush_
 The file is written under a temporary name beside the output and renamed onto it at the end;
 the run's description (stages, budgets, config) is written first, so a cut-off file keeps it.
 
+Masks when they arrive: the hook notices a new VPP answer (the mask memory's `last_answer_s`
+changed) and queues references to its entries (immutable) and three floats; the writer thread
+counts their pixels, paints one downscaled label image coloured by contact cost and PNG-encodes
+it (`/dct/vpp/answer` and `/dct/vpp/masks`). The writer also samples every live Python thread's
+CPU time about once a second of wall time (`/dct/threads`, from /proc/self/task; nothing where
+there is no /proc), with a first sample at start and a last at close, so the report can say what
+each thread spent over the run.
+
 Used by any loop: `attach()` returns the per-tick hook (FixedRateLoop's `after_tick`), and
 `wrap_bus()` puts a recording proxy between a driver and its CAN bus.
 """
@@ -22,9 +30,11 @@ import io
 import json
 import math
 import os
+import struct
 import tempfile
 import threading
 import time
+import zlib
 from collections import deque
 from pathlib import Path
 from typing import Any, Callable
@@ -35,7 +45,11 @@ from runtime.recording import schemas as S
 from runtime.telemetry import STAGES
 
 #: Channel message kinds, and how each is counted when dropped.
-KINDS = ("tick", "can", "points", "plan")
+KINDS = ("tick", "can", "points", "plan", "answer")
+#: Size of the recorded mask image (width, height): small, the masks are coarse anyway.
+MASK_IMAGE_WH = (160, 120)
+#: Wall-clock seconds between two samples of the threads' CPU time.
+THREAD_SAMPLE_EVERY_S = 1.0
 _STATE_NAMES = {0: "INITIALIZING", 1: "ACTIVE", 2: "GOAL_REACHED", 3: "STOPPED", 4: "HOLDING"}
 
 
@@ -59,6 +73,68 @@ def _pose(x: float, y: float, yaw: float) -> dict:
 
 def _finite(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
+
+
+def cost_rgb(cost: np.ndarray) -> np.ndarray:
+    """Contact cost 0..10 -> RGB uint8: green (free to touch) through yellow to red (keep off)."""
+    c = np.clip(np.asarray(cost, float) / 10.0, 0.0, 1.0)
+    r = np.clip(2.0 * c, 0.0, 1.0)
+    g = np.clip(2.0 * (1.0 - c), 0.0, 1.0)
+    return (np.stack([r, g, np.zeros_like(c)], axis=-1) * 255).round().astype(np.uint8)
+
+
+def mask_label_image(entries: tuple, wh: tuple[int, int] = MASK_IMAGE_WH) -> np.ndarray:
+    """(h, w, 3) uint8: each entry's mask downscaled (nearest pixel) and painted in its cost's
+    colour on black, in ascending cost so that the costliest object shows where masks overlap."""
+    w, h = wh
+    img = np.zeros((h, w, 3), np.uint8)
+    for e in sorted(entries, key=lambda e: float(e.contact_cost)):
+        m = np.asarray(e.mask, bool)
+        if m.ndim != 2 or not m.size:
+            continue
+        rows = (np.arange(h) * m.shape[0]) // h
+        cols = (np.arange(w) * m.shape[1]) // w
+        img[m[np.ix_(rows, cols)]] = cost_rgb(float(e.contact_cost))
+    return img
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """A truecolour PNG of an (h, w, 3) uint8 image (zlib only: no imaging library needed)."""
+    h, w, _ = rgb.shape
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rgb.reshape(h, 3 * w)], axis=1).tobytes()  # filter 0 rows
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+
+
+def thread_cpu_seconds(proc_root: str = "/proc") -> list[dict] | None:
+    """[{name, tid, cpu_s}] of every live Python thread (user + system time from
+    /proc/self/task/<tid>/stat); None where there is no /proc (not Linux). A thread that ended
+    between the listing and the read is left out."""
+    task = os.path.join(proc_root, "self", "task")
+    if not os.path.isdir(task):
+        return None
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    out = []
+    for th in threading.enumerate():
+        tid = getattr(th, "native_id", None)
+        if tid is None:
+            continue
+        try:
+            with open(os.path.join(task, str(tid), "stat"), "rb") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        fields = stat[stat.rfind(b")") + 2:].split()  # after "pid (comm) ": state is field 3
+        try:
+            cpu_s = (int(fields[11]) + int(fields[12])) / tick  # utime, stime: fields 14 and 15
+        except (IndexError, ValueError):
+            continue
+        out.append({"name": th.name, "tid": int(tid), "cpu_s": cpu_s})
+    return out
 
 
 class RunRecorder:
@@ -124,6 +200,11 @@ class RunRecorder:
         self._run_ended_with: str | None = None
         self._last_plan: object = None
         self._last_reference: object = None
+        self._last_answer_s: float | None = None
+        self.thread_samples = 0
+        self._threads_supported = True
+        self._last_t_s = 0.0  # loop-clock time of the newest tick written: the threads' log time
+        self._wall0 = time.monotonic()
         self._thread = threading.Thread(target=self._writer_main, name="dct-mcap-writer", daemon=True)
         self._thread.start()
 
@@ -174,6 +255,13 @@ class RunRecorder:
                 offs = scan.point_time_offsets_s
                 frame_end = float(scan.stamp_s) + (float(offs.max()) if len(offs) else float(scan.frame_duration_s))
             put("tick", ("tick", row.copy(), xyyaw, frame_end))
+            vpp = getattr(controller, "vpp", None)
+            memory = getattr(vpp, "memory", None) if vpp is not None else None
+            stamp = getattr(memory, "last_answer_s", None)
+            if stamp is not None and stamp != self._last_answer_s:
+                self._last_answer_s = stamp
+                t = float(row["scheduled_s"])  # references only: entries and their masks are immutable
+                put("answer", ("answer", t, float(stamp), int(getattr(vpp, "answers", 0)), tuple(memory.entries)))
             if int(row["tick"]) % every == 0:
                 self._sample_points(controller, row, scan)
 
@@ -220,6 +308,7 @@ class RunRecorder:
         if kind == "tick":
             _, r, xyyaw, frame_end = item
             t = float(r["scheduled_s"])
+            self._last_t_s = t
             mask = int(r["overrun_mask"])
             cmd_t = t + float(r["command_latency_s"])
             msg = {
@@ -269,7 +358,32 @@ class RunRecorder:
             if path is not None:
                 self._emit(S.TOPIC_REFERENCE, t, {"timestamp": _stamp(t), "frame_id": "odom",
                                                   "poses": [_pose(float(p[0]), float(p[1]), 0.0) for p in path]})
+        elif kind == "answer":
+            _, t, stamp, answers, entries = item
+            self._emit(S.TOPIC_VPP_ANSWER, t, {
+                "timestamp": _stamp(t), "arrival_s": t, "capture_s": stamp, "latency_ms": (t - stamp) * 1e3,
+                "answers": answers,
+                "objects": [{"object_id": int(e.object_id), "label": str(e.label), "movable": bool(e.movable),
+                             "contact_cost": float(e.contact_cost), "pixels": int(np.count_nonzero(e.mask))}
+                            for e in entries],
+            })
+            png = png_bytes(mask_label_image(entries))
+            self._emit(S.TOPIC_VPP_MASKS, t, {"timestamp": _stamp(stamp), "frame_id": "camera", "format": "png",
+                                              "data": base64.b64encode(png).decode()})
         self.written[kind] += 1
+
+    def _sample_threads(self) -> None:
+        """One /dct/threads message (writer thread only); off for good where there is no /proc."""
+        if not self._threads_supported:
+            return
+        threads = thread_cpu_seconds()
+        if threads is None:
+            self._threads_supported = False
+            return
+        t = self._last_t_s
+        self._emit(S.TOPIC_THREADS, t, {"timestamp": _stamp(t), "wall_s": time.monotonic() - self._wall0,
+                                        "process_cpu_s": time.process_time(), "threads": threads})
+        self.thread_samples += 1
 
     def _writer_main(self) -> None:
         try:
@@ -277,8 +391,20 @@ class RunRecorder:
         except OSError as exc:
             self.write_error = f"{type(exc).__name__}: {exc}"
         last_flush = time.monotonic()
+        last_threads = -math.inf
         q = self._queue
         while True:
+            now = time.monotonic()
+            if self.write_error is None and self._started and (
+                    now - last_threads >= THREAD_SAMPLE_EVERY_S or (self._closing and not q)):
+                last_threads = now
+                try:
+                    self._sample_threads()
+                except OSError as exc:
+                    self.write_error = f"{type(exc).__name__}: {exc}"
+                except Exception as exc:  # noqa: BLE001 - never die
+                    self.bad_records += 1
+                    self.bad_record_error = f"threads: {type(exc).__name__}: {exc}"
             if not q:
                 if self._closing:
                     return
@@ -314,6 +440,7 @@ class RunRecorder:
             "path": str(self.path),
             "ticks_seen": self.ticks_seen,
             "written": dict(self.written),
+            "thread_samples": self.thread_samples,
             "dropped_queue_full": dict(self.dropped),
             "dropped_write_error": self.dropped_write_error,
             "dropped_total": sum(self.dropped.values()) + self.dropped_write_error,

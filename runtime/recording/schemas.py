@@ -16,6 +16,9 @@ TOPIC_PARTITION = "/dct/partition"
 TOPIC_P_FIX = "/dct/p_fix"
 TOPIC_PLAN = "/dct/plan"
 TOPIC_REFERENCE = "/dct/reference_path"
+TOPIC_VPP_ANSWER = "/dct/vpp/answer"
+TOPIC_VPP_MASKS = "/dct/vpp/masks"
+TOPIC_THREADS = "/dct/threads"
 
 #: Metadata record names: the run (written first, so a cut-off file keeps it) and the recorder's
 #: own account (written at the end: records written and dropped).
@@ -127,6 +130,64 @@ PARTITION = {
     },
 }
 
+VPP_ANSWER = {
+    "title": "dct.VppAnswer",
+    "description": "A VLM answer the VPP mask memory applied: when it arrived (the tick that applied it), the "
+                   "capture stamp of the image it answered, the latency between them, and its objects.",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "arrival_s": {**_NUM, "description": "scheduled start of the tick that applied the answer (loop clock)"},
+        "capture_s": {**_NUM, "description": "capture stamp of the image the answer is about"},
+        "latency_ms": {**_NUM, "description": "image capture -> the masks in the controller"},
+        "answers": {"type": "integer", "description": "answers the VPP stage received so far (failed ones included)"},
+        "objects": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "object_id": {"type": "integer"},
+                    "label": {"type": "string"},
+                    "movable": {"type": "boolean"},
+                    "contact_cost": _NUM,
+                    "pixels": {"type": "integer", "description": "pixels in the mask at capture resolution"},
+                },
+            },
+        },
+    },
+}
+
+COMPRESSED_IMAGE = {
+    "title": "foxglove.CompressedImage",
+    "description": "The answer's masks as one label image, coloured by contact cost (green 0 .. red 10), downscaled.",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "frame_id": {"type": "string"},
+        "data": {"type": "string", "contentEncoding": "base64"},
+        "format": {"type": "string"},
+    },
+}
+
+THREADS = {
+    "title": "dct.Threads",
+    "description": "CPU time (user + system, since each thread started) of every live Python thread, sampled "
+                   "about once a second of wall time by the recorder's writer thread.",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "wall_s": {**_NUM, "description": "wall-clock seconds since the recorder started"},
+        "process_cpu_s": {**_NUM, "description": "the whole process's CPU time (all threads, Python or not)"},
+        "threads": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {"name": {"type": "string"}, "tid": {"type": "integer"}, "cpu_s": _NUM},
+            },
+        },
+    },
+}
+
 #: topic -> (schema name, schema); the tick schema depends on the stage names.
 def channel_schemas(stages: tuple[str, ...]) -> dict[str, tuple[str, dict]]:
     return {
@@ -137,6 +198,9 @@ def channel_schemas(stages: tuple[str, ...]) -> dict[str, tuple[str, dict]]:
         TOPIC_P_FIX: ("foxglove.PointCloud", POINT_CLOUD),
         TOPIC_PLAN: ("foxglove.PosesInFrame", POSES_IN_FRAME),
         TOPIC_REFERENCE: ("foxglove.PosesInFrame", POSES_IN_FRAME),
+        TOPIC_VPP_ANSWER: ("dct.VppAnswer", VPP_ANSWER),
+        TOPIC_VPP_MASKS: ("foxglove.CompressedImage", COMPRESSED_IMAGE),
+        TOPIC_THREADS: ("dct.Threads", THREADS),
     }
 
 

@@ -22,7 +22,8 @@ def report_group() -> None:
 @click.option("--html", "html_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Write the report as one self-contained HTML page (figures inline).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
-              help="Write the figures as JSON (stages, tick, jitter_ms, deadline_misses, sensor_to_command_ms).")
+              help="Write the figures as JSON (stages, tick, jitter_ms, deadline_misses, sensor_to_command_ms, "
+                   "image_to_mask_ms, threads).")
 @click.option("--compare", "compare_path", type=click.Path(dir_okay=False, path_type=Path),
               help="A second recording to put beside RUN (before and after a change).")
 @click.option("--force", is_flag=True, help="Overwrite existing --html / --json files.")
@@ -78,4 +79,9 @@ def summary_text(label: str, rep: dict) -> str:
     lines.append(f"  deadline misses: {m['count']} (loop clock), {m['wall_clock_count']} (wall clock); "
                  f"jitter p99 {f(rep['jitter_ms']['p99_ms'])} ms; sensor-to-command p99 "
                  + (f"{f(s2c['p99_ms'])} ms" if s2c["recorded"] else "not recorded"))
+    i2m, th = rep.get("image_to_mask_ms", {}), rep.get("threads", {})
+    lines.append("  image capture -> mask: " + (f"p50 {f(i2m['p50_ms'])} ms, max {f(i2m['max_ms'])} ms, "
+                                                f"{i2m['count']} answers" if i2m.get("recorded") else "not recorded")
+                 + "; CPU per thread: " + (", ".join(f"{n} {f(t['cpu_s'])} s" for n, t in th["by_name"].items())
+                                           if th.get("recorded") else "not recorded"))
     return "\n".join(lines)

@@ -60,6 +60,24 @@ clock {{ r.report.run.clock or "?" }}, planner {{ r.report.run.planner or "?" }}
 {% endfor %}
 <p class="note">Whole-tick budget: the command deadline. Jitter: {{ runs[0].report.jitter_ms.note }}.</p>
 
+<h2>Image capture to mask, CPU time per thread</h2>
+{% for r in runs %}
+{% set m = r.report.image_to_mask_ms %}
+<p><b>{{ r.label }}</b>: image capture -> mask {% if m.recorded %}p50 {{ fmt(m.p50_ms) }}, p90 {{ fmt(m.p90_ms) }}, p99 {{ fmt(m.p99_ms) }}, max {{ fmt(m.max_ms) }} ms over {{ m.count }} answers ({{ m.what }}).{% else %}not recorded ({{ m.why }}).{% endif %}</p>
+{% set th = r.report.threads %}
+{% if th.recorded %}
+<table>
+<tr><th class="name">thread ({{ fmt(th.wall_s) }} s wall)</th><th>CPU (s)</th><th>share of wall</th></tr>
+{% for name, t in th.by_name.items() %}
+<tr><td class="name">{{ name }}{% if t.threads > 1 %} (&times;{{ t.threads }}){% endif %}</td><td>{{ fmt(t.cpu_s) }}</td><td>{{ pct(t.share_of_wall) }}</td></tr>
+{% endfor %}
+{% if th.process %}<tr><td class="name"><b>whole process</b></td><td>{{ fmt(th.process.cpu_s) }}</td><td>{{ pct(th.process.share_of_wall) }}</td></tr>{% endif %}
+</table>
+{% else %}
+<p class="note">CPU time per thread: not recorded ({{ th.why }}).</p>
+{% endif %}
+{% endfor %}
+
 <h2>Deadline misses</h2>
 {% for r in runs %}
 <p><b>{{ r.label }}</b>: {{ r.report.deadline_misses.count }} on the loop clock, {{ r.report.deadline_misses.wall_clock_count }} on the wall clock{% if r.report.deadline_misses.events %}; the first {{ r.report.deadline_misses.listed }}:{% else %}.{% endif %}</p>
@@ -82,7 +100,7 @@ clock {{ r.report.run.clock or "?" }}, planner {{ r.report.run.planner or "?" }}
 {% for r in runs %}{% if i < r.figures|length %}<div>{% if runs|length > 1 %}<p class="note"><b>{{ r.label }}</b></p>{% endif %}<img alt="{{ r.figures[i][0] }} ({{ r.label }})" src="data:image/png;base64,{{ r.figures[i][1] }}"></div>{% endif %}{% endfor %}
 </div>
 {% endfor %}
-<p class="note">Made by <code>dct report latency</code>. Sensor-to-command: {% if runs[0].report.sensor_to_command_ms.recorded %}{{ runs[0].report.sensor_to_command_ms.what }}{% else %}{{ runs[0].report.sensor_to_command_ms.why }}{% endif %}; image capture -> mask and CPU time per thread: not recorded.</p>
+<p class="note">Made by <code>dct report latency</code>. Sensor-to-command: {% if runs[0].report.sensor_to_command_ms.recorded %}{{ runs[0].report.sensor_to_command_ms.what }}{% else %}{{ runs[0].report.sensor_to_command_ms.why }}{% endif %}. CPU time per thread: {{ runs[0].report.threads.what if runs[0].report.threads.recorded else "not recorded" }}.</p>
 </body></html>
 """
 

@@ -1,5 +1,6 @@
 """The latency report of a recorded run: per-stage percentiles against budgets, the whole tick,
-period jitter, deadline misses with their context, sensor-to-command latency.
+period jitter, deadline misses with their context, sensor-to-command latency, image capture -> the
+mask that came of it (`/dct/vpp/answer`), CPU time per thread (`/dct/threads`).
 
 Input: an MCAP written by runtime.recording (its `/dct/tick` channel and the `dct.run` metadata,
 which holds the stage budgets in force when it was recorded: a report judges a run by its own
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.recording.reader import Recording, RecordingReadError, read_recording
-from runtime.recording.schemas import TOPIC_TICK
+from runtime.recording.schemas import TOPIC_THREADS, TOPIC_TICK, TOPIC_VPP_ANSWER
 
 PERCENTILES = (("p50_ms", 50.0), ("p90_ms", 90.0), ("p99_ms", 99.0), ("p999_ms", 99.9))
 #: Deadline misses listed with their context (all are counted).
@@ -54,13 +55,15 @@ class TickData:
     complete: bool = True
     stopped_by: str | None = None
     recorder: dict | None = None
+    image_to_mask_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))  # one per applied VLM answer
+    thread_samples: list[dict] = field(default_factory=list)  # /dct/threads messages, in file order
 
 
 def load_ticks(path: str | Path) -> TickData:
     """Read the tick channel of a recording; ReportInputError for a file without one."""
     p = Path(path)
     try:
-        rec: Recording = read_recording(p, topics=[TOPIC_TICK])
+        rec: Recording = read_recording(p, topics=[TOPIC_TICK, TOPIC_VPP_ANSWER, TOPIC_THREADS])
     except RecordingReadError as exc:
         raise ReportInputError(str(exc)) from exc
     msgs = [m for _, m in rec.messages.get(TOPIC_TICK, [])]
@@ -94,6 +97,9 @@ def load_ticks(path: str | Path) -> TickData:
         sensor_recorded=any("sensor_to_command_ms" in m for m in msgs),
         info=info, complete=rec.complete, stopped_by=rec.stopped_by,
         recorder=rec.recorder_account(),
+        image_to_mask_ms=np.array([m.get("latency_ms", np.nan) for _, m in rec.messages.get(TOPIC_VPP_ANSWER, [])],
+                                  dtype=float),
+        thread_samples=[m for _, m in rec.messages.get(TOPIC_THREADS, [])],
     )
 
 
@@ -142,6 +148,50 @@ def _miss_context(d: TickData, i: int) -> dict:
     }
 
 
+def image_to_mask(d: TickData) -> dict:
+    """Image capture -> the tick that applied the VLM's masks for it, one sample per answer."""
+    x = d.image_to_mask_ms[np.isfinite(d.image_to_mask_ms)]
+    if not len(x):
+        return {"recorded": False, "why": "no VLM answer was applied in this recording (a mode without the VPP "
+                                          "stage, a run shorter than the backend's latency, or an older recording)"}
+    out = {k: _opt(np.percentile(x, q)) for k, q in PERCENTILES if k != "p999_ms"}
+    out.update(max_ms=_opt(x.max()), count=int(len(x)), recorded=True,
+               what="image capture stamp -> scheduled start of the tick that applied the answer's masks")
+    return out
+
+
+def thread_cpu(d: TickData) -> dict:
+    """CPU time each thread (by name) spent between the first and the last /dct/threads sample,
+    and its share of the wall time between them (1.0 = one core all the time)."""
+    samples = [s for s in d.thread_samples if s.get("threads") is not None]
+    if len(samples) < 2:
+        return {"recorded": False, "why": "fewer than two thread samples (no /proc, or an older recording)"}
+    first, last = samples[0], samples[-1]
+    wall_s = float(last["wall_s"]) - float(first["wall_s"])
+    start = {t["tid"]: float(t["cpu_s"]) for t in first["threads"]}
+    per_name: dict[str, dict] = {}
+    # A thread is counted from its last sample; one that ended between samples counts to its last.
+    latest: dict[int, dict] = {}
+    for s in samples:
+        for t in s["threads"]:
+            latest[t["tid"]] = t
+    for tid, t in latest.items():
+        cpu = float(t["cpu_s"]) - start.get(tid, 0.0)
+        e = per_name.setdefault(t["name"], {"cpu_s": 0.0, "threads": 0})
+        e["cpu_s"] += max(cpu, 0.0)
+        e["threads"] += 1
+    for e in per_name.values():
+        e["share_of_wall"] = e["cpu_s"] / wall_s if wall_s > 0 else None
+    out = {"recorded": True, "wall_s": wall_s, "samples": len(samples),
+           "by_name": dict(sorted(per_name.items(), key=lambda kv: -kv[1]["cpu_s"]))}
+    if "process_cpu_s" in first and "process_cpu_s" in last:
+        cpu = float(last["process_cpu_s"]) - float(first["process_cpu_s"])
+        out["process"] = {"cpu_s": cpu, "share_of_wall": cpu / wall_s if wall_s > 0 else None}
+    out["what"] = ("user + system CPU time of each Python thread between the recorder's first and last sample "
+                   "(wall clock); threads of the same name summed; 'process' includes non-Python threads")
+    return out
+
+
 def latency_report(d: TickData) -> dict:
     """The report as JSON-ready data. Keys the issue fixes: stages, tick, jitter_ms,
     deadline_misses, sensor_to_command_ms; `run` says what was measured and how."""
@@ -176,7 +226,9 @@ def latency_report(d: TickData) -> dict:
         s2c = {"recorded": False,
                "why": "no tick in this recording used a lidar frame" if d.sensor_recorded
                else "this recording has no sensor timestamps"}
-    s2c["image_to_mask"] = "not recorded"
+    i2m = image_to_mask(d)
+    s2c["image_to_mask"] = "see image_to_mask_ms" if i2m["recorded"] else "not recorded"
+    threads = thread_cpu(d)
     duration = float(d.t_s[-1] - d.t_s[0]) + d.period_ms * 1e-3 if len(d.t_s) else 0.0
     return {
         "stages": stages,
@@ -184,6 +236,8 @@ def latency_report(d: TickData) -> dict:
         "jitter_ms": jitter,
         "deadline_misses": misses,
         "sensor_to_command_ms": s2c,
+        "image_to_mask_ms": i2m,
+        "threads": threads,
         "run": {
             "file": str(d.path),
             "ticks": int(len(d.tick)),
@@ -200,6 +254,6 @@ def latency_report(d: TickData) -> dict:
             "recording_complete": d.complete,
             "recording_stopped_by": d.stopped_by,
             "recorder": d.recorder,
-            "cpu_time_per_thread": "not recorded",
+            "cpu_time_per_thread": "see threads" if threads["recorded"] else "not recorded",
         },
     }

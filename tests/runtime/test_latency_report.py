@@ -27,7 +27,8 @@ DIST_KEYS = {"p50_ms", "p90_ms", "p99_ms", "p999_ms", "max_ms", "budget_ms", "ov
 def recording(tmp_path_factory):
     out = tmp_path_factory.mktemp("latency") / "run.mcap"
     with RunRecorder(out) as rec:
-        result = run_episode(load_scenario("case1").model_copy(update={"time_limit_s": 1.5}), seed=0, recorder=rec)
+        # 1.7 s: long enough for the sim-oracle's first answer (1.5 s after the query at the first scan).
+        result = run_episode(load_scenario("case1").model_copy(update={"time_limit_s": 1.7}), seed=0, recorder=rec)
     return out, result
 
 
@@ -64,6 +65,19 @@ def test_the_json_has_the_issue_keys_and_the_recorded_figures(recording, report)
     assert s2c["recorded"] and s2c["frames"] > 5 and 0.0 <= s2c["p50_ms"] <= s2c["max_ms"] < 100.0
     for name in STAGES:
         assert f"\n  {name} " in output
+    # Image capture -> mask: the sim-oracle's 1.5 s, quantised to the tick (plus the image's wait for the
+    # tick that sends it); CPU time per thread over the run.
+    i2m = rep["image_to_mask_ms"]
+    assert i2m["recorded"] is True and i2m["count"] >= 1
+    assert {"p50_ms", "p90_ms", "p99_ms", "max_ms", "count"} <= set(i2m)
+    assert 1500.0 - 1e-6 <= i2m["p50_ms"] <= i2m["max_ms"] <= 1500.0 + 2 * rep["run"]["period_ms"] + 1e-6
+    assert rep["sensor_to_command_ms"]["image_to_mask"] == "see image_to_mask_ms"
+    th = rep["threads"]
+    assert th["recorded"] and th["wall_s"] > 0 and {"MainThread", "dct-mcap-writer"} <= set(th["by_name"])
+    main = th["by_name"]["MainThread"]
+    assert main["cpu_s"] > 0 and main["share_of_wall"] == pytest.approx(main["cpu_s"] / th["wall_s"])
+    assert rep["run"]["cpu_time_per_thread"] == "see threads"
+    assert "image capture -> mask: p50" in output and "MainThread" in output
 
 
 def _decodes_to_a_picture(png: bytes) -> bool:
@@ -96,6 +110,8 @@ def test_the_html_renders_in_headless_chromium(report, tmp_path):
     for name in STAGES:
         assert re.search(rf"\b{name}\b", text), name
     assert "whole tick" in text and "Deadline misses" in text
+    assert "image capture -&gt; mask p50" in text or "image capture -> mask p50" in text
+    assert "dct-mcap-writer" in text and "whole process" in text
     images = re.findall(r'src="data:image/png;base64,([^"]+)"', dom.stdout)
     assert len(images) >= 3  # stage histograms, tick timeline, stage breakdown
     assert all(_decodes_to_a_picture(base64.b64decode(b)) for b in images)

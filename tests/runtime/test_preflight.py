@@ -293,3 +293,31 @@ def test_topics_come_from_the_controller_configs_ros_inputs():
 
     topics = pf.topics_from_config(load_controller_config(None), 7)
     assert topics.domain_id == 7 and topics.lidar.topic == load_controller_config(None).ros.inputs.lidar.topic
+
+
+def test_the_configs_can_bus_is_checked_when_no_can_option_is_given(tmp_path, nominal_cal):
+    """`--config K.yaml` with no --can-* option checks the bus `dct run --config K.yaml` opens (its
+    can_bus section), and the can_link line says which bus it checked."""
+    from runtime.config import load_controller_config
+
+    raw = yaml.safe_load((Path(pf.__file__).parent / "config" / "default.yaml").read_text())
+    raw["can_bus"] = {"interface": "virtual", "channel": "preflight-cfg"}
+    cfg_file = write_yaml(tmp_path / "k.yaml", raw)
+    base = ["--calibration", str(nominal_cal), "--config", str(cfg_file), "--skip", "sensors", "--skip", "clock",
+            "--log-dir", str(tmp_path), "--min-free-gb", "0"]
+    with EmulatedBase(BusConfig(interface="virtual", channel="preflight-cfg")):
+        res = CliRunner().invoke(pf.preflight_command, base)
+        (link,) = [line for line in res.output.splitlines() if " can_link " in line]
+        assert link.startswith("PASS") and "'preflight-cfg'" in link and f"bus from {cfg_file} can_bus" in link
+        assert "PASS  base" in res.output, res.output
+        # A --can-* option overrides the config's (as in `dct run`), and the line says so.
+        res = CliRunner().invoke(pf.preflight_command, base + ["--can-channel", "preflight-elsewhere"])
+        (link,) = [line for line in res.output.splitlines() if " can_link " in line]
+        assert "'preflight-elsewhere'" in link and "with the command line's --can-* options" in link
+        assert "FAIL  base" in res.output and res.exit_code == 1
+    # Without --config: the command line's bus (socketcan unless told), whatever the shipped config says.
+    bus, source = pf.can_settings(pf.PreflightOptions(), load_controller_config(None))
+    assert bus["interface"] == "socketcan" and source == "bus from the command line (default socketcan)"
+    bus, source = pf.can_settings(pf.PreflightOptions(config=str(cfg_file), can_interface="udp_multicast"),
+                                  load_controller_config(cfg_file))
+    assert bus == {"interface": "udp_multicast", "channel": None, "udp_port": None, "serial_baud": None}

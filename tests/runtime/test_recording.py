@@ -1,6 +1,7 @@
 """MCAP recordings (runtime.recording): a lockstep run records every tick without changing a metric;
 a cut-off file reads up to its last complete chunk; a full queue or a failing disk drops and
-counts records instead of stalling the tick; outputs are atomic and never overwritten unasked."""
+counts records instead of stalling the tick; outputs are atomic and never overwritten unasked;
+VLM answers (masks when they arrive, capture -> mask latency) and per-thread CPU time are recorded."""
 from __future__ import annotations
 
 import errno
@@ -68,6 +69,123 @@ def test_recording_changes_no_metric_and_holds_every_tick(recorded):
     assert info["stage_budgets_ms"]["planner"] == pytest.approx(cfg.loop.stage_budgets_s["planner"] * 1e3)
     assert info["scenario"] == "case1" and info["clock"] == "lockstep"
     assert rec.recorder_account()["dropped_total"] == 0
+
+
+@pytest.fixture(scope="module")
+def recorded_case2(tmp_path_factory):
+    """case2 in mode dct, just long enough for the sim-oracle's first answer (1.5 s after the query,
+    which waits for the first lidar scan)."""
+    out = tmp_path_factory.mktemp("rec2") / "case2.mcap"
+    with RunRecorder(out) as rec:
+        result = run_episode(_short("case2").model_copy(update={"time_limit_s": 1.7}), seed=0, recorder=rec)
+    return out, rec.summary(), result
+
+
+def test_vlm_answers_are_recorded_when_they_arrive_with_their_masks(recorded_case2):
+    from PIL import Image
+
+    path, summary, result = recorded_case2
+    assert summary["written"]["answer"] >= 1 and summary["dropped_total"] == 0
+    rec = read_recording(path)
+    assert rec.topics[S.TOPIC_VPP_ANSWER] == "dct.VppAnswer"
+    assert rec.topics[S.TOPIC_VPP_MASKS] == "foxglove.CompressedImage"
+    answers = [m for _, m in rec.messages[S.TOPIC_VPP_ANSWER]]
+    assert len(answers) == summary["written"]["answer"]
+    period_s = load_controller_config().loop.period_s
+    latency_s = 1.5  # the sim-oracle's simulated backend latency
+    for a in answers:
+        # Arrival: a tick's scheduled start; the latency is the backend's 1.5 s, quantised to the tick,
+        # plus the wait of the image for the tick that sends it (the first query waits for a lidar scan).
+        assert round(a["arrival_s"] / period_s) * period_s == pytest.approx(a["arrival_s"], abs=1e-9)
+        assert a["latency_ms"] == pytest.approx((a["arrival_s"] - a["capture_s"]) * 1e3)
+        assert latency_s * 1e3 - 1e-6 <= a["latency_ms"] <= (latency_s + 2 * period_s) * 1e3 + 1e-6, a
+        labels = {o["label"] for o in a["objects"]}
+        assert "box" in labels and all(o["pixels"] > 0 for o in a["objects"])
+        box = next(o for o in a["objects"] if o["label"] == "box")
+        assert box["movable"] and 0.0 <= box["contact_cost"] < 10.0
+    ticks = {m["scheduled_s"] for _, m in rec.messages[S.TOPIC_TICK]}
+    assert all(any(abs(a["arrival_s"] - t) < 1e-9 for t in ticks) for a in answers)
+    images = [m for _, m in rec.messages[S.TOPIC_VPP_MASKS]]
+    assert len(images) == len(answers)
+    import base64
+
+    img = np.asarray(Image.open(io.BytesIO(base64.b64decode(images[0]["data"]))).convert("RGB"))
+    assert images[0]["format"] == "png" and img.shape == (120, 160, 3)
+    colours = {tuple(c) for c in img.reshape(-1, 3)}
+    assert (0, 0, 0) in colours and len(colours) >= 3  # background, a cost-10 red, the box's colour
+    # CPU time per thread: at least the first and the last sample, the loop's and the writer's thread.
+    samples = [m for _, m in rec.messages[S.TOPIC_THREADS]]
+    assert rec.topics[S.TOPIC_THREADS] == "dct.Threads" and len(samples) >= 2
+    names = {t["name"] for t in samples[-1]["threads"]}
+    assert {"MainThread", "dct-mcap-writer"} <= names
+    assert samples[-1]["wall_s"] > samples[0]["wall_s"]
+    main = [t["cpu_s"] for s in samples for t in s["threads"] if t["name"] == "MainThread"]
+    assert main == sorted(main) and main[-1] > 0
+
+
+def test_the_hook_records_a_new_answer_once_and_counts_drops(tmp_path):
+    """A fake VPP stage: an answer is queued when last_answer_s changes, once; with a full queue it is
+    dropped and counted."""
+    from runtime.recording.recorder import mask_label_image
+
+    mask = np.zeros((480, 640), bool)
+    mask[100:200, 300:400] = True
+    entry = SimpleNamespace(object_id=7, label="box", movable=True, contact_cost=2.0, mask=mask, stamp_s=0.1)
+    ctl = _FakeController()
+    ctl.vpp = SimpleNamespace(answers=0, memory=SimpleNamespace(last_answer_s=None, entries=[]))
+    out = tmp_path / "answers.mcap"
+    rec = RunRecorder(out)
+    hook = rec.attach(ctl, load_controller_config(), {"clock": "test"})
+    for k, row in enumerate(_rows(10)):
+        if k == 4:
+            ctl.vpp.answers, ctl.vpp.memory.last_answer_s, ctl.vpp.memory.entries = 1, 0.1, [entry]
+        hook(row)
+    summary = rec.close()
+    got = read_recording(out)
+    (a,) = [m for _, m in got.messages[S.TOPIC_VPP_ANSWER]]
+    assert a["arrival_s"] == pytest.approx(0.2) and a["latency_ms"] == pytest.approx(100.0)
+    assert a["objects"] == [{"object_id": 7, "label": "box", "movable": True, "contact_cost": 2.0, "pixels": 10000}]
+    img = mask_label_image((entry,))
+    assert img.shape == (120, 160, 3) and np.count_nonzero(img.any(axis=2)) == 25 * 25
+    # A writer that is behind: held inside its first record, the queue holds one more (the tick).
+    import threading
+
+    rec2 = RunRecorder(tmp_path / "full.mcap", queue_capacity=1)
+    entered, gate, write = threading.Event(), threading.Event(), rec2._write_item
+
+    def held(item):
+        entered.set()
+        gate.wait(10)
+        write(item)
+
+    rec2._write_item = held
+    hook2 = rec2.attach(ctl, load_controller_config(), {"clock": "test"})
+    assert entered.wait(10)
+    ctl.vpp.memory.last_answer_s = 0.3
+    hook2(_rows(1)[0])
+    gate.set()
+    summary2 = rec2.close()
+    assert summary2["dropped_queue_full"]["answer"] == 1 and summary2["written"]["tick"] == 1
+    assert summary["dropped_queue_full"]["answer"] == 0
+
+
+def test_no_proc_means_no_thread_samples(tmp_path):
+    from runtime.recording.recorder import thread_cpu_seconds
+
+    assert thread_cpu_seconds(str(tmp_path)) is None
+    threads = thread_cpu_seconds()
+    if threads is not None:  # Linux
+        assert any(t["name"] == "MainThread" and t["cpu_s"] > 0 for t in threads)
+
+
+def test_the_report_of_an_all_fixed_run_says_image_to_mask_was_not_recorded(recorded):
+    from runtime.reports.latency import latency_report, load_ticks
+
+    path, _, _, _ = recorded
+    rep = latency_report(load_ticks(path))
+    assert rep["image_to_mask_ms"]["recorded"] is False and rep["image_to_mask_ms"]["why"]
+    assert rep["sensor_to_command_ms"]["image_to_mask"] == "not recorded"
+    assert rep["threads"]["recorded"] is True and "MainThread" in rep["threads"]["by_name"]
 
 
 def _messages_per_chunk(path) -> list[tuple[int, int, int]]:
