@@ -64,7 +64,7 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.camera_model import CameraModel, transform_points
-from runtime.vpp.homography import Plane, WarpLookup, warp_hit, warp_lookup
+from runtime.vpp.homography import Plane, WarpLookup, distortion12, warp_hit_crop, warp_lookup
 
 #: Point labels.
 IGNORED = np.int8(-1)  # ground or caller-ignored: not an obstacle for the planner
@@ -151,6 +151,8 @@ def _check_points(points: np.ndarray, field: str) -> np.ndarray:
 
 
 _EYE3 = np.eye(3)
+_EYE4 = np.eye(4)
+_NO_UV = np.zeros((1, 2))
 
 
 def _check_transform(T: np.ndarray, field: str) -> np.ndarray:
@@ -251,19 +253,129 @@ def _transform(p, T):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _mask_lookup(masks, costs, uv, seen, midx, pix):  # pragma: no cover - compiled
-    """midx[i] = index of the highest-cost mask set at point i's pixel (-1: none / unseen)."""
-    M, H, W = masks.shape
+def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_cam, in_view, seen, pix, uv,
+                  store_uv):  # pragma: no cover - compiled
+    """Steps 1-2 in one pass over the points, without temporaries: p_cam = T p (as _transform),
+    ground |= height after Tb < z_max (as _mark_ground; only when has_base), in_view as
+    CameraModel.project's `valid` of p_cam, seen = in_view and not ground, pix = the nearest
+    pixel centre of each seen point (-1 for the others); with store_uv, uv = the projection of
+    the in_view points (project's uv; 0 for the others; for tests: project_fused).
+
+    The projection repeats CameraModel.project's arithmetic operation for operation (the same
+    order and grouping, so the same IEEE results: numba does not contract a * b + c into FMA
+    without fastmath) for distortion vectors of nd = 0, 4, 5, 8 or 12 coefficients (d padded to
+    12; the 14-coefficient model is cv2's, not this). Branch-free but for nd and store_uv (the
+    same for every point): selects, not ifs, since whether a point is in front is a coin toss
+    in a 360-degree scan and mispredicted branches cost more than the arithmetic. (The same
+    body as a numba inline function ran 2.5x slower: keep it written out here.)"""
+    for i in range(p.shape[0]):
+        x = np.float64(p[i, 0])
+        y = np.float64(p[i, 1])
+        z = np.float64(p[i, 2])
+        X = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+        Y = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+        Z = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        p_cam[i, 0] = X
+        p_cam[i, 1] = Y
+        p_cam[i, 2] = Z
+        g = ground[i] | (has_base & (Tb[2, 0] * x + Tb[2, 1] * y + Tb[2, 2] * z + Tb[2, 3] < z_max))
+        ground[i] = g
+        front = (Z > 1e-9) & (Z < np.inf)
+        Zs = Z if front else 1.0
+        xn = X / Zs
+        yn = Y / Zs
+        r2 = xn * xn
+        r2 = r2 + yn * yn
+        ok = front & (r2 < r2max)
+        if nd > 0:
+            a = r2 * d[4]
+            a = a + d[1]
+            a = a * r2
+            a = a + d[0]
+            a = a * r2
+            a = a + 1.0
+            if nd >= 8:
+                b = r2 * d[7]
+                b = b + d[6]
+                b = b * r2
+                b = b + d[5]
+                b = b * r2
+                b = b + 1.0
+                a = a / b
+            xy = xn * yn
+            xd = xn * a
+            xd = xd + (2.0 * d[2]) * xy
+            xd = xd + d[3] * (r2 + 2.0 * xn * xn)
+            yd = yn * a
+            yd = yd + d[2] * (r2 + 2.0 * yn * yn)
+            yd = yd + (2.0 * d[3]) * xy
+            if nd >= 12:
+                r4 = r2 * r2
+                xd = xd + (d[8] * r2 + d[9] * r4)
+                yd = yd + (d[10] * r2 + d[11] * r4)
+        else:
+            xd = xn
+            yd = yn
+        u = xd * K[0, 0]
+        u = u + (K[0, 1] * yd + K[0, 2])
+        v = yd * K[1, 1]
+        v = v + K[1, 2]
+        vis = ok & (u >= -0.5) & (u < W - 0.5) & (v >= -0.5) & (v < H - 0.5)
+        in_view[i] = vis
+        sn = vis & (not g)
+        seen[i] = sn
+        uu = min(max(int(math.floor((u if sn else 0.0) + 0.5)), 0), W - 1)
+        vv = min(max(int(math.floor((v if sn else 0.0) + 0.5)), 0), H - 1)
+        pix[i, 0] = uu if sn else -1
+        pix[i, 1] = vv if sn else -1
+        if store_uv:
+            uv[i, 0] = u if vis else 0.0
+            uv[i, 1] = v if vis else 0.0
+
+
+def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """(uv, valid) of (N, 3) points through T (4x4, camera <- points' frame) by the partition's
+    projection kernel (_project_scan): CameraModel.project(_transform(points, T)), bit for bit
+    for the valid points (the tests hold it to that; uv of invalid points is 0). Not for the
+    14-coefficient model (the partition projects with CameraModel.project there)."""
+    p = _check_points(points, "points")
+    if len(camera.dist) > 12:
+        raise _fail("camera", "the fused projection does not implement the 14-coefficient (tilted) model")
+    n = p.shape[0]
+    uv = np.zeros((n, 2))
+    valid = np.zeros(n, bool)
+    _project_scan(p, _check_transform(T, "T"), _EYE4, False, 0.0, camera.K, distortion12(camera), len(camera.dist),
+                  camera._r2_max, camera.width_px, camera.height_px, np.zeros(n, bool), np.empty((n, 3)), valid,
+                  np.empty(n, bool), np.empty((n, 2), np.int64), uv, True)
+    return uv, valid
+
+
+@njit(cache=True, nogil=True)
+def _seen_pixels(uv, in_view, ground, W, H, seen, pix):  # pragma: no cover - compiled
+    """seen and pix (as _project_scan's) from a projection made elsewhere (the 14-coefficient model)."""
     for i in range(uv.shape[0]):
-        midx[i] = -1
-        if not seen[i]:
+        sn = in_view[i] and not ground[i]
+        seen[i] = sn
+        if sn:
+            pix[i, 0] = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
+            pix[i, 1] = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
+        else:
             pix[i, 0] = -1
             pix[i, 1] = -1
+
+
+@njit(cache=True, nogil=True)
+def _mask_lookup(masks, costs, pix, seen, midx):  # pragma: no cover - compiled
+    """midx[i] = index of the highest-cost mask set at point i's pixel (-1: none / unseen).
+    Returns the number of points in some mask."""
+    M = masks.shape[0]
+    hits = 0
+    for i in range(pix.shape[0]):
+        midx[i] = -1
+        if not seen[i]:
             continue
-        u = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
-        v = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
-        pix[i, 0] = u
-        pix[i, 1] = v
+        u = pix[i, 0]
+        v = pix[i, 1]
         best = -1
         bc = -1.0
         for m in range(M):
@@ -271,37 +383,51 @@ def _mask_lookup(masks, costs, uv, seen, midx, pix):  # pragma: no cover - compi
                 best = m
                 bc = costs[m]
         midx[i] = best
+        hits += best >= 0
+    return hits
 
 
 @njit(cache=True, nogil=True)
-def _mask_lookup_warp(wm, sel, Hinv, rows, box, rays, K, d, r2max, costs, uv, seen, midx, pix):  # pragma: no cover
+def _mask_lookup_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, d, r2max, order, pix, seen,
+                      midx):  # pragma: no cover - compiled
     """_mask_lookup against masks warped per pixel (WarpLookup): the same pixel, the same rule
-    (highest cost wins), the mask bit looked up through the warp instead of in a warped image."""
-    M = sel.shape[0]
-    H = rays.shape[0]
-    W = rays.shape[1]
-    for i in range(uv.shape[0]):
+    (highest cost wins, the lower index among equal costs), the mask bit looked up through the
+    warp (warp_hit_crop) instead of in a warped image. `order`: the masks by cost descending,
+    index ascending, so the first mask that holds the pixel is the answer and the others are not
+    looked up; a pixel outside every mask's box is rejected by the union of the boxes. Returns
+    the number of points in some mask."""
+    M = order.shape[0]
+    hits = 0
+    bu0 = 1 << 30
+    bv0 = 1 << 30
+    bu1 = -1
+    bv1 = -1
+    for m in range(M):
+        if box[m, 0] <= box[m, 2] and box[m, 1] <= box[m, 3]:
+            bu0 = min(bu0, box[m, 0])
+            bv0 = min(bv0, box[m, 1])
+            bu1 = max(bu1, box[m, 2])
+            bv1 = max(bv1, box[m, 3])
+    for i in range(pix.shape[0]):
         midx[i] = -1
         if not seen[i]:
-            pix[i, 0] = -1
-            pix[i, 1] = -1
             continue
-        u = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
-        v = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
-        pix[i, 0] = u
-        pix[i, 1] = v
-        best = -1
-        bc = -1.0
-        for m in range(M):
-            if costs[m] > bc and box[m, 0] <= u and u <= box[m, 2] and box[m, 1] <= v and v <= box[m, 3] \
-                    and warp_hit(wm, sel[m], u, v, rays, Hinv, rows, m, K, d, r2max):
-                best = m
-                bc = costs[m]
-        midx[i] = best
+        u = pix[i, 0]
+        v = pix[i, 1]
+        if u < bu0 or u > bu1 or v < bv0 or v > bv1:
+            continue
+        for k in range(M):
+            m = order[k]
+            if box[m, 0] <= u and u <= box[m, 2] and box[m, 1] <= v and v <= box[m, 3] \
+                    and warp_hit_crop(crop, cstart, cbox, sel[m], u, v, rays, Hinv, rows, m, K, d, r2max):
+                midx[i] = m
+                hits += 1
+                break
+    return hits
 
 
 @njit(cache=True, nogil=True)
-def _near_warp(wm, sel, Hinv, rows, box, rays, K, d, r2max, m, u, v, r):  # pragma: no cover - compiled
+def _near_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, d, r2max, m, u, v, r):  # pragma: no cover - compiled
     """_near_mask for a warped mask: is pixel (u, v) within the (2r+1)^2 square of a set pixel of
     warped mask m? Only the part of the square inside the mask's box is looked up (outside it
     the warp is empty), nearest rows first."""
@@ -317,7 +443,7 @@ def _near_warp(wm, sel, Hinv, rows, box, rays, K, d, r2max, m, u, v, r):  # prag
         if vv < v0 or vv > v1:
             continue
         for uu in range(u0, u1 + 1):
-            if warp_hit(wm, e, uu, vv, rays, Hinv, rows, m, K, d, r2max):
+            if warp_hit_crop(crop, cstart, cbox, e, uu, vv, rays, Hinv, rows, m, K, d, r2max):
                 return True
     return False
 
@@ -405,7 +531,7 @@ def _cells_touch(pts, sp, s0, e0, s1, e1, eps2):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth_gap, complete, dilate_px, half,
-            warped, wm, sel, Hinv, rows, box, rays, K, dist12, r2max):  # pragma: no cover
+            warped, crop, cstart, cbox, sel, Hinv, rows, box, rays, K, dist12, r2max):  # pragma: no cover
     """Cluster refinement (module docstring, step 4). Returns (new midx, n removed, n added).
 
     Exact eps-connectivity on a grid of cells of side eps/2, one grid per object (the object's
@@ -414,7 +540,7 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
     of their points is within eps (checked only while they are still apart, first hit wins).
     Cost grows with the number of occupied cells, not with the points per cell. sk, sp: the
     sorted cell keys of the movable points and their point indices (_cell_keys). warped: the
-    masks are a WarpLookup's (wm .. r2max; `masks` is then a placeholder of M masks), looked up
+    masks are a WarpLookup's (crop .. r2max; `masks` is then a placeholder of M masks), looked up
     per pixel for the completion's dilated-mask test.
     """
     n = pts.shape[0]
@@ -535,7 +661,8 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
                             if d0 * d0 + d1 * d1 + d2 * d2 <= eps2:
                                 hit = True
                                 break
-            if hit and (_near_warp(wm, sel, Hinv, rows, box, rays, K, dist12, r2max, m, pix[i, 0], pix[i, 1], dilate_px)
+            if hit and (_near_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, dist12, r2max, m, pix[i, 0], pix[i, 1],
+                                   dilate_px)
                         if warped else _near_mask(masks, m, pix[i, 0], pix[i, 1], dilate_px)):
                 best = m
                 bc = costs[m]
@@ -574,12 +701,33 @@ def _slot(keys, key, shift):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _mem_write(keys, lab, obj, cost, stamp, shift, pkeys, plab, pobj, pcost, now):  # pragma: no cover
-    """Write point labels into their voxels; returns the number of new slots used."""
+def _odom_keys(p, T, inv, ground, out):  # pragma: no cover - compiled
+    """out[i] = the voxel key (as _voxel_keys) of point i carried to the odom frame by T (as
+    _transform), for the points not on the ground (_EMPTY for those): no p_odom array."""
+    for i in range(p.shape[0]):
+        if ground[i]:
+            out[i] = _EMPTY
+            continue
+        x = np.float64(p[i, 0])
+        y = np.float64(p[i, 1])
+        z = np.float64(p[i, 2])
+        X = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+        Y = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+        Z = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        cx = min(max(int(math.floor(X * inv)), -_MOFF), _MOFF - 1) + _MOFF
+        cy = min(max(int(math.floor(Y * inv)), -_MOFF), _MOFF - 1) + _MOFF
+        cz = min(max(int(math.floor(Z * inv)), -_MOFF), _MOFF - 1) + _MOFF
+        out[i] = (np.int64(cx) << 42) | (np.int64(cy) << 21) | np.int64(cz)
+
+
+@njit(cache=True, nogil=True)
+def _mem_write(keys, lab, obj, cost, stamp, shift, pkeys, sel, plab, pobj, pcost, now):  # pragma: no cover
+    """Write the labels of the points with sel set (and a key) into their voxels; returns the
+    number of new slots used."""
     new = 0
     for i in range(pkeys.shape[0]):
         key = pkeys[i]
-        if key == _EMPTY:
+        if key == _EMPTY or not sel[i]:
             continue
         h = _slot(keys, key, shift)
         if keys[h] == _EMPTY:
@@ -611,10 +759,12 @@ def _mem_reinsert(keys, lab, obj, cost, stamp, shift, okeys, olab, oobj, ocost, 
 
 
 @njit(cache=True, nogil=True)
-def _mem_read(keys, lab, obj, cost, stamp, shift, pkeys, now, max_age, olab, oobj, ocost, found):  # pragma: no cover
+def _mem_read(keys, lab, obj, cost, stamp, shift, pkeys, sel, want, now, max_age, olab, oobj, ocost,
+              found):  # pragma: no cover - compiled
+    """Read the voxels of the points whose sel[i] == want (and that have a key)."""
     for i in range(pkeys.shape[0]):
         key = pkeys[i]
-        if key == _EMPTY:
+        if key == _EMPTY or sel[i] != want:
             continue
         h = _slot(keys, key, shift)
         if keys[h] == key and now - stamp[h] <= max_age:
@@ -650,9 +800,9 @@ class LabelMemory:
         """Slots in use (live and expired, until the next rebuild)."""
         return self.used
 
-    def _write_arrays(self, pkeys, plab, pobj, pcost, now) -> None:
+    def _write_arrays(self, pkeys, sel, plab, pobj, pcost, now) -> None:
         self.used += _mem_write(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift,
-                                pkeys, plab, pobj, pcost, now)
+                                pkeys, sel, plab, pobj, pcost, now)
 
     def _rebuild(self, now: float, incoming: int) -> None:
         live = (self.keys != _EMPTY) & (now - self.stamp <= self.max_age_s)
@@ -670,13 +820,17 @@ class LabelMemory:
     def write(self, points_odom: np.ndarray, write: np.ndarray, label: np.ndarray, object_id: np.ndarray,
               cost: np.ndarray, stamp_s: float, keys: np.ndarray | None = None) -> None:
         """Store the labels of the points where `write` is True (seen, non-ground). keys: from
-        voxel_keys (computed here when not given)."""
-        pkeys = self.voxel_keys(points_odom, write) if keys is None else np.where(write, keys, _EMPTY)
+        voxel_keys (computed here when not given; read only where `write` is True)."""
+        pkeys = self.voxel_keys(points_odom, write) if keys is None else keys
+        self._write_keys(pkeys, write, label, object_id, cost, stamp_s)
+
+    def _write_keys(self, keys, write, label, object_id, cost, stamp_s: float) -> None:
+        """write() with the keys given (_EMPTY: no voxel), where `write` is True."""
         incoming = int(np.count_nonzero(write))
         if 2 * (self.used + incoming) > self.keys.shape[0]:
             self._rebuild(stamp_s, incoming)
-        self._write_arrays(pkeys, label.astype(np.int8), object_id.astype(np.int32), cost.astype(np.float32),
-                           float(stamp_s))
+        self._write_arrays(keys, write, np.asarray(label, np.int8), np.asarray(object_id, np.int32),
+                           np.asarray(cost, np.float32), float(stamp_s))
 
     def read(self, points_odom: np.ndarray, read: np.ndarray, now_s: float):
         """(found, label, object_id, cost) for the points where `read` is True."""
@@ -690,15 +844,20 @@ class LabelMemory:
 
     def read_into(self, points_odom, read, now_s, label, object_id, cost, found, keys=None) -> None:
         """As read, overwriting label/object_id/cost and setting found only where found."""
-        pkeys = self.voxel_keys(points_odom, read) if keys is None else np.where(read, keys, _EMPTY)
-        _mem_read(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift, pkeys, float(now_s),
-                  self.max_age_s, label, object_id, cost, found)
+        pkeys = self.voxel_keys(points_odom, read) if keys is None else keys
+        self._read_keys(pkeys, read, True, now_s, label, object_id, cost, found)
+
+    def _read_keys(self, keys, sel, want: bool, now_s, label, object_id, cost, found) -> None:
+        """read_into with the keys given (_EMPTY: no voxel), for the points whose sel is `want`."""
+        _mem_read(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift, keys, sel, bool(want),
+                  float(now_s), self.max_age_s, label, object_id, cost, found)
 
 
 # --------------------------------------------------------------------------- the partition
 #: The warp arguments of the kernels when the masks are bitmaps (typed placeholders, never read).
-_NO_WARP = (np.zeros((1, 1, 1), np.bool_), np.zeros(0, np.int64), np.zeros((0, 3, 3)), np.zeros((0, 2, 3)),
-            np.zeros((0, 4), np.int64), np.zeros((1, 1, 2)), np.eye(3), np.zeros(12), 0.0)
+_NO_WARP = (np.zeros(1, np.bool_), np.zeros(1, np.int64), np.zeros((0, 4), np.int64), np.zeros(0, np.int64),
+            np.zeros((0, 3, 3)), np.zeros((0, 2, 3)), np.zeros((0, 4), np.int64), np.zeros((1, 1, 2)), np.eye(3),
+            np.zeros(12), 0.0)
 
 
 class PointPartitioner:
@@ -708,7 +867,27 @@ class PointPartitioner:
         self.config = config or PartitionConfig()
         c = self.config
         self.memory = LabelMemory(c.memory_voxel_m, c.memory_max_age_s, c.memory_initial_slots)
+        self._work: dict = {"cap": -1}
+        self._d12: tuple | None = None
         self._warm_up()
+
+    def _buffers(self, n: int) -> dict:
+        """Work arrays of at least n points, reused between scans (no allocation in the tick; a
+        scan of another size takes views, a bigger one grows them by a quarter). None of them is
+        returned: the partition's outputs are fresh arrays per scan."""
+        w = self._work
+        if w["cap"] < n:
+            cap = max(n, int(1.25 * w["cap"]))
+            w.update(cap=cap, ground=np.empty(cap, np.bool_), seen=np.empty(cap, np.bool_),
+                     pix=np.empty((cap, 2), np.int64), midx=np.empty(cap, np.int32), keys=np.empty(cap, np.int64),
+                     p_cam=np.empty((cap, 3)))
+        return {k: v[:n] for k, v in w.items() if k != "cap"}
+
+    def _dist12(self, camera: CameraModel) -> np.ndarray:
+        """The camera's distortion padded to 12 coefficients (cached per distortion vector)."""
+        if self._d12 is None or self._d12[0] is not camera.dist:
+            self._d12 = (camera.dist, distortion12(camera))
+        return self._d12[1]
 
     def _warm_up(self) -> None:
         """Run every kernel once on a tiny frame, so that numba's compile (first run) or cache load
@@ -769,20 +948,24 @@ class PointPartitioner:
             if len(lk) > MAX_MASKS:
                 raise _fail("masks", f"at most {MAX_MASKS} masks, got {len(lk)}")
             m = np.zeros((len(lk), 1, 1), bool)  # placeholder: the kernels read the lookup
-            wargs = (lk.masks, lk.sel, lk.Hinv, lk.rows, lk.box, lk.rays, lk.K, lk.dist12, lk.r2_max)
+            wargs = (lk.crop, lk.crop_start, lk.crop_box, lk.sel, lk.Hinv, lk.rows, lk.box, lk.rays, lk.K, lk.dist12,
+                     lk.r2_max)
         else:
             m = stack_masks(masks, camera)
             wargs = _NO_WARP
         ids, cst = _check_ids_costs(object_ids, costs, m.shape[0])
         n = p.shape[0]
-        ground = np.zeros(n, bool)
+        wk = self._buffers(n)
+        ground = wk["ground"]
         if ignore is not None:
             ig = np.asarray(ignore)
             if ig.shape != (n,) or ig.dtype != np.bool_:
                 raise _fail("ignore", f"must be ({n},) bool, got shape {ig.shape} dtype {ig.dtype}")
             ground[:] = ig
-        if T_base_lidar is not None:
-            _mark_ground(p, _check_transform(T_base_lidar, "T_base_lidar"), c.ground_max_z_m, ground)
+        else:
+            ground[:] = False
+        has_base = T_base_lidar is not None
+        Tb = _check_transform(T_base_lidar, "T_base_lidar") if has_base else _EYE4
         use_memory = T_odom_lidar is not None or stamp_s is not None
         if use_memory:
             if T_odom_lidar is None or stamp_s is None:
@@ -792,21 +975,30 @@ class PointPartitioner:
             if not math.isfinite(float(stamp_s)):
                 raise _fail("stamp_s", f"must be finite, got {stamp_s}")
 
-        p_cam = _transform(p, T)
-        # project only the points in front (half of a 360-degree scan): same result, half the work
-        front = np.flatnonzero(p_cam[:, 2] > 1e-9)
-        uv = np.zeros((n, 2))
-        in_view = np.zeros(n, bool)
-        uv[front], in_view[front] = camera.project(p_cam[front])
-        seen = in_view & ~ground
-        midx = np.empty(n, np.int32)
-        pix = np.empty((n, 2), np.int64)
+        W, H = camera.width_px, camera.height_px
+        in_view = np.empty(n, bool)  # returned: a fresh array per scan
+        seen, pix, midx, keys = wk["seen"], wk["pix"], wk["midx"], wk["keys"]
+        if len(camera.dist) <= 12:
+            p_cam = wk["p_cam"]
+            _project_scan(p, T, Tb, has_base, c.ground_max_z_m, camera.K, self._dist12(camera), len(camera.dist),
+                          camera._r2_max, W, H, ground, p_cam, in_view, seen, pix, _NO_UV, False)
+        else:  # the 14-coefficient (tilted) model: cv2 through CameraModel.project
+            p_cam = _transform(p, T)
+            if has_base:
+                _mark_ground(p, Tb, c.ground_max_z_m, ground)
+            # project only the points in front (half of a 360-degree scan): same result, half the work
+            front = np.flatnonzero(p_cam[:, 2] > 1e-9)
+            uv = np.zeros((n, 2))
+            in_view[:] = False
+            uv[front], in_view[front] = camera.project(p_cam[front])
+            _seen_pixels(uv, in_view, ground, W, H, seen, pix)
         if warped:
-            _mask_lookup_warp(*wargs, cst, uv, seen, midx, pix)
+            order = np.argsort(-cst, kind="stable")  # cost descending, index ascending among equals
+            hits = _mask_lookup_warp(*wargs, order, pix, seen, midx)
         else:
-            _mask_lookup(m, cst, uv, seen, midx, pix)
+            hits = _mask_lookup(m, cst, pix, seen, midx)
         removed = added = 0
-        if m.shape[0] and (midx >= 0).any():
+        if m.shape[0] and hits:
             # clustered in the camera frame: a rigid transform keeps distances, and p_cam is float64
             sk, sp = _cell_keys(p_cam, midx, c.eps_cluster_m)
             midx, removed, added = _refine(
@@ -819,11 +1011,9 @@ class PointPartitioner:
         _assemble(ground, midx, ids, cst, label, object_id, cost)
         from_memory = np.zeros(n, bool)
         if use_memory:
-            p_odom = _transform(p, To)
-            keys = self.memory.voxel_keys(p_odom, ~ground)
-            self.memory.read_into(p_odom, ~in_view & ~ground, float(stamp_s), label, object_id, cost, from_memory,
-                                  keys)
-            self.memory.write(p_odom, seen, label, object_id, cost, float(stamp_s), keys)
+            _odom_keys(p, To, 1.0 / self.memory.voxel_m, ground, keys)  # _EMPTY for the ground
+            self.memory._read_keys(keys, in_view, False, float(stamp_s), label, object_id, cost, from_memory)
+            self.memory._write_keys(keys, seen, label, object_id, cost, float(stamp_s))
         return PointPartition(label, object_id, cost, in_view, from_memory, int(removed), int(added))
 
 
