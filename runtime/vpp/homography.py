@@ -429,6 +429,56 @@ def _forward_box(out_rays, Hn, rows, K, d, r2max, W, H):  # pragma: no cover - c
 
 
 @njit(cache=True, nogil=True)
+def _count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, s, rays, Hinv, rows, K, d, r2max):  # pragma: no cover
+    """Pixels of the grid (u0 + s//2 + i s, v0 + s//2 + j s) within (u1, v1) set in the warp e of
+    capture mask e: warp_hit_crop at each, written out here. (Called as a numba inline
+    function from a loop it costs 2-3x as much: the arrays it is handed are reference-counted
+    per call. Keep this body the same as _warp_source_px's + warp_hit_crop's.)"""
+    m = e
+    H = rays.shape[0]
+    W = rays.shape[1]
+    rational = d[5] != 0.0 or d[6] != 0.0 or d[7] != 0.0
+    cu0 = cbox[e, 0]
+    cv0 = cbox[e, 1]
+    cu1 = cbox[e, 2]
+    cv1 = cbox[e, 3]
+    cw = cu1 - cu0 + 1
+    c0 = cstart[e]
+    last = crop.shape[0] - 1
+    n = 0
+    for v in range(v0 + s // 2, v1 + 1, s):
+        for u in range(u0 + s // 2, u1 + 1, s):
+            x = rays[v, u, 0]
+            y = rays[v, u, 1]
+            a0 = rows[m, 0, 0] * x + rows[m, 0, 1] * y + rows[m, 0, 2]
+            sz = Hinv[m, 2, 0] * x + Hinv[m, 2, 1] * y + Hinv[m, 2, 2]
+            ok = (a0 > 0.0) & (sz > 0.0)
+            iz = 1.0 / (sz if ok else 1.0)
+            sx = (Hinv[m, 0, 0] * x + Hinv[m, 0, 1] * y + Hinv[m, 0, 2]) * iz
+            sy = (Hinv[m, 1, 0] * x + Hinv[m, 1, 1] * y + Hinv[m, 1, 2]) * iz
+            r2 = sx * sx + sy * sy
+            ok = ok & (r2 < r2max)
+            r2 = r2 if ok else 0.0
+            a = 1.0 + r2 * (d[0] + r2 * (d[1] + r2 * d[4]))
+            if rational:
+                a /= 1.0 + r2 * (d[5] + r2 * (d[6] + r2 * d[7]))
+            xy = sx * sy
+            xd = sx * a + 2.0 * d[2] * xy + d[3] * (r2 + 2.0 * sx * sx) + d[8] * r2 + d[9] * r2 * r2
+            yd = sy * a + d[2] * (r2 + 2.0 * sy * sy) + 2.0 * d[3] * xy + d[10] * r2 + d[11] * r2 * r2
+            su = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+            sv = K[1, 1] * yd + K[1, 2]
+            ok = ok & (su >= -0.5) & (su < W - 0.5) & (sv >= -0.5) & (sv < H - 0.5)
+            iu = int(su + 0.5) if ok else 0
+            iv = int(sv + 0.5) if ok else 0
+            iu = min(iu, W - 1)
+            iv = min(iv, H - 1)
+            inb = ok & (iu >= cu0) & (iu <= cu1) & (iv >= cv0) & (iv <= cv1)
+            k = c0 + (iv - cv0) * cw + (iu - cu0) if inb else c0
+            n += inb & crop[min(k, last)]
+    return n
+
+
+@njit(cache=True, nogil=True)
 def _count_box(crop, cstart, cbox, e, box, rays, Hinv, rows, K, d, r2max, samples):  # pragma: no cover - compiled
     """Set pixels of the warp of capture mask e (mask_crops) in its box: exact when the box has at most `samples`
     pixels, else counted on a stride grid and scaled (an estimate, exact but for the mask's
@@ -440,17 +490,9 @@ def _count_box(crop, cstart, cbox, e, box, rays, Hinv, rows, K, d, r2max, sample
     s = 1
     while area > samples * s * s:
         s += 1
-    n = 0
-    for v in range(v0 + s // 2, v1 + 1, s):
-        for u in range(u0 + s // 2, u1 + 1, s):
-            if warp_hit_crop(crop, cstart, cbox, e, u, v, rays, Hinv, rows, e, K, d, r2max):
-                n += 1
+    n = _count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, s, rays, Hinv, rows, K, d, r2max)
     if n == 0 and s > 1:
-        for v in range(v0, v1 + 1):
-            for u in range(u0, u1 + 1):
-                if warp_hit_crop(crop, cstart, cbox, e, u, v, rays, Hinv, rows, e, K, d, r2max):
-                    n += 1
-        return float(n)
+        return float(_count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, 1, rays, Hinv, rows, K, d, r2max))
     return float(n * s * s)
 
 

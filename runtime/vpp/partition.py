@@ -153,6 +153,8 @@ def _check_points(points: np.ndarray, field: str) -> np.ndarray:
 _EYE3 = np.eye(3)
 _EYE4 = np.eye(4)
 _NO_UV = np.zeros((1, 2))
+_NO_RAYS = np.zeros((1, 1, 2))
+_NO_BOX = np.array([0, 0, -1, -1], np.int64)
 
 
 def _check_transform(T: np.ndarray, field: str) -> np.ndarray:
@@ -254,12 +256,15 @@ def _transform(p, T):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_cam, in_view, seen, pix, uv,
-                  store_uv):  # pragma: no cover - compiled
+                  store_uv, rays, rbox, cand, ray):  # pragma: no cover - compiled
     """Steps 1-2 in one pass over the points, without temporaries: p_cam = T p (as _transform),
     ground |= height after Tb < z_max (as _mark_ground; only when has_base), in_view as
     CameraModel.project's `valid` of p_cam, seen = in_view and not ground, pix = the nearest
     pixel centre of each seen point (-1 for the others); with store_uv, uv = the projection of
-    the in_view points (project's uv; 0 for the others; for tests: project_fused).
+    the in_view points (project's uv; 0 for the others; for tests: project_fused). The seen
+    points whose pixel lies in the box rbox (u0, v0, u1, v1 inclusive: the union of the warped
+    masks' boxes), in order: cand[k] = the point, ray[k] = the camera's pixel ray there (rays[v,
+    u]); returns their count (cand and ray need n + 1 rows).
 
     The projection repeats CameraModel.project's arithmetic operation for operation (the same
     order and grouping, so the same IEEE results: numba does not contract a * b + c into FMA
@@ -267,7 +272,11 @@ def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_ca
     12; the 14-coefficient model is cv2's, not this). Branch-free but for nd and store_uv (the
     same for every point): selects, not ifs, since whether a point is in front is a coin toss
     in a 360-degree scan and mispredicted branches cost more than the arithmetic. (The same
-    body as a numba inline function ran 2.5x slower: keep it written out here.)"""
+    body as a numba inline function ran 2.5x slower: keep it written out here.) The rays are
+    gathered here, not in _mask_lookup_warp: the 4.9 MB table is mostly out of cache by the next
+    scan, and its misses hide behind this loop's arithmetic, where the lookup would wait on each
+    (0.7 ms instead of 0.2 for 8 masks in `dct bench vpp`)."""
+    k = 0
     for i in range(p.shape[0]):
         x = np.float64(p[i, 0])
         y = np.float64(p[i, 1])
@@ -328,9 +337,17 @@ def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_ca
         vv = min(max(int(math.floor((v if sn else 0.0) + 0.5)), 0), H - 1)
         pix[i, 0] = uu if sn else -1
         pix[i, 1] = vv if sn else -1
+        inb = sn & (uu >= rbox[0]) & (uu <= rbox[2]) & (vv >= rbox[1]) & (vv <= rbox[3])
+        ru = uu if inb else 0
+        rv = vv if inb else 0
+        cand[k] = i
+        ray[k, 0] = rays[rv, ru, 0]
+        ray[k, 1] = rays[rv, ru, 1]
+        k += inb
         if store_uv:
             uv[i, 0] = u if vis else 0.0
             uv[i, 1] = v if vis else 0.0
+    return k
 
 
 def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
@@ -346,22 +363,33 @@ def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tup
     valid = np.zeros(n, bool)
     _project_scan(p, _check_transform(T, "T"), _EYE4, False, 0.0, camera.K, distortion12(camera), len(camera.dist),
                   camera._r2_max, camera.width_px, camera.height_px, np.zeros(n, bool), np.empty((n, 3)), valid,
-                  np.empty(n, bool), np.empty((n, 2), np.int64), uv, True)
+                  np.empty(n, bool), np.empty((n, 2), np.int64), uv, True, _NO_RAYS, _NO_BOX, np.empty(n + 1, np.int64),
+                  np.empty((n + 1, 2)))
     return uv, valid
 
 
 @njit(cache=True, nogil=True)
-def _seen_pixels(uv, in_view, ground, W, H, seen, pix):  # pragma: no cover - compiled
-    """seen and pix (as _project_scan's) from a projection made elsewhere (the 14-coefficient model)."""
+def _seen_pixels(uv, in_view, ground, W, H, seen, pix, rays, rbox, cand, ray):  # pragma: no cover - compiled
+    """seen, pix, cand and ray (as _project_scan's; returns the count) from a projection made
+    elsewhere (the 14-coefficient model)."""
+    k = 0
     for i in range(uv.shape[0]):
         sn = in_view[i] and not ground[i]
         seen[i] = sn
         if sn:
-            pix[i, 0] = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
-            pix[i, 1] = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
+            uu = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
+            vv = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
+            pix[i, 0] = uu
+            pix[i, 1] = vv
+            if uu >= rbox[0] and uu <= rbox[2] and vv >= rbox[1] and vv <= rbox[3]:
+                cand[k] = i
+                ray[k, 0] = rays[vv, uu, 0]
+                ray[k, 1] = rays[vv, uu, 1]
+                k += 1
         else:
             pix[i, 0] = -1
             pix[i, 1] = -1
+    return k
 
 
 @njit(cache=True, nogil=True)
@@ -388,42 +416,75 @@ def _mask_lookup(masks, costs, pix, seen, midx):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _mask_lookup_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, d, r2max, order, pix, seen,
+def _mask_lookup_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, d, r2max, order, pix, cand, ray, nc,
                       midx):  # pragma: no cover - compiled
     """_mask_lookup against masks warped per pixel (WarpLookup): the same pixel, the same rule
     (highest cost wins, the lower index among equal costs), the mask bit looked up through the
-    warp (warp_hit_crop) instead of in a warped image. `order`: the masks by cost descending,
-    index ascending, so the first mask that holds the pixel is the answer and the others are not
-    looked up; a pixel outside every mask's box is rejected by the union of the boxes. Returns
-    the number of points in some mask."""
+    warp (homography.warp_hit_crop, written out here: called as a numba inline function it costs
+    2-3x as much, its arrays reference-counted per call; keep the two the same) instead of in a
+    warped image. `order`: the masks by cost descending, index ascending, so the first mask
+    that holds the pixel is the answer and the others are not looked up; a pixel outside every
+    mask's box is not looked at: the candidates are cand[:nc], the seen points in the union of
+    the boxes (_union_box), with their pixel rays ray[:nc], as _project_scan gathered them.
+    midx of every other point is -1. Returns the number of points in a mask."""
     M = order.shape[0]
+    H = rays.shape[0]
+    W = rays.shape[1]
+    rational = d[5] != 0.0 or d[6] != 0.0 or d[7] != 0.0
+    last = crop.shape[0] - 1
     hits = 0
-    bu0 = 1 << 30
-    bv0 = 1 << 30
-    bu1 = -1
-    bv1 = -1
-    for m in range(M):
-        if box[m, 0] <= box[m, 2] and box[m, 1] <= box[m, 3]:
-            bu0 = min(bu0, box[m, 0])
-            bv0 = min(bv0, box[m, 1])
-            bu1 = max(bu1, box[m, 2])
-            bv1 = max(bv1, box[m, 3])
-    for i in range(pix.shape[0]):
-        midx[i] = -1
-        if not seen[i]:
-            continue
+    midx[:] = -1
+    for c in range(nc):
+        i = cand[c]
         u = pix[i, 0]
         v = pix[i, 1]
-        if u < bu0 or u > bu1 or v < bv0 or v > bv1:
-            continue
-        for k in range(M):
-            m = order[k]
-            if box[m, 0] <= u and u <= box[m, 2] and box[m, 1] <= v and v <= box[m, 3] \
-                    and warp_hit_crop(crop, cstart, cbox, sel[m], u, v, rays, Hinv, rows, m, K, d, r2max):
+        for j in range(M):
+            m = order[j]
+            if not (box[m, 0] <= u and u <= box[m, 2] and box[m, 1] <= v and v <= box[m, 3]):
+                continue
+            x = ray[c, 0]  # rays[v, u]
+            y = ray[c, 1]
+            a0 = rows[m, 0, 0] * x + rows[m, 0, 1] * y + rows[m, 0, 2]
+            sz = Hinv[m, 2, 0] * x + Hinv[m, 2, 1] * y + Hinv[m, 2, 2]
+            ok = (a0 > 0.0) & (sz > 0.0)
+            iz = 1.0 / (sz if ok else 1.0)
+            sx = (Hinv[m, 0, 0] * x + Hinv[m, 0, 1] * y + Hinv[m, 0, 2]) * iz
+            sy = (Hinv[m, 1, 0] * x + Hinv[m, 1, 1] * y + Hinv[m, 1, 2]) * iz
+            r2 = sx * sx + sy * sy
+            ok = ok & (r2 < r2max)
+            r2 = r2 if ok else 0.0
+            a = 1.0 + r2 * (d[0] + r2 * (d[1] + r2 * d[4]))
+            if rational:
+                a /= 1.0 + r2 * (d[5] + r2 * (d[6] + r2 * d[7]))
+            xy = sx * sy
+            xd = sx * a + 2.0 * d[2] * xy + d[3] * (r2 + 2.0 * sx * sx) + d[8] * r2 + d[9] * r2 * r2
+            yd = sy * a + d[2] * (r2 + 2.0 * sy * sy) + 2.0 * d[3] * xy + d[10] * r2 + d[11] * r2 * r2
+            su = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+            sv = K[1, 1] * yd + K[1, 2]
+            ok = ok & (su >= -0.5) & (su < W - 0.5) & (sv >= -0.5) & (sv < H - 0.5)
+            iu = int(su + 0.5) if ok else 0
+            iv = int(sv + 0.5) if ok else 0
+            iu = min(iu, W - 1)
+            iv = min(iv, H - 1)
+            e = sel[m]
+            cu0 = cbox[e, 0]
+            cv0 = cbox[e, 1]
+            inb = ok & (iu >= cu0) & (iu <= cbox[e, 2]) & (iv >= cv0) & (iv <= cbox[e, 3])
+            k = cstart[e] + (iv - cv0) * (cbox[e, 2] - cu0 + 1) + (iu - cu0) if inb else cstart[e]
+            if inb & crop[min(k, last)]:
                 midx[i] = m
                 hits += 1
                 break
     return hits
+
+
+def _union_box(box: np.ndarray) -> np.ndarray:
+    """(u0, v0, u1, v1) inclusive: the union of the non-empty boxes (M, 4) ((0, 0, -1, -1): none)."""
+    ok = (box[:, 0] <= box[:, 2]) & (box[:, 1] <= box[:, 3])
+    if not ok.any():
+        return _NO_BOX
+    b = box[ok]
+    return np.array([b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()], np.int64)
 
 
 @njit(cache=True, nogil=True)
@@ -880,8 +941,8 @@ class PointPartitioner:
             cap = max(n, int(1.25 * w["cap"]))
             w.update(cap=cap, ground=np.empty(cap, np.bool_), seen=np.empty(cap, np.bool_),
                      pix=np.empty((cap, 2), np.int64), midx=np.empty(cap, np.int32), keys=np.empty(cap, np.int64),
-                     p_cam=np.empty((cap, 3)))
-        return {k: v[:n] for k, v in w.items() if k != "cap"}
+                     p_cam=np.empty((cap, 3)), cand=np.empty(cap + 1, np.int64), ray=np.empty((cap + 1, 2)))
+        return {k: v[:n + 1] if k in ("cand", "ray") else v[:n] for k, v in w.items() if k != "cap"}
 
     def _dist12(self, camera: CameraModel) -> np.ndarray:
         """The camera's distortion padded to 12 coefficients (cached per distortion vector)."""
@@ -977,11 +1038,14 @@ class PointPartitioner:
 
         W, H = camera.width_px, camera.height_px
         in_view = np.empty(n, bool)  # returned: a fresh array per scan
-        seen, pix, midx, keys = wk["seen"], wk["pix"], wk["midx"], wk["keys"]
+        seen, pix, midx, keys, cand, ray = wk["seen"], wk["pix"], wk["midx"], wk["keys"], wk["cand"], wk["ray"]
+        rbox = _union_box(lk.box) if warped else _NO_BOX
+        rays = lk.rays if warped else _NO_RAYS
         if len(camera.dist) <= 12:
             p_cam = wk["p_cam"]
-            _project_scan(p, T, Tb, has_base, c.ground_max_z_m, camera.K, self._dist12(camera), len(camera.dist),
-                          camera._r2_max, W, H, ground, p_cam, in_view, seen, pix, _NO_UV, False)
+            nc = _project_scan(p, T, Tb, has_base, c.ground_max_z_m, camera.K, self._dist12(camera), len(camera.dist),
+                          camera._r2_max, W, H, ground, p_cam, in_view, seen, pix, _NO_UV, False, rays, rbox, cand,
+                               ray)
         else:  # the 14-coefficient (tilted) model: cv2 through CameraModel.project
             p_cam = _transform(p, T)
             if has_base:
@@ -991,10 +1055,10 @@ class PointPartitioner:
             uv = np.zeros((n, 2))
             in_view[:] = False
             uv[front], in_view[front] = camera.project(p_cam[front])
-            _seen_pixels(uv, in_view, ground, W, H, seen, pix)
+            nc = _seen_pixels(uv, in_view, ground, W, H, seen, pix, rays, rbox, cand, ray)
         if warped:
             order = np.argsort(-cst, kind="stable")  # cost descending, index ascending among equals
-            hits = _mask_lookup_warp(*wargs, order, pix, seen, midx)
+            hits = _mask_lookup_warp(*wargs, order, pix, cand, ray, nc, midx)
         else:
             hits = _mask_lookup(m, cst, pix, seen, midx)
         removed = added = 0
