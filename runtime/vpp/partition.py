@@ -591,6 +591,34 @@ def _cells_touch(pts, sp, s0, e0, s1, e1, eps2):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def _lower_bound(a, x):  # pragma: no cover - compiled
+    """np.searchsorted(a, x) (side left) for a sorted int64 array: written out, since numba's
+    searchsorted costs ~20 ns a call more, and the refinement makes thousands."""
+    lo = 0
+    hi = a.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, nogil=True)
+def _cell_near(pts, sp, i, s0, e0, eps2):  # pragma: no cover - compiled
+    """Is point i within eps of some point of sorted run [s0, e0)?"""
+    for a in range(s0, e0):
+        j = sp[a]
+        d0 = pts[i, 0] - pts[j, 0]
+        d1 = pts[i, 1] - pts[j, 1]
+        d2 = pts[i, 2] - pts[j, 2]
+        if d0 * d0 + d1 * d1 + d2 * d2 <= eps2:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth_gap, complete, dilate_px, half,
             warped, crop, cstart, cbox, sel, Hinv, rows, box, rays, K, dist12, r2max):  # pragma: no cover
     """Cluster refinement (module docstring, step 4). Returns (new midx, n removed, n added).
@@ -627,18 +655,32 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
             cstart[c] = a
     cstart[nc] = k
     parent = np.arange(nc)
+    # Per (dx, dy), the first key of the neighbour range is key + off[h] when every cell index
+    # stays inside its field (2 <= index < 2^18 - 2): increasing with c, so one pointer per h
+    # walks ckey once (a binary search per cell and offset costs its mispredicted branches).
+    NH = half.shape[0]
+    ptr = np.zeros(NH, np.int64)
     for c in range(nc):
         key = ckey[c]
         cz = key & 0x3FFFF
         cy = (key >> 18) & 0x3FFFF
         cx = (key >> 36) & 0x3FFFF
         m = key >> 54
+        inner = cx >= 2 and cy >= 2 and cz >= 2 and cx < (1 << 18) - 2 and cy < (1 << 18) - 2
         # For each (dx, dy) the cells cz-2..cz+2 are one contiguous key range: one search, then a
         # scan. Only cells after c in key order (each pair of cells once).
-        for h in range(half.shape[0]):
+        for h in range(NH):
             lo_key = _pack(m, cx + half[h, 0], cy + half[h, 1], cz - 2)
             hi_key = lo_key + 4
-            d = c + 1 if lo_key <= key else np.searchsorted(ckey, lo_key)
+            if lo_key <= key:
+                d = c + 1
+            elif inner:  # lo_key == key + off[h]
+                d = ptr[h]
+                while d < nc and ckey[d] < lo_key:
+                    d += 1
+                ptr[h] = d
+            else:
+                d = _lower_bound(ckey, lo_key)
             while d < nc and ckey[d] <= hi_key:
                 rc = _find(parent, c)
                 rd = _find(parent, d)
@@ -700,6 +742,7 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
         cx = _cell(pts[i, 0], inv)
         cy = _cell(pts[i, 1], inv)
         cz = _cell(pts[i, 2], inv)
+        inner = cx >= 2 and cy >= 2 and cz >= 2 and cx < (1 << 18) - 2 and cy < (1 << 18) - 2 and cz < (1 << 18) - 2
         for m in range(M):
             if costs[m] <= bc or pts[i, 0] < bb[m, 0] or pts[i, 0] > bb[m, 1] or pts[i, 1] < bb[m, 2] \
                     or pts[i, 1] > bb[m, 3] or pts[i, 2] < bb[m, 4] or pts[i, 2] > bb[m, 5]:
@@ -707,21 +750,22 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
             hit = False
             for dx in range(-2, 3):
                 for dy in range(-2, 3):
+                    if inner:  # the cells cz-2..cz+2 are one key range: one search, then a scan
+                        lo_key = _pack(m, cx + dx, cy + dy, cz - 2)
+                        d = _lower_bound(ckey, lo_key)
+                        while not hit and d < nc and ckey[d] <= lo_key + 4:
+                            if ckept[d]:
+                                hit = _cell_near(pts, sp, i, cstart[d], cstart[d + 1], eps2)
+                            d += 1
+                        continue
                     for dz in range(-2, 3):
                         if hit:
                             break
                         nk = _pack(m, cx + dx, cy + dy, cz + dz)
-                        d = np.searchsorted(ckey, nk)
+                        d = _lower_bound(ckey, nk)
                         if d >= nc or ckey[d] != nk or not ckept[d]:
                             continue
-                        for a in range(cstart[d], cstart[d + 1]):
-                            j = sp[a]
-                            d0 = pts[i, 0] - pts[j, 0]
-                            d1 = pts[i, 1] - pts[j, 1]
-                            d2 = pts[i, 2] - pts[j, 2]
-                            if d0 * d0 + d1 * d1 + d2 * d2 <= eps2:
-                                hit = True
-                                break
+                        hit = _cell_near(pts, sp, i, cstart[d], cstart[d + 1], eps2)
             if hit and (_near_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, dist12, r2max, m, pix[i, 0], pix[i, 1],
                                    dilate_px)
                         if warped else _near_mask(masks, m, pix[i, 0], pix[i, 1], dilate_px)):
