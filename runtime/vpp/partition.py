@@ -142,12 +142,22 @@ def _check_points(points: np.ndarray, field: str) -> np.ndarray:
         raise _fail(field, f"must be an (N, 3) array, got shape {p.shape}")
     if p.dtype.kind != "f":
         raise _fail(field, f"must be floating point, got {p.dtype}")
-    if not np.isfinite(p).all():
-        bad = int((~np.isfinite(p).all(axis=1)).sum())
-        raise _fail(field, f"{bad} points are not finite (NaN or inf); drop them before the partition")
     if p.dtype not in (np.float32, np.float64):
-        p = p.astype(np.float64)
-    return np.ascontiguousarray(p)  # one numba specialization per dtype, none per memory layout
+        p = p.astype(np.float64)  # (keeps NaN and inf)
+    p = np.ascontiguousarray(p)  # one numba specialization per dtype, none per memory layout
+    bad = _nonfinite_rows(p)  # (numba: np.isfinite(p).all() costs a 60 kB temporary)
+    if bad:
+        raise _fail(field, f"{bad} points are not finite (NaN or inf); drop them before the partition")
+    return p
+
+
+@njit(cache=True, nogil=True)
+def _nonfinite_rows(p):  # pragma: no cover - compiled
+    """Number of rows of p (N, 3) with a NaN or an infinite coordinate."""
+    bad = 0
+    for i in range(p.shape[0]):
+        bad += not (np.isfinite(p[i, 0]) and np.isfinite(p[i, 1]) and np.isfinite(p[i, 2]))
+    return bad
 
 
 _EYE3 = np.eye(3)
@@ -157,10 +167,15 @@ _NO_RAYS = np.zeros((1, 1, 2))
 _NO_BOX = np.array([0, 0, -1, -1], np.int64)
 
 
-def _check_transform(T: np.ndarray, field: str) -> np.ndarray:
+def _check_transform(T: np.ndarray, field: str, known: dict | None = None) -> np.ndarray:
+    """T as float64 (4, 4) if rigid, else PartitionInputError naming `field`. known: transforms
+    (by their bytes) that passed before, checked no more (the mounts are the same every scan)."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         raise _fail(field, f"must be 4x4, got shape {T.shape}")
+    key = T.tobytes() if known is not None else None
+    if key is not None and key in known:
+        return T
     if not np.isfinite(T).all():
         raise _fail(field, "is not finite")
     R = T[:3, :3]
@@ -168,6 +183,10 @@ def _check_transform(T: np.ndarray, field: str) -> np.ndarray:
     if T[3, 0] != 0.0 or T[3, 1] != 0.0 or T[3, 2] != 0.0 or T[3, 3] != 1.0 \
             or float(np.abs(R @ R.T - _EYE3).max()) > 1e-5 or np.linalg.det(R) < 0:
         raise _fail(field, "is not a rigid transform (rotation not orthonormal or last row not [0, 0, 0, 1])")
+    if key is not None:
+        if len(known) >= 8:
+            known.clear()
+        known[key] = True
     return T
 
 
@@ -478,13 +497,20 @@ def _mask_lookup_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, d, r2ma
     return hits
 
 
-def _union_box(box: np.ndarray) -> np.ndarray:
+@njit(cache=True, nogil=True)
+def _union_box(box):  # pragma: no cover - compiled
     """(u0, v0, u1, v1) inclusive: the union of the non-empty boxes (M, 4) ((0, 0, -1, -1): none)."""
-    ok = (box[:, 0] <= box[:, 2]) & (box[:, 1] <= box[:, 3])
-    if not ok.any():
-        return _NO_BOX
-    b = box[ok]
-    return np.array([b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()], np.int64)
+    out = np.array([1 << 30, 1 << 30, -1, -1], np.int64)
+    for m in range(box.shape[0]):
+        if box[m, 0] <= box[m, 2] and box[m, 1] <= box[m, 3]:
+            out[0] = min(out[0], box[m, 0])
+            out[1] = min(out[1], box[m, 1])
+            out[2] = max(out[2], box[m, 2])
+            out[3] = max(out[3], box[m, 3])
+    if out[2] < 0:
+        out[0] = 0
+        out[1] = 0
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -974,6 +1000,8 @@ class PointPartitioner:
         self.memory = LabelMemory(c.memory_voxel_m, c.memory_max_age_s, c.memory_initial_slots)
         self._work: dict = {"cap": -1}
         self._d12: tuple | None = None
+        self._rigid: dict = {}  # transforms that passed _check_transform
+        self._ids_costs: tuple | None = None  # (key, checked ids, costs) of the last call
         self._warm_up()
 
     def _buffers(self, n: int) -> dict:
@@ -987,6 +1015,20 @@ class PointPartitioner:
                      pix=np.empty((cap, 2), np.int64), midx=np.empty(cap, np.int32), keys=np.empty(cap, np.int64),
                      p_cam=np.empty((cap, 3)), cand=np.empty(cap + 1, np.int64), ray=np.empty((cap + 1, 2)))
         return {k: v[:n + 1] if k in ("cand", "ray") else v[:n] for k, v in w.items() if k != "cap"}
+
+    def _ids_and_costs(self, object_ids, costs, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """_check_ids_costs, remembered for the same ids and costs as the last call (the stage
+        passes the same few masks scan after scan)."""
+        a = np.asarray(object_ids)
+        b = np.asarray(costs)
+        if a.dtype.kind not in "iu" or b.dtype.kind not in "fiu":  # (bytes of objects say nothing)
+            return _check_ids_costs(object_ids, costs, m)
+        key = (m, a.dtype.str, a.shape, a.tobytes(), b.dtype.str, b.shape, b.tobytes())
+        if self._ids_costs is not None and self._ids_costs[0] == key:
+            return self._ids_costs[1], self._ids_costs[2]
+        ids, cst = _check_ids_costs(object_ids, costs, m)
+        self._ids_costs = (key, ids, cst)
+        return ids, cst
 
     def _dist12(self, camera: CameraModel) -> np.ndarray:
         """The camera's distortion padded to 12 coefficients (cached per distortion vector)."""
@@ -1041,7 +1083,7 @@ class PointPartitioner:
         """
         c = self.config
         p = _check_points(points_lidar, "points_lidar")
-        T = _check_transform(T_cam_lidar, "T_cam_lidar")
+        T = _check_transform(T_cam_lidar, "T_cam_lidar", self._rigid)
         if not isinstance(camera, CameraModel):
             raise _fail("camera", f"must be a CameraModel, got {type(camera).__name__}")
         warped = isinstance(masks, WarpLookup)
@@ -1058,7 +1100,7 @@ class PointPartitioner:
         else:
             m = stack_masks(masks, camera)
             wargs = _NO_WARP
-        ids, cst = _check_ids_costs(object_ids, costs, m.shape[0])
+        ids, cst = self._ids_and_costs(object_ids, costs, m.shape[0])
         n = p.shape[0]
         wk = self._buffers(n)
         ground = wk["ground"]
@@ -1070,7 +1112,7 @@ class PointPartitioner:
         else:
             ground[:] = False
         has_base = T_base_lidar is not None
-        Tb = _check_transform(T_base_lidar, "T_base_lidar") if has_base else _EYE4
+        Tb = _check_transform(T_base_lidar, "T_base_lidar", self._rigid) if has_base else _EYE4
         use_memory = T_odom_lidar is not None or stamp_s is not None
         if use_memory:
             if T_odom_lidar is None or stamp_s is None:
