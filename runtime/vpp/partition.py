@@ -821,12 +821,18 @@ def _voxel_keys(pts, inv, sel):  # pragma: no cover - compiled
     return out
 
 
+#: One slot of the label memory: a record, so that a probe touches one cache line, not five
+#: (the table is mostly out of cache by the next scan).
+_SLOT = np.dtype([("key", np.int64), ("stamp", np.float64), ("cost", np.float32), ("obj", np.int32),
+                  ("label", np.int8)], align=True)
+
+
 @njit(cache=True, nogil=True)
-def _slot(keys, key, shift):  # pragma: no cover - compiled
+def _slot(tbl, key, shift):  # pragma: no cover - compiled
     """Slot holding key, or the empty slot where it would go (linear probing)."""
-    mask = keys.shape[0] - 1
+    mask = tbl.shape[0] - 1
     h = np.int64((np.uint64(key) * _GOLDEN) >> np.uint64(shift))
-    while keys[h] != key and keys[h] != _EMPTY:
+    while tbl[h].key != key and tbl[h].key != _EMPTY:
         h = (h + 1) & mask
     return h
 
@@ -852,7 +858,7 @@ def _odom_keys(p, T, inv, ground, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _mem_write(keys, lab, obj, cost, stamp, shift, pkeys, sel, plab, pobj, pcost, now):  # pragma: no cover
+def _mem_write(tbl, shift, pkeys, sel, plab, pobj, pcost, now):  # pragma: no cover
     """Write the labels of the points with sel set (and a key) into their voxels; returns the
     number of new slots used."""
     new = 0
@@ -860,56 +866,58 @@ def _mem_write(keys, lab, obj, cost, stamp, shift, pkeys, sel, plab, pobj, pcost
         key = pkeys[i]
         if key == _EMPTY or not sel[i]:
             continue
-        h = _slot(keys, key, shift)
-        if keys[h] == _EMPTY:
-            keys[h] = key
+        h = _slot(tbl, key, shift)
+        r = tbl[h]
+        if r.key == _EMPTY:
+            r.key = key
             new += 1
-        elif stamp[h] == now:  # merge with this scan's earlier points: fixed wins, then max cost
-            if lab[h] == 0:
+        elif r.stamp == now:  # merge with this scan's earlier points: fixed wins, then max cost
+            if r.label == 0:
                 continue
-            if plab[i] == 1 and (pcost[i] < cost[h] or (pcost[i] == cost[h] and pobj[i] >= obj[h])):
+            if plab[i] == 1 and (pcost[i] < r.cost or (pcost[i] == r.cost and pobj[i] >= r.obj)):
                 continue
-        lab[h] = plab[i]
-        obj[h] = pobj[i]
-        cost[h] = pcost[i]
-        stamp[h] = now
+        r.label = plab[i]
+        r.obj = pobj[i]
+        r.cost = pcost[i]
+        r.stamp = now
     return new
 
 
 @njit(cache=True, nogil=True)
-def _mem_reinsert(keys, lab, obj, cost, stamp, shift, okeys, olab, oobj, ocost, ostamp):  # pragma: no cover
+def _mem_reinsert(tbl, shift, okeys, olab, oobj, ocost, ostamp):  # pragma: no cover
     """Insert distinct entries (a rebuild) with their own stamps; returns the count."""
     for i in range(okeys.shape[0]):
-        h = _slot(keys, okeys[i], shift)
-        keys[h] = okeys[i]
-        lab[h] = olab[i]
-        obj[h] = oobj[i]
-        cost[h] = ocost[i]
-        stamp[h] = ostamp[i]
+        h = _slot(tbl, okeys[i], shift)
+        r = tbl[h]
+        r.key = okeys[i]
+        r.label = olab[i]
+        r.obj = oobj[i]
+        r.cost = ocost[i]
+        r.stamp = ostamp[i]
     return okeys.shape[0]
 
 
 @njit(cache=True, nogil=True)
-def _mem_read(keys, lab, obj, cost, stamp, shift, pkeys, sel, want, now, max_age, olab, oobj, ocost,
-              found):  # pragma: no cover - compiled
+def _mem_read(tbl, shift, pkeys, sel, want, now, max_age, olab, oobj, ocost, found):  # pragma: no cover - compiled
     """Read the voxels of the points whose sel[i] == want (and that have a key)."""
     for i in range(pkeys.shape[0]):
         key = pkeys[i]
         if key == _EMPTY or sel[i] != want:
             continue
-        h = _slot(keys, key, shift)
-        if keys[h] == key and now - stamp[h] <= max_age:
+        h = _slot(tbl, key, shift)
+        r = tbl[h]
+        if r.key == key and now - r.stamp <= max_age:
             found[i] = True
-            olab[i] = lab[h]
-            oobj[i] = obj[h]
-            ocost[i] = cost[h]
+            olab[i] = r.label
+            oobj[i] = r.obj
+            ocost[i] = r.cost
 
 
 class LabelMemory:
     """Odom-frame voxel hash: voxel -> (label, object id, cost, stamp of the scan that wrote it).
 
-    An open-addressing table in numpy arrays driven by numba (a Python dict would mean a loop
-    over points). Entries older than max_age_s read as absent; they are dropped when the table
+    An open-addressing table (a numpy record array, one _SLOT a voxel) driven by numba (a Python
+    dict would mean a loop over points). Entries older than max_age_s read as absent; they are dropped when the table
     is rebuilt (at half full), and the table doubles only if the live entries still fill it.
     """
 
@@ -919,21 +927,27 @@ class LabelMemory:
         self._alloc(1 << max(6, int(initial_slots - 1).bit_length()))
 
     def _alloc(self, slots: int) -> None:
-        self.keys = np.full(slots, _EMPTY)
-        self.label = np.zeros(slots, np.int8)
-        self.object_id = np.full(slots, -1, np.int32)
-        self.cost = np.full(slots, np.nan, np.float32)
-        self.stamp = np.full(slots, -np.inf)
+        self.table = np.zeros(slots, _SLOT)
+        self.table["key"] = _EMPTY
+        self.table["obj"] = -1
+        self.table["cost"] = np.nan
+        self.table["stamp"] = -np.inf
         self.shift = 64 - (slots.bit_length() - 1)
         self.used = 0
+
+    # the table's columns (views)
+    keys = property(lambda self: self.table["key"])
+    label = property(lambda self: self.table["label"])
+    object_id = property(lambda self: self.table["obj"])
+    cost = property(lambda self: self.table["cost"])
+    stamp = property(lambda self: self.table["stamp"])
 
     def __len__(self) -> int:
         """Slots in use (live and expired, until the next rebuild)."""
         return self.used
 
     def _write_arrays(self, pkeys, sel, plab, pobj, pcost, now) -> None:
-        self.used += _mem_write(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift,
-                                pkeys, sel, plab, pobj, pcost, now)
+        self.used += _mem_write(self.table, self.shift, pkeys, sel, plab, pobj, pcost, now)
 
     def _rebuild(self, now: float, incoming: int) -> None:
         live = (self.keys != _EMPTY) & (now - self.stamp <= self.max_age_s)
@@ -942,7 +956,7 @@ class LabelMemory:
         while 2 * (int(live.sum()) + incoming) > slots:
             slots *= 2
         self._alloc(slots)
-        self.used = _mem_reinsert(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift, *old)
+        self.used = _mem_reinsert(self.table, self.shift, *old)
 
     def voxel_keys(self, points_odom: np.ndarray, sel: np.ndarray) -> np.ndarray:
         """Voxel key of each selected point (-1 for the others)."""
@@ -980,8 +994,8 @@ class LabelMemory:
 
     def _read_keys(self, keys, sel, want: bool, now_s, label, object_id, cost, found) -> None:
         """read_into with the keys given (_EMPTY: no voxel), for the points whose sel is `want`."""
-        _mem_read(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift, keys, sel, bool(want),
-                  float(now_s), self.max_age_s, label, object_id, cost, found)
+        _mem_read(self.table, self.shift, keys, sel, bool(want), float(now_s), self.max_age_s, label, object_id, cost,
+                  found)
 
 
 # --------------------------------------------------------------------------- the partition
