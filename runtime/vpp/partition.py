@@ -165,6 +165,7 @@ _EYE4 = np.eye(4)
 _NO_UV = np.zeros((1, 2))
 _NO_RAYS = np.zeros((1, 1, 2))
 _NO_BOX = np.array([0, 0, -1, -1], np.int64)
+_NO_KEYS = np.zeros(1, np.int64)
 
 
 def _check_transform(T: np.ndarray, field: str, known: dict | None = None) -> np.ndarray:
@@ -275,7 +276,7 @@ def _transform(p, T):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_cam, in_view, seen, pix, uv,
-                  store_uv, rays, rbox, cand, ray):  # pragma: no cover - compiled
+                  store_uv, rays, rbox, cand, ray, To, has_odom, inv, keys):  # pragma: no cover - compiled
     """Steps 1-2 in one pass over the points, without temporaries: p_cam = T p (as _transform),
     ground |= height after Tb < z_max (as _mark_ground; only when has_base), in_view as
     CameraModel.project's `valid` of p_cam, seen = in_view and not ground, pix = the nearest
@@ -283,7 +284,9 @@ def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_ca
     the in_view points (project's uv; 0 for the others; for tests: project_fused). The seen
     points whose pixel lies in the box rbox (u0, v0, u1, v1 inclusive: the union of the warped
     masks' boxes), in order: cand[k] = the point, ray[k] = the camera's pixel ray there (rays[v,
-    u]); returns their count (cand and ray need n + 1 rows).
+    u]); returns their count (cand and ray need n + 1 rows). With has_odom, keys = the label
+    memory's voxel key of each point not on the ground after To (odom <- lidar; as _odom_keys),
+    _EMPTY for the ground.
 
     The projection repeats CameraModel.project's arithmetic operation for operation (the same
     order and grouping, so the same IEEE results: numba does not contract a * b + c into FMA
@@ -308,6 +311,15 @@ def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_ca
         p_cam[i, 2] = Z
         g = ground[i] | (has_base & (Tb[2, 0] * x + Tb[2, 1] * y + Tb[2, 2] * z + Tb[2, 3] < z_max))
         ground[i] = g
+        if has_odom:
+            Xo = To[0, 0] * x + To[0, 1] * y + To[0, 2] * z + To[0, 3]
+            Yo = To[1, 0] * x + To[1, 1] * y + To[1, 2] * z + To[1, 3]
+            Zo = To[2, 0] * x + To[2, 1] * y + To[2, 2] * z + To[2, 3]
+            ox = min(max(int(math.floor(Xo * inv)), -_MOFF), _MOFF - 1) + _MOFF
+            oy = min(max(int(math.floor(Yo * inv)), -_MOFF), _MOFF - 1) + _MOFF
+            oz = min(max(int(math.floor(Zo * inv)), -_MOFF), _MOFF - 1) + _MOFF
+            key = (np.int64(ox) << 42) | (np.int64(oy) << 21) | np.int64(oz)
+            keys[i] = _EMPTY if g else key
         front = (Z > 1e-9) & (Z < np.inf)
         Zs = Z if front else 1.0
         xn = X / Zs
@@ -384,7 +396,7 @@ def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tup
     _project_scan(p, _check_transform(T, "T"), _EYE4, False, 0.0, camera.K, distortion12(camera), len(camera.dist),
                   camera._r2_max, camera.width_px, camera.height_px, np.zeros(n, bool), np.empty((n, 3)), valid,
                   np.empty(n, bool), np.empty((n, 2), np.int64), uv, True, _NO_RAYS, _NO_BOX, np.empty(n + 1, np.int64),
-                  np.empty((n + 1, 2)))
+                  np.empty((n + 1, 2)), _EYE4, False, 1.0, _NO_KEYS)
     return uv, valid
 
 
@@ -822,18 +834,18 @@ def _voxel_keys(pts, inv, sel):  # pragma: no cover - compiled
     return out
 
 
-#: One slot of the label memory: a record, so that a probe touches one cache line, not five
-#: (the table is mostly out of cache by the next scan).
-_SLOT = np.dtype([("key", np.int64), ("stamp", np.float64), ("cost", np.float32), ("obj", np.int32),
-                  ("label", np.int8)], align=True)
+#: What the label memory holds per slot, beside its key: one record, so that a voxel found
+#: costs two cache lines (key, record), not five (the table is mostly out of cache by the next
+#: scan); the keys stay an array of their own, so that a voxel not found costs one.
+_SLOT = np.dtype([("stamp", np.float64), ("cost", np.float32), ("obj", np.int32), ("label", np.int8)], align=True)
 
 
 @njit(cache=True, nogil=True)
-def _slot(tbl, key, shift):  # pragma: no cover - compiled
+def _slot(keys, key, shift):  # pragma: no cover - compiled
     """Slot holding key, or the empty slot where it would go (linear probing)."""
-    mask = tbl.shape[0] - 1
+    mask = keys.shape[0] - 1
     h = np.int64((np.uint64(key) * _GOLDEN) >> np.uint64(shift))
-    while tbl[h].key != key and tbl[h].key != _EMPTY:
+    while keys[h] != key and keys[h] != _EMPTY:
         h = (h + 1) & mask
     return h
 
@@ -859,7 +871,7 @@ def _odom_keys(p, T, inv, ground, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _mem_write(tbl, shift, pkeys, sel, plab, pobj, pcost, now):  # pragma: no cover
+def _mem_write(keys, tbl, shift, pkeys, sel, plab, pobj, pcost, now):  # pragma: no cover
     """Write the labels of the points with sel set (and a key) into their voxels; returns the
     number of new slots used."""
     new = 0
@@ -867,10 +879,10 @@ def _mem_write(tbl, shift, pkeys, sel, plab, pobj, pcost, now):  # pragma: no co
         key = pkeys[i]
         if key == _EMPTY or not sel[i]:
             continue
-        h = _slot(tbl, key, shift)
+        h = _slot(keys, key, shift)
         r = tbl[h]
-        if r.key == _EMPTY:
-            r.key = key
+        if keys[h] == _EMPTY:
+            keys[h] = key
             new += 1
         elif r.stamp == now:  # merge with this scan's earlier points: fixed wins, then max cost
             if r.label == 0:
@@ -885,12 +897,12 @@ def _mem_write(tbl, shift, pkeys, sel, plab, pobj, pcost, now):  # pragma: no co
 
 
 @njit(cache=True, nogil=True)
-def _mem_reinsert(tbl, shift, okeys, olab, oobj, ocost, ostamp):  # pragma: no cover
+def _mem_reinsert(keys, tbl, shift, okeys, olab, oobj, ocost, ostamp):  # pragma: no cover
     """Insert distinct entries (a rebuild) with their own stamps; returns the count."""
     for i in range(okeys.shape[0]):
-        h = _slot(tbl, okeys[i], shift)
+        h = _slot(keys, okeys[i], shift)
         r = tbl[h]
-        r.key = okeys[i]
+        keys[h] = okeys[i]
         r.label = olab[i]
         r.obj = oobj[i]
         r.cost = ocost[i]
@@ -899,15 +911,17 @@ def _mem_reinsert(tbl, shift, okeys, olab, oobj, ocost, ostamp):  # pragma: no c
 
 
 @njit(cache=True, nogil=True)
-def _mem_read(tbl, shift, pkeys, sel, want, now, max_age, olab, oobj, ocost, found):  # pragma: no cover - compiled
+def _mem_read(keys, tbl, shift, pkeys, sel, want, now, max_age, olab, oobj, ocost, found):  # pragma: no cover
     """Read the voxels of the points whose sel[i] == want (and that have a key)."""
     for i in range(pkeys.shape[0]):
         key = pkeys[i]
         if key == _EMPTY or sel[i] != want:
             continue
-        h = _slot(tbl, key, shift)
+        h = _slot(keys, key, shift)
+        if keys[h] != key:
+            continue
         r = tbl[h]
-        if r.key == key and now - r.stamp <= max_age:
+        if now - r.stamp <= max_age:
             found[i] = True
             olab[i] = r.label
             oobj[i] = r.obj
@@ -917,7 +931,7 @@ def _mem_read(tbl, shift, pkeys, sel, want, now, max_age, olab, oobj, ocost, fou
 class LabelMemory:
     """Odom-frame voxel hash: voxel -> (label, object id, cost, stamp of the scan that wrote it).
 
-    An open-addressing table (a numpy record array, one _SLOT a voxel) driven by numba (a Python
+    An open-addressing table (keys, and a numpy record array of _SLOT) driven by numba (a Python
     dict would mean a loop over points). Entries older than max_age_s read as absent; they are dropped when the table
     is rebuilt (at half full), and the table doubles only if the live entries still fill it.
     """
@@ -928,8 +942,8 @@ class LabelMemory:
         self._alloc(1 << max(6, int(initial_slots - 1).bit_length()))
 
     def _alloc(self, slots: int) -> None:
+        self.keys = np.full(slots, _EMPTY)
         self.table = np.zeros(slots, _SLOT)
-        self.table["key"] = _EMPTY
         self.table["obj"] = -1
         self.table["cost"] = np.nan
         self.table["stamp"] = -np.inf
@@ -937,7 +951,6 @@ class LabelMemory:
         self.used = 0
 
     # the table's columns (views)
-    keys = property(lambda self: self.table["key"])
     label = property(lambda self: self.table["label"])
     object_id = property(lambda self: self.table["obj"])
     cost = property(lambda self: self.table["cost"])
@@ -948,7 +961,7 @@ class LabelMemory:
         return self.used
 
     def _write_arrays(self, pkeys, sel, plab, pobj, pcost, now) -> None:
-        self.used += _mem_write(self.table, self.shift, pkeys, sel, plab, pobj, pcost, now)
+        self.used += _mem_write(self.keys, self.table, self.shift, pkeys, sel, plab, pobj, pcost, now)
 
     def _rebuild(self, now: float, incoming: int) -> None:
         live = (self.keys != _EMPTY) & (now - self.stamp <= self.max_age_s)
@@ -957,7 +970,7 @@ class LabelMemory:
         while 2 * (int(live.sum()) + incoming) > slots:
             slots *= 2
         self._alloc(slots)
-        self.used = _mem_reinsert(self.table, self.shift, *old)
+        self.used = _mem_reinsert(self.keys, self.table, self.shift, *old)
 
     def voxel_keys(self, points_odom: np.ndarray, sel: np.ndarray) -> np.ndarray:
         """Voxel key of each selected point (-1 for the others)."""
@@ -995,8 +1008,8 @@ class LabelMemory:
 
     def _read_keys(self, keys, sel, want: bool, now_s, label, object_id, cost, found) -> None:
         """read_into with the keys given (_EMPTY: no voxel), for the points whose sel is `want`."""
-        _mem_read(self.table, self.shift, keys, sel, bool(want), float(now_s), self.max_age_s, label, object_id, cost,
-                  found)
+        _mem_read(self.keys, self.table, self.shift, keys, sel, bool(want), float(now_s), self.max_age_s, label,
+                  object_id, cost, found)
 
 
 # --------------------------------------------------------------------------- the partition
@@ -1145,8 +1158,9 @@ class PointPartitioner:
         if len(camera.dist) <= 12:
             p_cam = wk["p_cam"]
             nc = _project_scan(p, T, Tb, has_base, c.ground_max_z_m, camera.K, self._dist12(camera), len(camera.dist),
-                          camera._r2_max, W, H, ground, p_cam, in_view, seen, pix, _NO_UV, False, rays, rbox, cand,
-                               ray)
+                               camera._r2_max, W, H, ground, p_cam, in_view, seen, pix, _NO_UV, False, rays, rbox, cand,
+                               ray, To if use_memory else _EYE4, use_memory, 1.0 / self.memory.voxel_m, keys)
+            keys_done = use_memory
         else:  # the 14-coefficient (tilted) model: cv2 through CameraModel.project
             p_cam = _transform(p, T)
             if has_base:
@@ -1157,6 +1171,7 @@ class PointPartitioner:
             in_view[:] = False
             uv[front], in_view[front] = camera.project(p_cam[front])
             nc = _seen_pixels(uv, in_view, ground, W, H, seen, pix, rays, rbox, cand, ray)
+            keys_done = False
         if warped:
             order = np.argsort(-cst, kind="stable")  # cost descending, index ascending among equals
             hits = _mask_lookup_warp(*wargs, order, pix, cand, ray, nc, midx)
@@ -1176,7 +1191,8 @@ class PointPartitioner:
         _assemble(ground, midx, ids, cst, label, object_id, cost)
         from_memory = np.zeros(n, bool)
         if use_memory:
-            _odom_keys(p, To, 1.0 / self.memory.voxel_m, ground, keys)  # _EMPTY for the ground
+            if not keys_done:
+                _odom_keys(p, To, 1.0 / self.memory.voxel_m, ground, keys)  # _EMPTY for the ground
             self.memory._read_keys(keys, in_view, False, float(stamp_s), label, object_id, cost, from_memory)
             self.memory._write_keys(keys, seen, label, object_id, cost, float(stamp_s))
         return PointPartition(label, object_id, cost, in_view, from_memory, int(removed), int(added))
