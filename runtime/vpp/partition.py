@@ -41,16 +41,22 @@ and an IMPACT-style contact cost 0..10):
    must not make the wall touchable); among movable points the highest cost wins.
 
 Everything per point runs in numba kernels (cache=True; PointPartitioner warms them up at
-construction) or numpy; there is no Python loop over points or masks in the tick.
+construction) or numpy; there is no Python loop over points or masks in the tick. Per scan:
+one pass (_project_scan) transforms, marks the ground, projects (CameraModel.project's
+arithmetic, operation for operation, so the same pixels: tests/runtime/test_vpp_fused.py), takes
+the nearest pixel, the odom voxel key, and lists the seen points inside the union of the warped
+masks' boxes with their pixel rays; the lookup (_mask_lookup_warp) tries the masks by cost
+descending, first hit wins, in the capture masks cropped to their boxes (homography.mask_crops);
+the refinement, assembly and label memory follow. Work arrays are kept between scans
+(PointPartitioner._buffers); the outputs are fresh per scan.
 
 Budget (issue 13: 3 ms p99, 20k points, 8 masks of 640x480, one core): `python -m
-runtime.vpp.partition` prints time_partition(); on the 2-core dev box under other load,
-taskset -c 1, 1000 scans: p50 1.9 ms / p99 2.4 ms with the label memory, p50 1.5 ms / p99 1.7-1.9
-ms without. The projection (CameraModel.project, numpy) is the biggest single piece (~0.3 ms).
-The whole stage per scan (Phase I lookup, this partition, tracking): `dct bench vpp`
-(hil_sim/vpp_bench.py). The stage passes its masks as a homography.WarpLookup (the capture
-masks looked up through their warp at each point's pixel; no warped image is made): the same
-labels as the warped images the lookup replaces, at about 0.1-0.3 ms more here than bitmaps.
+runtime.vpp.partition` prints time_partition(); the whole stage per scan (Phase I lookup, this
+partition, tracking): `dct bench vpp` (hil_sim/vpp_bench.py), whose `partition` column is this
+call inside the stage, caches cold from the tracker: on the shared 2-core dev box about 1.8-1.9
+ms p50, 2.1-2.3 ms p99 at 8 masks (3.1/3.5 before the fused pass, in the same load). What is
+left is mostly cache misses: the 4.9 MB pixel-ray table (homography.pixel_rays) at the
+candidates' pixels, the label memory's table, the sort of the cluster keys.
 """
 from __future__ import annotations
 
