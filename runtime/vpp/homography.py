@@ -307,15 +307,9 @@ def _distort(x, y, d):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
-def warp_hit(masks, e, u, v, rays, Hinv, rows, m, K, d, r2max):  # pragma: no cover - compiled
-    """Is current pixel (u, v) set in the warp of capture mask masks[e]? The MaskWarper map at
-    that pixel, evaluated exactly: the pixel's ray (rays[v, u]) must pass the two half-planes
-    rows[m] (in front of both cameras; rows[m, 1] is Hinv[m, 2], the source's depth, so it is
-    evaluated as that; a row (0, 0, 1) always passes), its source Hinv ray must lie in the
-    distortion model's domain, and the nearest pixel of its distorted source must be set in
-    masks[e]. Hinv and rows are (M, 3, 3) and (M, 2, 3), m the warp to use (indexed, not sliced:
-    a slice per call costs a reference count). Branch-free (selects, not ifs): about 3x faster
-    than the same with early returns, which kept LLVM from overlapping successive pixels."""
+def _warp_source_px(u, v, rays, Hinv, rows, m, K, d, r2max, W, H):  # pragma: no cover - compiled
+    """(ok, iu, iv): the nearest capture pixel of current pixel (u, v) under warp m, and whether it
+    is valid (warp_hit's map; iu, iv are clamped into the image and meaningless when not ok)."""
     x = rays[v, u, 0]
     y = rays[v, u, 1]
     a0 = rows[m, 0, 0] * x + rows[m, 0, 1] * y + rows[m, 0, 2]
@@ -335,14 +329,62 @@ def warp_hit(masks, e, u, v, rays, Hinv, rows, m, K, d, r2max):  # pragma: no co
     yd = sy * a + d[2] * (r2 + 2.0 * sy * sy) + 2.0 * d[3] * xy + d[10] * r2 + d[11] * r2 * r2
     su = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
     sv = K[1, 1] * yd + K[1, 2]
-    H = masks.shape[1]
-    W = masks.shape[2]
     ok = ok & (su >= -0.5) & (su < W - 0.5) & (sv >= -0.5) & (sv < H - 0.5)
     iu = int(su + 0.5) if ok else 0
     iv = int(sv + 0.5) if ok else 0
     iu = min(iu, W - 1)
     iv = min(iv, H - 1)
+    return ok, iu, iv
+
+
+@njit(cache=True, nogil=True, inline="always")
+def warp_hit(masks, e, u, v, rays, Hinv, rows, m, K, d, r2max):  # pragma: no cover - compiled
+    """Is current pixel (u, v) set in the warp of capture mask masks[e]? The MaskWarper map at
+    that pixel, evaluated exactly: the pixel's ray (rays[v, u]) must pass the two half-planes
+    rows[m] (in front of both cameras; rows[m, 1] is Hinv[m, 2], the source's depth, so it is
+    evaluated as that; a row (0, 0, 1) always passes), its source Hinv ray must lie in the
+    distortion model's domain, and the nearest pixel of its distorted source must be set in
+    masks[e]. Hinv and rows are (M, 3, 3) and (M, 2, 3), m the warp to use (indexed, not sliced:
+    a slice per call costs a reference count). Branch-free (selects, not ifs): about 3x faster
+    than the same with early returns, which kept LLVM from overlapping successive pixels.
+    The kernels of the tick use warp_hit_crop (the same answer from the cropped masks)."""
+    ok, iu, iv = _warp_source_px(u, v, rays, Hinv, rows, m, K, d, r2max, masks.shape[2], masks.shape[1])
     return ok & masks[e, iv, iu]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def warp_hit_crop(crop, cstart, cbox, e, u, v, rays, Hinv, rows, m, K, d, r2max):  # pragma: no cover - compiled
+    """warp_hit with capture mask e given as its crop to its bounding box (mask_crops: crop
+    flat, entry e at cstart[e], box cbox[e] = u0, v0, u1, v1 inclusive; outside the box the mask
+    is empty). The same answer as warp_hit on the full masks; the crops of 8 masks are a few tens
+    of kB where the full masks are 2.4 MB, so the random lookups of a scan stay in cache."""
+    ok, iu, iv = _warp_source_px(u, v, rays, Hinv, rows, m, K, d, r2max, rays.shape[1], rays.shape[0])
+    u0 = cbox[e, 0]
+    v0 = cbox[e, 1]
+    inb = ok & (iu >= u0) & (iu <= cbox[e, 2]) & (iv >= v0) & (iv <= cbox[e, 3])
+    k = cstart[e] + (iv - v0) * (cbox[e, 2] - u0 + 1) + (iu - u0) if inb else cstart[e]
+    return inb & crop[min(k, crop.shape[0] - 1)]
+
+
+def mask_crops(masks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(crop, start, box) of (E, H, W) bool masks for warp_hit_crop: each mask cut to its bounding
+    box (u0, v0, u1, v1 inclusive; (0, 0, -1, -1) for an empty mask), all of them flattened into
+    one bool array (entry e from start[e]; one padding element at the end, so that every index
+    is valid). Once per set of masks."""
+    E = masks.shape[0]
+    box = np.zeros((E, 4), np.int64)
+    box[:, 2:] = -1
+    start = np.zeros(E + 1, np.int64)
+    parts = []
+    for e in range(E):
+        cols = np.flatnonzero(masks[e].any(axis=0))
+        rws = np.flatnonzero(masks[e].any(axis=1))
+        if len(cols):
+            box[e] = cols[0], rws[0], cols[-1], rws[-1]
+            parts.append(masks[e, rws[0]:rws[-1] + 1, cols[0]:cols[-1] + 1].ravel())
+        start[e + 1] = start[e] + (parts[-1].size if len(cols) else 0)
+    parts.append(np.zeros(1, np.bool_))
+    return np.ascontiguousarray(np.concatenate(parts), dtype=np.bool_), start, box
 
 
 @njit(cache=True, nogil=True)
@@ -386,9 +428,77 @@ def _forward_box(out_rays, Hn, rows, K, d, r2max, W, H):  # pragma: no cover - c
     return a, b, c, e
 
 
+#: Grid pixels whose rays _count_grid gathers at a time.
+_CHUNK = 512
+
+
 @njit(cache=True, nogil=True)
-def _count_box(masks, e, box, rays, Hinv, rows, K, d, r2max, samples):  # pragma: no cover - compiled
-    """Set pixels of the warp of masks[e] in its box: exact when the box has at most `samples`
+def _count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, s, rays, Hinv, rows, K, d, r2max):  # pragma: no cover
+    """Pixels of the grid (u0 + s//2 + i s, v0 + s//2 + j s) within (u1, v1) set in the warp e of
+    capture mask e: warp_hit_crop at each, written out here. (Called as a numba inline
+    function from a loop it costs 2-3x as much: the arrays it is handed are reference-counted
+    per call. Keep this body the same as _warp_source_px's + warp_hit_crop's.) The pixel rays
+    are gathered _CHUNK at a time in a loop of their own, so that their cache misses (the 4.9
+    MB table is mostly out of cache by the next scan) overlap."""
+    m = e
+    H = rays.shape[0]
+    W = rays.shape[1]
+    rational = d[5] != 0.0 or d[6] != 0.0 or d[7] != 0.0
+    cu0 = cbox[e, 0]
+    cv0 = cbox[e, 1]
+    cu1 = cbox[e, 2]
+    cv1 = cbox[e, 3]
+    cw = cu1 - cu0 + 1
+    c0 = cstart[e]
+    last = crop.shape[0] - 1
+    ustart = u0 + s // 2
+    nu = (u1 - ustart) // s + 1 if u1 >= ustart else 0
+    vstart = v0 + s // 2
+    nv = (v1 - vstart) // s + 1 if v1 >= vstart else 0
+    total = nu * nv
+    buf = np.empty((_CHUNK, 2))
+    n = 0
+    for q0 in range(0, total, _CHUNK):
+        q1 = min(q0 + _CHUNK, total)
+        for q in range(q0, q1):
+            v = vstart + (q // nu) * s
+            u = ustart + (q % nu) * s
+            buf[q - q0, 0] = rays[v, u, 0]
+            buf[q - q0, 1] = rays[v, u, 1]
+        for q in range(q0, q1):
+            x = buf[q - q0, 0]
+            y = buf[q - q0, 1]
+            a0 = rows[m, 0, 0] * x + rows[m, 0, 1] * y + rows[m, 0, 2]
+            sz = Hinv[m, 2, 0] * x + Hinv[m, 2, 1] * y + Hinv[m, 2, 2]
+            ok = (a0 > 0.0) & (sz > 0.0)
+            iz = 1.0 / (sz if ok else 1.0)
+            sx = (Hinv[m, 0, 0] * x + Hinv[m, 0, 1] * y + Hinv[m, 0, 2]) * iz
+            sy = (Hinv[m, 1, 0] * x + Hinv[m, 1, 1] * y + Hinv[m, 1, 2]) * iz
+            r2 = sx * sx + sy * sy
+            ok = ok & (r2 < r2max)
+            r2 = r2 if ok else 0.0
+            a = 1.0 + r2 * (d[0] + r2 * (d[1] + r2 * d[4]))
+            if rational:
+                a /= 1.0 + r2 * (d[5] + r2 * (d[6] + r2 * d[7]))
+            xy = sx * sy
+            xd = sx * a + 2.0 * d[2] * xy + d[3] * (r2 + 2.0 * sx * sx) + d[8] * r2 + d[9] * r2 * r2
+            yd = sy * a + d[2] * (r2 + 2.0 * sy * sy) + 2.0 * d[3] * xy + d[10] * r2 + d[11] * r2 * r2
+            su = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+            sv = K[1, 1] * yd + K[1, 2]
+            ok = ok & (su >= -0.5) & (su < W - 0.5) & (sv >= -0.5) & (sv < H - 0.5)
+            iu = int(su + 0.5) if ok else 0
+            iv = int(sv + 0.5) if ok else 0
+            iu = min(iu, W - 1)
+            iv = min(iv, H - 1)
+            inb = ok & (iu >= cu0) & (iu <= cu1) & (iv >= cv0) & (iv <= cv1)
+            k = c0 + (iv - cv0) * cw + (iu - cu0) if inb else c0
+            n += inb & crop[min(k, last)]
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _count_box(crop, cstart, cbox, e, box, rays, Hinv, rows, K, d, r2max, samples):  # pragma: no cover - compiled
+    """Set pixels of the warp of capture mask e (mask_crops) in its box: exact when the box has at most `samples`
     pixels, else counted on a stride grid and scaled (an estimate, exact but for the mask's
     border; a mask the grid misses entirely is then counted exactly, so zero means empty)."""
     u0, v0, u1, v1 = box[0], box[1], box[2], box[3]
@@ -398,29 +508,21 @@ def _count_box(masks, e, box, rays, Hinv, rows, K, d, r2max, samples):  # pragma
     s = 1
     while area > samples * s * s:
         s += 1
-    n = 0
-    for v in range(v0 + s // 2, v1 + 1, s):
-        for u in range(u0 + s // 2, u1 + 1, s):
-            if warp_hit(masks, e, u, v, rays, Hinv, rows, e, K, d, r2max):
-                n += 1
+    n = _count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, s, rays, Hinv, rows, K, d, r2max)
     if n == 0 and s > 1:
-        for v in range(v0, v1 + 1):
-            for u in range(u0, u1 + 1):
-                if warp_hit(masks, e, u, v, rays, Hinv, rows, e, K, d, r2max):
-                    n += 1
-        return float(n)
+        return float(_count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, 1, rays, Hinv, rows, K, d, r2max))
     return float(n * s * s)
 
 
 @njit(cache=True, nogil=True)
-def warp_lookup_kernel(masks, T_cur, T_cap, normals, dists, has_plane, outline, outline_start, rays, K, d, r2max,
-                       samples, Hinv, rows, box, area):  # pragma: no cover - compiled
+def warp_lookup_kernel(crop, cstart, cbox, T_cur, T_cap, normals, dists, has_plane, outline, outline_start, rays, K,
+                       d, r2max, samples, Hinv, rows, box, area):  # pragma: no cover - compiled
     """Per entry e: Hn (capture -> current, normalized), Hinv = Hn^-1, the two half-planes of
     _valid_halfplanes as rows over current rays (x, y, 1) ((0, 0, 1), always true, when there is
     no plane; (0, 0, -1), never true, when the camera crossed the plane), its box and area."""
     E = T_cap.shape[0]
-    H = masks.shape[1]
-    W = masks.shape[2]
+    H = rays.shape[0]
+    W = rays.shape[1]
     Rb = np.ascontiguousarray(T_cur[:3, :3].T)
     pb = T_cur[:3, 3].copy()
     for e in range(E):
@@ -452,7 +554,7 @@ def warp_lookup_kernel(masks, T_cur, T_cap, normals, dists, has_plane, outline, 
         rows[e, 1, :] = Hi[2]
         a, b, c, f = _forward_box(outline[outline_start[e]:outline_start[e + 1]], Hn, rows[e], K, d, r2max, W, H)
         box[e, 0], box[e, 1], box[e, 2], box[e, 3] = a, b, c, f
-        area[e] = _count_box(masks, e, box[e], rays, Hinv, rows, K, d, r2max, samples)
+        area[e] = _count_box(crop, cstart, cbox, e, box[e], rays, Hinv, rows, K, d, r2max, samples)
 
 
 def mask_outline(camera: CameraModel, mask: np.ndarray, step_px: int = 4) -> np.ndarray:
@@ -509,6 +611,7 @@ class WarpSource:
         self.dist12 = distortion12(camera)
         self.r2_max = float(camera._r2_max) if np.any(camera.dist) else np.inf
         self.mask_px = self.masks.reshape(E, self.masks[0].size if E else 0).sum(axis=1).astype(np.float64)
+        self.crop, self.crop_start, self.crop_box = mask_crops(self.masks)
 
     def __len__(self) -> int:
         return int(self.T_cap.shape[0])
@@ -521,11 +624,12 @@ class WarpSource:
         box = np.zeros((E, 4), np.int64)
         area = np.zeros(E)
         if E:
-            warp_lookup_kernel(self.masks, np.ascontiguousarray(T_odom_cam_current, dtype=np.float64), self.T_cap,
-                               self.normals, self.dists, self.has_plane, self.outline, self.starts, self.rays,
-                               self.camera.K, self.dist12, self.r2_max, int(samples), Hinv, rows, box, area)
+            warp_lookup_kernel(self.crop, self.crop_start, self.crop_box,
+                               np.ascontiguousarray(T_odom_cam_current, dtype=np.float64), self.T_cap, self.normals,
+                               self.dists, self.has_plane, self.outline, self.starts, self.rays, self.camera.K,
+                               self.dist12, self.r2_max, int(samples), Hinv, rows, box, area)
         return WarpLookup(self.masks, np.arange(E, dtype=np.int64), Hinv, rows, box, area, self.rays, self.camera.K,
-                          self.dist12, self.r2_max)
+                          self.dist12, self.r2_max, self.crop, self.crop_start, self.crop_box)
 
 
 @dataclass(frozen=True, eq=False)
@@ -535,7 +639,9 @@ class WarpLookup:
     warped mask's bounding box in the current image (u0, v0, u1, v1 inclusive; empty when
     u0 > u1), area_px[m] its pixel count (exact for boxes up to AREA_SAMPLES pixels, else an
     estimate exact but for the border). The camera's pixel rays, K and padded distortion ride
-    along for the numba kernels (warp_hit)."""
+    along for the numba kernels (warp_hit), and the capture masks cropped to their bounding
+    boxes (crop, crop_start, crop_box: mask_crops, indexed by entry as masks) that the kernels of
+    the tick read (warp_hit_crop: the same bits in a few tens of kB instead of 0.3 MB a mask)."""
 
     masks: np.ndarray  # (E, H, W) bool, capture masks (all entries; sel picks)
     sel: np.ndarray  # (M,) int64
@@ -547,6 +653,9 @@ class WarpLookup:
     K: np.ndarray
     dist12: np.ndarray
     r2_max: float
+    crop: np.ndarray  # (n,) bool, every capture mask cut to its bounding box, flattened
+    crop_start: np.ndarray  # (E + 1,) int64
+    crop_box: np.ndarray  # (E, 4) int64, capture mask e's bounding box u0, v0, u1, v1 (inclusive)
 
     def __len__(self) -> int:
         return int(self.sel.shape[0])
@@ -554,19 +663,25 @@ class WarpLookup:
     def select(self, idx) -> "WarpLookup":
         i = np.asarray(idx, dtype=np.int64)
         return WarpLookup(self.masks, self.sel[i], self.Hinv[i], self.rows[i], self.box[i],
-                          self.area_px[i], self.rays, self.K, self.dist12, self.r2_max)
+                          self.area_px[i], self.rays, self.K, self.dist12, self.r2_max, self.crop, self.crop_start,
+                          self.crop_box)
 
-    def hit(self, m: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Warped mask m at integer pixels (u, v) (arrays), for tests and tools."""
+    def hit(self, m: int, u: np.ndarray, v: np.ndarray, full: bool = False) -> np.ndarray:
+        """Warped mask m at integer pixels (u, v) (arrays), for tests and tools: looked up in the
+        cropped masks as the tick does (full=True: in the full masks, warp_hit)."""
         u = np.asarray(u, dtype=np.int64).ravel()
         v = np.asarray(v, dtype=np.int64).ravel()
-        return _hits(self.masks, int(self.sel[m]), u, v, self.rays, self.Hinv, self.rows, int(m), self.K, self.dist12, self.r2_max)
+        if full:
+            return _hits(self.masks, int(self.sel[m]), u, v, self.rays, self.Hinv, self.rows, int(m), self.K,
+                         self.dist12, self.r2_max)
+        return _hits_crop(self.crop, self.crop_start, self.crop_box, int(self.sel[m]), u, v, self.rays, self.Hinv,
+                          self.rows, int(m), self.K, self.dist12, self.r2_max)
 
-    def render(self, m: int) -> np.ndarray:
+    def render(self, m: int, full: bool = False) -> np.ndarray:
         """Warped mask m as a full (H, W) image (tests and tools; the tick never renders)."""
         h, w = self.rays.shape[:2]
         v, u = np.mgrid[0:h, 0:w]
-        return self.hit(m, u, v).reshape(h, w)
+        return self.hit(m, u, v, full).reshape(h, w)
 
 
 @njit(cache=True, nogil=True)
@@ -574,6 +689,14 @@ def _hits(masks, e, u, v, rays, Hinv, rows, m, K, d, r2max):  # pragma: no cover
     out = np.zeros(u.shape[0], np.bool_)
     for i in range(u.shape[0]):
         out[i] = warp_hit(masks, e, u[i], v[i], rays, Hinv, rows, m, K, d, r2max)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _hits_crop(crop, cstart, cbox, e, u, v, rays, Hinv, rows, m, K, d, r2max):  # pragma: no cover - compiled
+    out = np.zeros(u.shape[0], np.bool_)
+    for i in range(u.shape[0]):
+        out[i] = warp_hit_crop(crop, cstart, cbox, e, u[i], v[i], rays, Hinv, rows, m, K, d, r2max)
     return out
 
 
@@ -679,6 +802,8 @@ __all__ = [
     "plane_homography",
     "relative_motion",
     "rotation_homography",
+    "mask_crops",
     "warp_hit",
+    "warp_hit_crop",
     "warp_lookup",
 ]

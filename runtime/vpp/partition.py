@@ -41,16 +41,22 @@ and an IMPACT-style contact cost 0..10):
    must not make the wall touchable); among movable points the highest cost wins.
 
 Everything per point runs in numba kernels (cache=True; PointPartitioner warms them up at
-construction) or numpy; there is no Python loop over points or masks in the tick.
+construction) or numpy; there is no Python loop over points or masks in the tick. Per scan:
+one pass (_project_scan) transforms, marks the ground, projects (CameraModel.project's
+arithmetic, operation for operation, so the same pixels: tests/runtime/test_vpp_fused.py), takes
+the nearest pixel, the odom voxel key, and lists the seen points inside the union of the warped
+masks' boxes with their pixel rays; the lookup (_mask_lookup_warp) tries the masks by cost
+descending, first hit wins, in the capture masks cropped to their boxes (homography.mask_crops);
+the refinement, assembly and label memory follow. Work arrays are kept between scans
+(PointPartitioner._buffers); the outputs are fresh per scan.
 
 Budget (issue 13: 3 ms p99, 20k points, 8 masks of 640x480, one core): `python -m
-runtime.vpp.partition` prints time_partition(); on the 2-core dev box under other load,
-taskset -c 1, 1000 scans: p50 1.9 ms / p99 2.4 ms with the label memory, p50 1.5 ms / p99 1.7-1.9
-ms without. The projection (CameraModel.project, numpy) is the biggest single piece (~0.3 ms).
-The whole stage per scan (Phase I lookup, this partition, tracking): `dct bench vpp`
-(hil_sim/vpp_bench.py). The stage passes its masks as a homography.WarpLookup (the capture
-masks looked up through their warp at each point's pixel; no warped image is made): the same
-labels as the warped images the lookup replaces, at about 0.1-0.3 ms more here than bitmaps.
+runtime.vpp.partition` prints time_partition(); the whole stage per scan (Phase I lookup, this
+partition, tracking): `dct bench vpp` (hil_sim/vpp_bench.py), whose `partition` column is this
+call inside the stage, caches cold from the tracker: on the shared 2-core dev box about 1.8-1.9
+ms p50, 2.1-2.3 ms p99 at 8 masks (3.1/3.5 before the fused pass, in the same load). What is
+left is mostly cache misses: the 4.9 MB pixel-ray table (homography.pixel_rays) at the
+candidates' pixels, the label memory's table, the sort of the cluster keys.
 """
 from __future__ import annotations
 
@@ -64,7 +70,7 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.camera_model import CameraModel, transform_points
-from runtime.vpp.homography import Plane, WarpLookup, warp_hit, warp_lookup
+from runtime.vpp.homography import Plane, WarpLookup, distortion12, warp_hit_crop, warp_lookup
 
 #: Point labels.
 IGNORED = np.int8(-1)  # ground or caller-ignored: not an obstacle for the planner
@@ -142,21 +148,41 @@ def _check_points(points: np.ndarray, field: str) -> np.ndarray:
         raise _fail(field, f"must be an (N, 3) array, got shape {p.shape}")
     if p.dtype.kind != "f":
         raise _fail(field, f"must be floating point, got {p.dtype}")
-    if not np.isfinite(p).all():
-        bad = int((~np.isfinite(p).all(axis=1)).sum())
-        raise _fail(field, f"{bad} points are not finite (NaN or inf); drop them before the partition")
     if p.dtype not in (np.float32, np.float64):
-        p = p.astype(np.float64)
-    return np.ascontiguousarray(p)  # one numba specialization per dtype, none per memory layout
+        p = p.astype(np.float64)  # (keeps NaN and inf)
+    p = np.ascontiguousarray(p)  # one numba specialization per dtype, none per memory layout
+    bad = _nonfinite_rows(p)  # (numba: np.isfinite(p).all() costs a 60 kB temporary)
+    if bad:
+        raise _fail(field, f"{bad} points are not finite (NaN or inf); drop them before the partition")
+    return p
+
+
+@njit(cache=True, nogil=True)
+def _nonfinite_rows(p):  # pragma: no cover - compiled
+    """Number of rows of p (N, 3) with a NaN or an infinite coordinate."""
+    bad = 0
+    for i in range(p.shape[0]):
+        bad += not (np.isfinite(p[i, 0]) and np.isfinite(p[i, 1]) and np.isfinite(p[i, 2]))
+    return bad
 
 
 _EYE3 = np.eye(3)
+_EYE4 = np.eye(4)
+_NO_UV = np.zeros((1, 2))
+_NO_RAYS = np.zeros((1, 1, 2))
+_NO_BOX = np.array([0, 0, -1, -1], np.int64)
+_NO_KEYS = np.zeros(1, np.int64)
 
 
-def _check_transform(T: np.ndarray, field: str) -> np.ndarray:
+def _check_transform(T: np.ndarray, field: str, known: dict | None = None) -> np.ndarray:
+    """T as float64 (4, 4) if rigid, else PartitionInputError naming `field`. known: transforms
+    (by their bytes) that passed before, checked no more (the mounts are the same every scan)."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         raise _fail(field, f"must be 4x4, got shape {T.shape}")
+    key = T.tobytes() if known is not None else None
+    if key is not None and key in known:
+        return T
     if not np.isfinite(T).all():
         raise _fail(field, "is not finite")
     R = T[:3, :3]
@@ -164,6 +190,10 @@ def _check_transform(T: np.ndarray, field: str) -> np.ndarray:
     if T[3, 0] != 0.0 or T[3, 1] != 0.0 or T[3, 2] != 0.0 or T[3, 3] != 1.0 \
             or float(np.abs(R @ R.T - _EYE3).max()) > 1e-5 or np.linalg.det(R) < 0:
         raise _fail(field, "is not a rigid transform (rotation not orthonormal or last row not [0, 0, 0, 1])")
+    if key is not None:
+        if len(known) >= 8:
+            known.clear()
+        known[key] = True
     return T
 
 
@@ -251,19 +281,167 @@ def _transform(p, T):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _mask_lookup(masks, costs, uv, seen, midx, pix):  # pragma: no cover - compiled
-    """midx[i] = index of the highest-cost mask set at point i's pixel (-1: none / unseen)."""
-    M, H, W = masks.shape
+def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_cam, in_view, seen, pix, uv,
+                  store_uv, rays, rbox, cand, ray, To, has_odom, inv, keys):  # pragma: no cover - compiled
+    """Steps 1-2 in one pass over the points, without temporaries: p_cam = T p (as _transform),
+    ground |= height after Tb < z_max (as _mark_ground; only when has_base), in_view as
+    CameraModel.project's `valid` of p_cam, seen = in_view and not ground, pix = the nearest
+    pixel centre of each seen point (-1 for the others); with store_uv, uv = the projection of
+    the in_view points (project's uv; 0 for the others; for tests: project_fused). The seen
+    points whose pixel lies in the box rbox (u0, v0, u1, v1 inclusive: the union of the warped
+    masks' boxes), in order: cand[k] = the point, ray[k] = the camera's pixel ray there (rays[v,
+    u]); returns their count (cand and ray need n + 1 rows). With has_odom, keys = the label
+    memory's voxel key of each point not on the ground after To (odom <- lidar; as _odom_keys),
+    _EMPTY for the ground.
+
+    The projection repeats CameraModel.project's arithmetic operation for operation (the same
+    order and grouping, so the same IEEE results: numba does not contract a * b + c into FMA
+    without fastmath) for distortion vectors of nd = 0, 4, 5, 8 or 12 coefficients (d padded to
+    12; the 14-coefficient model is cv2's, not this). Branch-free but for nd and store_uv (the
+    same for every point): selects, not ifs, since whether a point is in front is a coin toss
+    in a 360-degree scan and mispredicted branches cost more than the arithmetic. (The same
+    body as a numba inline function ran 2.5x slower: keep it written out here.) The rays are
+    gathered here, not in _mask_lookup_warp: the 4.9 MB table is mostly out of cache by the next
+    scan, and a loop that does nothing but gather keeps many misses in flight, where the lookup
+    would wait on each (0.7 ms instead of 0.2 for 8 masks in `dct bench vpp`)."""
+    k = 0
+    for i in range(p.shape[0]):
+        x = np.float64(p[i, 0])
+        y = np.float64(p[i, 1])
+        z = np.float64(p[i, 2])
+        X = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+        Y = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+        Z = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        p_cam[i, 0] = X
+        p_cam[i, 1] = Y
+        p_cam[i, 2] = Z
+        g = ground[i] | (has_base & (Tb[2, 0] * x + Tb[2, 1] * y + Tb[2, 2] * z + Tb[2, 3] < z_max))
+        ground[i] = g
+        if has_odom:
+            Xo = To[0, 0] * x + To[0, 1] * y + To[0, 2] * z + To[0, 3]
+            Yo = To[1, 0] * x + To[1, 1] * y + To[1, 2] * z + To[1, 3]
+            Zo = To[2, 0] * x + To[2, 1] * y + To[2, 2] * z + To[2, 3]
+            ox = min(max(int(math.floor(Xo * inv)), -_MOFF), _MOFF - 1) + _MOFF
+            oy = min(max(int(math.floor(Yo * inv)), -_MOFF), _MOFF - 1) + _MOFF
+            oz = min(max(int(math.floor(Zo * inv)), -_MOFF), _MOFF - 1) + _MOFF
+            key = (np.int64(ox) << 42) | (np.int64(oy) << 21) | np.int64(oz)
+            keys[i] = _EMPTY if g else key
+        front = (Z > 1e-9) & (Z < np.inf)
+        Zs = Z if front else 1.0
+        xn = X / Zs
+        yn = Y / Zs
+        r2 = xn * xn
+        r2 = r2 + yn * yn
+        ok = front & (r2 < r2max)
+        if nd > 0:
+            a = r2 * d[4]
+            a = a + d[1]
+            a = a * r2
+            a = a + d[0]
+            a = a * r2
+            a = a + 1.0
+            if nd >= 8:
+                b = r2 * d[7]
+                b = b + d[6]
+                b = b * r2
+                b = b + d[5]
+                b = b * r2
+                b = b + 1.0
+                a = a / b
+            xy = xn * yn
+            xd = xn * a
+            xd = xd + (2.0 * d[2]) * xy
+            xd = xd + d[3] * (r2 + 2.0 * xn * xn)
+            yd = yn * a
+            yd = yd + d[2] * (r2 + 2.0 * yn * yn)
+            yd = yd + (2.0 * d[3]) * xy
+            if nd >= 12:
+                r4 = r2 * r2
+                xd = xd + (d[8] * r2 + d[9] * r4)
+                yd = yd + (d[10] * r2 + d[11] * r4)
+        else:
+            xd = xn
+            yd = yn
+        u = xd * K[0, 0]
+        u = u + (K[0, 1] * yd + K[0, 2])
+        v = yd * K[1, 1]
+        v = v + K[1, 2]
+        vis = ok & (u >= -0.5) & (u < W - 0.5) & (v >= -0.5) & (v < H - 0.5)
+        in_view[i] = vis
+        sn = vis & (not g)
+        seen[i] = sn
+        uu = min(max(int(math.floor((u if sn else 0.0) + 0.5)), 0), W - 1)
+        vv = min(max(int(math.floor((v if sn else 0.0) + 0.5)), 0), H - 1)
+        pix[i, 0] = uu if sn else -1
+        pix[i, 1] = vv if sn else -1
+        inb = sn & (uu >= rbox[0]) & (uu <= rbox[2]) & (vv >= rbox[1]) & (vv <= rbox[3])
+        cand[k] = i
+        k += inb
+        if store_uv:
+            uv[i, 0] = u if vis else 0.0
+            uv[i, 1] = v if vis else 0.0
+    # the rays in a loop of their own: a few instructions per miss, so that many are in flight
+    for j in range(k):
+        i = cand[j]
+        ray[j, 0] = rays[pix[i, 1], pix[i, 0], 0]
+        ray[j, 1] = rays[pix[i, 1], pix[i, 0], 1]
+    return k
+
+
+def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """(uv, valid) of (N, 3) points through T (4x4, camera <- points' frame) by the partition's
+    projection kernel (_project_scan): CameraModel.project(_transform(points, T)), bit for bit
+    for the valid points (the tests hold it to that; uv of invalid points is 0). Not for the
+    14-coefficient model (the partition projects with CameraModel.project there)."""
+    p = _check_points(points, "points")
+    if len(camera.dist) > 12:
+        raise _fail("camera", "the fused projection does not implement the 14-coefficient (tilted) model")
+    n = p.shape[0]
+    uv = np.zeros((n, 2))
+    valid = np.zeros(n, bool)
+    _project_scan(p, _check_transform(T, "T"), _EYE4, False, 0.0, camera.K, distortion12(camera), len(camera.dist),
+                  camera._r2_max, camera.width_px, camera.height_px, np.zeros(n, bool), np.empty((n, 3)), valid,
+                  np.empty(n, bool), np.empty((n, 2), np.int64), uv, True, _NO_RAYS, _NO_BOX, np.empty(n + 1, np.int64),
+                  np.empty((n + 1, 2)), _EYE4, False, 1.0, _NO_KEYS)
+    return uv, valid
+
+
+@njit(cache=True, nogil=True)
+def _seen_pixels(uv, in_view, ground, W, H, seen, pix, rays, rbox, cand, ray):  # pragma: no cover - compiled
+    """seen, pix, cand and ray (as _project_scan's; returns the count) from a projection made
+    elsewhere (the 14-coefficient model)."""
+    k = 0
     for i in range(uv.shape[0]):
-        midx[i] = -1
-        if not seen[i]:
+        sn = in_view[i] and not ground[i]
+        seen[i] = sn
+        if sn:
+            uu = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
+            vv = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
+            pix[i, 0] = uu
+            pix[i, 1] = vv
+            if uu >= rbox[0] and uu <= rbox[2] and vv >= rbox[1] and vv <= rbox[3]:
+                cand[k] = i
+                ray[k, 0] = rays[vv, uu, 0]
+                ray[k, 1] = rays[vv, uu, 1]
+                k += 1
+        else:
             pix[i, 0] = -1
             pix[i, 1] = -1
+    return k
+
+
+@njit(cache=True, nogil=True)
+def _mask_lookup(masks, costs, pix, seen, midx):  # pragma: no cover - compiled
+    """midx[i] = index of the highest-cost mask set at point i's pixel (-1: none / unseen).
+    Returns the number of points in some mask."""
+    M = masks.shape[0]
+    hits = 0
+    for i in range(pix.shape[0]):
+        midx[i] = -1
+        if not seen[i]:
             continue
-        u = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
-        v = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
-        pix[i, 0] = u
-        pix[i, 1] = v
+        u = pix[i, 0]
+        v = pix[i, 1]
         best = -1
         bc = -1.0
         for m in range(M):
@@ -271,37 +449,91 @@ def _mask_lookup(masks, costs, uv, seen, midx, pix):  # pragma: no cover - compi
                 best = m
                 bc = costs[m]
         midx[i] = best
+        hits += best >= 0
+    return hits
 
 
 @njit(cache=True, nogil=True)
-def _mask_lookup_warp(wm, sel, Hinv, rows, box, rays, K, d, r2max, costs, uv, seen, midx, pix):  # pragma: no cover
+def _mask_lookup_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, d, r2max, order, pix, cand, ray, nc,
+                      midx):  # pragma: no cover - compiled
     """_mask_lookup against masks warped per pixel (WarpLookup): the same pixel, the same rule
-    (highest cost wins), the mask bit looked up through the warp instead of in a warped image."""
-    M = sel.shape[0]
+    (highest cost wins, the lower index among equal costs), the mask bit looked up through the
+    warp (homography.warp_hit_crop, written out here: called as a numba inline function it costs
+    2-3x as much, its arrays reference-counted per call; keep the two the same) instead of in a
+    warped image. `order`: the masks by cost descending, index ascending, so the first mask
+    that holds the pixel is the answer and the others are not looked up; a pixel outside every
+    mask's box is not looked at: the candidates are cand[:nc], the seen points in the union of
+    the boxes (_union_box), with their pixel rays ray[:nc], as _project_scan gathered them.
+    midx of every other point is -1. Returns the number of points in a mask."""
+    M = order.shape[0]
     H = rays.shape[0]
     W = rays.shape[1]
-    for i in range(uv.shape[0]):
-        midx[i] = -1
-        if not seen[i]:
-            pix[i, 0] = -1
-            pix[i, 1] = -1
-            continue
-        u = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
-        v = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
-        pix[i, 0] = u
-        pix[i, 1] = v
-        best = -1
-        bc = -1.0
-        for m in range(M):
-            if costs[m] > bc and box[m, 0] <= u and u <= box[m, 2] and box[m, 1] <= v and v <= box[m, 3] \
-                    and warp_hit(wm, sel[m], u, v, rays, Hinv, rows, m, K, d, r2max):
-                best = m
-                bc = costs[m]
-        midx[i] = best
+    rational = d[5] != 0.0 or d[6] != 0.0 or d[7] != 0.0
+    last = crop.shape[0] - 1
+    hits = 0
+    midx[:] = -1
+    for c in range(nc):
+        i = cand[c]
+        u = pix[i, 0]
+        v = pix[i, 1]
+        for j in range(M):
+            m = order[j]
+            if not (box[m, 0] <= u and u <= box[m, 2] and box[m, 1] <= v and v <= box[m, 3]):
+                continue
+            x = ray[c, 0]  # rays[v, u]
+            y = ray[c, 1]
+            a0 = rows[m, 0, 0] * x + rows[m, 0, 1] * y + rows[m, 0, 2]
+            sz = Hinv[m, 2, 0] * x + Hinv[m, 2, 1] * y + Hinv[m, 2, 2]
+            ok = (a0 > 0.0) & (sz > 0.0)
+            iz = 1.0 / (sz if ok else 1.0)
+            sx = (Hinv[m, 0, 0] * x + Hinv[m, 0, 1] * y + Hinv[m, 0, 2]) * iz
+            sy = (Hinv[m, 1, 0] * x + Hinv[m, 1, 1] * y + Hinv[m, 1, 2]) * iz
+            r2 = sx * sx + sy * sy
+            ok = ok & (r2 < r2max)
+            r2 = r2 if ok else 0.0
+            a = 1.0 + r2 * (d[0] + r2 * (d[1] + r2 * d[4]))
+            if rational:
+                a /= 1.0 + r2 * (d[5] + r2 * (d[6] + r2 * d[7]))
+            xy = sx * sy
+            xd = sx * a + 2.0 * d[2] * xy + d[3] * (r2 + 2.0 * sx * sx) + d[8] * r2 + d[9] * r2 * r2
+            yd = sy * a + d[2] * (r2 + 2.0 * sy * sy) + 2.0 * d[3] * xy + d[10] * r2 + d[11] * r2 * r2
+            su = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+            sv = K[1, 1] * yd + K[1, 2]
+            ok = ok & (su >= -0.5) & (su < W - 0.5) & (sv >= -0.5) & (sv < H - 0.5)
+            iu = int(su + 0.5) if ok else 0
+            iv = int(sv + 0.5) if ok else 0
+            iu = min(iu, W - 1)
+            iv = min(iv, H - 1)
+            e = sel[m]
+            cu0 = cbox[e, 0]
+            cv0 = cbox[e, 1]
+            inb = ok & (iu >= cu0) & (iu <= cbox[e, 2]) & (iv >= cv0) & (iv <= cbox[e, 3])
+            k = cstart[e] + (iv - cv0) * (cbox[e, 2] - cu0 + 1) + (iu - cu0) if inb else cstart[e]
+            if inb & crop[min(k, last)]:
+                midx[i] = m
+                hits += 1
+                break
+    return hits
 
 
 @njit(cache=True, nogil=True)
-def _near_warp(wm, sel, Hinv, rows, box, rays, K, d, r2max, m, u, v, r):  # pragma: no cover - compiled
+def _union_box(box):  # pragma: no cover - compiled
+    """(u0, v0, u1, v1) inclusive: the union of the non-empty boxes (M, 4) ((0, 0, -1, -1): none)."""
+    out = np.array([1 << 30, 1 << 30, -1, -1], np.int64)
+    for m in range(box.shape[0]):
+        if box[m, 0] <= box[m, 2] and box[m, 1] <= box[m, 3]:
+            out[0] = min(out[0], box[m, 0])
+            out[1] = min(out[1], box[m, 1])
+            out[2] = max(out[2], box[m, 2])
+            out[3] = max(out[3], box[m, 3])
+    if out[2] < 0:
+        out[0] = 0
+        out[1] = 0
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _near_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, d, r2max, m, u, v, r):  # pragma: no cover - compiled
     """_near_mask for a warped mask: is pixel (u, v) within the (2r+1)^2 square of a set pixel of
     warped mask m? Only the part of the square inside the mask's box is looked up (outside it
     the warp is empty), nearest rows first."""
@@ -317,7 +549,7 @@ def _near_warp(wm, sel, Hinv, rows, box, rays, K, d, r2max, m, u, v, r):  # prag
         if vv < v0 or vv > v1:
             continue
         for uu in range(u0, u1 + 1):
-            if warp_hit(wm, e, uu, vv, rays, Hinv, rows, m, K, d, r2max):
+            if warp_hit_crop(crop, cstart, cbox, e, uu, vv, rays, Hinv, rows, m, K, d, r2max):
                 return True
     return False
 
@@ -404,8 +636,36 @@ def _cells_touch(pts, sp, s0, e0, s1, e1, eps2):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def _lower_bound(a, x):  # pragma: no cover - compiled
+    """np.searchsorted(a, x) (side left) for a sorted int64 array: written out, since numba's
+    searchsorted costs ~20 ns a call more, and the refinement makes thousands."""
+    lo = 0
+    hi = a.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, nogil=True)
+def _cell_near(pts, sp, i, s0, e0, eps2):  # pragma: no cover - compiled
+    """Is point i within eps of some point of sorted run [s0, e0)?"""
+    for a in range(s0, e0):
+        j = sp[a]
+        d0 = pts[i, 0] - pts[j, 0]
+        d1 = pts[i, 1] - pts[j, 1]
+        d2 = pts[i, 2] - pts[j, 2]
+        if d0 * d0 + d1 * d1 + d2 * d2 <= eps2:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth_gap, complete, dilate_px, half,
-            warped, wm, sel, Hinv, rows, box, rays, K, dist12, r2max):  # pragma: no cover
+            warped, crop, cstart, cbox, sel, Hinv, rows, box, rays, K, dist12, r2max):  # pragma: no cover
     """Cluster refinement (module docstring, step 4). Returns (new midx, n removed, n added).
 
     Exact eps-connectivity on a grid of cells of side eps/2, one grid per object (the object's
@@ -414,7 +674,7 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
     of their points is within eps (checked only while they are still apart, first hit wins).
     Cost grows with the number of occupied cells, not with the points per cell. sk, sp: the
     sorted cell keys of the movable points and their point indices (_cell_keys). warped: the
-    masks are a WarpLookup's (wm .. r2max; `masks` is then a placeholder of M masks), looked up
+    masks are a WarpLookup's (crop .. r2max; `masks` is then a placeholder of M masks), looked up
     per pixel for the completion's dilated-mask test.
     """
     n = pts.shape[0]
@@ -440,18 +700,32 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
             cstart[c] = a
     cstart[nc] = k
     parent = np.arange(nc)
+    # Per (dx, dy), the first key of the neighbour range is key + off[h] when every cell index
+    # stays inside its field (2 <= index < 2^18 - 2): increasing with c, so one pointer per h
+    # walks ckey once (a binary search per cell and offset costs its mispredicted branches).
+    NH = half.shape[0]
+    ptr = np.zeros(NH, np.int64)
     for c in range(nc):
         key = ckey[c]
         cz = key & 0x3FFFF
         cy = (key >> 18) & 0x3FFFF
         cx = (key >> 36) & 0x3FFFF
         m = key >> 54
+        inner = cx >= 2 and cy >= 2 and cz >= 2 and cx < (1 << 18) - 2 and cy < (1 << 18) - 2
         # For each (dx, dy) the cells cz-2..cz+2 are one contiguous key range: one search, then a
         # scan. Only cells after c in key order (each pair of cells once).
-        for h in range(half.shape[0]):
+        for h in range(NH):
             lo_key = _pack(m, cx + half[h, 0], cy + half[h, 1], cz - 2)
             hi_key = lo_key + 4
-            d = c + 1 if lo_key <= key else np.searchsorted(ckey, lo_key)
+            if lo_key <= key:
+                d = c + 1
+            elif inner:  # lo_key == key + off[h]
+                d = ptr[h]
+                while d < nc and ckey[d] < lo_key:
+                    d += 1
+                ptr[h] = d
+            else:
+                d = _lower_bound(ckey, lo_key)
             while d < nc and ckey[d] <= hi_key:
                 rc = _find(parent, c)
                 rd = _find(parent, d)
@@ -513,6 +787,7 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
         cx = _cell(pts[i, 0], inv)
         cy = _cell(pts[i, 1], inv)
         cz = _cell(pts[i, 2], inv)
+        inner = cx >= 2 and cy >= 2 and cz >= 2 and cx < (1 << 18) - 2 and cy < (1 << 18) - 2 and cz < (1 << 18) - 2
         for m in range(M):
             if costs[m] <= bc or pts[i, 0] < bb[m, 0] or pts[i, 0] > bb[m, 1] or pts[i, 1] < bb[m, 2] \
                     or pts[i, 1] > bb[m, 3] or pts[i, 2] < bb[m, 4] or pts[i, 2] > bb[m, 5]:
@@ -520,22 +795,24 @@ def _refine(pts, depth, midx, sk, sp, pix, seen, masks, costs, eps, n_min, depth
             hit = False
             for dx in range(-2, 3):
                 for dy in range(-2, 3):
+                    if inner:  # the cells cz-2..cz+2 are one key range: one search, then a scan
+                        lo_key = _pack(m, cx + dx, cy + dy, cz - 2)
+                        d = _lower_bound(ckey, lo_key)
+                        while not hit and d < nc and ckey[d] <= lo_key + 4:
+                            if ckept[d]:
+                                hit = _cell_near(pts, sp, i, cstart[d], cstart[d + 1], eps2)
+                            d += 1
+                        continue
                     for dz in range(-2, 3):
                         if hit:
                             break
                         nk = _pack(m, cx + dx, cy + dy, cz + dz)
-                        d = np.searchsorted(ckey, nk)
+                        d = _lower_bound(ckey, nk)
                         if d >= nc or ckey[d] != nk or not ckept[d]:
                             continue
-                        for a in range(cstart[d], cstart[d + 1]):
-                            j = sp[a]
-                            d0 = pts[i, 0] - pts[j, 0]
-                            d1 = pts[i, 1] - pts[j, 1]
-                            d2 = pts[i, 2] - pts[j, 2]
-                            if d0 * d0 + d1 * d1 + d2 * d2 <= eps2:
-                                hit = True
-                                break
-            if hit and (_near_warp(wm, sel, Hinv, rows, box, rays, K, dist12, r2max, m, pix[i, 0], pix[i, 1], dilate_px)
+                        hit = _cell_near(pts, sp, i, cstart[d], cstart[d + 1], eps2)
+            if hit and (_near_warp(crop, cstart, cbox, sel, Hinv, rows, box, rays, K, dist12, r2max, m, pix[i, 0], pix[i, 1],
+                                   dilate_px)
                         if warped else _near_mask(masks, m, pix[i, 0], pix[i, 1], dilate_px)):
                 best = m
                 bc = costs[m]
@@ -563,6 +840,12 @@ def _voxel_keys(pts, inv, sel):  # pragma: no cover - compiled
     return out
 
 
+#: What the label memory holds per slot, beside its key: one record, so that a voxel found
+#: costs two cache lines (key, record), not five (the table is mostly out of cache by the next
+#: scan); the keys stay an array of their own, so that a voxel not found costs one.
+_SLOT = np.dtype([("stamp", np.float64), ("cost", np.float32), ("obj", np.int32), ("label", np.int8)], align=True)
+
+
 @njit(cache=True, nogil=True)
 def _slot(keys, key, shift):  # pragma: no cover - compiled
     """Slot holding key, or the empty slot where it would go (linear probing)."""
@@ -574,61 +857,88 @@ def _slot(keys, key, shift):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _mem_write(keys, lab, obj, cost, stamp, shift, pkeys, plab, pobj, pcost, now):  # pragma: no cover
-    """Write point labels into their voxels; returns the number of new slots used."""
+def _odom_keys(p, T, inv, ground, out):  # pragma: no cover - compiled
+    """out[i] = the voxel key (as _voxel_keys) of point i carried to the odom frame by T (as
+    _transform), for the points not on the ground (_EMPTY for those): no p_odom array."""
+    for i in range(p.shape[0]):
+        if ground[i]:
+            out[i] = _EMPTY
+            continue
+        x = np.float64(p[i, 0])
+        y = np.float64(p[i, 1])
+        z = np.float64(p[i, 2])
+        X = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+        Y = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+        Z = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        cx = min(max(int(math.floor(X * inv)), -_MOFF), _MOFF - 1) + _MOFF
+        cy = min(max(int(math.floor(Y * inv)), -_MOFF), _MOFF - 1) + _MOFF
+        cz = min(max(int(math.floor(Z * inv)), -_MOFF), _MOFF - 1) + _MOFF
+        out[i] = (np.int64(cx) << 42) | (np.int64(cy) << 21) | np.int64(cz)
+
+
+@njit(cache=True, nogil=True)
+def _mem_write(keys, tbl, shift, pkeys, sel, plab, pobj, pcost, now):  # pragma: no cover
+    """Write the labels of the points with sel set (and a key) into their voxels; returns the
+    number of new slots used."""
     new = 0
     for i in range(pkeys.shape[0]):
         key = pkeys[i]
-        if key == _EMPTY:
+        if key == _EMPTY or not sel[i]:
             continue
         h = _slot(keys, key, shift)
+        r = tbl[h]
         if keys[h] == _EMPTY:
             keys[h] = key
             new += 1
-        elif stamp[h] == now:  # merge with this scan's earlier points: fixed wins, then max cost
-            if lab[h] == 0:
+        elif r.stamp == now:  # merge with this scan's earlier points: fixed wins, then max cost
+            if r.label == 0:
                 continue
-            if plab[i] == 1 and (pcost[i] < cost[h] or (pcost[i] == cost[h] and pobj[i] >= obj[h])):
+            if plab[i] == 1 and (pcost[i] < r.cost or (pcost[i] == r.cost and pobj[i] >= r.obj)):
                 continue
-        lab[h] = plab[i]
-        obj[h] = pobj[i]
-        cost[h] = pcost[i]
-        stamp[h] = now
+        r.label = plab[i]
+        r.obj = pobj[i]
+        r.cost = pcost[i]
+        r.stamp = now
     return new
 
 
 @njit(cache=True, nogil=True)
-def _mem_reinsert(keys, lab, obj, cost, stamp, shift, okeys, olab, oobj, ocost, ostamp):  # pragma: no cover
+def _mem_reinsert(keys, tbl, shift, okeys, olab, oobj, ocost, ostamp):  # pragma: no cover
     """Insert distinct entries (a rebuild) with their own stamps; returns the count."""
     for i in range(okeys.shape[0]):
         h = _slot(keys, okeys[i], shift)
+        r = tbl[h]
         keys[h] = okeys[i]
-        lab[h] = olab[i]
-        obj[h] = oobj[i]
-        cost[h] = ocost[i]
-        stamp[h] = ostamp[i]
+        r.label = olab[i]
+        r.obj = oobj[i]
+        r.cost = ocost[i]
+        r.stamp = ostamp[i]
     return okeys.shape[0]
 
 
 @njit(cache=True, nogil=True)
-def _mem_read(keys, lab, obj, cost, stamp, shift, pkeys, now, max_age, olab, oobj, ocost, found):  # pragma: no cover
+def _mem_read(keys, tbl, shift, pkeys, sel, want, now, max_age, olab, oobj, ocost, found):  # pragma: no cover
+    """Read the voxels of the points whose sel[i] == want (and that have a key)."""
     for i in range(pkeys.shape[0]):
         key = pkeys[i]
-        if key == _EMPTY:
+        if key == _EMPTY or sel[i] != want:
             continue
         h = _slot(keys, key, shift)
-        if keys[h] == key and now - stamp[h] <= max_age:
+        if keys[h] != key:
+            continue
+        r = tbl[h]
+        if now - r.stamp <= max_age:
             found[i] = True
-            olab[i] = lab[h]
-            oobj[i] = obj[h]
-            ocost[i] = cost[h]
+            olab[i] = r.label
+            oobj[i] = r.obj
+            ocost[i] = r.cost
 
 
 class LabelMemory:
     """Odom-frame voxel hash: voxel -> (label, object id, cost, stamp of the scan that wrote it).
 
-    An open-addressing table in numpy arrays driven by numba (a Python dict would mean a loop
-    over points). Entries older than max_age_s read as absent; they are dropped when the table
+    An open-addressing table (keys, and a numpy record array of _SLOT) driven by numba (a Python
+    dict would mean a loop over points). Entries older than max_age_s read as absent; they are dropped when the table
     is rebuilt (at half full), and the table doubles only if the live entries still fill it.
     """
 
@@ -639,20 +949,25 @@ class LabelMemory:
 
     def _alloc(self, slots: int) -> None:
         self.keys = np.full(slots, _EMPTY)
-        self.label = np.zeros(slots, np.int8)
-        self.object_id = np.full(slots, -1, np.int32)
-        self.cost = np.full(slots, np.nan, np.float32)
-        self.stamp = np.full(slots, -np.inf)
+        self.table = np.zeros(slots, _SLOT)
+        self.table["obj"] = -1
+        self.table["cost"] = np.nan
+        self.table["stamp"] = -np.inf
         self.shift = 64 - (slots.bit_length() - 1)
         self.used = 0
+
+    # the table's columns (views)
+    label = property(lambda self: self.table["label"])
+    object_id = property(lambda self: self.table["obj"])
+    cost = property(lambda self: self.table["cost"])
+    stamp = property(lambda self: self.table["stamp"])
 
     def __len__(self) -> int:
         """Slots in use (live and expired, until the next rebuild)."""
         return self.used
 
-    def _write_arrays(self, pkeys, plab, pobj, pcost, now) -> None:
-        self.used += _mem_write(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift,
-                                pkeys, plab, pobj, pcost, now)
+    def _write_arrays(self, pkeys, sel, plab, pobj, pcost, now) -> None:
+        self.used += _mem_write(self.keys, self.table, self.shift, pkeys, sel, plab, pobj, pcost, now)
 
     def _rebuild(self, now: float, incoming: int) -> None:
         live = (self.keys != _EMPTY) & (now - self.stamp <= self.max_age_s)
@@ -661,7 +976,7 @@ class LabelMemory:
         while 2 * (int(live.sum()) + incoming) > slots:
             slots *= 2
         self._alloc(slots)
-        self.used = _mem_reinsert(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift, *old)
+        self.used = _mem_reinsert(self.keys, self.table, self.shift, *old)
 
     def voxel_keys(self, points_odom: np.ndarray, sel: np.ndarray) -> np.ndarray:
         """Voxel key of each selected point (-1 for the others)."""
@@ -670,13 +985,17 @@ class LabelMemory:
     def write(self, points_odom: np.ndarray, write: np.ndarray, label: np.ndarray, object_id: np.ndarray,
               cost: np.ndarray, stamp_s: float, keys: np.ndarray | None = None) -> None:
         """Store the labels of the points where `write` is True (seen, non-ground). keys: from
-        voxel_keys (computed here when not given)."""
-        pkeys = self.voxel_keys(points_odom, write) if keys is None else np.where(write, keys, _EMPTY)
+        voxel_keys (computed here when not given; read only where `write` is True)."""
+        pkeys = self.voxel_keys(points_odom, write) if keys is None else keys
+        self._write_keys(pkeys, write, label, object_id, cost, stamp_s)
+
+    def _write_keys(self, keys, write, label, object_id, cost, stamp_s: float) -> None:
+        """write() with the keys given (_EMPTY: no voxel), where `write` is True."""
         incoming = int(np.count_nonzero(write))
         if 2 * (self.used + incoming) > self.keys.shape[0]:
             self._rebuild(stamp_s, incoming)
-        self._write_arrays(pkeys, label.astype(np.int8), object_id.astype(np.int32), cost.astype(np.float32),
-                           float(stamp_s))
+        self._write_arrays(keys, write, np.asarray(label, np.int8), np.asarray(object_id, np.int32),
+                           np.asarray(cost, np.float32), float(stamp_s))
 
     def read(self, points_odom: np.ndarray, read: np.ndarray, now_s: float):
         """(found, label, object_id, cost) for the points where `read` is True."""
@@ -690,15 +1009,20 @@ class LabelMemory:
 
     def read_into(self, points_odom, read, now_s, label, object_id, cost, found, keys=None) -> None:
         """As read, overwriting label/object_id/cost and setting found only where found."""
-        pkeys = self.voxel_keys(points_odom, read) if keys is None else np.where(read, keys, _EMPTY)
-        _mem_read(self.keys, self.label, self.object_id, self.cost, self.stamp, self.shift, pkeys, float(now_s),
-                  self.max_age_s, label, object_id, cost, found)
+        pkeys = self.voxel_keys(points_odom, read) if keys is None else keys
+        self._read_keys(pkeys, read, True, now_s, label, object_id, cost, found)
+
+    def _read_keys(self, keys, sel, want: bool, now_s, label, object_id, cost, found) -> None:
+        """read_into with the keys given (_EMPTY: no voxel), for the points whose sel is `want`."""
+        _mem_read(self.keys, self.table, self.shift, keys, sel, bool(want), float(now_s), self.max_age_s, label,
+                  object_id, cost, found)
 
 
 # --------------------------------------------------------------------------- the partition
 #: The warp arguments of the kernels when the masks are bitmaps (typed placeholders, never read).
-_NO_WARP = (np.zeros((1, 1, 1), np.bool_), np.zeros(0, np.int64), np.zeros((0, 3, 3)), np.zeros((0, 2, 3)),
-            np.zeros((0, 4), np.int64), np.zeros((1, 1, 2)), np.eye(3), np.zeros(12), 0.0)
+_NO_WARP = (np.zeros(1, np.bool_), np.zeros(1, np.int64), np.zeros((0, 4), np.int64), np.zeros(0, np.int64),
+            np.zeros((0, 3, 3)), np.zeros((0, 2, 3)), np.zeros((0, 4), np.int64), np.zeros((1, 1, 2)), np.eye(3),
+            np.zeros(12), 0.0)
 
 
 class PointPartitioner:
@@ -708,7 +1032,43 @@ class PointPartitioner:
         self.config = config or PartitionConfig()
         c = self.config
         self.memory = LabelMemory(c.memory_voxel_m, c.memory_max_age_s, c.memory_initial_slots)
+        self._work: dict = {"cap": -1}
+        self._d12: tuple | None = None
+        self._rigid: dict = {}  # transforms that passed _check_transform
+        self._ids_costs: tuple | None = None  # (key, checked ids, costs) of the last call
         self._warm_up()
+
+    def _buffers(self, n: int) -> dict:
+        """Work arrays of at least n points, reused between scans (no allocation in the tick; a
+        scan of another size takes views, a bigger one grows them by a quarter). None of them is
+        returned: the partition's outputs are fresh arrays per scan."""
+        w = self._work
+        if w["cap"] < n:
+            cap = max(n, int(1.25 * w["cap"]))
+            w.update(cap=cap, ground=np.empty(cap, np.bool_), seen=np.empty(cap, np.bool_),
+                     pix=np.empty((cap, 2), np.int64), midx=np.empty(cap, np.int32), keys=np.empty(cap, np.int64),
+                     p_cam=np.empty((cap, 3)), cand=np.empty(cap + 1, np.int64), ray=np.empty((cap + 1, 2)))
+        return {k: v[:n + 1] if k in ("cand", "ray") else v[:n] for k, v in w.items() if k != "cap"}
+
+    def _ids_and_costs(self, object_ids, costs, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """_check_ids_costs, remembered for the same ids and costs as the last call (the stage
+        passes the same few masks scan after scan)."""
+        a = np.asarray(object_ids)
+        b = np.asarray(costs)
+        if a.dtype.kind not in "iu" or b.dtype.kind not in "fiu":  # (bytes of objects say nothing)
+            return _check_ids_costs(object_ids, costs, m)
+        key = (m, a.dtype.str, a.shape, a.tobytes(), b.dtype.str, b.shape, b.tobytes())
+        if self._ids_costs is not None and self._ids_costs[0] == key:
+            return self._ids_costs[1], self._ids_costs[2]
+        ids, cst = _check_ids_costs(object_ids, costs, m)
+        self._ids_costs = (key, ids, cst)
+        return ids, cst
+
+    def _dist12(self, camera: CameraModel) -> np.ndarray:
+        """The camera's distortion padded to 12 coefficients (cached per distortion vector)."""
+        if self._d12 is None or self._d12[0] is not camera.dist:
+            self._d12 = (camera.dist, distortion12(camera))
+        return self._d12[1]
 
     def _warm_up(self) -> None:
         """Run every kernel once on a tiny frame, so that numba's compile (first run) or cache load
@@ -757,7 +1117,7 @@ class PointPartitioner:
         """
         c = self.config
         p = _check_points(points_lidar, "points_lidar")
-        T = _check_transform(T_cam_lidar, "T_cam_lidar")
+        T = _check_transform(T_cam_lidar, "T_cam_lidar", self._rigid)
         if not isinstance(camera, CameraModel):
             raise _fail("camera", f"must be a CameraModel, got {type(camera).__name__}")
         warped = isinstance(masks, WarpLookup)
@@ -769,20 +1129,24 @@ class PointPartitioner:
             if len(lk) > MAX_MASKS:
                 raise _fail("masks", f"at most {MAX_MASKS} masks, got {len(lk)}")
             m = np.zeros((len(lk), 1, 1), bool)  # placeholder: the kernels read the lookup
-            wargs = (lk.masks, lk.sel, lk.Hinv, lk.rows, lk.box, lk.rays, lk.K, lk.dist12, lk.r2_max)
+            wargs = (lk.crop, lk.crop_start, lk.crop_box, lk.sel, lk.Hinv, lk.rows, lk.box, lk.rays, lk.K, lk.dist12,
+                     lk.r2_max)
         else:
             m = stack_masks(masks, camera)
             wargs = _NO_WARP
-        ids, cst = _check_ids_costs(object_ids, costs, m.shape[0])
+        ids, cst = self._ids_and_costs(object_ids, costs, m.shape[0])
         n = p.shape[0]
-        ground = np.zeros(n, bool)
+        wk = self._buffers(n)
+        ground = wk["ground"]
         if ignore is not None:
             ig = np.asarray(ignore)
             if ig.shape != (n,) or ig.dtype != np.bool_:
                 raise _fail("ignore", f"must be ({n},) bool, got shape {ig.shape} dtype {ig.dtype}")
             ground[:] = ig
-        if T_base_lidar is not None:
-            _mark_ground(p, _check_transform(T_base_lidar, "T_base_lidar"), c.ground_max_z_m, ground)
+        else:
+            ground[:] = False
+        has_base = T_base_lidar is not None
+        Tb = _check_transform(T_base_lidar, "T_base_lidar", self._rigid) if has_base else _EYE4
         use_memory = T_odom_lidar is not None or stamp_s is not None
         if use_memory:
             if T_odom_lidar is None or stamp_s is None:
@@ -792,21 +1156,35 @@ class PointPartitioner:
             if not math.isfinite(float(stamp_s)):
                 raise _fail("stamp_s", f"must be finite, got {stamp_s}")
 
-        p_cam = _transform(p, T)
-        # project only the points in front (half of a 360-degree scan): same result, half the work
-        front = np.flatnonzero(p_cam[:, 2] > 1e-9)
-        uv = np.zeros((n, 2))
-        in_view = np.zeros(n, bool)
-        uv[front], in_view[front] = camera.project(p_cam[front])
-        seen = in_view & ~ground
-        midx = np.empty(n, np.int32)
-        pix = np.empty((n, 2), np.int64)
+        W, H = camera.width_px, camera.height_px
+        in_view = np.empty(n, bool)  # returned: a fresh array per scan
+        seen, pix, midx, keys, cand, ray = wk["seen"], wk["pix"], wk["midx"], wk["keys"], wk["cand"], wk["ray"]
+        rbox = _union_box(lk.box) if warped else _NO_BOX
+        rays = lk.rays if warped else _NO_RAYS
+        if len(camera.dist) <= 12:
+            p_cam = wk["p_cam"]
+            nc = _project_scan(p, T, Tb, has_base, c.ground_max_z_m, camera.K, self._dist12(camera), len(camera.dist),
+                               camera._r2_max, W, H, ground, p_cam, in_view, seen, pix, _NO_UV, False, rays, rbox, cand,
+                               ray, To if use_memory else _EYE4, use_memory, 1.0 / self.memory.voxel_m, keys)
+            keys_done = use_memory
+        else:  # the 14-coefficient (tilted) model: cv2 through CameraModel.project
+            p_cam = _transform(p, T)
+            if has_base:
+                _mark_ground(p, Tb, c.ground_max_z_m, ground)
+            # project only the points in front (half of a 360-degree scan): same result, half the work
+            front = np.flatnonzero(p_cam[:, 2] > 1e-9)
+            uv = np.zeros((n, 2))
+            in_view[:] = False
+            uv[front], in_view[front] = camera.project(p_cam[front])
+            nc = _seen_pixels(uv, in_view, ground, W, H, seen, pix, rays, rbox, cand, ray)
+            keys_done = False
         if warped:
-            _mask_lookup_warp(*wargs, cst, uv, seen, midx, pix)
+            order = np.argsort(-cst, kind="stable")  # cost descending, index ascending among equals
+            hits = _mask_lookup_warp(*wargs, order, pix, cand, ray, nc, midx)
         else:
-            _mask_lookup(m, cst, uv, seen, midx, pix)
+            hits = _mask_lookup(m, cst, pix, seen, midx)
         removed = added = 0
-        if m.shape[0] and (midx >= 0).any():
+        if m.shape[0] and hits:
             # clustered in the camera frame: a rigid transform keeps distances, and p_cam is float64
             sk, sp = _cell_keys(p_cam, midx, c.eps_cluster_m)
             midx, removed, added = _refine(
@@ -819,11 +1197,10 @@ class PointPartitioner:
         _assemble(ground, midx, ids, cst, label, object_id, cost)
         from_memory = np.zeros(n, bool)
         if use_memory:
-            p_odom = _transform(p, To)
-            keys = self.memory.voxel_keys(p_odom, ~ground)
-            self.memory.read_into(p_odom, ~in_view & ~ground, float(stamp_s), label, object_id, cost, from_memory,
-                                  keys)
-            self.memory.write(p_odom, seen, label, object_id, cost, float(stamp_s), keys)
+            if not keys_done:
+                _odom_keys(p, To, 1.0 / self.memory.voxel_m, ground, keys)  # _EMPTY for the ground
+            self.memory._read_keys(keys, in_view, False, float(stamp_s), label, object_id, cost, from_memory)
+            self.memory._write_keys(keys, seen, label, object_id, cost, float(stamp_s))
         return PointPartition(label, object_id, cost, in_view, from_memory, int(removed), int(added))
 
 
