@@ -172,6 +172,7 @@ _NO_UV = np.zeros((1, 2))
 _NO_RAYS = np.zeros((1, 1, 2))
 _NO_BOX = np.array([0, 0, -1, -1], np.int64)
 _NO_KEYS = np.zeros(1, np.int64)
+_NO_PODOM = np.zeros((1, 3))
 
 
 def _check_transform(T: np.ndarray, field: str, known: dict | None = None) -> np.ndarray:
@@ -282,7 +283,7 @@ def _transform(p, T):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_cam, in_view, seen, pix, uv,
-                  store_uv, rays, rbox, cand, ray, To, has_odom, inv, keys):  # pragma: no cover - compiled
+                  store_uv, rays, rbox, cand, ray, To, has_odom, inv, keys, p_odom):  # pragma: no cover - compiled
     """Steps 1-2 in one pass over the points, without temporaries: p_cam = T p (as _transform),
     ground |= height after Tb < z_max (as _mark_ground; only when has_base), in_view as
     CameraModel.project's `valid` of p_cam, seen = in_view and not ground, pix = the nearest
@@ -292,7 +293,7 @@ def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_ca
     masks' boxes), in order: cand[k] = the point, ray[k] = the camera's pixel ray there (rays[v,
     u]); returns their count (cand and ray need n + 1 rows). With has_odom, keys = the label
     memory's voxel key of each point not on the ground after To (odom <- lidar; as _odom_keys),
-    _EMPTY for the ground.
+    _EMPTY for the ground, and p_odom = To p (as _transform: the tracker's points).
 
     The projection repeats CameraModel.project's arithmetic operation for operation (the same
     order and grouping, so the same IEEE results: numba does not contract a * b + c into FMA
@@ -321,6 +322,9 @@ def _project_scan(p, T, Tb, has_base, z_max, K, d, nd, r2max, W, H, ground, p_ca
             Xo = To[0, 0] * x + To[0, 1] * y + To[0, 2] * z + To[0, 3]
             Yo = To[1, 0] * x + To[1, 1] * y + To[1, 2] * z + To[1, 3]
             Zo = To[2, 0] * x + To[2, 1] * y + To[2, 2] * z + To[2, 3]
+            p_odom[i, 0] = Xo
+            p_odom[i, 1] = Yo
+            p_odom[i, 2] = Zo
             ox = min(max(int(math.floor(Xo * inv)), -_MOFF), _MOFF - 1) + _MOFF
             oy = min(max(int(math.floor(Yo * inv)), -_MOFF), _MOFF - 1) + _MOFF
             oz = min(max(int(math.floor(Zo * inv)), -_MOFF), _MOFF - 1) + _MOFF
@@ -402,7 +406,7 @@ def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tup
     _project_scan(p, _check_transform(T, "T"), _EYE4, False, 0.0, camera.K, distortion12(camera), len(camera.dist),
                   camera._r2_max, camera.width_px, camera.height_px, np.zeros(n, bool), np.empty((n, 3)), valid,
                   np.empty(n, bool), np.empty((n, 2), np.int64), uv, True, _NO_RAYS, _NO_BOX, np.empty(n + 1, np.int64),
-                  np.empty((n + 1, 2)), _EYE4, False, 1.0, _NO_KEYS)
+                  np.empty((n + 1, 2)), _EYE4, False, 1.0, _NO_KEYS, _NO_PODOM)
     return uv, valid
 
 
@@ -1032,6 +1036,7 @@ class PointPartitioner:
         self.config = config or PartitionConfig()
         c = self.config
         self.memory = LabelMemory(c.memory_voxel_m, c.memory_max_age_s, c.memory_initial_slots)
+        self.last_points_odom: np.ndarray | None = None
         self._work: dict = {"cap": -1}
         self._d12: tuple | None = None
         self._rigid: dict = {}  # transforms that passed _check_transform
@@ -1161,11 +1166,13 @@ class PointPartitioner:
         seen, pix, midx, keys, cand, ray = wk["seen"], wk["pix"], wk["midx"], wk["keys"], wk["cand"], wk["ray"]
         rbox = _union_box(lk.box) if warped else _NO_BOX
         rays = lk.rays if warped else _NO_RAYS
+        # the scan in the odom frame (a fresh array: the stage keeps it, the tracker follows objects in it)
+        p_odom = np.empty((n, 3)) if use_memory else _NO_PODOM
         if len(camera.dist) <= 12:
             p_cam = wk["p_cam"]
             nc = _project_scan(p, T, Tb, has_base, c.ground_max_z_m, camera.K, self._dist12(camera), len(camera.dist),
                                camera._r2_max, W, H, ground, p_cam, in_view, seen, pix, _NO_UV, False, rays, rbox, cand,
-                               ray, To if use_memory else _EYE4, use_memory, 1.0 / self.memory.voxel_m, keys)
+                               ray, To if use_memory else _EYE4, use_memory, 1.0 / self.memory.voxel_m, keys, p_odom)
             keys_done = use_memory
         else:  # the 14-coefficient (tilted) model: cv2 through CameraModel.project
             p_cam = _transform(p, T)
@@ -1178,6 +1185,8 @@ class PointPartitioner:
             uv[front], in_view[front] = camera.project(p_cam[front])
             nc = _seen_pixels(uv, in_view, ground, W, H, seen, pix, rays, rbox, cand, ray)
             keys_done = False
+            if use_memory:
+                p_odom = _transform(p, To)
         if warped:
             order = np.argsort(-cst, kind="stable")  # cost descending, index ascending among equals
             hits = _mask_lookup_warp(*wargs, order, pix, cand, ray, nc, midx)
@@ -1201,6 +1210,8 @@ class PointPartitioner:
                 _odom_keys(p, To, 1.0 / self.memory.voxel_m, ground, keys)  # _EMPTY for the ground
             self.memory._read_keys(keys, in_view, False, float(stamp_s), label, object_id, cost, from_memory)
             self.memory._write_keys(keys, seen, label, object_id, cost, float(stamp_s))
+        #: The last scan in the odom frame ((N, 3), None without T_odom_lidar): the stage's tracker reads it.
+        self.last_points_odom = p_odom if use_memory else None
         return PointPartition(label, object_id, cost, in_view, from_memory, int(removed), int(added))
 
 

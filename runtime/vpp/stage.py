@@ -45,7 +45,7 @@ from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import (AnswerPreparer, MaskMemory, MaskMemoryConfig, MaskMemoryError,
                                      PreparedAnswer, ReconcileResult)
-from runtime.vpp.partition import MOVABLE, PartitionConfig, PointPartition, PointPartitioner, _transform
+from runtime.vpp.partition import MOVABLE, PartitionConfig, PointPartition, PointPartitioner
 from runtime.vpp.tracking import ObjectTracker, TrackingConfig
 
 DEFAULT_PROMPT = (
@@ -196,7 +196,7 @@ class VppStage:
             [e.contact_cost for e in use], T_base_lidar=self.T_base_lidar,
             T_odom_lidar=T_odom_base @ self.T_base_lidar, stamp_s=scan.stamp_s,
         )
-        p_odom = _transform(np.ascontiguousarray(scan.points_m), T_odom_base @ self.T_base_lidar)  # numba: 5x numpy's
+        p_odom = self.partitioner.last_points_odom  # the scan in the odom frame, from the partition's pass
         self._last_scan_odom = p_odom
         self.tracker.update(float(scan.stamp_s), part, p_odom)  # sensor time, as the capture stamps
         self._maybe_ask(now_s)
