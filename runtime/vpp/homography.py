@@ -500,7 +500,10 @@ def _count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, s, rays, Hinv, rows, K, d
 def _count_box(crop, cstart, cbox, e, box, rays, Hinv, rows, K, d, r2max, samples):  # pragma: no cover - compiled
     """Set pixels of the warp of capture mask e (mask_crops) in its box: exact when the box has at most `samples`
     pixels, else counted on a stride grid and scaled (an estimate, exact but for the mask's
-    border; a mask the grid misses entirely is then counted exactly, so zero means empty)."""
+    border). A mask the grid misses entirely is counted again on a grid 4 times finer per axis
+    (16 x `samples` pixels at most), exactly when that is every pixel; missed again, it is a
+    sliver thinner than that grid's step and counts as empty (an exact count over a box as
+    large as the image, where a warp grew a mask's box but not its pixels, cost 5-6 ms a scan)."""
     u0, v0, u1, v1 = box[0], box[1], box[2], box[3]
     if u0 > u1 or v0 > v1:
         return 0.0
@@ -510,7 +513,8 @@ def _count_box(crop, cstart, cbox, e, box, rays, Hinv, rows, K, d, r2max, sample
         s += 1
     n = _count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, s, rays, Hinv, rows, K, d, r2max)
     if n == 0 and s > 1:
-        return float(_count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, 1, rays, Hinv, rows, K, d, r2max))
+        f = max(1, s // 4)
+        return float(_count_grid(crop, cstart, cbox, e, u0, v0, u1, v1, f, rays, Hinv, rows, K, d, r2max) * f * f)
     return float(n * s * s)
 
 
