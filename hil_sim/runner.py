@@ -306,6 +306,10 @@ def run_episode(
             "planner": config.planner.mode,
             "faults": [{**f.to_dict(), "acted_on": injector.applied[f.name]} for f in faults],
             "events": controller.events.to_list(t0_s=t_start),
+            # DCT correcting mode (runtime.modes.correcting): how often, and each one's start,
+            # duration, object relabelled fixed (None) and reason.
+            "correcting_events": int(report.get("correcting_events", 0)),
+            "correcting": controller.modes.correcting_report(t0_s=t_start),
             "controller": report,
             "sensor_errors": dict(sorted(inbox.error_counts.items())),
             "firmware_frames_rejected": firmware.frames_rejected,

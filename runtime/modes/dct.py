@@ -21,4 +21,6 @@ def build(ctx: ModeContext) -> ModeStack:
     stack = all_fixed.build(ctx)
     stack.partition = build_vpp_partition(ctx.config, ctx.robot, backend, lockstep=not ctx.wall_clock_caps)
     stack.normal.name = "dct"
+    if stack.correcting is not None:
+        stack.correcting.partition = stack.partition  # eq. 14 relabels in the VPP stage
     return stack

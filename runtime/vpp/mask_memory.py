@@ -181,6 +181,10 @@ class MaskMemory:
         self.last_query_pose_odom: np.ndarray | None = None
         self.last_answer_s: float | None = None
         self._next_id = 0
+        #: Object ids demoted to fixed by correcting mode (DCT eq. 14), for the whole episode; each
+        #: with its newest entry, so that a fresh detection of the same object that no remembered
+        #: entry matched (it was out of view meanwhile, and dropped) is re-identified by IoU too.
+        self.demoted: dict[int, MaskEntry | None] = {}
 
     # ------------------------------------------------------------------ trigger (Alg. 1 l.3)
     def query_due(self, now_s: float, camera_pose_odom: np.ndarray) -> bool:
@@ -193,6 +197,17 @@ class MaskMemory:
             raise MaskMemoryError(f"stamp_s: not finite ({stamp_s})")
         self.last_query_pose_odom = _check_pose(camera_pose_odom, "camera_pose_odom").copy()
         self.last_query_s = float(stamp_s)
+
+    # ------------------------------------------------------------------ correcting mode
+    def demote(self, object_id: int) -> None:
+        """object_id stays fixed for the rest of the episode (the stage's gate reads `demoted`):
+        reconcile carries the id to a fresh detection of the same object (IoU >= sigma_IoU with
+        its remembered entry, or with its last entry when that was dropped meanwhile)."""
+        oid = int(object_id)
+        self.demoted[oid] = next((e for e in self.entries if e.object_id == oid), self.demoted.get(oid))
+
+    def is_demoted(self, object_id: int) -> bool:
+        return int(object_id) in self.demoted
 
     # ------------------------------------------------------------------ age-out
     def expire(self, now_s: float) -> tuple[int, ...]:
@@ -316,6 +331,8 @@ class MaskMemory:
                 i, v = int(best[j]), float(best_iou[j])
                 if v >= self.config.sigma_iou and i not in claimed:
                     claimed[i] = (int(j), v)
+        if self.demoted and fresh:
+            self._claim_demoted(fresh, old, claimed, T)
         kept_j = {j for j, _ in claimed.values()}
         dropped = [e.object_id for j, e in enumerate(old) if j not in kept_j]
         new_entries: list[MaskEntry] = []
@@ -323,15 +340,35 @@ class MaskMemory:
         for i, f in enumerate(fresh):
             if i in claimed:
                 j, v = claimed[i]
-                oid = old[j].object_id
+                oid = old[j].object_id if j >= 0 else self._tombstone_ids[-1 - j]
                 matched.append((oid, i, v))
             else:
                 oid = self._next_id
                 self._next_id += 1
                 inserted.append((oid, i))
             new_entries.append(replace(f, object_id=oid))
+            if oid in self.demoted:
+                self.demoted[oid] = new_entries[-1]
         self.entries = new_entries
         return ReconcileResult(tuple(sorted(matched)), tuple(dropped), tuple(inserted))
+
+    def _claim_demoted(self, fresh: list[MaskEntry], old: list[MaskEntry], claimed: dict, T: np.ndarray) -> None:
+        """Fresh objects no remembered entry claimed, matched (IoU >= sigma_IoU, at the fresh
+        capture pose) against the last entries of demoted objects no longer in the memory: a
+        match takes the demoted id (claimed[i] = (-1 - k, IoU), k into _tombstone_ids)."""
+        present = {e.object_id for e in old}
+        stones = [(oid, e) for oid, e in self.demoted.items() if e is not None and oid not in present]
+        self._tombstone_ids = [oid for oid, _ in stones]
+        free = [i for i in range(len(fresh)) if i not in claimed]
+        if not stones or not free:
+            return
+        warped = np.stack([self.warp_entry(e, T).mask for _, e in stones])
+        iou = iou_matrix(warped, np.stack([fresh[i].mask for i in free]))
+        for k in range(len(stones)):
+            col = int(iou[k].argmax())
+            i, v = free[col], float(iou[k, col])
+            if v >= self.config.sigma_iou and i not in claimed:
+                claimed[i] = (-1 - k, v)
 
 
 __all__ = [

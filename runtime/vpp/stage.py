@@ -134,6 +134,7 @@ class VppStage:
         self.masks_distrusted = 0  # warped masks of moved (or, untracked, grown) objects kept out of the gate
         self.last_rejection: str | None = None
         self.frames = 0
+        self.demotions = 0  # objects demoted to fixed by correcting mode
 
     def settle(self, t_s: float) -> None:
         """Lockstep barrier (the simulator calls it before time t_s): answers due are ready."""
@@ -195,6 +196,8 @@ class VppStage:
         growth rule (max_mask_growth). Distrusted masks are counted."""
         if not (entry.movable and entry.contact_cost < self.config.never_touch_cost and warped_px > 0):
             return False
+        if entry.object_id in self.memory.demoted:  # correcting mode: a push on it failed (eq. 14)
+            return False
         moved = self.tracker.moved_since(entry.object_id, entry.stamp_s)
         if moved is not None:
             distrust = moved > self.config.moved_tolerance_m
@@ -204,6 +207,41 @@ class VppStage:
             self.masks_distrusted += 1
             return False
         return True
+
+    def movable_in_front(self, pose: tuple[float, float, float], half_length_m: float, half_width_m: float,
+                         margin_m: float, forward: bool = True, min_points: int = 3) -> int | None:
+        """The movable object the robot is pushing: the object id with the most P_mov points of
+        the last scan in front of the robot (behind it when reversing: `forward` False) within its
+        footprint + margin_m (odom pose of the robot now); None when there is none."""
+        frame, p = self.last_frame, self._last_scan_odom
+        if frame is None or p is None:
+            return None
+        part = frame.partition
+        mov = np.flatnonzero(part.label == MOVABLE)
+        if not mov.size:
+            return None
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        dx, dy = p[mov, 0] - pose[0], p[mov, 1] - pose[1]
+        x, y = c * dx + s * dy, -s * dx + c * dy  # robot frame
+        if not forward:
+            x = -x
+        near = (x >= 0.0) & (x <= half_length_m + margin_m) & (np.abs(y) <= half_width_m + margin_m)
+        ids, counts = np.unique(part.object_id[mov[near]], return_counts=True)
+        if not ids.size or counts.max() < min_points:
+            return None
+        return int(ids[int(np.argmax(counts))])
+
+    def demote(self, object_id: int) -> int:
+        """Correcting mode (DCT eq. 14): object_id is fixed for the rest of the episode. Its masks
+        no longer gate (`_gates`; the mask memory carries the demotion to fresh detections of the
+        object), the tracker forgets it (it would label its points movable), and its voxels in
+        the odom-frame label memory become fixed (the points the camera does not see). Returns
+        the voxels relabelled."""
+        oid = int(object_id)
+        self.memory.demote(oid)
+        self.tracker.objects.pop(oid, None)
+        self.demotions += 1
+        return self.partitioner.memory.fix_object(oid)
 
     def _masks_now(self, now_s: float, T_odom_cam: np.ndarray):
         """Phase I for this scan: (masks for the partition, their entries). The memory's masks are
@@ -269,6 +307,7 @@ class VppStage:
             "images_refused": self.images_refused, "gave_up_waiting": self.gave_up_waiting,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,
+            "demoted_objects": sorted(self.memory.demoted),
         }
 
 

@@ -1,0 +1,220 @@
+"""`correcting`: DCT's correcting mode (paper IV-C-3, DESIGN.md 5.4) as a recovery strategy.
+
+When a push fails the robot is stuck: it commands motion (|v| >= v_min) but moves less than
+d_stuck in tau_stuck. Then, in this order (the selector, runtime.modes.selector, switches here):
+1. eq. 14: the movable object in front of the robot (its P_mov points within the footprint +
+   `contact_margin_m`, on the side the robot was driving to) is relabelled fixed for the rest of
+   the episode (the partition stage: runtime.partition_stage, VppStage.demote); none when there
+   is none (a wedge between fixed obstacles: the MPC's local minimum);
+2. the robot reverses along its recorded states (runtime.modes.backoff.PoseTrail) for F of them
+   (the trail's spacing apart) with v in [-v_rev, 0] (BackoffMode: the MPC tracks the trail
+   backwards, the supervisor checks every command);
+3. the normal mode replans on the new P_fix (the selector resets it when this mode is done).
+A second correction in a row (no progress towards the goal since the last one) traces back
+further: F times the attempt number, so that a wedge at a tight gap approached steeply gets the
+room to line up that the first attempt did not give.
+
+"Moved" is measured twice: the odometry's displacement over the window, and, when odometry says
+the robot moved, the lidar: the P_fix points in the robot frame now against those tau_stuck ago,
+under "stood still" and under "moved as the odometry says". Wheels that slip against a heavy box
+carry the odometry (wheels, and an ICP fooled by the box moving with the robot in its view) away
+while the scan stays as it was: the scan then fits "stood still" much better. In a featureless
+corridor both fit alike and the odometry is believed (never a false stuck from the lidar).
+
+Everything on the controller's clock (deterministic in lockstep). Each correction is recorded
+(start, duration, object relabelled or None, reason) for the event log and the episode metrics.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
+
+from runtime.modes.backoff import BackoffMode, PoseTrail
+from runtime.modes.base import ModeDecision, Situation
+
+
+class CorrectingConfig(BaseModel):
+    """Correcting mode's settings (controller config `correcting:`); the paper's symbols in the
+    names where it has them (v_min, d_stuck, tau_stuck, F, v_rev)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = True
+    #: Commanded |v| at least this (m/s) counts as "commanding motion".
+    v_min_mps: float = Field(default=0.10, gt=0.0, le=2.0)
+    #: Moved less than this (m) over tau_stuck_s while commanding motion: stuck.
+    d_stuck_m: float = Field(default=0.05, gt=0.0, le=2.0)
+    tau_stuck_s: float = Field(default=0.8, gt=0.0, le=30.0)
+    #: F: recorded states to trace back (the pose trail keeps one every trail_spacing_m).
+    traceback_states: int = Field(default=20, ge=1, le=400)
+    trail_spacing_m: float = Field(default=0.025, gt=0.0, le=1.0)
+    #: v_rev (m/s): the reverse speed bound.
+    v_rev_mps: float = Field(default=0.2, gt=0.0, le=2.0)
+    #: The object pushed: its P_mov points within the footprint + this margin (m), ahead.
+    contact_margin_m: float = Field(default=0.12, ge=0.0, le=1.0)
+    #: A reverse that has not arrived after this long ends anyway (s).
+    timeout_s: float = Field(default=5.0, gt=0.0, le=60.0)
+    #: At most this many corrections per goal; then the stall stays reported.
+    max_corrections: int = Field(default=5, ge=0, le=100)
+    #: Lidar check: "stood still" must fit the scan this many times better than the odometry's
+    #: motion (mean capped nearest-point distance), and the odometry's fit be at least this bad (m).
+    scan_fit_ratio: float = Field(default=0.5, gt=0.0, le=1.0)
+    scan_min_misfit_m: float = Field(default=0.03, gt=0.0, le=1.0)
+
+
+#: Robot-frame P_fix points kept per scan for the lidar check (thinned by stride), their range.
+_SCAN_POINTS = 600
+_SCAN_RANGE_M = 5.0
+_FIT_CAP_M = 0.3
+
+
+def _robot_frame(points_odom: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    d = points_odom - pose[:2]
+    q = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    q = q[np.hypot(q[:, 0], q[:, 1]) <= _SCAN_RANGE_M]
+    if len(q) > _SCAN_POINTS:
+        q = q[np.linspace(0, len(q) - 1, _SCAN_POINTS).astype(np.intp)]
+    return q
+
+
+def scan_fits(old_q: np.ndarray, old_pose: np.ndarray, new_q: np.ndarray, new_pose: np.ndarray) -> tuple[float, float]:
+    """(misfit if the robot stood still, misfit if it moved as the odometry says): mean nearest-
+    point distance (capped) of the old robot-frame points to the new ones under each hypothesis."""
+    tree = cKDTree(new_q)
+    still, _ = tree.query(old_q, distance_upper_bound=_FIT_CAP_M)
+    c0, s0 = math.cos(old_pose[2]), math.sin(old_pose[2])
+    w = old_q @ np.array([[c0, s0], [-s0, c0]]) + old_pose[:2]  # old points in odom
+    c1, s1 = math.cos(new_pose[2]), math.sin(new_pose[2])
+    d = w - new_pose[:2]
+    moved_q = np.column_stack([c1 * d[:, 0] + s1 * d[:, 1], -s1 * d[:, 0] + c1 * d[:, 1]])
+    moved, _ = tree.query(moved_q, distance_upper_bound=_FIT_CAP_M)
+    return float(np.minimum(still, _FIT_CAP_M).mean()), float(np.minimum(moved, _FIT_CAP_M).mean())
+
+
+class StuckDetector:
+    """The paper's trigger: |v_cmd| >= v_min for tau_stuck while moving less than d_stuck
+    (odometry, checked by the lidar: module docstring). All on the controller's clock."""
+
+    def __init__(self, config: CorrectingConfig) -> None:
+        self.config = config
+        self._since_s: float | None = None
+        self._scans: deque = deque()  # (t, pose, robot-frame P_fix) since the window began
+        self._last_points: np.ndarray | None = None
+        self.lidar_checks = 0
+
+    def restart(self) -> None:
+        self._since_s = None
+        self._scans.clear()
+        self._last_points = None
+
+    def update(self, s: Situation) -> str | None:
+        """The reason, on the tick the robot is found stuck (then the detector restarts); None."""
+        c = self.config
+        v = float(s.command[0])
+        if abs(v) < c.v_min_mps:
+            self.restart()
+            return None
+        if self._since_s is None:
+            self._since_s = s.now_s
+        if s.points_fix is not self._last_points and len(s.points_fix):
+            self._last_points = s.points_fix
+            self._scans.append((s.now_s, s.pose.copy(), _robot_frame(s.points_fix, s.pose)))
+        while len(self._scans) > 1 and self._scans[1][0] <= s.now_s - c.tau_stuck_s:
+            self._scans.popleft()
+        if s.now_s - self._since_s < c.tau_stuck_s or not self._scans:
+            return None
+        t0, pose0, q0 = self._scans[0]
+        moved = math.hypot(s.pose[0] - pose0[0], s.pose[1] - pose0[1])
+        span = s.now_s - t0
+        if moved < c.d_stuck_m:
+            self.restart()
+            return f"commanding {v:.2f} m/s, moved {moved * 100:.1f} cm in {span:.1f} s"
+        t1, pose1, q1 = self._scans[-1]
+        if t1 <= t0 or not len(q0) or not len(q1):
+            return None
+        self.lidar_checks += 1
+        still, as_odometry = scan_fits(q0, pose0, q1, pose1)
+        if as_odometry >= c.scan_min_misfit_m and still <= c.scan_fit_ratio * as_odometry:
+            self.restart()
+            return (f"commanding {v:.2f} m/s, odometry moved {moved:.2f} m in {span:.1f} s but the lidar scan "
+                    f"did not change (misfit {still * 100:.1f} cm standing, {as_odometry * 100:.1f} cm as "
+                    f"odometry says): wheels slipping")
+        return None
+
+
+@dataclass
+class Correction:
+    """One correcting-mode episode, for the event log and the metrics."""
+
+    start_s: float
+    reason: str
+    object_id: int | None
+    traceback_m: float
+    end_s: float | None = None
+    outcome: str = ""
+
+    def to_dict(self, t0_s: float = 0.0) -> dict:
+        return {"start_s": round(self.start_s - t0_s, 6),
+                "duration_s": None if self.end_s is None else round(self.end_s - self.start_s, 6),
+                "object_id": self.object_id, "reason": self.reason, "traceback_m": round(self.traceback_m, 4),
+                "outcome": self.outcome}
+
+
+class CorrectingMode:
+    """Relabel (eq. 14), reverse along the recorded states, then let the normal mode replan."""
+
+    name = "correcting"
+
+    def __init__(self, config: CorrectingConfig, backoff: BackoffMode, robot, partition=None) -> None:
+        """backoff: the reverse (its distance is set per correction); partition: the controller's
+        partition stage (runtime.partition_stage), set by the mode's builder."""
+        self.config = config
+        self.backoff = backoff
+        self.partition = partition
+        self.half_length_m = robot.footprint.length_m / 2
+        self.half_width_m = robot.footprint.width_m / 2
+        self.corrections: list[Correction] = []
+        self._repeat = 0
+
+    def reset(self) -> None:
+        self.backoff.reset()
+
+    def counters(self) -> dict:
+        return {}
+
+    def slack_work(self) -> bool:
+        return False
+
+    def start(self, s: Situation, trail: PoseTrail, reason: str, repeat: bool) -> Correction:
+        """Begin a correction: relabel the object in front (if any), plan the way back. repeat:
+        no progress since the previous correction (trace back further)."""
+        c = self.config
+        self._repeat = self._repeat + 1 if repeat else 1
+        forward = float(s.command[0]) >= 0.0
+        oid = None
+        if self.partition is not None:
+            oid = self.partition.relabel_fixed_in_front((float(s.pose[0]), float(s.pose[1]), float(s.pose[2])),
+                                                        self.half_length_m, self.half_width_m, c.contact_margin_m,
+                                                        forward)
+        distance = c.traceback_states * c.trail_spacing_m * self._repeat
+        self.backoff.distance_m = distance
+        how = self.backoff.start(s, trail)
+        corr = Correction(s.now_s, reason, oid, distance, outcome=how)
+        self.corrections.append(corr)
+        return corr
+
+    def plan(self, s: Situation) -> ModeDecision:
+        d = self.backoff.plan(s)
+        if d.done and self.corrections and self.corrections[-1].end_s is None:
+            self.corrections[-1].end_s = s.now_s
+            self.corrections[-1].outcome = d.note
+        return d
+
+
+__all__ = ["CorrectingConfig", "CorrectingMode", "Correction", "StuckDetector", "scan_fits"]
