@@ -19,7 +19,9 @@ the robot moved, the lidar: the P_fix points in the robot frame now against thos
 under "stood still" and under "moved as the odometry says". Wheels that slip against a heavy box
 carry the odometry (wheels, and an ICP fooled by the box moving with the robot in its view) away
 while the scan stays as it was: the scan then fits "stood still" much better. In a featureless
-corridor both fit alike and the odometry is believed (never a false stuck from the lidar).
+corridor both fit alike and the odometry is believed (never a false stuck from the lidar). The
+displacement the scan did not show is the slip: the odom frame moved under the world by it, and
+the selector moves the goal (in the odom frame) with it, so that the robot does not stop short.
 
 Everything on the controller's clock (deterministic in lockstep). Each correction is recorded
 (start, duration, object relabelled or None, reason) for the event log and the episode metrics.
@@ -83,6 +85,27 @@ def _robot_frame(points_odom: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return q
 
 
+def slip_fraction(old_q: np.ndarray, old_pose: np.ndarray, new_q: np.ndarray, new_pose: np.ndarray,
+                  steps: int = 10) -> float:
+    """The share (0..1) of the odometry's motion from old_pose to new_pose that the scan does not
+    show: the robot is taken to have moved alpha of it, alpha on a grid, the best-fitting alpha
+    (mean capped nearest-point distance) wins; 1 - alpha is the slip."""
+    tree = cKDTree(new_q)
+    c0, s0 = math.cos(old_pose[2]), math.sin(old_pose[2])
+    w = old_q @ np.array([[c0, s0], [-s0, c0]]) + old_pose[:2]
+    best, best_a = math.inf, 1.0
+    for a in np.linspace(0.0, 1.0, steps + 1):
+        xy = old_pose[:2] + a * (new_pose[:2] - old_pose[:2])
+        yaw = new_pose[2]
+        c1, s1 = math.cos(yaw), math.sin(yaw)
+        d = w - xy
+        q = np.column_stack([c1 * d[:, 0] + s1 * d[:, 1], -s1 * d[:, 0] + c1 * d[:, 1]])
+        m = float(np.minimum(tree.query(q, distance_upper_bound=_FIT_CAP_M)[0], _FIT_CAP_M).mean())
+        if m < best - 1e-9:
+            best, best_a = m, float(a)
+    return 1.0 - best_a
+
+
 def scan_fits(old_q: np.ndarray, old_pose: np.ndarray, new_q: np.ndarray, new_pose: np.ndarray) -> tuple[float, float]:
     """(misfit if the robot stood still, misfit if it moved as the odometry says): mean nearest-
     point distance (capped) of the old robot-frame points to the new ones under each hypothesis."""
@@ -107,6 +130,10 @@ class StuckDetector:
         self._scans: deque = deque()  # (t, pose, robot-frame P_fix) since the window began
         self._last_points: np.ndarray | None = None
         self.lidar_checks = 0
+        #: The odometry's displacement the scan did not show (odom frame, m) at the last stuck
+        #: found by the lidar: the wheels slipped, and the odom frame moved by this under the
+        #: world (the selector moves the goal with it).
+        self.last_slip_xy = np.zeros(2)
 
     def restart(self) -> None:
         self._since_s = None
@@ -141,6 +168,8 @@ class StuckDetector:
         self.lidar_checks += 1
         still, as_odometry = scan_fits(q0, pose0, q1, pose1)
         if as_odometry >= c.scan_min_misfit_m and still <= c.scan_fit_ratio * as_odometry:
+            slip = slip_fraction(q0, pose0, q1, pose1)
+            self.last_slip_xy = slip * (pose1[:2] - pose0[:2])
             self.restart()
             return (f"commanding {v:.2f} m/s, odometry moved {moved:.2f} m in {span:.1f} s but the lidar scan "
                     f"did not change (misfit {still * 100:.1f} cm standing, {as_odometry * 100:.1f} cm as "
@@ -217,4 +246,4 @@ class CorrectingMode:
         return d
 
 
-__all__ = ["CorrectingConfig", "CorrectingMode", "Correction", "StuckDetector", "scan_fits"]
+__all__ = ["CorrectingConfig", "CorrectingMode", "Correction", "StuckDetector", "scan_fits", "slip_fraction"]

@@ -18,6 +18,7 @@ the selector stops trying and the stall stays reported (the episode's failure re
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -105,6 +106,9 @@ class ModeSelector:
         self.backoffs = 0
         self.last_decision = ModeDecision()
         self._last_correction_xy: np.ndarray | None = None
+        #: Wheel slip the lidar found (correcting mode), summed: the odom frame moved under the
+        #: world by it, so the goal in the odom frame moves with it.
+        self.goal_shift_xy = np.zeros(2)
 
     @property
     def mode_name(self) -> str:
@@ -140,6 +144,8 @@ class ModeSelector:
         return self.active is self.normal and self.normal.slack_work()
 
     def plan(self, s: Situation) -> ModeDecision:
+        if self.goal_shift_xy.any():
+            s = replace(s, goal_xy=s.goal_xy + self.goal_shift_xy)
         if self.active is self.normal:
             self.trail.record(s.pose)
             d = self.normal.plan(s)
@@ -181,6 +187,12 @@ class ModeSelector:
 
     def _on_stuck(self, s: Situation, d: ModeDecision, reason: str) -> ModeDecision:
         self.events.add(s.now_s, "stuck", reason)
+        slip = self.stuck.last_slip_xy
+        if slip.any():
+            self.goal_shift_xy = self.goal_shift_xy + slip
+            self.stuck.last_slip_xy = np.zeros(2)
+            self.events.add(s.now_s, "odometry_slip",
+                            f"the wheels slipped {np.hypot(*slip):.2f} m the lidar did not see: goal moved with the odom frame")
         return self._correct(s, d, f"stuck: {reason}")
 
     def _correct(self, s: Situation, d: ModeDecision, reason: str) -> ModeDecision:

@@ -39,7 +39,9 @@ from models.vlm.runner import BackendRunner, BackendRunnerConfig
 from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, MaskMemoryError, ReconcileResult
-from runtime.vpp.partition import MOVABLE, PartitionConfig, PointPartition, PointPartitioner, _transform
+from scipy.spatial import cKDTree
+
+from runtime.vpp.partition import FIXED, MOVABLE, PartitionConfig, PointPartition, PointPartitioner, _transform
 from runtime.vpp.tracking import ObjectTracker, TrackingConfig
 
 DEFAULT_PROMPT = (
@@ -135,6 +137,9 @@ class VppStage:
         self.last_rejection: str | None = None
         self.frames = 0
         self.demotions = 0  # objects demoted to fixed by correcting mode
+        self.reidentified = 0  # fresh mask ids found on a demoted object (3-D), demoted too
+        self._demoted_xy: np.ndarray | None = None  # odom xy of the demoted objects' points (a tree)
+        self._demoted_tree = None
 
     def settle(self, t_s: float) -> None:
         """Lockstep barrier (the simulator calls it before time t_s): answers due are ready."""
@@ -182,6 +187,8 @@ class VppStage:
         )
         p_odom = _transform(np.ascontiguousarray(scan.points_m), T_odom_base @ self.T_base_lidar)  # numba: 5x numpy's
         self._last_scan_odom = p_odom
+        if self._demoted_tree is not None:
+            self._reidentify_demoted(part, p_odom)
         self.tracker.update(float(scan.stamp_s), part, p_odom)  # sensor time, as the capture stamps
         self._maybe_ask(now_s)
         self.frames += 1
@@ -238,10 +245,37 @@ class VppStage:
         the odom-frame label memory become fixed (the points the camera does not see). Returns
         the voxels relabelled."""
         oid = int(object_id)
+        if self.last_frame is not None and self._last_scan_odom is not None:
+            part = self.last_frame.partition
+            xy = self._last_scan_odom[(part.label == MOVABLE) & (part.object_id == oid), :2]
+            if len(xy):
+                self._demoted_xy = xy if self._demoted_xy is None else np.concatenate([self._demoted_xy, xy])
+                self._demoted_tree = cKDTree(self._demoted_xy)
         self.memory.demote(oid)
         self.tracker.objects.pop(oid, None)
         self.demotions += 1
         return self.partitioner.memory.fix_object(oid)
+
+    def _reidentify_demoted(self, part: PointPartition, p_odom: np.ndarray, radius_m: float = 0.10) -> None:
+        """A movable object most of whose points lie where a demoted one's were (odom frame: the
+        demoted object did not move, that is why it was demoted) is that object under a new mask
+        id (the mask memory gives a new id when the warped mask no longer matches, e.g. after the
+        object was out of view): its id is demoted too and its points are fixed in this scan."""
+        mov = np.flatnonzero(part.label == MOVABLE)
+        if not mov.size:
+            return
+        d, _ = self._demoted_tree.query(p_odom[mov, :2], distance_upper_bound=radius_m)
+        near = np.isfinite(d)
+        for oid in np.unique(part.object_id[mov]):
+            sel = part.object_id[mov] == oid
+            if np.mean(near[sel]) >= 0.5:
+                self.memory.demote(int(oid))
+                self.tracker.objects.pop(int(oid), None)
+                self.reidentified += 1
+                pts = mov[sel]
+                part.label[pts] = FIXED
+                part.object_id[pts] = -1
+                part.cost[pts] = np.nan
 
     def _masks_now(self, now_s: float, T_odom_cam: np.ndarray):
         """Phase I for this scan: (masks for the partition, their entries). The memory's masks are
@@ -307,7 +341,7 @@ class VppStage:
             "images_refused": self.images_refused, "gave_up_waiting": self.gave_up_waiting,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,
-            "demoted_objects": sorted(self.memory.demoted),
+            "demoted_objects": sorted(self.memory.demoted), "demoted_reidentified": self.reidentified,
         }
 
 
