@@ -73,6 +73,8 @@ class CorrectingConfig(BaseModel):
 _SCAN_POINTS = 600
 _SCAN_RANGE_M = 5.0
 _FIT_CAP_M = 0.3
+#: Scans kept to find where a slip began (s): a push that slows to a stall takes a while.
+SLIP_HISTORY_S = 4.0
 
 
 def _robot_frame(points_odom: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -83,6 +85,37 @@ def _robot_frame(points_odom: np.ndarray, pose: np.ndarray) -> np.ndarray:
     if len(q) > _SCAN_POINTS:
         q = q[np.linspace(0, len(q) - 1, _SCAN_POINTS).astype(np.intp)]
     return q
+
+
+def slip_since(history: list, new_q: np.ndarray, new_pose: np.ndarray) -> np.ndarray:
+    """The odometry's displacement (odom frame, xy) that the scan does not show. history: (t,
+    pose, robot-frame points) of earlier scans, oldest first. Model: the robot truly drove along
+    its recorded poses up to one of them and slipped in place since; the oldest scan is compared
+    with the newest as seen from each recorded position (the yaw now: the gyro does not slip);
+    the best fit says where the slip began (the recorded positions first, then every 1 cm on the
+    path between the best one's neighbours)."""
+    _, pose0, q0 = history[0]
+    tree = cKDTree(new_q)
+    c0, s0 = math.cos(pose0[2]), math.sin(pose0[2])
+    w = q0 @ np.array([[c0, s0], [-s0, c0]]) + pose0[:2]  # the oldest scan in odom
+    c1, s1 = math.cos(new_pose[2]), math.sin(new_pose[2])
+
+    def misfit(xy: np.ndarray) -> float:
+        d = w - xy
+        q = np.column_stack([c1 * d[:, 0] + s1 * d[:, 1], -s1 * d[:, 0] + c1 * d[:, 1]])
+        return float(np.minimum(tree.query(q, distance_upper_bound=_FIT_CAP_M)[0], _FIT_CAP_M).mean())
+
+    path = np.array([h[1][:2] for h in history] + [new_pose[:2]], dtype=float)
+    coarse = [misfit(xy) for xy in path]
+    k = int(np.argmin(coarse))
+    lo, hi = path[max(k - 1, 0)], path[min(k + 1, len(path) - 1)]
+    mid = path[k]
+    fine = [mid]
+    for a, b in ((lo, mid), (mid, hi)):
+        n = int(math.hypot(*(b - a)) / 0.01)
+        fine += [a + (b - a) * f for f in np.linspace(0.0, 1.0, n + 1)[1:-1]] if n > 1 else []
+    best_xy = min(fine, key=misfit)
+    return np.asarray(new_pose[:2] - best_xy, dtype=float)
 
 
 def slip_fraction(old_q: np.ndarray, old_pose: np.ndarray, new_q: np.ndarray, new_pose: np.ndarray,
@@ -128,6 +161,7 @@ class StuckDetector:
         self.config = config
         self._since_s: float | None = None
         self._scans: deque = deque()  # (t, pose, robot-frame P_fix) since the window began
+        self._history: deque = deque()  # the same for the last SLIP_HISTORY_S, commanded or not
         self._last_points: np.ndarray | None = None
         self.lidar_checks = 0
         #: The odometry's displacement the scan did not show (odom frame, m) at the last stuck
@@ -136,22 +170,33 @@ class StuckDetector:
         self.last_slip_xy = np.zeros(2)
 
     def restart(self) -> None:
+        """A new window (the scan history for the slip stays)."""
         self._since_s = None
         self._scans.clear()
-        self._last_points = None
+
+    def forget(self) -> None:
+        """After a correction or a mode switch: everything, the slip history included."""
+        self.restart()
+        self._history.clear()
 
     def update(self, s: Situation) -> str | None:
         """The reason, on the tick the robot is found stuck (then the detector restarts); None."""
         c = self.config
         v = float(s.command[0])
+        scan = None
+        if s.points_fix is not self._last_points and len(s.points_fix):
+            self._last_points = s.points_fix
+            scan = (s.now_s, s.pose.copy(), _robot_frame(s.points_fix, s.pose))
+            self._history.append(scan)
+            while self._history[0][0] < s.now_s - SLIP_HISTORY_S:
+                self._history.popleft()
         if abs(v) < c.v_min_mps:
             self.restart()
             return None
         if self._since_s is None:
             self._since_s = s.now_s
-        if s.points_fix is not self._last_points and len(s.points_fix):
-            self._last_points = s.points_fix
-            self._scans.append((s.now_s, s.pose.copy(), _robot_frame(s.points_fix, s.pose)))
+        if scan is not None:
+            self._scans.append(scan)
         while len(self._scans) > 1 and self._scans[1][0] <= s.now_s - c.tau_stuck_s:
             self._scans.popleft()
         if s.now_s - self._since_s < c.tau_stuck_s or not self._scans:
@@ -160,7 +205,7 @@ class StuckDetector:
         moved = math.hypot(s.pose[0] - pose0[0], s.pose[1] - pose0[1])
         span = s.now_s - t0
         if moved < c.d_stuck_m:
-            self.restart()
+            self.forget()
             return f"commanding {v:.2f} m/s, moved {moved * 100:.1f} cm in {span:.1f} s"
         t1, pose1, q1 = self._scans[-1]
         if t1 <= t0 or not len(q0) or not len(q1):
@@ -168,9 +213,8 @@ class StuckDetector:
         self.lidar_checks += 1
         still, as_odometry = scan_fits(q0, pose0, q1, pose1)
         if as_odometry >= c.scan_min_misfit_m and still <= c.scan_fit_ratio * as_odometry:
-            slip = slip_fraction(q0, pose0, q1, pose1)
-            self.last_slip_xy = slip * (pose1[:2] - pose0[:2])
-            self.restart()
+            self.last_slip_xy = slip_since(list(self._history), q1, pose1)
+            self.forget()
             return (f"commanding {v:.2f} m/s, odometry moved {moved:.2f} m in {span:.1f} s but the lidar scan "
                     f"did not change (misfit {still * 100:.1f} cm standing, {as_odometry * 100:.1f} cm as "
                     f"odometry says): wheels slipping")
@@ -246,4 +290,5 @@ class CorrectingMode:
         return d
 
 
-__all__ = ["CorrectingConfig", "CorrectingMode", "Correction", "StuckDetector", "scan_fits", "slip_fraction"]
+__all__ = ["CorrectingConfig", "CorrectingMode", "Correction", "StuckDetector", "scan_fits", "slip_fraction",
+           "slip_since"]

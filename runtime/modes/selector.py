@@ -136,7 +136,7 @@ class ModeSelector:
         self.normal.reset()
         self.stall.restart(now_s)
         if self.stuck is not None:
-            self.stuck.restart()
+            self.stuck.forget()
 
     def slack_work(self) -> bool:
         """The normal mode's deferred work (its reference searches); none during a recovery (the
