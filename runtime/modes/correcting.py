@@ -1,7 +1,7 @@
 """`correcting`: DCT's correcting mode (paper IV-C-3, DESIGN.md 5.4) as a recovery strategy.
 
-When a push fails the robot is stuck: it commands motion (|v| >= v_min) but moves less than
-d_stuck in tau_stuck. Then, in this order (the selector, runtime.modes.selector, switches here):
+When a push fails the robot is stuck: it commands forward motion (v >= v_min, the planner's
+command) but moves less than d_stuck in tau_stuck. Then, in this order (the selector, runtime.modes.selector, switches here):
 1. eq. 14: the movable object in front of the robot (its P_mov points within the footprint +
    `contact_margin_m`, on the side the robot was driving to) is relabelled fixed for the rest of
    the episode (the partition stage: runtime.partition_stage, VppStage.demote); none when there
@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -47,7 +47,7 @@ class CorrectingConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     enabled: bool = True
-    #: Commanded |v| at least this (m/s) counts as "commanding motion".
+    #: Commanded v (forward) at least this (m/s) counts as "commanding motion".
     v_min_mps: float = Field(default=0.10, gt=0.0, le=2.0)
     #: Moved less than this (m) over tau_stuck_s while commanding motion: stuck.
     d_stuck_m: float = Field(default=0.05, gt=0.0, le=2.0)
@@ -56,11 +56,18 @@ class CorrectingConfig(BaseModel):
     traceback_states: int = Field(default=20, ge=1, le=400)
     trail_spacing_m: float = Field(default=0.025, gt=0.0, le=1.0)
     #: v_rev (m/s): the reverse speed bound.
-    v_rev_mps: float = Field(default=0.2, gt=0.0, le=2.0)
+    v_rev_mps: float = Field(default=0.3, gt=0.0, le=2.0)
     #: The object pushed: its P_mov points within the footprint + this margin (m), ahead.
     contact_margin_m: float = Field(default=0.12, ge=0.0, le=1.0)
     #: A reverse that has not arrived after this long ends anyway (s).
     timeout_s: float = Field(default=5.0, gt=0.0, le=60.0)
+    #: Line-up after a stall with nothing movable in front (a wedge at a tight gap approached
+    #: steeply, the MPC's local minimum): the direction of the reference path ahead of the stall
+    #: is the passage's axis; the robot drives to the point `line_up_distance_m` before the stall
+    #: on that axis, turns along it, and only then replans. 0: off.
+    line_up_distance_m: float = Field(default=0.6, ge=0.0, le=3.0)
+    line_up_timeout_s: float = Field(default=4.0, gt=0.0, le=60.0)
+    align_tolerance_rad: float = Field(default=0.08, gt=0.0, le=1.0)
     #: At most this many corrections per goal; then the stall stays reported.
     max_corrections: int = Field(default=5, ge=0, le=100)
     #: Lidar check: "stood still" must fit the scan this many times better than the odometry's
@@ -154,7 +161,7 @@ def scan_fits(old_q: np.ndarray, old_pose: np.ndarray, new_q: np.ndarray, new_po
 
 
 class StuckDetector:
-    """The paper's trigger: |v_cmd| >= v_min for tau_stuck while moving less than d_stuck
+    """The paper's trigger: v_cmd >= v_min (forward) for tau_stuck while moving less than d_stuck
     (odometry, checked by the lidar: module docstring). All on the controller's clock."""
 
     def __init__(self, config: CorrectingConfig) -> None:
@@ -179,10 +186,12 @@ class StuckDetector:
         self.restart()
         self._history.clear()
 
-    def update(self, s: Situation) -> str | None:
-        """The reason, on the tick the robot is found stuck (then the detector restarts); None."""
+    def update(self, s: Situation, planned_v_mps: float | None = None) -> str | None:
+        """The reason, on the tick the robot is found stuck (then the detector restarts); None.
+        The commanded speed is the planner's (planned_v_mps: the paper's v_t, what the mode asked
+        for, before the safety supervisor stopped it at a wedge), else the command applied."""
         c = self.config
-        v = float(s.command[0])
+        v = float(s.command[0]) if planned_v_mps is None else float(planned_v_mps)
         scan = None
         if s.points_fix is not self._last_points and len(s.points_fix):
             self._last_points = s.points_fix
@@ -190,7 +199,7 @@ class StuckDetector:
             self._history.append(scan)
             while self._history[0][0] < s.now_s - SLIP_HISTORY_S:
                 self._history.popleft()
-        if abs(v) < c.v_min_mps:
+        if v < c.v_min_mps:  # the paper's v_t >= v_min: forward (a reverse is what the recovery does)
             self.restart()
             return None
         if self._since_s is None:
@@ -246,27 +255,38 @@ class CorrectingMode:
 
     def __init__(self, config: CorrectingConfig, backoff: BackoffMode, robot, partition=None) -> None:
         """backoff: the reverse (its distance is set per correction); partition: the controller's
-        partition stage (runtime.partition_stage), set by the mode's builder."""
+        partition stage (runtime.partition_stage), set by the mode's builder. `normal` (the
+        normal mode, which plans the line-up) is set by the selector."""
         self.config = config
         self.backoff = backoff
         self.partition = partition
+        self.normal = None
         self.half_length_m = robot.footprint.length_m / 2
         self.half_width_m = robot.footprint.width_m / 2
+        self.max_omega_radps = float(robot.body_max_angular_speed_radps)
         self.corrections: list[Correction] = []
         self._repeat = 0
+        self._phase = "reverse"  # reverse -> line_up -> align (the last two after a wedge only)
+        self._line_up: tuple[np.ndarray, float] | None = None  # (waypoint xy, axis yaw)
+        self._phase_s = 0.0
 
     def reset(self) -> None:
         self.backoff.reset()
+        self._phase = "reverse"
+        self._line_up = None
 
     def counters(self) -> dict:
         return {}
 
     def slack_work(self) -> bool:
+        """Nothing deferred: the reverses track recorded or straight paths."""
         return False
 
-    def start(self, s: Situation, trail: PoseTrail, reason: str, repeat: bool) -> Correction:
+    def start(self, s: Situation, trail: PoseTrail, reason: str, repeat: bool,
+              path_ahead: np.ndarray | None = None) -> Correction:
         """Begin a correction: relabel the object in front (if any), plan the way back. repeat:
-        no progress since the previous correction (trace back further)."""
+        no progress since the previous correction (trace back further). path_ahead: the normal
+        mode's reference path (odom xy) at the stall, for the line-up after a wedge."""
         c = self.config
         self._repeat = self._repeat + 1 if repeat else 1
         forward = float(s.command[0]) >= 0.0
@@ -278,16 +298,84 @@ class CorrectingMode:
         distance = c.traceback_states * c.trail_spacing_m * self._repeat
         self.backoff.distance_m = distance
         how = self.backoff.start(s, trail)
+        self._phase = "reverse"
+        self._line_up = None
+        if oid is None and path_ahead is not None and c.line_up_distance_m > 0.0:
+            self._line_up = _line_up_point(path_ahead, s.pose, s.points_fix, c.line_up_distance_m,
+                                           math.hypot(self.half_length_m, self.half_width_m))
+            if self._line_up is not None:
+                xy, yaw = self._line_up
+                if float((xy - s.pose[:2]) @ [math.cos(s.pose[2]), math.sin(s.pose[2])]) < 0.0:
+                    # behind the robot: reverse straight to it (still facing the passage), not along the trail
+                    self.backoff.start_path(s, np.linspace(s.pose[:2], xy, 8))
+                    self._phase = "line_up"
+                    how = f"reversing {np.hypot(*(xy - s.pose[:2])):.2f} m straight"
+                how += f"; line up at ({xy[0]:.2f}, {xy[1]:.2f}) facing {math.degrees(yaw):.0f} deg"
         corr = Correction(s.now_s, reason, oid, distance, outcome=how)
         self.corrections.append(corr)
         return corr
 
     def plan(self, s: Situation) -> ModeDecision:
-        d = self.backoff.plan(s)
+        d = self._plan_phase(s)
         if d.done and self.corrections and self.corrections[-1].end_s is None:
             self.corrections[-1].end_s = s.now_s
             self.corrections[-1].outcome = d.note
         return d
+
+    def _plan_phase(self, s: Situation) -> ModeDecision:
+        c = self.config
+        if self._phase == "reverse":
+            d = self.backoff.plan(s)
+            if not d.done or self._line_up is None:
+                return d
+            xy, yaw = self._line_up
+            self._phase, self._phase_s = "align", s.now_s
+            away = xy - s.pose[:2]
+            if float(away @ [math.cos(s.pose[2]), math.sin(s.pose[2])]) < 0.0 and np.hypot(*away) > 0.05:
+                # the line-up point is behind: reverse straight to it (the robot keeps facing the passage)
+                self.backoff.start_path(s, np.linspace(s.pose[:2], xy, 8), "to the line-up point")
+                self._phase = "line_up"
+        xy, yaw = self._line_up
+        if self._phase == "line_up":
+            d = self.backoff.plan(s)
+            if not d.done:
+                return replace(d, note="lining up")
+            self._phase, self._phase_s = "align", s.now_s
+        err = math.atan2(math.sin(yaw - s.pose[2]), math.cos(yaw - s.pose[2]))
+        if abs(err) <= c.align_tolerance_rad or s.now_s - self._phase_s > c.line_up_timeout_s:
+            return ModeDecision(done=True, note=f"backed off, lined up ({math.degrees(err):.0f} deg off the axis)")
+        omega = max(-self.max_omega_radps, min(self.max_omega_radps, 2.0 * err))
+        return ModeDecision(0.0, omega, note="turning along the passage")
+
+
+def _line_up_point(path: np.ndarray, pose: np.ndarray, points_fix: np.ndarray, distance_m: float,
+                   radius_m: float) -> tuple[np.ndarray, float] | None:
+    """(waypoint, axis yaw) for the line-up: the reference path's direction from the stall over
+    0.25-0.65 m on is the passage's axis; the waypoint lies distance_m back from the stall along
+    it, shortened until the robot's circumscribed circle (radius_m + 5 cm) is clear of P_fix there.
+    None when the path ahead is too short or no such point is clear."""
+    path = np.asarray(path, dtype=float)
+    if path.ndim != 2 or len(path) < 3:
+        return None
+    k = int(np.argmin(np.hypot(path[:, 0] - pose[0], path[:, 1] - pose[1])))
+    ahead = path[k:]
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ahead, axis=0).T))])
+    if arc[-1] < 0.3:
+        return None
+    s0, s1 = min(0.25, 0.5 * arc[-1]), min(0.65, arc[-1])  # inside the passage: the path keeps to its middle
+    a = np.array([np.interp(s0, arc, ahead[:, 0]), np.interp(s0, arc, ahead[:, 1])])
+    b = np.array([np.interp(s1, arc, ahead[:, 0]), np.interp(s1, arc, ahead[:, 1])])
+    axis = b - a
+    if not np.hypot(*axis) > 0.1:
+        return None
+    yaw = math.atan2(axis[1], axis[0])
+    u = axis / np.hypot(*axis)
+    tree = cKDTree(points_fix) if len(points_fix) else None
+    for dist in np.linspace(distance_m + s0, 0.5 * distance_m + s0, 4):
+        xy = a - dist * u
+        if tree is None or tree.query(xy)[0] >= radius_m + 0.05:
+            return xy, yaw
+    return None
 
 
 __all__ = ["CorrectingConfig", "CorrectingMode", "Correction", "StuckDetector", "scan_fits", "slip_fraction",

@@ -5,7 +5,7 @@ normal mode (pure-pursuit, all-fixed, dct) --stall--> backoff --done--> normal m
 with correcting mode (runtime.modes.correcting, DCT IV-C-3; config `correcting.enabled`) in
 place of the backoff:
 
-normal mode --stuck (|v_cmd| >= v_min, moved < d_stuck for tau_stuck) or stall--> correcting
+normal mode --stuck (v_cmd >= v_min forward, moved < d_stuck for tau_stuck) or stall--> correcting
             (relabel the object pushed fixed, reverse along the recorded states) --done--> normal
             mode (replans on the new P_fix)
 
@@ -101,6 +101,8 @@ class ModeSelector:
         self.events = events
         self.stall = StallDetector(config)
         self.stuck = StuckDetector(correcting.config) if correcting is not None else None
+        if correcting is not None:
+            correcting.normal = normal  # it plans the line-up after a wedge
         self.trail = PoseTrail(correcting.config.trail_spacing_m) if correcting is not None else PoseTrail()
         self.active: NavigationMode = normal
         self.backoffs = 0
@@ -141,6 +143,8 @@ class ModeSelector:
     def slack_work(self) -> bool:
         """The normal mode's deferred work (its reference searches); none during a recovery (the
         normal mode is reset when it ends, which would throw the result away)."""
+        if self.active is self.correcting:
+            return self.correcting.slack_work()  # its line-up plans with the normal mode
         return self.active is self.normal and self.normal.slack_work()
 
     def plan(self, s: Situation) -> ModeDecision:
@@ -149,7 +153,8 @@ class ModeSelector:
         if self.active is self.normal:
             self.trail.record(s.pose)
             d = self.normal.plan(s)
-            stuck = self.stuck.update(s) if self.stuck is not None and not (d.at_goal or d.blocked) else None
+            stuck = (self.stuck.update(s, d.v_mps) if self.stuck is not None and not (d.at_goal or d.blocked)
+                     else None)
             if stuck is not None:
                 d = self._on_stuck(s, d, stuck)
             elif self.stall.update(s.now_s, d):
@@ -203,7 +208,8 @@ class ModeSelector:
         last = self._last_correction_xy
         repeat = last is not None and math.hypot(s.pose[0] - last[0], s.pose[1] - last[1]) <= REPEAT_RADIUS_M
         self._last_correction_xy = s.pose[:2].copy()
-        c = corr.start(s, self.trail, reason, repeat)
+        ref = getattr(self.normal, "last_reference", None)  # the MPC modes' reference path (None: none)
+        c = corr.start(s, self.trail, reason, repeat, ref.path_world if ref is not None else None)
         what = f"object {c.object_id} relabelled fixed" if c.object_id is not None else "no movable object in front"
         self.events.add(s.now_s, "correcting",
                         f"attempt {len(corr.corrections)}/{corr.config.max_corrections} ({reason}): {what}; {c.outcome}")
