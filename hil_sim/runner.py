@@ -374,7 +374,8 @@ def failure_reason(metrics: dict, controller: dict) -> str | None:
     if controller.get("stalled_now") or controller.get("stalls"):
         return (
             f"stalled without progress with a valid reference path: {controller['stalls']} stalls, "
-            f"{controller['backoffs']} backoffs did not free it, "
+            f"{controller['backoffs']} backoffs and {controller.get('correcting_events', 0)} corrections did not "
+            f"free it, "
             f"{metrics['final_distance_to_goal_m']:.2f} m from the goal"
         )
     return f"time limit: {metrics['final_distance_to_goal_m']:.2f} m from the goal"
