@@ -1,7 +1,8 @@
 """`correcting`: DCT's correcting mode (paper IV-C-3, DESIGN.md 5.4) as a recovery strategy.
 
 When a push fails the robot is stuck: it commands forward motion (v >= v_min, the planner's
-command) but moves less than d_stuck in tau_stuck. Then, in this order (the selector, runtime.modes.selector, switches here):
+command) but moves less than d_stuck in tau_stuck (or the selector's progress stall fires).
+Then, in this order (the selector, runtime.modes.selector, switches here):
 1. eq. 14: the movable object in front of the robot (its P_mov points within the footprint +
    `contact_margin_m`, on the side the robot was driving to) is relabelled fixed for the rest of
    the episode (the partition stage: runtime.partition_stage, VppStage.demote); none when there
@@ -9,10 +10,12 @@ command) but moves less than d_stuck in tau_stuck. Then, in this order (the sele
 2. the robot reverses along its recorded states (runtime.modes.backoff.PoseTrail) for F of them
    (the trail's spacing apart) with v in [-v_rev, 0] (BackoffMode: the MPC tracks the trail
    backwards, the supervisor checks every command);
+   After a wedge (nothing relabelled: a tight gap approached steeply, the MPC's local minimum,
+   where the heading-blind reference path would lead straight back in) the reverse goes instead
+   straight to a line-up point on the passage's axis (the reference path's direction 0.25-0.65 m
+   past the stall), and the robot turns along the axis there;
 3. the normal mode replans on the new P_fix (the selector resets it when this mode is done).
-A second correction in a row (no progress towards the goal since the last one) traces back
-further: F times the attempt number, so that a wedge at a tight gap approached steeply gets the
-room to line up that the first attempt did not give.
+A second correction at the same place traces back further: F times the attempt number.
 
 "Moved" is measured twice: the odometry's displacement over the window, and, when odometry says
 the robot moved, the lidar: the P_fix points in the robot frame now against those tau_stuck ago,
@@ -217,8 +220,8 @@ class StuckDetector:
             self.forget()
             return f"commanding {v:.2f} m/s, moved {moved * 100:.1f} cm in {span:.1f} s"
         t1, pose1, q1 = self._scans[-1]
-        if t1 <= t0 or not len(q0) or not len(q1):
-            return None
+        if scan is None or t1 <= t0 or not len(q0) or not len(q1):
+            return None  # the lidar check once per scan (10 Hz), not every tick
         self.lidar_checks += 1
         still, as_odometry = scan_fits(q0, pose0, q1, pose1)
         if as_odometry >= c.scan_min_misfit_m and still <= c.scan_fit_ratio * as_odometry:
@@ -249,18 +252,18 @@ class Correction:
 
 
 class CorrectingMode:
-    """Relabel (eq. 14), reverse along the recorded states, then let the normal mode replan."""
+    """Relabel (eq. 14), reverse along the recorded states (after a wedge: straight to a line-up
+    point on the passage's axis, then turn along it), then let the normal mode replan."""
 
     name = "correcting"
 
     def __init__(self, config: CorrectingConfig, backoff: BackoffMode, robot, partition=None) -> None:
-        """backoff: the reverse (its distance is set per correction); partition: the controller's
-        partition stage (runtime.partition_stage), set by the mode's builder. `normal` (the
-        normal mode, which plans the line-up) is set by the selector."""
+        """backoff: the reverses (along the trail, or straight to a line-up point; its distance is
+        set per correction); partition: the controller's partition stage
+        (runtime.partition_stage), set by the mode's builder."""
         self.config = config
         self.backoff = backoff
         self.partition = partition
-        self.normal = None
         self.half_length_m = robot.footprint.length_m / 2
         self.half_width_m = robot.footprint.width_m / 2
         self.max_omega_radps = float(robot.body_max_angular_speed_radps)

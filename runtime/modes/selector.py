@@ -101,8 +101,6 @@ class ModeSelector:
         self.events = events
         self.stall = StallDetector(config)
         self.stuck = StuckDetector(correcting.config) if correcting is not None else None
-        if correcting is not None:
-            correcting.normal = normal  # it plans the line-up after a wedge
         self.trail = PoseTrail(correcting.config.trail_spacing_m) if correcting is not None else PoseTrail()
         self.active: NavigationMode = normal
         self.backoffs = 0
@@ -143,8 +141,6 @@ class ModeSelector:
     def slack_work(self) -> bool:
         """The normal mode's deferred work (its reference searches); none during a recovery (the
         normal mode is reset when it ends, which would throw the result away)."""
-        if self.active is self.correcting:
-            return self.correcting.slack_work()  # its line-up plans with the normal mode
         return self.active is self.normal and self.normal.slack_work()
 
     def plan(self, s: Situation) -> ModeDecision:

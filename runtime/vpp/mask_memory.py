@@ -185,6 +185,7 @@ class MaskMemory:
         #: with its newest entry, so that a fresh detection of the same object that no remembered
         #: entry matched (it was out of view meanwhile, and dropped) is re-identified by IoU too.
         self.demoted: dict[int, MaskEntry | None] = {}
+        self._tombstone_ids: list[int] = []  # demoted ids the last reconcile compared (_claim_demoted)
 
     # ------------------------------------------------------------------ trigger (Alg. 1 l.3)
     def query_due(self, now_s: float, camera_pose_odom: np.ndarray) -> bool:
