@@ -316,6 +316,10 @@ def run_episode(
             "planner": config.planner.mode,
             "faults": [{**f.to_dict(), "acted_on": injector.applied[f.name]} for f in faults],
             "events": controller.events.to_list(t0_s=t_start),
+            # DCT correcting mode (runtime.modes.correcting): how often, and each one's start,
+            # duration, object relabelled fixed (None) and reason.
+            "correcting_events": int(report.get("correcting_events", 0)),
+            "correcting": controller.modes.correcting_report(t0_s=t_start),
             "controller": report,
             "sensor_errors": dict(sorted(inbox.error_counts.items())),
             "firmware_frames_rejected": firmware.frames_rejected,
@@ -380,7 +384,8 @@ def failure_reason(metrics: dict, controller: dict) -> str | None:
     if controller.get("stalled_now") or controller.get("stalls"):
         return (
             f"stalled without progress with a valid reference path: {controller['stalls']} stalls, "
-            f"{controller['backoffs']} backoffs did not free it, "
+            f"{controller['backoffs']} backoffs and {controller.get('correcting_events', 0)} corrections did not "
+            f"free it, "
             f"{metrics['final_distance_to_goal_m']:.2f} m from the goal"
         )
     return f"time limit: {metrics['final_distance_to_goal_m']:.2f} m from the goal"

@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from calibration.errors import ConfigFileError, load_yaml_model
 from models.vlm.factory import BackendConfig, SimOracleBackendConfig
 from runtime.input_monitor import InputsConfig
+from runtime.modes.correcting import CorrectingConfig
 from runtime.modes.selector import RecoveryConfig
 from runtime.odometry.stage import OdometryConfig
 from runtime.planning.grid_astar import GridAStarConfig
@@ -127,6 +128,9 @@ class ControllerConfig(_Strict):
     inputs: InputsConfig = InputsConfig()
     #: Stall detection and the backoff recovery (runtime.modes.selector).
     recovery: RecoveryConfig = RecoveryConfig()
+    #: DCT's correcting mode (runtime.modes.correcting): stuck or stalled -> relabel the object
+    #: pushed fixed, reverse along the recorded states, replan. Planner modes all-fixed and dct.
+    correcting: CorrectingConfig = CorrectingConfig()
     #: Wheels + gyro + KISS-ICP, fused (runtime.odometry).
     odometry: OdometryConfig = OdometryConfig()
     #: The VLM point partition and its backend (runtime.vpp, models.vlm.factory; planner mode dct).

@@ -132,7 +132,7 @@ class NavigationController:
         self.partition = stack.partition
         self.supervisor = stack.supervisor
         self.last_safety = None
-        self.modes = ModeSelector(stack.normal, stack.recovery, config.recovery, self.events)
+        self.modes = ModeSelector(stack.normal, stack.recovery, config.recovery, self.events, stack.correcting)
         self.limiter = CommandLimiter(
             robot.limits.max_linear_speed_mps,
             robot.body_max_angular_speed_radps,

@@ -18,6 +18,9 @@ Event names:
   a stop / no stop for 10 ticks in a row (once per episode of stops, not per tick).
 - `stall`: no progress towards the goal with a valid reference path; `backoff`: the recovery
   reverses along the recorded path; `backoff_end`: it is done and the planner replans.
+- `stuck`: commanding motion without moving (DCT's correcting-mode trigger); `correcting`: correcting
+  mode starts (the object relabelled fixed, or none, and the reverse); `correcting_end`: it is done
+  (with its duration) and the planner replans.
 - `degraded` / `restored`: the planner falls back to the previous plan (a failed solve).
 - `goal_reached`.
 """

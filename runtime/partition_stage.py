@@ -14,7 +14,8 @@ Per tick the controller calls `update(now, pose, image, scan)`, which returns th
 the obstacle extractor (runtime.obstacle_points: (N,) bool per scan point, True = P_fix) or None
 for "every point"; then `ready(now)` says whether the planner may drive yet. `settle(t_s)` is the
 simulator's lockstep barrier, `close()` ends work beside the tick, `describe()` adds the stage's
-counters to the episode report.
+counters to the episode report; `relabel_fixed_in_front(...)` is correcting mode's eq. 14 (the
+object a failed push was on becomes fixed).
 """
 from __future__ import annotations
 
@@ -51,6 +52,12 @@ class PartitionStage(Protocol):
     def describe(self) -> dict:
         """JSON-ready entries for the controller's report ({} when there is nothing to say)."""
 
+    def relabel_fixed_in_front(self, pose: tuple[float, float, float], half_length_m: float, half_width_m: float,
+                               margin_m: float, forward: bool) -> int | None:
+        """Correcting mode (DCT eq. 14): the movable object in front of the robot (within its
+        footprint + margin_m) becomes fixed for the rest of the episode; returns its id, or None
+        when no movable object is there."""
+
 
 class AllFixedPartition:
     """Every point is P_fix; nothing runs beside the tick; the planner never waits."""
@@ -76,6 +83,9 @@ class AllFixedPartition:
 
     def describe(self) -> dict:
         return {}
+
+    def relabel_fixed_in_front(self, pose, half_length_m, half_width_m, margin_m, forward) -> int | None:
+        return None  # every point is fixed already
 
 
 class VppPartition:
@@ -112,6 +122,12 @@ class VppPartition:
 
     def describe(self) -> dict:
         return {"vpp": self.vpp.describe()}
+
+    def relabel_fixed_in_front(self, pose, half_length_m, half_width_m, margin_m, forward) -> int | None:
+        oid = self.vpp.movable_in_front(pose, half_length_m, half_width_m, margin_m, forward)
+        if oid is not None:
+            self.vpp.demote(oid)
+        return oid
 
 
 def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_cam_lidar=None) -> VppPartition:

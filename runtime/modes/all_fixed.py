@@ -76,4 +76,12 @@ def build(ctx: ModeContext) -> ModeStack:
     reference = ReferencePathPlanner(pc.reference_path, robot)
     backoff = BackoffMode(mpc, rc.backoff_distance_m, min(rc.backoff_speed_mps, pc.mpc.max_reverse_speed_mps),
                           rc.backoff_timeout_s)
-    return ModeStack(AllFixedMode(reference, mpc), backoff, SafetySupervisor(pc.safety_supervisor, robot))
+    stack = ModeStack(AllFixedMode(reference, mpc), backoff, SafetySupervisor(pc.safety_supervisor, robot))
+    cc = ctx.config.correcting
+    if cc.enabled:  # its reverse is a backoff of its own (the distance is set per correction)
+        from runtime.modes.correcting import CorrectingMode
+
+        reverse = BackoffMode(mpc, cc.traceback_states * cc.trail_spacing_m,
+                              min(cc.v_rev_mps, pc.mpc.max_reverse_speed_mps), cc.timeout_s)
+        stack.correcting = CorrectingMode(cc, reverse, robot, stack.partition)
+    return stack

@@ -90,8 +90,14 @@ class BackoffMode:
             steps = np.linspace(0.0, self.distance_m, 8)[:, None]
             path = s.pose[:2] - steps * np.array([c, sn])
             how = "straight back (short recorded path)"
-        self._path = path
-        seg = np.hypot(*np.diff(path, axis=0).T)
+        return self.start_path(s, path, how)
+
+    def start_path(self, s: Situation, path: np.ndarray, how: str = "") -> str:
+        """Reverse along `path` ((M, 2) odom xy, from the robot's position on; correcting mode's
+        line-up gives a straight one); returns a description for the event log."""
+        self.mpc.reset()
+        self._path = np.asarray(path, dtype=np.float64)
+        seg = np.hypot(*np.diff(self._path, axis=0).T)
         self._cum = np.concatenate([[0.0], np.cumsum(seg)])
         self._started_s = s.now_s
         return f"reversing {self._cum[-1]:.2f} m {how} at up to {self.speed_mps:g} m/s"

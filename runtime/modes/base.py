@@ -85,3 +85,6 @@ class ModeStack:
     recovery: Any = None  # runtime.modes.backoff.BackoffMode
     supervisor: Any = None  # runtime.safety_supervisor.SafetySupervisor
     partition: PartitionStage = field(default_factory=AllFixedPartition)
+    #: Correcting mode (runtime.modes.correcting.CorrectingMode), None where the mode has none:
+    #: the selector then recovers from a stall with `recovery` alone.
+    correcting: Any = None

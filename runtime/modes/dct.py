@@ -22,4 +22,6 @@ def build(ctx: ModeContext) -> ModeStack:
     stack.partition = build_vpp_partition(ctx.config, ctx.robot, backend, lockstep=not ctx.wall_clock_caps,
                                           camera=ctx.camera, T_cam_lidar=ctx.T_cam_lidar)
     stack.normal.name = "dct"
+    if stack.correcting is not None:
+        stack.correcting.partition = stack.partition  # eq. 14 relabels in the VPP stage
     return stack

@@ -1,6 +1,13 @@
 """The small state machine that chooses the navigation mode each tick.
 
-normal mode (pure-pursuit or all-fixed) --stall--> backoff --done--> normal mode (replans)
+normal mode (pure-pursuit, all-fixed, dct) --stall--> backoff --done--> normal mode (replans)
+
+with correcting mode (runtime.modes.correcting, DCT IV-C-3; config `correcting.enabled`) in
+place of the backoff:
+
+normal mode --stuck (v_cmd >= v_min forward, moved < d_stuck for tau_stuck) or stall--> correcting
+            (relabel the object pushed fixed, reverse along the recorded states) --done--> normal
+            mode (replans on the new P_fix)
 
 A stall: no progress along the path to the goal (its remaining length did not shrink by
 `min_progress_m`) for `window_s`, while the reference path is valid (not blocked, not at the
@@ -11,12 +18,20 @@ the selector stops trying and the stall stays reported (the episode's failure re
 from __future__ import annotations
 
 import math
+from dataclasses import replace
+
+import numpy as np
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from runtime.events import EventLog
 from runtime.modes.backoff import BackoffMode, PoseTrail
 from runtime.modes.base import ModeDecision, NavigationMode, Situation
+from runtime.modes.correcting import CorrectingMode, StuckDetector
+
+#: A correction that starts within this of where the previous one started (no way found past
+#: the place since) traces back further (CorrectingMode.start).
+REPEAT_RADIUS_M = 0.3
 
 
 class RecoveryConfig(BaseModel):
@@ -77,32 +92,51 @@ class StallDetector:
 
 class ModeSelector:
     def __init__(self, normal: NavigationMode, recovery: BackoffMode | None, config: RecoveryConfig,
-                 events: EventLog) -> None:
+                 events: EventLog, correcting: CorrectingMode | None = None) -> None:
+        """correcting: correcting mode (None: the stall backoff alone, as before it)."""
         self.normal = normal
         self.recovery = recovery if config.enabled else None
+        self.correcting = correcting
         self.config = config
         self.events = events
         self.stall = StallDetector(config)
-        self.trail = PoseTrail()
+        self.stuck = StuckDetector(correcting.config) if correcting is not None else None
+        self.trail = PoseTrail(correcting.config.trail_spacing_m) if correcting is not None else PoseTrail()
         self.active: NavigationMode = normal
         self.backoffs = 0
         self.last_decision = ModeDecision()
+        self._last_correction_xy: np.ndarray | None = None
+        #: Wheel slip the lidar found (correcting mode), summed: the odom frame moved under the
+        #: world by it, so the goal in the odom frame moves with it.
+        self.goal_shift_xy = np.zeros(2)
 
     @property
     def mode_name(self) -> str:
         return self.active.name
 
     def counters(self) -> dict:
-        return {**self.normal.counters(), "stalls": self.stall.stalls, "stalled_now": self.stall.stalled,
-                "backoffs": self.backoffs}
+        out = {**self.normal.counters(), "stalls": self.stall.stalls, "stalled_now": self.stall.stalled,
+               "backoffs": self.backoffs}
+        if self.correcting is not None:
+            out.update(correcting_events=len(self.correcting.corrections),
+                       correcting=self.correcting_report())
+        return out
+
+    def correcting_report(self, t0_s: float = 0.0) -> list[dict]:
+        """Each correction: start (s from t0_s), duration, object relabelled (None), reason."""
+        return [c.to_dict(t0_s) for c in self.correcting.corrections] if self.correcting is not None else []
 
     def reset(self, now_s: float) -> None:
         """After a stop or a restart: the normal mode, a fresh plan, the stall clock from now."""
         if self.active is not self.normal and self.recovery is not None:
             self.recovery.reset()
+        if self.active is self.correcting:
+            self.correcting.reset()
         self.active = self.normal
         self.normal.reset()
         self.stall.restart(now_s)
+        if self.stuck is not None:
+            self.stuck.forget()
 
     def slack_work(self) -> bool:
         """The normal mode's deferred work (its reference searches); none during a recovery (the
@@ -110,15 +144,26 @@ class ModeSelector:
         return self.active is self.normal and self.normal.slack_work()
 
     def plan(self, s: Situation) -> ModeDecision:
+        if self.goal_shift_xy.any():
+            s = replace(s, goal_xy=s.goal_xy + self.goal_shift_xy)
         if self.active is self.normal:
             self.trail.record(s.pose)
             d = self.normal.plan(s)
-            if self.stall.update(s.now_s, d):
+            stuck = (self.stuck.update(s, d.v_mps) if self.stuck is not None and not (d.at_goal or d.blocked)
+                     else None)
+            if stuck is not None:
+                d = self._on_stuck(s, d, stuck)
+            elif self.stall.update(s.now_s, d):
                 d = self._on_stall(s, d)
         else:
-            d = self.recovery.plan(s)
+            d = self.active.plan(s)
             if d.done:
-                self.events.add(s.now_s, "backoff_end", f"{d.note}; replanning")
+                if self.active is self.correcting:
+                    c = self.correcting.corrections[-1]
+                    self.events.add(s.now_s, "correcting_end",
+                                    f"{d.note} after {s.now_s - c.start_s:.2f} s; replanning")
+                else:
+                    self.events.add(s.now_s, "backoff_end", f"{d.note}; replanning")
                 self.reset(s.now_s)
                 d = self.normal.plan(s)
         self.last_decision = d
@@ -130,6 +175,9 @@ class ModeSelector:
             f"no progress for {self.config.stall_window_s:g} s with a valid reference path "
             f"({d.remaining_m:.2f} m to go)",
         )
+        if self.correcting is not None:
+            return self._correct(s, d, f"stall: no progress for {self.config.stall_window_s:g} s "
+                                       f"({d.remaining_m:.2f} m to go)")
         if self.recovery is None or self.backoffs >= self.config.max_backoffs:
             return d
         self.backoffs += 1
@@ -137,3 +185,29 @@ class ModeSelector:
         self.events.add(s.now_s, "backoff", f"attempt {self.backoffs}/{self.config.max_backoffs}: {how}")
         self.active = self.recovery
         return self.recovery.plan(s)
+
+    def _on_stuck(self, s: Situation, d: ModeDecision, reason: str) -> ModeDecision:
+        self.events.add(s.now_s, "stuck", reason)
+        slip = self.stuck.last_slip_xy
+        if slip.any():
+            self.goal_shift_xy = self.goal_shift_xy + slip
+            self.stuck.last_slip_xy = np.zeros(2)
+            self.events.add(s.now_s, "odometry_slip",
+                            f"the wheels slipped {np.hypot(*slip):.2f} m the lidar did not see: goal moved with the odom frame")
+        return self._correct(s, d, f"stuck: {reason}")
+
+    def _correct(self, s: Situation, d: ModeDecision, reason: str) -> ModeDecision:
+        """Correcting mode (DCT IV-C-3): relabel, reverse, then the normal mode replans."""
+        corr = self.correcting
+        if len(corr.corrections) >= corr.config.max_corrections:
+            return d
+        last = self._last_correction_xy
+        repeat = last is not None and math.hypot(s.pose[0] - last[0], s.pose[1] - last[1]) <= REPEAT_RADIUS_M
+        self._last_correction_xy = s.pose[:2].copy()
+        ref = getattr(self.normal, "last_reference", None)  # the MPC modes' reference path (None: none)
+        c = corr.start(s, self.trail, reason, repeat, ref.path_world if ref is not None else None)
+        what = f"object {c.object_id} relabelled fixed" if c.object_id is not None else "no movable object in front"
+        self.events.add(s.now_s, "correcting",
+                        f"attempt {len(corr.corrections)}/{corr.config.max_corrections} ({reason}): {what}; {c.outcome}")
+        self.active = corr
+        return corr.plan(s)

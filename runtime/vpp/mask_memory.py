@@ -184,6 +184,10 @@ class MaskMemory:
         self.last_query_pose_odom: np.ndarray | None = None
         self.last_answer_s: float | None = None
         self._next_id = 0
+        #: Object ids demoted to fixed by correcting mode (DCT eq. 14), for the whole episode; each
+        #: with its newest entry, so that a fresh detection of the same object that no remembered
+        #: entry matched (it was out of view meanwhile, and dropped) is re-identified by IoU too.
+        self.demoted: dict[int, MaskEntry | None] = {}
 
     # ------------------------------------------------------------------ trigger (Alg. 1 l.3)
     def query_due(self, now_s: float, camera_pose_odom: np.ndarray) -> bool:
@@ -196,6 +200,17 @@ class MaskMemory:
             raise MaskMemoryError(f"stamp_s: not finite ({stamp_s})")
         self.last_query_pose_odom = _check_pose(camera_pose_odom, "camera_pose_odom").copy()
         self.last_query_s = float(stamp_s)
+
+    # ------------------------------------------------------------------ correcting mode
+    def demote(self, object_id: int) -> None:
+        """object_id stays fixed for the rest of the episode (the stage's gate reads `demoted`):
+        reconcile carries the id to a fresh detection of the same object (IoU >= sigma_IoU with
+        its remembered entry, or with its last entry when that was dropped meanwhile)."""
+        oid = int(object_id)
+        self.demoted[oid] = next((e for e in self.entries if e.object_id == oid), self.demoted.get(oid))
+
+    def is_demoted(self, object_id: int) -> bool:
+        return int(object_id) in self.demoted
 
     # ------------------------------------------------------------------ age-out
     def expire(self, now_s: float) -> tuple[int, ...]:
@@ -268,8 +283,13 @@ class MaskMemory:
         """
         if now_s is not None:
             self.expire(now_s)
-        return self.apply(self.preparer.prepare(answer, tuple(self.entries), prompt=prompt, points_cam=points_cam),
-                          now_s)
+        return self.apply(self.preparer.prepare(answer, tuple(self.entries), prompt=prompt, points_cam=points_cam,
+                                                tombstones=self.tombstones()), now_s)
+
+    def tombstones(self) -> tuple[tuple[int, MaskEntry], ...]:
+        """(id, last entry) of the demoted objects (for AnswerPreparer.prepare). A copy first: the
+        worker thread reads it while the tick may demote."""
+        return tuple((oid, e) for oid, e in dict(self.demoted).items() if e is not None)
 
     def apply(self, prepared: "PreparedAnswer", now_s: float | None = None) -> ReconcileResult:
         """Phase II's bookkeeping for an answer prepared beside the tick (AnswerPreparer): age
@@ -311,6 +331,8 @@ class MaskMemory:
                 i, v = int(best[j]), float(best_iou[j])
                 if v >= self.config.sigma_iou and i not in claimed:
                     claimed[i] = (int(j), v)
+        if self.demoted and fresh:
+            self._claim_demoted(fresh, old, claimed, prepared)
         kept_j = {j for j, _ in claimed.values()}
         dropped = [e.object_id for j, e in enumerate(old) if j not in kept_j]
         new_entries: list[MaskEntry] = []
@@ -318,15 +340,33 @@ class MaskMemory:
         for i, f in enumerate(fresh):
             if i in claimed:
                 j, v = claimed[i]
-                oid = old[j].object_id
+                oid = old[j].object_id if j >= 0 else prepared.stones[-1 - j]
                 matched.append((oid, i, v))
             else:
                 oid = self._next_id
                 self._next_id += 1
                 inserted.append((oid, i))
             new_entries.append(replace(f, object_id=oid))
+            if oid in self.demoted:
+                self.demoted[oid] = new_entries[-1]
         self.entries = new_entries
         return ReconcileResult(tuple(sorted(matched)), tuple(dropped), tuple(inserted))
+
+    def _claim_demoted(self, fresh, old: list[MaskEntry], claimed: dict, prepared: "PreparedAnswer") -> None:
+        """Fresh objects no remembered entry claimed, matched (IoU >= sigma_IoU, at the fresh
+        capture pose: prepared beside the tick) against the last entries of demoted objects no
+        longer in the memory: a match takes the demoted id (claimed[i] = (-1 - k, IoU), k into
+        prepared.stones)."""
+        present = {e.object_id for e in old}
+        free = [i for i in range(len(fresh)) if i not in claimed]
+        for k, oid in enumerate(prepared.stones):
+            if oid in present or oid not in self.demoted or not free:
+                continue
+            col = int(prepared.stone_iou[k, free].argmax())
+            i, v = free[col], float(prepared.stone_iou[k, free[col]])
+            if v >= self.config.sigma_iou and i not in claimed:
+                claimed[i] = (-1 - k, v)
+                free.remove(i)
 
 
 @dataclass(frozen=True, eq=False)
@@ -340,6 +380,10 @@ class PreparedAnswer:
     fresh: tuple[MaskEntry, ...] = ()
     old: tuple[MaskEntry, ...] = ()  # the entries the IoU rows belong to (by identity)
     iou: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (len(old), len(fresh))
+    #: Demoted objects' ids and the IoU of their last entries, warped to the capture pose, with
+    #: every fresh mask ((len(stones), len(fresh))): MaskMemory._claim_demoted
+    stones: tuple[int, ...] = ()
+    stone_iou: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     input_error: MaskMemoryError | None = None  # stamp, pose, points: nothing prepared
     object_error: MaskMemoryError | None = None  # an object of the answer (mask, cost, confidence)
 
@@ -358,7 +402,8 @@ class AnswerPreparer:
         self.warper = MaskWarper(self.camera)
 
     def prepare(self, answer: VlmAnswer, entries: tuple[MaskEntry, ...], *, prompt: str = "",
-                points_cam: np.ndarray | None = None) -> PreparedAnswer:
+                points_cam: np.ndarray | None = None,
+                tombstones: tuple[tuple[int, MaskEntry], ...] = ()) -> PreparedAnswer:
         try:
             if not math.isfinite(answer.stamp_s):
                 raise MaskMemoryError(f"answer stamp_s: not finite ({answer.stamp_s})")
@@ -382,7 +427,12 @@ class AnswerPreparer:
         if old and fresh:
             warped = np.stack([self.warp_entry(e, T) for e in old])
             iou = iou_matrix(warped, np.stack([f.mask for f in fresh]))
-        return PreparedAnswer(answer, fresh, old, iou)
+        stones = tuple(oid for oid, _ in tombstones)
+        stone_iou = np.zeros((len(stones), len(fresh)))
+        if stones and fresh:
+            warped = np.stack([self.warp_entry(e, T) for _, e in tombstones])
+            stone_iou = iou_matrix(warped, np.stack([f.mask for f in fresh]))
+        return PreparedAnswer(answer, fresh, old, iou, stones, stone_iou)
 
     def warp_entry(self, entry: MaskEntry, camera_pose_odom: np.ndarray) -> np.ndarray:
         R, t = relative_motion(entry.camera_pose_odom, camera_pose_odom)

@@ -1021,6 +1021,16 @@ class LabelMemory:
         _mem_read(self.keys, self.table, self.shift, keys, sel, bool(want), float(now_s), self.max_age_s, label,
                   object_id, cost, found)
 
+    def fix_object(self, object_id: int) -> int:
+        """Correcting mode (DCT eq. 14): every remembered voxel of object_id becomes FIXED (object
+        id -1, cost NaN; stamps kept, so they age out as before). Returns the voxels relabelled.
+        A vectorized pass over the table (rare: once per failed push), no kernel."""
+        hit = (self.keys != _EMPTY) & (self.label == MOVABLE) & (self.object_id == int(object_id))
+        self.label[hit] = FIXED
+        self.object_id[hit] = -1
+        self.cost[hit] = np.nan
+        return int(np.count_nonzero(hit))
+
 
 # --------------------------------------------------------------------------- the partition
 #: The warp arguments of the kernels when the masks are bitmaps (typed placeholders, never read).

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
 
 from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmAnswer, VlmRequest
@@ -45,7 +46,7 @@ from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import (AnswerPreparer, MaskMemory, MaskMemoryConfig, MaskMemoryError,
                                      PreparedAnswer, ReconcileResult)
-from runtime.vpp.partition import MOVABLE, PartitionConfig, PointPartition, PointPartitioner
+from runtime.vpp.partition import FIXED, MOVABLE, PartitionConfig, PointPartition, PointPartitioner
 from runtime.vpp.tracking import ObjectTracker, TrackingConfig
 
 DEFAULT_PROMPT = (
@@ -146,6 +147,10 @@ class VppStage:
         self.masks_distrusted = 0  # warped masks of moved (or, untracked, grown) objects kept out of the gate
         self.last_rejection: str | None = None
         self.frames = 0
+        self.demotions = 0  # objects demoted to fixed by correcting mode
+        self.reidentified = 0  # fresh mask ids found on a demoted object (3-D), demoted too
+        self._demoted_xy: np.ndarray | None = None  # odom xy of the demoted objects' points (a tree)
+        self._demoted_tree = None
 
     def settle(self, t_s: float) -> None:
         """Lockstep barrier (the simulator calls it before time t_s): answers due are ready."""
@@ -174,7 +179,7 @@ class VppStage:
             if prepared is None or prepared.answer.objects is not answer.objects:
                 # not prepared beside the tick (an error answer: nothing to prepare, cheap)
                 prepared = self._preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
-                                                  points_cam=points_cam)
+                                                  points_cam=points_cam, tombstones=self.memory.tombstones())
             try:
                 self.last_reconcile = self.memory.apply(prepared, now_s)
             except MaskMemoryError as exc:  # the memory stays as it was; the answer is named, not raised
@@ -198,6 +203,8 @@ class VppStage:
         )
         p_odom = self.partitioner.last_points_odom  # the scan in the odom frame, from the partition's pass
         self._last_scan_odom = p_odom
+        if self._demoted_tree is not None:
+            self._reidentify_demoted(part, p_odom)
         self.tracker.update(float(scan.stamp_s), part, p_odom)  # sensor time, as the capture stamps
         self._maybe_ask(now_s)
         self.frames += 1
@@ -213,7 +220,8 @@ class VppStage:
         answer = dataclasses.replace(answer, stamp_s=request.stamp_s, camera_pose_odom=request.camera_pose_odom)
         stamp = float(answer.stamp_s)
         self._prepared[stamp] = self._preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
-                                                       points_cam=self._points_cam_at.get(stamp))
+                                                       points_cam=self._points_cam_at.get(stamp),
+                                                       tombstones=self.memory.tombstones())
 
     def _may_gate(self, entry) -> bool:
         """An entry that can gate points at all (movable, below never_touch_cost): the others are
@@ -228,6 +236,8 @@ class VppStage:
         growth rule (max_mask_growth). Distrusted masks are counted."""
         if not (entry.movable and entry.contact_cost < self.config.never_touch_cost and warped_px > 0):
             return False
+        if entry.object_id in self.memory.demoted:  # correcting mode: a push on it failed (eq. 14)
+            return False
         moved = self.tracker.moved_since(entry.object_id, entry.stamp_s)
         if moved is not None:
             distrust = moved > self.config.moved_tolerance_m
@@ -237,6 +247,68 @@ class VppStage:
             self.masks_distrusted += 1
             return False
         return True
+
+    def movable_in_front(self, pose: tuple[float, float, float], half_length_m: float, half_width_m: float,
+                         margin_m: float, forward: bool = True, min_points: int = 3) -> int | None:
+        """The movable object the robot is pushing: the object id with the most P_mov points of
+        the last scan in front of the robot (behind it when reversing: `forward` False) within its
+        footprint + margin_m (odom pose of the robot now); None when there is none."""
+        frame, p = self.last_frame, self._last_scan_odom
+        if frame is None or p is None:
+            return None
+        part = frame.partition
+        mov = np.flatnonzero(part.label == MOVABLE)
+        if not mov.size:
+            return None
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        dx, dy = p[mov, 0] - pose[0], p[mov, 1] - pose[1]
+        x, y = c * dx + s * dy, -s * dx + c * dy  # robot frame
+        if not forward:
+            x = -x
+        near = (x >= 0.0) & (x <= half_length_m + margin_m) & (np.abs(y) <= half_width_m + margin_m)
+        ids, counts = np.unique(part.object_id[mov[near]], return_counts=True)
+        if not ids.size or counts.max() < min_points:
+            return None
+        return int(ids[int(np.argmax(counts))])
+
+    def demote(self, object_id: int) -> int:
+        """Correcting mode (DCT eq. 14): object_id is fixed for the rest of the episode. Its masks
+        no longer gate (`_gates`; the mask memory carries the demotion to fresh detections of the
+        object), the tracker forgets it (it would label its points movable), and its voxels in
+        the odom-frame label memory become fixed (the points the camera does not see). Returns
+        the voxels relabelled."""
+        oid = int(object_id)
+        if self.last_frame is not None and self._last_scan_odom is not None:
+            part = self.last_frame.partition
+            xy = self._last_scan_odom[(part.label == MOVABLE) & (part.object_id == oid), :2]
+            if len(xy):
+                self._demoted_xy = xy if self._demoted_xy is None else np.concatenate([self._demoted_xy, xy])
+                self._demoted_tree = cKDTree(self._demoted_xy)
+        self.memory.demote(oid)
+        self.tracker.objects.pop(oid, None)
+        self.demotions += 1
+        return self.partitioner.memory.fix_object(oid)
+
+    def _reidentify_demoted(self, part: PointPartition, p_odom: np.ndarray, radius_m: float = 0.10) -> None:
+        """A movable object most of whose points lie where a demoted one's were (odom frame: the
+        demoted object did not move, that is why it was demoted) is that object under a new mask
+        id (the mask memory gives a new id when the warped mask no longer matches, e.g. after the
+        object was out of view): its id is demoted too and its points are fixed in this scan."""
+        mov = np.flatnonzero(part.label == MOVABLE)
+        if not mov.size:
+            return
+        d, _ = self._demoted_tree.query(p_odom[mov, :2], distance_upper_bound=radius_m)
+        near = np.isfinite(d)
+        for oid in np.unique(part.object_id[mov]):
+            sel = part.object_id[mov] == oid
+            if np.mean(near[sel]) >= 0.5:
+                self.memory.demote(int(oid))
+                self.tracker.objects.pop(int(oid), None)
+                self.reidentified += 1
+                pts = mov[sel]
+                part.label[pts] = FIXED
+                part.object_id[pts] = -1
+                part.cost[pts] = np.nan
 
     def _masks_now(self, now_s: float, T_odom_cam: np.ndarray):
         """Phase I for this scan: (masks for the partition, their entries). The memory's masks are
@@ -302,6 +374,7 @@ class VppStage:
             "images_refused": self.images_refused, "gave_up_waiting": self.gave_up_waiting,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,
+            "demoted_objects": sorted(self.memory.demoted), "demoted_reidentified": self.reidentified,
         }
 
 

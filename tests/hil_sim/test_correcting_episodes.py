@@ -1,0 +1,52 @@
+"""Correcting mode end to end (issue 14): the heavy look-alike box (the backend says movable, it
+is not) is pushed, found stuck, relabelled fixed, backed away from and driven around; a light
+box that gives way is never corrected. Lockstep episodes (deterministic per seed)."""
+from __future__ import annotations
+
+import pytest
+
+from hil_sim.runner import run_episode
+
+
+def _first_stall_s(m: dict) -> float:
+    return min(e["t_s"] for e in m["events"] if e["event"] in ("stuck", "stall"))
+
+
+def test_heavy_lookalike_is_relabelled_fixed_and_driven_around_within_10_s():
+    """The push fails (the wheels slip: the odometry runs on, the lidar scan does not change),
+    the box becomes fixed in the VPP (eq. 14), the robot reverses and replans round it, and
+    reaches the goal; the correction is over within 10 s of the first stall. The one push is a
+    contact with a heavy object (counted as fixed: it is how the robot learns)."""
+    result = run_episode("heavy_lookalike", seed=0)
+    m = result.metrics
+    assert m["goal_reached"], (m["failure_reason"], m["events"])
+    assert m["correcting_events"] >= 1
+    first = m["correcting"][0]
+    assert first["object_id"] is not None and "wheels slipping" in first["reason"]
+    assert first["duration_s"] is not None
+    t0 = _first_stall_s(m)
+    assert first["start_s"] + first["duration_s"] - t0 <= 10.0
+    assert first["object_id"] in result.controller["vpp"]["demoted_objects"]
+    # Only the heavy box was touched among the things that must not be (the push that failed).
+    touched = {o["name"] for o in m["obstacles"] if o["contact_count"] and o["class"] != "movable"}
+    assert touched <= {"heavy_box"}
+    assert "odometry_slip" in [e["event"] for e in m["events"]]
+
+
+def test_a_push_that_succeeds_is_never_corrected():
+    """Case 2: the 1 kg box between the cabinets is pushed through: no stuck, no correction."""
+    m = run_episode("case2", seed=0).metrics
+    assert m["success"] and m["fixed_contacts"] == 0
+    assert m["correcting_events"] == 0 and m["correcting"] == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2])
+def test_heavy_lookalike_other_seeds_recover_within_10_s(seed):
+    """Seeds 1 and 2: recovered within 10 s of the first stall, goal reached (see the report for
+    the odometry's residual error after the slip)."""
+    m = run_episode("heavy_lookalike", seed=seed).metrics
+    first = m["correcting"][0]
+    assert first["object_id"] is not None
+    assert first["start_s"] + first["duration_s"] - _first_stall_s(m) <= 10.0
+    assert m["goal_reached"], (m["failure_reason"], m["final_distance_to_goal_m"])
