@@ -14,9 +14,11 @@ is to the never-touch cost; a movable object at or above it starts on fragile; a
 backend called not movable starts on heavy.
 
 Evidence (BEACON eq. 3, Bayes' rule b'(c) ~ P(e | c) b(c), then normalised):
-- push outcome: after the robot pushed on the object for a while (the correcting mode's stall
-  test or a push that went on `push_window_s`), whether the tracker saw it move more than
-  `moved_m` (runtime/vpp/tracking.py), with likelihoods `p_moved` per class;
+- push outcome: a push that failed (correcting mode's stuck test, lidar-checked against wheel
+  slip: runtime/modes/correcting.py) says "not moved", with likelihoods `p_moved` per class.
+  (The tracker's view of the object's motion is not used: while the wheels slip, the odometry
+  carries the scan and the object forward, and the tracker sees a motion that did not happen.
+  ContactEvidence takes a motion source for a robot whose odometry does not slip.);
 - resistance: during contact, the force the wheels put out beyond what the robot's own motion
   needs (PushResistanceEstimator below, from the motor currents of 0x251-0x254, the torque
   constant and the wheel radius of the robot description) against the robot's acceleration.
@@ -53,6 +55,10 @@ class BeliefConfig(BaseModel):
     p_moved: tuple[float, float, float] = (0.9, 0.05, 0.6)
     #: A push that displaced the object (tracker anchor) at least this far: "moved" (m).
     moved_m: float = Field(0.05, gt=0.0, le=1.0)
+    #: The wheels' friction coefficient on the floor assumed for the push force limit (the drive
+    #: cannot push harder than mu m g: a heavy object stalls the robot at that force, wheels
+    #: slipping, whatever the motors could give).
+    traction_coefficient: float = Field(0.8, gt=0.0, le=3.0)
     #: Resistance likelihood: Gaussian mean and sigma per class, as fractions of the drive's
     #: force limit (movable and fragile: light; heavy: at the limit).
     resistance_mean: tuple[float, float, float] = (0.15, 0.9, 0.15)
@@ -131,11 +137,17 @@ class BeliefTable:
         return b
 
     def rename(self, old_id: int, new_id: int) -> None:
-        """The stage gave the object a new id (a re-identification): its belief follows."""
+        """The stage gave the object a new id (a re-identification): its belief follows, over the
+        prior the new id got from the answer that named it (keeping that answer's cost)."""
         b = self.beliefs.pop(int(old_id), None)
-        if b is not None and int(new_id) not in self.beliefs:
-            b.object_id = int(new_id)
-            self.beliefs[int(new_id)] = b
+        if b is None:
+            return
+        fresh = self.beliefs.get(int(new_id))
+        if fresh is not None:
+            b.backend_cost = fresh.backend_cost
+        b.object_id = int(new_id)
+        self.beliefs[int(new_id)] = b
+        self._trace(b, b.trace[-1][0] if b.trace else 0.0, f"renamed from {int(old_id)}")
 
     # ------------------------------------------------------------------ evidence
     def observe_push(self, object_id: int, moved: bool, t_s: float) -> ObjectBelief | None:
@@ -203,16 +215,18 @@ class PushResistanceEstimator:
     the known body): F_wheels = sum(kt * i_k) / r_wheel; F_obstacle = F_wheels - m a - F_free(v),
     where F_free is what the robot needs to drive itself at speed v on this floor (rolling and
     drive losses), learned online from the ticks without contact (an exponential mean per speed
-    bin). Returned as a fraction of the drive's force limit (n_motors kt i_limit / r_wheel)."""
+    bin). Returned as a fraction of the drive's force limit: the smaller of the motors'
+    (n_motors kt i_limit / r_wheel) and the wheels' traction (mu m g)."""
 
     SPEED_BINS = (0.0, 0.1, 0.25, 0.5, 0.75, 10.0)
 
-    def __init__(self, robot, alpha: float = 0.05) -> None:
+    def __init__(self, robot, alpha: float = 0.05, traction_coefficient: float = 0.8) -> None:
         mot = robot.motors
         self.kt = float(mot.torque_constant_nm_per_a)
         self.r = float(robot.drive.wheel_radius_m)
         self.mass = float(robot.mass_kg)
-        self.f_max = mot.count * self.kt * float(mot.current_limit_a) / self.r
+        self.f_max = min(mot.count * self.kt * float(mot.current_limit_a) / self.r,
+                         float(traction_coefficient) * self.mass * 9.81)
         self.alpha = float(alpha)
         self._free = np.zeros(len(self.SPEED_BINS) - 1)
         self._free_n = np.zeros(len(self.SPEED_BINS) - 1, dtype=np.int64)

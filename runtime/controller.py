@@ -214,7 +214,10 @@ class NavigationController:
         stages.mark(ODOMETRY)
 
         scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
-        only = self.partition.update(now, (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad), sensors.image, scan)
+        pose = (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad)
+        only = self.partition.update(now, pose, sensors.image, scan)
+        # what pushing tells about the object pushed (mode dct's belief; wheel currents of 0x251-0x254)
+        self.partition.observe_contact(now, pose, inputs.linear_mps, inputs.motor_currents_a)
         if scan is not None:
             self.points_fix = self.obstacles.extract(
                 scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps, only=only

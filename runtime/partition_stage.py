@@ -52,6 +52,10 @@ class PartitionStage(Protocol):
     def describe(self) -> dict:
         """JSON-ready entries for the controller's report ({} when there is nothing to say)."""
 
+    def observe_contact(self, now_s: float, pose: tuple[float, float, float], v_mps: float, currents_a) -> None:
+        """Push evidence for the belief (mode dct): this tick's forward speed and wheel motor
+        currents (None when stale) with the robot's pose; nothing elsewhere."""
+
     def relabel_fixed_in_front(self, pose: tuple[float, float, float], half_length_m: float, half_width_m: float,
                                margin_m: float, forward: bool) -> int | None:
         """Correcting mode (DCT eq. 14): the movable object in front of the robot (within its
@@ -84,6 +88,9 @@ class AllFixedPartition:
     def describe(self) -> dict:
         return {}
 
+    def observe_contact(self, now_s, pose, v_mps, currents_a) -> None:
+        pass
+
     def relabel_fixed_in_front(self, pose, half_length_m, half_width_m, margin_m, forward) -> int | None:
         return None  # every point is fixed already
 
@@ -93,8 +100,11 @@ class VppPartition:
 
     name = "vpp"
 
-    def __init__(self, stage) -> None:
+    def __init__(self, stage, footprint: tuple[float, float] = (0.161, 0.11), contact_margin_m: float = 0.08) -> None:
         self.vpp = stage  # runtime.vpp.stage.VppStage: tests and telemetry read its counters
+        #: (half length, half width) of the robot (m) and the distance in front of it that is contact
+        self._half_length_m, self._half_width_m = footprint
+        self._contact_margin_m = contact_margin_m
 
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
                scan: LidarScan | None) -> np.ndarray | None:
@@ -106,7 +116,12 @@ class VppPartition:
         if frame is None:
             return None
         mov = ~frame.fixed  # P_mov: the points of touchable objects
-        return (mov, frame.partition.cost) if mov.any() else None
+        if not mov.any():
+            return None
+        part = frame.partition
+        cost = part.cost.astype(np.float64)  # NaN off P_mov; on it the belief's expected cost
+        cost[mov] = self.vpp.expected_costs(part.object_id[mov], part.cost[mov])
+        return mov, cost
 
     def ready(self, now_s: float) -> bool:
         """The VLM's first answer (or failure) came back, or the stage stopped waiting for it:
@@ -122,6 +137,10 @@ class VppPartition:
 
     def describe(self) -> dict:
         return {"vpp": self.vpp.describe()}
+
+    def observe_contact(self, now_s, pose, v_mps, currents_a) -> None:
+        self.vpp.observe_contact(now_s, pose, v_mps, currents_a, self._half_length_m, self._half_width_m,
+                                 self._contact_margin_m)
 
     def relabel_fixed_in_front(self, pose, half_length_m, half_width_m, margin_m, forward) -> int | None:
         oid = self.vpp.movable_in_front(pose, half_length_m, half_width_m, margin_m, forward)
@@ -142,6 +161,7 @@ def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_c
     base is then the lidar mount's composed with it. None: the description's camera mount."""
     from calibration.camera_model import CameraModel
     from models.vlm.runner import BackendRunner
+    from runtime.belief import PushResistanceEstimator
     from runtime.vpp.stage import VppStage
 
     cam = robot.sensors.camera
@@ -153,8 +173,11 @@ def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_c
     T_base_lidar = robot.sensors.lidar.mount.transform()
     T_base_cam = cam.mount.transform() if T_cam_lidar is None else T_base_lidar @ np.linalg.inv(T_cam_lidar)
     runner_config = config.vpp.runner.model_copy(update={"clock": "lockstep" if lockstep else "realtime"})
-    stage = VppStage(config.vpp, camera, T_base_cam, T_base_lidar, BackendRunner(backend, runner_config))
-    return VppPartition(stage)
+    stage = VppStage(config.vpp, camera, T_base_cam, T_base_lidar, BackendRunner(backend, runner_config),
+                     resistance=PushResistanceEstimator(
+                         robot, traction_coefficient=config.vpp.belief.traction_coefficient))
+    footprint = (robot.footprint.length_m / 2.0, robot.footprint.width_m / 2.0)
+    return VppPartition(stage, footprint, config.correcting.contact_margin_m)
 
 
 __all__ = ["AllFixedPartition", "PartitionStage", "VppPartition", "build_vpp_partition"]

@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmAnswer, VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
-from runtime.belief import BeliefConfig
+from runtime.belief import BeliefConfig, BeliefTable, ContactEvidence, PushResistanceEstimator
 from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import (AnswerPreparer, MaskMemory, MaskMemoryConfig, MaskMemoryError,
@@ -75,6 +75,8 @@ class VppConfig(BaseModel):
     tracking: TrackingConfig = TrackingConfig()
     #: The per-obstacle belief over movable / heavy / fragile (runtime.belief; BEACON).
     belief: BeliefConfig = BeliefConfig()
+    #: Seconds of continuous push that give the belief one observation (ContactEvidence).
+    belief_window_s: float = Field(1.0, gt=0.0, le=30.0)
     #: The controller waits for the first answer (mode dct); after this long without one it drives
     #: on what it has (every point P_fix), and says so.
     first_answer_timeout_s: float = Field(5.0, gt=0.0, le=120.0)
@@ -114,7 +116,9 @@ class VppFrame:
 
 class VppStage:
     def __init__(self, config: VppConfig, camera: CameraModel, T_base_cam: np.ndarray, T_base_lidar: np.ndarray,
-                 runner: BackendRunner) -> None:
+                 runner: BackendRunner, resistance: PushResistanceEstimator | None = None) -> None:
+        """resistance: the push-resistance estimate from the wheel currents (the robot's; None:
+        push outcomes alone update the belief)."""
         self.config = config
         self.camera = camera
         self.T_base_cam = np.asarray(T_base_cam, dtype=np.float64)
@@ -137,6 +141,11 @@ class VppStage:
         self.gave_up_waiting = False
         self.images_refused = 0  # images from another camera than the calibrated one (named)
         self.tracker = ObjectTracker(config.tracking)
+        #: What each touchable object is believed to be (BEACON), and the evidence pushes give it.
+        self.belief = BeliefTable(config.belief, config.never_touch_cost)
+        self.contact = ContactEvidence(self.belief, resistance, window_s=config.belief_window_s)
+        self.belief_demotions = 0  # objects the belief made fixed (heavy or fragile)
+        self._now_s = 0.0  # the controller time of the last update
         self.last_frame: VppFrame | None = None
         self.last_reconcile: ReconcileResult | None = None
         # Counters (never reset).
@@ -168,6 +177,7 @@ class VppStage:
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
                scan: LidarScan | None) -> VppFrame | None:
         """One tick (module docstring); returns the partition of `scan` (None without a scan)."""
+        self._now_s = float(now_s)
         T_odom_base = pose_matrix(*pose)
         T_odom_cam = T_odom_base @ self.T_base_cam
         for answer in self.runner.poll(now_s):
@@ -182,6 +192,8 @@ class VppStage:
                                                   points_cam=points_cam, tombstones=self.memory.tombstones())
             try:
                 self.last_reconcile = self.memory.apply(prepared, now_s)
+                for e in self.memory.entries:  # a new object starts from the answer's prior
+                    self.belief.observe_answer(e.object_id, e.movable, e.contact_cost, e.confidence, now_s)
             except MaskMemoryError as exc:  # the memory stays as it was; the answer is named, not raised
                 self.rejected_answers += 1
                 self.last_rejection = str(exc)
@@ -206,6 +218,9 @@ class VppStage:
         if self._demoted_tree is not None:
             self._reidentify_demoted(part, p_odom)
         self.tracker.update(float(scan.stamp_s), part, p_odom)  # sensor time, as the capture stamps
+        for old, new in self.tracker.handover_pairs:  # one object under a new mask id keeps its belief
+            self.belief.rename(old, new)
+        self.tracker.handover_pairs.clear()
         self._maybe_ask(now_s)
         self.frames += 1
         self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
@@ -237,6 +252,8 @@ class VppStage:
         if not (entry.movable and entry.contact_cost < self.config.never_touch_cost and warped_px > 0):
             return False
         if entry.object_id in self.memory.demoted:  # correcting mode: a push on it failed (eq. 14)
+            return False
+        if self.belief.is_fixed(entry.object_id):  # believed heavy or fragile (it becomes demoted)
             return False
         moved = self.tracker.moved_since(entry.object_id, entry.stamp_s)
         if moved is not None:
@@ -271,6 +288,32 @@ class VppStage:
             return None
         return int(ids[int(np.argmax(counts))])
 
+    def observe_contact(self, now_s: float, pose: tuple[float, float, float], v_mps: float, currents_a,
+                        half_length_m: float, half_width_m: float, margin_m: float) -> None:
+        """One tick of push evidence for the belief (runtime.belief.ContactEvidence): the object in
+        front of the robot while it drives forward, the wheel currents, the tracker's view of the
+        object's motion. An object the belief comes to call heavy or fragile is demoted to fixed
+        (as correcting mode does after a failed push)."""
+        oid = self.movable_in_front(pose, half_length_m, half_width_m, margin_m) if v_mps > 0.0 else None
+        # Push outcomes come from correcting mode's stuck test (demote: "did not move"), not from
+        # the tracker: while the wheels slip, the odometry carries the scan, and with it the
+        # object, forward, and the tracker sees a motion that did not happen.
+        self.contact.update(now_s, v_mps, currents_a, oid, lambda _oid, _since: None)
+        if oid is not None and self.belief.is_fixed(oid) and oid not in self.memory.demoted:
+            self.demote(oid)
+            self.belief_demotions += 1
+
+    def expected_costs(self, object_id: np.ndarray, cost: np.ndarray) -> np.ndarray:
+        """Per point of P_mov: its object's expected contact cost under the belief (the backend's
+        cost when the belief is off or the object has none)."""
+        out = np.asarray(cost, dtype=np.float64).copy()
+        if not self.belief.config.enabled or not self.belief.beliefs:
+            return out
+        for oid in np.unique(object_id):
+            sel = object_id == oid
+            out[sel] = self.belief.expected_cost(int(oid), float(out[sel][0]))
+        return np.minimum(out, 10.0)
+
     def demote(self, object_id: int) -> int:
         """Correcting mode (DCT eq. 14): object_id is fixed for the rest of the episode. Its masks
         no longer gate (`_gates`; the mask memory carries the demotion to fresh detections of the
@@ -278,6 +321,7 @@ class VppStage:
         the odom-frame label memory become fixed (the points the camera does not see). Returns
         the voxels relabelled."""
         oid = int(object_id)
+        self.belief.observe_push(oid, moved=False, t_s=self._now_s)  # the push on it failed (or it is believed fixed)
         if self.last_frame is not None and self._last_scan_odom is not None:
             part = self.last_frame.partition
             xy = self._last_scan_odom[(part.label == MOVABLE) & (part.object_id == oid), :2]
@@ -375,6 +419,8 @@ class VppStage:
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,
             "demoted_objects": sorted(self.memory.demoted), "demoted_reidentified": self.reidentified,
+            "belief": {**self.belief.describe(), "demotions": self.belief_demotions,
+                       "evidence_windows": self.contact.windows},
         }
 
 

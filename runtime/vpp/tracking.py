@@ -684,6 +684,9 @@ class ObjectTracker:
         self.lost = 0  # registrations refused (too few pairs, too big a step)
         self.handovers = 0  # templates passed to a new mask id of the same object
         self.unseen = 0  # object-scans with too few points near the template to register
+        #: (old id, new id) of the handovers since the caller last emptied it (the stage moves
+        #: the object's belief with it)
+        self.handover_pairs: list[tuple[int, int]] = []
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -705,6 +708,7 @@ class ObjectTracker:
             self.update(0.1 * k, part, pts + [shift, 0.0, 0.0])
         self.objects.clear()
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0
+        self.handover_pairs.clear()
 
     def update(self, now_s: float, part: PointPartition, points_odom: np.ndarray) -> int:
         """Register every object's template to this scan, merge what the masks confirmed, label
@@ -786,6 +790,7 @@ class ObjectTracker:
         for j, obj in list(self.objects.items()):
             if np.mean(_near_any(new, obj.template, 2 * c.label_radius_m)) >= 0.5:
                 self.handovers += 1
+                self.handover_pairs.append((int(j), int(k)))
                 return self.objects.pop(j)
         return None
 

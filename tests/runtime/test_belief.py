@@ -57,8 +57,9 @@ def test_a_later_answer_keeps_what_contact_taught_and_a_renamed_object_keeps_its
     heavy = t.beliefs[3].probs.copy()
     t.observe_answer(3, True, 3.0, 0.9, 3.0)
     assert np.array_equal(t.beliefs[3].probs, heavy) and t.beliefs[3].backend_cost == 3.0
+    t.observe_answer(9, True, 2.5, 0.9, 4.0)  # the same object under a new id: a fresh prior first
     t.rename(3, 9)
-    assert 3 not in t.beliefs and t.is_fixed(9)
+    assert 3 not in t.beliefs and t.is_fixed(9) and t.beliefs[9].backend_cost == 2.5
 
 
 @settings(max_examples=50, deadline=None)
