@@ -22,11 +22,16 @@ def test_heavy_lookalike_is_relabelled_fixed_and_driven_around_within_10_s():
     assert m["goal_reached"], (m["failure_reason"], m["events"])
     assert m["correcting_events"] >= 1
     first = m["correcting"][0]
-    assert first["object_id"] is not None and "wheels slipping" in first["reason"]
+    assert "wheels slipping" in first["reason"]
     assert first["duration_s"] is not None
     t0 = _first_stall_s(m)
     assert first["start_s"] + first["duration_s"] - t0 <= 10.0
-    assert first["object_id"] in result.controller["vpp"]["demoted_objects"]
+    # The box is fixed now: relabelled by this correction, or a moment before by the belief (the
+    # wheel currents of the push said heavy: runtime.belief), which then leaves the correction
+    # nothing to relabel.
+    vpp = result.controller["vpp"]
+    assert vpp["demoted_objects"]
+    assert first["object_id"] in vpp["demoted_objects"] or (first["object_id"] is None and vpp["belief"]["demotions"])
     # Only the heavy box was touched among the things that must not be (the push that failed).
     touched = {o["name"] for o in m["obstacles"] if o["contact_count"] and o["class"] != "movable"}
     assert touched <= {"heavy_box"}
@@ -45,8 +50,9 @@ def test_a_push_that_succeeds_is_never_corrected():
 def test_heavy_lookalike_other_seeds_recover_within_10_s(seed):
     """Seeds 1 and 2: recovered within 10 s of the first stall, goal reached (see the report for
     the odometry's residual error after the slip)."""
-    m = run_episode("heavy_lookalike", seed=seed).metrics
+    result = run_episode("heavy_lookalike", seed=seed)
+    m = result.metrics
     first = m["correcting"][0]
-    assert first["object_id"] is not None
+    assert first["object_id"] is not None or result.controller["vpp"]["belief"]["demotions"]
     assert first["start_s"] + first["duration_s"] - _first_stall_s(m) <= 10.0
     assert m["goal_reached"], (m["failure_reason"], m["final_distance_to_goal_m"])
