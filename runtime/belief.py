@@ -235,11 +235,13 @@ class PushResistanceEstimator:
     def _bin(self, v: float) -> int:
         return int(np.clip(np.searchsorted(self.SPEED_BINS, abs(v), side="right") - 1, 0, len(self._free) - 1))
 
-    def update(self, t_s: float, v_mps: float, currents_a, in_contact: bool) -> float | None:
+    def update(self, t_s: float, v_mps: float, currents_a, in_contact: bool, learn: bool = True) -> float | None:
         """One tick: the forward speed, the four motor currents (signed as the wheels drive the
-        robot forward: left and right wheels both positive when driving forward) and whether the
-        robot is touching an obstacle. Returns the obstacle's force fraction in contact (None
-        otherwise, or before an acceleration can be formed, or without currents)."""
+        robot forward: left and right wheels both positive when driving forward, as the emulated
+        firmware reports them; a real base that mirrors one side's sign needs it undone in the
+        driver) and whether the robot is touching an obstacle; learn: the tick is free driving
+        (the baseline F_free learns only from those). Returns the obstacle's force fraction in
+        contact (None otherwise, or before an acceleration can be formed, or without currents)."""
         if currents_a is None or not math.isfinite(v_mps):
             self._last_v = None
             return None
@@ -256,8 +258,9 @@ class PushResistanceEstimator:
         excess = f_wheels - self.mass * a
         k = self._bin(v_mps)
         if not in_contact:
-            self._free[k] += self.alpha * (excess - self._free[k]) if self._free_n[k] else excess - self._free[k]
-            self._free_n[k] += 1
+            if learn:
+                self._free[k] += self.alpha * (excess - self._free[k]) if self._free_n[k] else excess - self._free[k]
+                self._free_n[k] += 1
             return None
         return max(excess - self._free[k], 0.0) / self.f_max
 
@@ -280,14 +283,15 @@ class ContactEvidence:
         self._forces: list[float] = []
         self.windows = 0  # evidence windows completed (counter)
 
-    def update(self, t_s: float, v_mps: float, currents_a, object_id: int | None, moved_m) -> None:
+    def update(self, t_s: float, v_mps: float, currents_a, object_id: int | None, moved_m, free: bool = True) -> None:
         """One tick. object_id: the touchable object in contact in front of the robot (None:
         none, or not driving forward); moved_m(object_id, since_s) -> metres the object moved
-        since then (None: unknown)."""
+        since then (None: unknown); free: nothing at all in front of the robot (the estimator
+        learns the drive's own losses only then)."""
         pushing = object_id is not None and v_mps > 0.02
         force = None
         if self.estimator is not None:
-            force = self.estimator.update(t_s, v_mps, currents_a, in_contact=pushing)
+            force = self.estimator.update(t_s, v_mps, currents_a, in_contact=pushing, learn=free and not pushing)
         if not pushing or object_id != self._object:
             self._object = object_id if pushing else None
             self._start_s, self._forces = t_s, []

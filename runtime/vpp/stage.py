@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -129,6 +130,10 @@ class VppStage:
         # Phase II's image work beside the tick: its own camera model and warper (not the tick's)
         self._preparer = AnswerPreparer(camera, config.memory)
         self._prepared: dict[float, PreparedAnswer] = {}  # answer stamp -> prepared (worker writes, tick pops)
+        self._prepare_lock = threading.Lock()
+        # the demoted objects' last entries when each request was sent (snapshot on the tick's
+        # thread: what the worker compares does not depend on thread timing)
+        self._stones_at: dict[float, tuple] = {}
         runner.post = self._prepare
         self.partitioner = PointPartitioner(config.partition)
         self._per_pixel = lookup_supported(camera)
@@ -187,9 +192,11 @@ class VppStage:
             points_cam = self._points_cam_at.pop(stamp, None)
             prepared = self._prepared.pop(stamp, None)
             if prepared is None or prepared.answer.objects is not answer.objects:
-                # not prepared beside the tick (an error answer: nothing to prepare, cheap)
-                prepared = self._preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
-                                                  points_cam=points_cam, tombstones=self.memory.tombstones())
+                # not prepared beside the tick (an error answer: nothing to prepare, cheap); the
+                # memory's own preparer (the worker's may be in use by an abandoned request)
+                prepared = self.memory.preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
+                                                        points_cam=points_cam, tombstones=self.memory.tombstones())
+            self._stones_at.pop(stamp, None)
             try:
                 self.last_reconcile = self.memory.apply(prepared, now_s)
                 for e in self.memory.entries:  # a new object starts from the answer's prior
@@ -234,9 +241,13 @@ class VppStage:
         # the answer as the runner will deliver it: the request's stamp and camera pose
         answer = dataclasses.replace(answer, stamp_s=request.stamp_s, camera_pose_odom=request.camera_pose_odom)
         stamp = float(answer.stamp_s)
-        self._prepared[stamp] = self._preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
-                                                       points_cam=self._points_cam_at.get(stamp),
-                                                       tombstones=self.memory.tombstones())
+        request_state = self._points_cam_at, self._stones_at
+        if stamp not in request_state[0]:
+            return  # a request abandoned for its timeout (real time): the tick no longer waits for it
+        with self._prepare_lock:  # an abandoned worker may still be in here: the preparer's buffers are shared
+            self._prepared[stamp] = self._preparer.prepare(
+                answer, tuple(self.memory.entries), prompt=self.config.prompt, points_cam=request_state[0][stamp],
+                tombstones=request_state[1].get(stamp, ()))
 
     def _may_gate(self, entry) -> bool:
         """An entry that can gate points at all (movable, below never_touch_cost): the others are
@@ -253,7 +264,7 @@ class VppStage:
             return False
         if entry.object_id in self.memory.demoted:  # correcting mode: a push on it failed (eq. 14)
             return False
-        if self.belief.is_fixed(entry.object_id):  # believed heavy or fragile (it becomes demoted)
+        if self._believed_fixed(entry.object_id):  # believed heavy or fragile (it becomes demoted)
             return False
         moved = self.tracker.moved_since(entry.object_id, entry.stamp_s)
         if moved is not None:
@@ -295,13 +306,35 @@ class VppStage:
         object's motion. An object the belief comes to call heavy or fragile is demoted to fixed
         (as correcting mode does after a failed push)."""
         oid = self.movable_in_front(pose, half_length_m, half_width_m, margin_m) if v_mps > 0.0 else None
+        # The drive's own losses are learned only with nothing at all in front (no P_mov, no
+        # P_fix: pressing on a wall or a demoted box is not free driving).
+        free = oid is None and not self._anything_in_front(pose, half_length_m, half_width_m, margin_m)
         # Push outcomes come from correcting mode's stuck test (demote: "did not move"), not from
         # the tracker: while the wheels slip, the odometry carries the scan, and with it the
         # object, forward, and the tracker sees a motion that did not happen.
-        self.contact.update(now_s, v_mps, currents_a, oid, lambda _oid, _since: None)
-        if oid is not None and self.belief.is_fixed(oid) and oid not in self.memory.demoted:
-            self.demote(oid)
+        self.contact.update(now_s, v_mps, currents_a, oid, lambda _oid, _since: None, free=free)
+        if oid is not None and self._believed_fixed(oid) and oid not in self.memory.demoted:
+            self.demote(oid, failed_push=False)
             self.belief_demotions += 1
+
+    def _believed_fixed(self, object_id: int) -> bool:
+        """Heavy or fragile by the belief, or an expected contact cost at the never-touch cost."""
+        return self.belief.is_fixed(object_id) or (
+            self.belief.config.enabled and object_id in self.belief.beliefs
+            and self.belief.expected_cost(object_id, self.belief.beliefs[object_id].backend_cost)
+            >= self.config.never_touch_cost)
+
+    def _anything_in_front(self, pose, half_length_m: float, half_width_m: float, margin_m: float) -> bool:
+        """A lidar point of the last scan (not ground) in front of the robot within its footprint
+        plus margin_m."""
+        frame, p = self.last_frame, self._last_scan_odom
+        if frame is None or p is None:
+            return True  # unknown: not free
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        dx, dy = p[:, 0] - pose[0], p[:, 1] - pose[1]
+        x, y = c * dx + s * dy, -s * dx + c * dy
+        near = (x >= 0.0) & (x <= half_length_m + margin_m) & (np.abs(y) <= half_width_m + margin_m)
+        return bool(np.any(near & (frame.partition.label >= 0)))
 
     def expected_costs(self, object_id: np.ndarray, cost: np.ndarray) -> np.ndarray:
         """Per point of P_mov: its object's expected contact cost under the belief (the backend's
@@ -314,14 +347,16 @@ class VppStage:
             out[sel] = self.belief.expected_cost(int(oid), float(out[sel][0]))
         return np.minimum(out, 10.0)
 
-    def demote(self, object_id: int) -> int:
+    def demote(self, object_id: int, failed_push: bool = True) -> int:
         """Correcting mode (DCT eq. 14): object_id is fixed for the rest of the episode. Its masks
         no longer gate (`_gates`; the mask memory carries the demotion to fresh detections of the
         object), the tracker forgets it (it would label its points movable), and its voxels in
         the odom-frame label memory become fixed (the points the camera does not see). Returns
-        the voxels relabelled."""
+        the voxels relabelled. failed_push: a push on it failed (correcting mode: the belief takes
+        it as "not moved" evidence); False: the belief itself made it fixed."""
         oid = int(object_id)
-        self.belief.observe_push(oid, moved=False, t_s=self._now_s)  # the push on it failed (or it is believed fixed)
+        if failed_push:
+            self.belief.observe_push(oid, moved=False, t_s=self._now_s)
         if self.last_frame is not None and self._last_scan_odom is not None:
             part = self.last_frame.partition
             xy = self._last_scan_odom[(part.label == MOVABLE) & (part.object_id == oid), :2]
@@ -330,7 +365,7 @@ class VppStage:
                 self._demoted_tree = cKDTree(self._demoted_xy)
         self.memory.demote(oid)
         self.tracker.objects.pop(oid, None)
-        self.demotions += 1
+        self.demotions += int(failed_push)
         return self.partitioner.memory.fix_object(oid)
 
     def _reidentify_demoted(self, part: PointPartition, p_odom: np.ndarray, radius_m: float = 0.10) -> None:
@@ -346,9 +381,11 @@ class VppStage:
         for oid in np.unique(part.object_id[mov]):
             sel = part.object_id[mov] == oid
             if np.mean(near[sel]) >= 0.5:
+                if not self.memory.is_demoted(int(oid)):
+                    self.reidentified += 1
                 self.memory.demote(int(oid))
                 self.tracker.objects.pop(int(oid), None)
-                self.reidentified += 1
+                self.partitioner.memory.fix_object(int(oid))  # this scan's voxels were written movable
                 pts = mov[sel]
                 part.label[pts] = FIXED
                 part.object_id[pts] = -1
@@ -389,6 +426,7 @@ class VppStage:
         T_cam_odom = np.linalg.inv(T_odom_cam)
         self._points_cam_at = {float(image.stamp_s):
                                self._last_scan_odom @ T_cam_odom[:3, :3].T + T_cam_odom[:3, 3]}
+        self._stones_at = {float(image.stamp_s): self.memory.tombstones()}
         self.runner.submit(request, now_s)
         self.memory.note_query(image.stamp_s, T_odom_cam)
         self.requests += 1

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from runtime.vpp.partition import FIXED, MOVABLE, PointPartition
 
@@ -92,6 +92,13 @@ class TrackingConfig(BaseModel):
     #: pushes on) join it while it spans at most this much more than the largest confirming
     #: view (m): a box pressed against a wall takes at most this much of the wall.
     max_spread_m: float = Field(0.1, ge=0.0, le=2.0)
+
+    @model_validator(mode="after")
+    def _fit_can_pair(self) -> "TrackingConfig":
+        if self.icp_max_points < self.min_pairs:
+            raise ValueError(f"icp_max_points ({self.icp_max_points}) must be at least min_pairs ({self.min_pairs}): "
+                             "no registration could succeed")
+        return self
 
 
 @njit(cache=True, nogil=True)

@@ -35,7 +35,9 @@ def test_dct_mode_partitions_the_box_as_movable_and_never_touches_a_fixed_object
     assert sum(waited) >= 20  # ~1.5 s at 20 Hz: no driving before the first answer
     assert result.metrics["fixed_contacts"] == 0
     # P_mov reached the reference path with the box's contact cost, and it chose to push
-    assert set(mov_costs) == {2.0}  # the sim-oracle's movable_cost
+    # (the belief's expected cost: the sim-oracle's movable_cost 2 at its confidence, the rest
+    # heavy or fragile at 10)
+    assert len(set(mov_costs)) == 1 and 2.0 < mov_costs[0] < 2.5
     assert result.controller["reference_pushes"] >= 1
     # Moved straight at the box instead of detouring: the pose's x grew, y stayed near the axis.
     x, y, _ = result.controller["pose_odom"]

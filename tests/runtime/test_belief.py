@@ -117,3 +117,20 @@ def test_contact_evidence_updates_the_belief_once_per_window_of_continuous_push(
     assert table.is_fixed(5) and table.beliefs[5].most_likely() == "heavy"
     ev.update(t + 0.05, 0.0, [0.4] * 4, None, lambda o, s: 0.0)  # stopped: the window restarts
     assert ev.windows == 1
+
+
+def test_the_drive_losses_are_learned_only_from_free_driving():
+    """Pressing on a wall (not free) must not become the baseline, or every later push would
+    read as light."""
+    robot = load_robot_description()
+    est = PushResistanceEstimator(robot)
+    t = 0.0
+    for _ in range(40):  # free driving at 0.4 A a motor
+        t += 0.05
+        est.update(t, 0.3, [0.4] * 4, in_contact=False, learn=True)
+    for _ in range(40):  # pressing on a fixed obstacle: not contact with a touchable object, not free
+        t += 0.05
+        est.update(t, 0.3, [3.0] * 4, in_contact=False, learn=False)
+    t += 0.05
+    heavy = est.update(t, 0.3, [3.0] * 4, in_contact=True)
+    assert heavy > 0.5  # still reads as a hard push

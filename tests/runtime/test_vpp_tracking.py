@@ -253,3 +253,8 @@ def _thin_reference(points: np.ndarray, voxel_m: float, max_points: int) -> np.n
 @given(points=_coords, voxel=st.sampled_from([0.01, 0.03, 0.3]), cap=st.sampled_from([0, 5, 50]))
 def test_thin_keeps_the_first_point_of_each_voxel_in_order(points, voxel, cap):
     assert np.array_equal(_thin(points, voxel, cap), _thin_reference(points, voxel, cap))
+
+
+def test_a_fit_that_could_never_pair_enough_points_is_refused_at_start():
+    with pytest.raises(ValueError, match="icp_max_points"):
+        TrackingConfig(icp_max_points=10, min_pairs=12)
