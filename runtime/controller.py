@@ -209,6 +209,8 @@ class NavigationController:
         self._update_state(inputs, now)
         stages.mark(READ)
 
+        # a box the robot pushes moves with it: kept out of the lidar odometry (last scan's P_mov)
+        self.odometry.exclude_near(self.partition.movable_points_lidar())
         self._update_odometry(now, inputs, sensors)
         self._follow_correction(self.odometry.correction)
         stages.mark(ODOMETRY)

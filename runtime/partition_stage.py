@@ -52,6 +52,10 @@ class PartitionStage(Protocol):
     def describe(self) -> dict:
         """JSON-ready entries for the controller's report ({} when there is nothing to say)."""
 
+    def movable_points_lidar(self) -> np.ndarray | None:
+        """The last partitioned scan's P_mov in the lidar frame (None: none): the odometry leaves
+        their neighbourhood out of the next frames' ICP (a pushed box moves with the robot)."""
+
     def observe_contact(self, now_s: float, pose: tuple[float, float, float], v_mps: float, currents_a) -> None:
         """Push evidence for the belief (mode dct): this tick's forward speed and wheel motor
         currents (None when stale) with the robot's pose; nothing elsewhere."""
@@ -90,6 +94,9 @@ class AllFixedPartition:
 
     def observe_contact(self, now_s, pose, v_mps, currents_a) -> None:
         pass
+
+    def movable_points_lidar(self) -> np.ndarray | None:
+        return None
 
     def relabel_fixed_in_front(self, pose, half_length_m, half_width_m, margin_m, forward) -> int | None:
         return None  # every point is fixed already
@@ -137,6 +144,9 @@ class VppPartition:
 
     def describe(self) -> dict:
         return {"vpp": self.vpp.describe()}
+
+    def movable_points_lidar(self) -> np.ndarray | None:
+        return self.vpp.movable_points_lidar()
 
     def observe_contact(self, now_s, pose, v_mps, currents_a) -> None:
         self.vpp.observe_contact(now_s, pose, v_mps, currents_a, self._half_length_m, self._half_width_m,

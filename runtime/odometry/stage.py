@@ -12,6 +12,7 @@ worker's compute time, and the pose covariance.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections import deque
 from typing import Literal
@@ -68,6 +69,13 @@ class OdometryStage:
         self.icp_enabled = config.source == "fused" and config.icp.enabled and uses_lidar
         self.worker = None
         self._seq = 0
+        #: Lidar-frame points of things that may move with the robot (the last partitioned scan's
+        #: P_mov: a box the robot pushes stays where it was in the lidar frame): the next frame's
+        #: points within `exclude_radius_m` of them are left out of the ICP, which would otherwise
+        #: register the world to the box and report the robot standing still while it pushes.
+        self._exclude: np.ndarray | None = None
+        self.exclude_radius_m = 0.10
+        self.points_excluded = 0  # counter
         self._first_submit_s: float | None = None
         self._last_update_s: float | None = None
         self.pose = Pose2D(0.0, 0.0, 0.0)
@@ -157,7 +165,13 @@ class OdometryStage:
         self._watch_age(now_s)
         return self.pose
 
+    def exclude_near(self, points_lidar: np.ndarray | None) -> None:
+        """The points the next frames' ICP leaves out the neighbourhood of (None: none)."""
+        self._exclude = None if points_lidar is None or not len(points_lidar) else points_lidar
+
     def _submit(self, scan: LidarScan) -> None:
+        if self._exclude is not None:
+            scan = self._without_movable(scan, self._exclude)
         offs = scan.point_time_offsets_s
         end = scan.stamp_s + (float(offs.max()) if len(offs) else scan.frame_duration_s)
         # The dead-reckoning pose at the frame's end: the engine takes the prior between the
@@ -172,6 +186,26 @@ class OdometryStage:
             self._first_submit_s = end
         self.frames_submitted += 1
         self.worker.submit(job)
+
+    def _without_movable(self, scan: LidarScan, ref: np.ndarray) -> LidarScan:
+        """scan less its points within exclude_radius_m of ref (lidar frame; compiled grid
+        search, only the points in ref's box grown by the radius are queried)."""
+        from runtime.vpp.tracking import _near_any
+
+        r = self.exclude_radius_m
+        p = scan.points_m
+        ref = np.ascontiguousarray(ref, dtype=np.float64)
+        lo, hi = ref.min(axis=0) - r, ref.max(axis=0) + r
+        inb = np.flatnonzero(np.all((p >= lo) & (p <= hi), axis=1))
+        if not inb.size:
+            return scan
+        near = inb[_near_any(np.ascontiguousarray(p[inb], dtype=np.float64), ref, r)]
+        if not near.size:
+            return scan
+        keep = np.ones(len(p), bool)
+        keep[near] = False
+        self.points_excluded += int(near.size)
+        return dataclasses.replace(scan, points_m=p[keep], point_time_offsets_s=scan.point_time_offsets_s[keep])
 
     def _take(self, result, now_s: float) -> None:
         self.compute_ms.append(result.compute_s * 1e3)

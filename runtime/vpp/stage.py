@@ -151,6 +151,7 @@ class VppStage:
         self.contact = ContactEvidence(self.belief, resistance, window_s=config.belief_window_s)
         self.belief_demotions = 0  # objects the belief made fixed (heavy or fragile)
         self._now_s = 0.0  # the controller time of the last update
+        self._last_scan_lidar: np.ndarray | None = None
         self.last_frame: VppFrame | None = None
         self.last_reconcile: ReconcileResult | None = None
         # Counters (never reset).
@@ -183,6 +184,8 @@ class VppStage:
                scan: LidarScan | None) -> VppFrame | None:
         """One tick (module docstring); returns the partition of `scan` (None without a scan)."""
         self._now_s = float(now_s)
+        if scan is not None:
+            self._last_scan_lidar = scan.points_m
         T_odom_base = pose_matrix(*pose)
         T_odom_cam = T_odom_base @ self.T_base_cam
         for answer in self.runner.poll(now_s):
@@ -316,6 +319,14 @@ class VppStage:
         if oid is not None and self._believed_fixed(oid) and oid not in self.memory.demoted:
             self.demote(oid, failed_push=False)
             self.belief_demotions += 1
+
+    def movable_points_lidar(self) -> np.ndarray | None:
+        """The last partitioned scan's P_mov in the lidar frame (None: none)."""
+        frame = self.last_frame
+        if frame is None or self._last_scan_lidar is None or len(self._last_scan_lidar) != len(frame.partition.label):
+            return None
+        mov = frame.partition.label == MOVABLE
+        return self._last_scan_lidar[mov] if mov.any() else None
 
     def _believed_fixed(self, object_id: int) -> bool:
         """Heavy or fragile by the belief, or an expected contact cost at the never-touch cost."""

@@ -16,17 +16,20 @@ def test_a_heavy_look_alike_becomes_heavy_from_the_push_and_is_demoted():
     b = _belief(result)
     heavy = [o for o in b["objects"].values() if any(t[1].startswith("resistance") for t in o["trace"])]
     assert heavy and all(o["probs"]["heavy"] > 0.7 for o in heavy)
-    assert b["demotions"] >= 1  # the belief relabelled it (correcting mode may too)
+    # fixed now: by the belief itself, or by correcting mode's failed push (whose "not moved"
+    # the belief also took)
+    assert b["demotions"] >= 1 or result.controller["vpp"]["demoted_objects"]
     assert result.metrics["goal_reached"] and result.metrics["person_contacts"] == 0
 
 
 def test_a_light_box_pushed_stays_movable_and_the_ablation_learns_nothing():
-    result = run_episode("push_1kg", config=load_controller_config(), seed=0)
+    """Case 2's 1 kg box, pushed between the cabinets: light resistance, still movable."""
+    result = run_episode("case2", config=load_controller_config(), seed=0)
     b = _belief(result)
     assert b["evidence_windows"] >= 1 and b["demotions"] == 0
     pushed = [o for o in b["objects"].values() if any(t[1].startswith("resistance") for t in o["trace"])]
     assert pushed and all(o["probs"]["movable"] > 0.7 for o in pushed)
     assert result.metrics["success"]
 
-    off = run_episode("push_1kg", config=load_controller_config().with_belief(False), seed=0)
+    off = run_episode("case2", config=load_controller_config().with_belief(False), seed=0)
     assert _belief(off)["updates"] == 0 and not _belief(off)["enabled"]
