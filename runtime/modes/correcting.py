@@ -294,7 +294,12 @@ class CorrectingMode:
         self._repeat = self._repeat + 1 if repeat else 1
         forward = float(s.command[0]) >= 0.0
         oid = None
-        if self.partition is not None:
+        # Relabel only what the robot was pushing on: with the command applied zeroed (the safety
+        # supervisor stopped it: points it did not see as touchable in its footprint, e.g. a
+        # curtain's unseen slats) the object in front did not resist a push, and "did not move"
+        # says nothing about it (a wedge: reverse and line up instead).
+        pushing = abs(float(s.command[0])) >= c.v_min_mps
+        if self.partition is not None and pushing:
             oid = self.partition.relabel_fixed_in_front((float(s.pose[0]), float(s.pose[1]), float(s.pose[2])),
                                                         self.half_length_m, self.half_width_m, c.contact_margin_m,
                                                         forward)
