@@ -21,7 +21,6 @@ from scipy.spatial import cKDTree
 from runtime.geometry import Pose2D
 from runtime.modes.base import ModeContext, ModeDecision, ModeStack, Situation
 from runtime.planning.grid_astar import GridAStarConfig, GridAStarPlanner, PathPursuit
-from runtime.planning.pure_pursuit import PurePursuitPlanner
 
 
 class GridAStarMode:
@@ -113,14 +112,8 @@ def build(ctx: ModeContext) -> ModeStack:
     every point fixed (the default partition), no stall recovery."""
     from runtime.safety_supervisor import SafetySupervisor
 
+    from runtime.modes.pure_pursuit import steering
+
     cfg, robot = ctx.config.planner.grid_astar, ctx.robot
-    steering = PurePursuitPlanner(
-        target_speed_mps=min(cfg.target_speed_mps, robot.limits.max_linear_speed_mps),
-        lookahead_m=cfg.lookahead_m,
-        goal_tolerance_m=cfg.goal_tolerance_m,
-        slowdown_distance_m=cfg.slowdown_distance_m,
-        max_heading_error_for_full_speed_rad=cfg.max_heading_error_for_full_speed_rad,
-        max_angular_speed_radps=robot.body_max_angular_speed_radps,
-    )
-    mode = GridAStarMode(cfg, GridAStarPlanner(cfg, robot), PathPursuit(steering))
+    mode = GridAStarMode(cfg, GridAStarPlanner(cfg, robot), PathPursuit(steering(cfg, robot)))
     return ModeStack(mode, None, SafetySupervisor(ctx.config.planner.safety_supervisor, robot))

@@ -36,13 +36,17 @@ class PurePursuitMode:
 
 def build(ctx: ModeContext) -> ModeStack:
     """No sensors, no supervisor, no recovery: the placeholder it always was."""
-    pp, robot = ctx.config.planner.pure_pursuit, ctx.robot
-    planner = PurePursuitPlanner(
-        target_speed_mps=min(pp.target_speed_mps, robot.limits.max_linear_speed_mps),
-        lookahead_m=pp.lookahead_m,
-        goal_tolerance_m=pp.goal_tolerance_m,
-        slowdown_distance_m=pp.slowdown_distance_m,
-        max_heading_error_for_full_speed_rad=pp.max_heading_error_for_full_speed_rad,
+    return ModeStack(PurePursuitMode(steering(ctx.config.planner.pure_pursuit, ctx.robot), ctx.goal))
+
+
+def steering(cfg, robot) -> PurePursuitPlanner:
+    """Pure pursuit's steering and speed law from a config section with its fields (target
+    speed, lookahead, goal tolerance, slowdown, heading limit), within the robot's limits."""
+    return PurePursuitPlanner(
+        target_speed_mps=min(cfg.target_speed_mps, robot.limits.max_linear_speed_mps),
+        lookahead_m=cfg.lookahead_m,
+        goal_tolerance_m=cfg.goal_tolerance_m,
+        slowdown_distance_m=cfg.slowdown_distance_m,
+        max_heading_error_for_full_speed_rad=cfg.max_heading_error_for_full_speed_rad,
         max_angular_speed_radps=robot.body_max_angular_speed_radps,
     )
-    return ModeStack(PurePursuitMode(planner, ctx.goal))

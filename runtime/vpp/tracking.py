@@ -441,15 +441,7 @@ def _icp(p, label, oid, near, object_id, tpl, margin, r, iterations, min_pairs, 
     m = tpl.shape[0]
     stride = max(1, (m + max_points - 1) // max_points)
     used = (m + stride - 1) // stride
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for a in range(3):
-        lo[a] = tpl[0, a]
-        hi[a] = tpl[0, a]
-    for i in range(1, m):
-        for a in range(3):
-            lo[a] = min(lo[a], tpl[i, a])
-            hi[a] = max(hi[a], tpl[i, a])
+    lo, hi = _bounds(tpl)
     for a in range(3):
         lo[a] -= margin
         hi[a] += margin
@@ -584,16 +576,7 @@ def _take_all(p, label, oid, cost, near, tpl, off, r, ids, costs):  # pragma: no
 def _take_near(p, label, near, tpl, r):  # pragma: no cover - compiled
     """Indices of the FIXED points of p (among `near`) closer than r to a template point
     (ObjectTracker._label)."""
-    m = tpl.shape[0]
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for a in range(3):
-        lo[a] = tpl[0, a]
-        hi[a] = tpl[0, a]
-    for i in range(1, m):
-        for a in range(3):
-            lo[a] = min(lo[a], tpl[i, a])
-            hi[a] = max(hi[a], tpl[i, a])
+    lo, hi = _bounds(tpl)
     glo, cell, reach, dims, start, order = _grid(tpl, r, 1)
     out = np.empty(near.shape[0], np.int64)
     n = 0
