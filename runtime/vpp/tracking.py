@@ -265,6 +265,67 @@ def _merge_view(new, old, voxel, max_points, max_growth):  # pragma: no cover - 
     return new, 2
 
 
+@njit(cache=True, nogil=True)
+def _confirm_all(p, idx, starts, old, ooff, voxel, max_points, max_growth):  # pragma: no cover - compiled
+    """ObjectTracker._confirm's image of every confirming object that has a template, in one
+    call: object k's view is p[idx[starts[k]:starts[k + 1]]], its template old[ooff[k]:ooff[k +
+    1]]. Returns (templates concatenated, offsets (K + 1,), outcome (K,) as _merge_view's, the
+    view's extent (K,))."""
+    K = starts.shape[0] - 1
+    outs = []
+    noff = np.zeros(K + 1, np.int64)
+    outcome = np.empty(K, np.int64)
+    extent = np.empty(K)
+    for k in range(K):
+        pts = np.empty((starts[k + 1] - starts[k], 3))
+        for j in range(pts.shape[0]):
+            i = idx[starts[k] + j]
+            pts[j, 0] = p[i, 0]
+            pts[j, 1] = p[i, 1]
+            pts[j, 2] = p[i, 2]
+        new = _thin_nb(pts, voxel, max_points)
+        tpl, outcome[k] = _merge_view(new, old[ooff[k]:ooff[k + 1]], voxel, max_points, max_growth)
+        extent[k] = _extent_nb(pts)
+        outs.append(tpl)
+        noff[k + 1] = noff[k] + tpl.shape[0]
+    merged = np.empty((noff[K], 3))
+    for k in range(K):
+        merged[noff[k]:noff[k + 1]] = outs[k]
+    return merged, noff, outcome, extent
+
+
+@njit(cache=True, nogil=True)
+def _spread_all(p, taken, toff, tpl, off, view_extent, max_spread, voxel, max_points):  # pragma: no cover
+    """_label_all's growth of every object's template by the points it took, in one call: where
+    template + taken spans at most view_extent[k] + max_spread, the template becomes that union
+    thinned (_thin_nb), else it stays. Returns (templates concatenated, offsets, grown (K,))."""
+    K = off.shape[0] - 1
+    outs = []
+    noff = np.zeros(K + 1, np.int64)
+    grown = np.zeros(K, np.bool_)
+    for k in range(K):
+        a, b = off[k], off[k + 1]
+        nt = toff[k + 1] - toff[k]
+        res = tpl[a:b]
+        if nt > 0:
+            union = np.empty((b - a + nt, 3))
+            union[:b - a] = tpl[a:b]
+            for j in range(nt):
+                i = taken[toff[k] + j]
+                union[b - a + j, 0] = p[i, 0]
+                union[b - a + j, 1] = p[i, 1]
+                union[b - a + j, 2] = p[i, 2]
+            if _extent_nb(union) <= view_extent[k] + max_spread:
+                res = _thin_nb(union, voxel, max_points)
+                grown[k] = True
+        outs.append(res)
+        noff[k + 1] = noff[k] + res.shape[0]
+    merged = np.empty((noff[K], 3))
+    for k in range(K):
+        merged[noff[k]:noff[k + 1]] = outs[k]
+    return merged, noff, grown
+
+
 # ---------------------------------------------------------------- compiled kernels
 # Why hand-written nearest neighbours: scipy's cKDTree is the library for this, but a tree
 # built and queried per object per scan costs ~0.1 ms of Python and allocation each time, and
@@ -696,6 +757,10 @@ class ObjectTracker:
             part = PointPartition(label, obj, np.where(label == MOVABLE, 2.0, np.nan).astype(np.float32),
                                   np.ones(n, bool), np.zeros(n, bool), 0, 0)
             self.update(0.1 * k, part, pts + [shift, 0.0, 0.0])
+        # a template's growth by the points it took (a scene above may not take any)
+        c = self.config
+        _spread_all(pts, np.zeros(1, np.int64), np.array([0, 1]), face, np.array([0, len(face)]), np.ones(1),
+                    float(c.max_spread_m), float(c.template_voxel_m), int(c.max_template_points))
         self.objects.clear()
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0
         self.handover_pairs.clear()
@@ -719,8 +784,7 @@ class ObjectTracker:
         added = 0
         near, boxes = self._near(label, points_odom, c.search_margin_m)
         followed = self._register_all(label, oid, near, points_odom)
-        for k, sel in confirming.items():
-            self._confirm(k, now_s, points_odom[sel], float(cost[sel][0]))
+        self._confirm_views(now_s, confirming, points_odom, cost)
         # the templates as registered and merged: their points to label are those of `near`
         # unless a template now reaches out of every box `near` was taken from (a new object, a
         # view beyond the old template): then one more pass
@@ -752,6 +816,35 @@ class ObjectTracker:
             if not h[3]:
                 return None  # a scan after t_s that did not know where the object was
         return None
+
+    def _confirm_views(self, now_s: float, confirming: dict[int, np.ndarray], points_odom: np.ndarray,
+                       cost: np.ndarray) -> None:
+        """_confirm for every object a mask saw this scan, in id order. When each of them already
+        has a template (every scan but those after a new answer), all in one compiled call
+        (_confirm_all: the same arithmetic as _confirm, without its Python per object); a new id
+        may take over another object's template (_hand_over), so those scans go one by one."""
+        if not confirming:
+            return
+        objs = [self.objects.get(k) for k in confirming]
+        if any(o is None or not len(o.template) for o in objs):
+            for k, sel in confirming.items():
+                self._confirm(k, now_s, points_odom[sel], float(cost[sel[0]]))
+            return
+        c = self.config
+        sels = list(confirming.values())
+        starts = np.zeros(len(sels) + 1, np.int64)
+        starts[1:] = np.cumsum([len(x) for x in sels])
+        tpl, ooff = self._stack(objs)
+        merged, noff, outcome, extent = _confirm_all(points_odom, np.concatenate(sels), starts, tpl, ooff,
+                                                     float(c.template_voxel_m), int(c.max_template_points),
+                                                     float(c.max_growth_m))
+        for k, (obj, sel) in enumerate(zip(objs, sels)):
+            obj.cost = float(cost[sel[0]])
+            obj.template = merged[noff[k]:noff[k + 1]]
+            obj.confirmed_s = now_s
+            obj.view_extent_m = max(float(extent[k]), obj.view_extent_m)
+            if outcome[k] == 2:  # the view replaced the template: its centre is the new anchor
+                obj.anchor = obj.centre()
 
     def _confirm(self, k: int, now_s: float, points: np.ndarray, cost: float) -> None:
         """Merge a mask's view of object k into its template (registered to this scan already)."""
@@ -854,13 +947,12 @@ class ObjectTracker:
         ids = np.array([o.object_id for o in objs], np.int64)
         costs = np.array([o.cost for o in objs], np.float32)
         taken, toff = _take_all(points_odom, label, oid, cost, near, tpl, off, c.label_radius_m, ids, costs)
-        if c.max_spread_m > 0.0:
-            for k, obj in enumerate(objs):
-                take = taken[toff[k]:toff[k + 1]]
-                if take.size:
-                    grown = np.concatenate([obj.template, points_odom[take]])
-                    if _extent(grown) <= obj.view_extent_m + c.max_spread_m:
-                        obj.template = _thin(grown, c.template_voxel_m, c.max_template_points)
+        if c.max_spread_m > 0.0 and taken.size:
+            extent = np.array([o.view_extent_m for o in objs])
+            merged, noff, grown = _spread_all(points_odom, taken, toff, tpl, off, extent, float(c.max_spread_m),
+                                              float(c.template_voxel_m), int(c.max_template_points))
+            for k in np.flatnonzero(grown):
+                objs[k].template = merged[noff[k]:noff[k + 1]]
         return int(taken.size)
 
 
