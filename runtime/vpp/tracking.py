@@ -116,12 +116,11 @@ def _bounds(points):  # pragma: no cover - compiled
     return lo, hi
 
 
-def _extent(points: np.ndarray) -> float:
-    """The diagonal of the points' bounding box (m)."""
+def _extent(points: np.ndarray, yaw: float = 0.0) -> float:
+    """The points' size (m): _extent_nb."""
     if len(points) < 2:
         return 0.0
-    lo, hi = _bounds(points)
-    return float(np.sqrt(np.sum((hi - lo) ** 2)))
+    return float(_extent_nb(np.ascontiguousarray(points, dtype=np.float64), float(yaw)))
 
 
 def _thin(points: np.ndarray, voxel_m: float, max_points: int = 0) -> np.ndarray:
@@ -233,15 +232,39 @@ def _thin_nb(points, voxel, max_points):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _extent_nb(points):  # pragma: no cover - compiled
-    if points.shape[0] < 2:
+def _extent_nb(points, yaw):  # pragma: no cover - compiled
+    """The points' size (m): the diagonal of their bounding box in the object's frame, the odom
+    frame turned by `yaw` (what the object turned since the tracker first saw it: the sum of
+    its registrations' yaws). In the odom frame the box of a pushed box that turned would grow
+    (45 degrees: a 0.4 m cube's diagonal from 0.69 to 0.90 m) and the limits on a template's
+    growth would refuse the object's own newly seen faces; in its own frame it stays the box's."""
+    n = points.shape[0]
+    if n < 2:
         return 0.0
-    lo, hi = _bounds(points)
+    c = math.cos(yaw)
+    s = math.sin(yaw)
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for i in range(n):
+        x = c * points[i, 0] + s * points[i, 1]  # R(yaw)^T p: the object's frame
+        y = -s * points[i, 0] + c * points[i, 1]
+        z = points[i, 2]
+        if i == 0:
+            lo[0] = hi[0] = x
+            lo[1] = hi[1] = y
+            lo[2] = hi[2] = z
+            continue
+        lo[0] = min(lo[0], x)
+        hi[0] = max(hi[0], x)
+        lo[1] = min(lo[1], y)
+        hi[1] = max(hi[1], y)
+        lo[2] = min(lo[2], z)
+        hi[2] = max(hi[2], z)
     return math.sqrt((hi[0] - lo[0]) ** 2 + (hi[1] - lo[1]) ** 2 + (hi[2] - lo[2]) ** 2)
 
 
 @njit(cache=True, nogil=True)
-def _merge_view(new, old, voxel, max_points, max_growth):  # pragma: no cover - compiled
+def _merge_view(new, old, voxel, max_points, max_growth, yaw):  # pragma: no cover - compiled
     """A mask's thinned view `new` merged into the template `old` (ObjectTracker._confirm):
     (template, outcome) with outcome 0 merged (the view plus the template's points it does not
     cover, while that union spans at most max_growth more than the larger of the two), 1 the
@@ -258,7 +281,7 @@ def _merge_view(new, old, voxel, max_points, max_growth):  # pragma: no cover - 
         if not near[i]:
             union[j] = old[i]
             j += 1
-    if _extent_nb(union) <= max(_extent_nb(new), _extent_nb(old)) + max_growth:
+    if _extent_nb(union, yaw) <= max(_extent_nb(new, yaw), _extent_nb(old, yaw)) + max_growth:
         return _thin_nb(union, voxel, max_points), 0
     if new.shape[0] < old.shape[0] // 2:
         return old, 1
@@ -266,11 +289,11 @@ def _merge_view(new, old, voxel, max_points, max_growth):  # pragma: no cover - 
 
 
 @njit(cache=True, nogil=True)
-def _confirm_all(p, idx, starts, old, ooff, voxel, max_points, max_growth):  # pragma: no cover - compiled
+def _confirm_all(p, idx, starts, old, ooff, yaws, voxel, max_points, max_growth):  # pragma: no cover - compiled
     """ObjectTracker._confirm's image of every confirming object that has a template, in one
     call: object k's view is p[idx[starts[k]:starts[k + 1]]], its template old[ooff[k]:ooff[k +
-    1]]. Returns (templates concatenated, offsets (K + 1,), outcome (K,) as _merge_view's, the
-    view's extent (K,))."""
+    1]], its yaw yaws[k]. Returns (templates concatenated, offsets (K + 1,), outcome (K,) as
+    _merge_view's, the view's extent (K,))."""
     K = starts.shape[0] - 1
     outs = []
     noff = np.zeros(K + 1, np.int64)
@@ -284,8 +307,8 @@ def _confirm_all(p, idx, starts, old, ooff, voxel, max_points, max_growth):  # p
             pts[j, 1] = p[i, 1]
             pts[j, 2] = p[i, 2]
         new = _thin_nb(pts, voxel, max_points)
-        tpl, outcome[k] = _merge_view(new, old[ooff[k]:ooff[k + 1]], voxel, max_points, max_growth)
-        extent[k] = _extent_nb(pts)
+        tpl, outcome[k] = _merge_view(new, old[ooff[k]:ooff[k + 1]], voxel, max_points, max_growth, yaws[k])
+        extent[k] = _extent_nb(pts, yaws[k])
         outs.append(tpl)
         noff[k + 1] = noff[k] + tpl.shape[0]
     merged = np.empty((noff[K], 3))
@@ -295,7 +318,7 @@ def _confirm_all(p, idx, starts, old, ooff, voxel, max_points, max_growth):  # p
 
 
 @njit(cache=True, nogil=True)
-def _spread_all(p, taken, toff, tpl, off, view_extent, max_spread, voxel, max_points):  # pragma: no cover
+def _spread_all(p, taken, toff, tpl, off, yaws, view_extent, max_spread, voxel, max_points):  # pragma: no cover
     """_label_all's growth of every object's template by the points it took, in one call: where
     template + taken spans at most view_extent[k] + max_spread, the template becomes that union
     thinned (_thin_nb), else it stays. Returns (templates concatenated, offsets, grown (K,))."""
@@ -315,7 +338,7 @@ def _spread_all(p, taken, toff, tpl, off, view_extent, max_spread, voxel, max_po
                 union[b - a + j, 0] = p[i, 0]
                 union[b - a + j, 1] = p[i, 1]
                 union[b - a + j, 2] = p[i, 2]
-            if _extent_nb(union) <= view_extent[k] + max_spread:
+            if _extent_nb(union, yaws[k]) <= view_extent[k] + max_spread:
                 res = _thin_nb(union, voxel, max_points)
                 grown[k] = True
         outs.append(res)
@@ -711,6 +734,9 @@ class TrackedObject:
     #: A point fixed to the object (x, y), moved only by the registrations' rigid motions (the
     #: template's centre also shifts as views and spread add points: not a motion).
     anchor: np.ndarray | None = None
+    #: What the object turned since the tracker first saw it (rad, the sum of its registrations'
+    #: yaws): its own frame, in which its size is measured (_extent_nb).
+    yaw: float = 0.0
     #: (time, anchor x, y, known) after every scan: where the object was when, and whether this
     #: scan registered it or a mask saw it (moved_since).
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_SCANS))
@@ -759,7 +785,7 @@ class ObjectTracker:
             self.update(0.1 * k, part, pts + [shift, 0.0, 0.0])
         # a template's growth by the points it took (a scene above may not take any)
         c = self.config
-        _spread_all(pts, np.zeros(1, np.int64), np.array([0, 1]), face, np.array([0, len(face)]), np.ones(1),
+        _spread_all(pts, np.zeros(1, np.int64), np.array([0, 1]), face, np.array([0, len(face)]), np.zeros(1), np.ones(1),
                     float(c.max_spread_m), float(c.template_voxel_m), int(c.max_template_points))
         self.objects.clear()
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0
@@ -835,7 +861,8 @@ class ObjectTracker:
         starts = np.zeros(len(sels) + 1, np.int64)
         starts[1:] = np.cumsum([len(x) for x in sels])
         tpl, ooff = self._stack(objs)
-        merged, noff, outcome, extent = _confirm_all(points_odom, np.concatenate(sels), starts, tpl, ooff,
+        yaws = np.array([o.yaw for o in objs])
+        merged, noff, outcome, extent = _confirm_all(points_odom, np.concatenate(sels), starts, tpl, ooff, yaws,
                                                      float(c.template_voxel_m), int(c.max_template_points),
                                                      float(c.max_growth_m))
         for k, (obj, sel) in enumerate(zip(objs, sels)):
@@ -856,11 +883,13 @@ class ObjectTracker:
             # a far view's face and a near view's top merge; a sliver that disagrees (at the image
             # border) leaves the template; a substantial view that disagrees (the object moved
             # unseen) replaces it, and its anchor (its centre: a jump the history shows as a motion)
-            new, outcome = _merge_view(new, old.template, c.template_voxel_m, c.max_template_points, c.max_growth_m)
+            new, outcome = _merge_view(new, old.template, c.template_voxel_m, c.max_template_points, c.max_growth_m,
+                                       old.yaw)
             anchor = None if outcome == 2 else old.anchor
-        view = _extent(points)
+        yaw = 0.0 if old is None else old.yaw
+        view = _extent(points, yaw)
         obj = TrackedObject(k, cost, new, now_s, 0 if old is None else old.tracked_scans,
-                            view if old is None else max(view, old.view_extent_m), anchor)
+                            view if old is None else max(view, old.view_extent_m), anchor, yaw)
         if old is not None:
             obj.history = old.history
         self.objects[k] = obj
@@ -931,6 +960,7 @@ class ObjectTracker:
             cs, sn = math.cos(yaw), math.sin(yaw)
             ax, ay = float(obj.anchor[0]), float(obj.anchor[1])
             obj.anchor = np.array([cs * ax - sn * ay + tx, sn * ax + cs * ay + ty])
+            obj.yaw += yaw
             obj.tracked_scans += 1
             followed.add(obj.object_id)
         return followed
@@ -949,7 +979,8 @@ class ObjectTracker:
         taken, toff = _take_all(points_odom, label, oid, cost, near, tpl, off, c.label_radius_m, ids, costs)
         if c.max_spread_m > 0.0 and taken.size:
             extent = np.array([o.view_extent_m for o in objs])
-            merged, noff, grown = _spread_all(points_odom, taken, toff, tpl, off, extent, float(c.max_spread_m),
+            yaws = np.array([o.yaw for o in objs])
+            merged, noff, grown = _spread_all(points_odom, taken, toff, tpl, off, yaws, extent, float(c.max_spread_m),
                                               float(c.template_voxel_m), int(c.max_template_points))
             for k in np.flatnonzero(grown):
                 objs[k].template = merged[noff[k]:noff[k + 1]]
