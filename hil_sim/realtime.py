@@ -116,9 +116,9 @@ def controller_config(config: dict, oracle_url: str, latency_s: float) -> dict:
     detect_s, chat_s = 2.0, latency_s + 2.0
     vpp["backend"] = {
         "kind": "openai-compatible", "base_url": f"{oracle_url}/v1", "model": "sim-oracle",
-        "timeout_s": chat_s, "max_retries": 0, "image_format": "png",
+        "timeout_s": chat_s, "max_retries": 0,
         "regions": {"kind": "grounding-http", "base_url": oracle_url, "return_masks": True, "timeout_s": detect_s,
-                    "max_retries": 0, "image_format": "png", "fallback_opencv": False},
+                    "max_retries": 0, "fallback_opencv": False},
     }
     runner = vpp.setdefault("runner", {}) or {}
     vpp["runner"] = runner
