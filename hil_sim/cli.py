@@ -171,13 +171,14 @@ def _run_realtime(sc, scenario: str, seed: int, json_path: Path | None, config_p
     from calibration.outputs import atomic_write_json
     from hil_sim.realtime import run_realtime_episode
 
-    for what, given in (("--planner", planner), ("--fault", fault_texts), ("--record", record_path)):
+    for what, given in (("--fault", fault_texts), ("--record", record_path)):
         if given:
-            raise InputError(f"{what} is not supported with --realtime yet (set the planner in --config; "
-                             "record with `dct run --record`)")
+            raise InputError(f"{what} is not supported with --realtime yet (record with `dct run --record`)")
+    if planner not in (None, "dct", "all-fixed"):
+        raise InputError(f"--planner {planner} is not supported with --realtime (dct or all-fixed: `dct run` runs those)")
     try:
         m = run_realtime_episode(scenario, seed, config_path, robot_path, calibration_path,
-                                 echo=lambda s: click.echo(s, err=True))
+                                 echo=lambda s: click.echo(s, err=True), planner=planner)
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from None
     if json_path is not None:
@@ -232,11 +233,24 @@ def _check_scenario_and_output(scenario: str, seed: int, json_path: Path | None,
 @click.option("--connect-timeout", "connect_timeout_s", default=120.0, show_default=True,
               type=click.FloatRange(1.0, 3600.0), help="End the episode if no controller enables the base by then.")
 @click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+@click.option("--oracle/--no-oracle", "oracle", default=None,
+              help="Serve the sim-oracle as a VLM over HTTP (chat completions + grounding /detect) with a 2 Hz camera "
+                   "(default: when the config's planner.mode is dct).")
+@click.option("--oracle-precision", type=click.FloatRange(0.0, 1.0, min_open=True),
+              help="The oracle's precision (default: the config's vpp.backend sim-oracle section, else 1).")
+@click.option("--oracle-recall", type=click.FloatRange(0.0, 1.0), help="The oracle's recall (default: the config's, else 1).")
+@click.option("--oracle-latency", "oracle_latency_s", type=click.FloatRange(0.0, 120.0),
+              help="Seconds before each answer (default: the config's, 1.5).")
+@click.option("--oracle-failure-rate", type=click.FloatRange(0.0, 1.0),
+              help="Chance an answer fails (HTTP 503) (default: the config's, 0).")
 def serve_command(scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
                   robot_path: Path | None, domain_id: int | None, can_channel: str | None, can_port: int | None,
-                  camera_rate_hz: float, connect_timeout_s: float, force: bool) -> None:
+                  camera_rate_hz: float, connect_timeout_s: float, force: bool, oracle: bool | None,
+                  oracle_precision: float | None, oracle_recall: float | None, oracle_latency_s: float | None,
+                  oracle_failure_rate: float | None) -> None:
     """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
-    the sensors as ROS 2 DDS topics (Livox CustomMsg, Imu, Image). The episode starts when a controller enables
+    the sensors as ROS 2 DDS topics (Livox CustomMsg, Imu, Image); for planner mode dct also the sim-oracle as a VLM
+    over HTTP on 127.0.0.1 (hil_sim/oracle_service.py). The episode starts when a controller enables
     the base; the metrics are written when it ends. Exit 0 when it ran (whatever the outcome), 2 on bad input."""
     import signal
     import threading
@@ -245,16 +259,39 @@ def serve_command(scenario: str, seed: int, json_path: Path | None, config_path:
     from hil_sim.serve import ServeOptions, serve
 
     _check_scenario_and_output(scenario, seed, json_path, force)
+    try:
+        oracle_config = _serve_oracle_config(config_path, seed, oracle, {
+            "precision": oracle_precision, "recall": oracle_recall, "latency_s": oracle_latency_s,
+            "failure_rate": oracle_failure_rate})
+    except ConfigFileError as exc:
+        raise InputError(str(exc)) from exc
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
         m = serve(ServeOptions(scenario, seed, json_path, robot_path, config_path, domain_id, can_channel, can_port,
-                               camera_rate_hz, connect_timeout_s), stop, echo=lambda s: click.echo(s, err=True))
+                               camera_rate_hz, connect_timeout_s, oracle=oracle_config), stop, echo=lambda s: click.echo(s, err=True))
     except (ConfigFileError, ValueError) as exc:
         raise InputError(str(exc)) from exc
     click.echo(f"dct hil serve: episode ended ({m['end_reason']}): goal_reached(world)={m['goal_reached']} "
                f"fixed_contacts={m['fixed_contacts']} time={m['navigation_time_s']:.2f}s", err=True)
+
+
+def _serve_oracle_config(config_path: Path | None, seed: int, oracle: bool | None, overrides: dict):
+    """`dct hil serve`'s sim-oracle settings, or None when it serves none: the config's
+    vpp.backend sim-oracle section (its seed added to the episode's, as lockstep does) with the
+    command line's overrides; served when asked for, or by default in planner mode dct."""
+    from models.vlm.sim_oracle import SimOracleConfig
+    from runtime.config import load_controller_config
+
+    config = load_controller_config(config_path)
+    if oracle is None:
+        oracle = config.planner.mode == "dct"
+    if not oracle:
+        return None
+    backend = config.vpp.backend
+    base = backend.oracle_config(episode_seed=seed) if backend.kind == "sim-oracle" else SimOracleConfig(seed=seed)
+    return SimOracleConfig(**{**base.model_dump(), **{k: v for k, v in overrides.items() if v is not None}})
 
 
 def close_recording(recorder) -> None:

@@ -9,6 +9,15 @@ the simulator says it is serving. The episode ends when the simulator ends it (g
 the controller is then stopped with SIGTERM, as an operator would stop it, and writes its
 summary. If the controller exits first (bad input, crash), the simulator is stopped too.
 
+Planner mode dct (the config's, or `planner`): the controller's config asks for the sim-oracle
+(vpp.backend kind sim-oracle), which only the simulator can answer. `dct hil serve` then serves
+it as a remote VLM over HTTP (hil_sim.oracle_service: the OpenAI chat-completions API and the
+grounding detector API, from the ground truth of the frames it rendered), and the controller
+gets a generated copy of its config whose vpp.backend is `openai-compatible` at that URL, with
+`grounding-http` regions at the same server (`controller_config`): the controller runs the code
+and the client it runs on the robot. A config whose backend is already openai-compatible is
+passed as it is (the controller then asks that server about the simulator's images).
+
 The metrics JSON is the lockstep one (the simulator's ground truth) with what only the
 controller knows merged in (its state, events, deadline misses: goal_reached needs the
 controller's GOAL_REACHED as in lockstep) and `realtime`: the controller's `tick_ms` and
@@ -16,15 +25,18 @@ controller's GOAL_REACHED as in lockstep) and `realtime`: the controller's `tick
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from importlib import resources
 from pathlib import Path
 
 from hil_sim.runner import failure_reason, goal_in_odom_frame
@@ -90,14 +102,45 @@ def _sigterm_raises() -> None:
         signal.signal(signal.SIGTERM, handler)
 
 
+_ORACLE_LINE = re.compile(r"VLM oracle at (http://\S+)/v1 ")
+
+
+def controller_config(config: dict, oracle_url: str, latency_s: float) -> dict:
+    """The controller config (as loaded from YAML) with vpp.backend asking the simulator's oracle
+    service at `oracle_url` over the real wire protocols (module docstring). Timeouts: the
+    detector 2 s, the chat `latency_s` + 2 s, no retries (a failed answer is one failure, as in
+    lockstep); the VPP runner's timeout is raised to cover both when it is shorter."""
+    out = copy.deepcopy(config)
+    vpp = out.setdefault("vpp", {}) or {}
+    out["vpp"] = vpp
+    detect_s, chat_s = 2.0, latency_s + 2.0
+    vpp["backend"] = {
+        "kind": "openai-compatible", "base_url": f"{oracle_url}/v1", "model": "sim-oracle",
+        "timeout_s": chat_s, "max_retries": 0,
+        "regions": {"kind": "grounding-http", "base_url": oracle_url, "return_masks": True, "timeout_s": detect_s,
+                    "max_retries": 0, "fallback_opencv": False},
+    }
+    runner = vpp.setdefault("runner", {}) or {}
+    vpp["runner"] = runner
+    runner["timeout_s"] = max(float(runner.get("timeout_s", 5.0)), detect_s + chat_s + 1.0)
+    return out
+
+
 def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None = None,
                          robot_path: Path | None = None, calibration_path: Path | None = None,
-                         echo=None, keep_dir: Path | None = None) -> dict:
+                         echo=None, keep_dir: Path | None = None, planner: str | None = None) -> dict:
     """Run one real-time episode with two processes; returns the merged metrics (module docstring).
+    planner: overrides the config's planner.mode (dct, all-fixed).
     Raises RuntimeError when a process could not run (the message says which and its last words)."""
+    import yaml
+
     from hil_sim.scenario import load_scenario
+    from runtime.config import load_controller_config
 
     sc = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
+    config = load_controller_config(config_path)
+    mode = planner or config.planner.mode
+    oracle = mode == "dct" and config.vpp.backend.kind == "sim-oracle"
     _sigterm_raises()
     goal = goal_in_odom_frame(sc)
     domain, group, port = unique_channels()
@@ -110,11 +153,15 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         work = Path(keep_dir) if keep_dir is not None else Path(tmp)
         sim_json, ctl_json = work / "simulator.json", work / "controller.json"
         serve_cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json), "--force",
-                         "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port), *common)
-        # all-fixed: the sim-oracle lives in lockstep's process only (runtime/run_process.py docstring).
-        run_cmd = _dct("run", "--planner", "all-fixed", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
+                         "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port),
+                         "--oracle" if oracle else "--no-oracle", *common)
+        run_cmd = _dct("run", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
                        "--domain-id", str(domain), "--can-interface", "udp_multicast", "--can-channel", group,
-                       "--can-port", str(port), *common)
+                       "--can-port", str(port))
+        if robot_path is not None:
+            run_cmd += ["--robot", str(robot_path)]
+        if planner is not None:
+            run_cmd += ["--planner", planner]
         if calibration_path is not None:
             run_cmd += ["--calibration", str(calibration_path)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -130,6 +177,19 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                 if sim.poll() is not None or time.monotonic() - t0 > SERVE_READY_TIMEOUT_S:
                     raise RuntimeError(f"dct hil serve did not start (exit {sim.poll()}): "
                                        f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
+            if oracle:  # the controller asks the simulator's oracle service (module docstring)
+                urls = [m.group(1) for m in map(_ORACLE_LINE.search, sim_log.lines) if m]
+                if not urls:
+                    raise RuntimeError("dct hil serve did not say where its VLM oracle is: "
+                                       f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
+                source = config_path or Path(str(resources.files("runtime") / "config" / "default.yaml"))
+                generated = controller_config(yaml.safe_load(Path(source).read_text()) or {}, urls[-1],
+                                              config.vpp.backend.latency_s)
+                ctl_config = work / "controller_config.yaml"
+                ctl_config.write_text(yaml.safe_dump(generated, sort_keys=False))
+                run_cmd += ["--config", str(ctl_config)]
+            elif config_path is not None:
+                run_cmd += ["--config", str(config_path)]
             ctl = subprocess.Popen(run_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                    stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
             ctl_log = _Lines(ctl.stderr, "ctl", echo)

@@ -5,6 +5,9 @@ firmware (firmware_bridge.firmware_emulator) answers on a CAN bus (udp_multicast
 bus between processes), and the sensors are ROS 2 topics over DDS with the types the real
 drivers publish: livox_ros_driver2/CustomMsg (per-point offset_time, ros_io's numpy encoder),
 sensor_msgs/Imu, sensor_msgs/Image (only when a camera rate is asked for: rendering is costly).
+For planner mode dct it also serves the sim-oracle as a remote VLM (the OpenAI chat-completions
+API and the grounding detector API over HTTP on 127.0.0.1: hil_sim.oracle_service), answering
+from the ground truth of the frames it rendered.
 
 Physics is paced to the wall clock: every loop iteration steps the world until simulated time
 catches up with the time elapsed since start, then sleeps. When the machine cannot keep up, the
@@ -52,6 +55,10 @@ class ServeOptions:
     camera_rate_hz: float = 0.0
     connect_timeout_s: float = 120.0
     settle_s: float = 0.5
+    #: The sim-oracle's settings (models.vlm.sim_oracle.SimOracleConfig): when given, the oracle
+    #: is served over HTTP for planner mode dct (hil_sim.oracle_service) and the camera renders
+    #: with segmentation (at camera_rate_hz, or lockstep's 2 Hz when that is 0).
+    oracle: object = None
 
 
 class DdsSensorSink:
@@ -184,13 +191,25 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
         return wall_t0[0] + (t_sim - sim_t0)
 
     sink = DdsSensorSink(participant, inputs, to_wall)
+    oracle_service = None
+    camera_rate_hz, segmentation = opts.camera_rate_hz, False
+    if opts.oracle is not None:
+        from hil_sim.oracle_service import OracleService, RecordingSink
+        from hil_sim.runner import DCT_CAMERA_RATE_HZ
+
+        oracle_service = OracleService.for_world(world, opts.oracle).start()
+        sink = RecordingSink(sink, oracle_service)
+        camera_rate_hz, segmentation = camera_rate_hz or DCT_CAMERA_RATE_HZ, True
+        echo(f"dct hil serve: VLM oracle at {oracle_service.base_url}/v1 (chat completions) and "
+             f"{oracle_service.base_url} (grounding /detect)")
     diagnostics = None
     if config.ros.outputs.diagnostics:
         from runtime.ros_io.dds import raw_reader, ros_qos
         from runtime.ros_io.messages import DiagnosticArray
 
         diagnostics = raw_reader(participant, config.ros.outputs.diagnostics, DiagnosticArray, ros_qos("best_effort", 4))
-    rig = SensorRig(world, robot, sink, SensorRigConfig(seed=opts.seed, camera_rate_hz=opts.camera_rate_hz))
+    rig = SensorRig(world, robot, sink, SensorRigConfig(seed=opts.seed, camera_rate_hz=camera_rate_hz,
+                                                       camera_segmentation=segmentation))
     firmware = EmulatedBaseFirmware(bus, robot)
     sim = LockstepSimulation(world, firmware, metrics, [rig])
     dt = world.timestep_s
@@ -241,6 +260,8 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
         wall = time.monotonic() - wall_start
         rig.close()
         bus.shutdown()
+        if oracle_service is not None:
+            oracle_service.close()
     t_end = world.time_s
     started = t_start if t_start is not None else t_end
     nav_time = (t_goal if t_goal is not None else t_end) - started
@@ -272,6 +293,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
                 "published": dict(sink.published),
                 "publish_ms_total": {k: v * 1e3 for k, v in sink.publish_s.items()},
                 "sensors": rig.stats(),
+                "oracle": oracle_service.stats() if oracle_service is not None else None,
             },
         },
     )

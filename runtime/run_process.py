@@ -29,9 +29,10 @@ controller takes one goal per run: a later /goal_pose is counted and logged, not
 (NavigationController has no goal change yet).
 
 Planner mode dct needs a contact-tolerance backend it can build outside the simulator (vpp.backend
-kind openai-compatible); the sim-oracle exists only inside the lockstep simulator's process, so
-`dct run` refuses mode dct with it, and `dct hil run --realtime` runs `--planner all-fixed` until
-`dct hil serve` offers its oracle over HTTP (not built yet). All-fixed and pure-pursuit run.
+kind openai-compatible); the sim-oracle backend exists only inside the lockstep simulator's
+process, so `dct run` refuses mode dct with it. In the real-time HIL `dct hil serve` serves the
+oracle over HTTP (hil_sim.oracle_service) and `dct hil run --realtime` gives this process a config
+whose backend is openai-compatible at that server: the same client as on the robot.
 """
 from __future__ import annotations
 
@@ -91,7 +92,7 @@ class RunOptions:
     can_port: int | None = None
     #: Without --goal: how long to wait for the first goal on the goal topic (None: forever).
     goal_wait_s: float | None = None
-    #: Override of planner.mode (`dct hil run --realtime` runs all-fixed: see the module docstring).
+    #: Override of planner.mode.
     planner: str | None = None
     #: Leave the loop thread at normal priority (config `realtime:` not asked for): real-time HIL
     #: on a machine shared with the simulator, where SCHED_FIFO could starve it.

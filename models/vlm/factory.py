@@ -132,6 +132,8 @@ class ProposingBackend:
     def _regions(self, request: VlmRequest):
         prompt = self.prompt or request.prompt
         try:
+            if isinstance(self.proposer, GroundingHttpProposer):  # it sends the capture stamp along
+                return self.proposer.propose(request.image, prompt, stamp_s=request.stamp_s)
             return self.proposer.propose(request.image, prompt)
         except RegionProposalError as exc:
             self.proposer_failures += 1

@@ -372,9 +372,12 @@ class GroundingHttpProposer:
         }
         return body, sent
 
-    def detect(self, image: np.ndarray, prompt: str, depth: DepthInput = None) -> Detections:
+    def detect(self, image: np.ndarray, prompt: str, depth: DepthInput = None, *,
+               stamp_s: float | None = None) -> Detections:
         """Ask the detector (with retries); the regions and why detections were dropped.
-        Raises RegionProposalError when it cannot: bad input, server down, unusable answer."""
+        Raises RegionProposalError when it cannot: bad input, server down, unusable answer.
+        stamp_s: the image's capture time, sent in an X-Image-Stamp header (a real detector
+        ignores it; the simulator's oracle service identifies the frame by it)."""
         t0 = time.monotonic()
         img = check_image(image, "grounding-http")
         if not isinstance(prompt, str) or not prompt.strip() or len(prompt) > 2000:
@@ -383,6 +386,8 @@ class GroundingHttpProposer:
         body, sent = self.build_body(img, prompt)
         payload = json.dumps(body).encode("utf-8")
         headers = {"Content-Type": "application/json", "Accept": "application/json"}
+        if stamp_s is not None:
+            headers["X-Image-Stamp"] = repr(float(stamp_s))
         cfg = self.config
         attempts = cfg.max_retries + 1
         last = "no attempt made"
@@ -411,9 +416,10 @@ class GroundingHttpProposer:
             return Detections(parsed.regions, parsed.rejected, time.monotonic() - t0, k + 1)
         raise RegionProposalError(f"grounding-http: {last} (gave up after {attempts} attempts)")
 
-    def propose(self, image: np.ndarray, prompt: str, depth: DepthInput = None) -> tuple[CandidateRegion, ...]:
+    def propose(self, image: np.ndarray, prompt: str, depth: DepthInput = None, *,
+                stamp_s: float | None = None) -> tuple[CandidateRegion, ...]:
         """`RegionProposer.propose`: the detections as regions, best score first."""
-        return self.detect(image, prompt, depth).regions
+        return self.detect(image, prompt, depth, stamp_s=stamp_s).regions
 
 
 __all__ = [

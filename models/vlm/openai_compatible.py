@@ -8,7 +8,9 @@ each mark is mapped back to its region's full-resolution mask. The model never r
 Wire format (one POST per attempt, JSON both ways)
 --------------------------------------------------
 Request: ``POST {base_url}/chat/completions`` with headers ``Content-Type: application/json``
-and, when `api_key_env` is set, ``Authorization: Bearer <the key from that variable>``::
+and, when `api_key_env` is set, ``Authorization: Bearer <the key from that variable>``; also
+``X-Image-Stamp: <the image's capture stamp, seconds>``, which real servers ignore (the
+simulator's oracle service, hil_sim.oracle_service, identifies the frame by it)::
 
     {"model": "<model>",
      "messages": [
@@ -359,7 +361,10 @@ class OpenAICompatibleBackend(VlmBackend):
         except Exception as e:  # noqa: BLE001 - a bad request is an error answer, not a crash
             return self._answer(request, t0, error=f"bad request: {type(e).__name__}: {e}")
 
-        headers = {"Content-Type": "application/json", "Accept": "application/json"}
+        headers = {"Content-Type": "application/json", "Accept": "application/json",
+                   # The capture stamp, which real APIs ignore; the simulator's oracle service
+                   # (hil_sim.oracle_service) identifies the frame by it.
+                   "X-Image-Stamp": repr(float(request.stamp_s))}
         if self._api_key:
             headers["Authorization"] = f"Bearer {self._api_key}"
         attempts = self.config.max_retries + 1

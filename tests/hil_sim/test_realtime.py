@@ -1,6 +1,7 @@
 """Real-time HIL end to end: `dct hil run case3 --realtime` starts `dct hil serve` and `dct run` as two
 real processes (CAN over udp_multicast, sensors over DDS) and writes the lockstep metrics plus
-`realtime`. Figures are printed, never asserted (the machine's load decides them)."""
+`realtime`, the controller in planner mode dct asking the simulator's oracle over HTTP. Figures are
+printed, never asserted (the machine's load decides them)."""
 from __future__ import annotations
 
 import json
@@ -8,7 +9,7 @@ import os
 import subprocess
 import sys
 
-from hil_sim.realtime import merge, unique_channels
+from hil_sim.realtime import controller_config, merge, unique_channels
 
 
 def test_unique_channels_differ_between_runs():
@@ -35,6 +36,26 @@ def test_merge_needs_the_controller_at_the_goal():
     assert merge(sim, ctl, {}, {}, 1.0)["success"]
 
 
+def test_controller_config_asks_the_oracle_service():
+    from importlib import resources
+
+    import yaml
+
+    from runtime.config import ControllerConfig
+
+    shipped = yaml.safe_load((resources.files("runtime") / "config" / "default.yaml").read_text())
+    assert shipped["vpp"]["backend"]["kind"] == "sim-oracle"
+    cfg = controller_config(shipped, "http://127.0.0.1:4321", 1.5)
+    backend = cfg["vpp"]["backend"]
+    assert backend["kind"] == "openai-compatible" and backend["base_url"] == "http://127.0.0.1:4321/v1"
+    assert backend["regions"]["kind"] == "grounding-http" and backend["regions"]["base_url"] == "http://127.0.0.1:4321"
+    assert backend["max_retries"] == 0 and backend["timeout_s"] > 1.5
+    # The VPP runner waits for the detector and the chat both.
+    assert cfg["vpp"]["runner"]["timeout_s"] > backend["timeout_s"] + backend["regions"]["timeout_s"]
+    assert ControllerConfig.model_validate(cfg).vpp.backend.kind == "openai-compatible"
+    assert shipped["vpp"]["backend"]["kind"] == "sim-oracle"  # the input is not changed
+
+
 def test_case3_realtime_two_processes(tmp_path):
     out = tmp_path / "out.json"
     r = subprocess.run([sys.executable, "-m", "runtime.cli", "hil", "run", "case3", "--realtime", "--json", str(out)],
@@ -50,5 +71,12 @@ def test_case3_realtime_two_processes(tmp_path):
     for key in ("tick_ms", "sensor_to_command_ms"):
         assert set(rt[key]) == {"p50", "p99", "max"} and rt[key]["max"] >= rt[key]["p50"] > 0
     assert isinstance(rt["deadline_misses"], int)
+    # The product's default mode, its VLM the simulator's oracle over HTTP (hil_sim.oracle_service).
+    assert m["planner"] == "dct"
+    oracle = m["simulator"]["oracle"]
+    assert oracle["detect"] > 0 and oracle["chat"] > 0 and oracle["bad_request"] == 0
+    # (The episode's end stops the simulator, and its service, before the controller: a request
+    # in flight then fails, once at most.)
+    assert m["controller"]["vpp"]["answers"] > 0 and m["controller"]["vpp"]["failed_answers"] <= 1
     assert m["fixed_contacts"] == 0, m["failure_reason"]
     assert m["success"], m["failure_reason"]
