@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 
 import math
+import threading
 import time
 from collections.abc import Callable
 
@@ -63,7 +64,99 @@ class SensorRigConfig(BaseModel):
     camera_rate_hz: float = Field(0.0, ge=0.0, le=100.0)
     #: Also render ground-truth segmentation (geom ids) into each image (doubles the cost).
     camera_segmentation: bool = False
+    #: Render beside the physics, in a thread of its own (the real-time simulator, `dct hil
+    #: serve`): a frame costs tens of ms (55 with segmentation), which inline stalls physics, the
+    #: lidar and the IMU every frame. The state of the frame instant is copied (mj_copyData, a
+    #: few microseconds) and rendered from the copy; the image is delivered when it is done,
+    #: stamped with that instant, as a camera driver's image arrives after its exposure. A frame
+    #: due while the last one still renders is skipped (camera_frames_missed). Lockstep keeps it
+    #: off: there an image must reach the controller at a deterministic point of the run.
+    camera_async: bool = False
     seed: int = Field(0, ge=0)
+
+
+def _camera_pose_is_finite(data, camera_name: str) -> bool:
+    """False when the camera pose in data is NaN or infinite (a diverged simulation): a render
+    would be a blank image that looks like a real one."""
+    cam = data.camera(camera_name)
+    return bool(np.isfinite(cam.xpos).all() and np.isfinite(cam.xmat).all())
+
+
+class CameraThread:
+    """SensorRigConfig.camera_async: a SimCamera in a thread of its own, rendering copies of the
+    state. The renderer (and its EGL context) is made and used in that thread only."""
+
+    def __init__(self, model, camera_args: tuple, segmentation: bool, deliver: Callable[[CameraImage], None]) -> None:
+        import mujoco
+
+        self._mujoco = mujoco
+        self._model = model
+        self._snap = mujoco.MjData(model)
+        self._args = camera_args
+        self._segmentation = bool(segmentation)
+        self._deliver = deliver
+        self._job = threading.Event()
+        self._idle = threading.Event()
+        self._stop = False
+        self._stamp = 0.0
+        self._started = threading.Event()
+        self._camera = None
+        #: The exception that ended the thread (re-raised by the next submit), if any.
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="sim-camera", daemon=True)
+        self._thread.start()
+        self._started.wait()
+        if self.error is not None:
+            raise self.error
+
+    @property
+    def renders(self) -> int:
+        return 0 if self._camera is None else self._camera.renders
+
+    def submit(self, data, t_s: float) -> bool:
+        """Render the state now in data, stamped t_s, beside the caller; False (nothing done)
+        while the last frame still renders."""
+        if self.error is not None:
+            raise self.error
+        if not self._idle.is_set():
+            return False
+        self._mujoco.mj_copyData(self._snap, self._model, data)
+        self._stamp = float(t_s)
+        self._idle.clear()
+        self._job.set()
+        return True
+
+    def _run(self) -> None:
+        from hil_sim.camera import SimCamera
+
+        try:
+            self._camera = SimCamera(self._model, self._snap, *self._args)
+        except BaseException as exc:  # reported by __init__
+            self.error = exc
+            self._started.set()
+            return
+        self._idle.set()
+        self._started.set()
+        try:
+            while True:
+                self._job.wait()
+                self._job.clear()
+                if self._stop:
+                    return
+                cam = self._camera
+                image = cam.render_rgb_with_segmentation(self._stamp) if self._segmentation else cam.render_rgb(
+                    self._stamp)
+                self._deliver(image)
+                self._idle.set()
+        except BaseException as exc:  # the simulator's loop raises it at the next frame
+            self.error = exc
+        finally:
+            self._camera.close()
+
+    def close(self) -> None:
+        self._stop = True
+        self._job.set()
+        self._thread.join(timeout=5.0)
 
 
 class SensorRig:
@@ -110,8 +203,11 @@ class SensorRig:
             from hil_sim.camera import SimCamera  # creates an EGL context: only when the camera is on
 
             cam = robot.sensors.camera
-            self.camera = SimCamera(m, d, world.camera_name, cam.width_px, cam.height_px, frame_id="camera",
-                                    hidden_geom_groups=world.camera_hidden_geom_groups)
+            args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups)
+            if c.camera_async:
+                self.camera = CameraThread(m, args, c.camera_segmentation, self._deliver_image)
+            else:
+                self.camera = SimCamera(m, d, *args)
 
         self._last_t: float | None = None
         #: Called with every scan and image the rig produces, before the inbox gets it, in the
@@ -171,8 +267,11 @@ class SensorRig:
                 n_due = int(math.floor((t_s + _EPS_S - self._camera_start_s) / self._camera_period_s)) + 1
                 self.camera_frames_missed += max(0, n_due - self._camera_next - 1)
                 self._camera_next = max(self._camera_next + 1, n_due)
-                if not self.camera.pose_is_finite():
+                if not _camera_pose_is_finite(self.world.data, self.world.camera_name):
                     self.camera_invalid_poses += 1  # no image rather than a blank one
+                elif isinstance(self.camera, CameraThread):
+                    if not self.camera.submit(self.world.data, t_s):
+                        self.camera_frames_missed += 1  # the last frame still renders
                 elif self.config.camera_segmentation:
                     self._deliver_image(self.camera.render_rgb_with_segmentation(t_s))
                 else:

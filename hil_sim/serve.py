@@ -209,7 +209,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
 
         diagnostics = raw_reader(participant, config.ros.outputs.diagnostics, DiagnosticArray, ros_qos("best_effort", 4))
     rig = SensorRig(world, robot, sink, SensorRigConfig(seed=opts.seed, camera_rate_hz=camera_rate_hz,
-                                                       camera_segmentation=segmentation))
+                                                       camera_segmentation=segmentation, camera_async=True))
     firmware = EmulatedBaseFirmware(bus, robot)
     sim = LockstepSimulation(world, firmware, metrics, [rig])
     dt = world.timestep_s

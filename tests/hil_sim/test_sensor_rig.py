@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -170,3 +171,36 @@ def test_a_broken_physics_state_never_raises_from_the_rig():
     assert stats["lidar_invalid_pose_slices"] == 6 + 5  # slices every 2 ms from 0.050 s
     assert stats["camera_invalid_poses"] == 1 and stats["images_produced"] == 1  # no blank image
     assert stats["rejected"] == {"lidar": 0, "camera": 0, "imu": 0}
+
+
+def test_the_real_time_camera_renders_beside_the_physics_what_the_inline_one_renders():
+    """camera_async (dct hil serve): the frame instant's state is copied and rendered in the
+    camera's thread; the image is that of the inline camera, pixel for pixel, with the same
+    stamp and segmentation, and a frame due while the last one renders is skipped and counted."""
+    world = World(SCENARIO, ROBOT)
+    inline_rig = SensorRig(world, ROBOT, SensorInbox(), SensorRigConfig(camera_rate_hz=2.0, camera_segmentation=True,
+                                                                       lidar_enabled=False, imu_enabled=False))
+    got = []
+    inbox = SensorInbox()
+    rig = SensorRig(world, ROBOT, inbox, SensorRigConfig(camera_rate_hz=2.0, camera_segmentation=True,
+                                                        camera_async=True, lidar_enabled=False, imu_enabled=False))
+    rig.listeners.append(got.append)
+    try:
+        expected = inline_rig.camera.render_rgb_with_segmentation(0.0)
+        rig.step(0.0)
+        for _ in range(500):  # the thread delivers within a few tens of ms
+            if got:
+                break
+            time.sleep(0.01)
+        assert len(got) == 1 and got[0].stamp_s == 0.0
+        np.testing.assert_array_equal(got[0].pixels, expected.pixels)
+        np.testing.assert_array_equal(got[0].segmentation, expected.segmentation)
+        assert inbox.take().image is got[0]
+        # busy: the next frame is due but the thread has not finished the one before
+        rig.camera._idle.clear()
+        rig.step(0.5)
+        assert rig.camera_frames_missed == 1 and rig.images_produced == 1
+        rig.camera._idle.set()
+    finally:
+        rig.close()
+        inline_rig.close()
