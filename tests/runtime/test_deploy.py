@@ -14,7 +14,9 @@ import json
 import os
 import socket
 import subprocess
+import sys
 import tarfile
+import threading
 import time
 import zipfile
 from importlib import metadata
@@ -25,7 +27,7 @@ import yaml
 
 from runtime.deploy import bundle as B
 from runtime.deploy.sd_notify import SystemdNotifier
-from tests.runtime.preflight_fakes import EmulatedBase, SensorPublisher, unique_domain, unique_port
+from tests.runtime.preflight_fakes import unique_domain, unique_port
 
 LIMO = Path(__file__).resolve().parents[2] / "calibration" / "robots" / "limo.yaml"
 VERSION = metadata.version("dct-controller")
@@ -206,7 +208,8 @@ def test_sd_notify_ready_and_rate_limited_watchdog(tmp_path):
 @pytest.mark.slow
 def test_real_bundle_installs_offline_and_preflight_passes(tmp_path):
     """The whole path: build (pip), unpack, install offline, run the installed dct preflight
-    against the emulated base (udp_multicast) and live sensor topics. Prints the figures."""
+    against the simulator (`dct hil serve`: the emulated base on udp_multicast, the sensor
+    topics over DDS). Prints the figures."""
     t = time.perf_counter()
     res = B.build_bundle(tmp_path / "dct-bundle.tar.gz", echo=print)
     build_s = time.perf_counter() - t
@@ -224,10 +227,20 @@ def test_real_bundle_installs_offline_and_preflight_passes(tmp_path):
     assert any(w.startswith("torch-2.13.0+cpu") for w in wheels)
     robot = target / "robot"
     port, domain = unique_port(), unique_domain()
-    from firmware_bridge.buses import BusConfig
-
-    with EmulatedBase(BusConfig(interface="udp_multicast", udp_port=port)), \
-            SensorPublisher(domain, {"lidar": 10.0, "imu": 200.0, "camera": 15.0}):
+    # the simulator as its own process (dct hil serve, from this checkout): the emulated base on
+    # udp_multicast and the sensors as the drivers' DDS topics, as the robot would present them
+    serve = subprocess.Popen([sys.executable, "-m", "runtime.cli", "hil", "serve", "case3", "--no-oracle",
+                              "--camera-rate", "15", "--domain-id", str(domain), "--can-port", str(port),
+                              "--connect-timeout", "600"],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    try:
+        deadline = time.monotonic() + 180
+        for line in serve.stdout:
+            if " serving:" in line or time.monotonic() > deadline:
+                break
+        assert serve.poll() is None, "dct hil serve ended before serving"
+        threading.Thread(target=serve.stdout.read, daemon=True).start()  # keep its pipe drained
         t = time.perf_counter()
         pre = subprocess.run([str(target / "venv" / "bin" / "dct"), "preflight", "--robot", str(robot / "robot.yaml"),
                               "--calibration", str(robot / "calibration.yaml"), "--config", str(robot / "config.yaml"),
@@ -236,6 +249,9 @@ def test_real_bundle_installs_offline_and_preflight_passes(tmp_path):
                               "--json", str(target / "logs" / "preflight.json")],
                              capture_output=True, text=True, timeout=300, cwd=tmp_path)
         preflight_s = time.perf_counter() - t
+    finally:
+        serve.terminate()
+        serve.wait(30)
     print(pre.stdout)
     print(f"bundle {res.size_bytes / 1e6:.0f} MB, {res.wheels} wheels: build {build_s:.1f} s, unpack {unpack_s:.1f} s, "
           f"install {install_s:.1f} s, preflight {preflight_s:.1f} s")
