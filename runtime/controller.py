@@ -418,7 +418,13 @@ class NavigationController:
     def _goal_reached(self, now: float) -> None:
         self.state = ControllerState.GOAL_REACHED
         self.goal_reached_at_s = now
-        self.events.add(now, "goal_reached", f"within {self._goal_distance_m():.2f} m of the goal (odometry)")
+        shift = self.modes.goal_shift_xy
+        if shift.any():  # wheel slip the lidar caught moved the goal with the odom frame (modes.selector)
+            d = math.hypot(self.goal.x_m + shift[0] - self.pose.x_m, self.goal.y_m + shift[1] - self.pose.y_m)
+            self.events.add(now, "goal_reached", f"within {d:.2f} m of the goal (odometry; the goal moved "
+                                                 f"{math.hypot(*shift):.2f} m with the odom frame for wheel slip)")
+        else:
+            self.events.add(now, "goal_reached", f"within {self._goal_distance_m():.2f} m of the goal (odometry)")
 
     def slack_work(self) -> bool:
         """After the tick's command is written: the mode's deferred work (a reference search);
