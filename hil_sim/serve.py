@@ -26,6 +26,13 @@ holding for stale data, as it does when this simulator falls behind.) The metric
 (hil_sim.metrics) are then written atomically, as lockstep writes them, with `end_reason`.
 What the controller knows (its state, deadline misses) is not here: `dct hil run --realtime`
 adds it from the controller's own summary.
+
+A patrol scenario (`goals:`, hil_sim.patrol): the controller starts with the first goal (its
+`--goal`); whenever its DiagnosticArray says it has finished with the goal sent last (`finished`
+with that goal's `goal_x`, `goal_y`), the next goal is published as a geometry_msgs/PoseStamped
+on the goal topic (/goal_pose, odometry frame), as an operator would send it from RViz. The
+episode ends with the patrol (its loops, or `duration_s`: `--duration` overrides the file's
+patrol), and the metrics add `patrol`.
 """
 from __future__ import annotations
 
@@ -52,6 +59,8 @@ class ServeOptions:
     camera_rate_hz: float = 0.0
     connect_timeout_s: float = 120.0
     settle_s: float = 0.5
+    #: A patrol's duration (s), instead of the scenario's `patrol` (hil_sim.patrol.with_duration).
+    duration_s: float | None = None
 
 
 class DdsSensorSink:
@@ -144,6 +153,61 @@ def _controller_finished(reader) -> bool:
     return False
 
 
+def _controller_status(reader, last: dict) -> dict:
+    """The newest DiagnosticArray's values from the controller (key -> string), or `last` when no
+    new one has arrived."""
+    from runtime.ros_io.messages import DiagnosticArray, from_cdr
+
+    for data in reversed(reader.take_raw()):
+        try:
+            msg = from_cdr(DiagnosticArray, data)
+        except Exception:  # noqa: BLE001 - not ours to judge; the next one will do
+            continue
+        for status in msg.status:
+            return {kv.key: kv.value for kv in status.values}
+    return last
+
+
+class _PatrolOperator:
+    """A patrol's operator in real time: hil_sim.patrol.PatrolSequencer fed from the controller's
+    diagnostics, its goals published on the goal topic (module docstring)."""
+
+    def __init__(self, scenario, participant, inputs, odom_frame: str, reader, t0_s: float, to_wall) -> None:
+        from hil_sim.patrol import PatrolSequencer
+        from runtime.ros_io.dds import RosWriter, ros_qos
+        from runtime.ros_io.messages import PoseStamped
+
+        if inputs.goal is None:
+            raise ValueError("a patrol needs ros.inputs.goal (the topic its goals are published on)")
+        if reader is None:
+            raise ValueError("a patrol needs ros.outputs.diagnostics (it watches the controller's state there)")
+        self.sequencer = PatrolSequencer(scenario, t0_s)
+        self.reader = reader
+        self.writer = RosWriter(participant, inputs.goal.topic, PoseStamped,
+                                ros_qos(inputs.goal.qos.reliability, inputs.goal.qos.depth))
+        self.frame = odom_frame
+        self.to_wall = to_wall
+        self.status: dict = {}
+        self.goals_published = 0
+
+    def step(self, t_s: float, robot_world_xy) -> None:
+        from runtime.ros_io.convert import goal_pose_msg
+
+        self.status = _controller_status(self.reader, self.status)
+        st = self.status
+        try:
+            goal_xy = (float(st["goal_x"]), float(st["goal_y"]))
+        except (KeyError, ValueError):
+            goal_xy = None
+        seq = self.sequencer
+        goal = seq.update(t_s, robot_world_xy, goal_xy, st.get("finished") == "True", st.get("state") == "STOPPED")
+        if goal is None and seq.resend_due(t_s, goal_xy):
+            goal = seq.current_goal_odom()
+        if goal is not None:
+            self.writer.write(goal_pose_msg(self.to_wall(t_s), goal, frame_id=self.frame))
+            self.goals_published += 1
+
+
 def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -> dict:
     """Run one real-time episode of opts.scenario until it ends (module docstring); returns the
     metrics (also written to opts.json_path)."""
@@ -154,6 +218,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     from firmware_bridge.buses import DEFAULT_UDP_GROUP, DEFAULT_UDP_PORT, BusConfig, open_bus
     from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
     from hil_sim.metrics import EpisodeMetrics
+    from hil_sim.patrol import with_duration
     from hil_sim.runner import LockstepSimulation, world_distance_to_goal, world_goal_reached
     from hil_sim.scenario import load_scenario
     from hil_sim.sensor_rig import SensorRig, SensorRigConfig
@@ -163,6 +228,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
 
     stop = stop or threading.Event()
     scenario = load_scenario(opts.scenario, seed=opts.seed)  # a generated scene is drawn from the seed
+    scenario = with_duration(scenario, opts.duration_s)
     robot = load_robot_description(opts.robot_path)
     config = load_controller_config(opts.config_path)
     inputs = config.ros.inputs
@@ -201,6 +267,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     finished_at: float | None = None
     end_reason = "signal"
     t_goal: float | None = None
+    patrol: _PatrolOperator | None = None
     echo(f"dct hil serve: {scenario.name} seed {opts.seed} serving: CAN udp_multicast {bus_config.channel}:"
          f"{bus_config.udp_port}, DDS domain {inputs.domain_id}, pid {os.getpid()}")
     wall_t0[0] = clock.now()
@@ -222,8 +289,20 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
                 if firmware.control_mode == protocol.CONTROL_MODE_CAN:
                     t_start = t
                     echo(f"dct hil serve: controller connected at t={t - sim_t0:.2f} s; episode starts")
+                    if scenario.is_patrol:
+                        patrol = _PatrolOperator(scenario, participant, inputs, config.ros.outputs.odom_frame,
+                                                 diagnostics, t, to_wall)
                 elif t - sim_t0 > opts.connect_timeout_s:
                     end_reason = "no_controller"
+                    break
+            elif patrol is not None:
+                x, y, _ = world.robot_pose()
+                patrol.step(t, (x, y))
+                if patrol.sequencer.done:
+                    end_reason = f"patrol_{patrol.sequencer.end_reason}"
+                    break
+                if t - t_start >= scenario.time_limit_s:
+                    end_reason = "time_limit"
                     break
             else:
                 if finished_at is None and diagnostics is not None and _controller_finished(diagnostics):
@@ -245,15 +324,20 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     started = t_start if t_start is not None else t_end
     nav_time = (t_goal if t_goal is not None else t_end) - started
     lags = lag_samples[: min(n_lag, len(lag_samples))] * 1e3
+    x_end, y_end, _ = world.robot_pose()
     out = metrics.to_dict(
         # As in lockstep: where the robot is when the episode ends (a goal reached just before the
         # time limit counts; `dct hil run --realtime` also needs the controller's GOAL_REACHED).
-        goal_reached=world_goal_reached(world, scenario),
+        # A patrol: its verdict (hil_sim.patrol).
+        goal_reached=patrol.sequencer.succeeded if patrol is not None else world_goal_reached(world, scenario),
         navigation_time_s=nav_time,
         deadline_misses=0,
         extra={
             "end_reason": end_reason,
-            "final_distance_to_goal_m": world_distance_to_goal(world, scenario),
+            **({"patrol": {**patrol.sequencer.report(t_end), "goals_published": patrol.goals_published}}
+               if patrol is not None else {}),
+            "final_distance_to_goal_m": (patrol.sequencer.distance_to_current_m((x_end, y_end)) if patrol is not None
+                                         else world_distance_to_goal(world, scenario)),
             "final_pose_world": [float(v) for v in world.robot_pose()],
             "sim_time_s": t_end - started,
             "scenario_warnings": list(world.scenario_warnings),
