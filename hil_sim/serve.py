@@ -172,15 +172,12 @@ class _PatrolOperator:
     """A patrol's operator in real time: hil_sim.patrol.PatrolSequencer fed from the controller's
     diagnostics, its goals published on the goal topic (module docstring)."""
 
-    def __init__(self, scenario, participant, inputs, odom_frame: str, reader, t0_s: float, to_wall) -> None:
+    def __init__(self, scenario, participant, inputs, odom_frame: str, reader, t0_s: float, to_wall, echo) -> None:
         from hil_sim.patrol import PatrolSequencer
         from runtime.ros_io.dds import RosWriter, ros_qos
         from runtime.ros_io.messages import PoseStamped
 
-        if inputs.goal is None:
-            raise ValueError("a patrol needs ros.inputs.goal (the topic its goals are published on)")
-        if reader is None:
-            raise ValueError("a patrol needs ros.outputs.diagnostics (it watches the controller's state there)")
+        self.echo = echo
         self.sequencer = PatrolSequencer(scenario, t0_s)
         self.reader = reader
         self.writer = RosWriter(participant, inputs.goal.topic, PoseStamped,
@@ -206,6 +203,12 @@ class _PatrolOperator:
         if goal is not None:
             self.writer.write(goal_pose_msg(self.to_wall(t_s), goal, frame_id=self.frame))
             self.goals_published += 1
+            v = seq.current
+            if len(seq.visits) > 1 and v.sent_at_s == t_s - seq.t0_s:  # a new goal, not a repeat
+                last = seq.visits[-2]
+                self.echo(f"dct hil serve: t={t_s - seq.t0_s:.1f} s: goal {last.visit} {last.outcome} "
+                          f"({last.world_error_m:.2f} m off); goal {v.visit} (goals[{v.goal_index}], loop {v.loop}) "
+                          "published on the goal topic")
 
 
 def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -> dict:
@@ -241,6 +244,9 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     world.reset(opts.seed)
     metrics = EpisodeMetrics(world, scenario, opts.seed)
     clock = EpochMonotonicClock()
+    if scenario.is_patrol and (inputs.goal is None or not config.ros.outputs.diagnostics):
+        raise ValueError(f"scenario {scenario.name} is a patrol: it needs ros.inputs.goal (where its goals are "
+                         "published) and ros.outputs.diagnostics (where it watches the controller) in the config")
     bus = open_bus(bus_config)
     participant = DomainParticipant(inputs.domain_id)
     sim_t0 = world.time_s
@@ -291,7 +297,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
                     echo(f"dct hil serve: controller connected at t={t - sim_t0:.2f} s; episode starts")
                     if scenario.is_patrol:
                         patrol = _PatrolOperator(scenario, participant, inputs, config.ros.outputs.odom_frame,
-                                                 diagnostics, t, to_wall)
+                                                 diagnostics, t, to_wall, echo)
                 elif t - sim_t0 > opts.connect_timeout_s:
                     end_reason = "no_controller"
                     break
