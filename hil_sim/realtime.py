@@ -13,6 +13,9 @@ The metrics JSON is the lockstep one (the simulator's ground truth) with what on
 controller knows merged in (its state, events, deadline misses: goal_reached needs the
 controller's GOAL_REACHED as in lockstep) and `realtime`: the controller's `tick_ms` and
 `sensor_to_command_ms` (p50, p99, max), `deadline_misses`, and the processes' `pids`.
+
+`--record run.mcap` is the controller process's recording (`dct run --record`, what `dct report
+latency` reads); `--duration S` is a patrol's length (`dct hil serve --duration`, hil_sim.patrol).
 """
 from __future__ import annotations
 
