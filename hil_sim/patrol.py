@@ -18,7 +18,14 @@ again every RESEND_S until the controller reports it. Either way the controller 
 through the same `request_goal`.
 
 Goals are sent in the odometry frame, which starts at the robot's start pose
-(`runner.goal_in_odom_frame`).
+(`runner.goal_in_odom_frame`): the odometry's drift goes into where the robot drives, as it would
+with an operator who has no map. With `patrol.localized` the operator places each goal as a
+localizer would (a map frame corrected onto the odometry's): from the ground truth, the world
+goal is put into the controller's odometry frame as it is at the moment the goal is sent (the
+robot stands still then: it has just finished the previous goal), so a long patrol keeps testing
+navigation and timing rather than the odometry's drift. Either way each visit reports the drift
+(`odometry_drift_m`: where the controller's pose puts the robot, through the start frame, against
+where it is).
 """
 from __future__ import annotations
 
@@ -52,15 +59,22 @@ def with_duration(scenario: Scenario, duration_s: float | None) -> Scenario:
         raise PatrolError(f"--duration: {duration_s!r} s is not in (0, 3600]")
     timeout = scenario.patrol.goal_timeout_s if scenario.patrol is not None else Patrol.model_fields[
         "goal_timeout_s"].default
-    patrol = Patrol(duration_s=float(duration_s), goal_timeout_s=timeout)
+    localized = scenario.patrol.localized if scenario.patrol is not None else False
+    patrol = Patrol(duration_s=float(duration_s), goal_timeout_s=timeout, localized=localized)
     return scenario.model_copy(update={"patrol": patrol, "time_limit_s": float(duration_s)})
 
 
-def goal_in_odom(scenario: Scenario, index: int) -> Pose2D:
-    """Goal `index` of the sequence in the odometry frame (the start pose's)."""
+def goal_in_odom(scenario: Scenario, index: int, world_pose=None, odom_pose: Pose2D | None = None) -> Pose2D:
+    """Goal `index` of the sequence in the odometry frame: the start pose's, or with the robot's
+    true pose `world_pose` (x, y, yaw) and the controller's `odom_pose` at the same moment, the
+    odometry frame as it lies in the world now (a localizer's map -> odom)."""
     g = scenario.goal_sequence[index]
+    goal = Pose2D(g.x_m, g.y_m, g.yaw_rad)
+    if world_pose is not None and odom_pose is not None:
+        world_odom = Pose2D(*map(float, world_pose)).compose(odom_pose.inverse())
+        return world_odom.inverse().compose(goal)
     s = scenario.robot_start
-    return Pose2D(s.x_m, s.y_m, s.yaw_rad).inverse().compose(Pose2D(g.x_m, g.y_m, g.yaw_rad))
+    return Pose2D(s.x_m, s.y_m, s.yaw_rad).inverse().compose(goal)
 
 
 @dataclass
@@ -71,16 +85,21 @@ class GoalVisit:
     goal_index: int         # into the scenario's goals
     loop: int               # 0-based time round the goals
     goal_world: tuple[float, float]
+    goal_odom: tuple[float, float, float]  # as sent (odometry frame)
     sent_at_s: float        # from the patrol's start
     ended_at_s: float | None = None
     #: reached | missed_odometry (the controller finished away from it) | missed_timeout |
     #: in_progress (the patrol ended first)
     outcome: str = "in_progress"
     world_error_m: float | None = None  # robot to goal (ground truth) when it ended
+    #: where the controller's pose (through the start frame) puts the robot, against where it is,
+    #: when it ended (None: the controller's pose unknown)
+    odometry_drift_m: float | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["goal_world"] = list(self.goal_world)
+        d["goal_odom"] = list(self.goal_odom)
         d["time_s"] = None if self.ended_at_s is None else self.ended_at_s - self.sent_at_s
         return d
 
@@ -98,12 +117,14 @@ class PatrolSequencer:
         self.loops = patrol.loops
         self.duration_s = patrol.duration_s
         self.goal_timeout_s = patrol.goal_timeout_s
+        self.localized = patrol.localized
         self.t0_s = float(t0_s)
         self.visits: list[GoalVisit] = []
+        self._drift_m: float | None = None
         self.done = False
         self.end_reason: str | None = None
         self._last_sent_s = self.t0_s
-        self._start_visit(0, self.t0_s)  # the controller starts with goal 0
+        self._start_visit(0, self.t0_s, None, None)  # the controller starts with goal 0 (start frame)
 
     # -- state
     @property
@@ -111,12 +132,15 @@ class PatrolSequencer:
         return self.visits[-1]
 
     def current_goal_odom(self) -> Pose2D:
-        return goal_in_odom(self.scenario, self.current.goal_index)
+        return Pose2D(*self.current.goal_odom)
 
-    def _start_visit(self, k: int, t_s: float) -> None:
+    def _start_visit(self, k: int, t_s: float, world_pose, odom_pose: Pose2D | None) -> None:
         n = len(self.goals)
         g = self.goals[k % n]
-        self.visits.append(GoalVisit(k, k % n, k // n, (g.x_m, g.y_m), t_s - self.t0_s))
+        odom = (goal_in_odom(self.scenario, k % n, world_pose, odom_pose) if self.localized
+                else goal_in_odom(self.scenario, k % n))
+        self.visits.append(GoalVisit(k, k % n, k // n, (g.x_m, g.y_m), (odom.x_m, odom.y_m, odom.yaw_rad),
+                                     t_s - self.t0_s))
         self._last_sent_s = t_s
 
     def _end(self, reason: str) -> None:
@@ -131,14 +155,17 @@ class PatrolSequencer:
         return math.hypot(controller_goal_xy[0] - g.x_m, controller_goal_xy[1] - g.y_m) <= SAME_GOAL_M
 
     # -- the operator's step
-    def update(self, t_s: float, robot_world_xy: tuple[float, float],
-               controller_goal_xy: tuple[float, float] | None, controller_finished: bool,
-               controller_stopped: bool) -> Pose2D | None:
-        """One look at the scene at time t_s: the robot's true position, the controller's goal (odom
-        frame; None when unknown) and whether it has finished or stopped. Returns the next goal to
-        send (odom frame), or None. Sets `done` when the patrol is over."""
+    def update(self, t_s: float, robot_world_pose, controller_goal_xy: tuple[float, float] | None,
+               controller_finished: bool, controller_stopped: bool,
+               controller_pose: Pose2D | None = None) -> Pose2D | None:
+        """One look at the scene at time t_s: the robot's true pose (x, y, yaw), the controller's goal
+        (odom frame; None when unknown), whether it has finished or stopped, and its pose (odom
+        frame; None when unknown). Returns the next goal to send (odom frame), or None. Sets `done`
+        when the patrol is over."""
         if self.done:
             return None
+        robot_world_xy = (float(robot_world_pose[0]), float(robot_world_pose[1]))
+        self._drift_m = self._drift(robot_world_xy, controller_pose)
         visit = self.current
         if self.duration_s is not None and t_s - self.t0_s >= self.duration_s:
             self._end("duration")
@@ -159,7 +186,7 @@ class PatrolSequencer:
         if self.loops is not None and k >= self.loops * len(self.goals):
             self._end("loops_done")
             return None
-        self._start_visit(k, t_s)
+        self._start_visit(k, t_s, robot_world_pose, controller_pose)
         return self.current_goal_odom()
 
     def resend_due(self, t_s: float, controller_goal_xy: tuple[float, float] | None) -> bool:
@@ -174,6 +201,14 @@ class PatrolSequencer:
         visit.ended_at_s = t_s - self.t0_s
         visit.outcome = outcome
         visit.world_error_m = math.hypot(robot_world_xy[0] - g.x_m, robot_world_xy[1] - g.y_m)
+        visit.odometry_drift_m = self._drift_m
+
+    def _drift(self, robot_world_xy, controller_pose: Pose2D | None) -> float | None:
+        if controller_pose is None:
+            return None
+        s = self.scenario.robot_start
+        seen = Pose2D(s.x_m, s.y_m, s.yaw_rad).compose(controller_pose)
+        return math.hypot(seen.x_m - robot_world_xy[0], seen.y_m - robot_world_xy[1])
 
     def distance_to_current_m(self, robot_world_xy: tuple[float, float]) -> float:
         x, y = self.current.goal_world
@@ -202,9 +237,12 @@ class PatrolSequencer:
     def report(self, t_end_s: float) -> dict:
         """JSON-ready: counts, the end, and every visit."""
         times = [v.ended_at_s - v.sent_at_s for v in self.visits if v.outcome == "reached"]
+        drifts = [v.odometry_drift_m for v in self.visits if v.odometry_drift_m is not None]
         return {
             **self.counts(),
             "goals_in_sequence": len(self.goals),
+            "localized": self.localized,
+            "odometry_drift_m_max": max(drifts) if drifts else None,
             "loops": self.loops,
             "duration_s": self.duration_s,
             "goal_timeout_s": self.goal_timeout_s,

@@ -284,9 +284,8 @@ def run_episode(
         if progress is not None:
             progress(now)
         if patrol is not None:  # the operator: the next goal once the controller is done with this one
-            x, y, _ = world.robot_pose()
-            goal = patrol.update(now, (x, y), (controller.goal.x_m, controller.goal.y_m), controller.finished,
-                                 controller.state is ControllerState.STOPPED)
+            goal = patrol.update(now, world.robot_pose(), (controller.goal.x_m, controller.goal.y_m),
+                                 controller.finished, controller.state is ControllerState.STOPPED, controller.pose)
             if goal is not None:
                 controller.request_goal(goal, "patrol")
             return patrol.done or now >= time_limit

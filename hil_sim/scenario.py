@@ -368,6 +368,9 @@ class Patrol(_Strict):
     loops: int | None = Field(default=None, ge=1, le=10000)
     duration_s: float | None = Field(default=None, gt=0.0, le=3600.0)
     goal_timeout_s: float = Field(default=60.0, gt=0.0, le=3600.0)
+    #: False: goals in the odometry frame of the start (the odometry's drift goes into them). True:
+    #: each goal placed as a localizer would, from the ground truth when it is sent (hil_sim.patrol).
+    localized: bool = False
 
     @model_validator(mode="after")
     def _one_end(self) -> "Patrol":

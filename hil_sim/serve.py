@@ -187,7 +187,8 @@ class _PatrolOperator:
         self.status: dict = {}
         self.goals_published = 0
 
-    def step(self, t_s: float, robot_world_xy) -> None:
+    def step(self, t_s: float, robot_world_pose) -> None:
+        from runtime.geometry import Pose2D
         from runtime.ros_io.convert import goal_pose_msg
 
         self.status = _controller_status(self.reader, self.status)
@@ -196,8 +197,13 @@ class _PatrolOperator:
             goal_xy = (float(st["goal_x"]), float(st["goal_y"]))
         except (KeyError, ValueError):
             goal_xy = None
+        try:
+            pose = Pose2D(float(st["pose_x"]), float(st["pose_y"]), float(st["pose_yaw"]))
+        except (KeyError, ValueError):
+            pose = None
         seq = self.sequencer
-        goal = seq.update(t_s, robot_world_xy, goal_xy, st.get("finished") == "True", st.get("state") == "STOPPED")
+        goal = seq.update(t_s, robot_world_pose, goal_xy, st.get("finished") == "True", st.get("state") == "STOPPED",
+                          pose)
         if goal is None and seq.resend_due(t_s, goal_xy):
             goal = seq.current_goal_odom()
         if goal is not None:
@@ -302,8 +308,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
                     end_reason = "no_controller"
                     break
             elif patrol is not None:
-                x, y, _ = world.robot_pose()
-                patrol.step(t, (x, y))
+                patrol.step(t, world.robot_pose())
                 if patrol.sequencer.done:
                     end_reason = f"patrol_{patrol.sequencer.end_reason}"
                     break

@@ -29,8 +29,8 @@ geometry_msgs/PoseStamped on the goal topic (Nav2's /goal_pose) when none is giv
 (`NavigationController.request_goal`, applied at the next tick's read stage); one in another
 frame than the odometry's, or one the controller refuses (not finite, out of range), is counted
 in `goals_ignored` and said on stderr. The diagnostics carry the current goal (`goal_x`,
-`goal_y`) and `finished` (at it with a zero command), so that an operator (the simulator's
-patrol, hil_sim.patrol) knows when to send the next.
+`goal_y`), `finished` (at it with a zero command) and the pose (`pose_x`, `pose_y`, `pose_yaw`),
+so that an operator (the simulator's patrol, hil_sim.patrol) knows when to send the next.
 
 Planner mode dct needs a contact-tolerance backend it can build outside the simulator (vpp.backend
 kind openai-compatible); the sim-oracle exists only inside the lockstep simulator's process, so
@@ -341,7 +341,8 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
                 tick_ms=float(row["tick_s"]) * 1e3,
                 extra={"deadline_misses": telemetry.deadline_misses, "hold_reason": controller.hold_reason or "",
                        "active_mode": controller.modes.mode_name, "finished": controller.finished,
-                       "goal_x": controller.goal.x_m, "goal_y": controller.goal.y_m},
+                       "goal_x": controller.goal.x_m, "goal_y": controller.goal.y_m, "pose_x": controller.pose.x_m,
+                       "pose_y": controller.pose.y_m, "pose_yaw": controller.pose.yaw_rad},
                 points_fix=controller.points_fix if clouds else None,
                 plan_states=plan.states if clouds and plan is not None else None,
                 points_mov=mov,

@@ -126,6 +126,23 @@ def test_the_sequencer_sends_the_next_goal_only_when_the_controller_finished_wit
     assert not seq.succeeded
 
 
+def test_a_localized_patrol_places_each_goal_in_the_odometry_frame_as_it_lies_now():
+    sc = scenario(patrol={"loops": 1, "localized": True})
+    seq = PatrolSequencer(sc, t0_s=0.0)
+    g0 = goal_in_odom(sc, 0)  # the first goal: the start's frame (the controller was given it at start)
+    assert seq.current_goal_odom() == g0
+    # at goal 0 in the world, the odometry says 0.2 m further along x than it went: drift
+    odom = Pose2D(g0.x_m + 0.2, g0.y_m, 0.0)
+    nxt = seq.update(5.0, (1.5, -1.0, 0.0), (g0.x_m, g0.y_m), True, False, odom)
+    assert seq.visits[0].outcome == "reached" and seq.visits[0].odometry_drift_m == pytest.approx(0.2)
+    # goal 1 is (1.5, 1.0) in the world: 2 m to the left of the robot, wherever the odometry thinks it is
+    assert (nxt.x_m, nxt.y_m) == pytest.approx((odom.x_m, odom.y_m + 2.0))
+    plain = PatrolSequencer(scenario(patrol={"loops": 1}), t0_s=0.0)
+    nxt = plain.update(5.0, (1.5, -1.0, 0.0), (g0.x_m, g0.y_m), True, False, odom)
+    assert nxt == goal_in_odom(sc, 1) and plain.visits[0].odometry_drift_m == pytest.approx(0.2)
+    assert seq.report(5.0)["localized"] and not plain.report(5.0)["localized"]
+
+
 def test_a_duration_patrol_ends_on_time_with_the_goal_in_progress_counted_as_neither():
     sc = with_duration(scenario(), 30.0)
     seq = PatrolSequencer(sc, t0_s=0.0)
@@ -206,19 +223,20 @@ def test_lockstep_patrol_visits_the_goals_in_order_round_twice_deterministically
 
 
 def test_lockstep_patrol_all_fixed_reaches_every_goal_in_a_walled_room():
-    """The MPC mode with lidar and IMU (the odometry that holds): one loop of three goals, each
-    reached in the world, no contact."""
+    """The MPC mode with lidar and IMU: one loop of three goals (placed as a localizer would), each
+    reached in the world, no contact, the odometry's drift reported per visit."""
     walls = [{"from": [-3.0, -3.0], "to": [3.0, -3.0], "thickness_m": 0.1, "height_m": 0.8},
              {"from": [3.0, -3.0], "to": [3.0, 3.0], "thickness_m": 0.1, "height_m": 0.8},
              {"from": [3.0, 3.0], "to": [-3.0, 3.0], "thickness_m": 0.1, "height_m": 0.8},
              {"from": [-3.0, 3.0], "to": [-3.0, -3.0], "thickness_m": 0.1, "height_m": 0.8}]
     post = {"name": "post", "shape": "cylinder", "size": {"radius_m": 0.2, "height_m": 0.8},
             "pose": {"x_m": 0.0, "y_m": 0.0}, "class": "fixed"}
-    sc = scenario(walls=walls, obstacles=[post], patrol={"loops": 1})
+    sc = scenario(walls=walls, obstacles=[post], patrol={"loops": 1, "localized": True})
     m = run_episode(sc, robot=ROBOT, config=load_controller_config().with_planner_mode("all-fixed"), seed=0).metrics
     p = m["patrol"]
     assert [v["outcome"] for v in p["visits"]] == ["reached"] * 3, p["visits"]
     assert m["success"] and m["fixed_contacts"] == 0 and p["end_reason"] == "loops_done"
+    assert all(v["odometry_drift_m"] is not None for v in p["visits"]) and p["localized"]
 
 
 def test_lockstep_patrol_goal_not_reached_in_time_is_missed_and_the_patrol_goes_on():
