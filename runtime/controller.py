@@ -36,6 +36,7 @@ which lidar points it must not touch (P_fix) is the partition stage the planner 
 from __future__ import annotations
 
 import math
+import threading
 from enum import IntEnum
 from typing import Callable
 
@@ -137,6 +138,7 @@ class NavigationController:
         self._goal_xy = np.array([goal.x_m, goal.y_m])
         #: (goal, source) requested since the last tick (request_goal), applied in the next read().
         self._pending_goal: tuple[Pose2D, str] | None = None
+        self._goal_lock = threading.Lock()  # request_goal may come from another thread
         self.goals_received = 1  # the start's goal included
         self.goals_reached = 0
         self.goals_repeated = 0  # requests equal to the current goal (nothing to change)
@@ -293,10 +295,13 @@ class NavigationController:
         """A new goal (odom frame) from `source` (a topic, the command line, a patrol): validated
         now (GoalError), replaces the current goal at the next tick's read stage (module
         docstring). Any thread may call it; the newest request wins."""
-        self._pending_goal = (check_goal(goal, source), source)
+        checked = check_goal(goal, source)
+        with self._goal_lock:
+            self._pending_goal = (checked, source)
 
     def _apply_goal(self, now: float) -> None:
-        pending, self._pending_goal = self._pending_goal, None
+        with self._goal_lock:
+            pending, self._pending_goal = self._pending_goal, None
         if pending is None:
             return
         goal, source = pending
