@@ -273,7 +273,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     sim = LockstepSimulation(world, firmware, metrics, [rig])
     dt = world.timestep_s
     half = 0.5 * dt
-    lag_samples = np.zeros(1 << 20)  # every catch-up of a 10-minute run (about 1 per ms), not its last minute
+    lag_samples = np.zeros(1 << 20)  # every catch-up of a 10-minute run (up to one per 2 ms physics step)
     n_lag = 0
     t_start: float | None = None
     finished_at: float | None = None
