@@ -492,7 +492,8 @@ class Scenario(_Strict):
                 raise ValueError(f"goals[{i}] is {d:.3f} m from goals[{j}], within a goal tolerance "
                                  f"({max(a.tolerance_m, b.tolerance_m):g} m): reaching one would reach the other "
                                  f"(the patrol drives from goals[{j}] to goals[{i}]; move or remove one)")
-        if self.patrol is not None and self.patrol.duration_s is not None and self.patrol.duration_s > self.time_limit_s:
+        duration = self.patrol.duration_s if self.patrol is not None else None
+        if duration is not None and duration > self.time_limit_s:
             raise ValueError(f"patrol.duration_s {self.patrol.duration_s:g} is longer than time_limit_s "
                              f"{self.time_limit_s:g}: the episode would end first (raise time_limit_s)")
 

@@ -273,7 +273,8 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     sim = LockstepSimulation(world, firmware, metrics, [rig])
     dt = world.timestep_s
     half = 0.5 * dt
-    lag_samples = np.zeros(1 << 20)  # every catch-up of a 10-minute run (at most one per physics step: 600k in 10 min at 1 ms)
+    # every catch-up of a 10-minute run (at most one per physics step: 600k in 10 min at 1 ms)
+    lag_samples = np.zeros(1 << 20)
     n_lag = 0
     t_start: float | None = None
     finished_at: float | None = None
