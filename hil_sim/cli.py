@@ -64,11 +64,15 @@ def list_command() -> None:
 @click.option("--realtime", is_flag=True,
               help="Two processes on the wall clock, as on the robot: `dct hil serve` (simulator, CAN over "
                    "udp_multicast, sensors over DDS) and `dct run` (the controller). The JSON adds `realtime` "
-                   "(tick and sensor-to-command latency, deadline misses, pids). Not deterministic.")
+                   "(tick and sensor-to-command latency, deadline misses, pids). Not deterministic. With --record "
+                   "the controller process records the run.")
+@click.option("--duration", "duration_s", type=click.FloatRange(0.0, 3600.0, min_open=True), metavar="SECONDS",
+              help="A patrol scenario (goals:): patrol for this long instead of the file's patrol (loops or "
+                   "duration_s); the time limit becomes this duration.")
 def run_command(
     scenario: str, json_path: Path | None, seed: int, config_path: Path | None, robot_path: Path | None,
     planner: str | None, fault_texts: tuple[str, ...], calibration_path: Path | None = None,
-    record_path: Path | None = None, force: bool = False, realtime: bool = False,
+    record_path: Path | None = None, force: bool = False, realtime: bool = False, duration_s: float | None = None,
 ) -> None:
     """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path).
 
@@ -81,6 +85,7 @@ def run_command(
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
     from calibration.robot_description import load_robot_description
     from hil_sim.faults import FaultSpec, FaultSpecError
+    from hil_sim.patrol import PatrolError, with_duration
     from hil_sim.runner import run_episode
     from hil_sim.scenario import load_scenario
     from runtime.config import load_controller_config
@@ -88,6 +93,7 @@ def run_command(
     try:
         faults = [FaultSpec.parse(t) for t in fault_texts]
         sc = load_scenario(scenario, seed=seed)  # a generated scene (dct_f2m2) is drawn from the seed
+        sc = with_duration(sc, duration_s)
         robot = load_robot_description(robot_path)
         config = load_controller_config(config_path)
         if planner is not None:
@@ -112,6 +118,10 @@ def run_command(
                   if p is not None and Path(p).is_file()]
         if json_path is not None:
             check_output_path(json_path, what="--json", inputs=inputs)
+        if record_path is not None:
+            check_output_path(record_path, what="--record", inputs=inputs, overwrite=force)
+            if json_path is not None and record_path.resolve() == json_path.resolve():
+                raise InputError(f"--record {record_path} is also the --json file; write them to two files")
         if config.uses_mpc:  # the distance net must fit this robot (checked again at start-up)
             from models.distance_net import DistanceNet
             from models.errors import DistanceNetError
@@ -120,7 +130,7 @@ def run_command(
                 DistanceNet.load(config.planner.distance_net_path, robot=robot)
             except DistanceNetError as exc:
                 raise InputError(str(exc)) from exc
-    except (ConfigFileError, FaultSpecError, OutputPathError) as exc:
+    except (ConfigFileError, FaultSpecError, OutputPathError, PatrolError) as exc:
         raise InputError(str(exc)) from exc
     warnings += [f"--fault {f}: starts at or after the time limit ({sc.time_limit_s:g} s); it will never act"
                  for f in faults if f.start_s >= sc.time_limit_s]
@@ -128,14 +138,12 @@ def run_command(
         click.echo(f"warning: {w}", err=True)
     if realtime:
         _run_realtime(sc, scenario, seed, json_path, config_path, robot_path, calibration_path, planner,
-                      fault_texts, record_path)
+                      fault_texts, record_path, force, duration_s)
         return
     recorder = None
     if record_path is not None:
         from runtime.recording import RecordingError, RunRecorder
 
-        if json_path is not None and record_path.resolve() == json_path.resolve():
-            raise InputError(f"--record {record_path} is also the --json file; write them to two files")
         try:
             recorder = RunRecorder(record_path, force=force)
         except RecordingError as exc:
@@ -166,19 +174,22 @@ def run_command(
 
 def _run_realtime(sc, scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
                   robot_path: Path | None, calibration_path: Path | None, planner: str | None,
-                  fault_texts: tuple[str, ...], record_path: Path | None) -> None:
-    """`dct hil run --realtime`: hil_sim.realtime (two processes)."""
+                  fault_texts: tuple[str, ...], record_path: Path | None, force: bool = False,
+                  duration_s: float | None = None) -> None:
+    """`dct hil run --realtime`: hil_sim.realtime (two processes); --record: the controller's."""
     from calibration.outputs import atomic_write_json
     from hil_sim.realtime import run_realtime_episode
 
-    for what, given in (("--fault", fault_texts), ("--record", record_path)):
+    for what, given in (("--fault", fault_texts),):
         if given:
-            raise InputError(f"{what} is not supported with --realtime yet (record with `dct run --record`)")
+            raise InputError(f"{what} is not supported with --realtime yet")
     if planner not in (None, "dct", "all-fixed"):
         raise InputError(f"--planner {planner} is not supported with --realtime (dct or all-fixed: `dct run` runs those)")
     try:
         m = run_realtime_episode(scenario, seed, config_path, robot_path, calibration_path,
-                                 echo=lambda s: click.echo(s, err=True), planner=planner)
+                                 echo=lambda s: click.echo(s, err=True), planner=planner, duration_s=duration_s,
+                                 record_path=record_path.resolve() if record_path is not None else None,
+                                 force=force)
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from None
     if json_path is not None:
@@ -201,18 +212,21 @@ def realtime_line(name: str, m: dict) -> str:
             f"{rt['pids']['controller']}")
 
 
-def _check_scenario_and_output(scenario: str, seed: int, json_path: Path | None, force: bool) -> None:
-    """Before a long real-time run: the scenario loads (a generated one from its seed) and the
-    --json output may be written (an existing file only with --force); else one line, exit 2."""
+def _check_scenario_and_output(scenario: str, seed: int, json_path: Path | None, force: bool,
+                               duration_s: float | None = None) -> None:
+    """Before a long real-time run: the scenario loads (a generated one from its seed; a --duration
+    only for a patrol) and the --json output may be written (an existing file only with --force);
+    else one line, exit 2."""
     from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError, check_output_path
+    from hil_sim.patrol import PatrolError, with_duration
     from hil_sim.scenario import load_scenario
 
     try:
-        load_scenario(scenario, seed=seed)
+        with_duration(load_scenario(scenario, seed=seed), duration_s)
         if json_path is not None:
             check_output_path(json_path, what="--json", overwrite=force)
-    except (ConfigFileError, OutputPathError) as exc:
+    except (ConfigFileError, OutputPathError, PatrolError) as exc:
         raise InputError(str(exc)) from exc
 
 
@@ -232,6 +246,8 @@ def _check_scenario_and_output(scenario: str, seed: int, json_path: Path | None,
               help="Camera images per second (0: no camera; rendering is costly).")
 @click.option("--connect-timeout", "connect_timeout_s", default=120.0, show_default=True,
               type=click.FloatRange(1.0, 3600.0), help="End the episode if no controller enables the base by then.")
+@click.option("--duration", "duration_s", type=click.FloatRange(0.0, 3600.0, min_open=True), metavar="SECONDS",
+              help="A patrol scenario (goals:): patrol for this long instead of the file's patrol.")
 @click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
 @click.option("--oracle/--no-oracle", "oracle", default=None,
               help="Serve the sim-oracle as a VLM over HTTP (chat completions + grounding /detect) with a 2 Hz camera "
@@ -247,7 +263,7 @@ def serve_command(scenario: str, seed: int, json_path: Path | None, config_path:
                   robot_path: Path | None, domain_id: int | None, can_channel: str | None, can_port: int | None,
                   camera_rate_hz: float, connect_timeout_s: float, force: bool, oracle: bool | None,
                   oracle_precision: float | None, oracle_recall: float | None, oracle_latency_s: float | None,
-                  oracle_failure_rate: float | None) -> None:
+                  oracle_failure_rate: float | None, duration_s: float | None = None) -> None:
     """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
     the sensors as ROS 2 DDS topics (Livox CustomMsg, Imu, Image); for planner mode dct also the sim-oracle as a VLM
     over HTTP on 127.0.0.1 (hil_sim/oracle_service.py). The episode starts when a controller enables
@@ -258,7 +274,7 @@ def serve_command(scenario: str, seed: int, json_path: Path | None, config_path:
     from calibration.errors import ConfigFileError
     from hil_sim.serve import ServeOptions, serve
 
-    _check_scenario_and_output(scenario, seed, json_path, force)
+    _check_scenario_and_output(scenario, seed, json_path, force, duration_s)
     try:
         oracle_config = _serve_oracle_config(config_path, seed, oracle, {
             "precision": oracle_precision, "recall": oracle_recall, "latency_s": oracle_latency_s,
@@ -270,7 +286,8 @@ def serve_command(scenario: str, seed: int, json_path: Path | None, config_path:
         signal.signal(sig, lambda *_: stop.set())
     try:
         m = serve(ServeOptions(scenario, seed, json_path, robot_path, config_path, domain_id, can_channel, can_port,
-                               camera_rate_hz, connect_timeout_s, oracle=oracle_config), stop, echo=lambda s: click.echo(s, err=True))
+                               camera_rate_hz, connect_timeout_s, oracle=oracle_config, duration_s=duration_s), stop,
+                  echo=lambda s: click.echo(s, err=True))
     except (ConfigFileError, ValueError) as exc:
         raise InputError(str(exc)) from exc
     click.echo(f"dct hil serve: episode ended ({m['end_reason']}): goal_reached(world)={m['goal_reached']} "

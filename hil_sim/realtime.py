@@ -22,6 +22,9 @@ The metrics JSON is the lockstep one (the simulator's ground truth) with what on
 controller knows merged in (its state, events, deadline misses: goal_reached needs the
 controller's GOAL_REACHED as in lockstep) and `realtime`: the controller's `tick_ms` and
 `sensor_to_command_ms` (p50, p99, max), `deadline_misses`, and the processes' `pids`.
+
+`--record run.mcap` is the controller process's recording (`dct run --record`, what `dct report
+latency` reads); `--duration S` is a patrol's length (`dct hil serve --duration`, hil_sim.patrol).
 """
 from __future__ import annotations
 
@@ -128,16 +131,21 @@ def controller_config(config: dict, oracle_url: str, latency_s: float) -> dict:
 
 def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None = None,
                          robot_path: Path | None = None, calibration_path: Path | None = None,
-                         echo=None, keep_dir: Path | None = None, planner: str | None = None) -> dict:
+                         echo=None, keep_dir: Path | None = None, planner: str | None = None, *,
+                         duration_s: float | None = None, record_path: Path | None = None,
+                         force: bool = False) -> dict:
     """Run one real-time episode with two processes; returns the merged metrics (module docstring).
     planner: overrides the config's planner.mode (dct, all-fixed).
-    Raises RuntimeError when a process could not run (the message says which and its last words)."""
+    Raises RuntimeError when a process could not run (the message says which and its last words).
+    duration_s: a patrol's duration (`dct hil serve --duration`); record_path: the controller
+    records the run (`dct run --record`, `--force` overwrites)."""
     import yaml
 
+    from hil_sim.patrol import with_duration
     from hil_sim.scenario import load_scenario
     from runtime.config import load_controller_config
 
-    sc = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
+    sc = with_duration(load_scenario(scenario, seed=seed), duration_s)  # a generated scene: from the seed
     config = load_controller_config(config_path)
     mode = planner or config.planner.mode
     oracle = mode == "dct" and config.vpp.backend.kind == "sim-oracle"
@@ -155,6 +163,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         serve_cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json), "--force",
                          "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port),
                          "--oracle" if oracle else "--no-oracle", *common)
+        if duration_s is not None:
+            serve_cmd += ["--duration", repr(float(duration_s))]
         run_cmd = _dct("run", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
                        "--domain-id", str(domain), "--can-interface", "udp_multicast", "--can-channel", group,
                        "--can-port", str(port))
@@ -164,6 +174,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
             run_cmd += ["--planner", planner]
         if calibration_path is not None:
             run_cmd += ["--calibration", str(calibration_path)]
+        if record_path is not None:
+            run_cmd += ["--record", str(record_path)] + (["--force"] if force else [])
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         t0 = time.monotonic()
         # Own sessions: a Ctrl-C in the terminal reaches this process only, which stops both
@@ -221,7 +233,10 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
     """The simulator's metrics with the controller's side merged in (module docstring)."""
     m = dict(metrics)
     report = summary["controller"]
-    reached = bool(m["goal_reached"]) and summary["state"] == "GOAL_REACHED"
+    # A patrol's verdict is the simulator's (hil_sim.patrol); at its end the controller may be
+    # on its way to the next goal.
+    reached = bool(m["goal_reached"]) and (summary["state"] == "GOAL_REACHED"
+                                           or ("patrol" in m and summary["state"] != "STOPPED"))
     m["goal_reached"] = reached
     m["success"] = reached and m["fixed_contacts"] == 0
     rt = summary["realtime"]
@@ -250,6 +265,8 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
         "end_reason": m.get("end_reason"),
         "wall_time_s": wall_s,
     }
+    if "recording" in summary:  # `--record`: the controller's MCAP file (path, records dropped)
+        m["realtime"]["recording"] = summary["recording"]
     return m
 
 

@@ -21,6 +21,7 @@ from firmware_bridge.base_driver import AgileXBaseDriver
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
 from hil_sim.faults import FaultInjector, FaultSpec
 from hil_sim.metrics import EpisodeMetrics
+from hil_sim.patrol import PatrolSequencer, patrol_failure_reason
 from hil_sim.scenario import Scenario, load_scenario
 from hil_sim.world import World
 from runtime.config import ControllerConfig, load_controller_config
@@ -190,6 +191,11 @@ def run_episode(
     config's `vpp.backend` (whose seed is added to the episode seed). With no `oracle` and a
     backend other than the sim-oracle in the config, the controller builds that backend.
 
+    A patrol scenario (`goals:`): hil_sim.patrol.PatrolSequencer sends the next goal to the
+    controller (`request_goal`, between two ticks) when it has finished with the current one; the
+    episode ends with the patrol (its loops or duration), and the metrics add `patrol` (goals
+    sent, reached, missed, every visit); `goal_reached` is the patrol's verdict.
+
     Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
     What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
     returned in `telemetry` and `wall_time_s`, never in the metrics.
@@ -269,6 +275,7 @@ def run_episode(
     t_start = sim.time_s
     time_limit = t_start + scenario.time_limit_s
     finished_at: list[float] = []
+    patrol = PatrolSequencer(scenario, t_start) if scenario.is_patrol else None
 
     def should_stop() -> bool:
         if observe is not None and telemetry.ticks:
@@ -276,6 +283,12 @@ def run_episode(
         now = sim.time_s
         if progress is not None:
             progress(now)
+        if patrol is not None:  # the operator: the next goal once the controller is done with this one
+            goal = patrol.update(now, world.robot_pose(), (controller.goal.x_m, controller.goal.y_m),
+                                 controller.finished, controller.state is ControllerState.STOPPED, controller.pose)
+            if goal is not None:
+                controller.request_goal(goal, "patrol")
+            return patrol.done or now >= time_limit
         if now >= time_limit:
             return True
         if controller.finished:
@@ -297,11 +310,18 @@ def run_episode(
         sim_bus.shutdown()
     wall = time.perf_counter() - wall0
 
-    reached = controller.state is ControllerState.GOAL_REACHED and world_goal_reached(world, scenario)
-    if controller.goal_reached_at_s is not None:
-        nav_time = controller.goal_reached_at_s - t_start
-    else:
+    if patrol is not None:
+        reached = patrol.succeeded
         nav_time = sim.time_s - t_start
+        x, y, _ = world.robot_pose()
+        final_distance = patrol.distance_to_current_m((x, y))
+    else:
+        reached = controller.state is ControllerState.GOAL_REACHED and world_goal_reached(world, scenario)
+        if controller.goal_reached_at_s is not None:
+            nav_time = controller.goal_reached_at_s - t_start
+        else:
+            nav_time = sim.time_s - t_start
+        final_distance = world_distance_to_goal(world, scenario)
     report = controller.describe()
     result_metrics = metrics.to_dict(
         goal_reached=reached,
@@ -310,7 +330,7 @@ def run_episode(
         extra={
             "controller_state": controller.state.name,
             "stop_reason": controller.stop_reason,
-            "final_distance_to_goal_m": world_distance_to_goal(world, scenario),
+            "final_distance_to_goal_m": final_distance,
             "final_pose_world": [float(v) for v in world.robot_pose()],
             "sim_time_s": sim.time_s - t_start,
             "planner": config.planner.mode,
@@ -324,6 +344,7 @@ def run_episode(
             "sensor_errors": dict(sorted(inbox.error_counts.items())),
             "firmware_frames_rejected": firmware.frames_rejected,
             "scenario_warnings": list(world.scenario_warnings),
+            **({"patrol": patrol.report(sim.time_s)} if patrol is not None else {}),
         },
     )
     result_metrics["failure_reason"] = failure_reason(result_metrics, report)
@@ -350,8 +371,9 @@ def run_episode(
 def failure_reason(metrics: dict, controller: dict) -> str | None:
     """Why the episode failed, in words (None on success). The first that applies:
     fixed contact; a latched safety stop; an input fault the robot was holding for at the end;
-    never became active; time limit while blocked (no path); stalled without progress with a
-    valid reference path; the controller's goal not the world's (odometry drift); time limit.
+    never became active; a patrol's missed goals or its early end (hil_sim.patrol); time limit
+    while blocked (no path); stalled without progress with a valid reference path; the
+    controller's goal not the world's (odometry drift); time limit.
     """
     if metrics["success"]:
         return None
@@ -371,6 +393,10 @@ def failure_reason(metrics: dict, controller: dict) -> str | None:
         if controller["restarts"]:
             return f"start-up sequence not complete after {controller['restarts']} restarts: {faults}"
         return f"never became active: {faults}"
+    if "patrol" in metrics:
+        reason = patrol_failure_reason(metrics)
+        if reason is not None:
+            return reason
     if state == "GOAL_REACHED":
         return (
             f"odometry drift: the controller reached the goal in its odom frame, the robot is "

@@ -24,6 +24,10 @@ Fixed obstacles may be raised off the floor (`pose.z_m`: chair seats, shelf boar
 hil_sim/scene_builder.py builds such furniture). An optional `route` is the path an odometry
 evaluation drives with a scripted operator (issue 11); check_scenario_against_robot checks that
 the robot's footprint swept along it clears everything.
+
+A patrol: `goals:` (two or more) instead of `goal:`, visited in order, and `patrol:` (`loops`
+times round, or for `duration_s`; `goal_timeout_s` per goal): hil_sim.patrol sends the next goal
+when the controller has reached the current one. `goal` is then the first of them.
 """
 from __future__ import annotations
 
@@ -355,6 +359,27 @@ class Goal(_Strict):
         return self.pose.yaw_rad
 
 
+class Patrol(_Strict):
+    """How a scenario with `goals:` is driven (hil_sim.patrol): round the goals `loops` times, or
+    for `duration_s` seconds from the start (the goal in progress then is neither reached nor
+    missed); a goal not reached within `goal_timeout_s` of being sent is missed, and the next is
+    sent."""
+
+    loops: int | None = Field(default=None, ge=1, le=10000)
+    duration_s: float | None = Field(default=None, gt=0.0, le=3600.0)
+    goal_timeout_s: float = Field(default=60.0, gt=0.0, le=3600.0)
+    #: False: goals in the odometry frame of the start (the odometry's drift goes into them). True:
+    #: each goal placed as a localizer would, from the ground truth when it is sent (hil_sim.patrol).
+    localized: bool = False
+
+    @model_validator(mode="after")
+    def _one_end(self) -> "Patrol":
+        if (self.loops is None) == (self.duration_s is None):
+            raise ValueError("patrol: give exactly one of loops (times round the goals) or duration_s (seconds of "
+                             f"patrol); got loops={self.loops}, duration_s={self.duration_s}")
+        return self
+
+
 class Randomization(_Strict):
     """Per-seed perturbation applied by World.reset(seed); all zero = the scenario as written."""
 
@@ -408,13 +433,28 @@ class Scenario(_Strict):
     walls: list[Wall] = Field(default_factory=list)
     obstacles: list[Obstacle] = Field(default_factory=list)
     robot: RobotStart
-    goal: Goal
+    #: The goal; in a patrol (`goals`), the first of them (filled in from goals[0]): never None
+    #: once validated.
+    goal: Goal | None = None
+    #: A patrol's goals, visited in order (and round again, `patrol`); None: the single `goal`.
+    goals: list[Goal] | None = Field(default=None, min_length=2, max_length=100)
+    patrol: Patrol | None = None
     time_limit_s: float = Field(gt=0.0, le=3600.0)
     randomization: Randomization = Field(default_factory=Randomization)
     route: Route | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> "Scenario":
+        if self.goals is None:
+            if self.patrol is not None:
+                raise ValueError("patrol: needs goals (a list of two or more goals, visited in order) instead of goal")
+            if self.goal is None:
+                raise ValueError("goal: required (or goals: a patrol's goals, visited in order)")
+        elif self.goal is None:
+            object.__setattr__(self, "goal", self.goals[0])  # frozen model: set once, here
+        elif self.goal != self.goals[0]:  # both: only as a dumped patrol scenario writes them
+            raise ValueError("goal and goals: give goal (one goal) or goals (a patrol's goals, visited in order), "
+                             "not both")
         names = [o.name for o in self.obstacles] + [n for n in self.wall_names() if n is not None]
         reserved = sorted(set(names) & RESERVED_NAMES)
         if reserved:
@@ -422,7 +462,7 @@ class Scenario(_Strict):
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
             raise ValueError(f"obstacle/wall names must be unique; repeated: {', '.join(dupes)}")
-        for what, pose in (("robot.start", self.robot.start), ("goal.pose", self.goal.pose)):
+        for what, pose in (("robot.start", self.robot.start), *self.goal_fields()):
             if not self.floor.contains(pose.x_m, pose.y_m):
                 raise ValueError(
                     f"{what} ({pose.x_m}, {pose.y_m}) lies outside the floor of size {self.floor.size_m} "
@@ -437,7 +477,41 @@ class Scenario(_Strict):
                                      f"outside the floor of size {self.floor.size_m} centred at the origin")
         if self.route is not None:
             self._check_route_points()
+        if self.goals is not None:
+            self._check_patrol()
         return self
+
+    def _check_patrol(self) -> None:
+        assert self.goals is not None
+        looped = self.patrol is not None and (self.patrol.duration_s is not None or (self.patrol.loops or 1) > 1)
+        pairs = [(i, i - 1) for i in range(1, len(self.goals))] + ([(0, len(self.goals) - 1)] if looped else [])
+        for i, j in pairs:
+            a, b = self.goals[i], self.goals[j]
+            d = math.hypot(a.x_m - b.x_m, a.y_m - b.y_m)
+            if d <= max(a.tolerance_m, b.tolerance_m):
+                raise ValueError(f"goals[{i}] is {d:.3f} m from goals[{j}], within a goal tolerance "
+                                 f"({max(a.tolerance_m, b.tolerance_m):g} m): reaching one would reach the other "
+                                 f"(the patrol drives from goals[{j}] to goals[{i}]; move or remove one)")
+        duration = self.patrol.duration_s if self.patrol is not None else None
+        if duration is not None and duration > self.time_limit_s:
+            raise ValueError(f"patrol.duration_s {self.patrol.duration_s:g} is longer than time_limit_s "
+                             f"{self.time_limit_s:g}: the episode would end first (raise time_limit_s)")
+
+    def goal_fields(self) -> list[tuple[str, "Pose2D"]]:
+        """(field name, pose) of every goal: ("goal.pose", ...) or ("goals[i].pose", ...) in a patrol."""
+        if self.goals is None:
+            return [("goal.pose", self.goal.pose)]
+        return [(f"goals[{i}].pose", g.pose) for i, g in enumerate(self.goals)]
+
+    @property
+    def goal_sequence(self) -> list[Goal]:
+        """The goals in the order they are driven to: [goal], or a patrol's goals."""
+        return list(self.goals) if self.goals is not None else [self.goal]
+
+    @property
+    def is_patrol(self) -> bool:
+        """Goals visited in order (`goals:`), not a single start -> goal episode."""
+        return self.goals is not None
 
     def _check_route_points(self) -> None:
         assert self.route is not None
@@ -702,19 +776,20 @@ def _check_start(scenario: Scenario, items: list[_SceneItem], robot: RobotDescri
 
 def _check_goal(scenario: Scenario, items: list[_SceneItem], robot: RobotDescription,
                 errors: list[str], warnings: list[str]) -> None:
-    goal = scenario.goal.pose
     half_width_m = robot.footprint.width_m / 2
-    where = f"the goal ({goal.x_m:g}, {goal.y_m:g})"
-    for it in items:
-        d = it.shape.signed_distance_m((goal.x_m, goal.y_m))
-        if d >= half_width_m:
-            continue
-        problem = (f"{where} lies inside {it.label}" if d < 0.0 else
-                   f"{where} is {d:.3f} m from {it.label}, less than half the robot's width ({half_width_m:.3f} m)")
-        if it.movable:
-            warnings.append(f"goal.pose: {problem}: the robot must push it away to get there")
-        else:
-            errors.append(f"goal.pose: {problem}: the robot cannot reach it")
+    for field, goal in scenario.goal_fields():
+        where = f"the goal ({goal.x_m:g}, {goal.y_m:g})"
+        for it in items:
+            d = it.shape.signed_distance_m((goal.x_m, goal.y_m))
+            if d >= half_width_m:
+                continue
+            problem = (f"{where} lies inside {it.label}" if d < 0.0 else
+                       f"{where} is {d:.3f} m from {it.label}, less than half the robot's width "
+                       f"({half_width_m:.3f} m)")
+            if it.movable:
+                warnings.append(f"{field}: {problem}: the robot must push it away to get there")
+            else:
+                errors.append(f"{field}: {problem}: the robot cannot reach it")
 
 
 @dataclass(frozen=True)
@@ -922,6 +997,7 @@ __all__ = [
     "DEFAULT_ROUTE_MARGIN_M",
     "MIN_ROUTE_SEGMENT_M",
     "Goal",
+    "Patrol",
     "RobotStart",
     "Randomization",
     "ObstacleClass",

@@ -29,6 +29,13 @@ holding for stale data, as it does when this simulator falls behind.) The metric
 (hil_sim.metrics) are then written atomically, as lockstep writes them, with `end_reason`.
 What the controller knows (its state, deadline misses) is not here: `dct hil run --realtime`
 adds it from the controller's own summary.
+
+A patrol scenario (`goals:`, hil_sim.patrol): the controller starts with the first goal (its
+`--goal`); whenever its DiagnosticArray says it has finished with the goal sent last (`finished`
+with that goal's `goal_x`, `goal_y`), the next goal is published as a geometry_msgs/PoseStamped
+on the goal topic (/goal_pose, odometry frame), as an operator would send it from RViz. The
+episode ends with the patrol (its loops, or `duration_s`: `--duration` overrides the file's
+patrol), and the metrics add `patrol`.
 """
 from __future__ import annotations
 
@@ -59,6 +66,8 @@ class ServeOptions:
     #: is served over HTTP for planner mode dct (hil_sim.oracle_service) and the camera renders
     #: with segmentation (at camera_rate_hz, or lockstep's 2 Hz when that is 0).
     oracle: object = None
+    #: A patrol's duration (s), instead of the scenario's `patrol` (hil_sim.patrol.with_duration).
+    duration_s: float | None = None
 
 
 class DdsSensorSink:
@@ -151,6 +160,70 @@ def _controller_finished(reader) -> bool:
     return False
 
 
+def _controller_status(reader, last: dict) -> dict:
+    """The newest DiagnosticArray's values from the controller (key -> string), or `last` when no
+    new one has arrived."""
+    from runtime.ros_io.messages import DiagnosticArray, from_cdr
+
+    for data in reversed(reader.take_raw()):
+        try:
+            msg = from_cdr(DiagnosticArray, data)
+        except Exception:  # noqa: BLE001 - not ours to judge; the next one will do
+            continue
+        for status in msg.status:
+            return {kv.key: kv.value for kv in status.values}
+    return last
+
+
+class _PatrolOperator:
+    """A patrol's operator in real time: hil_sim.patrol.PatrolSequencer fed from the controller's
+    diagnostics, its goals published on the goal topic (module docstring)."""
+
+    def __init__(self, scenario, participant, inputs, odom_frame: str, reader, t0_s: float, to_wall, echo) -> None:
+        from hil_sim.patrol import PatrolSequencer
+        from runtime.ros_io.dds import RosWriter, ros_qos
+        from runtime.ros_io.messages import PoseStamped
+
+        self.echo = echo
+        self.sequencer = PatrolSequencer(scenario, t0_s)
+        self.reader = reader
+        self.writer = RosWriter(participant, inputs.goal.topic, PoseStamped,
+                                ros_qos(inputs.goal.qos.reliability, inputs.goal.qos.depth))
+        self.frame = odom_frame
+        self.to_wall = to_wall
+        self.status: dict = {}
+        self.goals_published = 0
+
+    def step(self, t_s: float, robot_world_pose) -> None:
+        from runtime.geometry import Pose2D
+        from runtime.ros_io.convert import goal_pose_msg
+
+        self.status = _controller_status(self.reader, self.status)
+        st = self.status
+        try:
+            goal_xy = (float(st["goal_x"]), float(st["goal_y"]))
+        except (KeyError, ValueError):
+            goal_xy = None
+        try:
+            pose = Pose2D(float(st["pose_x"]), float(st["pose_y"]), float(st["pose_yaw"]))
+        except (KeyError, ValueError):
+            pose = None
+        seq = self.sequencer
+        goal = seq.update(t_s, robot_world_pose, goal_xy, st.get("finished") == "True", st.get("state") == "STOPPED",
+                          pose)
+        if goal is None and seq.resend_due(t_s, goal_xy):
+            goal = seq.current_goal_odom()
+        if goal is not None:
+            self.writer.write(goal_pose_msg(self.to_wall(t_s), goal, frame_id=self.frame))
+            self.goals_published += 1
+            v = seq.current
+            if len(seq.visits) > 1 and v.sent_at_s == t_s - seq.t0_s:  # a new goal, not a repeat
+                last = seq.visits[-2]
+                self.echo(f"dct hil serve: t={t_s - seq.t0_s:.1f} s: goal {last.visit} {last.outcome} "
+                          f"({last.world_error_m:.2f} m off); goal {v.visit} (goals[{v.goal_index}], loop {v.loop}) "
+                          "published on the goal topic")
+
+
 def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -> dict:
     """Run one real-time episode of opts.scenario until it ends (module docstring); returns the
     metrics (also written to opts.json_path)."""
@@ -161,6 +234,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     from firmware_bridge.buses import DEFAULT_UDP_GROUP, DEFAULT_UDP_PORT, BusConfig, open_bus
     from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
     from hil_sim.metrics import EpisodeMetrics
+    from hil_sim.patrol import with_duration
     from hil_sim.runner import LockstepSimulation, world_distance_to_goal, world_goal_reached
     from hil_sim.scenario import load_scenario
     from hil_sim.sensor_rig import SensorRig, SensorRigConfig
@@ -170,6 +244,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
 
     stop = stop or threading.Event()
     scenario = load_scenario(opts.scenario, seed=opts.seed)  # a generated scene is drawn from the seed
+    scenario = with_duration(scenario, opts.duration_s)
     robot = load_robot_description(opts.robot_path)
     config = load_controller_config(opts.config_path)
     inputs = config.ros.inputs
@@ -182,6 +257,9 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     world.reset(opts.seed)
     metrics = EpisodeMetrics(world, scenario, opts.seed)
     clock = EpochMonotonicClock()
+    if scenario.is_patrol and (inputs.goal is None or not config.ros.outputs.diagnostics):
+        raise ValueError(f"scenario {scenario.name} is a patrol: it needs ros.inputs.goal (where its goals are "
+                         "published) and ros.outputs.diagnostics (where it watches the controller) in the config")
     bus = open_bus(bus_config)
     participant = DomainParticipant(inputs.domain_id)
     sim_t0 = world.time_s
@@ -214,12 +292,14 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     sim = LockstepSimulation(world, firmware, metrics, [rig])
     dt = world.timestep_s
     half = 0.5 * dt
-    lag_samples = np.zeros(1 << 16)
+    # every catch-up of a 10-minute run (at most one per physics step: 600k in 10 min at 1 ms)
+    lag_samples = np.zeros(1 << 20)
     n_lag = 0
     t_start: float | None = None
     finished_at: float | None = None
     end_reason = "signal"
     t_goal: float | None = None
+    patrol: _PatrolOperator | None = None
     echo(f"dct hil serve: {scenario.name} seed {opts.seed} serving: CAN udp_multicast {bus_config.channel}:"
          f"{bus_config.udp_port}, DDS domain {inputs.domain_id}, pid {os.getpid()}")
     wall_t0[0] = clock.now()
@@ -241,8 +321,19 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
                 if firmware.control_mode == protocol.CONTROL_MODE_CAN:
                     t_start = t
                     echo(f"dct hil serve: controller connected at t={t - sim_t0:.2f} s; episode starts")
+                    if scenario.is_patrol:
+                        patrol = _PatrolOperator(scenario, participant, inputs, config.ros.outputs.odom_frame,
+                                                 diagnostics, t, to_wall, echo)
                 elif t - sim_t0 > opts.connect_timeout_s:
                     end_reason = "no_controller"
+                    break
+            elif patrol is not None:
+                patrol.step(t, world.robot_pose())
+                if patrol.sequencer.done:
+                    end_reason = f"patrol_{patrol.sequencer.end_reason}"
+                    break
+                if t - t_start >= scenario.time_limit_s:
+                    end_reason = "time_limit"
                     break
             else:
                 if finished_at is None and diagnostics is not None and _controller_finished(diagnostics):
@@ -266,15 +357,20 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     started = t_start if t_start is not None else t_end
     nav_time = (t_goal if t_goal is not None else t_end) - started
     lags = lag_samples[: min(n_lag, len(lag_samples))] * 1e3
+    x_end, y_end, _ = world.robot_pose()
     out = metrics.to_dict(
         # As in lockstep: where the robot is when the episode ends (a goal reached just before the
         # time limit counts; `dct hil run --realtime` also needs the controller's GOAL_REACHED).
-        goal_reached=world_goal_reached(world, scenario),
+        # A patrol: its verdict (hil_sim.patrol).
+        goal_reached=patrol.sequencer.succeeded if patrol is not None else world_goal_reached(world, scenario),
         navigation_time_s=nav_time,
         deadline_misses=0,
         extra={
             "end_reason": end_reason,
-            "final_distance_to_goal_m": world_distance_to_goal(world, scenario),
+            **({"patrol": {**patrol.sequencer.report(t_end), "goals_published": patrol.goals_published}}
+               if patrol is not None else {}),
+            "final_distance_to_goal_m": (patrol.sequencer.distance_to_current_m((x_end, y_end)) if patrol is not None
+                                         else world_distance_to_goal(world, scenario)),
             "final_pose_world": [float(v) for v in world.robot_pose()],
             "sim_time_s": t_end - started,
             "scenario_warnings": list(world.scenario_warnings),

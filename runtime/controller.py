@@ -9,10 +9,20 @@ is a real LIMO or the simulator's emulated firmware.
 Its lifecycle is a small state machine:
 
     INITIALIZING --base ready, every input good--> ACTIVE --goal--> GOAL_REACHED
-         ^                                          |  ^
+         ^                                          |  ^     GOAL_REACHED --new goal--> ACTIVE
          |  restart (fresh enable, ramp from 0)    v  | every input good again
          +----- E-stop / lost command stream --- HOLDING  (a controlled stop, reason named)
     any state --base fault, remote control, deadline misses (real time), no base--> STOPPED
+
+Goals: the first is given at construction; a new one may come at any time from any source
+(`dct run --goal`, /goal_pose, the simulator's patrol) through `request_goal`, which validates
+it at once (GoalError naming the source and the field) and leaves it for the next tick's read
+stage, which replaces the goal: while driving the mode stack starts afresh towards it (the
+reference path is searched again, per-goal recovery counts restart; the command ramps at the
+robot's limits, it never jumps), at the goal (GOAL_REACHED: waiting for the next goal, a
+normal idle state with a zero command) the robot drives again. A goal within
+GOAL_SAME_TOLERANCE_M of the current one changes nothing (a repeated publication). While
+holding or starting up the goal is replaced and driven to on resuming; a latched stop stays.
 
 "No data" is never "free space": every input has a watchdog (runtime.input_monitor); while one
 fails the robot holds still with the failing inputs named in the event log, and resumes by
@@ -26,6 +36,7 @@ which lidar points it must not touch (P_fix) is the partition stage the planner 
 from __future__ import annotations
 
 import math
+import threading
 from enum import IntEnum
 from typing import Callable
 
@@ -58,12 +69,36 @@ RESTART_RETRY_S = 0.5
 #: The supervisor's stops are logged once per episode of stops: `supervisor_clear` only after
 #: this many ticks in a row without one (in a tight passage it stops and lets go tick by tick).
 SUPERVISOR_CLEAR_TICKS = 10
+#: A requested goal within this of the current one (x and y, m) is the same goal (not replanned).
+GOAL_SAME_TOLERANCE_M = 1e-3
+#: Goals farther than this from the odometry frame's origin (m) are refused (not a place).
+GOAL_MAX_ABS_M = 1.0e4
+
+
+class GoalError(ValueError):
+    """A goal that cannot be driven to (not finite, out of range): names the source and field."""
+
+
+def check_goal(goal: Pose2D, source: str) -> Pose2D:
+    """The goal as floats, or GoalError naming `source` and the bad field."""
+    for name in ("x_m", "y_m", "yaw_rad"):
+        v = getattr(goal, name)
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            raise GoalError(f"goal from {source}: {name} {v!r} is not a number") from None
+        if not math.isfinite(v):
+            raise GoalError(f"goal from {source}: {name} {v!r} is not finite")
+        if name != "yaw_rad" and abs(v) > GOAL_MAX_ABS_M:
+            raise GoalError(f"goal from {source}: {name} {v!r} is farther than {GOAL_MAX_ABS_M:g} m from the "
+                            "odometry frame's origin")
+    return Pose2D(float(goal.x_m), float(goal.y_m), float(goal.yaw_rad))
 
 
 class ControllerState(IntEnum):
     INITIALIZING = 0  # start-up sequence: base enabled, waiting for it and for every input
     ACTIVE = 1  # navigating
-    GOAL_REACHED = 2  # at the goal, commanding zero
+    GOAL_REACHED = 2  # at the goal, commanding zero; waiting for the next goal (idle, not a fault)
     STOPPED = 3  # latched stop: commanding zero until a new run
     HOLDING = 4  # controlled stop while an input is faulty; resumes by itself
 
@@ -98,8 +133,15 @@ class NavigationController:
         self.robot = robot
         self.config = config
         self.hardware = hardware
+        goal = check_goal(goal, "the start")
         self.goal = goal
         self._goal_xy = np.array([goal.x_m, goal.y_m])
+        #: (goal, source) requested since the last tick (request_goal), applied in the next read().
+        self._pending_goal: tuple[Pose2D, str] | None = None
+        self._goal_lock = threading.Lock()  # request_goal may come from another thread
+        self.goals_received = 1  # the start's goal included
+        self.goals_reached = 0
+        self.goals_repeated = 0  # requests equal to the current goal (nothing to change)
         self.clock = clock
         self.sensors = sensors
         self.state = ControllerState.INITIALIZING
@@ -206,6 +248,8 @@ class NavigationController:
         inputs = self.hardware.read(now)
         sensors = self.sensors.take() if self.sensors is not None else _NO_SENSORS
         self.faults = self.monitor.check(inputs, sensors, now)
+        if self._pending_goal is not None:
+            self._apply_goal(now)
         self._update_state(inputs, now)
         stages.mark(READ)
 
@@ -245,6 +289,47 @@ class NavigationController:
         self.hardware.write(v, omega)
         stages.mark_command_written()
         stages.mark(WRITE)
+
+    # -- goals -------------------------------------------------------------------------------
+    def request_goal(self, goal: Pose2D, source: str) -> None:
+        """A new goal (odom frame) from `source` (a topic, the command line, a patrol): validated
+        now (GoalError), replaces the current goal at the next tick's read stage (module
+        docstring). Any thread may call it; the newest request wins."""
+        checked = check_goal(goal, source)
+        with self._goal_lock:
+            self._pending_goal = (checked, source)
+
+    def _apply_goal(self, now: float) -> None:
+        with self._goal_lock:
+            pending, self._pending_goal = self._pending_goal, None
+        if pending is None:
+            return
+        goal, source = pending
+        if math.hypot(goal.x_m - self.goal.x_m, goal.y_m - self.goal.y_m) <= GOAL_SAME_TOLERANCE_M:
+            self.goals_repeated += 1
+            return
+        old = self.goal
+        self.goal = goal
+        self._goal_xy = np.array([goal.x_m, goal.y_m])
+        self.goals_received += 1
+        state = self.state
+        what = (f"({goal.x_m:.2f}, {goal.y_m:.2f}, {math.degrees(goal.yaw_rad):.0f} deg) from {source}, replacing "
+                f"({old.x_m:.2f}, {old.y_m:.2f})")
+        if state is ControllerState.GOAL_REACHED:
+            # Idle at the last goal: drive again. The command is zero or ramping down to it; the
+            # limiter carries on from there (no reset: a ramp, not a jump).
+            self.state = ControllerState.ACTIVE
+            self.goal_reached_at_s = None
+            self.modes.new_goal(now)
+            self.events.add(now, "new_goal", f"{what}; driving")
+        elif state is ControllerState.ACTIVE:
+            # Driving: the mode stack starts afresh towards the new goal (a fresh reference-path
+            # search; the stall clock and per-goal recovery counts restart).
+            self.modes.new_goal(now)
+            self.events.add(now, "new_goal", f"{what} while driving; replanning")
+        else:  # holding, starting up (driven to on resuming) or stopped (latched: stays stopped)
+            self.modes.new_goal(now)
+            self.events.add(now, "new_goal", f"{what} while {state.name}")
 
     # -- read: the state machine -------------------------------------------------------------
     def _update_state(self, inputs: BaseInputs, now: float) -> None:
@@ -418,6 +503,7 @@ class NavigationController:
     def _goal_reached(self, now: float) -> None:
         self.state = ControllerState.GOAL_REACHED
         self.goal_reached_at_s = now
+        self.goals_reached += 1
         shift = self.modes.goal_shift_xy
         if shift.any():  # wheel slip the lidar caught moved the goal with the odom frame (modes.selector)
             d = math.hypot(self.goal.x_m + shift[0] - self.pose.x_m, self.goal.y_m + shift[1] - self.pose.y_m)
@@ -479,6 +565,9 @@ class NavigationController:
             "pose_odom": [self.pose.x_m, self.pose.y_m, self.pose.yaw_rad],
             "goal_odom": [self.goal.x_m, self.goal.y_m, self.goal.yaw_rad],
             "goal_reached_at_s": self.goal_reached_at_s,
+            "goals_received": self.goals_received,
+            "goals_reached": self.goals_reached,
+            "goals_repeated": self.goals_repeated,
             "distance_to_goal_m": self._goal_distance_m(),
             "events_dropped": self.events.dropped,
             "odometry": self.odometry.describe(),

@@ -22,7 +22,8 @@ Event names:
   mode starts (the object relabelled fixed, or none, and the reverse); `correcting_end`: it is done
   (with its duration) and the planner replans.
 - `degraded` / `restored`: the planner falls back to the previous plan (a failed solve).
-- `goal_reached`.
+- `goal_reached`; `new_goal`: a goal replaced the current one (from which source, and whether
+  while driving or waiting at the last goal).
 """
 from __future__ import annotations
 

@@ -24,9 +24,13 @@ frame), the loop-clock time at which its command was written minus the end of th
 last point's time). It is measured here, outside the tick (the loop's after_tick hook).
 
 Goals: `--goal X Y YAW` in the odometry frame (the robot's pose at start), or the first
-geometry_msgs/PoseStamped on the goal topic (Nav2's /goal_pose) when none is given. The
-controller takes one goal per run: a later /goal_pose is counted and logged, not followed
-(NavigationController has no goal change yet).
+geometry_msgs/PoseStamped on the goal topic (Nav2's /goal_pose) when none is given. Every later
+/goal_pose replaces the goal, while driving or waiting at the last one
+(`NavigationController.request_goal`, applied at the next tick's read stage); one in another
+frame than the odometry's, or one the controller refuses (not finite, out of range), is counted
+in `goals_ignored` and said on stderr. The diagnostics carry the current goal (`goal_x`,
+`goal_y`), `finished` (at it with a zero command) and the pose (`pose_x`, `pose_y`, `pose_yaw`),
+so that an operator (the simulator's patrol, hil_sim.patrol) knows when to send the next.
 
 Planner mode dct needs a contact-tolerance backend it can build outside the simulator (vpp.backend
 kind openai-compatible); the sim-oracle backend exists only inside the lockstep simulator's
@@ -229,7 +233,7 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
 
     from firmware_bridge.base_driver import AgileXBaseDriver
     from firmware_bridge.buses import BusOpenError, open_bus
-    from runtime.controller import NavigationController
+    from runtime.controller import GoalError, NavigationController
     from runtime.geometry import Pose2D
     from runtime.hardware import AgileXBaseHardware
     from runtime.loop import FixedRateLoop
@@ -337,13 +341,25 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
                 stage_ms={s: float(row["stage_s"][i]) * 1e3 for i, s in enumerate(telemetry.stages)},
                 tick_ms=float(row["tick_s"]) * 1e3,
                 extra={"deadline_misses": telemetry.deadline_misses, "hold_reason": controller.hold_reason or "",
-                       "active_mode": controller.modes.mode_name, "finished": controller.finished},
+                       "active_mode": controller.modes.mode_name, "finished": controller.finished,
+                       "goal_x": controller.goal.x_m, "goal_y": controller.goal.y_m, "pose_x": controller.pose.x_m,
+                       "pose_y": controller.pose.y_m, "pose_yaw": controller.pose.yaw_rad},
                 points_fix=controller.points_fix if clouds else None,
                 plan_states=plan.states if clouds and plan is not None else None,
                 points_mov=mov,
             ))
-            if receiver.take_goal() is not None:
-                ignored_goals[0] += 1
+            g = receiver.take_goal()  # a new goal: validated now, taken by the next tick
+            if g is not None:
+                if g.frame_id not in ("", ros.outputs.odom_frame):
+                    ignored_goals[0] += 1
+                    echo(f"dct run: goal in frame {g.frame_id!r} ignored: goals are taken in the odometry frame "
+                         f"({ros.outputs.odom_frame!r})")
+                else:
+                    try:
+                        controller.request_goal(g.pose, ros.inputs.goal.topic)
+                    except GoalError as exc:
+                        ignored_goals[0] += 1
+                        echo(f"dct run: {exc}: ignored")
             notifier.watchdog()
 
         loop = FixedRateLoop(

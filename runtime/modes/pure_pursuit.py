@@ -11,9 +11,9 @@ from runtime.planning.pure_pursuit import PurePursuitPlanner
 class PurePursuitMode:
     name = "pure-pursuit"
 
-    def __init__(self, planner: PurePursuitPlanner, goal: Pose2D) -> None:
+    def __init__(self, planner: PurePursuitPlanner) -> None:
         self.planner = planner
-        self.goal = goal
+        self._goal_xy: tuple[float, float] | None = None  # the goal the planner's line leads to
 
     def reset(self) -> None:
         self.planner.reset(None)  # the next plan starts its line at the robot
@@ -27,16 +27,21 @@ class PurePursuitMode:
 
     def plan(self, s: Situation) -> ModeDecision:
         pose = Pose2D(float(s.pose[0]), float(s.pose[1]), float(s.pose[2]))
-        cmd = self.planner.plan(pose, self.goal)
+        goal_xy = (float(s.goal_xy[0]), float(s.goal_xy[1]))
+        if goal_xy != self._goal_xy:  # a new goal: the line starts at the robot again
+            self._goal_xy = goal_xy
+            self.planner.reset(None)
+        goal = Pose2D(goal_xy[0], goal_xy[1], 0.0)
+        cmd = self.planner.plan(pose, goal)
         if cmd.at_goal:
             return ModeDecision(at_goal=True, remaining_m=0.0)
-        remaining = math.hypot(self.goal.x_m - pose.x_m, self.goal.y_m - pose.y_m)
+        remaining = math.hypot(goal.x_m - pose.x_m, goal.y_m - pose.y_m)
         return ModeDecision(cmd.v_mps, cmd.omega_radps, remaining_m=remaining)
 
 
 def build(ctx: ModeContext) -> ModeStack:
     """No sensors, no supervisor, no recovery: the placeholder it always was."""
-    return ModeStack(PurePursuitMode(steering(ctx.config.planner.pure_pursuit, ctx.robot), ctx.goal))
+    return ModeStack(PurePursuitMode(steering(ctx.config.planner.pure_pursuit, ctx.robot)))
 
 
 def steering(cfg, robot) -> PurePursuitPlanner:

@@ -14,6 +14,10 @@ A stall: no progress along the path to the goal (its remaining length did not sh
 goal). A replanned path that is much longer than the best so far (new obstacles seen) restarts
 the clock: that is new information, not a stall. After `max_backoffs` recoveries for one goal
 the selector stops trying and the stall stays reported (the episode's failure reason).
+
+A new goal (`new_goal`): the normal mode again with a fresh plan (a recovery in progress is
+abandoned: it was getting out of the way of the old route), and the per-goal counts (backoffs,
+corrections) start from zero for it. Objects correcting mode relabelled stay relabelled.
 """
 from __future__ import annotations
 
@@ -104,6 +108,9 @@ class ModeSelector:
         self.trail = PoseTrail(correcting.config.trail_spacing_m) if correcting is not None else PoseTrail()
         self.active: NavigationMode = normal
         self.backoffs = 0
+        #: backoffs and corrections before the current goal (the limits are per goal)
+        self._backoffs_before_goal = 0
+        self._corrections_before_goal = 0
         self.last_decision = ModeDecision()
         self._last_correction_xy: np.ndarray | None = None
         #: Wheel slip the lidar found (correcting mode), summed: the odom frame moved under the
@@ -137,6 +144,18 @@ class ModeSelector:
         self.stall.restart(now_s)
         if self.stuck is not None:
             self.stuck.forget()
+
+    def new_goal(self, now_s: float) -> None:
+        """The goal changed (module docstring): a fresh plan, per-goal counts from zero."""
+        if self.active is self.correcting and self.correcting.corrections:
+            last = self.correcting.corrections[-1]
+            if last.end_s is None:
+                last.end_s, last.outcome = now_s, "abandoned: a new goal"
+        self.reset(now_s)
+        self._backoffs_before_goal = self.backoffs
+        if self.correcting is not None:
+            self._corrections_before_goal = len(self.correcting.corrections)
+        self._last_correction_xy = None
 
     def slack_work(self) -> bool:
         """The normal mode's deferred work (its reference searches); none during a recovery (the
@@ -178,11 +197,12 @@ class ModeSelector:
         if self.correcting is not None:
             return self._correct(s, d, f"stall: no progress for {self.config.stall_window_s:g} s "
                                        f"({d.remaining_m:.2f} m to go)")
-        if self.recovery is None or self.backoffs >= self.config.max_backoffs:
+        if self.recovery is None or self.backoffs - self._backoffs_before_goal >= self.config.max_backoffs:
             return d
         self.backoffs += 1
         how = self.recovery.start(s, self.trail)
-        self.events.add(s.now_s, "backoff", f"attempt {self.backoffs}/{self.config.max_backoffs}: {how}")
+        self.events.add(s.now_s, "backoff", f"attempt {self.backoffs - self._backoffs_before_goal}/"
+                                            f"{self.config.max_backoffs}: {how}")
         self.active = self.recovery
         return self.recovery.plan(s)
 
@@ -199,7 +219,8 @@ class ModeSelector:
     def _correct(self, s: Situation, d: ModeDecision, reason: str) -> ModeDecision:
         """Correcting mode (DCT IV-C-3): relabel, reverse, then the normal mode replans."""
         corr = self.correcting
-        if len(corr.corrections) >= corr.config.max_corrections:
+        done = len(corr.corrections) - self._corrections_before_goal
+        if done >= corr.config.max_corrections:
             return d
         last = self._last_correction_xy
         repeat = last is not None and math.hypot(s.pose[0] - last[0], s.pose[1] - last[1]) <= REPEAT_RADIUS_M
@@ -208,6 +229,6 @@ class ModeSelector:
         c = corr.start(s, self.trail, reason, repeat, ref.path_world if ref is not None else None)
         what = f"object {c.object_id} relabelled fixed" if c.object_id is not None else "no movable object in front"
         self.events.add(s.now_s, "correcting",
-                        f"attempt {len(corr.corrections)}/{corr.config.max_corrections} ({reason}): {what}; {c.outcome}")
+                        f"attempt {done + 1}/{corr.config.max_corrections} ({reason}): {what}; {c.outcome}")
         self.active = corr
         return corr.plan(s)

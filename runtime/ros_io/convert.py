@@ -385,6 +385,13 @@ def odometry_msg(stamp_s: float, pose: Pose2D, v_mps: float, w_radps: float, *, 
     )
 
 
+def goal_pose_msg(stamp_s: float, pose: Pose2D, *, frame_id: str = "odom") -> PoseStamped:
+    """geometry_msgs/PoseStamped of a planar goal, as RViz's "2D Goal Pose" sends it on /goal_pose
+    (the inverse of pose_stamped_to_goal)."""
+    return PoseStamped(_header(stamp_s, frame_id), Pose(Point(float(pose.x_m), float(pose.y_m), 0.0),
+                                                        _yaw_quaternion(float(pose.yaw_rad))))
+
+
 def path_msg(stamp_s: float, poses: np.ndarray, *, frame_id: str = "odom") -> Path:
     """nav_msgs/Path from an (N, 2) array of x, y (yaw along the path) or (N, 3) x, y, yaw."""
     arr = np.asarray(poses, dtype=np.float64)

@@ -80,3 +80,24 @@ def test_case3_realtime_two_processes(tmp_path):
     assert m["controller"]["vpp"]["answers"] > 0 and m["controller"]["vpp"]["failed_answers"] <= 1
     assert m["fixed_contacts"] == 0, m["failure_reason"]
     assert m["success"], m["failure_reason"]
+
+
+def test_merge_takes_a_patrols_verdict_from_the_simulator_unless_the_controller_stopped():
+    patrol = {"visits": [], "goals_missed": 0, "goals_sent": 3, "goals_reached": 2, "goal_timeout_s": 60.0,
+              "end_reason": "duration"}
+    sim = {"goal_reached": True, "success": True, "fixed_contacts": 0, "obstacles": [], "deadline_misses": 0,
+           "final_distance_to_goal_m": 1.5, "patrol": patrol, "simulator": {"sim_lag_ms": {}}}
+    report = {"state": "ACTIVE", "stop_reason": None, "input_faults": [], "hold_reason": None, "restarts": 0,
+              "mode": "all-fixed", "blocked_now": False, "stalls": 0}
+    pct = {"p50": 1.0, "p99": 2.0, "max": 3.0, "count": 4}
+    ctl = {"state": "ACTIVE", "stop_reason": None, "controller": report, "events": [], "sensor_errors": {},
+           "sensor_frames": {}, "recording": {"path": "/tmp/x.mcap", "dropped": 0},
+           "realtime": {"tick_ms": pct, "sensor_to_command_ms": pct, "deadline_misses": 0, "ticks": 10,
+                        "ticks_skipped": 0, "wall_deadline_misses": 0, "lateness_ms": pct}}
+    m = merge(sim, ctl, {}, {}, 1.0)  # on its way to the next goal when the patrol's time was up
+    assert m["success"] and m["failure_reason"] is None
+    assert m["realtime"]["recording"] == {"path": "/tmp/x.mcap", "dropped": 0}
+    ctl["state"], ctl["stop_reason"] = "STOPPED", "3 deadline misses in a row"
+    report["state"], report["stop_reason"] = "STOPPED", "3 deadline misses in a row"
+    m = merge(sim, ctl, {}, {}, 1.0)
+    assert not m["success"] and m["failure_reason"] == "safety stop: 3 deadline misses in a row"

@@ -371,3 +371,72 @@ def test_a_saturated_imu_sample_stops_the_robot(mpc_controller_factory):
                                     saturated=True))
     run_ticks(ctl, base, 1)
     assert ctl.state is ControllerState.HOLDING and "IMU saturated" in ctl.events.last("stop").reason
+
+
+# -- goals changing while driving (request_goal) ----------------------------------------------------
+def test_a_new_goal_while_driving_redirects_the_robot_within_the_limits():
+    from runtime.controller import GoalError  # noqa: F401 - the interface the goal sources use
+
+    ctl, base, _ = make(goal=Pose2D(3.0, 0.0, 0.0))
+    run_ticks(ctl, base, 20)  # 1 s: driving along +x
+    assert ctl.state is ControllerState.ACTIVE and ctl.pose.x_m > 0.3 and abs(ctl.pose.y_m) < 1e-6
+    ctl.request_goal(Pose2D(2.5, 2.0, 0.0), "test")
+    assert ctl.goal == Pose2D(3.0, 0.0, 0.0)  # taken by the next tick's read stage, not before
+    xs = []
+    run_ticks(ctl, base, 400, before_tick=lambda k: xs.append(ctl.pose.x_m))
+    assert ctl.state is ControllerState.GOAL_REACHED
+    assert math.hypot(ctl.pose.x_m - 2.5, ctl.pose.y_m - 2.0) < 0.15
+    assert max(xs) < 2.7  # it turned towards the new goal, it did not go on towards (3, 0)
+    speeds = np.array(base.writes)[:, 0]
+    assert np.max(np.abs(np.diff(speeds))) <= 2.0 * DT + 1e-9  # the change ramps, it never jumps
+    ev = events(ctl)
+    assert [e for e, _ in ev].count("new_goal") == 1
+    assert any(e == "new_goal" and "while driving" in r and "from test" in r for e, r in ev)
+    assert ctl.goals_received == 2 and ctl.goals_reached == 1
+
+
+def test_at_the_goal_the_controller_waits_for_the_next_one_idle_then_drives_again():
+    ctl, base, _ = make(goal=Pose2D(1.0, 0.0, 0.0))
+    run_ticks(ctl, base, 200)
+    assert ctl.state is ControllerState.GOAL_REACHED and ctl.finished
+    n_writes, n_events = len(base.writes), len(ctl.events)
+    run_ticks(ctl, base, 100)  # 5 s idle: zero command, nothing happens, not a fault
+    assert ctl.state is ControllerState.GOAL_REACHED and ctl.hold_reason is None
+    assert set(base.writes[n_writes:]) == {(0.0, 0.0)} and len(ctl.events) == n_events
+    ctl.request_goal(Pose2D(2.5, -0.6, 0.0), "/goal_pose")
+    run_ticks(ctl, base, 1)
+    assert ctl.state is ControllerState.ACTIVE and ctl.goal_reached_at_s is None
+    run_ticks(ctl, base, 300)
+    assert ctl.state is ControllerState.GOAL_REACHED
+    assert math.hypot(ctl.pose.x_m - 2.5, ctl.pose.y_m + 0.6) < 0.15
+    assert ctl.goals_reached == 2 and [e for e, _ in events(ctl)].count("goal_reached") == 2
+    assert ctl.describe()["goals_received"] == 2
+
+
+@pytest.mark.parametrize("goal,field", [(Pose2D(math.nan, 0.0, 0.0), "x_m"), (Pose2D(0.0, math.inf, 0.0), "y_m"),
+                                        (Pose2D(0.0, 0.0, math.nan), "yaw_rad"), (Pose2D(2e4, 0.0, 0.0), "x_m")])
+def test_a_bad_goal_is_refused_naming_its_source_and_field_and_the_robot_keeps_its_goal(goal, field):
+    from runtime.controller import GoalError
+
+    ctl, base, _ = make(goal=Pose2D(2.0, 0.0, 0.0))
+    run_ticks(ctl, base, 5)
+    with pytest.raises(GoalError, match=rf"/goal_pose.*{field}"):
+        ctl.request_goal(goal, "/goal_pose")
+    run_ticks(ctl, base, 5)
+    assert ctl.goal == Pose2D(2.0, 0.0, 0.0) and ctl.goals_received == 1
+    assert "new_goal" not in [e for e, _ in events(ctl)]
+
+
+def test_the_same_goal_again_changes_nothing_and_a_stopped_robot_stays_stopped():
+    ctl, base, _ = make(goal=Pose2D(2.0, 0.0, 0.0))
+    run_ticks(ctl, base, 10)
+    ctl.request_goal(Pose2D(2.0 + 1e-4, 0.0, 0.0), "/goal_pose")  # a repeated publication
+    run_ticks(ctl, base, 1)
+    assert ctl.goals_repeated == 1 and ctl.goals_received == 1 and "new_goal" not in [e for e, _ in events(ctl)]
+    base.error_code = p.ERROR_MOTOR_DRIVER  # a base fault bit: latched stop
+    run_ticks(ctl, base, 3)
+    assert ctl.state is ControllerState.STOPPED
+    ctl.request_goal(Pose2D(-1.0, 0.0, 0.0), "/goal_pose")
+    run_ticks(ctl, base, 20)
+    assert ctl.state is ControllerState.STOPPED and ctl.goal == Pose2D(-1.0, 0.0, 0.0)
+    assert set(base.writes[-20:]) == {(0.0, 0.0)}

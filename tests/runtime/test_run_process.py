@@ -152,6 +152,13 @@ def test_controller_process_drives_and_stops_on_sigterm(tmp_path):
             odoms = odom_reader.take_raw()
             time.sleep(0.05)
         assert odoms, "no nav_msgs/Odometry on /dct/odom"
+        # While driving: a goal in another frame (ignored, counted), then a new goal (followed)
+        stamp = stamp_to_time(time.time())
+        goal_writer.write(PoseStamped(Header(stamp, "map"), Pose(Point(9.0, 9.0, 0.0), Quaternion(0, 0, 0, 1))))
+        time.sleep(0.3)
+        for _ in range(3):  # repeated as an operator might: the controller takes it once
+            goal_writer.write(PoseStamped(Header(stamp, "odom"), Pose(Point(1.0, 1.0, 0.0), Quaternion(0, 0, 0, 1))))
+            time.sleep(0.3)
         while listener.recv(timeout=0.0) is not None:  # drain
             pass
         ctl.send_signal(signal.SIGTERM)
@@ -173,7 +180,11 @@ def test_controller_process_drives_and_stops_on_sigterm(tmp_path):
     assert commands and commands[-1] == (0.0, 0.0), commands[-5:]
     s = json.loads(summary.read_text())
     assert s["pid"] == ctl.pid and s["state"] in ("ACTIVE", "GOAL_REACHED")
-    assert s["goal_odom"] == [5.0, 0.0, 0.0]  # from /goal_pose
+    assert s["goal_odom"] == [5.0, 0.0, 0.0]  # the first goal, from /goal_pose
+    c = s["controller"]
+    assert c["goal_odom"][:2] == [1.0, 1.0] and c["goals_received"] == 2 and c["goals_repeated"] == 2
+    assert s["goals_ignored"] == 1  # the one in frame "map"
+    assert any(e["event"] == "new_goal" and "/goal_pose" in e["reason"] for e in s["events"])
     assert s["realtime"]["ticks"] > 0 and s["publisher"]["published"] > 0
     assert os.path.getsize(summary) > 0
 
