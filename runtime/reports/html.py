@@ -25,7 +25,7 @@ img { max-width: 100%; height: auto; border: 1px solid #eee; }
 <h1>{{ title }}</h1>
 {% for r in runs %}
 <p class="note"><b>{{ r.label }}</b>: <code>{{ r.report.run.file }}</code>, {{ r.report.run.ticks }} ticks
-({{ "%.1f"|format(r.report.run.duration_s) }} s, period {{ fmt(r.report.run.period_ms) }} ms), scenario {{ r.report.run.scenario or "?" }},
+({{ "%.1f"|format(r.report.run.duration_s) }} s, period {{ fmt(r.report.run.period_ms) }} ms),{% if r.report.run.scenario %} scenario {{ r.report.run.scenario }},{% else %} no scenario (a run of <code>dct run</code>),{% endif %}
 clock {{ r.report.run.clock or "?" }}, planner {{ r.report.run.planner or "?" }}.
 {% if not r.report.run.recording_complete %}<span class="bad">Recording cut off ({{ r.report.run.recording_stopped_by }}): read up to its last complete chunk.</span>{% endif %}
 {% if r.report.run.recorder and r.report.run.recorder.dropped_total %}<span class="bad">The recorder dropped {{ r.report.run.recorder.dropped_total }} records.</span>{% endif %}
@@ -83,9 +83,9 @@ clock {{ r.report.run.clock or "?" }}, planner {{ r.report.run.planner or "?" }}
 <p><b>{{ r.label }}</b>: {{ r.report.deadline_misses.count }} on the loop clock, {{ r.report.deadline_misses.wall_clock_count }} on the wall clock{% if r.report.deadline_misses.events %}; the first {{ r.report.deadline_misses.listed }}:{% else %}.{% endif %}</p>
 {% if r.report.deadline_misses.events %}
 <table>
-<tr><th>tick</th><th>t (s)</th><th class="name">clock</th><th>latency (ms)</th><th>wall latency (ms)</th><th class="name">ran long</th><th class="name">over budget</th><th class="name">ticks before (tick: ms, longest stage)</th></tr>
+<tr><th>tick</th><th>t (s since the first tick)</th><th class="name">clock</th><th>latency (ms)</th><th>wall latency (ms)</th><th class="name">ran long</th><th class="name">over budget</th><th class="name">ticks before (tick: ms, longest stage)</th></tr>
 {% for e in r.report.deadline_misses.events %}
-<tr><td>{{ e.tick }}</td><td>{{ fmt(e.t_s) }}</td><td class="name">{{ e.clock }}</td><td>{{ fmt(e.command_latency_ms) }}</td><td>{{ fmt(e.wall_command_latency_ms) }}</td>
+<tr><td>{{ e.tick }}</td><td>{{ fmt(e.t_since_start_s) }}</td><td class="name">{{ e.clock }}</td><td>{{ fmt(e.command_latency_ms) }}</td><td>{{ fmt(e.wall_command_latency_ms) }}</td>
 <td class="name">{{ e.ran_long }} {{ fmt(e.ran_long_ms) }} ms (budget {{ fmt(e.ran_long_budget_ms) }})</td><td class="name">{{ e.stages_over_budget|join(", ") or "none" }}</td>
 <td class="name">{% for b in e.before %}{{ b.tick }}: {{ fmt(b.tick_ms) }}, {{ b.longest_stage }}{% if not loop.last %}; {% endif %}{% endfor %}</td></tr>
 {% endfor %}

@@ -133,6 +133,7 @@ def _miss_context(d: TickData, i: int) -> dict:
     return {
         "tick": int(d.tick[i]),
         "t_s": _opt(d.t_s[i]),
+        "t_since_start_s": _opt(d.t_s[i] - d.t_s[0]),  # the loop clock of a robot is epoch time: unreadable
         "clock": "loop" if d.missed[i] else "wall",  # loop: the controller's verdict; wall: measured only
         "command_latency_ms": _opt(d.command_latency_ms[i]),
         "wall_command_latency_ms": _opt(d.wall_command_latency_ms[i]),
