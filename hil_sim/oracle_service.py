@@ -155,7 +155,8 @@ class OracleService:
         return self
 
     def close(self) -> None:
-        self.httpd.shutdown()
+        if self._thread.is_alive():  # (shutdown() waits for serve_forever: forever if never started)
+            self.httpd.shutdown()
         self.httpd.server_close()
 
     def record(self, image, stamp_s: float) -> None:
@@ -179,10 +180,11 @@ class OracleService:
         path = h.path.split("?", 1)[0].rstrip("/")
         try:
             n = h.headers.get("Content-Length")
-            if n is None or not n.isdigit():
+            if n is None or not (n.isascii() and n.isdigit()):
+                h.close_connection = True  # the body's end is unknown: the connection cannot be reused
                 raise BadRequest("Content-Length is required")
             if int(n) > MAX_BODY_BYTES:
-                h.rfile.read(int(n))
+                h.close_connection = True  # not read: closed instead
                 raise BadRequest(f"body of {n} bytes is larger than {MAX_BODY_BYTES}")
             raw = h.rfile.read(int(n))
             if path not in ("/detect", "/v1/chat/completions", "/chat/completions"):

@@ -61,7 +61,13 @@ def with_duration(scenario: Scenario, duration_s: float | None) -> Scenario:
         "goal_timeout_s"].default
     localized = scenario.patrol.localized if scenario.patrol is not None else False
     patrol = Patrol(duration_s=float(duration_s), goal_timeout_s=timeout, localized=localized)
-    return scenario.model_copy(update={"patrol": patrol, "time_limit_s": float(duration_s)})
+    # validated again (model_copy would skip the validators): a looped patrol's last -> first
+    # pair is checked like the others
+    try:
+        return type(scenario).model_validate({**scenario.model_dump(), "patrol": patrol.model_dump(),
+                                              "time_limit_s": float(duration_s)})
+    except ValueError as exc:
+        raise PatrolError(f"--duration: {exc}") from exc
 
 
 def goal_in_odom(scenario: Scenario, index: int, world_pose=None, odom_pose: Pose2D | None = None) -> Pose2D:

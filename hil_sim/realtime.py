@@ -141,6 +141,7 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
     records the run (`dct run --record`, `--force` overwrites)."""
     import yaml
 
+    from calibration.outputs import atomic_write_text
     from hil_sim.patrol import with_duration
     from hil_sim.scenario import load_scenario
     from runtime.config import load_controller_config
@@ -198,7 +199,7 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                 generated = controller_config(yaml.safe_load(Path(source).read_text()) or {}, urls[-1],
                                               config.vpp.backend.latency_s)
                 ctl_config = work / "controller_config.yaml"
-                ctl_config.write_text(yaml.safe_dump(generated, sort_keys=False))
+                atomic_write_text(ctl_config, yaml.safe_dump(generated, sort_keys=False))
                 run_cmd += ["--config", str(ctl_config)]
             elif config_path is not None:
                 run_cmd += ["--config", str(config_path)]
@@ -234,9 +235,11 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
     m = dict(metrics)
     report = summary["controller"]
     # A patrol's verdict is the simulator's (hil_sim.patrol); at its end the controller may be
-    # on its way to the next goal.
-    reached = bool(m["goal_reached"]) and (summary["state"] == "GOAL_REACHED"
-                                           or ("patrol" in m and summary["state"] != "STOPPED"))
+    # on its way to the next goal. A controller that reached its goal (goal_reached_at_s, no goal
+    # since) and then held (the simulator ends first: its last inputs go stale) reached it.
+    at_goal = summary["state"] == "GOAL_REACHED" or (summary["state"] == "HOLDING"
+                                                      and summary.get("goal_reached_at_s") is not None)
+    reached = bool(m["goal_reached"]) and (at_goal or ("patrol" in m and summary["state"] != "STOPPED"))
     m["goal_reached"] = reached
     m["success"] = reached and m["fixed_contacts"] == 0
     rt = summary["realtime"]

@@ -349,6 +349,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
                 time.sleep(0.5 * dt)  # the next step is due within dt
     finally:
         wall = time.monotonic() - wall_start
+        sensor_stats = rig.stats()  # before close: it lets the renderer go
         rig.close()
         bus.shutdown()
         if oracle_service is not None:
@@ -388,7 +389,7 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
                                "max": float(lags.max()) if len(lags) else None},
                 "published": dict(sink.published),
                 "publish_ms_total": {k: v * 1e3 for k, v in sink.publish_s.items()},
-                "sensors": rig.stats(),
+                "sensors": sensor_stats,
                 "oracle": oracle_service.stats() if oracle_service is not None else None,
             },
         },

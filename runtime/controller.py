@@ -312,6 +312,7 @@ class NavigationController:
         self.goal = goal
         self._goal_xy = np.array([goal.x_m, goal.y_m])
         self.goals_received += 1
+        self.goal_reached_at_s = None  # (a hold at the last goal resumes driving to this one)
         state = self.state
         what = (f"({goal.x_m:.2f}, {goal.y_m:.2f}, {math.degrees(goal.yaw_rad):.0f} deg) from {source}, replacing "
                 f"({old.x_m:.2f}, {old.y_m:.2f})")
@@ -319,7 +320,6 @@ class NavigationController:
             # Idle at the last goal: drive again. The command is zero or ramping down to it; the
             # limiter carries on from there (no reset: a ramp, not a jump).
             self.state = ControllerState.ACTIVE
-            self.goal_reached_at_s = None
             self.modes.new_goal(now)
             self.events.add(now, "new_goal", f"{what}; driving")
         elif state is ControllerState.ACTIVE:
@@ -345,7 +345,9 @@ class NavigationController:
                                or now - self._last_restart_s >= RESTART_RETRY_S):
             # (Right after a fresh enable the base's last 0x211 still says what it said before.)
             self._restart_pending = True
-        if state in (ControllerState.ACTIVE, ControllerState.HOLDING):
+        if state in (ControllerState.ACTIVE, ControllerState.HOLDING, ControllerState.GOAL_REACHED):
+            # (Idle at the goal too: an E-stop or a lost input there holds, and restarts, as while
+            # driving; the hold resumes to the idle state, not to driving.)
             if faults:
                 self._hold(faults, now)
             elif state is ControllerState.HOLDING and not self._restart_pending:
@@ -382,8 +384,9 @@ class NavigationController:
 
     def _resume(self, now: float, why: str | None) -> None:
         """ACTIVE, from a hold or the start-up sequence: commands ramp up from zero, the mode
-        plans afresh. `why` None: the first start (no event)."""
-        self.state = ControllerState.ACTIVE
+        plans afresh; GOAL_REACHED again when the hold came while idle at the goal (no new goal
+        since). `why` None: the first start (no event)."""
+        self.state = ControllerState.ACTIVE if self.goal_reached_at_s is None else ControllerState.GOAL_REACHED
         self.hold_reason = None
         self._held_streams = []
         self.limiter.reset()

@@ -41,7 +41,6 @@ whose backend is openai-compatible at that server: the same client as on the rob
 from __future__ import annotations
 
 import json
-import math
 import signal
 import sys
 import threading
@@ -164,8 +163,14 @@ def load_inputs(opts: RunOptions) -> Loaded:
         raise RunInputError(f"{cfg_name}: planner.mode dct with vpp.backend.kind sim-oracle: the sim-oracle exists "
                             "only inside the lockstep simulator's process; set vpp.backend.kind: openai-compatible "
                             "(README, Choosing the VLM backend) or run --planner all-fixed")
-    if opts.goal is not None and not all(math.isfinite(v) for v in opts.goal):
-        raise RunInputError(f"--goal: {opts.goal} is not three finite numbers (x_m y_m yaw_rad)")
+    if opts.goal is not None:
+        from runtime.controller import GoalError, check_goal
+        from runtime.geometry import Pose2D
+
+        try:
+            check_goal(Pose2D(*opts.goal), "--goal")
+        except (GoalError, TypeError) as exc:
+            raise RunInputError(f"--goal: {opts.goal}: {exc}") from None
     # The bus: the config's, with the command line's overrides.
     bus = config.can_bus.model_dump()
     if opts.can_interface is not None:

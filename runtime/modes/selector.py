@@ -114,7 +114,9 @@ class ModeSelector:
         self.last_decision = ModeDecision()
         self._last_correction_xy: np.ndarray | None = None
         #: Wheel slip the lidar found (correcting mode), summed: the odom frame moved under the
-        #: world by it, so the goal in the odom frame moves with it.
+        #: world by it, so the goal in the odom frame moves with it. Until the next goal: a goal
+        #: given later is taken as given in the odom frame as it is then (an operator's click on
+        #: the map the robot shows, a localizer's goal), slip and all.
         self.goal_shift_xy = np.zeros(2)
 
     @property
@@ -152,6 +154,7 @@ class ModeSelector:
             if last.end_s is None:
                 last.end_s, last.outcome = now_s, "abandoned: a new goal"
         self.reset(now_s)
+        self.goal_shift_xy = np.zeros(2)
         self._backoffs_before_goal = self.backoffs
         if self.correcting is not None:
             self._corrections_before_goal = len(self.correcting.corrections)

@@ -375,8 +375,6 @@ def test_a_saturated_imu_sample_stops_the_robot(mpc_controller_factory):
 
 # -- goals changing while driving (request_goal) ----------------------------------------------------
 def test_a_new_goal_while_driving_redirects_the_robot_within_the_limits():
-    from runtime.controller import GoalError  # noqa: F401 - the interface the goal sources use
-
     ctl, base, _ = make(goal=Pose2D(3.0, 0.0, 0.0))
     run_ticks(ctl, base, 20)  # 1 s: driving along +x
     assert ctl.state is ControllerState.ACTIVE and ctl.pose.x_m > 0.3 and abs(ctl.pose.y_m) < 1e-6
@@ -411,6 +409,28 @@ def test_at_the_goal_the_controller_waits_for_the_next_one_idle_then_drives_agai
     assert math.hypot(ctl.pose.x_m - 2.5, ctl.pose.y_m + 0.6) < 0.15
     assert ctl.goals_reached == 2 and [e for e, _ in events(ctl)].count("goal_reached") == 2
     assert ctl.describe()["goals_received"] == 2
+
+
+def test_an_estop_while_idle_at_the_goal_holds_restarts_and_returns_to_idle_then_a_new_goal_drives():
+    """Idle at the goal is not outside the watchdogs: an E-stop there holds (a stop event, not
+    finished), its release restarts the base (a fresh enable), and the controller is idle at the
+    goal again, not driving; a goal after that drives with nothing left pending."""
+    ctl, base, _ = make(goal=Pose2D(1.0, 0.0, 0.0))
+    run_ticks(ctl, base, 200)
+    assert ctl.state is ControllerState.GOAL_REACHED and ctl.finished and base.activations == 1
+    base.vehicle_state = p.VEHICLE_STATE_ESTOP
+    run_ticks(ctl, base, 2)
+    assert ctl.state is ControllerState.HOLDING and not ctl.finished
+    assert ctl.events.last("stop").reason == "E-stop" and base.writes[-1] == (0.0, 0.0)
+    base.vehicle_state = p.VEHICLE_STATE_NORMAL
+    run_ticks(ctl, base, 3)
+    assert base.activations == 2 and ctl.state is ControllerState.GOAL_REACHED and ctl.finished
+    assert [e for e, _ in events(ctl)][-3:] == ["stop", "restart", "resume"]
+    assert ctl.goals_reached == 1 and not ctl._restart_pending
+    ctl.request_goal(Pose2D(2.0, 0.0, 0.0), "/goal_pose")
+    run_ticks(ctl, base, 300)
+    assert ctl.state is ControllerState.GOAL_REACHED and ctl.goals_reached == 2 and base.activations == 2
+    assert abs(ctl.pose.x_m - 2.0) < 0.15
 
 
 @pytest.mark.parametrize("goal,field", [(Pose2D(math.nan, 0.0, 0.0), "x_m"), (Pose2D(0.0, math.inf, 0.0), "y_m"),

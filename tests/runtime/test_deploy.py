@@ -12,6 +12,7 @@ import base64
 import hashlib
 import json
 import os
+import queue
 import socket
 import subprocess
 import sys
@@ -235,12 +236,18 @@ def test_real_bundle_installs_offline_and_preflight_passes(tmp_path):
                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                              env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
     try:
-        deadline = time.monotonic() + 180
-        for line in serve.stdout:
-            if " serving:" in line or time.monotonic() > deadline:
-                break
-        assert serve.poll() is None, "dct hil serve ended before serving"
-        threading.Thread(target=serve.stdout.read, daemon=True).start()  # keep its pipe drained
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=lambda: [lines.put(x) for x in serve.stdout] + [lines.put(None)],
+                         daemon=True).start()  # reads it to the end: the pipe never fills
+        deadline, said = time.monotonic() + 180, []
+        while not any(" serving:" in x for x in said):
+            try:
+                line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                pytest.fail("dct hil serve said nothing about serving in 180 s: " + "".join(said)[-2000:])
+            if line is None:
+                pytest.fail("dct hil serve ended before serving: " + "".join(said)[-2000:])
+            said.append(line)
         t = time.perf_counter()
         pre = subprocess.run([str(target / "venv" / "bin" / "dct"), "preflight", "--robot", str(robot / "robot.yaml"),
                               "--calibration", str(robot / "calibration.yaml"), "--config", str(robot / "config.yaml"),
