@@ -26,14 +26,9 @@ time. `replan_in_slack: false` searches in the tick, as before.
 Touchable objects (issue 14; IMPACT's graded cost, BEACON's push-versus-detour rule): the
 points of P_mov come with their object's contact cost (0..10; objects at or above the
 never-touch cost are P_fix already, lethal here). With P_mov near the window a replan searches
-twice: "push", where the cells within the inflation radius of a P_mov point (the object's zone)
-are passable and a contact costs `contact_cost_weight` x cost / 10 x `contact_length_m` extra
-metres, charged once where the path enters the zone (IMPACT's path cost: each object touched
-counts once; a curtain at cost 0 is free to pass, a cost-2 box costs 0.12 m at the defaults), and
-"detour", where they are lethal as P_fix. (`contact_charge: per_metre`, the earlier rule, charges
-that weight x cost / 10 per metre inside the zone instead: the cheapest contact is then the
-shortest, a graze of the object's corner, which turns a box into the robot's side and out of the
-camera's view; case1 lost 0.3 s slowing beside it.) BEACON's rule picks: push
+twice: "push", where cells within the inflation radius of a P_mov point cost `contact_cost_weight`
+x cost / 10 more per metre (a curtain at cost 0 is free to pass, a box at 5 costs half a metre
+more per metre at the default weight 1), and "detour", where they are lethal as P_fix. BEACON's rule picks: push
 if C_push - push_bias_m < C_detour + detour_margin_m (C: the search's cost, metres weighted by
 the cells' costs), detour otherwise, and push when no detour exists. `last_choice` says which.
 """
@@ -41,7 +36,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -86,13 +80,6 @@ class ReferencePathConfig(BaseModel):
         description="a metre through a touchable object's zone costs this x its contact cost / 10 extra metres "
         "(BEACON's semantic weight lambda_sem, 2.5 in its units; 1.0 here: pushing a cost-2 box 0.6 m costs "
         "0.12 m, so a detour must be shorter than that plus the bias and margin to win)")
-    contact_charge: Literal["on_entry", "per_metre"] = Field(
-        default="on_entry",
-        description="on_entry: a contact costs weight x cost / 10 x contact_length_m, once, where the path enters "
-        "the object's zone (the cheapest push is the shortest path through it); per_metre: weight x cost / 10 "
-        "per metre inside the zone (the cheapest push grazes the object's edge)")
-    contact_length_m: float = Field(default=0.6, ge=0.0, le=10.0,
-                                    description="on_entry: the metres of contact a push is charged as")
     # BEACON's push bias and detour margin (Table I: 0.35 and 0.5 in its objective's units); here
     # in metres of cost-weighted path, scaled to a 0.3 m robot: a push is taken over a detour
     # that is up to their sum cheaper.
@@ -282,11 +269,8 @@ class ReferencePathPlanner:
         return ndimage.grey_dilation(raster, footprint=disc, mode="constant", cval=-1.0)[k:-k, k:-k]
 
     # -- search -------------------------------------------------------------------------------
-    def search(self, grid: LocalGrid, start_xy: np.ndarray, goal_xy: np.ndarray,
-               entry: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray | None, str]:
-        """Cheapest cell path start -> goal (or towards it); (None, reason) when there is none.
-        entry: ((n, n) contact cost per cell, 0 outside zones; metres per unit of cost): a step
-        into a cell costs unit x (its contact cost - the cell it comes from's) more, where positive."""
+    def search(self, grid: LocalGrid, start_xy: np.ndarray, goal_xy: np.ndarray) -> tuple[np.ndarray | None, str]:
+        """Cheapest cell path start -> goal (or towards it); (None, reason) when there is none."""
         n, cfg = self.n, self.config
         start = grid.cell_of(start_xy)
         if not (0 <= start[0] < n and 0 <= start[1] < n):
@@ -309,7 +293,7 @@ class ReferencePathPlanner:
             passable = passable | escape
             cost[escape & grid.lethal] = 1.0 + 4.0 * cfg.soft_cost
             passable[start[0], start[1]] = True
-        graph = self._edge_weights(passable, cost, entry)
+        graph = self._edge_weights(passable, cost)
         s_idx = int(start[0] * n + start[1])
         dist, pred = dijkstra(graph, directed=True, indices=s_idx, return_predecessors=True)
         goal_cell = grid.cell_of(goal_xy)
@@ -344,18 +328,13 @@ class ReferencePathPlanner:
             path[-1] = end_xy
         return path, "ok"
 
-    def _edge_weights(self, passable: np.ndarray, cost: np.ndarray,
-                      entry: tuple[np.ndarray, float] | None = None) -> csr_matrix:
-        """The grid graph with this replan's weights: step length x mean cost of the two cells
-        (plus the entry charge, see `search`), infinite (no edge) into, out of or diagonally past
-        an impassable cell."""
+    def _edge_weights(self, passable: np.ndarray, cost: np.ndarray) -> csr_matrix:
+        """The grid graph with this replan's weights: step length x mean cost of the two cells,
+        infinite (no edge) into, out of or diagonally past an impassable cell."""
         w = self._block_weights
         for ai, aj, bi, bj, oai, oaj, obi, obj, step, out in self._blocks:
             ok = passable[ai, aj] & passable[bi, bj] & passable[oai, oaj] & passable[obi, obj]
             wb = (0.5 * step) * (cost[ai, aj] + cost[bi, bj])
-            if entry is not None:
-                contact, unit = entry
-                wb = wb + unit * np.maximum(contact[bi, bj] - contact[ai, aj], 0.0)
             w[out] = np.where(ok, wb, np.inf).ravel()
         np.take(w, self._data_order, out=self._graph.data)
         return self._graph
@@ -545,12 +524,8 @@ class ReferencePathPlanner:
             detour, why_detour = self.search(grid, xy, goal_xy)
             c_detour = self.last_search_cost if detour is not None else math.inf
             grid.lethal = base_lethal
-            if cfg.contact_charge == "per_metre":
-                grid.cost = base_cost + np.where(touch, cfg.contact_cost_weight * grid.contact_cost / 10.0, 0.0)
-                push, why_push = self.search(grid, xy, goal_xy)
-            else:  # once, on entering the zone (or a costlier object's zone from a cheaper one's)
-                unit = cfg.contact_cost_weight * cfg.contact_length_m / 10.0
-                push, why_push = self.search(grid, xy, goal_xy, entry=(np.maximum(grid.contact_cost, 0.0), unit))
+            grid.cost = base_cost + np.where(touch, cfg.contact_cost_weight * grid.contact_cost / 10.0, 0.0)
+            push, why_push = self.search(grid, xy, goal_xy)
             c_push = self.last_search_cost if push is not None else math.inf
         finally:
             grid.cost, grid.lethal = base_cost, base_lethal
