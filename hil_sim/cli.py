@@ -553,9 +553,9 @@ def _run_campaign_command(name: str, seeds: int, first_seed: int, methods: str |
     except (CampaignError, ConfigFileError) as exc:
         raise InputError(str(exc)) from None
     if ray_address is not None:
-        try:
-            import ray  # noqa: F401
-        except ImportError:
+        import importlib.util
+
+        if importlib.util.find_spec("ray") is None:
             raise InputError("--ray: Ray is not installed (pip install 'dct-controller[ray]', or run without --ray "
                              "for local worker processes)") from None
     checked_output(json_path, "--json", [config_path], force)
