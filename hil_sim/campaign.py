@@ -26,6 +26,14 @@ Row figures: success rate; navigation time, average speed and navigation distanc
 the successful episodes (None when there is none); fixed contacts, fragile damage events,
 correcting events and deadline misses as totals; path cost (IMPACT) as the mean per episode.
 `correcting_events` is 0 until correcting mode adds the metric to the episode JSON.
+
+The navigation clock (`clock`, in the JSON as `navigation_clock`): "switch-on" (the default) gives
+the goal when the controller is switched on, so navigation time includes its start-up sequence
+(0.15 s) and, in mode dct, whatever the robot could not do before the VLM's first answer (1.5 s
+with the sim-oracle's latency); "goal-when-ready" is a robot switched on before it is sent: the
+controller runs standing still (start-up, odometry, the VLM sees the scene) and the goal is given,
+and the clock started, once it is ACTIVE and its partition has the first answer
+(hil_sim.runner.run_episode's goal_when_ready; `standby_s` per episode says how long it stood).
 """
 from __future__ import annotations
 
@@ -41,6 +49,8 @@ METHOD_CONFIG = {"dct": ("dct", True), "all-fixed": ("all-fixed", True), "grid-a
                  "fixed-labels": ("dct", False)}
 #: method -> the paper's column it is compared with (DCT Tables I and II).
 PAPER_METHOD = {"dct": "DCT", "fixed-labels": "DCT", "all-fixed": "NeuPAN", "grid-astar": "Ellis22"}
+#: The navigation clocks (module docstring).
+CLOCKS = ("switch-on", "goal-when-ready")
 #: Fields of a row that measure the computer, not the robot (they differ between runs).
 WALL_CLOCK_FIELDS = ("wall_time_s",)
 
@@ -113,6 +123,7 @@ class EpisodeTask:
     seed: int
     method: str
     config_path: str | None = None
+    clock: str = "switch-on"  # CLOCKS
 
 
 def parse_methods(text: str | None) -> tuple[str, ...]:
@@ -157,7 +168,8 @@ def run_task(task: EpisodeTask) -> dict:
     record = {"scene": task.scene, "seed": task.seed, "method": task.method}
     try:
         scenario = load_scenario(task.scene, seed=task.seed)
-        result = run_episode(scenario, config=method_config(task.method, task.config_path), seed=task.seed)
+        result = run_episode(scenario, config=method_config(task.method, task.config_path), seed=task.seed,
+                             goal_when_ready=task.clock == "goal-when-ready")
     except Exception as exc:  # a broken episode is a failed one, named, not a lost campaign
         return {**record, "scenario": task.scene, "success": False, "error": f"{type(exc).__name__}: {exc}",
                 "failure_reason": f"error: {type(exc).__name__}: {exc}", "navigation_time_s": 0.0,
@@ -178,6 +190,7 @@ def run_task(task: EpisodeTask) -> dict:
         "fragile_damage_events": int(m.get("fragile_damage_events", 0)),
         "correcting_events": len(correcting) if isinstance(correcting, list) else int(correcting),
         "deadline_misses": int(m.get("deadline_misses", 0)),
+        "standby_s": float(m.get("standby_s", 0.0)),
         "failure_reason": m.get("failure_reason"),
         "wall_time_s": time.perf_counter() - wall0,
     }
@@ -282,8 +295,9 @@ def _run_on_ray(tasks: list[EpisodeTask], address: str, workers: int,
 def run_campaign(name: str, methods: Iterable[str] = METHODS, seeds: int = 1, first_seed: int = 0,
                  workers: int | None = None, ray_address: str | None = None, only: Iterable[str] = (),
                  config_path: str | None = None, on_done: Callable[[dict], None] | None = None,
-                 on_start: Callable[[int], None] | None = None) -> dict:
-    """Run a campaign; returns the JSON-ready result (`rows`, `episodes`, the papers' figures)."""
+                 on_start: Callable[[int], None] | None = None, clock: str = "switch-on") -> dict:
+    """Run a campaign; returns the JSON-ready result (`rows`, `episodes`, the papers' figures).
+    clock: the navigation clock, "switch-on" or "goal-when-ready" (module docstring)."""
     if name not in CAMPAIGNS:
         raise CampaignError(f"unknown campaign {name!r}; known: {', '.join(CAMPAIGNS)}")
     campaign = CAMPAIGNS[name]
@@ -293,10 +307,12 @@ def run_campaign(name: str, methods: Iterable[str] = METHODS, seeds: int = 1, fi
             raise CampaignError(f"unknown method {m!r}; known: {', '.join(METHODS)}")
     if seeds < 1:
         raise CampaignError(f"--seeds {seeds}: at least 1 episode per row")
+    if clock not in CLOCKS:
+        raise CampaignError(f"--clock {clock!r}: known: {', '.join(CLOCKS)}")
     scenes = select_scenes(campaign, only)
     workers = default_workers() if workers is None else max(1, int(workers))
     seed_list = [first_seed + k for k in range(seeds)]
-    tasks = [EpisodeTask(scene, seed, method, config_path)
+    tasks = [EpisodeTask(scene, seed, method, config_path, clock)
              for scene, _ in scenes for method in methods for seed in seed_list]
     if on_start is not None:
         on_start(len(tasks))
@@ -319,6 +335,7 @@ def run_campaign(name: str, methods: Iterable[str] = METHODS, seeds: int = 1, fi
         "method_config": {m: {"planner": METHOD_CONFIG[m][0], "belief_enabled": METHOD_CONFIG[m][1]} for m in methods},
         "seeds": seed_list,
         "config": config_path,
+        "navigation_clock": clock,
         "rows": rows,
         "episodes": records,
         "workers": workers,
@@ -356,7 +373,8 @@ def format_table(result: dict) -> list[str]:
     head = (f"{key:<20} {'method':<13} {'n':>3} {'success':>12} {'time s':>14} {'speed m/s':>14} {'dist m':>14} "
             f"{'fixed':>5} {'cost':>5} {'fragile':>7} {'correct':>7} {'misses':>6} {'wall s':>6}")
     lines = [f"{result['title']}: {len(result['seeds'])} seed(s) per row (seeds {result['seeds'][0]}.."
-             f"{result['seeds'][-1]}), {result['backend']} ({result['workers']} workers)",
+             f"{result['seeds'][-1]}), {result['backend']} ({result['workers']} workers), navigation clock: "
+             f"{result.get('navigation_clock', 'switch-on')}",
              "(the paper's figure in parentheses: DCT for dct/fixed-labels, NeuPAN for all-fixed, Ellis22 for "
              "grid-astar; time, speed, distance: means over successes)" if result["campaign"] != "beacon" else
              "(time, speed, distance: means over successes; 'all': the four families together)",

@@ -578,6 +578,11 @@ def _campaign_options(func):
                      help="Write rows, episodes and the papers' figures as JSON (checked before the run, written "
                           "atomically after it)."),
         click.option("--force", is_flag=True, help="Overwrite an existing --json file."),
+        click.option("--clock", type=click.Choice(["switch-on", "goal-when-ready"]), default="switch-on",
+                     show_default=True,
+                     help="Navigation clock: switch-on gives the goal at start (start-up and the VLM's first answer "
+                          "count); goal-when-ready gives it once the controller runs and the VLM has answered once "
+                          "(a robot switched on before it is sent)."),
     ]
     for option in reversed(options):
         func = option(func)
@@ -586,7 +591,7 @@ def _campaign_options(func):
 
 def _run_campaign_command(name: str, seeds: int, first_seed: int, methods: str | None, only: tuple[str, ...],
                           workers: int | None, ray_address: str | None, config_path: Path | None,
-                          json_path: Path | None, force: bool) -> None:
+                          json_path: Path | None, force: bool, clock: str = "switch-on") -> None:
     """Check the inputs (one line, exit 2), run with a rich progress bar, print the table, write the JSON."""
     from calibration.errors import ConfigFileError
     from calibration.outputs import atomic_write_json
@@ -602,9 +607,9 @@ def _run_campaign_command(name: str, seeds: int, first_seed: int, methods: str |
     except (CampaignError, ConfigFileError) as exc:
         raise InputError(str(exc)) from None
     if ray_address is not None:
-        try:
-            import ray  # noqa: F401
-        except ImportError:
+        import importlib.util
+
+        if importlib.util.find_spec("ray") is None:
             raise InputError("--ray: Ray is not installed (pip install 'dct-controller[ray]', or run without --ray "
                              "for local worker processes)") from None
     checked_output(json_path, "--json", [config_path], force)
@@ -612,7 +617,7 @@ def _run_campaign_command(name: str, seeds: int, first_seed: int, methods: str |
     try:
         result = run_campaign(name, method_list, seeds, first_seed, workers, ray_address, only,
                               str(config_path) if config_path is not None else None,
-                              on_done=progress.done, on_start=progress.start)
+                              on_done=progress.done, on_start=progress.start, clock=clock)
     except CampaignError as exc:
         raise InputError(str(exc)) from None
     finally:
@@ -629,19 +634,20 @@ def _run_campaign_command(name: str, seeds: int, first_seed: int, methods: str |
 @_campaign_options
 def paper_command(table: str, seeds: int, first_seed: int, methods: str | None, only: tuple[str, ...],
                   workers: int | None, ray_address: str | None, config_path: Path | None, json_path: Path | None,
-                  force: bool) -> None:
+                  force: bool, clock: str) -> None:
     """The DCT paper's tables in the simulator: success, navigation time, average speed, navigation distance
     (plus fixed contacts, path cost, fragile damage, correcting events, deadline misses) for dct, all-fixed
     (NeuPAN-like), grid-astar (Ellis22-like) and fixed-labels, next to the paper's figures."""
     _run_campaign_command(f"table{table}", seeds, first_seed, methods, only, workers, ray_address, config_path,
-                          json_path, force)
+                          json_path, force, clock)
 
 
 @bench_group.command("beacon")
 @_campaign_options
 def beacon_command(seeds: int, first_seed: int, methods: str | None, only: tuple[str, ...], workers: int | None,
-                   ray_address: str | None, config_path: Path | None, json_path: Path | None, force: bool) -> None:
+                   ray_address: str | None, config_path: Path | None, json_path: Path | None, force: bool,
+                   clock: str) -> None:
     """BEACON's four families (sparse, cluttered, collision-required, collision-shortcut), drawn per seed: the
     same figures per family and overall, next to BEACON's published success and path length."""
     _run_campaign_command("beacon", seeds, first_seed, methods, only, workers, ray_address, config_path,
-                          json_path, force)
+                          json_path, force, clock)

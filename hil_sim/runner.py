@@ -171,6 +171,7 @@ def run_episode(
     on_start: "Callable[[LockstepSimulation, NavigationController], None] | None" = None,
     recorder: "RunRecorder | None" = None,
     camera_calibration: "tuple[CameraModel, np.ndarray | None] | None" = None,
+    goal_when_ready: bool = False,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -187,6 +188,12 @@ def run_episode(
     (evaluations attach to the sensor rig's listeners: `dct vpp eval`).
     recorder: records the ticks, poses, CAN frames, P_fix and plan to MCAP (runtime.recording);
     the caller closes it. Recording changes no metric.
+    goal_when_ready: the navigation clock of a robot switched on before it is sent: the controller
+    starts in standby (start-up sequence, odometry, the VLM partition's first answer; the robot
+    stands still) and the goal is given at the first tick at which it is ACTIVE and its partition
+    ready (mode dct: the VLM answered once; other modes: the start-up sequence done). Navigation
+    time, the time limit and the events count from then (`standby_s` says how long it stood).
+    False (default): the goal is given at switch-on and the clock starts there.
     oracle: planner mode dct's sim-oracle settings, used as given (its seed too) instead of the
     config's `vpp.backend` (whose seed is added to the episode seed). With no `oracle` and a
     backend other than the sim-oracle in the config, the controller builds that backend.
@@ -253,6 +260,7 @@ def run_episode(
             vlm_backend=vlm_backend,
             camera=camera_calibration[0] if camera_calibration is not None else None,
             T_cam_lidar=camera_calibration[1] if camera_calibration is not None else None,
+            goal_given=not goal_when_ready,
         )
     except BaseException:
         controller_bus.shutdown()
@@ -272,10 +280,10 @@ def run_episode(
         after_tick=recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed, "clock": "lockstep"})
         if recorder is not None else None,
     )
-    t_start = sim.time_s
-    time_limit = t_start + scenario.time_limit_s
+    t_switch_on = sim.time_s
+    clock_start = [sim.time_s]  # where the navigation clock starts (moved on by goal_when_ready)
     finished_at: list[float] = []
-    patrol = PatrolSequencer(scenario, t_start) if scenario.is_patrol else None
+    patrol = PatrolSequencer(scenario, t_switch_on) if scenario.is_patrol else None
 
     def should_stop() -> bool:
         if observe is not None and telemetry.ticks:
@@ -283,13 +291,17 @@ def run_episode(
         now = sim.time_s
         if progress is not None:
             progress(now)
+        if (not controller.goal_given and controller.state is ControllerState.ACTIVE
+                and controller.partition.ready(now)):
+            controller.give_goal(now)  # this coming tick plans
+            clock_start[0] = now
         if patrol is not None:  # the operator: the next goal once the controller is done with this one
             goal = patrol.update(now, world.robot_pose(), (controller.goal.x_m, controller.goal.y_m),
                                  controller.finished, controller.state is ControllerState.STOPPED, controller.pose)
             if goal is not None:
                 controller.request_goal(goal, "patrol")
-            return patrol.done or now >= time_limit
-        if now >= time_limit:
+            return patrol.done or now >= clock_start[0] + scenario.time_limit_s
+        if now >= clock_start[0] + scenario.time_limit_s:
             return True
         if controller.finished:
             if not finished_at:
@@ -310,6 +322,7 @@ def run_episode(
         sim_bus.shutdown()
     wall = time.perf_counter() - wall0
 
+    t_start = clock_start[0]
     if patrol is not None:
         reached = patrol.succeeded
         nav_time = sim.time_s - t_start
@@ -332,7 +345,10 @@ def run_episode(
             "stop_reason": controller.stop_reason,
             "final_distance_to_goal_m": final_distance,
             "final_pose_world": [float(v) for v in world.robot_pose()],
-            "sim_time_s": sim.time_s - t_start,
+            "sim_time_s": sim.time_s - t_switch_on,
+            # the navigation clock: "switch-on" (the goal given at start) or "goal-when-ready"
+            "navigation_clock": "goal-when-ready" if goal_when_ready else "switch-on",
+            "standby_s": t_start - t_switch_on,
             "planner": config.planner.mode,
             "faults": [{**f.to_dict(), "acted_on": injector.applied[f.name]} for f in faults],
             "events": controller.events.to_list(t0_s=t_start),
@@ -353,7 +369,7 @@ def run_episode(
         telemetry=telemetry.summary(),
         controller=report,
         wall_time_s=wall,
-        sim_time_s=sim.time_s - t_start,
+        sim_time_s=sim.time_s - t_switch_on,
         extra={
             "keepalives_sent": loop.keepalives_sent,
             "firmware_frames_rejected": firmware.frames_rejected,

@@ -1,7 +1,8 @@
 """`dct vpp eval --scenario`: the VPP stage of one closed-loop HIL run against the simulator's truth.
 
 The run is an ordinary lockstep episode of the controller in planner mode dct (the VPP partition,
-the planner on P_fix) with the sim-oracle at the asked quality. The camera runs at
+the planner on P_fix) with the sim-oracle at the asked quality, the robot waiting at its start for
+the first answer (`vpp.before_first_answer: wait`). The camera runs at
 `camera_rate_hz` (10 Hz by default, not the 2 Hz of an ordinary dct episode) so that the warped
 masks can be compared with the truth every few centimetres of travel; the stage still sends only
 the newest image when its trigger rule asks.
@@ -342,7 +343,11 @@ def evaluate_scenario(scenario: str, seed: int = 0, oracle: SimOracleConfig | No
     """One closed-loop dct episode with the probe attached (module docstring); JSON-ready figures."""
     sc = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
     config = load_controller_config()
+    # The robot waits at its start for the first answer (vpp.before_first_answer: wait), as the
+    # figures were defined: driving first (the default), its approach grows the first masks past
+    # the stage's growth rule and they are distrusted, which would measure the start, not the stage.
     config = config.with_planner_mode("dct")
+    config = config.model_copy(update={"vpp": config.vpp.model_copy(update={"before_first_answer": "wait"})})
     oracle = (oracle or SimOracleConfig()).model_copy(update={"seed": seed})
     rig = SensorRigConfig(seed=seed, camera_rate_hz=camera_rate_hz, camera_segmentation=True,
                           lidar=LidarConfig(ground_truth_frames=8))

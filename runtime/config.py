@@ -118,6 +118,16 @@ class VppSettings(VppConfig):
     backend's labels as they are, the `fixed-labels` method of `dct bench paper`."""
 
     backend: BackendConfig = SimOracleBackendConfig()
+    #: Before the backend's first answer the partition knows nothing the all-fixed one does not.
+    #: drive: every point is P_fix for the MPC and the safety supervisor (so the robot keeps clear
+    #: of all of them), and of unknown touchability for the reference path: contact cost
+    #: `unknown_contact_cost` in its push-or-detour choice: the robot drives where that path
+    #: touches nothing (a detour all-fixed would take too) and holds still where it leads through
+    #: something (closing in would only shrink the VLM's view: its first mask, from farther away,
+    #: is then distrusted by the growth rule). Stall and stuck detection wait for the answer.
+    #: wait: hold still until the first answer (or first_answer_timeout_s), whatever the path.
+    before_first_answer: Literal["drive", "wait"] = "drive"
+    unknown_contact_cost: float = Field(default=10.0, ge=0.0, le=10.0)
 
 
 class ControllerConfig(_Strict):

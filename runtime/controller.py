@@ -117,6 +117,7 @@ class NavigationController:
         vlm_backend=None,
         camera=None,
         T_cam_lidar: np.ndarray | None = None,
+        goal_given: bool = True,
     ) -> None:
         """lockstep: the clock is simulated time; nothing that decides behaviour may read the wall
         clock (solver caps are iteration counts, ICP results arrive at a fixed simulated latency).
@@ -128,7 +129,11 @@ class NavigationController:
         models.vlm.factory). It runs beside the tick (models.vlm.runner).
         camera, T_cam_lidar: the calibration file's camera (CameraModel) and lidar-to-camera
         extrinsic, for the VPP partition (runtime.partition_stage.build_vpp_partition); None:
-        the robot description's nominal camera and mounts."""
+        the robot description's nominal camera and mounts.
+        goal_given: False starts the controller in standby: every stage runs (start-up sequence,
+        odometry, the VLM partition sees the scene) but the planner does not drive until
+        `give_goal(now)`, as on a robot switched on before it is sent (`dct bench paper --clock
+        goal`: the navigation clock starts there)."""
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
@@ -188,6 +193,9 @@ class NavigationController:
         self.command = (0.0, 0.0)  # (v_mps, omega_radps) last written
         self.pose = Pose2D(0.0, 0.0, 0.0)
         self.goal_reached_at_s: float | None = None
+        self.goal_given = goal_given
+        self._drive_unclassified = config.vpp.before_first_answer == "drive"
+        self.goal_given_at_s: float | None = None
         self._activated_at_s = 0.0
         self.faults: tuple[InputFault, ...] = ()
         self.hold_reason: str | None = None
@@ -212,6 +220,17 @@ class NavigationController:
         self.hardware.activate()
         self._activated_at_s = self.clock()
         self.state = ControllerState.INITIALIZING
+
+    def give_goal(self, now: float) -> None:
+        """Standby ends: the planner drives to the goal from this tick on (commands ramp from zero,
+        the mode plans afresh, the stall clock starts now)."""
+        if self.goal_given:
+            return
+        self.goal_given = True
+        self.goal_given_at_s = now
+        self.limiter.reset()
+        self.modes.reset(now)
+        self.events.add(now, "goal", f"goal given ({self.goal.x_m:.2f}, {self.goal.y_m:.2f}) after standby")
 
     def deactivate(self) -> None:
         self.command = (0.0, 0.0)
@@ -278,8 +297,12 @@ class NavigationController:
         stages.mark(PARTITION)
 
         v, omega = 0.0, 0.0
-        if self.state is ControllerState.ACTIVE and self.partition.ready(now):
-            v, omega = self._plan(now)  # (mode dct waits for the VLM's first answer, or its failure)
+        if self.state is ControllerState.ACTIVE and self.goal_given:
+            # Mode dct before the VLM's first answer (or its failure): every point P_fix, of unknown
+            # touchability for the reference path (vpp.before_first_answer drive), or hold still (wait).
+            ready = self.partition.ready(now)
+            if ready or self._drive_unclassified:
+                v, omega = self._plan(now, unclassified=not ready)
         stages.mark(PLANNER)
 
         v, omega = self._safety(v, omega)
@@ -435,10 +458,10 @@ class NavigationController:
                                                      s * p[:, 0] + c * p[:, 1] + correction[1]]))
 
     # -- planner stage -----------------------------------------------------------------------
-    def _plan(self, now: float) -> tuple[float, float]:
+    def _plan(self, now: float, unclassified: bool = False) -> tuple[float, float]:
         pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
         situation = Situation(now, pose, np.asarray(self.command), self.points_fix, self._goal_xy,
-                              self.points_mov, self.costs_mov)
+                              self.points_mov, self.costs_mov, unclassified)
         d = self.modes.plan(situation)
         self.last_decision = d
         if d.at_goal:
@@ -571,6 +594,7 @@ class NavigationController:
             "goals_received": self.goals_received,
             "goals_reached": self.goals_reached,
             "goals_repeated": self.goals_repeated,
+            "goal_given_at_s": self.goal_given_at_s,
             "distance_to_goal_m": self._goal_distance_m(),
             "events_dropped": self.events.dropped,
             "odometry": self.odometry.describe(),

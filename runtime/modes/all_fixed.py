@@ -5,6 +5,8 @@ adds the DCT mode beside it, with only the non-touchable points in P_fix.
 """
 from __future__ import annotations
 
+import numpy as np
+
 from runtime.modes.base import ModeContext, ModeDecision, ModeStack, Situation
 from runtime.planning.mpc import MpcPlanner, PlanResult
 from runtime.planning.reference_path import ReferencePathPlanner, ReferenceUpdate
@@ -13,9 +15,12 @@ from runtime.planning.reference_path import ReferencePathPlanner, ReferenceUpdat
 class AllFixedMode:
     name = "all-fixed"
 
-    def __init__(self, reference: ReferencePathPlanner, mpc: MpcPlanner) -> None:
+    def __init__(self, reference: ReferencePathPlanner, mpc: MpcPlanner, unknown_contact_cost: float = 10.0) -> None:
         self.reference = reference
         self.mpc = mpc
+        #: the contact cost the reference path gives points of unknown touchability (Situation.unclassified)
+        self.unknown_contact_cost = unknown_contact_cost
+        self._unclassified = False
         self.last_reference: ReferenceUpdate | None = None
         self.last_plan: PlanResult | None = None
 
@@ -44,8 +49,19 @@ class AllFixedMode:
         return self.reference.replan_in_slack()
 
     def plan(self, s: Situation) -> ModeDecision:
-        ref = self.reference.update(s.pose, s.goal_xy, s.points_fix,
-                                    (s.points_mov, s.costs_mov) if len(s.points_mov) else None)
+        if s.unclassified:
+            # Before the first VLM answer: the reference path sees every point as touchable at the
+            # unknown cost (push-or-detour: the robot drives a detour where all-fixed takes one,
+            # and holds still where the way leads through something); the MPC below keeps clear
+            # of all of them (they are P_fix).
+            fixed = s.points_fix[:0]
+            movable = (s.points_fix, np.full(len(s.points_fix), self.unknown_contact_cost)) if len(s.points_fix) else None
+        else:
+            if self._unclassified:
+                self.reference.request_replan()  # the first answer: a path on what it says, next slack
+            fixed, movable = s.points_fix, ((s.points_mov, s.costs_mov) if len(s.points_mov) else None)
+        self._unclassified = s.unclassified
+        ref = self.reference.update(s.pose, s.goal_xy, fixed, movable, keep_clear=s.unclassified)
         self.last_reference = ref
         if ref.goal_reached:
             return ModeDecision(at_goal=True, remaining_m=0.0)
@@ -54,6 +70,13 @@ class AllFixedMode:
         if ref.blocked:
             self.mpc.reset()  # the previous plan leads into what blocks the path
             return ModeDecision(blocked=True, note=ref.reason)
+        if s.unclassified and self.reference.last_choice == "push":
+            # The way leads through something not classified yet: closing in on it would only
+            # shrink the VLM's view of it (and its first mask is taken from farther away). Hold
+            # still until the answer says whether it may be touched.
+            self.mpc.reset()
+            return ModeDecision(remaining_m=ref.remaining_m, note="waiting for the VLM: the path touches an "
+                                "unclassified obstacle")
         plan = self.mpc.plan(s.pose, s.command, ref.reference, s.points_fix)
         self.last_plan = plan
         return ModeDecision(
@@ -76,7 +99,7 @@ def build(ctx: ModeContext) -> ModeStack:
     reference = ReferencePathPlanner(pc.reference_path, robot)
     backoff = BackoffMode(mpc, rc.backoff_distance_m, min(rc.backoff_speed_mps, pc.mpc.max_reverse_speed_mps),
                           rc.backoff_timeout_s)
-    stack = ModeStack(AllFixedMode(reference, mpc), backoff, SafetySupervisor(pc.safety_supervisor, robot))
+    stack = ModeStack(AllFixedMode(reference, mpc, ctx.config.vpp.unknown_contact_cost), backoff, SafetySupervisor(pc.safety_supervisor, robot))
     cc = ctx.config.correcting
     if cc.enabled:  # its reverse is a backoff of its own (the distance is set per correction)
         from runtime.modes.correcting import CorrectingMode

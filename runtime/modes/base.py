@@ -23,6 +23,10 @@ class Situation:
     #: the reference path (IMPACT's graded cost), they never constrain the MPC
     points_mov: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     costs_mov: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: Mode dct before the partition's first answer (vpp.before_first_answer: drive): every point
+    #: is in points_fix (the MPC keeps clear of all), of unknown touchability for the reference
+    #: path; stall and stuck detection wait
+    unclassified: bool = False
 
 
 @dataclass(frozen=True)

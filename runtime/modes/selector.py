@@ -171,12 +171,19 @@ class ModeSelector:
         if self.active is self.normal:
             self.trail.record(s.pose)
             d = self.normal.plan(s)
-            stuck = (self.stuck.update(s, d.v_mps) if self.stuck is not None and not (d.at_goal or d.blocked)
-                     else None)
-            if stuck is not None:
-                d = self._on_stuck(s, d, stuck)
-            elif self.stall.update(s.now_s, d):
-                d = self._on_stall(s, d)
+            if s.unclassified:
+                # Before the first VLM answer: closing in on an unknown obstacle and stopping short
+                # of it is waiting for the answer, not a stall or a stuck push.
+                self.stall.restart(s.now_s)
+                if self.stuck is not None:
+                    self.stuck.forget()
+            else:
+                stuck = (self.stuck.update(s, d.v_mps) if self.stuck is not None and not (d.at_goal or d.blocked)
+                         else None)
+                if stuck is not None:
+                    d = self._on_stuck(s, d, stuck)
+                elif self.stall.update(s.now_s, d):
+                    d = self._on_stall(s, d)
         else:
             d = self.active.plan(s)
             if d.done:

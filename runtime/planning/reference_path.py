@@ -67,7 +67,10 @@ class ReferencePathConfig(BaseModel):
     blocked_check_ahead_m: float = Field(default=2.5, gt=0.0, le=50.0)
     escape_radius_m: float = Field(default=0.35, ge=0.0, le=5.0, description="start inside inflation: free cells this near")
     target_speed_mps: float = Field(default=1.0, gt=0.0, le=5.0)
-    decel_mps2: float = Field(default=1.0, gt=0.0, le=20.0, description="speed ramp to the goal")
+    decel_mps2: float | None = Field(
+        default=None, gt=0.0, le=20.0,
+        description="speed ramp to the goal; None: the robot description's max_linear_accel_mps2 (the base "
+        "brakes at it: a gentler ramp only loses time, 0.2 s of it at 1.0 m/s2 on the LIMO's 2.0)")
     goal_tolerance_m: float = Field(default=0.10, gt=0.0, le=5.0)
     horizon_steps: int = Field(default=10, ge=1, le=200)
     step_s: float = Field(default=0.1, gt=0.0, le=1.0)
@@ -126,6 +129,8 @@ class ReferencePathPlanner:
 
     def __init__(self, config: ReferencePathConfig, robot) -> None:
         self.config = config
+        self.decel_mps2 = (config.decel_mps2 if config.decel_mps2 is not None
+                           else float(robot.limits.max_linear_accel_mps2))
         self.inflation_radius_m = robot.footprint.width_m / 2.0 + config.inflation_margin_m
         n = int(math.ceil(config.window_m / config.resolution_m))
         self.n = n
@@ -171,6 +176,7 @@ class ReferencePathPlanner:
         self._no_path_reason: str | None = None  # why the last search found no path
         self.last_grid: LocalGrid | None = None
         self._movable: tuple[np.ndarray, np.ndarray] | None = None  # this tick's P_mov and costs
+        self._keep_clear = False  # this tick's: the soft zone around P_mov too (update)
         self.last_search_cost = math.inf  # the cost of the last path search found
         #: The last replan's choice with P_mov in the window: "push" or "detour" (None: no P_mov);
         #: and the two costs it compared (inf: no such path).
@@ -187,9 +193,10 @@ class ReferencePathPlanner:
 
     # -- grid ---------------------------------------------------------------------------------
     def build_grid(self, centre_xy: np.ndarray, points_world: np.ndarray,
-                   movable: tuple[np.ndarray, np.ndarray] | None = None) -> LocalGrid:
+                   movable: tuple[np.ndarray, np.ndarray] | None = None, keep_clear: bool = False) -> LocalGrid:
         """Local grid around centre_xy: clearance (exact near the lethal edge), lethal mask, costs;
-        with movable (P_mov (M, 2), their contact costs (M,)), each cell's contact cost."""
+        with movable (P_mov (M, 2), their contact costs (M,)), each cell's contact cost;
+        keep_clear: the soft zone's costs also around P_mov (`update`)."""
         cfg, n, res = self.config, self.n, self.config.resolution_m
         origin = np.floor((centre_xy - cfg.window_m / 2.0) / res) * res
         r_infl = self.inflation_radius_m
@@ -225,7 +232,16 @@ class ReferencePathPlanner:
                 clearance[bi, bj] = np.minimum(d, cap)
         lethal = clearance < r_infl
         if cfg.soft_zone_m > 0:
-            depth = np.clip((r_infl + cfg.soft_zone_m - clearance) / cfg.soft_zone_m, 0.0, 1.0)
+            soft_from = clearance
+            if keep_clear and movable is not None:
+                mov = movable[0][in_box(movable[0], lo, hi)]
+                if mov.shape[0]:
+                    pad = self._pad
+                    occ = np.zeros((n + 2 * pad, n + 2 * pad), dtype=bool)
+                    ij = np.clip(np.floor((mov - origin) / res).astype(np.int64) + pad, 0, n + 2 * pad - 1)
+                    occ[ij[:, 0], ij[:, 1]] = True
+                    soft_from = np.minimum(clearance, ndimage.distance_transform_edt(~occ)[pad:-pad, pad:-pad] * res)
+            depth = np.clip((r_infl + cfg.soft_zone_m - soft_from) / cfg.soft_zone_m, 0.0, 1.0)
             cost = 1.0 + cfg.soft_cost * depth * depth
         else:
             cost = np.ones((n, n))
@@ -383,7 +399,7 @@ class ReferencePathPlanner:
         for h in range(H + 1):  # H+1 scalar steps, not points
             v[h] = cfg.target_speed_mps
             if stop_at_end:
-                v[h] = min(v[h], math.sqrt(2.0 * cfg.decel_mps2 * max(total - s[h], 0.0)))
+                v[h] = min(v[h], math.sqrt(2.0 * self.decel_mps2 * max(total - s[h], 0.0)))
             if h < H:
                 s[h + 1] = min(total, s[h] + v[h] * dt)
         x = np.interp(s, cum, path[:, 0])
@@ -391,9 +407,11 @@ class ReferencePathPlanner:
         return np.stack([x, y, v], axis=1)
 
     def update(self, pose: np.ndarray, goal: np.ndarray, points_fix_world: np.ndarray,
-               movable: tuple[np.ndarray, np.ndarray] | None = None) -> ReferenceUpdate:
+               movable: tuple[np.ndarray, np.ndarray] | None = None, keep_clear: bool = False) -> ReferenceUpdate:
         """pose (x_m, y_m, yaw_rad), goal (x_m, y_m[, yaw]), P_fix (N, 2) in the odom frame;
-        movable: (P_mov (M, 2), their contact costs (M,) in 0..10) or None (module docstring)."""
+        movable: (P_mov (M, 2), their contact costs (M,) in 0..10) or None (module docstring).
+        keep_clear: the soft zone (the berth paths keep) is also around P_mov, as around P_fix:
+        for points of unknown touchability, which the MPC treats as fixed."""
         pose = check_vector(pose, 3, "ReferencePathPlanner.update", "pose")
         goal_arr = np.asarray(goal, dtype=np.float64).reshape(-1)
         if goal_arr.size not in (2, 3):
@@ -407,6 +425,7 @@ class ReferencePathPlanner:
                 raise PlannerInputError("ReferencePathPlanner.update: movable costs must be one per point, in 0..10")
             movable = (mov, mcost)
         self._movable = movable
+        self._keep_clear = keep_clear
         cfg = self.config
         xy = pose[:2]
         self._ticks += 1
@@ -448,7 +467,7 @@ class ReferencePathPlanner:
         if reason and (urgent or not cfg.replan_in_slack):
             replanned = True
             self.replans_in_tick += 1
-            why = self._replan(xy, goal_xy, points, movable)
+            why = self._replan(xy, goal_xy, points, movable, keep_clear)
             if why is not None:
                 return self._blocked_update(xy, why, True)
         elif reason:
@@ -477,13 +496,13 @@ class ReferencePathPlanner:
         return ReferenceUpdate(ref, None, True, replanned, why, False, math.inf)
 
     def _replan(self, xy: np.ndarray, goal_xy: np.ndarray, points: np.ndarray,
-                movable: tuple[np.ndarray, np.ndarray] | None = None) -> str | None:
+                movable: tuple[np.ndarray, np.ndarray] | None = None, keep_clear: bool = False) -> str | None:
         """Search a new path now; returns why there is none (None: a path was found)."""
         self._ticks = 0
         self.replans += 1
         self._goal = goal_xy.copy()
         self._pending = None
-        grid = self.build_grid(xy, points, movable)
+        grid = self.build_grid(xy, points, movable, keep_clear)
         path, why = self._push_or_detour(grid, xy, goal_xy)
         if path is None:
             self._path, self._no_path_reason = None, why
@@ -538,12 +557,17 @@ class ReferencePathPlanner:
 
     def _request(self, xy: np.ndarray, goal_xy: np.ndarray, points: np.ndarray, reason: str) -> None:
         """Ask for a replan in the slack after this tick, from this tick's pose and P_fix (and P_mov)."""
-        self._pending = (xy.copy(), goal_xy.copy(), points, reason, self._movable)
+        self._pending = (xy.copy(), goal_xy.copy(), points, reason, self._movable, self._keep_clear)
 
     @property
     def replan_pending(self) -> str | None:
         """Why a replan waits for the slack after the tick (None: none waits)."""
         return None if self._pending is None else self._pending[3]
+
+    def request_replan(self) -> None:
+        """New knowledge about the points (the partition's first answer): the next update asks
+        for a search in the slack after its tick, following the current path meanwhile."""
+        self._ticks = max(self._ticks, self.config.replan_every_ticks)
 
     def replan_in_slack(self) -> bool:
         """Run the replan the last update asked for (call after the tick's command is written,
@@ -551,9 +575,9 @@ class ReferencePathPlanner:
         reports blocked when it found none."""
         if self._pending is None:
             return False
-        xy, goal_xy, points, _, movable = self._pending
+        xy, goal_xy, points, _, movable, keep_clear = self._pending
         self.replans_in_slack += 1
-        self._replan(xy, goal_xy, points, movable)
+        self._replan(xy, goal_xy, points, movable, keep_clear)
         return True
 
     def _path_ends_at_goal(self, goal_xy: np.ndarray) -> bool:

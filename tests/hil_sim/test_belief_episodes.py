@@ -12,7 +12,11 @@ def _belief(result) -> dict:
 
 
 def test_a_heavy_look_alike_becomes_heavy_from_the_push_and_is_demoted():
-    result = run_episode("heavy_lookalike", config=load_controller_config(), seed=0)
+    # The robot waits for the first answer, so that it meets the box as the backend's "movable"
+    # (driving before it, it is already on a free detour: tests/hil_sim/test_correcting_episodes.py).
+    cfg = load_controller_config()
+    cfg = cfg.model_copy(update={"vpp": cfg.vpp.model_copy(update={"before_first_answer": "wait"})})
+    result = run_episode("heavy_lookalike", config=cfg, seed=0)
     b = _belief(result)
     heavy = [o for o in b["objects"].values() if any(t[1].startswith("resistance") for t in o["trace"])]
     assert heavy and all(o["probs"]["heavy"] > 0.7 for o in heavy)

@@ -83,6 +83,22 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path):
     assert r.exit_code == 2 and "--methods" in r.output
 
 
+def test_the_goal_when_ready_clock_starts_after_the_start_up_and_is_said_in_the_json():
+    """all-fixed has no VLM to wait for: the goal comes once the start-up sequence is done (0.15 s),
+    and the episode's navigation time is that much shorter than the switch-on clock's."""
+    kw = dict(methods=("all-fixed",), seeds=1, only=("case1",), workers=1)
+    ready = run_campaign("table1", clock="goal-when-ready", **kw)
+    on = run_campaign("table1", **kw)
+    assert ready["navigation_clock"] == "goal-when-ready" and on["navigation_clock"] == "switch-on"
+    (e_ready,), (e_on,) = ready["episodes"], on["episodes"]
+    assert e_on["standby_s"] == 0.0 and 0.1 <= e_ready["standby_s"] <= 0.3
+    assert e_ready["success"] and e_on["success"]
+    assert e_ready["navigation_time_s"] == pytest.approx(e_on["navigation_time_s"] - e_ready["standby_s"], abs=0.1)
+    assert "navigation clock: goal-when-ready" in format_table(ready)[0]
+    with pytest.raises(CampaignError, match="--clock"):
+        run_campaign("table1", clock="wall", **kw)
+
+
 def test_ray_local_gives_the_rows_of_the_local_run():
     pytest.importorskip("ray")
     kw = dict(methods=("grid-astar",), seeds=1, only=("case1",))

@@ -2,8 +2,9 @@
 segmentation, the sim-oracle beside the tick (1.5 s simulated latency), mask memory, warp and
 partition in the tick, the MPC on the partition's P_fix only.
 
-It waits for the first answer, then drives at the box the oracle calls movable and pushes it
-(point tracking keeps the pushed box movable). These tests pin the pipeline; whole episodes are
+Before the first answer it drives where its path touches nothing (case1's detour) and waits where
+the way leads through something (case2's box); then it drives at the box the oracle calls movable
+and pushes it (point tracking keeps the pushed box movable). These tests pin the pipeline; whole episodes are
 in test_episodes.py and the slow campaigns."""
 from __future__ import annotations
 
@@ -83,3 +84,31 @@ def test_a_calibrated_camera_reaches_the_vpp_stage_and_its_images_are_taken():
     assert np.array_equal(stage_K[-1], K)
     assert max(movable) > 100
     assert result.metrics["fixed_contacts"] == 0
+
+
+def test_before_the_first_answer_the_robot_drives_a_path_that_touches_nothing():
+    """case1: the box sits in open space. With every point P_fix and of unknown touchability the
+    reference goes round it, and the robot is on its way before the VLM has answered."""
+    cfg = load_controller_config().with_planner_mode("dct")
+    scenario = load_scenario("case1").model_copy(update={"time_limit_s": 1.4})
+    moved_before_answer = []
+
+    def observe(controller):
+        if controller.vpp.answers == 0:
+            moved_before_answer.append(controller.pose.x_m)
+
+    result = run_episode(scenario, config=cfg, seed=0, observe=observe)
+    assert result.controller["vpp"]["answers"] == 0  # the first answer comes at 1.5 s
+    assert max(moved_before_answer) > 0.5 and result.metrics["fixed_contacts"] == 0
+
+
+def test_goal_when_ready_gives_the_goal_after_the_first_answer_and_starts_the_clock_there():
+    cfg = load_controller_config().with_planner_mode("dct")
+    scenario = load_scenario("case2").model_copy(update={"time_limit_s": 6.0})
+    result = run_episode(scenario, config=cfg, seed=0, goal_when_ready=True)
+    m = result.metrics
+    assert m["navigation_clock"] == "goal-when-ready"
+    assert 1.5 <= m["standby_s"] <= 1.8  # the start-up sequence and the sim-oracle's 1.5 s
+    assert m["events"][0]["event"] == "goal" and m["events"][0]["t_s"] == 0.0
+    assert m["success"] and m["fixed_contacts"] == 0
+    assert m["navigation_time_s"] < 4.0 and m["sim_time_s"] > m["navigation_time_s"] + m["standby_s"] - 1e-9

@@ -460,3 +460,22 @@ def test_the_same_goal_again_changes_nothing_and_a_stopped_robot_stays_stopped()
     run_ticks(ctl, base, 20)
     assert ctl.state is ControllerState.STOPPED and ctl.goal == Pose2D(-1.0, 0.0, 0.0)
     assert set(base.writes[-20:]) == {(0.0, 0.0)}
+
+
+def test_in_standby_every_stage_runs_but_the_robot_waits_for_its_goal():
+    """goal_given False (a robot switched on before it is sent): ACTIVE after the start-up
+    sequence, commanding zero, until give_goal; then it drives to the goal, the goal logged."""
+    robot = load_robot_description()
+    base = FakeBase()
+    ctl = NavigationController(robot, load_controller_config().with_planner_mode("pure-pursuit"), base,
+                               Pose2D(2.0, 0.0, 0.0), clock=lambda: base.t, lockstep=True, goal_given=False)
+    ctl.activate()
+    run_ticks(ctl, base, 40)
+    assert ctl.state is ControllerState.ACTIVE and not ctl.goal_given
+    assert all(w == (0.0, 0.0) for w in base.writes) and abs(ctl.pose.x_m) < 1e-6
+    given_at = base.t
+    ctl.give_goal(given_at)
+    assert ctl.goal_given_at_s == given_at and events(ctl)[-1][0] == "goal"
+    run_ticks(ctl, base, 200)
+    assert ctl.state is ControllerState.GOAL_REACHED and ctl.goal_reached_at_s > given_at
+    assert ctl.describe()["goal_given_at_s"] == given_at

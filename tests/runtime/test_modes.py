@@ -121,3 +121,70 @@ def test_after_max_backoffs_the_stall_stays_reported():
     for t in np.arange(0.0, 3.0, 0.05):
         sel.plan(Situation(t, np.zeros(3), np.zeros(2), np.zeros((0, 2)), np.array([2.0, 0.0])))
     assert [e.event for e in events] == ["stall"] and sel.stall.stalled
+
+
+# -- mode dct before the VLM's first answer (Situation.unclassified) ------------------------------
+def _segment(a, b, step=0.02):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = max(2, int(np.ceil(np.linalg.norm(b - a) / step)) + 1)
+    return a + np.linspace(0, 1, n)[:, None] * (b - a)
+
+
+def _box(cx, cy, half):
+    c = [(cx - half, cy - half), (cx + half, cy - half), (cx + half, cy + half), (cx - half, cy + half)]
+    return np.concatenate([_segment(c[k], c[(k + 1) % 4]) for k in range(4)])
+
+
+def _all_fixed_mode(mpc):
+    from runtime.modes.all_fixed import AllFixedMode
+    from runtime.planning.reference_path import ReferencePathConfig, ReferencePathPlanner
+
+    mpc.reset()
+    return AllFixedMode(ReferencePathPlanner(ReferencePathConfig(), load_robot_description()), mpc)
+
+
+def _first_plans(mode, points, unclassified, movable=None, ticks=3):
+    """A few ticks standing at the origin, the slack's search after each, as the loop runs them."""
+    out = []
+    for k in range(ticks):
+        s = Situation(0.05 * k, np.zeros(3), np.zeros(2), points, np.array([3.0, 0.0]),
+                      *(movable if movable is not None else ()), unclassified=unclassified)
+        out.append(mode.plan(s))
+        mode.slack_work()
+    return out
+
+
+def test_before_the_first_answer_a_free_detour_is_driven(mpc):
+    """An unclassified box in open space: the reference path sees it touchable at the unknown
+    cost (10), goes round it, and the robot drives (the MPC keeps clear of it: it is P_fix)."""
+    mode = _all_fixed_mode(mpc)
+    box = _box(1.5, 0.0, 0.2)
+    d = _first_plans(mode, box, unclassified=True)[-1]
+    assert mode.reference.last_choice == "detour" and d.v_mps > 0.0 and not d.blocked
+
+
+def test_before_the_first_answer_a_way_through_something_waits_and_the_answer_resumes(mpc):
+    """A box filling a corridor: the only way leads through it. Unclassified, the robot holds
+    still (closing in would only shrink the VLM's view of it); once the answer calls it
+    touchable (P_mov) the push is driven."""
+    mode = _all_fixed_mode(mpc)
+    walls = np.concatenate([_segment([-5.0, 0.3], [8.0, 0.3]), _segment([-5.0, -0.3], [8.0, -0.3])])
+    box = _box(1.5, 0.0, 0.2)
+    d = _first_plans(mode, np.concatenate([walls, box]), unclassified=True)[-1]
+    assert mode.reference.last_choice == "push"
+    assert d.v_mps == 0.0 and d.omega_radps == 0.0 and not d.blocked and "waiting for the VLM" in d.note
+    d = _first_plans(mode, walls, unclassified=False, movable=(box, np.full(len(box), 2.0)))[-1]
+    assert mode.reference.last_choice == "push" and d.v_mps > 0.0
+
+
+def test_waiting_for_the_first_answer_is_neither_a_stall_nor_stuck():
+    cfg = RecoveryConfig(stall_window_s=0.5, max_backoffs=1)
+    events = EventLog()
+    sel = ModeSelector(StuckMode(), None, cfg, events)
+    sel.reset(0.0)
+    for t in np.arange(0.0, 3.0, 0.05):
+        sel.plan(Situation(t, np.zeros(3), np.zeros(2), np.zeros((0, 2)), np.array([2.0, 0.0]), unclassified=True))
+    assert list(events) == [] and not sel.stall.stalled
+    for t in np.arange(3.0, 4.0, 0.05):  # the answer came: the same standstill is a stall now
+        sel.plan(Situation(t, np.zeros(3), np.zeros(2), np.zeros((0, 2)), np.array([2.0, 0.0])))
+    assert [e.event for e in events] == ["stall"]

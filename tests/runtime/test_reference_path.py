@@ -258,3 +258,45 @@ def test_movable_costs_out_of_range_are_refused() -> None:
     rp = _planner()
     with pytest.raises(PlannerInputError, match="movable costs"):
         rp.update(np.zeros(3), np.array([1.0, 0.0]), np.zeros((0, 2)), (np.zeros((2, 2)), np.array([1.0, 11.0])))
+
+
+def test_the_goal_approach_brakes_at_the_robots_limit_unless_configured() -> None:
+    """decel_mps2 unset: the reference slows to the goal as the base brakes (the robot
+    description's max_linear_accel_mps2), v = sqrt(2 a d) at d from the goal; set, it rules."""
+    a_robot = ROBOT.limits.max_linear_accel_mps2
+    for decel, expected in ((None, a_robot), (1.0, 1.0)):
+        rp = _planner(horizon_steps=20, decel_mps2=decel)
+        assert rp.decel_mps2 == expected
+        up = _plan(rp, np.zeros(3), [0.5, 0.0], np.zeros((0, 2)))
+        ref = up.reference
+        d = np.hypot(ref[:, 0] - 0.5, ref[:, 1])
+        slowing = ref[:, 2] < rp.config.target_speed_mps - 1e-9
+        np.testing.assert_allclose(ref[slowing, 2], np.sqrt(2.0 * expected * d[slowing]), atol=0.03)
+
+
+def test_keep_clear_gives_touchable_points_the_berth_of_fixed_ones() -> None:
+    """Points of unknown touchability (mode dct before the VLM's first answer) are P_mov at the
+    never-touch cost: the path goes round them, and with keep_clear it keeps the soft zone's
+    berth from them (the MPC treats them as fixed) instead of grazing the lethal edge."""
+    box = _box_points(1.5, 0.0, 0.2)
+    clearances = {}
+    for keep_clear in (False, True):
+        rp = _planner()
+        pose, goal, mov = np.zeros(3), np.array([3.0, 0.0]), (box, np.full(len(box), 10.0))
+        rp.update(pose, goal, np.zeros((0, 2)), mov, keep_clear=keep_clear)
+        assert rp.replan_in_slack()
+        up = rp.update(pose, goal, np.zeros((0, 2)), mov, keep_clear=keep_clear)
+        assert rp.last_choice == "detour" and not _crosses(up.path_world, 1.5, 0.0, 0.2)
+        clearances[keep_clear] = _path_clearance(up.path_world, box)
+    assert clearances[False] < rp.inflation_radius_m + 0.1
+    assert clearances[True] > clearances[False] + 0.2
+
+
+def test_a_requested_replan_follows_the_current_path_until_the_slack_has_searched() -> None:
+    rp = _planner()
+    up = _plan(rp, np.zeros(3), [2.0, 0.0], np.zeros((0, 2)))
+    searches = rp.replans
+    rp.request_replan()
+    up = rp.update(np.zeros(3), np.array([2.0, 0.0]), np.zeros((0, 2)))
+    assert not up.waiting and up.reference[0, 2] > 0.0 and rp.replan_pending == "periodic"
+    assert rp.replan_in_slack() and rp.replans == searches + 1
