@@ -239,12 +239,13 @@ class BackendRunner:
     def _advance_realtime(self) -> None:
         while self._in_flight is not None:
             job, now = self._in_flight, time.monotonic()
-            if job.done.is_set() and now >= job.start_s + self.latency_s:
+            # (differences of clock readings, not (start + latency) - start: in floating point that
+            # came out a hair under the latency when the monotonic clock reads in the thousands)
+            if job.done.is_set() and now - job.start_s >= self.latency_s:
                 assert job.answer is not None
                 self._emit(now, dataclasses.replace(job.answer, stamp_s=job.request.stamp_s,
                                                     camera_pose_odom=job.request.camera_pose_odom,
-                                                    latency_s=max(job.finished_wall_s, job.start_s + self.latency_s)
-                                                    - job.start_s))
+                                                    latency_s=max(job.finished_wall_s - job.start_s, self.latency_s)))
             elif now - job.start_s >= self.config.timeout_s:
                 self.timed_out += 1
                 if job.thread is not None:
