@@ -685,7 +685,9 @@ def _any_within(pts, lo, cell, reach, dims, start, order, x, y, z, r2):  # pragm
     """Whether a grid point lies at a squared distance below r2 from (x, y, z): _nearest's
     answer (j >= 0) without the search for the nearest: the query's own cell first (on a
     template's surface it mostly holds one: a pushed box's ~6000 points a scan each stop at
-    their first), then the others within reach, stopping at the first."""
+    their first), then the others within reach, stopping at the first. Written out beside
+    _nearest, not as _nearest with a stop-at-first flag: that version (same points taken) ran
+    0.38 / 0.59 ms on case2's pushed box (6094 / 7996 near points) against 0.22 / 0.32 here."""
     q0 = min(max(int(math.floor((x - lo[0]) / cell)), 0), dims[0] - 1)
     q1 = min(max(int(math.floor((y - lo[1]) / cell)), 0), dims[1] - 1)
     q2 = min(max(int(math.floor((z - lo[2]) / cell)), 0), dims[2] - 1)
