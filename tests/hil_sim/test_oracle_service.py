@@ -12,11 +12,9 @@ import numpy as np
 import pytest
 
 from calibration.robot_description import load_robot_description
-from hil_sim.camera import SimCamera
 from hil_sim.oracle_service import STAMP_HEADER, OracleService
-from hil_sim.scenario import load_scenario
 from hil_sim.vlm_oracle import oracle_backend, oracle_request
-from hil_sim.world import World
+from tests.hil_sim.test_vlm_oracle_sim import _render
 from models.vlm.factory import OpenAICompatibleBackendConfig, build_backend
 from models.vlm.grounding_http import GroundingHttpConfig, GroundingHttpProposer
 from models.vlm.interface import VlmRequest
@@ -28,15 +26,7 @@ ROS_STAMP = 1_700_000_123.25  # the stamp the frame is published with (ROS time)
 
 @pytest.fixture(scope="module")
 def frame():
-    world = World(load_scenario("case1"), ROBOT)
-    cam = ROBOT.sensors.camera
-    camera = SimCamera(world.model, world.data, world.camera_name, cam.width_px, cam.height_px,
-                       hidden_geom_groups=world.camera_hidden_geom_groups)
-    try:
-        image = camera.render_rgb_with_segmentation(world.time_s, kind="geom")
-    finally:
-        camera.close()
-    return world, image
+    return _render("case1")  # (world, the rendered CameraImage with segmentation)
 
 
 def _service(world, image, **oracle) -> OracleService:
