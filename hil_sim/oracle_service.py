@@ -322,7 +322,8 @@ class OracleService:
             k = self._names[o.label]
             if k in marks:
                 objects.append({"mark": marks[k], "label": o.label, "movable": bool(o.movable),
-                                "contact_cost": float(o.contact_cost), "confidence": float(o.confidence)})
+                                "contact_cost": float(o.contact_cost), "confidence": float(o.confidence),
+                                "deformable": bool(o.deformable)})
         objects.sort(key=lambda o: o["mark"])
         content = json.dumps({"objects": objects})
         return 200, {"id": f"chatcmpl-oracle-{frame.sim_stamp_s:.3f}", "object": "chat.completion",

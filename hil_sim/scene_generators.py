@@ -23,6 +23,9 @@ Families (robot: LIMO, 0.322 x 0.220 m; its circumscribed radius 0.195 m):
   0.35-0.7 x 0.35-0.9 m or cylinders r 0.18-0.35 m; movable: boxes 0.3-0.45 m, 0.8-2 kg.
 * `curtain`: a cross wall with a 0.8-1.0 m doorway closed by a curtain (deformable slats): the
   only way to the goal is through it.
+* `curtain_crate`: the same doorway with a fixed crate 0.6-0.75 m behind the curtain and
+  0.1-0.25 m off the doorway's axis, inside the reach of the curtain's region
+  (runtime/vpp/deformable.py): through the curtain, round the crate, never touching it.
 * `heavy_lookalike`: a 30-40 kg box (class heavy, the oracle calls it movable) on the line, a
   light box of the same look beside the route; wide side paths.
 * `fragile_movable`: a light box on the line, a fragile vase (free body, damage above 20 N,
@@ -291,9 +294,9 @@ def _dct_mixed(n_fixed: int, n_movable: int, name: str, rng: np.random.Generator
 # ----------------------------------------------------------------------------- single-point scenes
 
 
-def _curtain(name: str, rng: np.random.Generator) -> tuple[_Scene, dict]:
-    sc = _Scene(name, "a cross wall with a 0.8-1.0 m doorway closed by a curtain of hinged slats (deformable): "
-                      "the only way to the goal is through it", (8.0, 3.4), 25.0)
+def _curtain_doorway(sc: _Scene, rng: np.random.Generator) -> tuple[float, float, float]:
+    """A room with a cross wall whose doorway a curtain closes; (x of the wall, y and width of
+    the doorway). Start and goal on either side, near the doorway's axis."""
     sc.room(4.0, 1.5)
     xc, door_y, door_w = rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(0.8, 1.0)
     t = 0.1
@@ -304,6 +307,25 @@ def _curtain(name: str, rng: np.random.Generator) -> tuple[_Scene, dict]:
     sc.box("curtain", "deformable", (xc, door_y), (0.02, door_w - 0.05, 1.0))
     sy, gy = door_y + rng.uniform(-0.2, 0.2, 2)
     sc.start, sc.goal = (-2.5, sy, 0.0), (2.5, gy)
+    return xc, door_y, door_w
+
+
+def _curtain(name: str, rng: np.random.Generator) -> tuple[_Scene, dict]:
+    sc = _Scene(name, "a cross wall with a 0.8-1.0 m doorway closed by a curtain of hinged slats (deformable): "
+                      "the only way to the goal is through it", (8.0, 3.4), 25.0)
+    _curtain_doorway(sc, rng)
+    return sc, {"inflation_m": TIGHT_INFLATION_M, "blocked_without": {"deformable"}}
+
+
+def _curtain_crate(name: str, rng: np.random.Generator) -> tuple[_Scene, dict]:
+    sc = _Scene(name, "the curtain doorway with a fixed crate (0.3 m, 0.5 m high) whose near face is 0.6-0.75 m "
+                      "behind the curtain, 0.1-0.25 m off the doorway's axis: within the reach of the curtain's "
+                      "region (0.7 m each side of its plane). The robot passes through the curtain and round the "
+                      "crate, which must never be touched: a rigid thing beside a curtain is not the curtain",
+                (8.0, 3.4), 25.0)
+    xc, door_y, _ = _curtain_doorway(sc, rng)
+    off = rng.choice([-1.0, 1.0]) * rng.uniform(0.1, 0.25)
+    sc.box("crate", "fixed", (xc + rng.uniform(0.6, 0.75) + 0.15, door_y + off), (0.3, 0.3, 0.5))
     return sc, {"inflation_m": TIGHT_INFLATION_M, "blocked_without": {"deformable"}}
 
 
@@ -541,6 +563,8 @@ for _name, (_nf, _nm) in _DCT_LAYOUTS.items():
     _register(_name, f"DCT Table II F{_nf}M{_nm}: 4 obstacles ({_nf} fixed, {_nm} movable), start-goal 6.9-7.1 m",
               functools.partial(lambda nf, nm, name, rng: _dct_mixed(nf, nm, name, rng), _nf, _nm))
 _register("curtain", "doorway closed by a curtain (deformable slats): pass through", _curtain)
+_register("curtain_crate", "the curtain doorway with a fixed crate just behind the curtain: through, round the crate",
+          _curtain_crate)
 _register("heavy_lookalike", "heavy box that looks movable on the line, wide side paths", _heavy_lookalike)
 _register("fragile_movable", "light box on the line, fragile vase beside it, side gaps too narrow", _fragile_movable)
 _register("beacon_sparse", "BEACON sparse: 5-8 obstacles in 6 x 6 m", _beacon_sparse)

@@ -15,7 +15,7 @@ Classes and costs. The oracle knows fixed, movable and heavy; the scenario's oth
 answer as a VLM would see them:
 * fragile: `movable` when it is a free body (a vase can be moved, at a cost), `fixed` when it
   is static; its cost (9 unless the file says) tells the planner never to touch it;
-* deformable (a curtain): `movable`, cost 1 unless the file says;
+* deformable (a curtain): `movable` and `deformable`, cost 1 unless the file says;
 * person: `fixed`, cost 10, whatever the file says (never pushed).
 Costs: the scenario's `contact_cost` where the file gives one, the class default for the new
 classes (fragile, deformable, person), else the oracle's own defaults (SimOracleConfig:
@@ -50,7 +50,8 @@ def oracle_table(world: World, costs: Mapping[str, float] | None = None) -> dict
         cost = costs.get(name, scenario_costs.get(name))
         if world.obstacle_class(name) == "person":
             cost = 10.0  # never pushed, whatever a table says
-        entry = OracleEntry(name=name, obstacle_class=cls, contact_cost=cost, structure=name in walls)  # type: ignore[arg-type]
+        entry = OracleEntry(name=name, obstacle_class=cls, contact_cost=cost, structure=name in walls,  # type: ignore[arg-type]
+                            deformable=world.obstacle_class(name) == "deformable")
         for gid in world.obstacle_geom_ids(name):
             table[int(gid)] = entry
     return table

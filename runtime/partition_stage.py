@@ -172,6 +172,7 @@ def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_c
     from calibration.camera_model import CameraModel
     from models.vlm.runner import BackendRunner
     from runtime.belief import PushResistanceEstimator
+    from runtime.vpp.deformable import RobotBox
     from runtime.vpp.stage import VppStage
 
     cam = robot.sensors.camera
@@ -183,10 +184,11 @@ def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_c
     T_base_lidar = robot.sensors.lidar.mount.transform()
     T_base_cam = cam.mount.transform() if T_cam_lidar is None else T_base_lidar @ np.linalg.inv(T_cam_lidar)
     runner_config = config.vpp.runner.model_copy(update={"clock": "lockstep" if lockstep else "realtime"})
+    footprint = (robot.footprint.length_m / 2.0, robot.footprint.width_m / 2.0)
     stage = VppStage(config.vpp, camera, T_base_cam, T_base_lidar, BackendRunner(backend, runner_config),
                      resistance=PushResistanceEstimator(
-                         robot, traction_coefficient=config.vpp.belief.traction_coefficient))
-    footprint = (robot.footprint.length_m / 2.0, robot.footprint.width_m / 2.0)
+                         robot, traction_coefficient=config.vpp.belief.traction_coefficient),
+                     robot_box=RobotBox(footprint[0], footprint[1], float(robot.body_height_m)))
     return VppPartition(stage, footprint, config.correcting.contact_margin_m)
 
 

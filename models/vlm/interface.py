@@ -1,8 +1,8 @@
 """What every contact-tolerance backend (a VLM, the simulator's oracle) takes and answers.
 
 DCT Algorithm 1 line 4 and IMPACT section IV-A: given an image, candidate regions and a task
-prompt, a backend names the objects in view, each with a mask, a label, whether it may be moved,
-a contact cost 0..10 (IMPACT: 0 = brush freely, 10 = never touch) and a confidence. Backends are
+prompt, a backend names the objects in view, each with a mask, a label, whether it may be moved (and
+whether it is deformable: a curtain the robot passes through rather than pushes along), a contact cost 0..10 (IMPACT: 0 = brush freely, 10 = never touch) and a confidence. Backends are
 slow (a hosted VLM answers in about a second); they run outside the tick (a runner thread or
 process) and their answers carry the capture stamp and the camera pose at capture, so the mask
 memory can warp them to the robot's pose when they arrive (DESIGN.md section 5.1).
@@ -62,6 +62,10 @@ class DetectedObject:
     contact_cost: float  # 0..10
     confidence: float  # 0..1
     region_index: int | None = None  # the candidate region it answers, if any
+    #: It bends or swings out of the way where it hangs and stays there (a curtain, a strip
+    #: door): the robot passes through it, it is not pushed along (runtime/vpp/deformable.py).
+    #: False (rigid) is the safe reading: a rigid object is tracked, not given a region.
+    deformable: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,6 +102,10 @@ def validate_object(obj: DetectedObject, image_shape: tuple[int, int], where: st
         raise VlmAnswerError(f"{where}: label must be 1..200 characters of text, got {obj.label!r:.60}")
     if not isinstance(obj.movable, (bool, np.bool_)):
         raise VlmAnswerError(f"{where}: movable must be true or false, got {obj.movable!r:.40}")
+    if not isinstance(obj.deformable, (bool, np.bool_)):
+        raise VlmAnswerError(f"{where}: deformable must be true or false, got {obj.deformable!r:.40}")
+    if obj.deformable and not obj.movable:
+        raise VlmAnswerError(f"{where}: deformable but not movable (a deformable object is one the robot may pass through)")
     if not _number_in(obj.contact_cost, MIN_CONTACT_COST, MAX_CONTACT_COST):
         raise VlmAnswerError(f"{where}: contact_cost must be a number in 0..10, got {obj.contact_cost!r:.40}")
     if not _number_in(obj.confidence, 0.0, 1.0):

@@ -23,13 +23,14 @@ simulator's oracle service, hil_sim.oracle_service, identifies the frame by it):
         "schema": {"type": "object", "additionalProperties": false, "required": ["objects"],
           "properties": {"objects": {"type": "array", "items": {
             "type": "object", "additionalProperties": false,
-            "required": ["mark", "label", "movable", "contact_cost", "confidence"],
+            "required": ["mark", "label", "movable", "contact_cost", "confidence", "deformable"],
             "properties": {
               "mark": {"type": "integer", "enum": [1, ..., N]},
               "label": {"type": "string"},
               "movable": {"type": "boolean"},
               "contact_cost": {"type": "number", "minimum": 0, "maximum": 10},
-              "confidence": {"type": "number", "minimum": 0, "maximum": 1}}}}}}}},
+              "confidence": {"type": "number", "minimum": 0, "maximum": 1},
+              "deformable": {"type": "boolean"}}}}}}}},
      "temperature": <only if configured>, "max_tokens": <only if configured>}
 
 (`temperature` and `max_tokens` are left out unless configured: some hosted models reject any
@@ -60,7 +61,9 @@ Failure handling (the tick never waits on this; `query` never raises and never h
   dropped: the two answers disagree and neither can be trusted), a missing field, a wrong type
   (a mark 2.0, a movable "yes", a cost "3"), a cost outside 0..10, a confidence outside 0..1:
   that object is dropped, named in `VlmAnswer.rejected` and logged; the others are kept.
-  Keys beyond the five are ignored (a model without schema support may add a "reason").
+  `deformable` may be missing (a server that does not enforce the schema): false, rigid, the
+  safe reading; when present it must be a boolean. Other keys are ignored (a model without
+  schema support may add a "reason").
 
 HTTP is the standard library's `http.client`: the venv has neither httpx nor requests, and the
 project does not add dependencies for one POST. Each attempt runs in a short-lived daemon thread
@@ -99,6 +102,10 @@ logger = logging.getLogger(__name__)
 
 BACKEND_NAME = "openai-compatible"
 FIELDS = ("mark", "label", "movable", "contact_cost", "confidence")
+#: In the schema we send (strict schemas list every property as required), optional in what we
+#: accept: a server that does not enforce the schema may leave it out, and "rigid" (false) is
+#: the safe reading (runtime/vpp/deformable.py).
+OPTIONAL_FIELDS = ("deformable",)
 
 SYSTEM_PROMPT = """\
 You help a small wheeled ground robot decide which objects it may touch or push while driving.
@@ -117,6 +124,9 @@ For each mark that shows a real object (skip marks on floor, wall-less backgroun
   A higher cost means less tolerance to contact. Consider what is next to the object: pushing
   it must not knock something fragile over.
 - confidence: from 0 to 1, how sure you are of this entry.
+- deformable: true if the object gives way by bending or swinging and stays where it is (a
+  curtain, a strip door, hanging cloth, tall grass): the robot drives through it. false for
+  rigid objects, including the ones it may push along (a box).
 Give each mark at most once. Reply with JSON only, in the requested schema."""
 
 
@@ -148,13 +158,14 @@ def answer_schema(n_marks: int) -> dict[str, Any]:
     item = {
         "type": "object",
         "additionalProperties": False,
-        "required": list(FIELDS),
+        "required": list(FIELDS + OPTIONAL_FIELDS),
         "properties": {
             "mark": {"type": "integer", "enum": list(range(1, n_marks + 1))},
             "label": {"type": "string"},
             "movable": {"type": "boolean"},
             "contact_cost": {"type": "number", "minimum": 0, "maximum": 10},
             "confidence": {"type": "number", "minimum": 0, "maximum": 1},
+            "deformable": {"type": "boolean"},
         },
     }
     return {
@@ -243,6 +254,7 @@ def _parse_item(item: Any, where: str, regions: Sequence[CandidateRegion], image
         contact_cost=cost,
         confidence=conf,
         region_index=mark - 1,
+        deformable=item.get("deformable", False),
     )
     return validate_object(obj, image_shape, where)
 

@@ -87,6 +87,8 @@ class OracleEntry:
     obstacle_class: OracleClass
     contact_cost: float | None = None
     structure: bool = False
+    #: A curtain or similar: answered `deformable` when the oracle reports it movable.
+    deformable: bool = False
 
 
 class SimOracleConfig(BaseModel):
@@ -143,6 +145,9 @@ def _check_table(table: Mapping[int, OracleEntry]) -> tuple[np.ndarray, list[Ora
         if cost is not None and not (isinstance(cost, (int, float)) and not isinstance(cost, bool)
                                      and math.isfinite(cost) and MIN_CONTACT_COST <= cost <= MAX_CONTACT_COST):
             raise SimOracleError(f"{where}: contact_cost must be a number in 0..10 or None, got {e.contact_cost!r}")
+        if not isinstance(e.deformable, bool) or (e.deformable and e.obstacle_class != "movable"):
+            raise SimOracleError(f"{where}: deformable must be true or false, and true only for class movable, "
+                                 f"got {e.deformable!r} ({e.obstacle_class})")
         if e.name in index:
             if objects[index[e.name]] != e:
                 raise SimOracleError(f"{where}: object {e.name!r} appears under several ids with different "
@@ -247,7 +252,7 @@ class SimOracleBackend:
             else:
                 cost = c.movable_cost if movable else c.fixed_cost
             obj = DetectedObject(mask=obj_img == k, label=entry.name, movable=movable, contact_cost=cost,
-                                 confidence=c.confidence)
+                                 confidence=c.confidence, deformable=movable and entry.deformable)
             out.append(validate_object(obj, shape, f"sim-oracle object {entry.name!r}"))
         return self._answer(request, out)
 

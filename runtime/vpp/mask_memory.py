@@ -91,6 +91,8 @@ class MaskEntry:
     camera_pose_odom: np.ndarray  # (4, 4) T_odom_cam at capture
     stamp_s: float  # capture time
     plane: Plane | None  # the object's plane in the capture camera frame; None = depth unknown
+    #: The backend called it deformable (a curtain: runtime/vpp/deformable.py gives it a region).
+    deformable: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -460,7 +462,8 @@ class AnswerPreparer:
         if not 0.0 <= conf <= 1.0:
             raise MaskMemoryError(f"{where} confidence: must be in 0..1, got {conf}")
         return MaskEntry(object_id, prompt, str(obj.label), bool(obj.movable), cost, conf, mask.copy(), T.copy(),
-                         float(answer.stamp_s), self._plane_for(mask, points_cam))
+                         float(answer.stamp_s), self._plane_for(mask, points_cam),
+                         deformable=bool(getattr(obj, "deformable", False)))
 
 
 __all__ = [

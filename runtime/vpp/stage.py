@@ -43,6 +43,7 @@ from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmAnswer, VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
 from runtime.belief import BeliefConfig, BeliefTable, ContactEvidence, PushResistanceEstimator
+from runtime.vpp.deformable import DeformableConfig, DeformableRegions, RobotBox
 from runtime.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import (AnswerPreparer, MaskMemory, MaskMemoryConfig, MaskMemoryError,
@@ -74,6 +75,8 @@ class VppConfig(BaseModel):
     moved_tolerance_m: float = Field(0.05, gt=0.0, le=1.0)
     #: Movable objects followed between masks (a pushed box leaves its mask): tracking.py.
     tracking: TrackingConfig = TrackingConfig()
+    #: Deformable objects (a curtain): the region where each hangs, not a track (deformable.py).
+    deformable: DeformableConfig = DeformableConfig()
     #: The per-obstacle belief over movable / heavy / fragile (runtime.belief; BEACON).
     belief: BeliefConfig = BeliefConfig()
     #: Seconds of continuous push that give the belief one observation (ContactEvidence).
@@ -117,9 +120,11 @@ class VppFrame:
 
 class VppStage:
     def __init__(self, config: VppConfig, camera: CameraModel, T_base_cam: np.ndarray, T_base_lidar: np.ndarray,
-                 runner: BackendRunner, resistance: PushResistanceEstimator | None = None) -> None:
+                 runner: BackendRunner, resistance: PushResistanceEstimator | None = None,
+                 robot_box: RobotBox = RobotBox()) -> None:
         """resistance: the push-resistance estimate from the wheel currents (the robot's; None:
-        push outcomes alone update the belief)."""
+        push outcomes alone update the belief). robot_box: the robot's footprint and height (a
+        deformable object's parts lying on the robot, deformable.py)."""
         self.config = config
         self.camera = camera
         self.T_base_cam = np.asarray(T_base_cam, dtype=np.float64)
@@ -146,6 +151,8 @@ class VppStage:
         self.gave_up_waiting = False
         self.images_refused = 0  # images from another camera than the calibrated one (named)
         self.tracker = ObjectTracker(config.tracking)
+        self.deformable = DeformableRegions(config.deformable)
+        self.robot_box = robot_box
         #: What each touchable object is believed to be (BEACON), and the evidence pushes give it.
         self.belief = BeliefTable(config.belief, config.never_touch_cost)
         self.contact = ContactEvidence(self.belief, resistance, window_s=config.belief_window_s)
@@ -227,7 +234,11 @@ class VppStage:
         self._last_scan_odom = p_odom
         if self._demoted_tree is not None:
             self._reidentify_demoted(part, p_odom)
-        self.tracker.update(float(scan.stamp_s), part, p_odom)  # sensor time, as the capture stamps
+        deformable = self._deformable_objects()
+        # sensor time, as the capture stamps
+        self.tracker.update(float(scan.stamp_s), part, p_odom, skip=deformable if self.deformable.config.enabled else ())
+        self.deformable.update(float(scan.stamp_s), part, p_odom, deformable, (pose[0], pose[1]))
+        self.deformable.label(float(scan.stamp_s), part, p_odom, pose, self.robot_box)
         for old, new in self.tracker.handover_pairs:  # one object under a new mask id keeps its belief
             self.belief.rename(old, new)
         self.tracker.handover_pairs.clear()
@@ -251,6 +262,18 @@ class VppStage:
             self._prepared[stamp] = self._preparer.prepare(
                 answer, tuple(self.memory.entries), prompt=self.config.prompt, points_cam=request_state[0][stamp],
                 tombstones=request_state[1].get(stamp, ()))
+
+    def _deformable_objects(self) -> dict[int, float]:
+        """id -> contact cost of the objects the backend called deformable that may be passed
+        through (movable, below the never-touch cost, not demoted, not believed heavy or fragile);
+        the region of one that no longer may is dropped."""
+        out = {e.object_id: e.contact_cost for e in self.memory.entries
+               if e.deformable and self._may_gate(e) and not self.memory.is_demoted(e.object_id)
+               and not self._believed_fixed(e.object_id)}
+        for k in list(self.deformable.regions):
+            if self.memory.is_demoted(k) or self._believed_fixed(k):
+                self.deformable.remove(k)
+        return out
 
     def _may_gate(self, entry) -> bool:
         """An entry that can gate points at all (movable, below never_touch_cost): the others are
@@ -376,6 +399,7 @@ class VppStage:
                 self._demoted_tree = cKDTree(self._demoted_xy)
         self.memory.demote(oid)
         self.tracker.objects.pop(oid, None)
+        self.deformable.remove(oid)
         self.demotions += int(failed_push)
         return self.partitioner.memory.fix_object(oid)
 
@@ -464,6 +488,7 @@ class VppStage:
             "tracking": {"objects": len(self.tracker.objects), "registrations": self.tracker.registrations,
                          "lost": self.tracker.lost, "unseen": self.tracker.unseen,
                          "handovers": self.tracker.handovers},
+            "deformable": self.deformable.describe(),
             "images_refused": self.images_refused, "gave_up_waiting": self.gave_up_waiting,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),
             "last_movable_points": self.last_frame.movable_count if self.last_frame is not None else 0,

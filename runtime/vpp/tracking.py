@@ -833,18 +833,22 @@ class ObjectTracker:
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0
         self.handover_pairs.clear()
 
-    def update(self, now_s: float, part: PointPartition, points_odom: np.ndarray) -> int:
+    def update(self, now_s: float, part: PointPartition, points_odom: np.ndarray, skip=()) -> int:
         """Register every object's template to this scan, merge what the masks confirmed, label
-        the objects' points in `part` (in place); returns the points labelled by tracking."""
+        the objects' points in `part` (in place); returns the points labelled by tracking.
+        skip: object ids not to track (deformable objects: they do not move as one body,
+        runtime/vpp/deformable.py); a template of one of them is dropped."""
         c = self.config
         if not c.enabled:
             return 0
+        for k in skip:
+            self.objects.pop(k, None)
         label, oid, cost = part.label, part.object_id, part.cost
         # the points each mask labelled, by object, in one pass (not a pass per object)
         ids, starts, idx = _group_masked(label, part.in_view, part.from_memory, oid)
         confirming: dict[int, np.ndarray] = {}
         for k, (a, b) in sorted(zip(ids.tolist(), zip(starts[:-1].tolist(), starts[1:].tolist()))):
-            if b - a >= c.min_confirm_points:
+            if b - a >= c.min_confirm_points and k not in skip:
                 confirming[k] = idx[a:b]  # ascending point indices
         for k in [k for k, o in self.objects.items() if now_s - o.confirmed_s > c.max_unconfirmed_s
                   and k not in confirming]:

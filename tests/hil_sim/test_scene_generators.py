@@ -31,7 +31,8 @@ from hil_sim.scene_generators import (
 
 ROBOT = load_robot_description()
 SEEDS = range(4)
-EXPECTED = {"dct_f4m0", "dct_f3m1", "dct_f2m2", "dct_f1m3", "curtain", "heavy_lookalike", "fragile_movable",
+EXPECTED = {"dct_f4m0", "dct_f3m1", "dct_f2m2", "dct_f1m3", "curtain", "curtain_crate", "heavy_lookalike",
+            "fragile_movable",
             "beacon_sparse", "beacon_cluttered", "beacon_collision_required", "beacon_collision_shortcut",
             "person_crossing", "person_approaching"}
 
@@ -93,6 +94,12 @@ def test_families_need_what_they_promise():
         # The curtain and the collision-required barrier: no way around without passing or pushing.
         cur = generate_scene("curtain", seed)
         assert not path_exists(cur, 0.11, passable={"movable"})
+        # The crate stands behind the curtain within the reach of its region, off the doorway's axis.
+        cc = generate_scene("curtain_crate", seed)
+        curtain, crate = cc.obstacle("curtain"), cc.obstacle("crate")
+        assert crate.obstacle_class == "fixed" and not path_exists(cc, 0.11, passable={"movable"})
+        assert 0.6 <= crate.pose.x_m - 0.15 - curtain.pose.x_m <= 0.75
+        assert 0.1 <= abs(crate.pose.y_m - curtain.pose.y_m) <= 0.25
         req = generate_scene("beacon_collision_required", seed)
         assert not path_exists(req, 0.11, passable={"deformable"})
         assert any(o.obstacle_class == "movable" and o.name.startswith("barrier") for o in req.obstacles)

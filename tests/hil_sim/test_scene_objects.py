@@ -147,6 +147,8 @@ def test_the_lidar_and_the_oracle_see_the_curtain():
     assert len(entries) == 1
     entry = entries.pop()
     assert entry.name == "curtain" and entry.obstacle_class == "movable" and entry.contact_cost == 1.0
+    assert entry.deformable
+    assert not any(e.deformable for g, e in table.items() if g not in slats)
 
 
 def test_the_person_walks_its_waypoints_at_its_speed():

@@ -130,10 +130,12 @@ def test_good_answer_maps_marks_to_region_masks_and_sends_schema_image_and_promp
     assert rf["json_schema"]["schema"] == answer_schema(3)
     item = rf["json_schema"]["schema"]["properties"]["objects"]["items"]
     assert item["properties"]["mark"]["enum"] == [1, 2, 3]
-    assert set(item["required"]) == {"mark", "label", "movable", "contact_cost", "confidence"}
+    assert set(item["required"]) == {"mark", "label", "movable", "contact_cost", "confidence", "deformable"}
+    assert item["properties"]["deformable"] == {"type": "boolean"}
     assert item["properties"]["contact_cost"] == {"type": "number", "minimum": 0, "maximum": 10}
     system, user = body["messages"]
     assert system["role"] == "system" and "0 to 10" in system["content"] and "never touch" in system["content"]
+    assert "deformable" in system["content"] and "curtain" in system["content"]
     text = next(p["text"] for p in user["content"] if p["type"] == "text")
     assert req.prompt in text and "mark 1: 'box'" in text and "mark 3: 'chair'" in text and "2.5 m" in text
     url = next(p["image_url"]["url"] for p in user["content"] if p["type"] == "image_url")
@@ -193,6 +195,22 @@ def test_bad_objects_are_dropped_and_named_good_ones_kept(server):
     assert "mark 1" in joined and "contact_cost" in joined and "12" in joined
     assert "missing confidence" in joined
     assert "movable" in joined and "mark must be an integer" in joined and "confidence must be a number in 0..1" in joined
+
+
+def test_deformable_is_read_missing_means_rigid_and_a_bad_one_is_dropped(server):
+    """`deformable` is in the schema we send; a server that does not enforce it may leave it out
+    (rigid: the safe reading). A non-boolean, or a deformable object that may not be moved, is
+    dropped and named."""
+    curtain = {**obj(1, "curtain", True, 0, 0.9), "deformable": True}
+    server.script = [chat({"objects": [curtain, obj(2), {**obj(3), "deformable": "yes"}]})]
+    ans = backend(server).query(make_request())
+    by_region = {o.region_index: o for o in ans.objects}
+    assert by_region[0].deformable is True and by_region[1].deformable is False and set(by_region) == {0, 1}
+    assert len(ans.rejected) == 1 and "deformable must be true or false" in ans.rejected[0]
+    server.requests.clear()
+    server.script = [chat({"objects": [{**obj(1, "wall", False, 10, 0.9), "deformable": True}]})]
+    ans = backend(server).query(make_request())
+    assert ans.objects == () and "deformable but not movable" in ans.rejected[0]
 
 
 def test_duplicate_marks_drop_every_entry_of_that_mark(server):

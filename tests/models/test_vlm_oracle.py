@@ -109,6 +109,19 @@ def test_bad_tables_are_named():
         SimOracleBackend({1: OracleEntry("x", "fixed", contact_cost=11.0)})
     with pytest.raises(SimOracleError, match="several ids"):
         SimOracleBackend({1: OracleEntry("x", "fixed"), 2: OracleEntry("x", "movable")})
+    with pytest.raises(SimOracleError, match=r"table\[1\].*deformable.*only for class movable"):
+        SimOracleBackend({1: OracleEntry("x", "fixed", deformable=True)})
+
+
+def test_a_deformable_object_is_answered_deformable_only_when_called_movable():
+    seg = _scene()
+    table = {**TABLE, 4: OracleEntry("curtain", "movable", contact_cost=1.0, deformable=True)}
+    objs = _by_label(SimOracleBackend(table).query(_request(seg)))
+    assert objs["curtain"].deformable and objs["curtain"].movable
+    assert not any(o.deformable for o in objs.values() if o.label != "curtain")
+    # a backend that misses it as fixed does not call it deformable (validate_object forbids it)
+    missed = _by_label(SimOracleBackend(table, SimOracleConfig(recall=0.0)).query(_request(seg)))
+    assert "curtain" not in missed or not missed["curtain"].deformable
 
 
 def test_request_without_segmentation_is_an_error_answer():
