@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from calibration.errors import ConfigFileError, load_yaml_model
 from models.vlm.factory import BackendConfig, SimOracleBackendConfig
 from runtime.input_monitor import InputsConfig
+from runtime.moving_obstacles import MovingObstaclesConfig
 from runtime.modes.correcting import CorrectingConfig
 from runtime.modes.selector import RecoveryConfig
 from runtime.odometry.stage import OdometryConfig
@@ -145,6 +146,9 @@ class ControllerConfig(_Strict):
     odometry: OdometryConfig = OdometryConfig()
     #: The VLM point partition and its backend (runtime.vpp, models.vlm.factory; planner mode dct).
     vpp: VppSettings = VppSettings()
+    #: P_fix clusters that walk (people): followed, and where they go next added to what the
+    #: planner and the supervisor keep clear of (runtime.moving_obstacles).
+    moving_obstacles: MovingObstaclesConfig = MovingObstaclesConfig()
     #: SCHED_FIFO and CPU pinning of the loop thread, asked for when allowed (runtime.realtime_setup).
     realtime: RealtimeConfig = RealtimeConfig()
     #: The controller process (`dct run`): the ROS 2 topics it reads and publishes over DDS

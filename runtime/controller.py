@@ -53,6 +53,7 @@ from runtime.loop import StageClock
 from runtime.modes.base import ModeContext, ModeDecision, Situation
 from runtime.modes.registry import build_mode
 from runtime.modes.selector import ModeSelector
+from runtime.moving_obstacles import MovingObstacles
 from runtime.obstacle_points import ObstaclePointExtractor
 from runtime.odometry.stage import OdometryStage
 from runtime.safety_stop import SafetyStop
@@ -172,6 +173,12 @@ class NavigationController:
         self.obstacles = ObstaclePointExtractor(
             robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
         )
+        # People walking: P_fix clusters followed scan to scan; where they go next joins P_fix for
+        # the planner and the supervisor (points_plan), not for the odometry checks.
+        self.moving = MovingObstacles(config.moving_obstacles.model_copy(
+            update={"cruise_speed_mps": config.planner.reference_path.target_speed_mps, "range_m": op.max_range_m,
+                    "accel_mps2": robot.limits.max_linear_accel_mps2}))
+        self.points_plan = _NO_POINTS
         stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps, vlm_backend,
                                                               camera, T_cam_lidar))
         #: Which lidar points are P_fix, and whether the planner may drive yet: chosen once, by
@@ -287,6 +294,9 @@ class NavigationController:
             self.points_fix = self.obstacles.extract(
                 scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps, only=only
             )
+            self.moving.update(now, self.points_fix, (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad),
+                               inputs.linear_mps)
+            self.points_plan = self.moving.with_predictions(self.points_fix)
             movable = self.partition.movable()
             if movable is None:
                 self.points_mov, self.costs_mov = _NO_POINTS, np.zeros(0)
@@ -450,8 +460,9 @@ class NavigationController:
         so the robot-to-obstacle geometry the planner and the supervisor see does not jump."""
         if correction is None:
             return
+        self.moving.shift(correction)
         c, s = math.cos(correction[2]), math.sin(correction[2])
-        for name in ("points_fix", "points_mov"):
+        for name in ("points_fix", "points_mov", "points_plan"):
             p = getattr(self, name)
             if len(p):
                 setattr(self, name, np.column_stack([c * p[:, 0] - s * p[:, 1] + correction[0],
@@ -460,7 +471,7 @@ class NavigationController:
     # -- planner stage -----------------------------------------------------------------------
     def _plan(self, now: float, unclassified: bool = False) -> tuple[float, float]:
         pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
-        situation = Situation(now, pose, np.asarray(self.command), self.points_fix, self._goal_xy,
+        situation = Situation(now, pose, np.asarray(self.command), self.points_plan, self._goal_xy,
                               self.points_mov, self.costs_mov, unclassified)
         d = self.modes.plan(situation)
         self.last_decision = d
@@ -511,7 +522,7 @@ class NavigationController:
     def _supervise(self, v: float, omega: float) -> tuple[float, float]:
         """The independent check of the command against P_fix (Nav2's collision monitor)."""
         pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
-        decision = self.supervisor.check(pose, np.array([v, omega]), self.points_fix)
+        decision = self.supervisor.check(pose, np.array([v, omega]), self.points_plan)
         self.last_safety = decision
         if decision.stopped:
             self._supervisor_clear_ticks = 0
@@ -598,6 +609,7 @@ class NavigationController:
             "distance_to_goal_m": self._goal_distance_m(),
             "events_dropped": self.events.dropped,
             "odometry": self.odometry.describe(),
+            "moving_obstacles": self.moving.describe(),
         }
         out.update(self.partition.describe())
         out.update(self.modes.counters())

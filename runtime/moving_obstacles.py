@@ -1,0 +1,368 @@
+"""Moving obstacles (people): clusters of P_fix followed from scan to scan, and where they go next.
+
+Why: the MPC and the safety supervisor see P_fix as it is now. A person crossing the robot's way
+at 1 m/s is half a metre further on half a second later: a robot that plans round where the person
+is drives into where the person will be (measured: `person_crossing` seeds 2 and 3 touched the
+person, whose points were P_fix all along). A person is never pushed (the backend's cost 10, the
+oracle's `fixed`); this module makes the robot yield to where the person is going.
+
+How, per scan (P_fix in the odom frame, (N, 2), and the robot's position):
+1. Clusters: the connected components (8-connected) of an occupancy grid of `cell_m` over the
+   points within `range_m` of the robot (scipy.ndimage.label). A component wider than
+   `max_extent_m` (a wall, a run of furniture), with fewer than `min_points`, or reaching to
+   within `range_margin_m` of the range (the end of a wall the lidar sees that far: it shifts as
+   the robot moves) is not followed.
+2. Tracks: each cluster joins the track whose last centroid, carried on by its velocity, is
+   nearest and within `gate_m` plus what `max_speed_mps` covers since; the others start tracks;
+   a track not seen for `lost_s` is dropped.
+3. Velocity: the least-squares line through the track's centroids over the last `window_s`. A
+   track is moving when that speed is at least `min_speed_mps` and its centroids span at least
+   `min_span_s` and `min_travel_m`, and it left where it was: of the points it had
+   `vacated_lag_s` ago, at most `max_still_filled` lie in cells this scan fills. A static box seen
+   from a moving robot shows new faces and its visible centroid shifts (measured in DCT Table II's
+   layouts: 15 such "movers" per episode, and the robot slowed for them), but the cells it filled
+   are still filled; a walking person's are empty.
+4. Prediction: a moving cluster's points (at most `max_points`, evenly picked) carried along its
+   velocity every `step_s` up to `horizon_s` (constant velocity: a person who turns is found again
+   within `window_s`).
+5. Conflict: a person whose predicted points come within `conflict_radius_m` of where the robot,
+   going straight on, would be about then (that step +- one) would meet the robot; a conflict is
+   one both holding the robot's speed (at least `min_extrapolation_speed_mps`) and speeding up to
+   its cruise speed at its acceleration limit (a crossing it clears in a hurry is one it drives
+   through: measured, a robot that stopped for it stopped in the person's lane); it holds
+   `conflict_hold_s` after the last scan that found it. Only then do the planner and the supervisor get the
+   person's whole way ahead with P_fix (`with_predictions`): the reference path goes behind the
+   person or waits, the MPC keeps clear, the supervisor stops a command that sweeps into it.
+   Without the conflict test, measured: a robot already in the person's lane stopped there (the
+   corridor all round it) and the person walked into it, where going on would have cleared the
+   lane 0.4 s before the person came. With the meeting point alone (not the way ahead): the
+   reference path went round it in front of the person, who walked into the robot there. A robot
+   already in the person's way (its centre within `in_the_way_m` of the person's predicted centre
+   line) loses the predicted points within `own_clearance_m` of itself, and leaves the way
+   (measured: held there by a corridor round itself, "no path", it was walked into); one beside
+   the way keeps them all and holds before it (measured: without that distinction, a robot waiting
+   0.43 m from the way crept into it).
+
+Not a pedestrian model (no social forces, no intent): constant velocity over 1.5 s, which is
+what the robot needs to stay out of a walking person's way at its own 1 m/s. Cost: one labelling
+of a 120 x 120 grid and a few numpy operations per cluster and scan (~0.3 ms,
+`tests/runtime/test_moving_obstacles.py` times nothing: `dct bench tick` does).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import ndimage
+
+_EIGHT = np.ones((3, 3), dtype=bool)
+
+
+class MovingObstaclesConfig(BaseModel):
+    """Settings of the moving-obstacle predictor (controller config `moving_obstacles`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = True
+    #: The obstacle points' range (the controller sets planner.obstacle_points.max_range_m): a
+    #: cluster with a point within range_margin_m of it is cut by it, and not followed.
+    range_m: float = Field(6.0, gt=0.5, le=30.0)
+    range_margin_m: float = Field(0.3, ge=0.0, le=5.0)
+    cell_m: float = Field(0.10, gt=0.01, le=1.0)
+    min_points: int = Field(8, ge=1, le=10000)
+    #: Wider clusters (bounding box diagonal, m) are structure, not followed.
+    max_extent_m: float = Field(1.0, gt=0.05, le=10.0)
+    gate_m: float = Field(0.25, gt=0.0, le=5.0)
+    max_speed_mps: float = Field(2.5, gt=0.0, le=20.0)
+    lost_s: float = Field(0.5, gt=0.0, le=10.0)
+    window_s: float = Field(0.6, gt=0.05, le=10.0)
+    min_span_s: float = Field(0.2, gt=0.0, le=10.0)
+    min_speed_mps: float = Field(0.35, gt=0.0, le=10.0)
+    min_travel_m: float = Field(0.12, ge=0.0, le=10.0)
+    #: ... and it left where it was: of its points vacated_lag_s ago, at most max_still_filled
+    #: (a share) lie in cells this scan fills (step 3).
+    vacated_lag_s: float = Field(0.4, gt=0.0, le=10.0)
+    max_still_filled: float = Field(0.5, ge=0.0, le=1.0)
+    #: A track moving in every scan for this long (s) may conflict (step 5). 0: at once. A
+    #: static object next to a turning robot can look moving for a few scans (measured: 0.3 s
+    #: cut the Table II slowdowns, and doubled the crossing person's contacts, 2 -> 4 of 16).
+    min_moving_s: float = Field(0.0, ge=0.0, le=10.0)
+    horizon_s: float = Field(1.5, ge=0.0, le=10.0)
+    step_s: float = Field(0.25, gt=0.0, le=10.0)
+    max_points: int = Field(24, ge=1, le=10000)
+    #: A predicted point counts only where the robot would be about then (step 5): within this
+    #: distance (m) of the robot's straight-line extrapolation over that step +- one step.
+    conflict_radius_m: float = Field(0.45, gt=0.0, le=5.0)
+    #: The extrapolation's speeds: the robot's own, at least this (a robot standing, waiting,
+    #: asks whether going would meet the person), and its cruise speed (the reference path's
+    #: target speed, set by the controller): a conflict is one at both.
+    min_extrapolation_speed_mps: float = Field(0.5, ge=0.0, le=5.0)
+    cruise_speed_mps: float = Field(1.0, gt=0.0, le=5.0)
+    #: ... reached at this acceleration (the robot description's limit, set by the controller).
+    accel_mps2: float = Field(2.0, gt=0.0, le=20.0)
+    #: A conflict holds this long (s) after the last scan that found it (no flicker).
+    conflict_hold_s: float = Field(0.5, ge=0.0, le=10.0)
+    #: A robot whose centre is within in_the_way_m of the person's predicted centre line (a
+    #: person's radius, 0.25 m, and the robot's circumscribed radius, 0.2 m: the person's body
+    #: would sweep over it) is in the person's way: the predicted points within own_clearance_m
+    #: of it are left out, so that it leaves the way rather than holding still in it. A robot
+    #: beside the way keeps them all and holds before it.
+    in_the_way_m: float = Field(0.45, ge=0.0, le=5.0)
+    own_clearance_m: float = Field(0.35, ge=0.0, le=5.0)
+
+
+@dataclass
+class Track:
+    """One followed cluster: its centroids (time, x, y), velocity (m/s, odom frame), last points."""
+
+    track_id: int
+    history: list[tuple[float, float, float]] = field(default_factory=list)
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    moving: bool = False
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    conflict_until_s: float = -math.inf  # its way ahead is given to the planner until then
+    past: list = field(default_factory=list)  # (time, points) over the window
+    moving_since_s: float | None = None  # moving in every scan since then
+
+    @property
+    def last(self) -> tuple[float, float, float]:
+        return self.history[-1]
+
+
+class MovingObstacles:
+    """Tracks of P_fix clusters and their predicted points (module docstring)."""
+
+    def __init__(self, config: MovingObstaclesConfig | None = None) -> None:
+        self.config = config or MovingObstaclesConfig()
+        self.tracks: list[Track] = []
+        self._next_id = 0
+        self._predicted = np.zeros((0, 2))
+        self._grid: np.ndarray | None = None  # this scan's occupancy grid, round the robot's xy
+        self._grid_robot = np.zeros(2)
+        self.moving_seen = 0  # tracks that were ever found moving (never reset)
+        self._ever_moving: set[int] = set()
+        self.max_moving = 0  # most tracks moving in one scan
+        self.conflicts = 0  # scans in which a moving track would meet the robot (never reset)
+
+    @property
+    def predicted(self) -> np.ndarray:
+        """(M, 2) odom points: the moving clusters carried along their velocity (step 4)."""
+        return self._predicted
+
+    def reset(self) -> None:
+        self.tracks.clear()
+        self._predicted = np.zeros((0, 2))
+
+    def update(self, now_s: float, points_fix: np.ndarray, robot_pose: tuple[float, float, float],
+               robot_speed_mps: float = 0.0) -> np.ndarray:
+        """One scan's P_fix (odom (N, 2)), the robot's odom pose and speed; returns the predicted
+        points that conflict with the robot's way (also `predicted`)."""
+        c = self.config
+        if not c.enabled:
+            return self._predicted
+        robot_xy = (float(robot_pose[0]), float(robot_pose[1]))
+        clusters = self._clusters(np.asarray(points_fix, dtype=np.float64), robot_xy)
+        self._associate(float(now_s), clusters)
+        moving = [t for t in self.tracks if t.moving and t.last[0] == now_s]
+        self.max_moving = max(self.max_moving, len(moving))
+        for t in moving:
+            if t.track_id not in self._ever_moving:
+                self._ever_moving.add(t.track_id)
+                self.moving_seen += 1
+        self._predicted = self._predict(float(now_s), moving, robot_pose, robot_speed_mps)
+        return self._predicted
+
+    def with_predictions(self, points_fix: np.ndarray) -> np.ndarray:
+        """P_fix and the predicted points, for the planner and the supervisor."""
+        if not len(self._predicted):
+            return points_fix
+        return np.concatenate([np.asarray(points_fix, dtype=np.float64).reshape(-1, 2), self._predicted])
+
+    def shift(self, correction: np.ndarray) -> None:
+        """An odometry correction (dx, dy, dyaw) moved the odom frame's points: the tracks and the
+        predictions move with them (as the controller's P_fix does)."""
+        c, s = math.cos(correction[2]), math.sin(correction[2])
+        R = np.array([[c, -s], [s, c]])
+
+        def move(p: np.ndarray) -> np.ndarray:
+            return p @ R.T + correction[:2] if len(p) else p
+
+        self._predicted = move(self._predicted)
+        for t in self.tracks:
+            xy = move(np.array([[h[1], h[2]] for h in t.history]))
+            t.history = [(h[0], float(q[0]), float(q[1])) for h, q in zip(t.history, xy)]
+            t.velocity = R @ t.velocity
+            t.points = move(t.points)
+
+    # -- steps ------------------------------------------------------------------------------
+    def _occupied(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: the points' cells are occupied in this scan's grid."""
+        if self._grid is None or not len(points):
+            return np.zeros(len(points), dtype=bool)
+        n = self._grid.shape[0]
+        c = self.config
+        ij = np.floor((points - self._grid_robot + c.range_m) / c.cell_m).astype(np.intp)  # as _clusters
+        inside = ((ij >= 0) & (ij < n)).all(axis=1)
+        out = np.zeros(len(points), dtype=bool)
+        out[inside] = self._grid[ij[inside, 0], ij[inside, 1]]
+        return out
+
+    def _clusters(self, p: np.ndarray, robot_xy) -> list[np.ndarray]:
+        c = self.config
+        self._grid = None
+        if not len(p):
+            return []
+        near = np.abs(p - np.asarray(robot_xy)).max(axis=1) < c.range_m
+        p = p[near]
+        if not len(p):
+            return []
+        n = int(math.ceil(2 * c.range_m / c.cell_m))
+        ij = np.clip(np.floor((p - np.asarray(robot_xy) + c.range_m) / c.cell_m).astype(np.intp), 0, n - 1)
+        grid = np.zeros((n, n), dtype=bool)
+        grid[ij[:, 0], ij[:, 1]] = True
+        self._grid, self._grid_robot = grid, np.asarray(robot_xy, dtype=np.float64)
+        labels, count = ndimage.label(grid, structure=_EIGHT)
+        if not count:
+            return []
+        lab = labels[ij[:, 0], ij[:, 1]]
+        far = np.hypot(*(p - np.asarray(robot_xy)).T) >= c.range_m - c.range_margin_m
+        order = np.argsort(lab, kind="stable")
+        bounds = np.searchsorted(lab[order], np.arange(1, count + 2))
+        out = []
+        for k, sl in enumerate(ndimage.find_objects(labels)):
+            if sl is None:
+                continue
+            ext = math.hypot(sl[0].stop - sl[0].start, sl[1].stop - sl[1].start) * c.cell_m
+            idx = order[bounds[k]:bounds[k + 1]]
+            # one cut by the edge of the range (the end of a wall the lidar sees to range_m) shifts
+            # as the robot moves
+            if ext > c.max_extent_m or len(idx) < c.min_points or far[idx].any():
+                continue
+            out.append(p[idx])
+        return out
+
+    def _associate(self, now: float, clusters: list[np.ndarray]) -> None:
+        c = self.config
+        self.tracks = [t for t in self.tracks if now - t.last[0] <= c.lost_s]
+        centroids = [q.mean(axis=0) for q in clusters]
+        # predicted track positions now; greedy nearest pairs under the gate
+        pairs = []
+        for ti, t in enumerate(self.tracks):
+            dt = now - t.last[0]
+            guess = np.array(t.last[1:]) + t.velocity * dt
+            gate = c.gate_m + c.max_speed_mps * dt
+            for ci, q in enumerate(centroids):
+                d = float(np.hypot(*(q - guess)))
+                if d <= gate:
+                    pairs.append((d, ti, ci))
+        used_t, used_c = set(), set()
+        for _, ti, ci in sorted(pairs):
+            if ti in used_t or ci in used_c:
+                continue
+            used_t.add(ti)
+            used_c.add(ci)
+            self._extend(self.tracks[ti], now, centroids[ci], clusters[ci])
+        for ci, q in enumerate(centroids):
+            if ci not in used_c:
+                t = Track(self._next_id)
+                self._next_id += 1
+                self._extend(t, now, q, clusters[ci])
+                self.tracks.append(t)
+
+    def _extend(self, t: Track, now: float, centroid: np.ndarray, points: np.ndarray) -> None:
+        c = self.config
+        t.history.append((now, float(centroid[0]), float(centroid[1])))
+        t.history = [h for h in t.history if now - h[0] <= c.window_s]
+        t.points = points
+        h = np.asarray(t.history)
+        span = h[-1, 0] - h[0, 0]
+        if len(h) < 3 or span < c.min_span_s:
+            t.velocity, t.moving = np.zeros(2), False
+            return
+        tt = h[:, 0] - h[:, 0].mean()
+        denom = float(tt @ tt)
+        t.velocity = np.array([tt @ (h[:, 1] - h[:, 1].mean()), tt @ (h[:, 2] - h[:, 2].mean())]) / denom
+        travel = math.hypot(h[-1, 1] - h[0, 1], h[-1, 2] - h[0, 2])
+        t.moving = bool(np.hypot(*t.velocity) >= c.min_speed_mps and travel >= c.min_travel_m)
+        t.past.append((now, points))
+        t.past = [x for x in t.past if now - x[0] <= c.window_s]
+        if t.moving:
+            # Did it leave where it was? A static object seen from a moving robot shows new faces
+            # (its centroid shifts) but the cells it filled lag_s ago are still filled; a person's
+            # are empty.
+            old = [x for x in t.past if now - x[0] >= c.vacated_lag_s]
+            if not old or float(np.mean(self._occupied(old[-1][1]))) > c.max_still_filled:
+                t.moving = False
+        if not t.moving:
+            t.moving_since_s = None
+        elif t.moving_since_s is None:
+            t.moving_since_s = now
+
+    def _predict(self, now_s: float, moving: list[Track], robot_pose, robot_speed_mps: float) -> np.ndarray:
+        """Steps 4-5: each moving cluster's points carried along its velocity at every step, kept
+        where the robot, going straight on at its speed (at least min_extrapolation_speed_mps),
+        would be within conflict_radius_m of them about then (+- one step): a crossing the robot
+        clears before the person arrives, or one the person has passed, does not hold it up; one
+        they would reach together does."""
+        c = self.config
+        steps = int(c.horizon_s / c.step_s + 1e-9)
+        if not moving or steps <= 0:
+            return np.zeros((0, 2))
+        u = np.array([math.cos(robot_pose[2]), math.sin(robot_pose[2])])
+        p0 = np.array([robot_pose[0], robot_pose[1]], dtype=np.float64)
+        v0 = max(0.0, float(robot_speed_mps))
+        # how far the robot goes in time tau: holding its speed (at least the minimum), or
+        # speeding up to cruise at its acceleration limit
+        steady = max(v0, c.min_extrapolation_speed_mps)
+        t_acc = max(0.0, c.cruise_speed_mps - v0) / c.accel_mps2
+
+        def hurried(tau: float) -> float:
+            if tau <= t_acc:
+                return v0 * tau + 0.5 * c.accel_mps2 * tau * tau
+            return v0 * t_acc + 0.5 * c.accel_mps2 * t_acc * t_acc + c.cruise_speed_mps * (tau - t_acc)
+
+        profiles = (lambda tau: steady * tau, hurried)
+
+        def meets(corridor: list[np.ndarray], travel) -> bool:
+            for k, q in enumerate(corridor, start=1):
+                a = p0 + u * travel(max(0.0, (k - 1) * c.step_s))  # the robot one step before ...
+                b = p0 + u * travel((k + 1) * c.step_s)  # ... to one step after
+                ab = b - a
+                f = np.clip(((q - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+                if (np.hypot(*(q - (a + f[:, None] * ab)).T) <= c.conflict_radius_m).any():
+                    return True
+            return False
+
+        out = []
+        for t in moving:
+            pts = t.points
+            if len(pts) > c.max_points:
+                pts = pts[np.linspace(0, len(pts) - 1, c.max_points).astype(np.intp)]
+            corridor = [pts + t.velocity * (k * c.step_s) for k in range(1, steps + 1)]
+            if now_s - t.moving_since_s < c.min_moving_s:
+                continue  # a glimpse: a static object's view changing shows such (step 3)
+            if all(meets(corridor, travel) for travel in profiles):
+                t.conflict_until_s = t.last[0] + c.conflict_hold_s
+            elif t.last[0] > t.conflict_until_s:
+                continue
+            way = np.concatenate(corridor)  # the person's way ahead: the robot goes behind, or waits
+            # Never frozen in the person's way: a robot the person's centre line passes over gets
+            # out of it (the real person stays P_fix) rather than holding still in it.
+            a = np.array(t.last[1:])
+            ab = t.velocity * (steps * c.step_s)
+            f = min(1.0, max(0.0, float((p0 - a) @ ab) / max(float(ab @ ab), 1e-12)))
+            if math.hypot(*(p0 - (a + f * ab))) < c.in_the_way_m:
+                way = way[np.hypot(*(way - p0).T) > c.own_clearance_m]
+            out.append(way)
+        self.conflicts += int(bool(out))
+        return np.concatenate(out) if out else np.zeros((0, 2))
+
+    def describe(self) -> dict:
+        return {"tracks": len(self.tracks), "moving_now": sum(t.moving for t in self.tracks),
+                "moving_seen": self.moving_seen, "max_moving": self.max_moving,
+                "conflict_scans": self.conflicts, "predicted_points": int(len(self._predicted))}
+
+
+__all__ = ["MovingObstacles", "MovingObstaclesConfig", "Track"]

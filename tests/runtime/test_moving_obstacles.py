@@ -1,0 +1,127 @@
+"""Moving obstacles (runtime/moving_obstacles.py): P_fix clusters followed scan to scan, their
+velocity, and the predicted way of one that would meet the robot."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from runtime.moving_obstacles import MovingObstacles, MovingObstaclesConfig
+
+
+def _disc(cx: float, cy: float, r: float = 0.25, n: int = 30) -> np.ndarray:
+    """The lidar-facing half of a person-sized cylinder (seen from -x)."""
+    a = np.linspace(math.pi / 2, 3 * math.pi / 2, n)
+    return np.column_stack([cx + r * np.cos(a), cy + r * np.sin(a)])
+
+
+def _wall(y: float, x0: float = -3.0, x1: float = 3.0) -> np.ndarray:
+    x = np.arange(x0, x1, 0.04)
+    return np.column_stack([x, np.full_like(x, y)])
+
+
+def _run(mo: MovingObstacles, person_at, robot_pose=(0.0, 0.0, 0.0), speed=0.0, seconds=1.0, walls=True):
+    """Scans at 10 Hz of a person at person_at(t) (and two walls); returns the last prediction."""
+    pred = None
+    for k in range(int(seconds * 10) + 1):
+        t = 0.1 * k
+        pts = [_disc(*person_at(t))]
+        if walls:
+            pts += [_wall(2.5), _wall(-2.5)]
+        pred = mo.update(t, np.concatenate(pts), robot_pose, speed)
+    return pred
+
+
+def test_a_walking_person_is_tracked_with_its_velocity_and_walls_are_not():
+    mo = MovingObstacles()
+    _run(mo, lambda t: (2.0, -1.5 + 1.0 * t))
+    moving = [t for t in mo.tracks if t.moving]
+    assert len(moving) == 1, "the walls (long) and nothing else must not move"
+    assert moving[0].velocity == pytest.approx([0.0, 1.0], abs=0.1)
+
+
+def test_a_standing_person_or_box_is_not_moving():
+    mo = MovingObstacles()
+    pred = _run(mo, lambda t: (2.0, 0.5))
+    assert not any(t.moving for t in mo.tracks) and len(pred) == 0
+
+
+def test_a_person_crossing_where_the_robot_will_be_gives_the_way_ahead():
+    """The robot at 0.6 m/s towards +x; the person crossing its line 1 m ahead at 1 m/s, due
+    there when the robot is: its way ahead (over the horizon) is predicted, ahead of it."""
+    mo = MovingObstacles()
+    pred = _run(mo, lambda t: (1.0, -1.4 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=0.6, seconds=0.6)
+    assert len(pred) > 0
+    person_y = -1.4 + 0.6
+    assert pred[:, 1].max() > person_y + 1.0, "the way ahead of the person, not only where it is"
+    assert pred[:, 1].min() > person_y - 0.3, "nothing behind the person"
+
+
+def test_a_crossing_the_robot_clears_first_or_one_far_to_the_side_gives_nothing():
+    # the person walks away from the robot's line: no meeting
+    mo = MovingObstacles()
+    assert len(_run(mo, lambda t: (1.5, 0.6 + 1.0 * t), speed=0.8)) == 0
+    # the robot is past the crossing before the person comes (it clears it at cruise speed)
+    mo = MovingObstacles()
+    assert len(_run(mo, lambda t: (0.6, -2.3 + 0.6 * t), speed=1.0, seconds=0.5)) == 0
+
+
+def test_a_robot_in_the_persons_way_keeps_no_prediction_on_itself():
+    """A robot already standing in the person's way leaves it: the predicted points on itself are
+    left out (own_clearance_m); one beside the way keeps them all and holds."""
+    cfg = MovingObstaclesConfig()
+    mo = MovingObstacles(cfg)
+    pred = _run(mo, lambda t: (0.0, -1.6 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=0.0, seconds=0.6)
+    assert len(pred) > 0 and np.hypot(*pred.T).min() > cfg.own_clearance_m
+    mo = MovingObstacles(cfg)
+    beside = _run(mo, lambda t: (0.6, -1.6 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=0.0, seconds=0.6)
+    assert len(beside) > 0 and np.hypot(*beside.T).min() < cfg.own_clearance_m + 0.3
+
+
+def test_a_wall_cut_by_the_range_is_not_a_moving_obstacle():
+    """The end of a wall the lidar sees to its range shifts as the robot drives along it."""
+    mo = MovingObstacles()
+    for k in range(11):
+        t = 0.1 * k
+        x = 1.0 * t  # the robot drives along +x; the wall's visible end moves with it
+        wall = _wall(1.5, x - 5.7, x + 5.7)
+        mo.update(t, wall[np.hypot(wall[:, 0] - x, wall[:, 1]) < 6.0], (x, 0.0, 0.0), 1.0)
+    assert not any(t.moving for t in mo.tracks)
+
+
+def test_shift_moves_tracks_and_predictions_with_the_odom_frame():
+    mo = MovingObstacles()
+    pred = _run(mo, lambda t: (1.0, -1.4 + 1.0 * t), speed=0.6, seconds=0.6).copy()
+    assert len(pred)
+    mo.shift(np.array([0.1, -0.2, 0.0]))
+    np.testing.assert_allclose(mo.predicted, pred + [0.1, -0.2])
+
+
+def test_disabled_it_predicts_nothing():
+    mo = MovingObstacles(MovingObstaclesConfig(enabled=False))
+    assert len(_run(mo, lambda t: (1.5, -1.4 + 1.0 * t), speed=0.6)) == 0
+    assert len(mo.with_predictions(np.zeros((3, 2)))) == 3
+
+
+def test_a_static_box_whose_visible_faces_change_is_not_moving():
+    """Driving past a box shows its side after its front: the visible centroid shifts by
+    decimetres, but the cells its front filled are still filled (the vacated test)."""
+    s = np.linspace(-0.2, 0.2, 11)
+    front = np.column_stack([np.full_like(s, 1.8), s])
+    d = np.linspace(0.0, 0.6, 25)  # a long side (a 0.4 x 0.6 m box), densely seen
+    side = np.column_stack([1.8 + d, np.full_like(d, 0.2)])
+    def run(config):
+        mo = MovingObstacles(config)
+        seen_moving = False
+        for k in range(9):
+            t = 0.1 * k
+            n = int(np.clip((k - 3) / 2, 0, 1) * len(side))  # the side comes into view in 0.2 s
+            pts = np.concatenate([front, side[:n], _wall(2.5), _wall(-2.5)])
+            mo.update(t, pts, (1.0 * t, 0.6, 0.0), 1.0)
+            seen_moving |= any(t.moving for t in mo.tracks)
+        return seen_moving
+
+    assert not run(MovingObstaclesConfig())
+    # the centroid alone says "moving": without the vacated test (every old cell may stay filled)
+    assert run(MovingObstaclesConfig(max_still_filled=1.0))
