@@ -53,7 +53,7 @@ from runtime.loop import StageClock
 from runtime.modes.base import ModeContext, ModeDecision, Situation
 from runtime.modes.registry import build_mode
 from runtime.modes.selector import ModeSelector
-from runtime.moving_obstacles import MovingObstacles
+from runtime.moving_obstacles import MovingObstacles, MovingObstaclesConfig
 from runtime.obstacle_points import ObstaclePointExtractor
 from runtime.odometry.stage import OdometryStage
 from runtime.safety_stop import SafetyStop
@@ -175,9 +175,12 @@ class NavigationController:
         )
         # People walking: P_fix clusters followed scan to scan; where they go next joins P_fix for
         # the planner and the supervisor (points_plan), not for the odometry checks.
-        self.moving = MovingObstacles(config.moving_obstacles.model_copy(
-            update={"cruise_speed_mps": config.planner.reference_path.target_speed_mps, "range_m": op.max_range_m,
-                    "accel_mps2": robot.limits.max_linear_accel_mps2}))
+        # (its range, cruise speed and acceleration are the obstacle points', the reference path's
+        # and the robot's: set here, validated)
+        self.moving = MovingObstacles(MovingObstaclesConfig.model_validate({
+            **config.moving_obstacles.model_dump(), "range_m": op.max_range_m,
+            "cruise_speed_mps": config.planner.reference_path.target_speed_mps,
+            "accel_mps2": robot.limits.max_linear_accel_mps2}))
         self.points_plan = _NO_POINTS
         stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps, vlm_backend,
                                                               camera, T_cam_lidar))
@@ -472,7 +475,7 @@ class NavigationController:
     def _plan(self, now: float, unclassified: bool = False) -> tuple[float, float]:
         pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
         situation = Situation(now, pose, np.asarray(self.command), self.points_plan, self._goal_xy,
-                              self.points_mov, self.costs_mov, unclassified)
+                              self.points_mov, self.costs_mov, unclassified, points_observed=self.points_fix)
         d = self.modes.plan(situation)
         self.last_decision = d
         if d.at_goal:

@@ -188,7 +188,7 @@ def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_c
     stage = VppStage(config.vpp, camera, T_base_cam, T_base_lidar, BackendRunner(backend, runner_config),
                      resistance=PushResistanceEstimator(
                          robot, traction_coefficient=config.vpp.belief.traction_coefficient),
-                     robot_box=RobotBox(footprint[0], footprint[1], float(robot.body_height_m)))
+                     robot_box=RobotBox(footprint[0], footprint[1]))
     return VppPartition(stage, footprint, config.correcting.contact_margin_m)
 
 

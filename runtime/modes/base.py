@@ -27,6 +27,9 @@ class Situation:
     #: is in points_fix (the MPC keeps clear of all), of unknown touchability for the reference
     #: path; stall and stuck detection wait
     unclassified: bool = False
+    #: P_fix as the lidar saw it, when points_fix also holds predicted points (the way ahead of
+    #: a person, runtime.moving_obstacles): the stuck detector's scan comparisons use this.
+    points_observed: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

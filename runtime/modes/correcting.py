@@ -196,9 +196,10 @@ class StuckDetector:
         c = self.config
         v = float(s.command[0]) if planned_v_mps is None else float(planned_v_mps)
         scan = None
-        if s.points_fix is not self._last_points and len(s.points_fix):
-            self._last_points = s.points_fix
-            scan = (s.now_s, s.pose.copy(), _robot_frame(s.points_fix, s.pose))
+        seen = s.points_fix if s.points_observed is None else s.points_observed  # not predictions
+        if seen is not self._last_points and len(seen):
+            self._last_points = seen
+            scan = (s.now_s, s.pose.copy(), _robot_frame(seen, s.pose))
             self._history.append(scan)
             while self._history[0][0] < s.now_s - SLIP_HISTORY_S:
                 self._history.popleft()

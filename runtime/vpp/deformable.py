@@ -19,9 +19,9 @@ P_fix), and its thickness across, widened by `reach_m` each side: how far its pa
 away from where they hang while the robot passes. A non-ground point inside a region is P_mov
 of that object at its cost, in view or not, unless another object's mask or track labelled it,
 when it is within `rest_swing_m` of the object's plane (parts swinging on their own), or within
-`near_robot_m` ahead of or behind the robot's footprint and `near_robot_side_m` beside it, or
-resting on the robot (at the height of its top or above, hanging past its sides): the parts it
-lifts and pushes aside lie on it and against its front;
+`near_robot_m` ahead of or behind the robot's footprint and `near_robot_side_m` beside it and
+not rigid (the motion test below), or on the robot (its footprint grown by `on_robot_m`): the
+parts it lifts and pushes aside lie on it and against its front;
 something standing behind the curtain away from the robot stays P_fix.
 
 The fit is refreshed from the mask's points while the robot is at least `clear_m` outside every
@@ -74,7 +74,9 @@ class DeformableConfig(BaseModel):
     #: a little wider than the robot (measured: 0.09 m past the LIMO's side), and a rigid
     #: obstacle the robot passes beside must stay P_fix.
     near_robot_side_m: float = Field(0.10, ge=0.0, le=5.0)
-    #: A point over the robot's footprint grown by this (m) lies on the robot.
+    #: A point over the robot's footprint grown by this (m) lies on the robot (slats pressed
+    #: against it). Known cost: a rigid thing touching the robot is taken too (measured with 0:
+    #: more crate contacts in curtain_crate, not fewer; the robot stops short of it further out).
     on_robot_m: float = Field(0.03, ge=0.0, le=1.0)
     #: The motion test of the points ahead of and behind the robot: a cell (this size, m, in the
     #: region's frame) occupied in every scan (gaps up to rigid_gap_s) while the robot moved
@@ -92,19 +94,23 @@ class DeformableConfig(BaseModel):
     end_margin_m: float = Field(0.03, ge=0.0, le=1.0)
     #: In-view mask points a fit needs.
     min_points: int = Field(20, ge=3, le=100000)
+    #: The fit keeps the points within this distance (m) of the line through the object: a curtain
+    #: hangs in a plane (its slats a few cm thick, swinging a little); the others are not it.
+    band_m: float = Field(0.10, gt=0.0, le=2.0)
+    #: ... and at least this share of them must be: else the object is no curtain (no region).
+    min_inlier_share: float = Field(0.7, ge=0.0, le=1.0)
     #: A region is refit only while the robot's centre is at least this far (m) outside it.
     clear_m: float = Field(0.30, ge=0.0, le=5.0)
-    #: A region not refit for this long (s) is dropped.
+    #: A region not refit for this long (s), the robot clear of it, is dropped.
     max_age_s: float = Field(30.0, gt=0.0, le=3600.0)
 
 
 @dataclass(frozen=True)
 class RobotBox:
-    """The robot's body: half length and half width of its footprint, height of its top (m)."""
+    """The robot's footprint: half length and half width (m)."""
 
     half_length_m: float = 0.161
     half_width_m: float = 0.11
-    height_m: float = 0.251
 
 
 @dataclass(frozen=True)
@@ -162,9 +168,23 @@ def fit_region(object_id: int, xy: np.ndarray, cost: float, now_s: float, config
     once its ends are trimmed)."""
     if len(xy) < config.min_points:
         return None
-    c = xy.mean(axis=0)
+    # The line through the points, robust to a few that are not the curtain (a crate behind it
+    # that the mask's completion or its image region took in): principal axis about the median,
+    # the points within band_m of that line kept, the axis fitted again on them.
+    n_in = len(xy)
+    c = np.median(xy, axis=0)
+    for _ in range(2):
+        d = xy - c
+        w, v = np.linalg.eigh(d.T @ d)  # ascending eigenvalues: v[:, 1] is the width axis
+        axis = v[:, 1]
+        t = d[:, 0] * -axis[1] + d[:, 1] * axis[0]
+        keep = np.abs(t - np.median(t)) <= config.band_m
+        if np.count_nonzero(keep) < max(config.min_points, config.min_inlier_share * n_in):
+            return None  # not a thin hanging thing: no region
+        xy = xy[keep]
+        c = xy.mean(axis=0)
     d = xy - c
-    w, v = np.linalg.eigh(d.T @ d)  # ascending eigenvalues: v[:, 1] is the width axis
+    w, v = np.linalg.eigh(d.T @ d)
     axis = v[:, 1]
     if axis[0] < 0 or (axis[0] == 0 and axis[1] < 0):  # one sign, so refits compare
         axis = -axis
@@ -173,7 +193,7 @@ def fit_region(object_id: int, xy: np.ndarray, cost: float, now_s: float, config
     s_lo, s_hi = np.percentile(s, [1.0, 99.0])
     t_lo, t_hi = np.percentile(t, [1.0, 99.0])
     half_len = 0.5 * (s_hi - s_lo) - config.end_margin_m
-    if half_len <= 0.0:
+    if half_len <= 0.0 or t_hi - t_lo > 2.0 * config.band_m:
         return None
     sm, tm = 0.5 * (s_lo + s_hi), 0.5 * (t_lo + t_hi)
     centre = c + sm * axis + tm * np.array([-axis[1], axis[0]])
@@ -202,12 +222,15 @@ class DeformableRegions:
         """Refit the region of each deformable object (id -> cost) from the points its mask
         labelled in view this scan, unless the robot is near it; drop regions gone stale."""
         c = self.config
-        for k in [k for k, r in self.regions.items() if now_s - r.fitted_s > c.max_age_s]:
-            del self.regions[k]
+        robot = np.array([robot_xy], dtype=np.float64)
+        near = {k for k, r in self.regions.items() if r.contains(robot, grow_m=c.clear_m)[0]}
+        # A region ages only while the robot is clear of it (in it, it cannot be refitted: a robot
+        # held inside a curtain for max_age_s must not find the slats fixed again).
+        for k in [k for k, r in self.regions.items() if now_s - r.fitted_s > c.max_age_s and k not in near]:
+            self.remove(k)
         if not c.enabled or not objects:
             return
-        robot = np.array([robot_xy], dtype=np.float64)
-        if any(r.contains(robot, grow_m=c.clear_m)[0] for r in self.regions.values()):
+        if near:
             # Frozen while the robot is in or near a region: the object swings, and its parts
             # hang in front of the camera, whose masks of them then gate the lidar points seen
             # past them (measured: the far wall fitted as a second curtain).

@@ -270,8 +270,11 @@ class VppStage:
         out = {e.object_id: e.contact_cost for e in self.memory.entries
                if e.deformable and self._may_gate(e) and not self.memory.is_demoted(e.object_id)
                and not self._believed_fixed(e.object_id)}
+        remembered = {e.object_id for e in self.memory.entries}
         for k in list(self.deformable.regions):
-            if self.memory.is_demoted(k) or self._believed_fixed(k):
+            # demoted, believed heavy or fragile, or a newer answer no longer calls it deformable
+            # and touchable: its region goes (an entry that aged out leaves the region be)
+            if self.memory.is_demoted(k) or self._believed_fixed(k) or (k in remembered and k not in out):
                 self.deformable.remove(k)
         return out
 

@@ -62,9 +62,15 @@ def test_a_crossing_the_robot_clears_first_or_one_far_to_the_side_gives_nothing(
     # the person walks away from the robot's line: no meeting
     mo = MovingObstacles()
     assert len(_run(mo, lambda t: (1.5, 0.6 + 1.0 * t), speed=0.8)) == 0
-    # the robot is past the crossing before the person comes (it clears it at cruise speed)
+    # the robot (at cruise speed) is past the crossing before the person comes
     mo = MovingObstacles()
-    assert len(_run(mo, lambda t: (0.6, -2.3 + 0.6 * t), speed=1.0, seconds=0.5)) == 0
+    assert len(_run(mo, lambda t: (1.0, -3.0 + 1.0 * t), robot_pose=(0.5, 0.0, 0.0), speed=1.0, seconds=1.0,
+                    walls=False)) == 0
+    assert any(t.moving for t in mo.tracks), "the person was seen walking"
+    # ... while a robot at a walk would meet the person: the way ahead is predicted
+    slow = MovingObstacles(MovingObstaclesConfig(cruise_speed_mps=0.3, min_extrapolation_speed_mps=0.3))
+    assert len(_run(slow, lambda t: (1.0, -3.0 + 1.0 * t), robot_pose=(0.5, 0.0, 0.0), speed=0.3, seconds=1.0,
+                    walls=False)) > 0
 
 
 def test_a_robot_in_the_persons_way_keeps_no_prediction_on_itself():
@@ -94,8 +100,15 @@ def test_shift_moves_tracks_and_predictions_with_the_odom_frame():
     mo = MovingObstacles()
     pred = _run(mo, lambda t: (1.0, -1.4 + 1.0 * t), speed=0.6, seconds=0.6).copy()
     assert len(pred)
-    mo.shift(np.array([0.1, -0.2, 0.0]))
-    np.testing.assert_allclose(mo.predicted, pred + [0.1, -0.2])
+    t0 = next(t for t in mo.tracks if t.moving)
+    past0, vel0 = [q.copy() for _, q in t0.past], t0.velocity.copy()
+    c, s = math.cos(0.3), math.sin(0.3)
+    R = np.array([[c, -s], [s, c]])
+    mo.shift(np.array([0.1, -0.2, 0.3]))
+    np.testing.assert_allclose(mo.predicted, pred @ R.T + [0.1, -0.2])
+    np.testing.assert_allclose(t0.velocity, R @ vel0)
+    for q0, (_, q) in zip(past0, t0.past):  # the vacated test's old points too
+        np.testing.assert_allclose(q, q0 @ R.T + [0.1, -0.2])
 
 
 def test_disabled_it_predicts_nothing():

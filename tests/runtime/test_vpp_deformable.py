@@ -12,7 +12,7 @@ from runtime.vpp.deformable import DeformableConfig, DeformableRegions, RobotBox
 from runtime.vpp.partition import FIXED, IGNORED, MOVABLE, PointPartition
 
 CURTAIN = 7
-ROBOT = RobotBox(0.161, 0.11, 0.251)
+ROBOT = RobotBox(0.161, 0.11)
 
 
 def _curtain_points(x=1.0, y0=-0.45, y1=0.45, n=400, seed=0) -> np.ndarray:
@@ -152,3 +152,24 @@ def test_disabled_the_regions_do_nothing():
     assert not regions.regions
     part = _label_one(regions, [[1.0, 0.0, 0.5]], (-1.0, 0.0, 0.0))
     assert part.label[0] == FIXED
+
+
+def test_a_few_points_that_are_not_the_curtain_do_not_move_its_region():
+    """A crate 0.7 m behind the curtain that the mask took in (5 points of 405): the fit keeps the
+    points near the curtain's line; its rest zone stays thin and where the curtain hangs."""
+    pts = _curtain_points()[:, :2]
+    crate = np.column_stack([np.full(5, 1.7), np.linspace(-0.1, 0.1, 5)])
+    r = fit_region(CURTAIN, np.concatenate([pts, crate]), 1.0, 0.0, DeformableConfig())
+    assert r is not None and r.centre[0] == pytest.approx(1.0, abs=0.02)
+    assert r.rest_depth_m < 0.2
+    # something that is not a line at all (a blob 0.6 m deep) gets no region
+    blob = np.random.default_rng(1).uniform([0.7, -0.3], [1.3, 0.3], (300, 2))
+    assert fit_region(CURTAIN, blob, 1.0, 0.0, DeformableConfig()) is None
+
+
+def test_a_region_does_not_age_while_the_robot_is_held_inside_it():
+    regions = _fitted(DeformableConfig(max_age_s=5.0))
+    regions.update(60.0, _partition(0), np.zeros((0, 3)), {}, (1.0, 0.0))  # inside, a minute on
+    assert CURTAIN in regions.regions
+    regions.update(61.0, _partition(0), np.zeros((0, 3)), {}, (-3.0, 0.0))  # clear of it
+    assert not regions.regions
