@@ -523,7 +523,8 @@ class NavigationController:
         return 0.0, 0.0
 
     def _supervise(self, v: float, omega: float) -> tuple[float, float]:
-        """The independent check of the command against P_fix (Nav2's collision monitor)."""
+        """The independent check of the command against P_fix and the predicted way of a person
+        it would meet (Nav2's collision monitor)."""
         pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
         decision = self.supervisor.check(pose, np.array([v, omega]), self.points_plan)
         self.last_safety = decision

@@ -12,7 +12,9 @@ run (section V-D) "maintains this memory throughout the run": this module is tha
 object that deforms.
 
 Model: per object the backend called deformable (and movable, below the never-touch cost), an
-oriented box in the odom floor plane fitted to the points its mask labelled in view: centre,
+oriented box in the odom floor plane fitted to the points its mask labelled in view (only
+those within `band_m` of the line through them, at least `min_inlier_share` of them, else no
+region: a few points of a crate the mask took in do not move it): centre,
 the object's width axis (the principal axis of its points), the extent along it (1st-99th
 percentile, trimmed by `end_margin_m` at each end: a doorway's jambs next to the curtain stay
 P_fix), and its thickness across, widened by `reach_m` each side: how far its parts may swing
@@ -27,15 +29,17 @@ something standing behind the curtain away from the robot stays P_fix.
 The fit is refreshed from the mask's points while the robot is at least `clear_m` outside every
 region (the curtain hangs still then); while the robot is in or near one, every region is frozen
 and none is made: the slats it pushes would drag the fit along, and the slats hanging in front of
-the camera get masks that gate the lidar points seen past them (a far wall fitted as a curtain). A region not refreshed for `max_age_s` is
-dropped, and so is the region of an object demoted (correcting mode: the robot got stuck in it,
-DCT eq. 14) or believed heavy or fragile.
+the camera get masks that gate the lidar points seen past them (a far wall fitted as a
+curtain). A region not refreshed for `max_age_s` while the robot is clear of it is dropped, and
+so is the region of an object demoted (correcting mode: the robot got stuck in it, DCT eq. 14),
+believed heavy or fragile, or no longer called deformable and touchable by a newer answer.
 
-Known limit, stated in the README: a rigid obstacle within `reach_m` of a curtain that the
-robot comes within `near_robot_m` of (or within `rest_swing_m` of the curtain) is taken for
-the curtain: the robot does not see behind a curtain, and neither does this model. The default reach
-(0.70 m) is how far a slat of a 1 m curtain draped over the LIMO's top lies from where it
-hangs (DeformableConfig.reach_m).
+Known limits, stated in the README: the robot does not see behind a curtain, and neither does
+this model. A rigid obstacle within the rest zone is taken for the curtain wherever the robot
+is; one nearer the plane than `rigid_min_depth_m` that the robot comes within `near_robot_m`
+of, one the motion test has not seen stand still while the robot moved, or one touching the
+robot (within `on_robot_m`), likewise. The default reach (0.70 m) is how far a slat of a 1 m
+curtain draped over the LIMO's top lies from where it hangs (DeformableConfig.reach_m).
 
 Cost: a few numpy operations per region and scan on the points (no Python loop over points).
 """

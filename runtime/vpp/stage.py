@@ -123,8 +123,8 @@ class VppStage:
                  runner: BackendRunner, resistance: PushResistanceEstimator | None = None,
                  robot_box: RobotBox = RobotBox()) -> None:
         """resistance: the push-resistance estimate from the wheel currents (the robot's; None:
-        push outcomes alone update the belief). robot_box: the robot's footprint and height (a
-        deformable object's parts lying on the robot, deformable.py)."""
+        push outcomes alone update the belief). robot_box: the robot's footprint (a deformable
+        object's parts lying on the robot, deformable.py)."""
         self.config = config
         self.camera = camera
         self.T_base_cam = np.asarray(T_base_cam, dtype=np.float64)
