@@ -142,9 +142,9 @@ class VppProbe:
         self.rig.listeners.append(self._on_sensor)
         update = self.stage.update
 
-        def timed_update(now_s, pose, image, scan):  # the stage's own work, timed on scan ticks
+        def timed_update(now_s, pose, image, scan, image_pose=None):  # the stage's own work, timed on scan ticks
             t0, c0 = time.perf_counter(), time.thread_time()
-            out = update(now_s, pose, image, scan)
+            out = update(now_s, pose, image, scan, image_pose)
             if scan is not None:
                 self.stage_s.append(time.perf_counter() - t0)
                 self.stage_cpu_s.append(time.thread_time() - c0)
@@ -167,12 +167,13 @@ class VppProbe:
         T_odom_base = pose_matrix(pose.x_m, pose.y_m, pose.yaw_rad)
         frame = stage.last_frame
         if frame is not None and frame.stamp_s != self._last_frame_stamp:
+            # The partition ran this tick, on this tick's lidar frame (deskewed to the tick: the
+            # frame is stamped with the tick, the ground truth with the sensor frame's start).
             self._last_frame_stamp = frame.stamp_s
-            self._score_partition(frame)
             scan = controller.monitor.good_scan
-            if scan is not None and scan.stamp_s == frame.stamp_s:
-                T = T_odom_base @ stage.T_base_lidar
-                self._scan_odom = np.asarray(scan.points_m, np.float64) @ T[:3, :3].T + T[:3, 3]
+            self._score_partition(frame, None if scan is None else scan.stamp_s)
+            if stage._last_scan_odom is not None:
+                self._scan_odom = np.array(stage._last_scan_odom, np.float64)
         for view in self._pending:
             view.T_odom_cam = T_odom_base @ stage.T_base_cam
             view.travel_m = self._travel
@@ -193,14 +194,14 @@ class VppProbe:
         self._score_masks(final=True)
 
     # -- the partition --------------------------------------------------------------------
-    def _score_partition(self, frame) -> None:
+    def _score_partition(self, frame, sensor_stamp_s: float | None) -> None:
         if self.stage.answers == 0:
             self.frames_before_answer += 1
             return
-        gids = self.rig.lidar.ground_truth_geom_ids(frame.stamp_s)
+        gids = None if sensor_stamp_s is None else self.rig.lidar.ground_truth_geom_ids(sensor_stamp_s)
         part = frame.partition
         if gids is None or len(gids) != len(part.label):
-            raise RuntimeError(f"dct vpp eval: no ground truth for the scan at {frame.stamp_s} s "
+            raise RuntimeError(f"dct vpp eval: no ground truth for the scan at {sensor_stamp_s} s "
                                f"(its points: {len(part.label)})")
         floor = gids == self.floor
         truth = np.isin(gids, self.movable)

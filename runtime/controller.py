@@ -289,8 +289,15 @@ class NavigationController:
         stages.mark(ODOMETRY)
 
         scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
+        if scan is not None:  # every point where it is now, as the pose places it (obstacle_points.deskew)
+            scan = self.obstacles.deskew(scan, now, inputs.linear_mps, self.odometry.yaw_rate_radps,
+                                         carried=self.partition.carried_region())
         pose = (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad)
-        only = self.partition.update(now, pose, sensors.image, scan)
+        image_pose = None
+        if sensors.image is not None:  # the camera's pose when the frame was taken, not when it arrived
+            at = self.odometry.pose_at(sensors.image.stamp_s)
+            image_pose = None if at is None else (at.x_m, at.y_m, at.yaw_rad)
+        only = self.partition.update(now, pose, sensors.image, scan, image_pose)
         # what pushing tells about the object pushed (mode dct's belief; wheel currents of 0x251-0x254)
         self.partition.observe_contact(now, pose, inputs.linear_mps, inputs.motor_currents_a)
         if scan is not None:

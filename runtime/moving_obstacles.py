@@ -21,10 +21,19 @@ How, per scan (P_fix in the odom frame, (N, 2), and the robot's position):
    `vacated_lag_s` ago, at most `max_still_filled` lie in cells this scan fills. A static box seen
    from a moving robot shows new faces and its visible centroid shifts (measured in DCT Table II's
    layouts: 15 such "movers" per episode, and the robot slowed for them), but the cells it filled
-   are still filled; a walking person's are empty.
+   are still filled; a walking person's are empty. And it came into space the lidar saw free
+   `vacated_lag_s` ago (`min_moved_in`): of its points now, that share lies nearer than the
+   return that scan had on their bearing from where the robot was then. The faces a static
+   object shows a robot driving past it were hidden behind its other faces before (never seen
+   free), and its old faces are hidden now, not empty: the vacated test alone passed the side of
+   case3's shelf as a mover, and the supervisor stopped the robot for its predicted way. A
+   person crossing walks into space where the wall behind was seen; one coming head-on walks
+   into the space in front of where it was.
 4. Prediction: a moving cluster's points (at most `max_points`, evenly picked) carried along its
    velocity every `step_s` up to `horizon_s` (constant velocity: a person who turns is found again
-   within `window_s`).
+   within `window_s`); for a person coming down a line that passes over the robot, until the
+   person is past the robot (at most `max_horizon_s`), so that the way leaves the robot its two
+   sides to go to, not its end to go round.
 5. Conflict: a person whose predicted points come within `conflict_radius_m` of where the robot,
    going straight on, would be about then (that step +- one) would meet the robot; a conflict is
    one both holding the robot's speed (at least `min_extrapolation_speed_mps`) and speeding up to
@@ -38,10 +47,14 @@ How, per scan (P_fix in the odom frame, (N, 2), and the robot's position):
    lane 0.4 s before the person came. With the meeting point alone (not the way ahead): the
    reference path went round it in front of the person, who walked into the robot there. A robot
    already in the person's way (its centre within `in_the_way_m` of the person's predicted centre
-   line) loses the predicted points within `own_clearance_m` of itself, and leaves the way
-   (measured: held there by a corridor round itself, "no path", it was walked into); one beside
-   the way keeps them all and holds before it (measured: without that distinction, a robot waiting
-   0.43 m from the way crept into it).
+   line) loses the predicted points of a channel out of it (`_exit_channel`: from itself to its
+   side of the line, `own_clearance_m` either way along the line, reaching `head_on_reach_m`
+   further towards a person it faces, so the way out is a forward arc) and leaves the way; the
+   points on the line's far side stay, so the path does not cross in front of the person
+   (measured: held by a corridor round itself, "no path", it was walked into; with a disc round
+   itself only, it turned on the spot and backed down the line). One beside the way keeps them
+   all and holds before it (measured: without that distinction, a robot waiting 0.43 m from the
+   way crept into it).
 
 Not a pedestrian model (no social forces, no intent): constant velocity over 1.5 s, which is
 what the robot needs to stay out of a walking person's way at its own 1 m/s. A track is found
@@ -87,11 +100,31 @@ class MovingObstaclesConfig(BaseModel):
     #: (a share) lie in cells this scan fills (step 3).
     vacated_lag_s: float = Field(0.4, gt=0.0, le=10.0)
     max_still_filled: float = Field(0.5, ge=0.0, le=1.0)
+    #: ... and it came into space the lidar saw free vacated_lag_s ago: at least this share of its
+    #: points lie nearer than that scan's return on their bearing (seen from where the robot was)
+    #: by free_margin_m (step 3). 0: off. The faces a static object shows a passing robot were
+    #: behind its other faces before (never seen free), and its old faces are hidden now, not
+    #: empty: the vacated test alone passed it (case3's shelf beside a turning robot: a stop).
+    min_moved_in: float = Field(0.25, ge=0.0, le=1.0)
+    free_margin_m: float = Field(0.10, ge=0.0, le=2.0)
+    #: The bearing bins (deg) of a scan's nearest return, for the test above.
+    bearing_bin_deg: float = Field(1.0, gt=0.05, le=10.0)
     #: A track moving in every scan for this long (s) may conflict (step 5). 0: at once. A
     #: static object next to a turning robot can look moving for a few scans (measured: 0.3 s
     #: cut the Table II slowdowns, and doubled the crossing person's contacts, 2 -> 4 of 16).
     min_moving_s: float = Field(0.0, ge=0.0, le=10.0)
     horizon_s: float = Field(1.5, ge=0.0, le=10.0)
+    #: A person whose line passes over the robot (within in_the_way_m) and who comes towards it:
+    #: the way is predicted until the person is past the robot (+ step_s), up to this (s). With
+    #: 1.5 s the way of a person still 3 m off ended between them, and the path went round its
+    #: end, across the person's line (person_approaching seeds 11 and 14: it turned into the
+    #: person's side, backed off and was walked into); a way reaching past the robot leaves it
+    #: the two sides, and the near one is the cheaper.
+    max_horizon_s: float = Field(4.0, ge=0.0, le=20.0)
+    #: The way ahead is at least this long (m; time capped by max_horizon_s): a slow walker's
+    #: 1.5 s is under a metre, and the path went round its front, in front of the person, who
+    #: caught up (person_crossing seed 10, 0.6 m/s). Longer, going behind is the shorter way.
+    min_way_m: float = Field(2.0, ge=0.0, le=20.0)
     step_s: float = Field(0.25, gt=0.0, le=10.0)
     max_points: int = Field(24, ge=1, le=10000)
     #: A predicted point counts only where the robot would be about then (step 5): within this
@@ -113,6 +146,22 @@ class MovingObstaclesConfig(BaseModel):
     #: beside the way keeps them all and holds before it.
     in_the_way_m: float = Field(0.45, ge=0.0, le=5.0)
     own_clearance_m: float = Field(0.35, ge=0.0, le=5.0)
+    #: ... the channel out keeps the way's points farther than this on the robot's far side (m):
+    #: the path may not cross the person's line there (_exit_channel).
+    far_side_m: float = Field(0.22, ge=0.0, le=5.0)
+    #: ... and, head-on, reaches this much further towards the person (m).
+    head_on_reach_m: float = Field(0.4, ge=0.0, le=5.0)
+
+
+def _bins(d: np.ndarray, nb: int) -> np.ndarray:
+    """Bearing bin (0..nb-1) of each offset (N, 2)."""
+    return (np.floor((np.arctan2(d[:, 1], d[:, 0]) + math.pi) * (nb / (2.0 * math.pi))).astype(np.intp)) % nb
+
+
+def _rotate_bins(profile: np.ndarray, shift_bins: float) -> np.ndarray:
+    """A bearing profile turned by shift_bins (nearest whole bin)."""
+    k = int(round(shift_bins))
+    return np.roll(profile, k) if k else profile
 
 
 @dataclass
@@ -147,6 +196,8 @@ class MovingObstacles:
         self._ever_moving: set[int] = set()
         self.max_moving = 0  # most tracks moving in one scan
         self.conflicts = 0  # scans in which a moving track would meet the robot (never reset)
+        #: (time, lidar xy, nearest return per bearing bin) of the scans over the window (step 3)
+        self._profiles: list[tuple[float, np.ndarray, np.ndarray]] = []
 
     @property
     def predicted(self) -> np.ndarray:
@@ -155,6 +206,7 @@ class MovingObstacles:
 
     def reset(self) -> None:
         self.tracks.clear()
+        self._profiles.clear()
         self._predicted = np.zeros((0, 2))
 
     def update(self, now_s: float, points_fix: np.ndarray, robot_pose: tuple[float, float, float],
@@ -165,7 +217,11 @@ class MovingObstacles:
         if not c.enabled:
             return self._predicted
         robot_xy = (float(robot_pose[0]), float(robot_pose[1]))
-        clusters = self._clusters(np.asarray(points_fix, dtype=np.float64), robot_xy)
+        points_fix = np.asarray(points_fix, dtype=np.float64).reshape(-1, 2)
+        if c.min_moved_in > 0.0:
+            self._profiles = [x for x in self._profiles if now_s - x[0] <= c.window_s]
+            self._profiles.append((float(now_s), np.asarray(robot_xy), self._profile(points_fix, robot_xy)))
+        clusters = self._clusters(points_fix, robot_xy)
         self._associate(float(now_s), clusters)
         moving = [t for t in self.tracks if t.moving and t.last[0] == now_s]
         self.max_moving = max(self.max_moving, len(moving))
@@ -192,6 +248,9 @@ class MovingObstacles:
             return p @ R.T + correction[:2] if len(p) else p
 
         self._predicted = move(self._predicted)
+        # a profile turns with the frame: its bins are bearings in the odom frame
+        shift_bins = correction[2] / math.radians(self.config.bearing_bin_deg)
+        self._profiles = [(tp, move(xy[None])[0], _rotate_bins(prof, shift_bins)) for tp, xy, prof in self._profiles]
         for t in self.tracks:
             xy = move(np.array([[h[1], h[2]] for h in t.history]))
             t.history = [(h[0], float(q[0]), float(q[1])) for h, q in zip(t.history, xy)]
@@ -200,6 +259,36 @@ class MovingObstacles:
             t.past = [(tp, move(q)) for tp, q in t.past]
 
     # -- steps ------------------------------------------------------------------------------
+    def _profile(self, points: np.ndarray, origin) -> np.ndarray:
+        """The scan's nearest return (m) per bearing bin round origin (odom bearings; inf: none
+        within range_m)."""
+        c = self.config
+        nb = int(round(360.0 / c.bearing_bin_deg))
+        out = np.full(nb, np.inf)
+        if len(points):
+            d = points - np.asarray(origin)
+            r = np.hypot(d[:, 0], d[:, 1])
+            b = _bins(d, nb)
+            keep = r < c.range_m
+            np.minimum.at(out, b[keep], r[keep])
+        return out
+
+    def _moved_in(self, now: float, points: np.ndarray) -> float:
+        """The share of `points` lying in space the scan of vacated_lag_s ago saw free: nearer
+        than its nearest return on their bearing, and on the bins either side, by free_margin_m
+        (1.0 without such a scan: no evidence against)."""
+        c = self.config
+        old = [x for x in self._profiles if now - x[0] >= c.vacated_lag_s]
+        if not old or not len(points):
+            return 1.0
+        _, origin, prof = old[-1]
+        d = points - origin
+        r = np.hypot(d[:, 0], d[:, 1])
+        nb = prof.shape[0]
+        b = _bins(d, nb)
+        beyond = np.minimum(np.minimum(prof[b], prof[(b + 1) % nb]), prof[(b - 1) % nb])
+        return float(np.mean(r + c.free_margin_m < beyond))
+
     def _occupied(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: the points' cells are occupied in this scan's grid."""
         if self._grid is None or not len(points):
@@ -298,6 +387,8 @@ class MovingObstacles:
             old = [x for x in t.past if now - x[0] >= c.vacated_lag_s]
             if not old or float(np.mean(self._occupied(old[-1][1]))) > c.max_still_filled:
                 t.moving = False
+            elif c.min_moved_in > 0.0 and self._moved_in(now, points) < c.min_moved_in:
+                t.moving = False
         if not t.moving:
             t.moving_since_s = None
         elif t.moving_since_s is None:
@@ -343,7 +434,10 @@ class MovingObstacles:
             pts = t.points
             if len(pts) > c.max_points:
                 pts = pts[np.linspace(0, len(pts) - 1, c.max_points).astype(np.intp)]
-            corridor = [pts + t.velocity * (k * c.step_s) for k in range(1, steps + 1)]
+            speed = float(np.hypot(*t.velocity))
+            n = max(steps, self._steps_past_robot(t, p0),
+                    int(min(c.max_horizon_s, c.min_way_m / max(speed, 1e-6)) / c.step_s + 1e-9))
+            corridor = [pts + t.velocity * (k * c.step_s) for k in range(1, n + 1)]
             if now_s - t.moving_since_s < c.min_moving_s:
                 continue  # a glimpse: a static object's view changing shows such (step 3)
             if all(meets(corridor, travel) for travel in profiles):
@@ -354,13 +448,55 @@ class MovingObstacles:
             # Never frozen in the person's way: a robot the person's centre line passes over gets
             # out of it (the real person stays P_fix) rather than holding still in it.
             a = np.array(t.last[1:])
-            ab = t.velocity * (steps * c.step_s)
+            ab = t.velocity * (n * c.step_s)
             f = min(1.0, max(0.0, float((p0 - a) @ ab) / max(float(ab @ ab), 1e-12)))
             if math.hypot(*(p0 - (a + f * ab))) < c.in_the_way_m:
-                way = way[np.hypot(*(way - p0).T) > c.own_clearance_m]
+                way = way[self._exit_channel(way, a, t.velocity, p0, u)]
             out.append(way)
         self.conflicts += int(bool(out))
         return np.concatenate(out) if out else np.zeros((0, 2))
+
+    def _exit_channel(self, way: np.ndarray, a: np.ndarray, velocity: np.ndarray, robot_xy: np.ndarray,
+                      heading: np.ndarray) -> np.ndarray:
+        """(M,) bool: the predicted points kept for a robot in the person's way. Left out: those
+        within own_clearance_m of the robot along the person's line and not farther than far_side_m
+        to the far side of it: a channel from the robot out to the side of the line it is on (on
+        the line, its right), 2 own_clearance_m wide. Kept: the rest of the way, which stops the
+        path from following the line or crossing it in front of the person. (A disc round the robot
+        alone left it a hole too small to turn and leave by when the way reached past it: head-on,
+        it backed off down the line and was walked into.)"""
+        c = self.config
+        d = velocity / max(float(np.hypot(*velocity)), 1e-9)
+        normal = np.array([-d[1], d[0]])
+        e = float((robot_xy - a) @ normal)
+        if abs(e) > 0.05:
+            side = math.copysign(1.0, e)
+        else:  # on the line: the robot's right
+            side = math.copysign(1.0, float(np.array([heading[1], -heading[0]]) @ normal))
+        rel = way - robot_xy
+        lon = rel @ d
+        lat = side * (rel @ normal)  # > 0: towards the exit side
+        # Head-on (the robot faces the person), the channel also reaches towards the person: the
+        # way out is a forward arc to the side, which a differential drive can drive; a channel
+        # square to the line asked it to move sideways (it reversed and turned on the spot for
+        # 2 s: person_approaching seed 15).
+        upstream = c.own_clearance_m + (c.head_on_reach_m if float(heading @ d) < -0.7 else 0.0)
+        channel = (lon >= -upstream) & (lon <= c.own_clearance_m) & (lat > -c.far_side_m)
+        return ~(channel | (np.hypot(lon, lat) <= c.far_side_m))
+
+    def _steps_past_robot(self, t: Track, robot_xy: np.ndarray) -> int:
+        """Steps until a person coming down a line that passes over the robot is past it (0: not
+        such a person), at most max_horizon_s."""
+        c = self.config
+        speed = float(np.hypot(*t.velocity))
+        if speed <= 1e-6:
+            return 0
+        d = t.velocity / speed
+        rel = robot_xy - np.array(t.last[1:])
+        along = float(rel @ d)
+        if along <= 0.0 or abs(float(rel[0] * d[1] - rel[1] * d[0])) >= c.in_the_way_m:
+            return 0
+        return int(min(c.max_horizon_s, along / speed + c.step_s) / c.step_s + 1e-9) + 1
 
     def describe(self) -> dict:
         return {"tracks": len(self.tracks), "moving_now": sum(t.moving for t in self.tracks),

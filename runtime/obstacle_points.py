@@ -50,6 +50,21 @@ def voxel_filter(points: np.ndarray, voxel_m: float, min_support_ratio: float = 
     return out[counts >= min_support_ratio * nb_counts.max(axis=0)]
 
 
+def _to_now(q: np.ndarray, dt: np.ndarray, v_mps: float, omega_radps: float) -> np.ndarray:
+    """(N, 3) points in base_link at their cast times (dt = cast time - now, <= 0) to base_link
+    now, with a constant twist since: the yaw turned and the chord driven."""
+    yaw = omega_radps * dt
+    half = 0.5 * yaw
+    tx = v_mps * dt * np.cos(half)
+    ty = v_mps * dt * np.sin(half)
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.empty_like(q)
+    out[:, 0] = c * q[:, 0] - s * q[:, 1] + tx
+    out[:, 1] = s * q[:, 0] + c * q[:, 1] + ty
+    out[:, 2] = q[:, 2]
+    return out
+
+
 class ObstaclePointExtractor:
     def __init__(
         self,
@@ -70,6 +85,34 @@ class ObstaclePointExtractor:
         self.min_support_ratio = min_support_ratio
         self.points_in = 0
         self.points_out = 0
+
+    def deskew(self, scan: LidarScan, now_s: float, v_mps: float, omega_radps: float,
+               carried: tuple[float, float, float, float] | None = None) -> LidarScan:
+        """The scan with every point moved to base_link's pose at `now_s` (constant twist (v,
+        omega) since each point's cast time), given back in the lidar frame, offsets zero, stamped
+        `now_s`: one instant, as the pose the tick places it with.
+
+        Why the VPP partition needs it: it places the scan in the odom frame and projects it into
+        the camera with the pose of the tick. Undeskewed, a frame cast over 100 ms at 1 m/s is
+        smeared by up to 10 cm along the motion (plus the tick's lag behind the frame): a box's
+        face reached a few points 10 cm deep, off its tracked template, and those points stayed
+        P_fix on the face of a box the robot was about to push (case1 seed 0's detour).
+
+        carried: (x min, x max, y min, y max) in base_link: the object the robot pushes, which
+        moves with it. Its points stay where the robot saw them (relative to the robot); deskewed
+        with the world they would trail up to 14 cm behind the bumper, into the robot.
+        """
+        q = scan.points_m.astype(np.float64) @ self.R_base_lidar.T + self.t_base_lidar  # base_link at cast time
+        dt = scan.stamp_s + scan.point_time_offsets_s.astype(np.float64) - now_s
+        if carried is not None:
+            x0, x1, y0, y1 = carried
+            dt[(q[:, 0] >= x0) & (q[:, 0] <= x1) & (q[:, 1] >= y0) & (q[:, 1] <= y1)] = 0.0
+        q = _to_now(q, dt, v_mps, omega_radps)
+        p = (q - self.t_base_lidar) @ self.R_base_lidar  # R^T (q - t), per row
+        return LidarScan(stamp_s=max(float(now_s), scan.stamp_s), points_m=p.astype(np.float32),
+                         point_time_offsets_s=np.zeros(scan.num_points, np.float32),
+                         frame_duration_s=scan.frame_duration_s, frame_id=scan.frame_id,
+                         nothing_seen=scan.nothing_seen)
 
     def extract(self, scan: LidarScan, pose_now: Pose2D, now_s: float, v_mps: float, omega_radps: float,
                 only: np.ndarray | None = None) -> np.ndarray:
@@ -96,16 +139,9 @@ class ObstaclePointExtractor:
             keep &= only
         keep &= (q[:, 0] ** 2 + q[:, 1] ** 2) < self.max_range_m**2
         index = np.flatnonzero(keep)
-        q = q[keep]
-        dt = (scan.stamp_s + scan.point_time_offsets_s[keep].astype(np.float64)) - now_s  # <= 0: cast in the past
-        # Pose at cast time relative to the pose now, constant twist: yaw_i, and the chord.
-        yaw = omega_radps * dt
-        half = 0.5 * yaw
-        tx = v_mps * dt * np.cos(half)
-        ty = v_mps * dt * np.sin(half)
-        c, s = np.cos(yaw), np.sin(yaw)
-        bx = c * q[:, 0] - s * q[:, 1] + tx
-        by = s * q[:, 0] + c * q[:, 1] + ty
+        dt = (scan.stamp_s + scan.point_time_offsets_s[keep].astype(np.float64)) - now_s
+        b = _to_now(q[keep], dt, v_mps, omega_radps)
+        bx, by = b[:, 0], b[:, 1]
         # base_link now -> odom
         cy, sy = math.cos(pose_now.yaw_rad), math.sin(pose_now.yaw_rad)
         pts = np.empty((bx.shape[0], 2))

@@ -33,12 +33,18 @@ class PartitionStage(Protocol):
     vpp: object | None
 
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
-               scan: LidarScan | None) -> np.ndarray | None:
-        """This tick's partition of `scan`: (N,) bool, True = P_fix; None = every point P_fix."""
+               scan: LidarScan | None, image_pose: tuple[float, float, float] | None = None) -> np.ndarray | None:
+        """This tick's partition of `scan` (every point where it is at now_s, at `pose`): (N,)
+        bool, True = P_fix; None = every point P_fix. image_pose: the robot's pose when `image`
+        was captured (None: `pose`)."""
 
     def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The last partitioned scan's P_mov: ((N,) bool over its points, (N,) contact costs
         0..10); None when nothing is touchable."""
+
+    def carried_region(self) -> tuple[float, float, float, float] | None:
+        """Where the object the robot is pushing lies in base_link (x min, x max, y min, y max),
+        from the last scan; None when it pushes nothing."""
 
     def ready(self, now_s: float) -> bool:
         """Whether the planner may drive on what the stage knows by now."""
@@ -74,10 +80,13 @@ class AllFixedPartition:
     vpp = None  # no VPP stage (controller.vpp reads it)
 
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
-               scan: LidarScan | None) -> np.ndarray | None:
+               scan: LidarScan | None, image_pose: tuple[float, float, float] | None = None) -> np.ndarray | None:
         return None
 
     def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return None
+
+    def carried_region(self) -> tuple[float, float, float, float] | None:
         return None
 
     def ready(self, now_s: float) -> bool:
@@ -114,8 +123,8 @@ class VppPartition:
         self._contact_margin_m = contact_margin_m
 
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
-               scan: LidarScan | None) -> np.ndarray | None:
-        frame = self.vpp.update(now_s, pose, image, scan)
+               scan: LidarScan | None, image_pose: tuple[float, float, float] | None = None) -> np.ndarray | None:
+        frame = self.vpp.update(now_s, pose, image, scan, image_pose)
         return frame.fixed if frame is not None else None
 
     def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -147,6 +156,11 @@ class VppPartition:
 
     def movable_points_lidar(self) -> np.ndarray | None:
         return self.vpp.movable_points_lidar()
+
+    def carried_region(self) -> tuple[float, float, float, float] | None:
+        # touching: within 3 cm of the bumper (the contact margin's 8-12 cm would carry a box
+        # still standing a tenth of a second ahead, and put its points that far off)
+        return self.vpp.carried_region(self._half_length_m, self._half_width_m, 0.03)
 
     def observe_contact(self, now_s, pose, v_mps, currents_a) -> None:
         self.vpp.observe_contact(now_s, pose, v_mps, currents_a, self._half_length_m, self._half_width_m,

@@ -26,7 +26,7 @@ from runtime.odometry.degeneracy import DegeneracyConfig
 from runtime.odometry.fusion import FusionConfig, PoseFusion
 from runtime.odometry.icp import IcpEngine, IcpJob
 from runtime.odometry.icp_config import IcpConfig
-from runtime.odometry.se2 import se2_compose, se2_inverse
+from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse
 from runtime.odometry.wheels import WheelGyroOdometry
 from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
 from runtime.sensor_data import LidarScan
@@ -164,6 +164,20 @@ class OdometryStage:
         self.covariance = cov
         self._watch_age(now_s)
         return self.pose
+
+    def pose_at(self, t_s: float) -> Pose2D | None:
+        """The pose at a time since the last-but-one tick (a camera image's capture): the fused
+        pose now, taken back by the wheel + gyro motion from t_s to now (None: no pose yet, or
+        t_s outside the dead-reckoning history)."""
+        if self._last_update_s is None:
+            return None
+        d_t = self.fusion.dead_reckoning_at(t_s)
+        d_now = self.fusion.dead_reckoning_at(self._last_update_s)
+        if d_t is None or d_now is None:
+            return None
+        now = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
+        p = se2_compose(now, se2_between(d_now, d_t))
+        return Pose2D(float(p[0]), float(p[1]), float(p[2]))
 
     def exclude_near(self, points_lidar: np.ndarray | None) -> None:
         """The points the next frames' ICP leaves out the neighbourhood of (None: none)."""

@@ -12,16 +12,23 @@ straight-line distance to the goal. Replanned when blocked, when the goal change
 robot strays from the path, or every `replan_every_ticks` ticks. The path is then resampled at
 the target speed into the MPC's (H+1, 3) reference (x_m, y_m, v_mps), slowing down to the goal.
 
-Where a search runs (issue 12): it costs 5-7 ms (grid, Dijkstra over 25,600 cells), more than
-the rest of the planner stage together, and every tenth tick needs one. The tick never searches:
-it asks (`replan_pending`) and the loop runs the search in the slack after the tick's command is
-written (`replan_in_slack`, from that tick's pose and P_fix). Meanwhile a periodic, strayed or
-blocked-ahead replan follows the current path, one period at most (the MPC keeps clear of P_fix
-and the safety supervisor checks every command against the raw points); with no path at all
-(the first, after a reset, a new goal) the tick waits: zero command for that one period; after
-a search that found none, the tick reports blocked and the slack searches again. In lockstep the
-slack work runs at the same point of every period, so behaviour stays a function of simulated
-time. `replan_in_slack: false` searches in the tick, as before.
+Any-angle shortcutting (`shortcut`): the 8-connected cell path turns in 45-degree steps, and
+the MPC followed the kinks as an S-weave. After the search, a straight segment replaces a run of
+cells when it crosses no lethal cell (nor a touchable object's cell the run avoided) and costs
+no more than the run (Theta*'s line-of-sight idea, as a post-pass); the result is resampled at
+the grid's resolution so that the checks below still read dense points.
+
+Where a search runs (issue 12): it costs 5-11 ms (grid, Dijkstra over 25,600 cells), more than
+the rest of the planner stage together, and every tenth tick needs one. A periodic, strayed or
+blocked-ahead replan is asked for (`replan_pending`) and the loop runs it in the slack after the
+tick's command is written (`replan_in_slack`, from that tick's pose and P_fix); meanwhile the
+tick follows the current path, one period at most (the MPC keeps clear of P_fix and the safety
+supervisor checks every command against the raw points). The search for a new goal runs in the
+tick (`first_search_in_tick`): there is no path to follow meanwhile, and waiting cost a whole
+period of standing (or braking) at every goal. With no path after a reset the tick waits: zero
+command for that one period; after a search that found none, the tick reports blocked and the
+slack searches again. In lockstep the slack work runs at the same point of every period, so
+behaviour stays a function of simulated time. `replan_in_slack: false` searches in the tick.
 
 Touchable objects (issue 14; IMPACT's graded cost, BEACON's push-versus-detour rule): the
 points of P_mov come with their object's contact cost (0..10; objects at or above the
@@ -38,6 +45,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 from scipy.sparse import csr_matrix
@@ -63,6 +71,12 @@ class ReferencePathConfig(BaseModel):
         "or blocked-ahead replan follows the current path meanwhile, a missing path (the first, after a "
         "reset, a new goal) holds still. False: every search in the tick",
     )
+    first_search_in_tick: bool = Field(
+        default=True,
+        description="the search for a new goal runs in the tick, not the slack after it: the robot would "
+        "otherwise hold (or brake) a whole period waiting for a path (after a reset it still waits: it stands). 5-11 ms on "
+        "the dev box (case1, case3), inside the planner's 20 ms budget beside the MPC. False: that search "
+        "waits for the slack too, as every replan does")
     deviation_replan_m: float = Field(default=0.4, gt=0.0, le=10.0)
     blocked_check_ahead_m: float = Field(default=2.5, gt=0.0, le=50.0)
     escape_radius_m: float = Field(default=0.35, ge=0.0, le=5.0, description="start inside inflation: free cells this near")
@@ -74,6 +88,12 @@ class ReferencePathConfig(BaseModel):
     goal_tolerance_m: float = Field(default=0.10, gt=0.0, le=5.0)
     horizon_steps: int = Field(default=10, ge=1, le=200)
     step_s: float = Field(default=0.1, gt=0.0, le=1.0)
+    shortcut: bool = Field(
+        default=True,
+        description="any-angle post-processing of the cell path (Theta*'s idea, after the search): a straight "
+        "segment replaces a run of cells when it crosses no lethal cell and costs no more than the run. The "
+        "8-connected path turns in 45 degree steps, which the MPC followed as an S-weave (case3: 5.65 m of "
+        "driving, the speed dipping at each kink)")
     smoothing_window: int = Field(default=5, ge=1, le=51, description="moving average of the cell path")
     contact_cost_weight: float = Field(
         default=1.0, ge=0.0, le=100.0,
@@ -102,6 +122,70 @@ class ReferenceUpdate:
 
 #: The 8-connected grid's moves (di, dj).
 _DIRECTIONS = ((1, 0), (0, 1), (-1, 0), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
+
+
+@njit(cache=True, nogil=True)
+def _segment_cost(ai, aj, bi, bj, passable, cost, res, touch, may_touch):  # pragma: no cover - compiled
+    """The cost of the straight segment between two cell centres (cells, as the search's edges:
+    metres x cell cost), sampled every quarter cell; inf when it crosses an impassable cell, or
+    a touchable object's cell when may_touch is False."""
+    di, dj = bi - ai, bj - aj
+    length = math.sqrt(di * di + dj * dj)
+    m = max(1, int(math.ceil(length * 4.0)))
+    step = length * res / m
+    total = 0.0
+    for k in range(m + 1):
+        t = k / m
+        i = int(math.floor(ai + di * t + 0.5))
+        j = int(math.floor(aj + dj * t + 0.5))
+        if not passable[i, j] or (touch[i, j] and not may_touch):
+            return math.inf
+        w = 0.5 if k == 0 or k == m else 1.0  # trapezoid: the ends count half
+        total += w * step * cost[i, j]
+    return total
+
+
+@njit(cache=True, nogil=True)
+def _shortcut(ci, cj, passable, cost, res, touch):  # pragma: no cover - compiled
+    """Indices of the cell path (ci, cj) kept by greedy line-of-sight shortcutting: from each kept
+    cell, the farthest next cell such that every cell up to it is reachable by a straight
+    segment no more costly than the path's run to it (the search's edge costs: step x mean cell
+    cost). A segment enters a touchable object's cells (`touch`) only where the run it replaces
+    does: a shortcut never turns a detour into a push (the push-or-detour rule reads the path)."""
+    n = ci.shape[0]
+    cum = np.zeros(n)
+    touched = np.zeros(n, np.int64)  # touchable cells on the path up to each index
+    touched[0] = int(touch[ci[0], cj[0]])
+    for k in range(1, n):
+        step = math.sqrt((ci[k] - ci[k - 1]) ** 2 + (cj[k] - cj[k - 1]) ** 2) * res
+        cum[k] = cum[k - 1] + step * 0.5 * (cost[ci[k - 1], cj[k - 1]] + cost[ci[k], cj[k]])
+        touched[k] = touched[k - 1] + int(touch[ci[k], cj[k]])
+    keep = np.empty(n, np.int64)
+    keep[0] = 0
+    nk = 1
+    i = 0
+    while i < n - 1:
+        j = i + 1
+        while j + 1 < n:
+            c = _segment_cost(ci[i], cj[i], ci[j + 1], cj[j + 1], passable, cost, res, touch,
+                              touched[j + 1] > touched[i])
+            if c > cum[j + 1] - cum[i] + 1e-9:
+                break
+            j += 1
+        keep[nk] = j
+        nk += 1
+        i = j
+    return keep[:nk]
+
+
+def densify(path: np.ndarray, spacing_m: float) -> np.ndarray:
+    """The polyline with points inserted so that no two consecutive ones are farther apart than
+    spacing_m (the blocked-ahead check and the smoothing read the path's points)."""
+    seg = np.diff(path, axis=0)
+    count = np.maximum(1, np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / spacing_m).astype(np.int64))
+    t = np.concatenate([np.arange(c) / c for c in count])
+    base = np.repeat(np.arange(len(seg)), count)
+    return np.concatenate([path[base] + t[:, None] * seg[base], path[-1:]])
 
 
 @dataclass
@@ -326,6 +410,10 @@ class ReferencePathPlanner:
         path[0] = start_xy
         if end_xy is not None:
             path[-1] = end_xy
+        if cfg.shortcut and len(cells) > 2:
+            touch = (grid.contact_cost >= 0.0) if grid.contact_cost is not None else np.zeros((n, n), np.bool_)
+            keep = _shortcut(ci, cj, passable, cost, grid.resolution_m, touch)
+            path = densify(path[keep], grid.resolution_m)
         return path, "ok"
 
     def _edge_weights(self, passable: np.ndarray, cost: np.ndarray) -> csr_matrix:
@@ -439,7 +527,7 @@ class ReferencePathPlanner:
 
         reason, urgent = "", False
         if self._path is None:
-            if not cfg.replan_in_slack:
+            if not cfg.replan_in_slack or (cfg.first_search_in_tick and self._goal_changed(goal_xy)):
                 reason, urgent = "no path", True
             elif self._no_path_reason is not None and not self._goal_changed(goal_xy):
                 # The last search found no path: hold, and search again in the slack after this tick.
@@ -449,7 +537,7 @@ class ReferencePathPlanner:
                 self._request(xy, goal_xy, points, "no path")
                 return self._waiting_update(xy, "waiting for the first search")
         elif self._goal_changed(goal_xy):
-            if not cfg.replan_in_slack:
+            if not cfg.replan_in_slack or cfg.first_search_in_tick:
                 reason, urgent = "new goal", True
             else:  # the old path leads elsewhere: hold until the slack has searched
                 self._path = None

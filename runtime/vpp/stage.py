@@ -146,6 +146,7 @@ class VppStage:
             pixel_rays(camera)  # once per camera (~0.1 s with distortion): here, not in the first tick
         self._points_cam_at: dict[float, np.ndarray] = {}  # request stamp -> scan points, capture camera frame
         self._last_scan_odom: np.ndarray | None = None
+        self._last_scan_pose = (0.0, 0.0, 0.0)  # the pose the last scan was placed with
         self._image: tuple[CameraImage, np.ndarray] | None = None
         self._first_tick_s: float | None = None
         self.gave_up_waiting = False
@@ -188,8 +189,12 @@ class VppStage:
                              f"match the calibrated camera {cam.width_px}x{cam.height_px} K {cam.K.tolist()}")
 
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
-               scan: LidarScan | None) -> VppFrame | None:
-        """One tick (module docstring); returns the partition of `scan` (None without a scan)."""
+               scan: LidarScan | None, image_pose: tuple[float, float, float] | None = None) -> VppFrame | None:
+        """One tick (module docstring); returns the partition of `scan` (None without a scan).
+        scan: its points where they are at now_s (deskewed), placed with `pose`. image_pose: the
+        pose at the image's capture (None: `pose`): the camera pose its masks are warped from.
+        (A frame received one tick after its capture, tagged with the pose at receipt, was off
+        by 5 cm at 1 m/s, and the masks' edges with it.)"""
         self._now_s = float(now_s)
         if scan is not None:
             self._last_scan_lidar = scan.points_m
@@ -217,7 +222,8 @@ class VppStage:
         if image is not None:
             try:
                 self._check_image(image)
-                self._image = (image, T_odom_cam)  # the newest image and the camera pose that received it
+                T_img = T_odom_cam if image_pose is None else pose_matrix(*image_pose) @ self.T_base_cam
+                self._image = (image, T_img)  # the newest image and the camera pose at its capture
             except ValueError as exc:  # counted and named; the tick goes on with what it has
                 self.images_refused += 1
                 self.last_rejection = str(exc)
@@ -232,11 +238,14 @@ class VppStage:
         )
         p_odom = self.partitioner.last_points_odom  # the scan in the odom frame, from the partition's pass
         self._last_scan_odom = p_odom
+        self._last_scan_pose = tuple(float(v) for v in pose)
         if self._demoted_tree is not None:
             self._reidentify_demoted(part, p_odom)
         deformable = self._deformable_objects()
         # sensor time, as the capture stamps
-        self.tracker.update(float(scan.stamp_s), part, p_odom, skip=deformable if self.deformable.config.enabled else ())
+        T_odom_lidar = T_odom_base @ self.T_base_lidar
+        self.tracker.update(float(scan.stamp_s), part, p_odom, skip=deformable if self.deformable.config.enabled else (),
+                            origin_odom=T_odom_lidar[:3, 3])
         self.deformable.update(float(scan.stamp_s), part, p_odom, deformable, (pose[0], pose[1]))
         self.deformable.label(float(scan.stamp_s), part, p_odom, pose, self.robot_box)
         for old, new in self.tracker.handover_pairs:  # one object under a new mask id keeps its belief
@@ -304,6 +313,25 @@ class VppStage:
             self.masks_distrusted += 1
             return False
         return True
+
+    def carried_region(self, half_length_m: float, half_width_m: float, margin_m: float,
+                       pad_m: float = 0.05) -> tuple[float, float, float, float] | None:
+        """Where the object the robot is pushing lies relative to the robot, as the last scan saw
+        it: (x min, x max, y min, y max) in base_link, padded by pad_m; None when the robot pushes
+        nothing (no P_mov object within its footprint + margin_m ahead). A pushed object moves
+        with the robot: its points of the next scan are deskewed with it, not with the world
+        (ObstaclePointExtractor.deskew)."""
+        pose = self._last_scan_pose
+        oid = self.movable_in_front(pose, half_length_m, half_width_m, margin_m)
+        if oid is None:
+            return None
+        part = self.last_frame.partition
+        sel = (part.label == MOVABLE) & (part.object_id == oid)
+        p = self._last_scan_odom[sel]
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        dx, dy = p[:, 0] - pose[0], p[:, 1] - pose[1]
+        x, y = c * dx + s * dy, -s * dx + c * dy
+        return (float(x.min()) - pad_m, float(x.max()) + pad_m, float(y.min()) - pad_m, float(y.max()) + pad_m)
 
     def movable_in_front(self, pose: tuple[float, float, float], half_length_m: float, half_width_m: float,
                          margin_m: float, forward: bool = True, min_points: int = 3) -> int | None:

@@ -86,6 +86,13 @@ class TrackingConfig(BaseModel):
     max_rms_m: float = Field(0.06, gt=0.0, le=1.0)
     #: Fixed points within this of the registered template join the object (m).
     label_radius_m: float = Field(0.06, gt=0.0, le=0.5)
+    #: A fixed point up to this far behind the template along its own lidar ray (the ray passes
+    #: within label_radius_m of a template point on its last behind_m) is the object's too: the
+    #: lidar does not see through a solid object, and range noise (2 cm sigma on a Mid-360; the
+    #: template's points carry theirs) puts 1-3 points a scan of a box's face 6-8 cm deep. One
+    #: such point left P_fix on case1's box made the straight push lethal for a replan and sent
+    #: the robot round the box's corner (0.25 s). 0: off.
+    behind_m: float = Field(0.10, ge=0.0, le=0.5)
     #: The template may span at most this much more than the newest confirming view (m).
     max_growth_m: float = Field(0.3, ge=0.0, le=5.0)
     #: The fixed points a template takes (its faces the camera never saw: the side the robot
@@ -636,7 +643,7 @@ def _icp_all(p, label, oid, near, ids, tpl, off, margin, r, iterations, min_pair
 
 
 @njit(cache=True, nogil=True)
-def _take_all(p, label, oid, cost, near, tpl, off, r, ids, costs):  # pragma: no cover - compiled
+def _take_all(p, label, oid, cost, near, tpl, off, r, ids, costs, origin, behind):  # pragma: no cover - compiled
     """ObjectTracker._label's take for every object in order (an object takes only the FIXED
     points left by those before it), labelling in place: (taken point indices concatenated,
     offsets (K + 1,))."""
@@ -645,7 +652,7 @@ def _take_all(p, label, oid, cost, near, tpl, off, r, ids, costs):  # pragma: no
     toff = np.zeros(K + 1, np.int64)
     n = 0
     for k in range(K):
-        take = _take_near(p, label, near, tpl[off[k]:off[k + 1]], r)
+        take = _take_near(p, label, near, tpl[off[k]:off[k + 1]], r, origin, behind)
         for i in take:
             label[i] = MOVABLE
             oid[i] = ids[k]
@@ -657,14 +664,17 @@ def _take_all(p, label, oid, cost, near, tpl, off, r, ids, costs):  # pragma: no
 
 
 @njit(cache=True, nogil=True)
-def _take_near(p, label, near, tpl, r):  # pragma: no cover - compiled
-    """Indices of the FIXED points of p (among `near`) closer than r to a template point
-    (ObjectTracker._label)."""
+def _take_near(p, label, near, tpl, r, origin, behind):  # pragma: no cover - compiled
+    """Indices of the FIXED points of p (among `near`) closer than r to a template point, or (with
+    behind > 0) whose ray from the lidar at `origin` passes closer than r to one on its last
+    `behind` metres: seen behind the object's surface (ObjectTracker._label)."""
     lo, hi = _bounds(tpl)
     glo, cell, reach, dims, start, order = _grid(tpl, r, 1)
     out = np.empty(near.shape[0], np.int64)
     n = 0
     r2 = r * r
+    m = int(math.ceil(behind / (0.5 * r))) if behind > 0.0 else 0  # ray samples, r/2 apart
+    rb = r + behind
     for s in range(near.shape[0]):
         i = near[s]
         if label[i] != FIXED:
@@ -672,11 +682,25 @@ def _take_near(p, label, near, tpl, r):  # pragma: no cover - compiled
         x = p[i, 0]
         y = p[i, 1]
         z = p[i, 2]
-        if x < lo[0] - r or x > hi[0] + r or y < lo[1] - r or y > hi[1] + r or z < lo[2] - r or z > hi[2] + r:
+        if x < lo[0] - rb or x > hi[0] + rb or y < lo[1] - rb or y > hi[1] + rb or z < lo[2] - rb or z > hi[2] + rb:
             continue
         if _any_within(tpl, glo, cell, reach, dims, start, order, x, y, z, r2):
             out[n] = i
             n += 1
+            continue
+        if m == 0:
+            continue
+        ux, uy, uz = x - origin[0], y - origin[1], z - origin[2]
+        d = math.sqrt(ux * ux + uy * uy + uz * uz)
+        if d <= behind:
+            continue
+        ux, uy, uz = ux / d, uy / d, uz / d
+        for k in range(1, m + 1):
+            t = min(k * 0.5 * r, behind)
+            if _any_within(tpl, glo, cell, reach, dims, start, order, x - t * ux, y - t * uy, z - t * uz, r2):
+                out[n] = i
+                n += 1
+                break
     return out[:n]
 
 
@@ -806,6 +830,7 @@ class ObjectTracker:
         #: (old id, new id) of the handovers since the caller last emptied it (the stage moves
         #: the object's belief with it)
         self.handover_pairs: list[tuple[int, int]] = []
+        self._origin: np.ndarray | None = None  # this scan's lidar position (update)
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -833,11 +858,14 @@ class ObjectTracker:
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0
         self.handover_pairs.clear()
 
-    def update(self, now_s: float, part: PointPartition, points_odom: np.ndarray, skip=()) -> int:
+    def update(self, now_s: float, part: PointPartition, points_odom: np.ndarray, skip=(),
+               origin_odom: np.ndarray | None = None) -> int:
         """Register every object's template to this scan, merge what the masks confirmed, label
         the objects' points in `part` (in place); returns the points labelled by tracking.
         skip: object ids not to track (deformable objects: they do not move as one body,
-        runtime/vpp/deformable.py); a template of one of them is dropped."""
+        runtime/vpp/deformable.py); a template of one of them is dropped. origin_odom: the
+        lidar's position (3,) the scan was seen from (None: no behind-the-surface labelling)."""
+        self._origin = origin_odom
         c = self.config
         if not c.enabled:
             return 0
@@ -860,10 +888,11 @@ class ObjectTracker:
         # the templates as registered and merged: their points to label are those of `near`
         # unless a template now reaches out of every box `near` was taken from (a new object, a
         # view beyond the old template): then one more pass
-        lab = self._boxes(c.label_radius_m)
+        reach = c.label_radius_m + (c.behind_m if origin_odom is not None else 0.0)
+        lab = self._boxes(reach)
         if boxes is None or not all(((lo >= boxes[0]) & (hi <= boxes[1])).all(axis=1).any()
                                     for lo, hi in zip(*lab)):
-            near, _ = self._near(label, points_odom, c.label_radius_m)
+            near, _ = self._near(label, points_odom, reach)
         added = self._label_all(label, oid, cost, near, points_odom)
         for k, obj in self.objects.items():
             # Known this scan: registered, or seen by a mask (whose view, if it disagreed, moved the anchor).
@@ -1022,7 +1051,10 @@ class ObjectTracker:
         tpl, off = self._stack(objs)
         ids = np.array([o.object_id for o in objs], np.int64)
         costs = np.array([o.cost for o in objs], np.float32)
-        taken, toff = _take_all(points_odom, label, oid, cost, near, tpl, off, c.label_radius_m, ids, costs)
+        behind = float(c.behind_m) if self._origin is not None else 0.0
+        origin = np.zeros(3) if self._origin is None else np.asarray(self._origin, np.float64)
+        taken, toff = _take_all(points_odom, label, oid, cost, near, tpl, off, c.label_radius_m, ids, costs,
+                                origin, behind)
         if c.max_spread_m > 0.0 and taken.size:
             extent = np.array([o.view_extent_m for o in objs])
             yaws = np.array([o.yaw for o in objs])

@@ -92,7 +92,7 @@ def case1_report():
 def test_perfect_oracle_on_case1_meets_the_issue_bars(case1_report):
     r = case1_report
     assert r["episode"]["success"] and r["episode"]["fixed_contacts"] == 0
-    assert r["frames"] > 50
+    assert r["frames"] >= 40  # scans scored after the first answer (case1 takes ~4.2 s from the goal)
     assert r["point_precision"] >= 0.98
     assert r["point_recall_in_view"] >= 0.95
     assert r["iou_samples"]["0.5"] >= 3

@@ -175,7 +175,7 @@ def test_selector_stuck_relabels_reverses_replans_and_records():
     names = []
     for k in range(80):
         t = 0.05 * k
-        d = sel.plan(_situation(t, [0.0, 0.0, 0.0], 0.8, pts))
+        sel.plan(_situation(t, [0.0, 0.0, 0.0], 0.8, pts))
         names.append(sel.mode_name)
     assert "correcting" in names and names[-1] == "all-fixed"
     first = names.index("correcting")

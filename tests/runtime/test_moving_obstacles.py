@@ -74,12 +74,16 @@ def test_a_crossing_the_robot_clears_first_or_one_far_to_the_side_gives_nothing(
 
 
 def test_a_robot_in_the_persons_way_keeps_no_prediction_on_itself():
-    """A robot already standing in the person's way leaves it: the predicted points on itself are
-    left out (own_clearance_m); one beside the way keeps them all and holds."""
+    """A robot already standing in the person's way leaves it: the predicted points on itself and
+    in a channel out to its side of the line are left out; one beside the way keeps them all and
+    holds."""
     cfg = MovingObstaclesConfig()
     mo = MovingObstacles(cfg)
-    pred = _run(mo, lambda t: (0.0, -1.6 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=0.0, seconds=0.6)
-    assert len(pred) > 0 and np.hypot(*pred.T).min() > cfg.own_clearance_m
+    pred = _run(mo, lambda t: (0.05, -1.6 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=0.0, seconds=0.6)
+    assert len(pred) > 0 and np.hypot(*pred.T).min() > cfg.far_side_m
+    # the robot is 5 cm on the -x side of the person's line: its channel out runs to -x
+    channel = (np.abs(pred[:, 1]) <= cfg.own_clearance_m) & (pred[:, 0] < cfg.far_side_m)
+    assert not channel.any()
     mo = MovingObstacles(cfg)
     beside = _run(mo, lambda t: (0.6, -1.6 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=0.0, seconds=0.6)
     assert len(beside) > 0 and np.hypot(*beside.T).min() < cfg.own_clearance_m + 0.3
@@ -138,3 +142,59 @@ def test_a_static_box_whose_visible_faces_change_is_not_moving():
     assert not run(MovingObstaclesConfig())
     # the centroid alone says "moving": without the vacated test (every old cell may stay filled)
     assert run(MovingObstaclesConfig(max_still_filled=1.0))
+
+
+def _visible_box(robot_xy) -> np.ndarray:
+    """The faces of a fixed 0.4 x 0.8 m shelf (case3's: x 1.8..2.2, y -0.4..0.4) that a lidar at
+    robot_xy (y > 0.4) sees."""
+    x = np.arange(1.8, 2.2 + 1e-9, 0.03)
+    y = np.arange(-0.4, 0.4 + 1e-9, 0.03)
+    faces = [np.column_stack([x, np.full_like(x, 0.4)])]  # the side facing the robot
+    if robot_xy[0] < 1.8:
+        faces.append(np.column_stack([np.full_like(y, 1.8), y]))  # the front, until driven past
+    if robot_xy[0] > 2.2:
+        faces.append(np.column_stack([np.full_like(y, 2.2), y]))  # the back, once past it
+    return np.concatenate(faces)
+
+
+def test_a_shelf_driven_past_is_not_moving_though_its_front_is_hidden():
+    """Driving past a shelf hides its front (its cells are empty now: the vacated test alone is
+    fooled) and shows its back, which was behind its side before, never seen free: not moving."""
+    def run(config):
+        mo = MovingObstacles(config)
+        seen = False
+        for k in range(25):
+            t, robot = 0.1 * k, (0.8 + 0.1 * k, 0.8)
+            pts = np.concatenate([_visible_box(robot), _wall(2.5), _wall(-2.5)])
+            mo.update(t, pts, (*robot, 0.0), 1.0)
+            seen |= any(tr.moving for tr in mo.tracks)
+        return seen
+
+    assert not run(MovingObstaclesConfig())
+    assert run(MovingObstaclesConfig(min_moved_in=0.0)), "without the moved-in test the shelf moves"
+
+
+@pytest.mark.parametrize("walk", [(0.0, 1.0), (-1.0, 0.0), (-0.5, 0.0)], ids=["crossing", "head-on", "head-on slow"])
+def test_a_person_walking_across_or_towards_the_robot_moves_into_space_seen_free(walk):
+    """The moved-in test keeps real movers: a person crossing enters space where the wall behind
+    was seen; one coming head-on enters the space in front of where it was."""
+    mo = MovingObstacles()
+    _run(mo, lambda t: (3.0 + walk[0] * t, -0.8 + walk[1] * t) if walk[1] else (3.0 + walk[0] * t, 0.0))
+    moving = [t for t in mo.tracks if t.moving]
+    assert len(moving) == 1 and moving[0].velocity == pytest.approx(list(walk), abs=0.15)
+
+
+def test_a_person_coming_down_the_robots_line_is_predicted_past_the_robot():
+    """Head-on, 3.5 m off at 1.1 m/s: the way reaches past the robot (max_horizon_s), so the path
+    has only the sides to go to, and the robot keeps none of it on itself; with the way cut at
+    horizon_s (max_horizon_s 0) it ends between them, and a path could go round its end."""
+    for max_h, past in ((4.0, True), (0.0, False)):
+        cfg = MovingObstaclesConfig(max_horizon_s=max_h)
+        mo = MovingObstacles(cfg)
+        pred = _run(mo, lambda t: (4.0 - 1.1 * t, 0.1), robot_pose=(0.0, 0.0, 0.0), speed=0.8, seconds=0.6)
+        assert len(pred) > 0
+        assert bool(pred[:, 0].min() < -0.3) is past
+        assert np.hypot(*pred.T).min() > cfg.far_side_m
+        if past:  # the robot (0.1 m off the line, on its -y side) keeps the far side, not its own
+            by = pred[np.abs(pred[:, 0]) <= cfg.own_clearance_m]
+            assert len(by) and (by[:, 1] > cfg.far_side_m).all()

@@ -98,3 +98,55 @@ def test_deskew_puts_points_of_a_moving_scan_where_the_wall_is() -> None:
     out = ext.extract(_scan(pts, offsets, t0), Pose2D(*pose_at(now)), now, v, w)
     np.testing.assert_allclose(out[:, 0], 2.0, atol=2e-3)
     np.testing.assert_allclose(out[:, 1], ys, atol=2e-3)
+
+
+def _turning_scan(v: float, w: float, t0: float, wall_x: float = 2.0):
+    """A wall at x = wall_x (odom) scanned over 0.1 s by a robot on a unicycle arc from the origin;
+    (scan, pose function, the wall's ys)."""
+    lx, _, lz = ROBOT.sensors.lidar.mount.xyz_m
+    n = 200
+    offsets = np.linspace(0.0, 0.1, n)
+    ys = np.linspace(-0.5, 0.5, n)
+    pose_at = lambda t: (  # noqa: E731
+        (v / w) * math.sin(w * (t - t0)), (v / w) * (1 - math.cos(w * (t - t0))), w * (t - t0)
+    )
+    pts = np.empty((n, 3))
+    for i, (dt, y) in enumerate(zip(offsets, ys)):
+        x, yy, th = pose_at(t0 + dt)
+        c, s = math.cos(th), math.sin(th)
+        dx, dy = wall_x - x, y - yy
+        pts[i] = [c * dx + s * dy - lx, -s * dx + c * dy, 0.15 - lz]
+    return _scan(pts, offsets, t0), pose_at, ys
+
+
+def test_deskew_gives_the_scan_at_one_instant_as_extract_places_it() -> None:
+    """deskew(): the same frame with every point where it is at `now` (offsets zero, stamped now,
+    in the lidar frame): placed with the pose then, it lands on the wall, and extract gives the
+    same points from either scan (the VPP partition and the obstacle points agree)."""
+    v, w, t0 = 1.0, 1.0, 10.0
+    scan, pose_at, ys = _turning_scan(v, w, t0)
+    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0)
+    now = t0 + 0.14  # the tick after the frame's end
+    d = ext.deskew(scan, now, v, w)
+    assert d.stamp_s == now and not d.point_time_offsets_s.any() and d.num_points == scan.num_points
+    pose = Pose2D(*pose_at(now))
+    a = ext.extract(scan, pose, now, v, w)
+    b = ext.extract(d, pose, now, 0.0, 0.0)  # nothing left to deskew
+    np.testing.assert_allclose(a, b, atol=1e-5)
+    np.testing.assert_allclose(b[:, 0], 2.0, atol=2e-3)
+    np.testing.assert_allclose(b[:, 1], ys, atol=2e-3)
+
+
+def test_deskew_leaves_a_carried_object_where_the_robot_saw_it() -> None:
+    """An object the robot pushes moves with it: points inside the carried region (base_link) are
+    not moved with the world; the others are."""
+    lx, _, lz = ROBOT.sensors.lidar.mount.xyz_m
+    pts = np.array([[0.25 - lx, 0.0, 0.1 - lz], [1.5 - lx, 0.0, 0.1 - lz]])  # a box at the bumper, a wall
+    scan = _scan(pts, np.array([0.0, 0.0]), 10.0)  # cast 0.1 s before now
+    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0)
+    carried = ext.deskew(scan, 10.1, 1.0, 0.0, carried=(0.18, 0.65, -0.2, 0.2))
+    world = ext.deskew(scan, 10.1, 1.0, 0.0)
+    base = lambda s: s.points_m[:, 0] + lx  # noqa: E731
+    assert base(carried)[0] == pytest.approx(0.25, abs=1e-6)  # still at the bumper
+    assert base(world)[0] == pytest.approx(0.15, abs=1e-6)  # as if it stood still: 10 cm nearer
+    assert base(carried)[1] == pytest.approx(1.4, abs=1e-6) == base(world)[1]

@@ -372,3 +372,21 @@ def test_without_fresh_wheel_distances_the_reported_speed_carries_the_translatio
     assert odo.pose.x_m == pytest.approx(0.25)
     odo.update_with_imu(None, ())  # neither: the pose holds (no invented motion)
     assert odo.pose.x_m == pytest.approx(0.25)
+
+
+def test_pose_at_a_past_time_is_the_pose_now_taken_back_by_the_wheels():
+    """pose_at(t): where the robot was at t (a camera frame's capture) - the fused pose now, taken
+    back by the wheel motion since t; None outside the dead-reckoning history or before any pose."""
+    stage = _stage()
+    try:
+        assert stage.pose_at(0.0) is None
+        for k in range(11):  # straight ahead at 1 m/s, 20 Hz ticks
+            _tick(stage, 0.05 * k, 0.05 * k, None)
+        now = stage.pose
+        back = stage.pose_at(0.5 - 0.075)  # between two ticks: interpolated
+        assert back.x_m == pytest.approx(now.x_m - 0.075, abs=1e-6)
+        assert back.y_m == pytest.approx(now.y_m, abs=1e-9) and back.yaw_rad == pytest.approx(now.yaw_rad)
+        assert stage.pose_at(0.5).x_m == pytest.approx(now.x_m)
+        assert stage.pose_at(-10.0) is None  # before the history
+    finally:
+        stage.close()

@@ -26,8 +26,15 @@ def _planner(**kw) -> ReferencePathPlanner:
 
 
 def _plan(rp: ReferencePathPlanner, pose, goal, pts):
-    """One tick as the loop runs it when there is no path yet: the tick waits, the slack after
-    it searches, the next tick follows (or reports blocked)."""
+    """The first tick towards a goal as the loop runs it: by default (first_search_in_tick) the
+    tick searches and follows (or reports blocked); otherwise it waits, the slack after it
+    searches, and the next tick follows."""
+    if rp.config.first_search_in_tick:
+        in_tick = rp.replans_in_tick
+        up = rp.update(np.asarray(pose, float), np.asarray(goal, float), pts)
+        assert not up.waiting and up.replanned and rp.replans_in_tick == in_tick + 1
+        assert rp.replan_pending is None
+        return up
     up = rp.update(np.asarray(pose, float), np.asarray(goal, float), pts)
     assert up.waiting and not up.blocked and rp.replan_pending == "no path"
     assert np.all(up.reference[:, 2] == 0.0)  # hold still meanwhile
@@ -38,10 +45,47 @@ def _plan(rp: ReferencePathPlanner, pose, goal, pts):
 def test_open_space_path_is_nearly_straight_and_reaches_the_goal() -> None:
     rp = _planner()
     up = _plan(rp, [0.0, 0.0, 0.0], [2.0, 1.0], np.zeros((0, 2)))
-    assert not up.blocked and not up.waiting and rp.replans_in_slack == 1 and rp.replans_in_tick == 0
+    assert not up.blocked and not up.waiting and rp.replans == 1
     np.testing.assert_allclose(up.path_world[-1], [2.0, 1.0])
     length = np.hypot(*np.diff(up.path_world, axis=0).T).sum()
     assert length < np.hypot(2.0, 1.0) * 1.1
+
+
+def test_shortcut_makes_the_open_space_path_the_straight_line() -> None:
+    """Any-angle shortcutting: in open space the 8-connected staircase (45 degree kinks, up to
+    8% longer) becomes the straight segment, kept dense for the blocked-ahead check."""
+    straight = _plan(_planner(), [0.0, 0.0, 0.0], [3.0, 1.1], np.zeros((0, 2))).path_world
+    stairs = _plan(_planner(shortcut=False), [0.0, 0.0, 0.0], [3.0, 1.1], np.zeros((0, 2))).path_world
+    d = np.abs(straight[:, 0] * 1.1 - straight[:, 1] * 3.0) / np.hypot(3.0, 1.1)  # off the line
+    assert d.max() < 0.03
+    assert np.hypot(*np.diff(straight, axis=0).T).max() <= 1.5 * 0.05  # dense (and smoothed)
+    length = lambda p: np.hypot(*np.diff(p, axis=0).T).sum()  # noqa: E731
+    assert length(straight) < np.hypot(3.0, 1.1) * 1.005 < length(stairs)
+
+
+def test_shortcut_keeps_clear_of_lethal_cells_and_out_of_the_soft_zone() -> None:
+    """Round a wall's end the shortcut cuts no corner into the inflation, and where the straight
+    line would run along the soft zone of a wall it costs more than the search's path, which stays."""
+    wall = _segment([1.0, -2.0], [1.0, 0.5])
+    rp = _planner()
+    up = _plan(rp, [0.0, 0.0, 0.0], [2.0, 0.0], wall)
+    assert _path_clearance(up.path_world, wall) >= rp.inflation_radius_m - 1e-9
+    raw = _plan(_planner(shortcut=False), [0.0, 0.0, 0.0], [2.0, 0.0], wall).path_world
+    length = lambda p: np.hypot(*np.diff(p, axis=0).T).sum()  # noqa: E731
+    assert length(up.path_world) < length(raw)
+    # Along a wall 0.25 m off the straight line (inside the soft zone) the search's path bows
+    # away from it; the shortcut may straighten it only where that costs no more.
+    side = _segment([0.5, 0.25], [2.5, 0.25])
+    a = _plan(_planner(), [0.0, 0.0, 0.0], [3.0, 0.0], side).path_world
+    b = _plan(_planner(shortcut=False), [0.0, 0.0, 0.0], [3.0, 0.0], side).path_world
+    grid_cost = lambda p, r: sum(  # noqa: E731
+        np.hypot(*(q1 - q0)) * r.last_grid.cost[tuple(r.last_grid.cell_of((q0 + q1) / 2))]
+        for q0, q1 in zip(p[:-1], p[1:]))
+    rp_a, rp_b = _planner(), _planner(shortcut=False)
+    _plan(rp_a, [0.0, 0.0, 0.0], [3.0, 0.0], side)
+    _plan(rp_b, [0.0, 0.0, 0.0], [3.0, 0.0], side)
+    assert grid_cost(a, rp_a) <= grid_cost(b, rp_b) * 1.02
+    assert _path_clearance(a, side) > 0.25
 
 
 def test_path_goes_around_a_wall_through_its_opening_with_clearance() -> None:
@@ -96,7 +140,7 @@ def test_replans_when_an_obstacle_appears_on_the_path() -> None:
     first = _plan(rp, pose, goal, np.zeros((0, 2)))
     kept = rp.update(pose, goal, np.zeros((0, 2)))
     assert not kept.replanned and kept.reason == "kept"
-    assert rp.replans_in_slack == 1 and rp.replan_pending is None
+    assert rp.replans == 1 and rp.replan_pending is None
     box = _segment([1.5, -0.3], [1.5, 0.3])
     # Not urgent: this tick keeps the old path and asks for a replan in the slack after it.
     asked = rp.update(pose, goal, box)
@@ -104,7 +148,7 @@ def test_replans_when_an_obstacle_appears_on_the_path() -> None:
     np.testing.assert_array_equal(asked.path_world, first.path_world)
     assert rp.replan_in_slack() and rp.replan_pending is None and not rp.replan_in_slack()
     again = rp.update(pose, goal, box)
-    assert not again.blocked and rp.replans_in_slack == 2 and rp.replans_in_tick == 0
+    assert not again.blocked and rp.replans_in_slack == 1 and rp.replans_in_tick == 1
     assert _path_clearance(again.path_world, box) >= rp.inflation_radius_m - 1e-9
 
 
@@ -119,7 +163,7 @@ def test_without_slack_replans_every_replan_runs_in_the_tick() -> None:
 
 
 def test_periodic_replans_wait_for_the_slack_and_a_blocked_search_is_retried_there() -> None:
-    rp = _planner(replan_every_ticks=3)
+    rp = _planner(replan_every_ticks=3, first_search_in_tick=False)
     pose, goal = np.zeros(3), np.array([2.0, 0.0])
     _plan(rp, pose, goal, np.zeros((0, 2)))
     for _ in range(2):  # the third tick after the search is due
@@ -162,8 +206,21 @@ def test_bad_input_raises_named_errors() -> None:
         rp.update(np.zeros(3), np.array([1.0, 0.0]), np.zeros((3,)))
 
 
-def test_a_new_goal_holds_for_one_tick_then_follows_the_path_to_it() -> None:
+def test_a_new_goal_is_searched_in_its_first_tick() -> None:
+    """first_search_in_tick (default): no period standing (or braking) for a path to a new goal."""
     rp = _planner()
+    pose = np.zeros(3)
+    _plan(rp, pose, [2.0, 0.0], np.zeros((0, 2)))
+    up = rp.update(pose, np.array([0.0, 2.0]), np.zeros((0, 2)))
+    assert not up.waiting and up.replanned and rp.replans_in_tick == 2 and rp.replans_in_slack == 0
+    assert np.allclose(up.path_world[-1], [0.0, 2.0]) and up.reference[-1, 2] > 0.0
+    rp.reset()  # after a reset (the robot stands: a recovery) the search waits for the slack
+    up = rp.update(pose, np.array([0.0, 2.0]), np.zeros((0, 2)))
+    assert up.waiting and rp.replan_pending == "no path"
+
+
+def test_a_new_goal_holds_for_one_tick_then_follows_the_path_to_it() -> None:
+    rp = _planner(first_search_in_tick=False)
     pose = np.zeros(3)
     _plan(rp, pose, [2.0, 0.0], np.zeros((0, 2)))
     up = rp.update(pose, np.array([0.0, 2.0]), np.zeros((0, 2)))
@@ -201,7 +258,7 @@ def test_a_request_the_slack_did_not_run_is_dropped_by_the_next_tick() -> None:
 def test_a_new_goal_after_a_failed_search_waits_for_its_own_search() -> None:
     ang = np.linspace(0, 2 * np.pi, 400)
     ring = np.stack([2.0 + 0.6 * np.cos(ang), 0.6 * np.sin(ang)], axis=1)
-    rp = _planner()
+    rp = _planner(first_search_in_tick=False)
     assert _plan(rp, np.zeros(3), [2.0, 0.0], ring).blocked
     up = rp.update(np.zeros(3), np.array([-2.0, 0.0]), ring)
     assert up.waiting and not up.blocked and rp.replan_pending == "no path"
@@ -219,7 +276,10 @@ def _box_points(cx, cy, half):
 
 def _plan_with(rp, pose, goal, fix, movable):
     pose, goal = np.asarray(pose, float), np.asarray(goal, float)
-    rp.update(pose, goal, fix, movable)
+    up = rp.update(pose, goal, fix, movable)
+    if rp.config.first_search_in_tick:  # searched in this tick (a new goal)
+        assert up.replanned and not rp.replan_in_slack()
+        return up
     assert rp.replan_in_slack()
     return rp.update(pose, goal, fix, movable)
 
@@ -283,9 +343,8 @@ def test_keep_clear_gives_touchable_points_the_berth_of_fixed_ones() -> None:
     for keep_clear in (False, True):
         rp = _planner()
         pose, goal, mov = np.zeros(3), np.array([3.0, 0.0]), (box, np.full(len(box), 10.0))
-        rp.update(pose, goal, np.zeros((0, 2)), mov, keep_clear=keep_clear)
-        assert rp.replan_in_slack()
         up = rp.update(pose, goal, np.zeros((0, 2)), mov, keep_clear=keep_clear)
+        assert up.replanned  # a new goal: searched in its tick
         assert rp.last_choice == "detour" and not _crosses(up.path_world, 1.5, 0.0, 0.2)
         clearances[keep_clear] = _path_clearance(up.path_world, box)
     assert clearances[False] < rp.inflation_radius_m + 0.1

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from calibration.camera_model import CameraModel, transform_points
 from calibration.robot_description import load_robot_description
@@ -220,3 +219,21 @@ def test_the_real_time_runner_prepares_phase_two_in_its_worker_thread():
     assert stage.answers == 1 and stage.rejected_answers == 0
     assert seen == [False]  # in the worker, not in the tick's thread
     assert len(stage.memory.entries) == 1
+
+
+def test_a_frame_that_arrives_a_tick_after_its_capture_carries_the_capture_pose():
+    """The camera frame captured at 0 reaches the tick at 0.05, when the robot is 5 cm further on:
+    its request (and so its masks' warp) is tagged with the pose at capture the caller gives
+    (image_pose), not the tick's; without one, the tick's."""
+    from runtime.vpp.stage import pose_matrix
+
+    for image_pose, expect_x in (((0.0, 0.0, 0.0), 0.0), (None, 0.05)):
+        backend = FakeVlm()
+        stage = make(backend)
+        seen = []
+        backend.query = lambda request, q=backend.query: (seen.append(request.camera_pose_odom), q(request))[1]
+        stage.update(0.05, (0.05, 0.0, 0.0), image_at(0.0), scan_at(0.05)[0], image_pose)
+        stage.settle(0.6)
+        stage.update(0.6, (0.05, 0.0, 0.0), None, scan_at(0.6)[0])
+        (T,) = seen
+        np.testing.assert_allclose(T, pose_matrix(expect_x, 0.0, 0.0) @ T_BASE_CAM, atol=1e-12)

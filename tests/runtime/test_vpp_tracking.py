@@ -275,3 +275,24 @@ def test_thin_keeps_the_first_point_of_each_voxel_in_order(points, voxel, cap):
 def test_a_fit_that_could_never_pair_enough_points_is_refused_at_start():
     with pytest.raises(ValueError, match="icp_max_points"):
         TrackingConfig(icp_max_points=10, min_pairs=12)
+
+
+def test_a_point_seen_behind_the_objects_face_is_the_objects_but_not_a_wall_beyond():
+    """Range noise puts a few of a box face's points centimetres deep (the template's own points
+    carry noise too): a fixed point whose ray from the lidar passes the template on its last
+    behind_m is the object's (the lidar does not see through it); a wall 0.3 m behind is not."""
+    box = _box(2.0, 0.0)  # front face at x = 1.8, seen from the origin
+    wall = _wall(2.5)
+    deep = np.array([[1.8 + 0.085, 0.02, 0.2]])  # 8.5 cm behind the face, on a ray through it
+    for behind, taken in ((0.10, True), (0.0, False)):
+        tracker = ObjectTracker(TrackingConfig(behind_m=behind))
+        front = box[np.isclose(box[:, 0], 1.8)]
+        pts = np.concatenate([front, wall])
+        tracker.update(0.0, _part(len(pts), np.arange(len(front))), pts, origin_odom=np.array([0.0, 0.0, 0.2]))
+        pts = np.concatenate([front, deep, wall])
+        part = _part(len(pts))
+        tracker.update(0.1, part, pts, origin_odom=np.array([0.0, 0.0, 0.2]))
+        nf = len(front)
+        assert bool(part.label[nf] == MOVABLE) is taken
+        wall_behind = np.abs(wall[:, 1]) < 0.15
+        assert not (part.label[nf + 1:][wall_behind] == MOVABLE).any()
