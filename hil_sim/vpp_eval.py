@@ -175,7 +175,10 @@ class VppProbe:
             if stage._last_scan_odom is not None:
                 self._scan_odom = np.array(stage._last_scan_odom, np.float64)
         for view in self._pending:
-            view.T_odom_cam = T_odom_base @ stage.T_base_cam
+            # the camera where it took the frame (as the stage's masks are placed: pose_at)
+            at = controller.odometry.pose_at(view.stamp_s)
+            T_view = T_odom_base if at is None else pose_matrix(at.x_m, at.y_m, at.yaw_rad)
+            view.T_odom_cam = T_view @ stage.T_base_cam
             view.travel_m = self._travel
             view.scan_odom = self._scan_odom
             self.views.append(view)

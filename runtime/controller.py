@@ -289,7 +289,10 @@ class NavigationController:
         stages.mark(ODOMETRY)
 
         scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
-        if scan is not None:  # every point where it is now, as the pose places it (obstacle_points.deskew)
+        if scan is not None and self.partition.vpp is not None:
+            # every point where it is now, as the pose places it, for the VPP partition and the
+            # obstacle points alike (obstacle_points.deskew; without a partition the extractor
+            # deskews as it places)
             scan = self.obstacles.deskew(scan, now, inputs.linear_mps, self.odometry.yaw_rate_radps,
                                          carried=self.partition.carried_region())
         pose = (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad)

@@ -23,7 +23,8 @@ How, per scan (P_fix in the odom frame, (N, 2), and the robot's position):
    layouts: 15 such "movers" per episode, and the robot slowed for them), but the cells it filled
    are still filled; a walking person's are empty. And it came into space the lidar saw free
    `vacated_lag_s` ago (`min_moved_in`): of its points now, that share lies nearer than the
-   return that scan had on their bearing from where the robot was then. The faces a static
+   return that scan had on their bearing from where the robot was then (or, walking away, its
+   points then lie in space this scan sees free). The faces a static
    object shows a robot driving past it were hidden behind its other faces before (never seen
    free), and its old faces are hidden now, not empty: the vacated test alone passed the side of
    case3's shelf as a mover, and the supervisor stopped the robot for its predicted way. A
@@ -56,7 +57,8 @@ How, per scan (P_fix in the odom frame, (N, 2), and the robot's position):
    all and holds before it (measured: without that distinction, a robot waiting 0.43 m from the
    way crept into it).
 
-Not a pedestrian model (no social forces, no intent): constant velocity over 1.5 s, which is
+Not a pedestrian model (no social forces, no intent): constant velocity over 1.5 s (longer for a
+slow walker, `min_way_m`, or one coming down the robot's line, `max_horizon_s`), which is
 what the robot needs to stay out of a walking person's way at its own 1 m/s. A track is found
 moving after 0.6 s of scans at the earliest (`min_span_s` and the vacated test's `vacated_lag_s`
 from its first scan). Cost: one labelling of a (2 range_m / cell_m)^2 grid (240 x 240 at the
@@ -100,11 +102,14 @@ class MovingObstaclesConfig(BaseModel):
     #: (a share) lie in cells this scan fills (step 3).
     vacated_lag_s: float = Field(0.4, gt=0.0, le=10.0)
     max_still_filled: float = Field(0.5, ge=0.0, le=1.0)
-    #: ... and it came into space the lidar saw free vacated_lag_s ago: at least this share of its
-    #: points lie nearer than that scan's return on their bearing (seen from where the robot was)
-    #: by free_margin_m (step 3). 0: off. The faces a static object shows a passing robot were
-    #: behind its other faces before (never seen free), and its old faces are hidden now, not
-    #: empty: the vacated test alone passed it (case3's shelf beside a turning robot: a stop).
+    #: ... and it came into space the lidar saw free vacated_lag_s ago, or left space the lidar
+    #: sees free now: at least this share of its points now lie nearer than that scan's return on
+    #: their bearing (seen from where the robot was), or of its points then nearer than this
+    #: scan's return, by free_margin_m (step 3). 0: off. The faces a static object shows a
+    #: passing robot were behind its other faces before (never seen free), and its old faces are
+    #: hidden now, not empty: the vacated test alone passed it (case3's shelf beside a turning
+    #: robot: a stop). A person walking away moves into space its own body hid, and out of space
+    #: seen free now.
     min_moved_in: float = Field(0.25, ge=0.0, le=1.0)
     free_margin_m: float = Field(0.10, ge=0.0, le=2.0)
     #: The bearing bins (deg) of a scan's nearest return, for the test above.
@@ -125,6 +130,7 @@ class MovingObstaclesConfig(BaseModel):
     #: 1.5 s is under a metre, and the path went round its front, in front of the person, who
     #: caught up (person_crossing seed 10, 0.6 m/s). Longer, going behind is the shorter way.
     min_way_m: float = Field(2.0, ge=0.0, le=20.0)
+    #: (The conflict test reads the longer way too: a slow or distant walker conflicts sooner.)
     step_s: float = Field(0.25, gt=0.0, le=10.0)
     max_points: int = Field(24, ge=1, le=10000)
     #: A predicted point counts only where the robot would be about then (step 5): within this
@@ -196,7 +202,7 @@ class MovingObstacles:
         self._ever_moving: set[int] = set()
         self.max_moving = 0  # most tracks moving in one scan
         self.conflicts = 0  # scans in which a moving track would meet the robot (never reset)
-        #: (time, lidar xy, nearest return per bearing bin) of the scans over the window (step 3)
+        #: (time, robot xy, nearest return per bearing bin) of the scans over the window (step 3)
         self._profiles: list[tuple[float, np.ndarray, np.ndarray]] = []
 
     @property
@@ -281,7 +287,15 @@ class MovingObstacles:
         old = [x for x in self._profiles if now - x[0] >= c.vacated_lag_s]
         if not old or not len(points):
             return 1.0
-        _, origin, prof = old[-1]
+        return self._seen_free(old[-1], points)
+
+    def _seen_free(self, profile, points: np.ndarray) -> float:
+        """The share of `points` nearer than the profile's return on their bearing (and the bins
+        either side) by free_margin_m: space that scan saw free (0.0 without a profile)."""
+        c = self.config
+        if profile is None or not len(points):
+            return 0.0
+        _, origin, prof = profile
         d = points - origin
         r = np.hypot(d[:, 0], d[:, 1])
         nb = prof.shape[0]
@@ -387,7 +401,8 @@ class MovingObstacles:
             old = [x for x in t.past if now - x[0] >= c.vacated_lag_s]
             if not old or float(np.mean(self._occupied(old[-1][1]))) > c.max_still_filled:
                 t.moving = False
-            elif c.min_moved_in > 0.0 and self._moved_in(now, points) < c.min_moved_in:
+            elif (c.min_moved_in > 0.0 and self._moved_in(now, points) < c.min_moved_in
+                  and self._seen_free(self._profiles[-1] if self._profiles else None, old[-1][1]) < c.min_moved_in):
                 t.moving = False
         if not t.moving:
             t.moving_since_s = None
@@ -459,9 +474,10 @@ class MovingObstacles:
     def _exit_channel(self, way: np.ndarray, a: np.ndarray, velocity: np.ndarray, robot_xy: np.ndarray,
                       heading: np.ndarray) -> np.ndarray:
         """(M,) bool: the predicted points kept for a robot in the person's way. Left out: those
-        within own_clearance_m of the robot along the person's line and not farther than far_side_m
-        to the far side of it: a channel from the robot out to the side of the line it is on (on
-        the line, its right), 2 own_clearance_m wide. Kept: the rest of the way, which stops the
+        within own_clearance_m of the robot along the person's line (and head_on_reach_m more
+        towards a person it faces) and not farther than far_side_m to the far side of it: a
+        channel from the robot out to the side of the line it is on (on the line: the way it
+        faces when it crosses the line, its right when it is along it). Kept: the rest of the way, which stops the
         path from following the line or crossing it in front of the person. (A disc round the robot
         alone left it a hole too small to turn and leave by when the way reached past it: head-on,
         it backed off down the line and was walked into.)"""
@@ -471,7 +487,9 @@ class MovingObstacles:
         e = float((robot_xy - a) @ normal)
         if abs(e) > 0.05:
             side = math.copysign(1.0, e)
-        else:  # on the line: the robot's right
+        elif abs(float(heading @ d)) < 0.7:  # on the line, across it: on, the way it faces
+            side = math.copysign(1.0, float(heading @ normal))
+        else:  # on the line, along it: to its right
             side = math.copysign(1.0, float(np.array([heading[1], -heading[0]]) @ normal))
         rel = way - robot_xy
         lon = rel @ d

@@ -109,7 +109,7 @@ class ObstaclePointExtractor:
             dt[(q[:, 0] >= x0) & (q[:, 0] <= x1) & (q[:, 1] >= y0) & (q[:, 1] <= y1)] = 0.0
         q = _to_now(q, dt, v_mps, omega_radps)
         p = (q - self.t_base_lidar) @ self.R_base_lidar  # R^T (q - t), per row
-        return LidarScan(stamp_s=max(float(now_s), scan.stamp_s), points_m=p.astype(np.float32),
+        return LidarScan(stamp_s=float(now_s), points_m=p.astype(np.float32),
                          point_time_offsets_s=np.zeros(scan.num_points, np.float32),
                          frame_duration_s=scan.frame_duration_s, frame_id=scan.frame_id,
                          nothing_seen=scan.nothing_seen)

@@ -166,9 +166,10 @@ class OdometryStage:
         return self.pose
 
     def pose_at(self, t_s: float) -> Pose2D | None:
-        """The pose at a time since the last-but-one tick (a camera image's capture): the fused
-        pose now, taken back by the wheel + gyro motion from t_s to now (None: no pose yet, or
-        t_s outside the dead-reckoning history)."""
+        """The pose at a past time within the dead-reckoning history (a camera image's capture):
+        the fused pose now, taken back by the wheel + gyro motion from t_s to now (None: no pose
+        yet, or t_s outside the history). The further back, the more of the wheels' error it
+        carries: meant for the last tick or two."""
         if self._last_update_s is None:
             return None
         d_t = self.fusion.dead_reckoning_at(t_s)

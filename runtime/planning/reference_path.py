@@ -67,16 +67,17 @@ class ReferencePathConfig(BaseModel):
     replan_every_ticks: int = Field(default=10, ge=1, le=10000)
     replan_in_slack: bool = Field(
         default=True,
-        description="every search runs in the slack after the tick's command is written: a periodic, strayed "
-        "or blocked-ahead replan follows the current path meanwhile, a missing path (the first, after a "
-        "reset, a new goal) holds still. False: every search in the tick",
+        description="a replan runs in the slack after the tick's command is written: a periodic, strayed "
+        "or blocked-ahead replan follows the current path meanwhile, a missing path after a reset holds "
+        "still (a new goal's search: first_search_in_tick). False: every search in the tick",
     )
     first_search_in_tick: bool = Field(
         default=True,
         description="the search for a new goal runs in the tick, not the slack after it: the robot would "
         "otherwise hold (or brake) a whole period waiting for a path (after a reset it still waits: it stands). 5-11 ms on "
-        "the dev box (case1, case3), inside the planner's 20 ms budget beside the MPC. False: that search "
-        "waits for the slack too, as every replan does")
+        "the dev box for one search (case1, case3), twice that with touchable objects in the window (push and "
+        "detour): inside the 40 ms command deadline, over the planner's 20 ms stage budget at worst, once per "
+        "goal. False: that search waits for the slack too, as every replan does")
     deviation_replan_m: float = Field(default=0.4, gt=0.0, le=10.0)
     blocked_check_ahead_m: float = Field(default=2.5, gt=0.0, le=50.0)
     escape_radius_m: float = Field(default=0.35, ge=0.0, le=5.0, description="start inside inflation: free cells this near")
@@ -268,6 +269,10 @@ class ReferencePathPlanner:
         self.last_costs: tuple[float, float] = (math.inf, math.inf)
         self.pushes_chosen = 0
         self.detours_chosen = 0
+        # numba compiles (or loads from its cache) at start-up, not in the tick of the first goal
+        # (whose search runs in the tick: first_search_in_tick)
+        free = np.ones((4, 4), np.bool_)
+        _shortcut(np.arange(4, dtype=np.int64), np.zeros(4, np.int64), free, np.ones((4, 4)), 0.05, ~free)
 
     def reset(self) -> None:
         """Forget the current path: the next update replans (after a stop or a recovery)."""

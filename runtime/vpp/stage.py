@@ -9,8 +9,9 @@ Per tick, in this order:
    the tick only applies it (MaskMemory.apply: the matching, ids, entries);
 2. a new camera image is sent to the backend when the trigger rule says so (line 3: moved more
    than d_thres, or t_thres passed, or the memory is empty) and no request is in flight; the
-   camera pose at capture is the pose of the tick that received the image (at 20 Hz, at most
-   one period late: 5 cm at 1 m/s);
+   camera pose at capture is the caller's `image_pose` (the controller's odometry at the image's
+   stamp: OdometryStage.pose_at), else the pose of the tick that received the image (at 20 Hz,
+   at most one period late: 5 cm at 1 m/s);
 3. a new scan is partitioned (Phase III, partition.py) against the memory's masks warped to the
    camera pose now (Phase I, homography.py; per pixel: each point's pixel is looked up through
    the warp in the capture mask, no warped image is made, see MaskMemory.lookup): only objects
@@ -242,7 +243,7 @@ class VppStage:
         if self._demoted_tree is not None:
             self._reidentify_demoted(part, p_odom)
         deformable = self._deformable_objects()
-        # sensor time, as the capture stamps
+        # the scan's time (the controller deskews it to the tick and stamps it so)
         T_odom_lidar = T_odom_base @ self.T_base_lidar
         self.tracker.update(float(scan.stamp_s), part, p_odom, skip=deformable if self.deformable.config.enabled else (),
                             origin_odom=T_odom_lidar[:3, 3])
@@ -323,7 +324,9 @@ class VppStage:
         (ObstaclePointExtractor.deskew)."""
         pose = self._last_scan_pose
         oid = self.movable_in_front(pose, half_length_m, half_width_m, margin_m)
-        if oid is None:
+        # a curtain does not move as one body with the robot (its slats drape over it), and a
+        # demoted object did not move when pushed: neither is carried
+        if oid is None or oid in self.deformable.regions or oid in self.memory.demoted:
             return None
         part = self.last_frame.partition
         sel = (part.label == MOVABLE) & (part.object_id == oid)
@@ -331,7 +334,10 @@ class VppStage:
         c, s = math.cos(pose[2]), math.sin(pose[2])
         dx, dy = p[:, 0] - pose[0], p[:, 1] - pose[1]
         x, y = c * dx + s * dy, -s * dx + c * dy
-        return (float(x.min()) - pad_m, float(x.max()) + pad_m, float(y.min()) - pad_m, float(y.max()) + pad_m)
+        # what the bumper pushes: at most a footprint's width either side of the robot
+        ymax = 2.0 * half_width_m + pad_m
+        return (float(x.min()) - pad_m, float(x.max()) + pad_m,
+                max(float(y.min()) - pad_m, -ymax), min(float(y.max()) + pad_m, ymax))
 
     def movable_in_front(self, pose: tuple[float, float, float], half_length_m: float, half_width_m: float,
                          margin_m: float, forward: bool = True, min_points: int = 3) -> int | None:

@@ -646,7 +646,7 @@ def _icp_all(p, label, oid, near, ids, tpl, off, margin, r, iterations, min_pair
 def _take_all(p, label, oid, cost, near, tpl, off, r, ids, costs, origin, behind):  # pragma: no cover - compiled
     """ObjectTracker._label's take for every object in order (an object takes only the FIXED
     points left by those before it), labelling in place: (taken point indices concatenated,
-    offsets (K + 1,))."""
+    offsets (K + 1,)). behind > 0: also the points seen behind a template (_take_near)."""
     K = ids.shape[0]
     out = np.empty(near.shape[0], np.int64)
     toff = np.zeros(K + 1, np.int64)
@@ -849,12 +849,13 @@ class ObjectTracker:
             label[: 2 * len(face)], obj[: 2 * len(face)] = MOVABLE, oid
             part = PointPartition(label, obj, np.where(label == MOVABLE, 2.0, np.nan).astype(np.float32),
                                   np.ones(n, bool), np.zeros(n, bool), 0, 0)
-            self.update(0.1 * k, part, pts + [shift, 0.0, 0.0])
+            self.update(0.1 * k, part, pts + [shift, 0.0, 0.0], origin_odom=np.zeros(3))
         # a template's growth by the points it took (a scene above may not take any)
         c = self.config
         _spread_all(pts, np.zeros(1, np.int64), np.array([0, 1]), face, np.array([0, len(face)]), np.zeros(1), np.ones(1),
                     float(c.max_spread_m), float(c.template_voxel_m), int(c.max_template_points))
         self.objects.clear()
+        self._origin = None
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0
         self.handover_pairs.clear()
 
@@ -865,7 +866,7 @@ class ObjectTracker:
         skip: object ids not to track (deformable objects: they do not move as one body,
         runtime/vpp/deformable.py); a template of one of them is dropped. origin_odom: the
         lidar's position (3,) the scan was seen from (None: no behind-the-surface labelling)."""
-        self._origin = origin_odom
+        self._origin = None if origin_odom is None else np.ascontiguousarray(origin_odom, np.float64)
         c = self.config
         if not c.enabled:
             return 0
@@ -1043,7 +1044,10 @@ class ObjectTracker:
     def _label_all(self, label, oid, cost, near: np.ndarray, points_odom: np.ndarray) -> int:
         """Fixed points within label_radius_m of an object's template become that object's (in
         the objects' order: one compiled call), and join its template while it spans at most
-        max_spread_m more than its largest confirming view; returns the points labelled."""
+        max_spread_m more than its largest confirming view; then (with the scan's lidar origin)
+        the fixed points seen behind a template (behind_m) become that object's too, without
+        joining it (a template grown by them would creep, scan by scan, towards a wall behind
+        the object); returns the points labelled."""
         c = self.config
         objs = [o for o in self.objects.values() if len(o.template)]
         if not objs:
@@ -1051,10 +1055,9 @@ class ObjectTracker:
         tpl, off = self._stack(objs)
         ids = np.array([o.object_id for o in objs], np.int64)
         costs = np.array([o.cost for o in objs], np.float32)
-        behind = float(c.behind_m) if self._origin is not None else 0.0
-        origin = np.zeros(3) if self._origin is None else np.asarray(self._origin, np.float64)
+        origin = np.zeros(3) if self._origin is None else np.ascontiguousarray(self._origin, np.float64)
         taken, toff = _take_all(points_odom, label, oid, cost, near, tpl, off, c.label_radius_m, ids, costs,
-                                origin, behind)
+                                origin, 0.0)
         if c.max_spread_m > 0.0 and taken.size:
             extent = np.array([o.view_extent_m for o in objs])
             yaws = np.array([o.yaw for o in objs])
@@ -1062,7 +1065,13 @@ class ObjectTracker:
                                               float(c.template_voxel_m), int(c.max_template_points))
             for k in np.flatnonzero(grown):
                 objs[k].template = merged[noff[k]:noff[k + 1]]
-        return int(taken.size)
+        n = int(taken.size)
+        if self._origin is not None and c.behind_m > 0.0:
+            tpl, off = self._stack(objs)  # as grown
+            behind, _ = _take_all(points_odom, label, oid, cost, near, tpl, off, c.label_radius_m, ids, costs,
+                                  origin, float(c.behind_m))
+            n += int(behind.size)
+        return n
 
 
 __all__ = ["ObjectTracker", "TrackedObject", "TrackingConfig"]

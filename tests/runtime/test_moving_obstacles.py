@@ -198,3 +198,12 @@ def test_a_person_coming_down_the_robots_line_is_predicted_past_the_robot():
         if past:  # the robot (0.1 m off the line, on its -y side) keeps the far side, not its own
             by = pred[np.abs(pred[:, 0]) <= cfg.own_clearance_m]
             assert len(by) and (by[:, 1] > cfg.far_side_m).all()
+
+
+def test_a_person_walking_away_leaves_space_seen_free_and_moves():
+    """Walking straight away, a person moves into space its own body hid (never seen free): it
+    moves out of space the lidar sees free now, and that is enough."""
+    mo = MovingObstacles()
+    _run(mo, lambda t: (1.5 + 1.0 * t, 0.0), speed=0.0)
+    moving = [t for t in mo.tracks if t.moving]
+    assert len(moving) == 1 and moving[0].velocity == pytest.approx([1.0, 0.0], abs=0.15)

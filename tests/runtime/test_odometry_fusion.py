@@ -390,3 +390,27 @@ def test_pose_at_a_past_time_is_the_pose_now_taken_back_by_the_wheels():
         assert stage.pose_at(-10.0) is None  # before the history
     finally:
         stage.close()
+
+
+def test_pose_at_takes_a_turn_back_along_the_arc():
+    """Turning on the spot then driving: pose_at a time before the turn's end has the yaw and the
+    position of then, composed through the turn (not the pose now minus a straight offset)."""
+    stage = _stage()
+    try:
+        left = right = 0.0
+        for k in range(11):  # 0.5 s turning on the spot: wheels in opposite directions
+            left, right = left - 0.01, right + 0.01
+            stage.settle(0.05 * k)
+            stage.update(0.05 * k, (left, right), (), None)
+        turned = stage.pose.yaw_rad
+        assert turned > 0.1
+        for k in range(11, 21):  # then straight on 0.5 m
+            left, right = left + 0.05, right + 0.05
+            stage.settle(0.05 * k)
+            stage.update(0.05 * k, (left, right), (), None)
+        now, then = stage.pose, stage.pose_at(0.5)
+        assert then.yaw_rad == pytest.approx(turned, abs=1e-6)
+        assert np.hypot(now.x_m - then.x_m, now.y_m - then.y_m) == pytest.approx(0.5, abs=1e-3)
+        assert np.arctan2(now.y_m - then.y_m, now.x_m - then.x_m) == pytest.approx(turned, abs=1e-3)
+    finally:
+        stage.close()

@@ -296,3 +296,17 @@ def test_a_point_seen_behind_the_objects_face_is_the_objects_but_not_a_wall_beyo
         assert bool(part.label[nf] == MOVABLE) is taken
         wall_behind = np.abs(wall[:, 1]) < 0.15
         assert not (part.label[nf + 1:][wall_behind] == MOVABLE).any()
+    # Scan after scan with points deep behind the face, the template does not deepen (points
+    # taken by the ray test are labelled, never merged): it cannot creep towards the wall.
+    tracker = ObjectTracker(TrackingConfig())
+    origin = np.array([0.0, 0.0, 0.2])
+    pts = np.concatenate([front, wall])
+    tracker.update(0.0, _part(len(pts), np.arange(len(front))), pts, origin_odom=origin)
+    rng = np.random.default_rng(1)
+    for k in range(1, 30):
+        deep = front[rng.choice(len(front), 5)] + [0.085, 0.0, 0.0]
+        pts = np.concatenate([front, deep, wall])
+        part = _part(len(pts))
+        tracker.update(0.1 * k, part, pts, origin_odom=origin)
+        assert (part.label[len(front):len(front) + 5] == MOVABLE).all()
+    assert tracker.objects[7].template[:, 0].max() <= 1.8 + 0.06 + 1e-9
