@@ -141,7 +141,9 @@ def test_a_static_box_whose_visible_faces_change_is_not_moving():
 
     assert not run(MovingObstaclesConfig())
     # the centroid alone says "moving": without the vacated test (every old cell may stay filled)
-    assert run(MovingObstaclesConfig(max_still_filled=1.0))
+    # and the free-space test
+    assert run(MovingObstaclesConfig(max_still_filled=1.0, min_moved_in=0.0))
+    assert not run(MovingObstaclesConfig(min_moved_in=0.0)), "the vacated test alone stops this one"
 
 
 def _visible_box(robot_xy) -> np.ndarray:
