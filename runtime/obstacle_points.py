@@ -94,7 +94,7 @@ class ObstaclePointExtractor:
 
         Why the VPP partition needs it: it places the scan in the odom frame and projects it into
         the camera with the pose of the tick. Undeskewed, a frame cast over 100 ms at 1 m/s is
-        smeared by up to 10 cm along the motion (plus the tick's lag behind the frame): a box's
+        smeared by up to 14 cm along the motion (10 cm of frame, the tick's lag behind it): a box's
         face reached a few points 10 cm deep, off its tracked template, and those points stayed
         P_fix on the face of a box the robot was about to push (case1 seed 0's detour).
 
@@ -139,8 +139,11 @@ class ObstaclePointExtractor:
             keep &= only
         keep &= (q[:, 0] ** 2 + q[:, 1] ** 2) < self.max_range_m**2
         index = np.flatnonzero(keep)
-        dt = (scan.stamp_s + scan.point_time_offsets_s[keep].astype(np.float64)) - now_s
-        b = _to_now(q[keep], dt, v_mps, omega_radps)
+        if scan.stamp_s == now_s and not scan.point_time_offsets_s.any():
+            b = q[keep]  # deskewed to now already (deskew): nothing to move
+        else:
+            dt = (scan.stamp_s + scan.point_time_offsets_s[keep].astype(np.float64)) - now_s
+            b = _to_now(q[keep], dt, v_mps, omega_radps)
         bx, by = b[:, 0], b[:, 1]
         # base_link now -> odom
         cy, sy = math.cos(pose_now.yaw_rad), math.sin(pose_now.yaw_rad)
