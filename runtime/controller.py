@@ -175,12 +175,14 @@ class NavigationController:
         )
         # People walking: P_fix clusters followed scan to scan; where they go next joins P_fix for
         # the planner and the supervisor (points_plan), not for the odometry checks.
-        # (its range, cruise speed and acceleration are the obstacle points', the reference path's
-        # and the robot's: set here, validated)
+        # (its range, cruise speed, acceleration and footprint are the obstacle points', the
+        # reference path's and the robot's: set here, validated)
         self.moving = MovingObstacles(MovingObstaclesConfig.model_validate({
             **config.moving_obstacles.model_dump(), "range_m": op.max_range_m,
             "cruise_speed_mps": config.planner.reference_path.target_speed_mps,
-            "accel_mps2": robot.limits.max_linear_accel_mps2}))
+            "accel_mps2": robot.limits.max_linear_accel_mps2,
+            "robot_half_length_m": robot.footprint.length_m / 2.0,
+            "robot_half_width_m": robot.footprint.width_m / 2.0}))
         self.points_plan = _NO_POINTS
         stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps, vlm_backend,
                                                               camera, T_cam_lidar))

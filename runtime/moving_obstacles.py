@@ -39,7 +39,9 @@ How, per scan (P_fix in the odom frame, (N, 2), and the robot's position):
    going straight on, would be about then (that step +- one) would meet the robot; a conflict is
    one both holding the robot's speed (at least `min_extrapolation_speed_mps`) and speeding up to
    its cruise speed at its acceleration limit (a crossing it clears in a hurry is one it drives
-   through: measured, a robot that stopped for it stopped in the person's lane); it holds
+   through: measured, a robot that stopped for it stopped in the person's lane), and one where
+   braking would not keep the robot clear of the person but going on would, by its footprint
+   every 50 ms, is none either (`_goes_first`: the robot goes on, and keeps going); it holds
    `conflict_hold_s` after the last scan that found it. Only then do the planner and the supervisor get the
    person's whole way ahead with P_fix (`with_predictions`): the reference path goes behind the
    person or waits, the MPC keeps clear, the supervisor stops a command that sweeps into it.
@@ -159,6 +161,19 @@ class MovingObstaclesConfig(BaseModel):
     far_side_m: float = Field(0.22, ge=0.0, le=5.0)
     #: ... and, head-on, reaches this much further towards the person (m).
     head_on_reach_m: float = Field(0.4, ge=0.0, le=5.0)
+    #: Going on (step 5): the robot, speeding up to cruise along its heading, passes the person
+    #: first when its footprint (the robot description's, set by the controller) keeps at least
+    #: go_clearance_m + go_uncertainty_mps x (time ahead) from the person's predicted points at
+    #: every go_dt_s of the way (the margin grows with the time ahead: a velocity estimated over
+    #: 0.6 s of a person who just set off is short by 0.15-0.17 m/s, measured). Where braking
+    #: keeps less, the robot goes on if that has the larger gap and a margin of at least 0, and
+    #: then goes on while the gap stays above go_commit_clearance_m (_goes_first).
+    go_clearance_m: float = Field(0.15, ge=0.0, le=5.0)
+    go_uncertainty_mps: float = Field(0.25, ge=0.0, le=5.0)
+    go_commit_clearance_m: float = Field(0.05, ge=0.0, le=5.0)
+    go_dt_s: float = Field(0.05, gt=0.0, le=1.0)
+    robot_half_length_m: float = Field(0.161, gt=0.0, le=5.0)
+    robot_half_width_m: float = Field(0.11, gt=0.0, le=5.0)
 
 
 def _bins(d: np.ndarray, nb: int) -> np.ndarray:
@@ -199,6 +214,7 @@ class Track:
     conflict_until_s: float = -math.inf  # its way ahead is given to the planner until then
     past: list = field(default_factory=list)  # (time, points) over the window
     moving_since_s: float | None = None  # moving in every scan since then
+    passing_first: bool = False  # the robot goes on in front of it (step 5), until a conflict
 
     @property
     def last(self) -> tuple[float, float, float]:
@@ -457,6 +473,11 @@ class MovingObstacles:
             return v0 * t_acc + 0.5 * c.accel_mps2 * t_acc * t_acc + c.cruise_speed_mps * (tau - t_acc)
 
         profiles = (lambda tau: steady * tau, hurried)
+        t_stop = v0 / c.accel_mps2
+
+        def braking(tau: float) -> float:
+            tau = min(tau, t_stop)
+            return v0 * tau - 0.5 * c.accel_mps2 * tau * tau
 
         def meets(corridor: list[np.ndarray], travel) -> bool:
             for k, q in enumerate(corridor, start=1):
@@ -480,8 +501,12 @@ class MovingObstacles:
             if now_s - t.moving_since_s < c.min_moving_s:
                 continue  # a glimpse: a static object's view changing shows such (step 3)
             if all(meets(corridor, travel) for travel in profiles):
-                t.conflict_until_s = t.last[0] + c.conflict_hold_s
-            elif t.last[0] > t.conflict_until_s:
+                if self._goes_first(t, pts, p0, u, hurried, braking, n * c.step_s):
+                    t.passing_first = t.passing_first or t.last[0] > t.conflict_until_s
+                else:
+                    t.passing_first = False
+                    t.conflict_until_s = t.last[0] + c.conflict_hold_s
+            if t.last[0] > t.conflict_until_s:
                 continue
             way = np.concatenate(corridor)  # the person's way ahead: the robot goes behind, or waits
             # Never frozen in the person's way: a robot the person's centre line passes over gets
@@ -494,6 +519,40 @@ class MovingObstacles:
             out.append(way)
         self.conflicts += int(bool(out))
         return np.concatenate(out) if out else np.zeros((0, 2))
+
+    def _goes_first(self, t: Track, pts: np.ndarray, p0: np.ndarray, u: np.ndarray, hurried, braking,
+                    horizon_s: float) -> bool:
+        """A conflict by the corridor test (step 5): does the robot rather go on in front of the
+        person? Each way (braking at the acceleration limit, or hurrying on to cruise) has a least
+        gap between the footprint and the person's predicted points, and that gap less
+        go_uncertainty_mps x the time ahead (its margin). The robot yields when braking keeps a
+        margin of go_clearance_m; it goes when braking does not, going on has the larger gap, and
+        its margin is not negative (it keeps clear of a person go_uncertainty_mps faster than
+        estimated). Measured: a robot whose front was about to enter the person's lane braked
+        into it and was walked into (person_crossing seeds 15 and 24), where going on kept
+        0.2-0.3 m. Head-on both gaps are nil: it yields. Having gone, it goes on while going on
+        keeps go_commit_clearance_m (a later, faster estimate of the same person does not turn
+        the go into a stop in the person's lane)."""
+        c = self.config
+        go, go_now = self._gap(pts, t.velocity, p0, u, hurried, horizon_s)
+        if t.passing_first and go_now >= c.go_commit_clearance_m:
+            return True
+        stop, stop_now = self._gap(pts, t.velocity, p0, u, braking, horizon_s)
+        return stop < c.go_clearance_m and go_now > stop_now and go >= 0.0
+
+    def _gap(self, pts: np.ndarray, velocity: np.ndarray, p0: np.ndarray, u: np.ndarray, travel,
+             horizon_s: float) -> tuple[float, float]:
+        """The robot along its heading (travel(tau): how far by then), its footprint against the
+        person's points carried along their velocity, every go_dt_s up to horizon_s: (the least
+        gap less go_uncertainty_mps x tau, the least gap), m."""
+        c = self.config
+        tau = np.arange(0.0, horizon_s + 1e-9, c.go_dt_s)
+        centres = p0 + np.outer([travel(float(x)) for x in tau], u)  # (T, 2)
+        rel = pts[None, :, :] + tau[:, None, None] * velocity - centres[:, None, :]  # (T, M, 2)
+        along = np.abs(rel @ u) - c.robot_half_length_m
+        across = np.abs(rel @ np.array([-u[1], u[0]])) - c.robot_half_width_m
+        gap = np.hypot(np.maximum(along, 0.0), np.maximum(across, 0.0)).min(axis=1)  # (T,)
+        return float((gap - c.go_uncertainty_mps * tau).min()), float(gap.min())
 
     def _exit_channel(self, way: np.ndarray, a: np.ndarray, velocity: np.ndarray, robot_xy: np.ndarray,
                       heading: np.ndarray) -> np.ndarray:

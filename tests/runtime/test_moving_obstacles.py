@@ -73,6 +73,24 @@ def test_a_crossing_the_robot_clears_first_or_one_far_to_the_side_gives_nothing(
                     walls=False)) > 0
 
 
+def test_a_robot_that_cannot_stop_short_of_the_lane_goes_on_and_one_that_can_yields():
+    """A person found walking late, 1 m/s across the robot's line; the robot at 1 m/s. With the
+    lane 0.3 m ahead its front is in it already: braking stops it in the lane, going on clears it
+    first, so it goes on (no prediction; measured in person_crossing seeds 15 and 24: braking,
+    it was walked into). With the lane 1 m ahead it stops short of it, and yields."""
+    for lane_x, yields in ((0.3, False), (1.0, True)):
+        mo = MovingObstacles()
+        pred = _run(mo, lambda t: (lane_x, -2.0 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=1.0, seconds=0.6,
+                    walls=False)
+        (track,) = [t for t in mo.tracks if t.moving]
+        assert (len(pred) > 0) == yields, lane_x
+        assert track.passing_first == (not yields), lane_x
+    # a robot at a walk, the person closer: going on does not clear the lane first either, it yields
+    mo = MovingObstacles()
+    assert len(_run(mo, lambda t: (0.3, -1.6 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=0.2, seconds=0.6,
+                    walls=False)) > 0
+
+
 def test_a_robot_in_the_persons_way_keeps_no_prediction_on_itself():
     """A robot already standing in the person's way leaves it: the predicted points on itself and
     in a channel out to its side of the line are left out; one beside the way keeps them all and
