@@ -286,6 +286,8 @@ class NavigationController:
 
         # a box the robot pushes moves with it: kept out of the lidar odometry (last scan's P_mov)
         self.odometry.exclude_near(self.partition.movable_points_lidar())
+        # ... and so are the people walking (where the last scan's tracks put them now)
+        self.odometry.exclude_movers(self.moving.moving_points(now))
         self._update_odometry(now, inputs, sensors)
         self._follow_correction(self.odometry.correction)
         stages.mark(ODOMETRY)

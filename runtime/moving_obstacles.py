@@ -215,6 +215,7 @@ class Track:
     past: list = field(default_factory=list)  # (time, points) over the window
     moving_since_s: float | None = None  # moving in every scan since then
     passing_first: bool = False  # the robot goes on in front of it (step 5), until a conflict
+    exit_side: np.ndarray | None = None  # the odom direction of the robot's way out of its way
 
     @property
     def last(self) -> tuple[float, float, float]:
@@ -270,6 +271,13 @@ class MovingObstacles:
                 self.moving_seen += 1
         self._predicted = self._predict(float(now_s), moving, robot_pose, robot_speed_mps)
         return self._predicted
+
+    def moving_points(self, now_s: float) -> np.ndarray:
+        """(M, 2) odom points of the tracks moving at their last scan, carried along their
+        velocity to now_s: where the people are (the odometry leaves them out of its ICP)."""
+        out = [t.points + t.velocity * max(0.0, now_s - t.last[0]) for t in self.tracks
+               if t.moving and len(t.points)]
+        return np.concatenate(out) if out else np.zeros((0, 2))
 
     def with_predictions(self, points_fix: np.ndarray) -> np.ndarray:
         """P_fix and the predicted points, for the planner and the supervisor."""
@@ -515,7 +523,7 @@ class MovingObstacles:
             ab = t.velocity * (n * c.step_s)
             f = min(1.0, max(0.0, float((p0 - a) @ ab) / max(float(ab @ ab), 1e-12)))
             if math.hypot(*(p0 - (a + f * ab))) < c.in_the_way_m:
-                way = way[self._exit_channel(way, a, t.velocity, p0, u)]
+                way = way[self._exit_channel(way, a, t.velocity, p0, u, t)]
             out.append(way)
         self.conflicts += int(bool(out))
         return np.concatenate(out) if out else np.zeros((0, 2))
@@ -555,7 +563,7 @@ class MovingObstacles:
         return float((gap - c.go_uncertainty_mps * tau).min()), float(gap.min())
 
     def _exit_channel(self, way: np.ndarray, a: np.ndarray, velocity: np.ndarray, robot_xy: np.ndarray,
-                      heading: np.ndarray) -> np.ndarray:
+                      heading: np.ndarray, track: Track | None = None) -> np.ndarray:
         """(M,) bool: the predicted points kept for a robot in the person's way. Left out: those
         within own_clearance_m of the robot along the person's line (and head_on_reach_m more
         towards a person it faces) and not farther than far_side_m to the far side of it: a
@@ -568,12 +576,19 @@ class MovingObstacles:
         d = velocity / max(float(np.hypot(*velocity)), 1e-9)
         normal = np.array([-d[1], d[0]])
         e = float((robot_xy - a) @ normal)
-        if abs(e) > 0.05:
+        if track is not None and track.exit_side is not None and e * float(track.exit_side @ normal) > -0.15:
+            # the side chosen before, unless the robot is now well on the other: a centre line
+            # estimated anew every scan put a robot on it at +-7 cm, and the channel flipped
+            # sides (person_approaching seed 10: it dithered, left too late and was walked into)
+            side = math.copysign(1.0, float(track.exit_side @ normal))
+        elif abs(e) > 0.05:
             side = math.copysign(1.0, e)
         elif abs(float(heading @ d)) < 0.7:  # on the line, across it: on, the way it faces
             side = math.copysign(1.0, float(heading @ normal))
         else:  # on the line, along it: to its right
             side = math.copysign(1.0, float(np.array([heading[1], -heading[0]]) @ normal))
+        if track is not None:
+            track.exit_side = side * normal
         rel = way - robot_xy
         lon = rel @ d
         lat = side * (rel @ normal)  # > 0: towards the exit side

@@ -227,3 +227,19 @@ def test_a_person_walking_away_leaves_space_seen_free_and_moves():
     _run(mo, lambda t: (1.5 + 1.0 * t, 0.0), speed=0.0)
     moving = [t for t in mo.tracks if t.moving]
     assert len(moving) == 1 and moving[0].velocity == pytest.approx([1.0, 0.0], abs=0.15)
+
+
+def test_the_way_out_keeps_its_side_while_the_persons_line_is_estimated_anew():
+    """A robot on a head-on person's line leaves it to one side, and keeps that side though the
+    line, estimated anew every scan, passes a few centimetres to either side of it (the channel
+    flipped sides and the robot dithered: person_approaching seed 10)."""
+    mo = MovingObstacles()
+    sides = []
+    for k in range(10):
+        t = 0.1 * k
+        y = 0.06 * (-1) ** k  # the robot 6 cm to either side of the line, scan by scan
+        mo.update(t, _disc(3.0 - 1.0 * t, 0.0, n=30), (0.0, y, 0.0), 0.0)
+        tr = [x for x in mo.tracks if x.moving and x.exit_side is not None]
+        if tr:
+            sides.append(float(np.sign(tr[0].exit_side[1])))
+    assert len(sides) >= 2 and len(set(sides)) == 1, sides

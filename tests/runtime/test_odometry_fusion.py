@@ -414,3 +414,29 @@ def test_pose_at_takes_a_turn_back_along_the_arc():
         assert np.arctan2(now.y_m - then.y_m, now.x_m - then.x_m) == pytest.approx(turned, abs=1e-3)
     finally:
         stage.close()
+
+
+def test_people_walking_are_left_out_of_the_icp_at_every_height():
+    """exclude_movers: odom points of a person (a track of runtime.moving_obstacles) are taken to
+    the lidar frame with the pose and the mount; the next frame loses every point within
+    mover_radius_m of them in x, y, from the floor to the head, and keeps the rest."""
+    from runtime.geometry import Pose2D
+    from runtime.sensor_data import LidarScan
+
+    stage = _stage()
+    try:
+        stage.pose = Pose2D(1.0, 2.0, math.pi / 2)  # facing +y in the odom frame
+        person_odom = np.array([[1.0, 4.0]])  # 2 m ahead of base_link
+        stage.exclude_movers(person_odom)
+        # in the lidar frame (mounted 5 cm ahead, 20 cm up): the person 1.95 m ahead
+        z = np.linspace(-0.15, 1.5, 12)
+        person = np.column_stack([np.full(12, 1.95), np.zeros(12), z])
+        wall = np.column_stack([np.full(20, 4.0), np.linspace(-2, 2, 20), np.zeros(20)])
+        scan = LidarScan(stamp_s=0.0, points_m=np.concatenate([person, wall]).astype(np.float32),
+                         point_time_offsets_s=np.zeros(32, np.float32), frame_duration_s=0.1)
+        kept = stage._without_movable(scan, stage._exclude_xy, stage.mover_radius_m, planar=True).points_m
+        assert len(kept) == 20 and np.all(kept[:, 0] == 4.0)
+        stage.exclude_movers(None)
+        assert stage._exclude_xy is None
+    finally:
+        stage.close()
