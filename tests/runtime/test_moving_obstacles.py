@@ -243,3 +243,24 @@ def test_the_way_out_keeps_its_side_while_the_persons_line_is_estimated_anew():
         if tr:
             sides.append(float(np.sign(tr[0].exit_side[1])))
     assert len(sides) >= 2 and len(set(sides)) == 1, sides
+
+
+def test_a_person_is_left_out_of_the_odometry_once_it_has_walked_a_way():
+    """moving_points (what the lidar odometry leaves out): the points of a track found moving
+    that has gone odometry_travel_m since, carried to the time asked; nothing before that (a
+    static object that looks moving for a few scans stays in the ICP)."""
+    mo = MovingObstacles()
+    seen = {}
+    for k in range(13):
+        t = 0.1 * k
+        mo.update(t, np.concatenate([_disc(2.0, -1.5 + 1.0 * t), _wall(2.5), _wall(-2.5)]), (0.0, 0.0, 0.0), 0.0)
+        seen[k] = len(mo.moving_points(t + 0.05))
+        moving = [x for x in mo.tracks if x.moving]
+        if moving and moving[0].moving_from is not None:
+            tr = moving[0]
+            gone = math.hypot(tr.last[1] - tr.moving_from[0], tr.last[2] - tr.moving_from[1])
+            assert (seen[k] > 0) == (gone >= mo.config.odometry_travel_m), (k, gone)
+    assert seen[12] > 0 and seen[min(seen)] == 0
+    pts = mo.moving_points(1.25)
+    assert pts[:, 1].mean() == pytest.approx(-1.5 + 1.25, abs=0.12), "carried to the time asked"
+    assert np.all(np.abs(pts[:, 0] - 2.0) < 0.3)
