@@ -161,17 +161,17 @@ class MovingObstaclesConfig(BaseModel):
     far_side_m: float = Field(0.22, ge=0.0, le=5.0)
     #: ... and, head-on, reaches this much further towards the person (m).
     head_on_reach_m: float = Field(0.4, ge=0.0, le=5.0)
-    #: Going on (step 5): the robot, speeding up to cruise along its heading, passes the person
-    #: first when its footprint (the robot description's, set by the controller) keeps at least
-    #: go_clearance_m + go_uncertainty_mps x (time ahead) from the person's predicted points at
-    #: every go_dt_s of the way (the margin grows with the time ahead: a velocity estimated over
-    #: 0.6 s of a person who just set off is short by 0.15-0.17 m/s, measured). Where braking
-    #: keeps less, the robot goes on if that has the larger gap and a margin of at least 0, and
-    #: then goes on while the gap stays above go_commit_clearance_m (_goes_first).
+    #: Going on or yielding (step 5, _goes_first): the footprint (the robot description's, set by
+    #: the controller) against the person's predicted points every go_dt_s, braking at the
+    #: acceleration limit and hurrying on to cruise; a way's margin is its gap less
+    #: go_uncertainty_mps x the time ahead (at most horizon_s: a velocity estimated over 0.6 s of
+    #: a person who just set off is short by 0.15-0.17 m/s, measured). The robot yields when
+    #: braking keeps a margin of go_clearance_m; else it goes on if that has the larger gap and a
+    #: margin of at least 0, and then goes on while the gap stays above go_commit_clearance_m.
     go_clearance_m: float = Field(0.15, ge=0.0, le=5.0)
     go_uncertainty_mps: float = Field(0.25, ge=0.0, le=5.0)
     go_commit_clearance_m: float = Field(0.05, ge=0.0, le=5.0)
-    go_dt_s: float = Field(0.05, gt=0.0, le=1.0)
+    go_dt_s: float = Field(0.05, ge=0.01, le=1.0)
     robot_half_length_m: float = Field(0.161, gt=0.0, le=5.0)
     robot_half_width_m: float = Field(0.11, gt=0.0, le=5.0)
     #: A track moving this far (m) since it was found moving is left out of the lidar odometry
@@ -220,6 +220,7 @@ class Track:
     moving_from: np.ndarray | None = None  # its centroid then
     passing_first: bool = False  # the robot goes on in front of it (step 5), until a conflict
     exit_side: np.ndarray | None = None  # the odom direction of the robot's way out of its way
+    corridor_conflict_s: float = -math.inf  # the last scan whose corridor test met the robot
 
     @property
     def last(self) -> tuple[float, float, float]:
@@ -314,6 +315,8 @@ class MovingObstacles:
             t.points = move(t.points)
             if t.moving_from is not None:
                 t.moving_from = move(t.moving_from[None])[0]
+            if t.exit_side is not None:
+                t.exit_side = R @ t.exit_side
             t.past = [(tp, move(q)) for tp, q in t.past]
 
     # -- steps ------------------------------------------------------------------------------
@@ -445,6 +448,7 @@ class MovingObstacles:
         span = h[-1, 0] - h[0, 0]
         if len(h) < 3 or span < c.min_span_s:
             t.velocity, t.moving = np.zeros(2), False
+            self._stopped(t)
             return
         tt = h[:, 0] - h[:, 0].mean()
         denom = float(tt @ tt)
@@ -464,17 +468,24 @@ class MovingObstacles:
                   and self._seen_free(self._profiles[-1] if self._profiles else None, old[-1][1]) < c.min_moved_in):
                 t.moving = False
         if not t.moving:
-            t.moving_since_s = None
+            self._stopped(t)
         elif t.moving_since_s is None:
             t.moving_since_s = now
             t.moving_from = centroid.copy()
+
+    @staticmethod
+    def _stopped(t: Track) -> None:
+        """A track not moving: what was decided about its walk is forgotten."""
+        t.moving_since_s = t.moving_from = t.exit_side = None
+        t.passing_first = False
 
     def _predict(self, now_s: float, moving: list[Track], robot_pose, robot_speed_mps: float) -> np.ndarray:
         """Steps 4-5: each moving cluster's points carried along its velocity at every step, kept
         where the robot, going straight on at its speed (at least min_extrapolation_speed_mps),
         would be within conflict_radius_m of them about then (+- one step): a crossing the robot
         clears before the person arrives, or one the person has passed, does not hold it up; one
-        they would reach together does."""
+        they would reach together does, unless braking would leave the robot in the person's way
+        and going on clears it (_goes_first)."""
         c = self.config
         steps = int(c.horizon_s / c.step_s + 1e-9)
         if not moving or steps <= 0:
@@ -521,12 +532,16 @@ class MovingObstacles:
             if now_s - t.moving_since_s < c.min_moving_s:
                 continue  # a glimpse: a static object's view changing shows such (step 3)
             if all(meets(corridor, travel) for travel in profiles):
+                t.corridor_conflict_s = t.last[0]
                 if self._goes_first(t, pts, p0, u, hurried, braking, n * c.step_s):
                     t.passing_first = t.passing_first or t.last[0] > t.conflict_until_s
                 else:
                     t.passing_first = False
                     t.conflict_until_s = t.last[0] + c.conflict_hold_s
+            if t.last[0] > t.corridor_conflict_s + c.conflict_hold_s:
+                t.passing_first = False  # past: a later meeting is decided afresh
             if t.last[0] > t.conflict_until_s:
+                t.exit_side = None
                 continue
             way = np.concatenate(corridor)  # the person's way ahead: the robot goes behind, or waits
             # Never frozen in the person's way: a robot the person's centre line passes over gets
@@ -564,7 +579,7 @@ class MovingObstacles:
              horizon_s: float) -> tuple[float, float]:
         """The robot along its heading (travel(tau): how far by then), its footprint against the
         person's points carried along their velocity, every go_dt_s up to horizon_s: (the least
-        gap less go_uncertainty_mps x tau, the least gap), m."""
+        gap less go_uncertainty_mps x tau (tau at most horizon_s), the least gap), m."""
         c = self.config
         tau = np.arange(0.0, horizon_s + 1e-9, c.go_dt_s)
         centres = p0 + np.outer([travel(float(x)) for x in tau], u)  # (T, 2)
@@ -572,7 +587,7 @@ class MovingObstacles:
         along = np.abs(rel @ u) - c.robot_half_length_m
         across = np.abs(rel @ np.array([-u[1], u[0]])) - c.robot_half_width_m
         gap = np.hypot(np.maximum(along, 0.0), np.maximum(across, 0.0)).min(axis=1)  # (T,)
-        return float((gap - c.go_uncertainty_mps * tau).min()), float(gap.min())
+        return float((gap - c.go_uncertainty_mps * np.minimum(tau, c.horizon_s)).min()), float(gap.min())
 
     def _exit_channel(self, way: np.ndarray, a: np.ndarray, velocity: np.ndarray, robot_xy: np.ndarray,
                       heading: np.ndarray, track: Track | None = None) -> np.ndarray:
@@ -588,12 +603,13 @@ class MovingObstacles:
         d = velocity / max(float(np.hypot(*velocity)), 1e-9)
         normal = np.array([-d[1], d[0]])
         e = float((robot_xy - a) @ normal)
-        if track is not None and track.exit_side is not None and e * float(track.exit_side @ normal) > -0.15:
+        kept = 0.0 if track is None or track.exit_side is None else float(track.exit_side @ normal)
+        if abs(kept) > 0.5 and e * math.copysign(1.0, kept) > -0.15:
             # the side chosen before, unless the robot is now well on the other: the centre line,
             # estimated anew every scan, passed a robot on it at +-7 cm, and the channel flipped
             # sides (person_approaching seed 10: the robot dithered, left too late and was walked
             # into). (-0.3 instead, measured on seeds 0-63: 3 contacts, not 1.)
-            side = math.copysign(1.0, float(track.exit_side @ normal))
+            side = math.copysign(1.0, kept)
         elif abs(e) > 0.05:
             side = math.copysign(1.0, e)
         elif abs(float(heading @ d)) < 0.7:  # on the line, across it: on, the way it faces

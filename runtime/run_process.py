@@ -335,11 +335,9 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
             k = int(row["tick"])
             clouds = k % out.clouds_every_ticks == 0
             plan = getattr(getattr(controller.modes, "normal", None), "last_plan", None)
-            mov = None
-            if clouds and controller.vpp is not None and scan is not None:
-                frame = controller.vpp.last_frame
-                if frame is not None and len(frame.fixed) == scan.num_points:
-                    mov = scan.points_m[~frame.fixed]
+            # P_mov as the partition labelled it: the scan deskewed to the tick (the raw scan's
+            # points lie up to 14 cm off along the motion; obstacle_points.deskew)
+            mov = controller.vpp.movable_points_lidar() if clouds and controller.vpp is not None else None
             publisher.offer(TickView(
                 stamp_s=float(row["scheduled_s"]), pose=controller.pose, v_mps=controller.command[0],
                 omega_radps=controller.command[1], state=controller.state.name,

@@ -418,25 +418,34 @@ def test_pose_at_takes_a_turn_back_along_the_arc():
 
 def test_people_walking_are_left_out_of_the_icp_at_every_height():
     """exclude_movers: odom points of a person (a track of runtime.moving_obstacles) are taken to
-    the lidar frame with the pose and the mount; the next frame loses every point within
-    mover_radius_m of them in x, y, from the floor to the head, and keeps the rest."""
+    the lidar frame with the pose and the mount (here turned 90 degrees and tilted); the next
+    frame loses every point within mover_radius_m of them in x, y, from the floor to the head,
+    and keeps the rest."""
+    from runtime.events import EventLog
     from runtime.geometry import Pose2D
+    from runtime.odometry.stage import OdometryConfig, OdometryStage
     from runtime.sensor_data import LidarScan
 
-    stage = _stage()
-    try:
-        stage.pose = Pose2D(1.0, 2.0, math.pi / 2)  # facing +y in the odom frame
-        person_odom = np.array([[1.0, 4.0]])  # 2 m ahead of base_link
-        stage.exclude_movers(person_odom)
-        # in the lidar frame (mounted 5 cm ahead, 20 cm up): the person 1.95 m ahead
-        z = np.linspace(-0.15, 1.5, 12)
-        person = np.column_stack([np.full(12, 1.95), np.zeros(12), z])
-        wall = np.column_stack([np.full(20, 4.0), np.linspace(-2, 2, 20), np.zeros(20)])
-        scan = LidarScan(stamp_s=0.0, points_m=np.concatenate([person, wall]).astype(np.float32),
-                         point_time_offsets_s=np.zeros(32, np.float32), frame_duration_s=0.1)
-        kept = stage._without_movable(scan, stage._exclude_xy, stage.mover_radius_m, planar=True).points_m
-        assert len(kept) == 20 and np.all(kept[:, 0] == 4.0)
-        stage.exclude_movers(None)
-        assert stage._exclude_xy is None
-    finally:
-        stage.close()
+    yaw, tilt = math.pi / 2, math.radians(3.0)
+    Rz = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
+    Ry = np.array([[math.cos(tilt), 0, math.sin(tilt)], [0, 1, 0], [-math.sin(tilt), 0, math.cos(tilt)]])
+    mount = np.eye(4)
+    mount[:3, :3] = Rz @ Ry  # lidar -> base_link
+    mount[:3, 3] = [0.05, 0.02, 0.20]
+    cfg = OdometryConfig(icp=IcpConfig(voxel_size_m=0.2, deskew="off"), lockstep_worker="inline")
+    stage = OdometryStage(cfg, 0.175, 3.0, mount, lockstep=True, events=EventLog())
+    stage.pose = Pose2D(1.0, 2.0, math.pi / 2)  # facing +y in the odom frame
+    stage.exclude_movers(np.array([[1.0, 4.0]]))  # 2 m ahead of base_link
+    # the person's column and a wall, made in base_link and taken to the lidar frame
+    z = np.linspace(0.05, 1.7, 12)
+    person_base = np.column_stack([np.full(12, 2.0), np.zeros(12), z])
+    wall_base = np.column_stack([np.full(20, 4.0), np.linspace(-2, 2, 20), np.full(20, 0.3)])
+    pts_base = np.concatenate([person_base, wall_base])
+    pts_lidar = (pts_base - mount[:3, 3]) @ mount[:3, :3]
+    scan = LidarScan(stamp_s=0.0, points_m=pts_lidar.astype(np.float32),
+                     point_time_offsets_s=np.zeros(32, np.float32), frame_duration_s=0.1)
+    kept = stage._without_movable(scan, stage._movers_in_lidar(0.05), stage.mover_radius_m, planar=True).points_m
+    kept_base = kept.astype(np.float64) @ mount[:3, :3].T + mount[:3, 3]
+    assert len(kept) == 20 and np.allclose(kept_base[:, 0], 4.0, atol=1e-4), "the wall stays, the person goes"
+    stage.exclude_movers(None)
+    assert stage._exclude_xy is None
