@@ -540,6 +540,28 @@ def _person_approaching(name: str, rng: np.random.Generator) -> tuple[_Scene, di
     return sc, {"inflation_m": FREE_INFLATION_M, "passable": frozenset({"movable", "deformable", "person"})}
 
 
+def _person_blocking(name: str, rng: np.random.Generator) -> tuple[_Scene, dict]:
+    sc = _Scene(name, "a corridor 0.9 m wide with a person (r 0.25 m) standing in it, 3-6 s, then walking on 1 m "
+                      "and into an alcove: the robot waits while the way is blocked and goes on when it clears",
+                (9.0, 3.0), 30.0)
+    t, h = 0.1, 0.6  # wall thickness and height; the corridor's inner faces at y = +-0.45
+    # The alcove (0.8 m wide, 0.9 m deep) 0.6 m beyond where the person stands: while the person
+    # stands, nothing opens beside it (0.2 m either side, the robot is 0.22 m wide).
+    xa = rng.uniform(0.0, 1.0)
+    walls = [("wall_south", (-4.05, -0.5), (4.05, -0.5)), ("wall_north_w", (-4.05, 0.5), (xa, 0.5)),
+             ("wall_north_e", (xa + 0.8, 0.5), (4.05, 0.5)), ("wall_west", (-4.05, -0.5), (-4.05, 0.5)),
+             ("wall_east", (4.05, -0.5), (4.05, 0.5)), ("alcove_w", (xa - t / 2, 0.45), (xa - t / 2, 1.4)),
+             ("alcove_e", (xa + 0.8 + t / 2, 0.45), (xa + 0.8 + t / 2, 1.4)),
+             ("alcove_n", (xa - t, 1.4), (xa + 0.8 + t, 1.4))]
+    for wname, a, b in walls:
+        sc.walls.append({"name": wname, "from": list(a), "to": list(b), "thickness_m": t, "height_m": h})
+    sc.start, sc.goal = (-3.2, 0.0, 0.0), (3.2, 0.0)
+    x = xa + 0.4
+    _person(sc, "person", (x - 1.0, rng.uniform(-0.03, 0.03)), [(x, 0.0), (x, 0.85)], rng.uniform(*PERSON_SPEED_MPS),
+            "once", rng.uniform(3.0, 6.0))
+    return sc, {"inflation_m": FREE_INFLATION_M, "passable": frozenset({"movable", "deformable", "person"})}
+
+
 # ----------------------------------------------------------------------------- registry
 
 
@@ -575,6 +597,8 @@ _register("beacon_collision_shortcut", "BEACON collision-shortcut: boxes on the 
           _beacon_collision_shortcut)
 _register("person_crossing", "a person walking across the robot's line (0.5-1.2 m/s)", _person_crossing)
 _register("person_approaching", "a person walking head-on down the robot's line (0.5-1.2 m/s)", _person_approaching)
+_register("person_blocking", "a person standing in a corridor 3-6 s, then walking on into an alcove",
+          _person_blocking)
 
 
 def list_generators() -> list[str]:

@@ -178,6 +178,11 @@ class ModeSelector:
                 if self.stuck is not None:
                     self.stuck.forget()
             else:
+                if self.stuck is not None and (d.at_goal or d.blocked):
+                    # waiting for the way to clear (or at the goal) is not a stuck push: the window
+                    # starts afresh (measured: a robot that waited 5 s for a person standing in a
+                    # corridor was found "stuck" the tick the way cleared, and reversed)
+                    self.stuck.restart()
                 stuck = (self.stuck.update(s, d.v_mps) if self.stuck is not None and not (d.at_goal or d.blocked)
                          else None)
                 if stuck is not None:

@@ -28,3 +28,19 @@ def test_without_the_prediction_the_crossing_person_is_walked_into():
     is, and the robot and the person meet."""
     m = run_episode("person_crossing", config=_without_prediction(), seed=2).metrics
     assert m["person_contacts"] > 0
+
+
+def test_a_person_standing_in_a_corridor_is_waited_for_not_circled():
+    """person_blocking: the person blocks the corridor for 3-6 s, then walks on into an alcove.
+    The robot waits (no path while the person stands; no reversing, no circling: the distance it
+    drives is the straight line's) and goes on when the way clears. Seed 0 once reversed the tick
+    the way cleared (the stuck detector's window spanned the wait)."""
+    result = run_episode("person_blocking", seed=0)
+    m = result.metrics
+    assert m["success"], result.failure_reason
+    assert m["person_contacts"] == 0 and m["fixed_contacts"] == 0
+    assert m["correcting_events"] == 0
+    straight = 6.4
+    assert m["path_length_m"] < straight * 1.05, "no detour, no reversing, no circling"
+    c = m["controller"]
+    assert c["blocked_ticks"] > 20, "it waited while the way was blocked"

@@ -207,7 +207,7 @@ def test_a_robot_that_hits_a_person_counts_a_person_contact_and_fails():
 
 
 def test_generated_people_scenes_walk_at_human_speed():
-    for name in ("person_crossing", "person_approaching"):
+    for name in ("person_crossing", "person_approaching", "person_blocking"):
         for seed in range(3):
             person = generate_scene(name, seed).obstacle("person")
             assert person.obstacle_class == "person" and person.walk is not None
