@@ -190,3 +190,34 @@ def test_selector_stuck_relabels_reverses_replans_and_records():
     assert ev[:3] == ["stuck", "correcting", "correcting_end"]
     # A second correction at the same place traces back further.
     assert len(rep["correcting"]) < 2 or rep["correcting"][1]["traceback_m"] > c["traceback_m"]
+
+
+class _BlockedForAWhile(_Normal):
+    """Drives (0.8 m/s) for 0.5 s, has no path (blocked) from 0.5 s to 3.5 s, then drives again."""
+
+    def plan(self, s):
+        if 0.5 <= s.now_s < 3.5:
+            return ModeDecision(0.0, 0.0, remaining_m=2.0, blocked=True)
+        return ModeDecision(0.8, 0.0, remaining_m=2.0)
+
+
+def test_waiting_for_the_way_to_clear_is_not_a_stuck_push():
+    """A robot that drove up to a person standing in a corridor, held while there was no path and
+    goes on when the way clears is not stuck at that tick: the window starts afresh while blocked
+    (it spanned the wait, and person_blocking's robot reversed 0.45 m the tick the way cleared).
+    Standing still with the command on for tau_stuck after that is stuck again."""
+    from calibration.robot_description import load_robot_description
+    from runtime.modes.correcting import CorrectingMode
+
+    corr = CorrectingMode(CONFIG, _Backoff(), load_robot_description(), _Partition())
+    events = EventLog()
+    sel = ModeSelector(_BlockedForAWhile(), None, RecoveryConfig(), events, corr)
+    pts = _room(np.random.default_rng(3))
+    stuck_at = None
+    for k in range(int(5.0 / 0.05)):
+        t = 0.05 * k
+        scan = pts.copy() if k % 2 == 0 else scan  # a new scan every other tick (10 Hz)
+        sel.plan(_situation(t, [0.0, 0.0, 0.0], 0.8 if not 0.5 <= t < 3.5 else 0.0, scan))
+        if stuck_at is None and any(e.event == "stuck" for e in events):
+            stuck_at = t
+    assert stuck_at is not None and stuck_at >= 3.5 + CONFIG.tau_stuck_s - 0.06, stuck_at
