@@ -213,10 +213,11 @@ def test_waiting_for_the_way_to_clear_is_not_a_stuck_push():
     events = EventLog()
     sel = ModeSelector(_BlockedForAWhile(), None, RecoveryConfig(), events, corr)
     pts = _room(np.random.default_rng(3))
-    stuck_at = None
+    stuck_at, scan = None, pts
     for k in range(int(5.0 / 0.05)):
         t = 0.05 * k
-        scan = pts.copy() if k % 2 == 0 else scan  # a new scan every other tick (10 Hz)
+        if k % 2 == 0:
+            scan = pts.copy()  # a new scan every other tick (10 Hz)
         sel.plan(_situation(t, [0.0, 0.0, 0.0], 0.8 if not 0.5 <= t < 3.5 else 0.0, scan))
         if stuck_at is None and any(e.event == "stuck" for e in events):
             stuck_at = t
