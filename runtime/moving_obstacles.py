@@ -76,6 +76,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
+from runtime.geometry import least_return_near, nearest_returns
+
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 
@@ -161,6 +163,12 @@ class MovingObstaclesConfig(BaseModel):
     far_side_m: float = Field(0.22, ge=0.0, le=5.0)
     #: ... and, head-on, reaches this much further towards the person (m).
     head_on_reach_m: float = Field(0.4, ge=0.0, le=5.0)
+    #: ... and a robot along the line goes to the side it will be on after this much driving on
+    #: (m): the side it heads to, unless it is well on the other (_exit_channel).
+    exit_heading_lead_m: float = Field(0.3, ge=0.0, le=5.0)
+    #: A side once chosen is kept until the robot is this far (m) on the other side of the line
+    #: (with the lead above, along it).
+    exit_switch_m: float = Field(0.15, ge=0.0, le=5.0)
     #: Going on or yielding (step 5, _goes_first): the footprint (the robot description's, set by
     #: the controller) against the person's predicted points every go_dt_s, braking at the
     #: acceleration limit and hurrying on to cruise; a way's margin is its gap less
@@ -177,26 +185,6 @@ class MovingObstaclesConfig(BaseModel):
     #: A track moving this far (m) since it was found moving is left out of the lidar odometry
     #: (moving_points).
     odometry_travel_m: float = Field(0.3, ge=0.0, le=10.0)
-
-
-def _bins(d: np.ndarray, nb: int) -> np.ndarray:
-    """Bearing bin (0..nb-1) of each offset (N, 2)."""
-    return (np.floor((np.arctan2(d[:, 1], d[:, 0]) + math.pi) * (nb / (2.0 * math.pi))).astype(np.intp)) % nb
-
-
-#: The widest bearing window of the free-space test (bins either side).
-_MAX_WINDOW_BINS = 30
-
-
-def _window_mins(profile: np.ndarray, kmax: int) -> np.ndarray:
-    """(kmax, nb): row k-1 is the profile's minimum over bins b-k..b+k (wrapping)."""
-    out = np.empty((kmax, profile.shape[0]))
-    cur = np.minimum(profile, np.minimum(np.roll(profile, 1), np.roll(profile, -1)))
-    out[0] = cur
-    for k in range(2, kmax + 1):
-        cur = np.minimum(cur, np.minimum(np.roll(profile, k), np.roll(profile, -k)))
-        out[k - 1] = cur
-    return out
 
 
 def _rotate_bins(profile: np.ndarray, shift_bins: float) -> np.ndarray:
@@ -324,15 +312,7 @@ class MovingObstacles:
         """The scan's nearest return (m) per bearing bin round origin (odom bearings; inf: none
         within range_m: unknown, not free)."""
         c = self.config
-        nb = int(round(360.0 / c.bearing_bin_deg))
-        out = np.full(nb, np.inf)
-        if len(points):
-            d = points - np.asarray(origin)
-            r = np.hypot(d[:, 0], d[:, 1])
-            b = _bins(d, nb)
-            keep = r < c.range_m
-            np.minimum.at(out, b[keep], r[keep])
-        return out
+        return nearest_returns(points - np.asarray(origin), int(round(360.0 / c.bearing_bin_deg)), c.range_m)
 
     def _moved_in(self, now: float, points: np.ndarray) -> float:
         """The share of `points` lying in space the scan of vacated_lag_s ago saw free: nearer
@@ -347,23 +327,14 @@ class MovingObstacles:
     def _seen_free(self, profile, points: np.ndarray) -> float:
         """The share of `points` nearer by free_margin_m than every return the profile has on
         the bearings within free_lateral_m of them (none: open to range_m): space that scan saw
-        free (0.0 without a profile). A single bearing bin is not enough: the voxel-thinned P_fix
-        leaves bins empty on a surface near the robot (0.7 cm per degree at 0.4 m), and rays
-        graze past an edge; read as free, the side of a shelf driven past looked vacated, and the
-        supervisor stopped the robot for its predicted way."""
+        free (0.0 without a profile). (A single bearing bin, read as free, made the side of a shelf
+        driven past look vacated, and the supervisor stopped the robot for its predicted way.)"""
         c = self.config
         if profile is None or not len(points):
             return 0.0
         _, origin, prof = profile
-        d = points - origin
-        r = np.hypot(d[:, 0], d[:, 1])
-        nb = prof.shape[0]
-        b = _bins(d, nb)
-        # the bearings within free_lateral_m of the point (at least one bin either side)
-        k = np.clip(np.ceil(np.arctan2(c.free_lateral_m, np.maximum(r, 1e-3)) * (nb / (2.0 * math.pi))),
-                    1, _MAX_WINDOW_BINS).astype(np.intp)
-        window_min = _window_mins(prof, int(k.max()))
-        return float(np.mean(r + c.free_margin_m < window_min[k - 1, b]))
+        r, least = least_return_near(prof, points - origin, c.free_lateral_m)
+        return float(np.mean(r + c.free_margin_m < least))
 
     def _occupied(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: the points' cells are occupied in this scan's grid."""
@@ -604,15 +575,26 @@ class MovingObstacles:
         normal = np.array([-d[1], d[0]])
         e = float((robot_xy - a) @ normal)
         kept = 0.0 if track is None or track.exit_side is None else float(track.exit_side @ normal)
-        if abs(kept) > 0.5 and e * math.copysign(1.0, kept) > -0.15:
-            # the side chosen before, unless the robot is now well on the other: the centre line,
-            # estimated anew every scan, passed a robot on it at +-7 cm, and the channel flipped
-            # sides (person_approaching seed 10: the robot dithered, left too late and was walked
-            # into). (-0.3 instead, measured on seeds 0-63: 3 contacts, not 1.)
+        along_line = abs(float(heading @ d)) >= 0.7
+        # Along the line, where the robot heads counts as much as where it is: the offset it will
+        # have after exit_heading_lead_m of driving on, to choose a side and to give it up. By its
+        # offset alone (to a line drawn from the person's visible face and estimated velocity:
+        # centimetres off near the person, 0.2 m off 3 m away), a robot already turned 20-27 deg
+        # to one side was sent to the other, turned back, and was on the line when the person
+        # came (person_approaching seed 6).
+        offset = e + (c.exit_heading_lead_m * float(heading @ normal) if along_line else 0.0)
+        if abs(kept) > 0.5 and offset * math.copysign(1.0, kept) > -c.exit_switch_m:
+            # the side chosen before, unless the robot is now well on the other (or heading well
+            # into it): the centre line, estimated anew every scan, passed a robot on it at +-7 cm,
+            # and the channel flipped sides (person_approaching seed 10: the robot dithered, left
+            # too late and was walked into). Measured on seeds 0-63: 0.3 m instead of 0.15 m, 3
+            # contacts, not 1; 0.15 m plus 0.1 m per metre to the person (the line's direction
+            # error, read at the robot), 2: the reference path went round the way's end behind
+            # the robot to the other side, and the channel, kept, sent it back.
             side = math.copysign(1.0, kept)
-        elif abs(e) > 0.05:
-            side = math.copysign(1.0, e)
-        elif abs(float(heading @ d)) < 0.7:  # on the line, across it: on, the way it faces
+        elif abs(offset) > 0.05:
+            side = math.copysign(1.0, offset)
+        elif not along_line:  # on the line, across it: on, the way it faces
             side = math.copysign(1.0, float(heading @ normal))
         else:  # on the line, along it: to its right
             side = math.copysign(1.0, float(np.array([heading[1], -heading[0]]) @ normal))
