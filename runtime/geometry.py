@@ -1,4 +1,6 @@
-"""Planar poses (x, y, yaw) and the few operations the controller needs on them."""
+"""Planar poses (x, y, yaw) and the few operations the controller needs on them; a scan's nearest
+return per bearing round a point, and the least of it near a point's bearing (the moving-obstacle
+tests of space seen free)."""
 from __future__ import annotations
 
 import math

@@ -51,7 +51,8 @@ How, per scan (P_fix in the odom frame, (N, 2), and the robot's position):
    reference path went round it in front of the person, who walked into the robot there. A robot
    already in the person's way (its centre within `in_the_way_m` of the person's predicted centre
    line) loses the predicted points of a channel out of it (`_exit_channel`: from itself to its
-   side of the line, `own_clearance_m` either way along the line, reaching `head_on_reach_m`
+   side of the line (along the line: the side it heads to), `own_clearance_m` either way along
+   the line, reaching `head_on_reach_m`
    further towards a person it faces, so the way out is a forward arc) and leaves the way; the
    points on the line's far side stay, so the path does not cross in front of the person
    (measured: held by a corridor round itself, "no path", it was walked into; with a disc round
@@ -565,9 +566,11 @@ class MovingObstacles:
         """(M,) bool: the predicted points kept for a robot in the person's way. Left out: those
         within own_clearance_m of the robot along the person's line (and head_on_reach_m more
         towards a person it faces) and not farther than far_side_m to the far side of it: a
-        channel from the robot out to the side of the line it is on (on the line: the way it
-        faces when it crosses the line, its right when it is along it). Kept: the rest of the way, which stops the
-        path from following the line or crossing it in front of the person. (A disc round the robot
+        channel from the robot out to the side of the line it is on or, along the line, the side
+        it will be on after exit_heading_lead_m of driving on, kept until it is exit_switch_m on
+        the other side (exactly on the line: the way it faces when it crosses the line, its right
+        when it is along it). Kept: the rest of the way, which stops the path from following the
+        line or crossing it in front of the person. (A disc round the robot
         alone left it a hole too small to turn and leave by when the way reached past it: head-on,
         it backed off down the line and was walked into.)"""
         c = self.config
@@ -587,12 +590,13 @@ class MovingObstacles:
             # the side chosen before, unless the robot is now well on the other (or heading well
             # into it): the centre line, estimated anew every scan, passed a robot on it at +-7 cm,
             # and the channel flipped sides (person_approaching seed 10: the robot dithered, left
-            # too late and was walked into). Measured on seeds 0-63: 0.3 m instead of 0.15 m, 3
-            # contacts, not 1; 0.15 m plus 0.1 m per metre to the person (the line's direction
-            # error, read at the robot), 2: the reference path went round the way's end behind
-            # the robot to the other side, and the channel, kept, sent it back.
+            # too late and was walked into). Measured on seeds 0-63: before the heading lead,
+            # 0.3 m instead of 0.15 m, 3 contacts, not 1; with the lead for the choice but the
+            # switch on the offset alone, 0.15 m plus 0.1 m per metre to the person (the line's
+            # direction error, read at the robot), 2: the reference path went round the way's end
+            # behind the robot to the other side, and the channel, kept, sent it back. Now: 0.
             side = math.copysign(1.0, kept)
-        elif abs(offset) > 0.05:
+        elif abs(offset) > 0.05:  # (within 5 cm: on the line, for a line drawn from a face)
             side = math.copysign(1.0, offset)
         elif not along_line:  # on the line, across it: on, the way it faces
             side = math.copysign(1.0, float(heading @ normal))

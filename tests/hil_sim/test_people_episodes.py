@@ -14,7 +14,10 @@ def _without_prediction():
     return cfg.model_copy(update={"moving_obstacles": cfg.moving_obstacles.model_copy(update={"enabled": False})})
 
 
-@pytest.mark.parametrize("scene, seed", [("person_crossing", 2), ("person_crossing", 7), ("person_approaching", 15)])
+# (approaching seed 6: head-on at 0.65 m/s, the robot already turned to one side; it was sent to
+# the other and walked into before the way out went to the side it heads to)
+@pytest.mark.parametrize("scene, seed", [("person_crossing", 2), ("person_crossing", 7), ("person_approaching", 15),
+                                         ("person_approaching", 6)])
 def test_the_robot_yields_to_a_walking_person_and_reaches_the_goal(scene, seed):
     result = run_episode(scene, seed=seed)
     m = result.metrics
