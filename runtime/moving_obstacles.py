@@ -592,7 +592,7 @@ class MovingObstacles:
             # and the channel flipped sides (person_approaching seed 10: the robot dithered, left
             # too late and was walked into). Measured on seeds 0-63: before the heading lead,
             # 0.3 m instead of 0.15 m, 3 contacts, not 1; with the lead for the choice but the
-            # switch on the offset alone, 0.15 m plus 0.1 m per metre to the person (the line's
+            # switch on the offset without it, 0.15 m plus 0.1 m per metre to the person (the line's
             # direction error, read at the robot), 2: the reference path went round the way's end
             # behind the robot to the other side, and the channel, kept, sent it back. Now: 0.
             side = math.copysign(1.0, kept)
