@@ -524,7 +524,7 @@ class VppStage:
             "masks_distrusted": self.masks_distrusted, "points_tracked": self.tracker.points_tracked,
             "tracking": {"objects": len(self.tracker.objects), "registrations": self.tracker.registrations,
                          "lost": self.tracker.lost, "unseen": self.tracker.unseen,
-                         "handovers": self.tracker.handovers},
+                         "handovers": self.tracker.handovers, "refused_views": self.tracker.refused_views},
             "deformable": self.deformable.describe(),
             "images_refused": self.images_refused, "gave_up_waiting": self.gave_up_waiting,
             "frames": self.frames, "memory_entries": len(self.memory.entries), "runner": self.runner.counters(),

@@ -26,6 +26,10 @@ How, per object, with the points of one scan in the odom frame:
   saw, which the robot may be pushing on) while the template spans at most `max_spread_m` more
   than the largest view a mask confirmed: a box pressed against a wall takes at most that much
   of the wall.
+- Plausibility: a mask's view of an object the tracker knows where it is (registered this scan,
+  or registered or seen within `max_unknown_s`) whose centre lies farther from the template's
+  than half their footprints and `max_step_m` is not the object: refused, and its points are
+  fixed (_implausible_views: a view that replaced the template there took a wall for a box).
 - Identity: the mask memory gives an object a new id when its warped mask stops matching the
   fresh one (it moved); a new id whose view lies mostly on a tracked template takes that
   template over (and its confirmation time), so one box is one tracked object.
@@ -99,6 +103,12 @@ class TrackingConfig(BaseModel):
     #: pushes on) join it while it spans at most this much more than the largest confirming
     #: view (m): a box pressed against a wall takes at most this much of the wall.
     max_spread_m: float = Field(0.1, ge=0.0, le=2.0)
+    #: A mask's view of an object known (registered or seen) within the last max_unknown_s (three
+    #: scans) whose centre lies farther from the template's than half their two footprints and
+    #: max_step_m is not the object: refused, and its points fixed
+    #: (ObjectTracker._implausible_views). An object unknown for longer may have moved unseen:
+    #: its view is taken.
+    max_unknown_s: float = Field(0.3, ge=0.0, le=60.0)
 
     @model_validator(mode="after")
     def _fit_can_pair(self) -> "TrackingConfig":
@@ -128,6 +138,17 @@ def _extent(points: np.ndarray, yaw: float = 0.0) -> float:
     if len(points) < 2:
         return 0.0
     return float(_extent_nb(np.ascontiguousarray(points, dtype=np.float64), float(yaw)))
+
+
+def _footprint(points: np.ndarray, yaw: float = 0.0) -> float:
+    """The diagonal (m) of the points' bounding box in the plane, in the object's frame (the
+    odom frame turned by yaw, as _extent_nb)."""
+    if len(points) < 2:
+        return 0.0
+    c, s = math.cos(yaw), math.sin(yaw)
+    x = c * points[:, 0] + s * points[:, 1]
+    y = -s * points[:, 0] + c * points[:, 1]
+    return float(math.hypot(np.ptp(x), np.ptp(y)))
 
 
 def _thin(points: np.ndarray, voxel_m: float, max_points: int = 0) -> np.ndarray:
@@ -826,6 +847,7 @@ class ObjectTracker:
         self.registrations = 0
         self.lost = 0  # registrations refused (too few pairs, too big a step)
         self.handovers = 0  # templates passed to a new mask id of the same object
+        self.refused_views = 0  # mask views refused as implausible jumps (their points fixed)
         self.unseen = 0  # object-scans with too few points near the template to register
         #: (old id, new id) of the handovers since the caller last emptied it (the stage moves
         #: the object's belief with it)
@@ -857,6 +879,7 @@ class ObjectTracker:
         self.objects.clear()
         self._origin = None
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0
+        self.refused_views = 0
         self.handover_pairs.clear()
 
     def update(self, now_s: float, part: PointPartition, points_odom: np.ndarray, skip=(),
@@ -885,6 +908,10 @@ class ObjectTracker:
         added = 0
         near, boxes = self._near(label, points_odom, c.search_margin_m)
         followed = self._register_all(label, oid, near, points_odom)
+        for k in self._implausible_views(now_s, confirming, followed, points_odom):
+            sel = confirming.pop(k)
+            label[sel], oid[sel], cost[sel] = FIXED, -1, np.nan
+            self.refused_views += 1
         self._confirm_views(now_s, confirming, points_odom, cost)
         # the templates as registered and merged: their points to label are those of `near`
         # unless a template now reaches out of every box `near` was taken from (a new object, a
@@ -900,6 +927,38 @@ class ObjectTracker:
             obj.history.append((float(now_s), *obj.anchor, k in followed or k in confirming))
         self.points_tracked += added
         return added
+
+    def _implausible_views(self, now_s: float, confirming: dict[int, np.ndarray], followed: set[int],
+                           points_odom: np.ndarray) -> list[int]:
+        """The objects whose mask view this scan cannot be them: the object was known (registered
+        this scan, or registered or seen within max_unknown_s) and the view's centre lies
+        farther from the template's than half their two footprints' diagonals and max_step_m
+        together (two views of one object have their centres on its footprint). Measured on
+        BEACON sparse seeds 0, 2 and cluttered 0, 2: views of a box on a fixed obstacle or the
+        room's wall 1.2-2.9 m away (one at least half the template's size replaced it). And (BEACON
+        collision-required seed 0, on a route an experimental planner change took past a low box
+        0.7 m from a wall): one scan's mask view of the box was a strip of the wall behind it (the
+        partition's refinement took the wall, which outnumbered the box in the mask, for the
+        object); the view replaced the box's template 1.15 m away, the tracker labelled
+        thousands of wall points touchable, and the robot drove into the wall."""
+        c = self.config
+        out = []
+        for k, sel in confirming.items():
+            obj = self.objects.get(k)
+            if obj is None or not len(obj.template) or not len(sel):
+                continue
+            known = k in followed
+            for h in reversed(obj.history):  # (time, x, y, known), newest last
+                if known or now_s - h[0] > c.max_unknown_s:
+                    break
+                known = bool(h[3])
+            if not known:
+                continue
+            view = points_odom[sel]
+            d = float(np.hypot(*(view[:, :2].mean(axis=0) - obj.centre())))
+            if d > 0.5 * (_footprint(obj.template, obj.yaw) + _footprint(view, obj.yaw)) + c.max_step_m:
+                out.append(k)
+        return out
 
     def moved_since(self, object_id: int, t_s: float) -> float | None:
         """How far (m) object_id moved since time t_s (its anchor: rigid motions only); None when
