@@ -247,6 +247,11 @@ class VppStage:
         T_odom_lidar = T_odom_base @ self.T_base_lidar
         self.tracker.update(float(scan.stamp_s), part, p_odom, skip=deformable if self.deformable.config.enabled else (),
                             origin_odom=T_odom_lidar[:3, 3])
+        refused = self.tracker.refused_points
+        if refused.size:  # a mask view the tracker refused (its points fixed): this scan's voxels were written movable
+            write = np.zeros(len(p_odom), bool)
+            write[refused] = True
+            self.partitioner.memory.write(p_odom, write, part.label, part.object_id, part.cost, float(scan.stamp_s))
         self.deformable.update(float(scan.stamp_s), part, p_odom, deformable, (pose[0], pose[1]))
         self.deformable.label(float(scan.stamp_s), part, p_odom, pose, self.robot_box)
         for old, new in self.tracker.handover_pairs:  # one object under a new mask id keeps its belief

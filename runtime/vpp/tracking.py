@@ -29,7 +29,9 @@ How, per object, with the points of one scan in the odom frame:
 - Plausibility: a mask's view of an object the tracker knows where it is (registered this scan,
   or registered or seen within `max_unknown_s`) whose centre lies farther from the template's
   than half their footprints and `max_step_m` is not the object: refused, and its points are
-  fixed (_implausible_views: a view that replaced the template there took a wall for a box).
+  fixed (_implausible_views: a view that replaced the template there took a wall for a box);
+  the caller fixes them in its label memory too (`refused_points`). Only a template of at
+  least `min_confirmations` views is trusted so; one whose views are all refused expires.
 - Identity: the mask memory gives an object a new id when its warped mask stops matching the
   fresh one (it moved); a new id whose view lies mostly on a tracked template takes that
   template over (and its confirmation time), so one box is one tracked object.
@@ -103,12 +105,15 @@ class TrackingConfig(BaseModel):
     #: pushes on) join it while it spans at most this much more than the largest confirming
     #: view (m): a box pressed against a wall takes at most this much of the wall.
     max_spread_m: float = Field(0.1, ge=0.0, le=2.0)
-    #: A mask's view of an object known (registered or seen) within the last max_unknown_s (three
+    #: A mask's view of an object known (registered or seen) within the last max_unknown_s (a few
     #: scans) whose centre lies farther from the template's than half their two footprints and
     #: max_step_m is not the object: refused, and its points fixed
-    #: (ObjectTracker._implausible_views). An object unknown for longer may have moved unseen:
-    #: its view is taken.
+    #: (ObjectTracker._implausible_views), once the template has min_confirmations views (one
+    #: view may have been the mistake: the next views replace it). An object unknown for longer
+    #: may have moved unseen: its view is taken. A template whose views are all refused is not
+    #: confirmed, and is dropped after max_unconfirmed_s.
     max_unknown_s: float = Field(0.3, ge=0.0, le=60.0)
+    min_confirmations: int = Field(3, ge=1, le=1000)
 
     @model_validator(mode="after")
     def _fit_can_pair(self) -> "TrackingConfig":
@@ -827,6 +832,8 @@ class TrackedObject:
     #: (time, anchor x, y, known) after every scan: where the object was when, and whether this
     #: scan registered it or a mask saw it (moved_since).
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_SCANS))
+    #: Mask views merged into the template (a template one view made may be that view's mistake).
+    confirmations: int = 1
 
     def __post_init__(self) -> None:
         if self.anchor is None:
@@ -848,6 +855,7 @@ class ObjectTracker:
         self.lost = 0  # registrations refused (too few pairs, too big a step)
         self.handovers = 0  # templates passed to a new mask id of the same object
         self.refused_views = 0  # mask views refused as implausible jumps (their points fixed)
+        self.refused_points = np.zeros(0, np.int64)
         self.unseen = 0  # object-scans with too few points near the template to register
         #: (old id, new id) of the handovers since the caller last emptied it (the stage moves
         #: the object's belief with it)
@@ -908,10 +916,17 @@ class ObjectTracker:
         added = 0
         near, boxes = self._near(label, points_odom, c.search_margin_m)
         followed = self._register_all(label, oid, near, points_odom)
+        refused = []
         for k in self._implausible_views(now_s, confirming, followed, points_odom):
             sel = confirming.pop(k)
             label[sel], oid[sel], cost[sel] = FIXED, -1, np.nan
+            refused.append(sel)
             self.refused_views += 1
+            if now_s - self.objects[k].confirmed_s > c.max_unconfirmed_s:
+                del self.objects[k]  # (its views refused all that time: not the object it was taken for)
+        #: The scan points whose mask view was refused this scan (fixed above): the caller's label
+        #: memory, written before, must hold them fixed too.
+        self.refused_points = np.concatenate(refused) if refused else np.zeros(0, np.int64)
         self._confirm_views(now_s, confirming, points_odom, cost)
         # the templates as registered and merged: their points to label are those of `near`
         # unless a template now reaches out of every box `near` was taken from (a new object, a
@@ -945,11 +960,11 @@ class ObjectTracker:
         out = []
         for k, sel in confirming.items():
             obj = self.objects.get(k)
-            if obj is None or not len(obj.template) or not len(sel):
+            if obj is None or not len(obj.template) or not len(sel) or obj.confirmations < c.min_confirmations:
                 continue
             known = k in followed
             for h in reversed(obj.history):  # (time, x, y, known), newest last
-                if known or now_s - h[0] > c.max_unknown_s:
+                if known or now_s - h[0] > c.max_unknown_s + 1e-6:
                     break
                 known = bool(h[3])
             if not known:
@@ -1004,6 +1019,7 @@ class ObjectTracker:
             obj.cost = float(cost[sel[0]])
             obj.template = merged[noff[k]:noff[k + 1]]
             obj.confirmed_s = now_s
+            obj.confirmations += 1
             obj.view_extent_m = max(float(extent[k]), obj.view_extent_m)
             if outcome[k] == 2:  # the view replaced the template: its centre is the new anchor
                 obj.anchor = obj.centre()
@@ -1027,6 +1043,7 @@ class ObjectTracker:
                             view if old is None else max(view, old.view_extent_m), anchor, yaw)
         if old is not None:
             obj.history = old.history
+            obj.confirmations = old.confirmations + 1
         self.objects[k] = obj
 
     def _hand_over(self, k: int, new: np.ndarray) -> TrackedObject | None:
