@@ -948,9 +948,9 @@ class ObjectTracker:
         """The objects whose mask view this scan cannot be them: the object was known (registered
         this scan, or registered or seen within max_unknown_s) and the view's centre lies
         farther from the template's than half their two footprints' diagonals and max_step_m
-        together (two views of one object have their centres on its footprint). Measured on
-        BEACON sparse seeds 0, 2 and cluttered 0, 2: views of a box on a fixed obstacle or the
-        room's wall 1.2-2.9 m away (one at least half the template's size replaced it). And (BEACON
+        together (two views of one object have their centres on its footprint), once the template
+        has min_confirmations views. Measured on BEACON cluttered seed 0: 9 scans running of a
+        box's view on the room's wall 2.4 m away. And (BEACON
         collision-required seed 0, on a route an experimental planner change took past a low box
         0.7 m from a wall): one scan's mask view of the box was a strip of the wall behind it (the
         partition's refinement took the wall, which outnumbered the box in the mask, for the
