@@ -21,14 +21,14 @@ def hil_group() -> None:
 @hil_group.command("list")
 def list_command() -> None:
     """List the scenario library."""
-    from hil_sim.scenario import list_scenarios, load_scenario
+    from hil_sim.world.scenario import list_scenarios, load_scenario
 
     for name in list_scenarios():
         sc = load_scenario(name)
         click.echo(f"{name:12s} {sc.description or ''}".rstrip())
-    from hil_sim.scene_generators import GENERATORS, list_generators
+    from hil_sim.world.scene_generators import GENERATORS, list_generators
 
-    click.echo("generated from --seed (hil_sim/scene_generators.py):")
+    click.echo("generated from --seed (hil_sim/world/scene_generators.py):")
     for name in list_generators():
         click.echo(f"{name:26s} {GENERATORS[name].summary}")
 
@@ -84,10 +84,10 @@ def run_command(
     from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
     from calibration.robot_description import load_robot_description
-    from hil_sim.faults import FaultSpec, FaultSpecError
-    from hil_sim.patrol import PatrolError, with_duration
-    from hil_sim.runner import run_episode
-    from hil_sim.scenario import load_scenario
+    from hil_sim.episode.faults import FaultSpec, FaultSpecError
+    from hil_sim.episode.patrol import PatrolError, with_duration
+    from hil_sim.episode.lockstep import run_episode
+    from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
 
     try:
@@ -109,7 +109,7 @@ def run_command(
             wheel_calibration = (params.effective_track_m, params.wheel_scale)
             click.echo(f"wheel odometry: effective track {params.effective_track_m:.4f} m, scale "
                        f"{params.wheel_scale:.4f} ({params.source})", err=True)
-        from hil_sim.scenario import check_scenario_against_robot
+        from hil_sim.world.scenario import check_scenario_against_robot
 
         warnings = check_scenario_against_robot(
             sc, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m
@@ -142,7 +142,7 @@ def run_command(
         return
     recorder = None
     if record_path is not None:
-        from runtime.recording import RecordingError, RunRecorder
+        from runtime.io.recording import RecordingError, RunRecorder
 
         try:
             recorder = RunRecorder(record_path, force=force)
@@ -176,9 +176,9 @@ def _run_realtime(sc, scenario: str, seed: int, json_path: Path | None, config_p
                   robot_path: Path | None, calibration_path: Path | None, planner: str | None,
                   fault_texts: tuple[str, ...], record_path: Path | None, force: bool = False,
                   duration_s: float | None = None) -> None:
-    """`dct hil run --realtime`: hil_sim.realtime (two processes); --record: the controller's."""
+    """`dct hil run --realtime`: hil_sim.episode.realtime (two processes); --record: the controller's."""
     from calibration.outputs import atomic_write_json
-    from hil_sim.realtime import run_realtime_episode
+    from hil_sim.episode.realtime import run_realtime_episode
 
     for what, given in (("--fault", fault_texts),):
         if given:
@@ -219,8 +219,8 @@ def _check_scenario_and_output(scenario: str, seed: int, json_path: Path | None,
     else one line, exit 2."""
     from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError, check_output_path
-    from hil_sim.patrol import PatrolError, with_duration
-    from hil_sim.scenario import load_scenario
+    from hil_sim.episode.patrol import PatrolError, with_duration
+    from hil_sim.world.scenario import load_scenario
 
     try:
         with_duration(load_scenario(scenario, seed=seed), duration_s)
@@ -266,13 +266,13 @@ def serve_command(scenario: str, seed: int, json_path: Path | None, config_path:
                   oracle_failure_rate: float | None, duration_s: float | None = None) -> None:
     """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
     the sensors as ROS 2 DDS topics (Livox CustomMsg, Imu, Image); for planner mode dct also the sim-oracle as a VLM
-    over HTTP on 127.0.0.1 (hil_sim/oracle_service.py). The episode starts when a controller enables
+    over HTTP on 127.0.0.1 (hil_sim/vlm/service.py). The episode starts when a controller enables
     the base; the metrics are written when it ends. Exit 0 when it ran (whatever the outcome), 2 on bad input."""
     import signal
     import threading
 
     from calibration.errors import ConfigFileError
-    from hil_sim.serve import ServeOptions, serve
+    from hil_sim.episode.serve import ServeOptions, serve
 
     _check_scenario_and_output(scenario, seed, json_path, force, duration_s)
     try:
@@ -313,7 +313,7 @@ def _serve_oracle_config(config_path: Path | None, seed: int, oracle: bool | Non
 
 def close_recording(recorder) -> None:
     """Finish the MCAP file and say on stderr what it holds (or why it is not where asked)."""
-    from runtime.recording import RecordingError
+    from runtime.io.recording import RecordingError
 
     try:
         click.echo(recording_line(recorder.close()), err=True)
@@ -371,11 +371,11 @@ def bench_group() -> None:
 def sim_speed_command(scenario: str, seconds: float, repeats: int, sensors: bool) -> None:
     """Lockstep speed as a multiple of real time, with the robot driving (controller in the loop)."""
     if sensors:
-        from hil_sim.sim_bench import run_sensor_sim_speed_benchmark
+        from hil_sim.bench.sim import run_sensor_sim_speed_benchmark
 
         run_sensor_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)
         return
-    from hil_sim.sim_bench import run_sim_speed_benchmark
+    from hil_sim.bench.sim import run_sim_speed_benchmark
 
     run_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)
 
@@ -394,7 +394,7 @@ def realtime_bench_command(scenario: str, runs: int, seed: int, config_path: Pat
     controller's tick and sensor-to-command latency (end of lidar frame -> the 0x111 written from it), deadline
     misses, simulator lag."""
     from calibration.outputs import atomic_write_json
-    from hil_sim.realtime import run_realtime_benchmark
+    from hil_sim.episode.realtime import run_realtime_benchmark
 
     _check_scenario_and_output(scenario, seed, json_path, force)
     out = run_realtime_benchmark(scenario, runs, seed, config_path, echo=click.echo)
@@ -408,7 +408,7 @@ def realtime_bench_command(scenario: str, runs: int, seed: int, config_path: Pat
 @click.option("--boxes", default=60, show_default=True, help="Clutter boxes in the benchmark room.")
 def sensors_command(frames: int, renders: int, boxes: int) -> None:
     """ms per 20k-point lidar frame, per RGB render and per segmentation render."""
-    from hil_sim.sensor_bench import run_sensor_benchmark
+    from hil_sim.bench.sensors import run_sensor_benchmark
 
     result = run_sensor_benchmark(n_frames=frames, n_renders=renders, n_boxes=boxes)
     for key, value in result.items():
@@ -426,8 +426,8 @@ def odometry_bench_command(scenario: str, seconds: float, hogs: tuple[int, ...],
     per frame in its worker process, pose latency (frame end -> pose), with N busy processes."""
     from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
-    from hil_sim.odom_bench import print_odometry_benchmark
-    from hil_sim.scenario import load_scenario
+    from hil_sim.bench.odometry import print_odometry_benchmark
+    from hil_sim.world.scenario import load_scenario
 
     try:
         if load_scenario(scenario).route is None:
@@ -469,7 +469,7 @@ def tick_bench_command(scenarios: tuple[str, ...], seed: int, runs: int, hogs: i
     budgets, deadline misses, points per frame, capped QP solves; and ICP time against points per frame."""
     from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
-    from hil_sim.tick_bench import DEFAULT_SCALING_RAYS, DEFAULT_SCENES, resolve_scene, run_tick_benchmark
+    from hil_sim.bench.tick import DEFAULT_SCALING_RAYS, DEFAULT_SCENES, resolve_scene, run_tick_benchmark
 
     names = scenarios or DEFAULT_SCENES
     try:
@@ -504,7 +504,7 @@ def vpp_bench_command(mask_counts: tuple[int, ...], repeats: int, n_points: int,
     import os
 
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
-    from hil_sim.vpp_bench import DEFAULT_MASK_COUNTS, run_vpp_benchmark
+    from hil_sim.bench.vpp import DEFAULT_MASK_COUNTS, run_vpp_benchmark
 
     try:
         if cpu is not None and cpu not in os.sched_getaffinity(0):
@@ -539,7 +539,7 @@ def planner_command(repeats: int, cvxpy_repeats: int, horizons: tuple[int, ...],
     """Planner step time (selection + net + QP, one thread) against points in range and horizon,
     with the share of each part and the constraint set's size, against cvxpy (ECOS, Clarabel)."""
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
-    from hil_sim.planner_bench import HORIZONS, POINT_COUNTS, cap_warnings, print_planner_benchmark
+    from hil_sim.bench.planner import HORIZONS, POINT_COUNTS, cap_warnings, print_planner_benchmark
 
     if json_path is not None:
         try:
@@ -595,9 +595,9 @@ def _run_campaign_command(name: str, seeds: int, first_seed: int, methods: str |
     """Check the inputs (one line, exit 2), run with a rich progress bar, print the table, write the JSON."""
     from calibration.errors import ConfigFileError
     from calibration.outputs import atomic_write_json
-    from hil_sim.campaign import CAMPAIGNS, CampaignError, RichProgress, format_table, parse_methods, \
+    from hil_sim.bench.campaign import CAMPAIGNS, CampaignError, RichProgress, format_table, parse_methods, \
         run_campaign, select_scenes
-    from runtime.cli_support import checked_output
+    from runtime.common.cli_support import checked_output
     from runtime.config import load_controller_config
 
     try:

@@ -1,9 +1,7 @@
 """A command group that cannot be imported shows up as unavailable with a one-line reason."""
 from click.testing import CliRunner
 
-from runtime import cli
-
-
+from runtime.app import cli
 class _BrokenEntryPoint:
     name = "broken"
 

@@ -5,7 +5,7 @@ down or slow degrades to no new masks (the runner turns it into error answers; t
 back to P_fix), never a stall. Two kinds:
 
 * `sim-oracle` (models.vlm.sim_oracle): answers from the simulator's ground-truth segmentation.
-  It needs the World's object table, so only the simulator can build it (hil_sim.runner does,
+  It needs the World's object table, so only the simulator can build it (hil_sim.episode.lockstep does,
   from these parameters, with its seed offset by the episode seed); anywhere else the
   controller refuses to start (`SimulatorOnlyBackendError`).
 * `openai-compatible` (models.vlm.openai_compatible): a chat-completions server (hosted, or a

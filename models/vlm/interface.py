@@ -49,7 +49,7 @@ class VlmRequest:
     camera_pose_odom: np.ndarray  # (4, 4) T_odom_camera at capture
     prompt: str  # the task prompt (e.g. "navigate to the goal; what may the robot push?")
     regions: tuple[CandidateRegion, ...] = ()
-    #: Simulator only: (H, W) int32 ground-truth ids (runtime.sensor_data.CameraImage), -1 =
+    #: Simulator only: (H, W) int32 ground-truth ids (runtime.common.sensor_data.CameraImage), -1 =
     #: background. The sim-oracle answers from it; every other backend ignores it.
     segmentation: np.ndarray | None = None
 

@@ -10,7 +10,7 @@ Wire format (one POST per attempt, JSON both ways)
 Request: ``POST {base_url}/chat/completions`` with headers ``Content-Type: application/json``
 and, when `api_key_env` is set, ``Authorization: Bearer <the key from that variable>``; also
 ``X-Image-Stamp: <the image's capture stamp, seconds>``, which real servers ignore (the
-simulator's oracle service, hil_sim.oracle_service, identifies the frame by it)::
+simulator's oracle service, hil_sim.vlm.service, identifies the frame by it)::
 
     {"model": "<model>",
      "messages": [
@@ -375,7 +375,7 @@ class OpenAICompatibleBackend(VlmBackend):
 
         headers = {"Content-Type": "application/json", "Accept": "application/json",
                    # The capture stamp, which real APIs ignore; the simulator's oracle service
-                   # (hil_sim.oracle_service) identifies the frame by it.
+                   # (hil_sim.vlm.service) identifies the frame by it.
                    "X-Image-Stamp": repr(float(request.stamp_s))}
         if self._api_key:
             headers["Authorization"] = f"Bearer {self._api_key}"

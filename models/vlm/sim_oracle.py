@@ -36,7 +36,7 @@ Contact cost: the table's cost when the reported movability is the object's true
 (a mislabelled fixed object, a heavy look-alike) what a model would give for what it believes:
 `movable_cost` or `fixed_cost`. Labels are the object names of the table.
 
-This module never imports the simulator; hil_sim.vlm_oracle builds the table from a World.
+This module never imports the simulator; hil_sim.vlm.oracle builds the table from a World.
 """
 from __future__ import annotations
 

@@ -90,7 +90,7 @@ def build(ctx: ModeContext) -> ModeStack:
     reference path, the backoff recovery sharing the MPC, and the safety supervisor."""
     from models.distance_net import DistanceNet  # TorchScript: only when the MPC is used
     from runtime.modes.backoff import BackoffMode
-    from runtime.safety_supervisor import SafetySupervisor
+    from runtime.safety.supervisor import SafetySupervisor
 
     pc, rc, robot = ctx.config.planner, ctx.config.recovery, ctx.robot
     net = DistanceNet.load(pc.distance_net_path, robot=robot)

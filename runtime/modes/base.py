@@ -7,7 +7,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from runtime.partition_stage import AllFixedPartition, PartitionStage
+from runtime.perception.partition import AllFixedPartition, PartitionStage
 
 
 @dataclass(frozen=True)
@@ -28,7 +28,7 @@ class Situation:
     #: path; stall and stuck detection wait
     unclassified: bool = False
     #: P_fix as the lidar saw it, when points_fix also holds predicted points (the way ahead of
-    #: a person, runtime.moving_obstacles): the stuck detector's scan comparisons use this.
+    #: a person, runtime.perception.moving_obstacles): the stuck detector's scan comparisons use this.
     points_observed: np.ndarray | None = None
 
 
@@ -70,7 +70,7 @@ class ModeContext:
 
     robot: Any  # calibration.robot_description.RobotDescription
     config: Any  # runtime.config.ControllerConfig
-    goal: Any  # runtime.geometry.Pose2D in the odom frame
+    goal: Any  # runtime.common.geometry.Pose2D in the odom frame
     wall_clock_caps: bool  # False in lockstep: iteration caps only
     #: The contact-tolerance backend (models.vlm) a mode with a VLM partition uses: the simulator
     #: passes its sim-oracle; None: the mode builds the one the config names (`vpp.backend`).
@@ -86,11 +86,11 @@ class ModeContext:
 class ModeStack:
     """A planner mode as the controller runs it: the mode, its stall recovery (or None), the
     safety supervisor that checks its commands against P_fix (or None for a sensorless mode), and
-    the partition stage that says which lidar points are P_fix (runtime.partition_stage)."""
+    the partition stage that says which lidar points are P_fix (runtime.perception.partition)."""
 
     normal: NavigationMode
     recovery: Any = None  # runtime.modes.backoff.BackoffMode
-    supervisor: Any = None  # runtime.safety_supervisor.SafetySupervisor
+    supervisor: Any = None  # runtime.safety.supervisor.SafetySupervisor
     partition: PartitionStage = field(default_factory=AllFixedPartition)
     #: Correcting mode (runtime.modes.correcting.CorrectingMode), None where the mode has none:
     #: the selector then recovers from a stall with `recovery` alone.

@@ -5,7 +5,7 @@ command) but moves less than d_stuck in tau_stuck (or the selector's progress st
 Then, in this order (the selector, runtime.modes.selector, switches here):
 1. eq. 14: the movable object in front of the robot (its P_mov points within the footprint +
    `contact_margin_m`, on the side the robot was driving to) is relabelled fixed for the rest of
-   the episode (the partition stage: runtime.partition_stage, VppStage.demote); none when there
+   the episode (the partition stage: runtime.perception.partition, VppStage.demote); none when there
    is none (a wedge between fixed obstacles: the MPC's local minimum);
 2. the robot reverses along its recorded states (runtime.modes.backoff.PoseTrail) for F of them
    (the trail's spacing apart) with v in [-v_rev, 0] (BackoffMode: the MPC tracks the trail
@@ -261,7 +261,7 @@ class CorrectingMode:
     def __init__(self, config: CorrectingConfig, backoff: BackoffMode, robot, partition=None) -> None:
         """backoff: the reverses (along the trail, or straight to a line-up point; its distance is
         set per correction); partition: the controller's partition stage
-        (runtime.partition_stage), set by the mode's builder."""
+        (runtime.perception.partition), set by the mode's builder."""
         self.config = config
         self.backoff = backoff
         self.partition = partition

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from runtime.modes import all_fixed
 from runtime.modes.base import ModeContext, ModeStack
-from runtime.partition_stage import build_vpp_partition
+from runtime.perception.partition import build_vpp_partition
 
 
 def build(ctx: ModeContext) -> ModeStack:

@@ -18,7 +18,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from runtime.geometry import Pose2D
+from runtime.common.geometry import Pose2D
 from runtime.modes.base import ModeContext, ModeDecision, ModeStack, Situation
 from runtime.planning.grid_astar import GridAStarConfig, GridAStarPlanner, PathPursuit
 
@@ -110,7 +110,7 @@ class GridAStarMode:
 def build(ctx: ModeContext) -> ModeStack:
     """The grid planner, the path follower with pure pursuit's speed law, the safety supervisor;
     every point fixed (the default partition), no stall recovery."""
-    from runtime.safety_supervisor import SafetySupervisor
+    from runtime.safety.supervisor import SafetySupervisor
 
     from runtime.modes.pure_pursuit import steering
 

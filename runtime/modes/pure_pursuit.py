@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 
-from runtime.geometry import Pose2D
+from runtime.common.geometry import Pose2D
 from runtime.modes.base import ModeContext, ModeDecision, ModeStack, Situation
 from runtime.planning.pure_pursuit import PurePursuitPlanner
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from runtime.events import EventLog
+from runtime.common.events import EventLog
 from runtime.modes.backoff import BackoffMode, PoseTrail
 from runtime.modes.base import ModeDecision, NavigationMode, Situation
 from runtime.modes.correcting import CorrectingMode, StuckDetector

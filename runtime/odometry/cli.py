@@ -7,7 +7,7 @@ is written; an output path is checked before the work, an existing file is refus
 
 `--scenario` runs in the simulator, which `runtime` must not import (DESIGN.md, section 4): its
 evaluation is found through the entry point group "dct.odom_scenario" (name "evaluate", in
-pyproject.toml: hil_sim.odom_eval:evaluate_scenario) and loaded only when asked for. Its
+pyproject.toml: hil_sim.eval.odometry:evaluate_scenario) and loaded only when asked for. Its
 contract: `evaluate_scenario(scenario: str, seed: int, progress: Callable[[float, float], None])
 -> dict` (JSON-ready: `icp`, `wheels_imu`, `fused`, `stage_ms`, ...; progress(done, total) in
 any unit); bad input raises calibration.errors.ConfigFileError (exit 2).
@@ -19,16 +19,16 @@ from pathlib import Path
 
 import click
 
-from runtime.cli_support import InputError, OneLineGroup, scenario_evaluator
-from runtime.cli_support import ProgressBar as _Bar
-from runtime.cli_support import checked_output as _checked_output
+from runtime.common.cli_support import InputError, OneLineGroup, scenario_evaluator
+from runtime.common.cli_support import ProgressBar as _Bar
+from runtime.common.cli_support import checked_output as _checked_output
 
 #: The entry point group (and name) of the scenario evaluation (module doc).
 SCENARIO_EVAL_GROUP = "dct.odom_scenario"
 SCENARIO_EVAL_NAME = "evaluate"
 
 
-# (The one-line errors, output checks and progress bar are runtime.cli_support's, shared with `dct vpp`.)
+# (The one-line errors, output checks and progress bar are runtime.common.cli_support's, shared with `dct vpp`.)
 @click.group(name="odom", cls=OneLineGroup)
 def odom_group() -> None:
     """Lidar odometry (KISS-ICP): drift on recorded sequences and scenarios, scan-pair registration."""

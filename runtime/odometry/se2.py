@@ -1,6 +1,6 @@
 """Planar poses as numpy vectors (x, y, yaw): compose, invert, relative pose, 3x3/4x4 matrices.
 
-The fusion works on small arrays every tick; runtime.geometry.Pose2D (a dataclass) is the
+The fusion works on small arrays every tick; runtime.common.geometry.Pose2D (a dataclass) is the
 controller's public pose type.
 """
 from __future__ import annotations

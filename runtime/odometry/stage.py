@@ -21,8 +21,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from runtime.events import EventLog
-from runtime.geometry import Pose2D
+from runtime.common.events import EventLog
+from runtime.common.geometry import Pose2D
 from runtime.odometry.degeneracy import DegeneracyConfig
 from runtime.odometry.fusion import FusionConfig, PoseFusion
 from runtime.odometry.icp import IcpEngine, IcpJob
@@ -30,7 +30,7 @@ from runtime.odometry.icp_config import IcpConfig
 from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse
 from runtime.odometry.wheels import WheelGyroOdometry
 from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
-from runtime.sensor_data import LidarScan
+from runtime.common.sensor_data import LidarScan
 
 
 class OdometryConfig(BaseModel):
@@ -76,7 +76,7 @@ class OdometryStage:
         #: register the world to the box and report the robot standing still while it pushes.
         self._exclude: np.ndarray | None = None
         self.exclude_radius_m = 0.10
-        #: Lidar-frame ground-plane positions (x, y) of people walking (runtime.moving_obstacles):
+        #: Lidar-frame ground-plane positions (x, y) of people walking (runtime.perception.moving_obstacles):
         #: the next frame's points within `mover_radius_m` of them, at any height, are left out of
         #: the ICP. A person walking head-on is a feature coming at the robot: in an open room,
         #: registered as static, it made the odometry overshoot by 2-3% (person_approaching: the
@@ -241,7 +241,7 @@ class OdometryStage:
         """scan less its points within radius_m (default exclude_radius_m) of ref (lidar frame;
         planar: in x, y only, ref's z zero; compiled grid search, only the points in ref's box
         grown by the radius are queried)."""
-        from runtime.vpp.tracking import _near_any
+        from runtime.common.spatial_grid import near_any
 
         r = self.exclude_radius_m if radius_m is None else radius_m
         p = scan.points_m
@@ -254,7 +254,7 @@ class OdometryStage:
         q = np.ascontiguousarray(p[inb], dtype=np.float64)
         if planar:
             q[:, 2] = 0.0
-        near = inb[_near_any(q, ref, r)]
+        near = inb[near_any(q, ref, r)]
         if not near.size:
             return scan
         keep = np.ones(len(p), bool)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 
-from runtime.geometry import Pose2D, wrap_angle
+from runtime.common.geometry import Pose2D, wrap_angle
 
 
 class WheelOdometry:

@@ -174,7 +174,7 @@ class ProcessIcpWorker:
         # previous one (the socket buffer is smaller): a sender thread writes it, the tick only
         # pickles its small header and queues it with views of the frame's arrays (no copy:
         # pickle protocol 5, out of band; a validated frame's arrays are read-only,
-        # runtime.sensor_data). The thread then holds the GIL only between its socket writes (which release
+        # runtime.common.sensor_data). The thread then holds the GIL only between its socket writes (which release
         # it); pickling the whole frame in the thread let it take the GIL from the tick
         # mid-stage, for as long as the OS kept it off a core.
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()

@@ -1,13 +1,12 @@
 """Planning stage: reference path (A* on a local grid), point selection, the OSQP MPC."""
 from runtime.planning.distance_model import DistanceModel, ExactRectangleDual
 from runtime.planning.errors import DistanceModelError, PlannerInputError
-from runtime.planning.modes import PlannerMode, constraint_points
 from runtime.planning.mpc import MpcConfig, MpcPlanner, MpcWeights, PlanResult
 from runtime.planning.point_selection import PointSelectionConfig, PointSelector, SelectedPoints
 from runtime.planning.reference_path import ReferencePathConfig, ReferencePathPlanner, ReferenceUpdate
 
 __all__ = [
-    "DistanceModel", "ExactRectangleDual", "DistanceModelError", "PlannerInputError", "PlannerMode",
-    "constraint_points", "MpcConfig", "MpcPlanner", "MpcWeights", "PlanResult", "PointSelectionConfig",
+    "DistanceModel", "ExactRectangleDual", "DistanceModelError", "PlannerInputError",
+    "MpcConfig", "MpcPlanner", "MpcWeights", "PlanResult", "PointSelectionConfig",
     "PointSelector", "SelectedPoints", "ReferencePathConfig", "ReferencePathPlanner", "ReferenceUpdate",
 ]

@@ -41,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from runtime.geometry import Pose2D, in_box
+from runtime.common.geometry import Pose2D, in_box
 from runtime.planning.pure_pursuit import PurePursuitPlanner
 
 #: The most cells a grid may have (a 40 m window at 0.1 m): the bound on one build and one search.

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from runtime.geometry import in_box
+from runtime.common.geometry import in_box
 from runtime.planning.distance_model import points_in_pose_frames, rectangle_signed_distance
 from runtime.planning.errors import PlannerInputError, check_points
 

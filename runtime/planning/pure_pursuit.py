@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from runtime.geometry import Pose2D, wrap_angle
+from runtime.common.geometry import Pose2D, wrap_angle
 
 
 @dataclass(frozen=True)

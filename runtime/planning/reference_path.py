@@ -52,7 +52,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from runtime.geometry import in_box
+from runtime.common.geometry import in_box
 from runtime.planning.errors import PlannerInputError, check_points, check_vector
 
 

@@ -2,7 +2,7 @@
 
 `dct vpp eval --scenario` runs in the simulator, which `runtime` must not import (DESIGN.md,
 section 4): the evaluation is found through the entry point group "dct.vpp_scenario" (name
-"evaluate", in pyproject.toml: hil_sim.vpp_eval:evaluate_scenario) and loaded only when asked
+"evaluate", in pyproject.toml: hil_sim.eval.vpp:evaluate_scenario) and loaded only when asked
 for. Its contract: `evaluate_scenario(scenario: str, seed: int, oracle: SimOracleConfig,
 progress: Callable[[float, float], None], camera_rate_hz: float) -> dict` (JSON-ready:
 `point_precision`, `point_recall`, `iou_after_m`, `stage_ms`, ...); a scenario that cannot run
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import click
 
-from runtime.cli_support import InputError, OneLineGroup, ProgressBar, checked_output, scenario_evaluator
+from runtime.common.cli_support import InputError, OneLineGroup, ProgressBar, checked_output, scenario_evaluator
 
 SCENARIO_EVAL_GROUP = "dct.vpp_scenario"
 SCENARIO_EVAL_NAME = "evaluate"
@@ -80,7 +80,7 @@ def eval_command(scenario: str, seed: int, preset: str, oracle_precision: float 
     Per scan: point partition precision and recall (movable vs fixed). Per mask the memory
     took in: its IoU with the true mask after 0.25, 0.5, 1.0 and 2.0 m of travel, warped by the
     plane-induced homography, the rotation-only homography and the scan reprojected into the
-    capture image. The stage's time per scan (p50, p99). Definitions: hil_sim/vpp_eval.py.
+    capture image. The stage's time per scan (p50, p99). Definitions: hil_sim/eval/vpp.py.
     """
     from calibration.errors import ConfigFileError
     from calibration.outputs import atomic_write_json

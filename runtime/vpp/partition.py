@@ -43,7 +43,7 @@ and an IMPACT-style contact cost 0..10):
 Everything per point runs in numba kernels (cache=True; PointPartitioner warms them up at
 construction) or numpy; there is no Python loop over points or masks in the tick. Per scan:
 one pass (_project_scan) transforms, marks the ground, projects (CameraModel.project's
-arithmetic, operation for operation, so the same pixels: tests/runtime/test_vpp_fused.py), takes
+arithmetic, operation for operation, so the same pixels: tests/runtime/vpp/test_fused.py), takes
 the nearest pixel, the odom voxel key, and lists the seen points inside the union of the warped
 masks' boxes with their pixel rays; the lookup (_mask_lookup_warp) tries the masks by cost
 descending, first hit wins, in the capture masks cropped to their boxes (homography.mask_crops);
@@ -52,7 +52,7 @@ the refinement, assembly and label memory follow. Work arrays are kept between s
 
 Budget (issue 13: 3 ms p99, 20k points, 8 masks of 640x480, one core): `python -m
 runtime.vpp.partition` prints time_partition(); the whole stage per scan (Phase I lookup, this
-partition, tracking): `dct bench vpp` (hil_sim/vpp_bench.py), whose `partition` column is this
+partition, tracking): `dct bench vpp` (hil_sim/bench/vpp.py), whose `partition` column is this
 call inside the stage, caches cold from the tracker: on the shared 2-core dev box about 1.8-1.9
 ms p50, 2.1-2.3 ms p99 at 8 masks (3.1/3.5 before the fused pass, in the same load). What is
 left is mostly cache misses: the 4.9 MB pixel-ray table (homography.pixel_rays) at the

@@ -43,9 +43,9 @@ from scipy.spatial import cKDTree
 from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmAnswer, VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
-from runtime.belief import BeliefConfig, BeliefTable, ContactEvidence, PushResistanceEstimator
+from runtime.vpp.belief import BeliefConfig, BeliefTable, ContactEvidence, PushResistanceEstimator
 from runtime.vpp.deformable import DeformableConfig, DeformableRegions, RobotBox
-from runtime.sensor_data import CameraImage, LidarScan
+from runtime.common.sensor_data import CameraImage, LidarScan
 from runtime.vpp.homography import lookup_supported, pixel_rays
 from runtime.vpp.mask_memory import (AnswerPreparer, MaskMemory, MaskMemoryConfig, MaskMemoryError,
                                      PreparedAnswer, ReconcileResult)
@@ -78,7 +78,7 @@ class VppConfig(BaseModel):
     tracking: TrackingConfig = TrackingConfig()
     #: Deformable objects (a curtain): the region where each hangs, not a track (deformable.py).
     deformable: DeformableConfig = DeformableConfig()
-    #: The per-obstacle belief over movable / heavy / fragile (runtime.belief; BEACON).
+    #: The per-obstacle belief over movable / heavy / fragile (runtime.vpp.belief; BEACON).
     belief: BeliefConfig = BeliefConfig()
     #: Seconds of continuous push that give the belief one observation (ContactEvidence).
     belief_window_s: float = Field(1.0, gt=0.0, le=30.0)
@@ -369,7 +369,7 @@ class VppStage:
 
     def observe_contact(self, now_s: float, pose: tuple[float, float, float], v_mps: float, currents_a,
                         half_length_m: float, half_width_m: float, margin_m: float) -> None:
-        """One tick of push evidence for the belief (runtime.belief.ContactEvidence): the object in
+        """One tick of push evidence for the belief (runtime.vpp.belief.ContactEvidence): the object in
         front of the robot while it drives forward, the wheel currents, the tracker's view of the
         object's motion. An object the belief comes to call heavy or fragile is demoted to fixed
         (as correcting mode does after a failed push)."""

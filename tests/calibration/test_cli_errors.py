@@ -341,7 +341,7 @@ def test_through_the_dct_entry_point_stderr_is_one_line(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_bytes(b"robot: limo\ncamera: \xff\n")
     for args in (["calibrate", "report", str(bad)], ["calibrate", "intrinsics", str(tmp_path / "nope"), "--out", "x"]):
-        p = subprocess.run([sys.executable, "-m", "runtime.cli", *args], capture_output=True, text=True, timeout=120)
+        p = subprocess.run([sys.executable, "-m", "runtime.app.cli", *args], capture_output=True, text=True, timeout=120)
         assert p.returncode != 0
         assert "Traceback" not in p.stderr
         assert len(p.stderr.strip().splitlines()) == 1, p.stderr
@@ -349,7 +349,7 @@ def test_through_the_dct_entry_point_stderr_is_one_line(tmp_path):
 
 def test_hil_check_json_folder_checked_before_the_run(tmp_path):
     pytest.importorskip("mujoco")
-    from runtime.cli import dct
+    from runtime.app.cli import dct
 
     r = CliRunner().invoke(dct, ["calibrate", "hil-check", "--json", str(tmp_path / "nodir" / "out.json")])
     _one_line_error(r, "nodir", "does not exist")

@@ -10,7 +10,7 @@ pytest.importorskip("mujoco")
 
 def test_render_pixel_convention_matches_true_K():
     from calibration.robot_description import load_robot_description
-    from hil_sim.calibration_check import build_scene, measure_pixel_offset
+    from hil_sim.eval.calibration_check import build_scene, measure_pixel_offset
 
     scene = build_scene(load_robot_description())
     offset = measure_pixel_offset(scene)
@@ -19,7 +19,7 @@ def test_render_pixel_convention_matches_true_K():
 
 def test_hil_check_cli_meets_targets(tmp_path):
     """`dct calibrate hil-check --json out.json`, through the real `dct` entry point and lazy loaders."""
-    from runtime.cli import dct
+    from runtime.app.cli import dct
 
     out = tmp_path / "out.json"
     result = CliRunner().invoke(dct, ["calibrate", "hil-check", "--json", str(out), "--seed", "1"])
@@ -35,7 +35,7 @@ def test_hil_check_cli_meets_targets(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 3, 4, 5])
 def test_hil_check_other_seeds(seed):
-    from hil_sim.calibration_check import run_hil_check
+    from hil_sim.eval.calibration_check import run_hil_check
 
     r = run_hil_check(seed=seed, n_poses=20)
     assert r["passed"], {k: r[k] for k in ("fx_rel_err", "cx_err_px", "cy_err_px", "extrinsic_trans_err_m",
@@ -47,7 +47,7 @@ def test_cli_on_a_folder_of_simulated_captures(tmp_path):
     from calibration.calibration_file import load_calibration
     from calibration.cli import calibrate_group
     from calibration.extrinsics import transform_error
-    from hil_sim.calibration_check import write_board_views
+    from hil_sim.eval.calibration_check import write_board_views
 
     truth = write_board_views(tmp_path / "capture", seed=7, n_poses=16)
     cal = tmp_path / "cal.yaml"

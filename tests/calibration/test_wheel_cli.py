@@ -147,7 +147,7 @@ def test_the_robot_description_sets_the_geometric_track(files, tmp_path):
 
 def test_dct_entry_point_end_to_end(files):
     run, cal = files
-    dct = [sys.executable, "-c", "from runtime.cli import main; main()"]
+    dct = [sys.executable, "-c", "from runtime.app.cli import main; main()"]
     p = subprocess.run([*dct, "calibrate", "wheels", "--run", str(run), "--calibration", str(cal)],
                        capture_output=True, text=True)
     assert p.returncode == 0, p.stderr

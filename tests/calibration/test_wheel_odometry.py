@@ -250,7 +250,7 @@ def test_wheel_scale_multiplies_the_wheel_distances():
 
 def test_wheel_gyro_odometry_scales_the_distance_and_takes_yaw_from_the_gyro():
     from runtime.odometry import WheelGyroOdometry
-    from runtime.sensor_data import ImuSample
+    from runtime.common.sensor_data import ImuSample
 
     odo = WheelGyroOdometry(0.175, 3.0, wheel_scale=1.1)
     imu = [ImuSample(stamp_s=0.01 * i, accel_mps2=(0.0, 0.0, 9.81), gyro_radps=(0.0, 0.0, 0.0)) for i in range(3)]

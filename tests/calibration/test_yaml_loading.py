@@ -13,7 +13,7 @@ import pytest
 from calibration.calibration_file import load_calibration, make_calibration, save_calibration
 from calibration.errors import ConfigFileError, load_yaml_model
 from calibration.robot_description import RobotDescription, load_robot_description
-from hil_sim.scenario import list_scenarios, load_scenario
+from hil_sim.world.scenario import list_scenarios, load_scenario
 from runtime.config import load_controller_config
 
 ROBOT_YAML = Path(str(resources.files("calibration") / "robots" / "limo.yaml"))

@@ -88,7 +88,7 @@ def test_bad_frames_counted_and_never_acted_on(virtual_pair, clock):
 
 
 def test_an_unknown_vehicle_state_reaches_the_controller_as_not_normal(virtual_pair, clock):
-    from runtime.hardware import AgileXBaseHardware
+    from runtime.io.hardware import AgileXBaseHardware
 
     bus, peer = virtual_pair
     hw = AgileXBaseHardware(AgileXBaseDriver(bus, clock))

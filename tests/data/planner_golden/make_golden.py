@@ -1,4 +1,4 @@
-"""Records the MPC planner's commands on fixed closed-loop problems (tests/runtime/test_planner_golden.py).
+"""Records the MPC planner's commands on fixed closed-loop problems (tests/runtime/planning/test_planner_golden.py).
 
 Run once with the planner as it was before the issue-12 speed work (commit 5daa12b), so that the
 test compares the optimized planner against what it replaced:

@@ -1,0 +1,234 @@
+"""`dct bench vpp`: the whole VPP stage (VppStage.update) per scan, against issue 13's budget
+(3 ms p99 for a 20k-point frame with up to 8 masks, one core).
+
+The scene is runtime.vpp.partition.synthetic_frame (a room, a floor and boxes in front of the
+camera, with lens distortion), fixed in the odom frame. The stage runs as in the controller: a
+tiny in-process backend behind a lockstep BackendRunner answers the first image with one movable
+mask per box (the masks of synthetic_frame, capture pose = the start), so the memory holds
+`masks` entries, each with a plane from the lidar points in it. Then the robot sways (up to
+0.25 m along x and y, 0.08 rad of yaw, so every warp is a real homography) and each timed call
+is `update(now, pose, image=None, scan)` with the scan seen from that pose. No image is sent
+during the timed scans, so no answer arrives: the figures are the steady-state tick. The answer
+tick (Phase II) happens about once per second and is timed apart: its image work (planes, every
+entry warped to the answer's capture pose, IoU) is done beside the tick, in the backend
+runner's worker (`prepare`), and the tick only applies it (`apply`).
+
+Split (wrapped methods, so the figures stay comparable across versions of the stage):
+`masks` = the memory's Phase I per scan (propagate, or whatever the stage now calls to carry
+the masks to the current pose), `partition` = PointPartitioner.partition (Phase III), `track`
+= the object tracker (runtime/vpp/tracking.py), `other` = the rest of update.
+
+Single-threaded: numba and OpenCV set to one thread (the product budgets one core for the
+stage); `--cpu N` also pins the process to core N. Figures are measurements on this machine, no
+pass/fail.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import os
+import time
+from typing import Callable
+
+import numpy as np
+
+DEFAULT_MASK_COUNTS = (1, 4, 8)
+
+
+def _single_thread(cpu: int | None) -> dict:
+    """One thread for numba, OpenCV and BLAS (and one core when cpu is given)."""
+    import cv2
+    import numba
+
+    numba.set_num_threads(1)
+    cv2.setNumThreads(1)
+    info = {"numba_threads": numba.get_num_threads(), "opencv_threads": cv2.getNumThreads(), "cpu": cpu}
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover - optional
+        pass
+    if cpu is not None:
+        os.sched_setaffinity(0, {int(cpu)})
+    return info
+
+
+class _Timer:
+    """Wall and CPU (this thread) time of calls to wrapped methods, summed per name between
+    `reset`s. CPU time leaves out the time the scheduler gave other processes: on a shared
+    machine it is the figure that says what the stage costs one core."""
+
+    def __init__(self) -> None:
+        self.acc: dict[str, list[float]] = {}
+
+    def wrap(self, obj, attr: str, name: str) -> None:
+        fn = getattr(obj, attr)
+
+        @functools.wraps(fn)
+        def timed(*args, **kwargs):
+            t0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                a = self.acc.setdefault(name, [0.0, 0.0])
+                a[0] += time.perf_counter() - t0
+                a[1] += time.thread_time() - c0
+
+        setattr(obj, attr, timed)
+
+    def reset(self) -> dict[str, list[float]]:
+        out, self.acc = self.acc, {}
+        return out
+
+
+def _stats(ms: np.ndarray) -> dict:
+    return {"p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max())}
+
+
+def _build(n_points: int, n_masks: int, seed: int):
+    """(stage, world points (odom), n box points, capture info) with the memory filled through the
+    stage's own request -> answer -> reconcile path."""
+    from calibration.camera_model import transform_points
+    from models.vlm.interface import DetectedObject, VlmAnswer, VlmRequest
+    from models.vlm.runner import BackendRunner, BackendRunnerConfig
+    from runtime.common.sensor_data import CameraImage, LidarScan
+    from runtime.vpp.partition import synthetic_frame
+    from runtime.vpp.stage import VppConfig, VppStage, pose_matrix
+
+    pts, T_cam_lidar, cam, masks, _, _, T_base_lidar = synthetic_frame(n_points, n_masks, seed=seed)
+    T_base_cam = T_base_lidar @ np.linalg.inv(T_cam_lidar)
+    world = transform_points(T_base_lidar, pts.astype(np.float64))  # odom frame = base frame at the start
+    costs = np.linspace(1.0, 7.0, n_masks)  # all below never_touch_cost: every mask gates
+
+    class Backend:
+        name = "bench"
+
+        def query(self, request: VlmRequest) -> VlmAnswer:
+            objs = tuple(DetectedObject(masks[k], f"box{k}", True, float(costs[k]), 0.9) for k in range(n_masks))
+            return VlmAnswer(request.stamp_s, request.camera_pose_odom, objs, self.name, 0.0)
+
+    runner = BackendRunner(Backend(), BackendRunnerConfig(clock="lockstep", latency_s=0.05))
+    stage = VppStage(VppConfig(), cam, T_base_cam, T_base_lidar, runner)
+
+    def scan_at(t: float, pose: tuple[float, float, float]) -> LidarScan:
+        T_odom_lidar = pose_matrix(*pose) @ T_base_lidar
+        p = transform_points(np.linalg.inv(T_odom_lidar), world).astype(np.float32)
+        return LidarScan(stamp_s=t, points_m=p, point_time_offsets_s=np.zeros(len(p), np.float32),
+                         frame_duration_s=0.1)
+
+    image = CameraImage(stamp_s=0.0, pixels=np.zeros((cam.height_px, cam.width_px, 3), np.uint8), K=cam.K,
+                        distortion=cam.dist)
+    stage.update(0.0, (0.0, 0.0, 0.0), image, scan_at(0.0, (0.0, 0.0, 0.0)))
+    stage.settle(0.06)
+    stage.update(0.06, (0.0, 0.0, 0.0), None, scan_at(0.06, (0.0, 0.0, 0.0)))
+    entries = stage.memory.entries
+    if len(entries) != n_masks or any(e.plane is None for e in entries):
+        raise RuntimeError(f"bench set-up: expected {n_masks} entries with planes, got "
+                           f"{[(e.object_id, e.plane is not None) for e in entries]}")
+    return stage, scan_at, masks, costs
+
+
+def _pose(k: int) -> tuple[float, float, float]:
+    """The sway: within 0.25 m and 0.08 rad of the capture pose (below d_thres, so the trigger
+    rule would not re-ask; no image is given anyway)."""
+    return (0.25 * math.sin(0.11 * k), 0.15 * math.sin(0.07 * k + 1.0), 0.08 * math.sin(0.05 * k))
+
+
+def time_stage(n_masks: int, repeats: int = 300, n_points: int = 20000, seed: int = 0, warmup: int = 5) -> dict:
+    """Times `repeats` VppStage.update calls with n_masks entries in memory (module docstring)."""
+    from models.vlm.interface import DetectedObject, VlmAnswer
+    from runtime.vpp.stage import pose_matrix
+
+    stage, scan_at, masks, costs = _build(n_points, n_masks, seed)
+    timer = _Timer()
+    mem = stage.memory
+    for attr in ("propagate", "lookup", "prepare"):  # Phase I, whichever this version of the stage calls
+        if hasattr(mem, attr):
+            timer.wrap(mem, attr, "masks")
+    timer.wrap(stage.partitioner, "partition", "partition")
+    timer.wrap(stage.tracker, "update", "track")
+    # time advances slowly, so the entries never age out (max_age_s) over the timed scans
+    dt = min(0.05, 0.5 * stage.config.memory.max_age_s / (repeats + warmup + 1))
+    t = 0.1
+    names = ("masks", "partition", "track", "other")
+    total = {"wall": [], "cpu": []}
+    parts = {clock: {k: [] for k in names} for clock in ("wall", "cpu")}
+    movable, used = [], []
+    for k in range(repeats + warmup):
+        t += dt
+        pose = _pose(k + 1)
+        scan = scan_at(t, pose)
+        timer.reset()
+        t0, c0 = time.perf_counter(), time.thread_time()
+        frame = stage.update(t, pose, None, scan)
+        el = (time.perf_counter() - t0, time.thread_time() - c0)
+        acc = timer.reset()
+        if k < warmup:
+            continue
+        for i, clock in enumerate(("wall", "cpu")):
+            total[clock].append(el[i])
+            for name in names[:3]:
+                parts[clock][name].append(acc.get(name, (0.0, 0.0))[i])
+            parts[clock]["other"].append(el[i] - sum(a[i] for a in acc.values()))
+        movable.append(frame.movable_count)
+        used.append(frame.masks_used)
+    # Phase II: a fresh answer (same objects, at the current pose's capture): prepared beside the
+    # tick (the runner's worker: planes, warps, IoU), applied in the tick (MaskMemory.apply)
+    prep, app = [], []
+    T_cam = pose_matrix(*_pose(0)) @ stage.T_base_cam
+    points_cam = np.asarray(scan_at(t, _pose(0)).points_m, np.float64)
+    points_cam = points_cam @ stage.T_cam_lidar[:3, :3].T + stage.T_cam_lidar[:3, 3]
+    for k in range(max(3, min(30, repeats // 10))):
+        objs = tuple(DetectedObject(masks[j], f"box{j}", True, float(costs[j]), 0.9) for j in range(n_masks))
+        t += dt
+        ans = VlmAnswer(t, T_cam, objs, "bench", 0.0)
+        t0 = time.thread_time()
+        prepared = stage._preparer.prepare(ans, tuple(mem.entries), prompt=stage.config.prompt, points_cam=points_cam)
+        t1 = time.thread_time()
+        mem.apply(prepared, now_s=t)
+        app.append(time.thread_time() - t1)
+        prep.append(t1 - t0)
+    stage.close()
+    out = {"n_masks": n_masks, "n_points": n_points, "repeats": repeats}
+    for clock in ("wall", "cpu"):
+        out[clock] = {"update": _stats(np.array(total[clock]) * 1e3),
+                      "split": {k: _stats(np.array(v) * 1e3) for k, v in parts[clock].items()}}
+    out.update({
+        "answer_apply_cpu": _stats(np.array(app) * 1e3), "answer_prepare_cpu": _stats(np.array(prep) * 1e3),
+        "masks_used_min": int(min(used)), "movable_points_median": float(np.median(movable)),
+        "masks_distrusted": int(stage.masks_distrusted),
+    })
+    return out
+
+
+def run_vpp_benchmark(mask_counts=DEFAULT_MASK_COUNTS, repeats: int = 300, n_points: int = 20000, seed: int = 0,
+                      cpu: int | None = None, echo: Callable[[str], None] = print) -> dict:
+    """Prints and returns the figures per mask count."""
+    threads = _single_thread(cpu)
+    echo(f"VppStage.update, {n_points} points, {repeats} scans per row, camera moving, single thread "
+         f"(numba {threads['numba_threads']}, OpenCV {threads['opencv_threads']}"
+         + (f", cpu {cpu}" if cpu is not None else "") + "); budget 3 ms p99 at 8 masks (issue 13)")
+    head = (f"{'masks':>5} {'clock':>5} {'p50':>6} {'p99':>6} {'max':>6} | {'Phase I':>11} {'partition':>11} "
+            f"{'track':>11} {'other':>11} | {'used':>4} {'movable':>7} {'apply':>11} {'prepare':>7}")
+    echo(head)
+    rows = []
+    for m in mask_counts:
+        r = time_stage(int(m), repeats, n_points, seed)
+        rows.append(r)
+        for clock in ("cpu", "wall"):
+            u, s = r[clock]["update"], r[clock]["split"]
+            pp = " ".join(f"{s[k]['p50_ms']:>5.2f}/{s[k]['p99_ms']:<5.2f}" for k in ("masks", "partition", "track", "other"))
+            ap, pr = r["answer_apply_cpu"], r["answer_prepare_cpu"]
+            tail = (f" | {r['masks_used_min']:>4} {r['movable_points_median']:>7.0f} "
+                    f"{ap['p50_ms']:>5.2f}/{ap['max_ms']:<5.2f} {pr['p50_ms']:>7.2f}" if clock == "cpu" else "")
+            echo(f"{m:>5} {clock:>5} {u['p50_ms']:>6.2f} {u['p99_ms']:>6.2f} {u['max_ms']:>6.2f} | {pp}{tail}")
+    echo("ms; split columns p50/p99; cpu = this thread's CPU time (what the stage costs one core; wall adds the "
+         "time other processes took the core); used = fewest masks a scan was gated against; movable = median "
+         "movable points per scan; an answer (Phase II, about once a second): apply = CPU p50/max of its part in "
+         "the tick (add it to that tick's update), prepare = CPU p50 of its image work beside the tick (the "
+         "backend runner's worker)")
+    return {"threads": threads, "rows": rows}
+
+
+__all__ = ["DEFAULT_MASK_COUNTS", "run_vpp_benchmark", "time_stage"]

@@ -1,0 +1,442 @@
+"""Lockstep HIL episodes: simulation time drives everything.
+
+The controller runs its ordinary fixed-rate loop; its clock is the simulator's. Each
+`sleep_until(t)` of the loop advances physics to t, stepping the emulated base firmware
+(which reads the controller's CAN frames and answers with feedback frames) every physics
+step. The controller and the firmware talk over a python-can `virtual` bus, exactly the
+frames they would exchange on the robot. Deterministic for a given seed.
+"""
+from __future__ import annotations
+
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable, Iterable, Protocol
+
+import can
+import numpy as np
+
+from calibration.robot_description import RobotDescription, load_robot_description
+from firmware_bridge.base_driver import AgileXBaseDriver
+from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+from hil_sim.episode.faults import FaultInjector, FaultSpec
+from hil_sim.episode.metrics import EpisodeMetrics
+from hil_sim.episode.patrol import PatrolSequencer, patrol_failure_reason
+from hil_sim.world.scenario import Scenario, load_scenario
+from hil_sim.world.mujoco_world import World
+from runtime.config import ControllerConfig, load_controller_config
+from runtime.controller.navigation import ControllerState, NavigationController
+from runtime.common.geometry import Pose2D
+from runtime.io.hardware import AgileXBaseHardware
+from runtime.loop.fixed_rate import FixedRateLoop
+from runtime.io.sensor_inbox import SensorInbox
+from runtime.loop.telemetry import TickTelemetry
+
+if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
+    from calibration.camera_model import CameraModel
+    from hil_sim.world.sensor_rig import SensorRigConfig
+    from models.vlm.sim_oracle import SimOracleConfig
+    from runtime.io.recording import RunRecorder
+
+#: Camera frames per second in planner mode dct (the VLM answers about once a second).
+DCT_CAMERA_RATE_HZ = 2.0
+
+
+class SimulatedDevice(Protocol):
+    """Anything stepped with physics (sensors, later fault injectors)."""
+
+    def step(self, t_s: float) -> None: ...
+
+
+class LockstepSimulation:
+    """Physics + emulated firmware (+ sensors), advanced only when asked."""
+
+    def __init__(
+        self,
+        world: World,
+        firmware: EmulatedBaseFirmware,
+        metrics: EpisodeMetrics | None = None,
+        devices: Iterable[SimulatedDevice] = (),
+        controls: Iterable[SimulatedDevice] = (),
+    ) -> None:
+        """devices: stepped after physics (sensors). controls: stepped before the firmware, with
+        the time of the step about to be taken (fault injection: a fault that starts at t acts on
+        everything the firmware and the sensors produce from t on)."""
+        self.world = world
+        self.firmware = firmware
+        self.metrics = metrics
+        self.devices = list(devices)
+        self.controls = list(controls)
+        self.steps = 0
+        self._half_step = 0.5 * world.timestep_s
+
+    @property
+    def time_s(self) -> float:
+        return self.world.time_s
+
+    def step(self) -> None:
+        """One physics step, then every device with the time *before* the step.
+
+        mj_step computes kinematics and sensors of the state at the start of the step and then
+        integrates, so after it the poses and sensordata in `data` belong to that earlier time.
+        """
+        world = self.world
+        t_before = world.time_s
+        for control in self.controls:
+            control.step(t_before)
+        torques = self.firmware.step(t_before, world.wheel_speeds_radps(), world.wheel_angles_rad())
+        world.set_wheel_torques(torques)
+        world.step()
+        self.steps += 1
+        if self.metrics is not None:
+            self.metrics.update(world)
+        for device in self.devices:
+            device.step(t_before)
+
+    def advance_to(self, t_s: float) -> None:
+        while self.world.time_s < t_s - self._half_step:
+            self.step()
+
+
+class LockstepBarrier(Protocol):
+    """Work beside the tick that delivers at a fixed simulated latency (ICP): once physics has
+    reached t_s, and before the tick at t_s runs, the simulator waits for whatever is due by
+    t_s instead of racing it."""
+
+    def settle(self, t_s: float) -> None: ...
+
+
+class LockstepClock:
+    """The loop's clock in lockstep mode: now() is simulation time; sleeping advances physics
+    (and waits for every barrier's work due by then)."""
+
+    def __init__(self, sim: LockstepSimulation, barriers: Iterable[LockstepBarrier] = ()) -> None:
+        self.sim = sim
+        self.barriers = list(barriers)
+
+    def now(self) -> float:
+        return self.sim.time_s
+
+    def sleep_until(self, t_s: float) -> None:
+        self.sim.advance_to(t_s)
+        for barrier in self.barriers:
+            barrier.settle(self.sim.time_s)
+
+
+def virtual_bus_pair(channel: str | None = None) -> tuple[can.BusABC, can.BusABC]:
+    """Two ends of one python-can virtual bus: (controller side, simulator side)."""
+    channel = channel or f"dct-hil-{uuid.uuid4().hex}"
+    return (
+        can.Bus(interface="virtual", channel=channel, receive_own_messages=False),
+        can.Bus(interface="virtual", channel=channel, receive_own_messages=False),
+    )
+
+
+@dataclass
+class EpisodeResult:
+    metrics: dict
+    telemetry: dict
+    controller: dict
+    wall_time_s: float
+    sim_time_s: float
+    extra: dict = field(default_factory=dict)
+    #: The telemetry's per-tick records (runtime.loop.telemetry.tick_record_dtype), oldest first:
+    #: what `dct bench tick` takes its percentiles from (the summary above has only a few).
+    tick_records: np.ndarray | None = None
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.sim_time_s / self.wall_time_s if self.wall_time_s > 0 else float("inf")
+
+
+def goal_in_odom_frame(scenario: Scenario) -> Pose2D:
+    """The goal relative to the start pose: the odometry frame starts at the robot's start."""
+    start = Pose2D(scenario.robot_start.x_m, scenario.robot_start.y_m, scenario.robot_start.yaw_rad)
+    goal = Pose2D(scenario.goal.x_m, scenario.goal.y_m, scenario.goal.yaw_rad)
+    return start.inverse().compose(goal)
+
+
+def run_episode(
+    scenario: Scenario | str,
+    robot: RobotDescription | None = None,
+    config: ControllerConfig | None = None,
+    seed: int = 0,
+    settle_s: float = 0.5,
+    progress: Callable[[float], None] | None = None,
+    sensors: "SensorRigConfig | None | bool" = None,
+    faults: Iterable[FaultSpec] = (),
+    wheel_calibration: tuple[float, float] | None = None,
+    observe: Callable[[NavigationController], None] | None = None,
+    oracle: "SimOracleConfig | None" = None,
+    on_start: "Callable[[LockstepSimulation, NavigationController], None] | None" = None,
+    recorder: "RunRecorder | None" = None,
+    camera_calibration: "tuple[CameraModel, np.ndarray | None] | None" = None,
+    goal_when_ready: bool = False,
+) -> EpisodeResult:
+    """Run one lockstep episode of the navigation controller in a scenario.
+
+    sensors: a SensorRigConfig, True for the default rig, False for none; None picks what the
+    controller needs (lidar + IMU for the MPC and grid-astar, nothing for pure pursuit).
+    faults: injected faults (hil_sim.episode.faults), times from the start of the episode.
+    wheel_calibration: (effective track m, wheel scale) for the odometry (calibration file).
+    camera_calibration: (camera model, T_cam_lidar or None) from the calibration file: the
+    controller's VPP partition projects with them, and the images reach it carrying them (the
+    simulated camera renders with its true intrinsics: a calibration's error is real here).
+    observe: called with the controller once after every tick, outside the tick and its timing
+    (`dct bench tick` reads the frame's point counts and the planner's counters with it).
+    on_start: called once with the simulation and the controller before the first tick
+    (evaluations attach to the sensor rig's listeners: `dct vpp eval`).
+    recorder: records the ticks, poses, CAN frames, P_fix and plan to MCAP (runtime.io.recording);
+    the caller closes it. Recording changes no metric.
+    goal_when_ready: the navigation clock of a robot switched on before it is sent: the controller
+    starts in standby (start-up sequence, odometry, the VLM partition's first answer; the robot
+    stands still) and the goal is given at the first tick at which it is ACTIVE and its partition
+    ready (mode dct: the VLM answered once; other modes: the start-up sequence done). Navigation
+    time, the time limit and the events count from then (`standby_s` says how long it stood).
+    False (default): the goal is given at switch-on and the clock starts there.
+    oracle: planner mode dct's sim-oracle settings, used as given (its seed too) instead of the
+    config's `vpp.backend` (whose seed is added to the episode seed). With no `oracle` and a
+    backend other than the sim-oracle in the config, the controller builds that backend.
+
+    A patrol scenario (`goals:`): hil_sim.episode.patrol.PatrolSequencer sends the next goal to the
+    controller (`request_goal`, between two ticks) when it has finished with the current one; the
+    episode ends with the patrol (its loops or duration), and the metrics add `patrol` (goals
+    sent, reached, missed, every visit); `goal_reached` is the patrol's verdict.
+
+    Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
+    What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
+    returned in `telemetry` and `wall_time_s`, never in the metrics.
+    """
+    faults = tuple(faults)
+    if isinstance(scenario, str):
+        scenario = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
+    robot = robot or load_robot_description()
+    config = config or load_controller_config()
+
+    world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
+    world.reset(seed)
+    metrics = EpisodeMetrics(world, scenario, seed)
+    controller_bus, sim_bus = virtual_bus_pair()
+    firmware = EmulatedBaseFirmware(sim_bus, robot)
+    inbox = SensorInbox()
+    injector = FaultInjector(
+        faults, firmware, inbox, start_s=world.time_s,
+        far_m=config.planner.obstacle_points.max_range_m + 4.0,
+    )
+    devices: list = []
+    if sensors is None:
+        sensors = config.uses_lidar
+    has_sensors = sensors is not False
+    if has_sensors:
+        from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
+
+        rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
+        if config.planner.mode == "dct":
+            # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle.
+            # (A rig config that asks for a camera rate of its own keeps it: `dct vpp eval`.)
+            rate = rig_config.camera_rate_hz or DCT_CAMERA_RATE_HZ
+            rig_config = rig_config.model_copy(update={"camera_rate_hz": rate, "camera_segmentation": True})
+        intrinsics = None
+        if camera_calibration is not None:
+            intrinsics = (camera_calibration[0].K, camera_calibration[0].dist)
+        devices.append(SensorRig(world, robot, injector, rig_config, intrinsics=intrinsics))
+    vlm_backend = None
+    if config.planner.mode == "dct" and (oracle is not None or config.vpp.backend.kind == "sim-oracle"):
+        # The sim-oracle needs this world's object table: built here, passed to the controller.
+        # Any other backend the controller builds from the config itself.
+        from hil_sim.vlm.oracle import oracle_backend
+
+        vlm_backend = oracle_backend(world, oracle or config.vpp.backend.oracle_config(episode_seed=seed))
+    sim = LockstepSimulation(world, firmware, metrics, devices, controls=[injector])
+    clock = LockstepClock(sim)
+
+    bus = recorder.wrap_bus(controller_bus, clock.now) if recorder is not None else controller_bus
+    driver = AgileXBaseDriver(bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
+    hardware = AgileXBaseHardware(driver, robot.drive.skid_steer_yaw_factor)
+    try:  # loads the distance net: a bad model file must not leave the buses open
+        controller = NavigationController(
+            robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now,
+            sensors=inbox if has_sensors else None, lockstep=True, wheel_calibration=wheel_calibration,
+            vlm_backend=vlm_backend,
+            camera=camera_calibration[0] if camera_calibration is not None else None,
+            T_cam_lidar=camera_calibration[1] if camera_calibration is not None else None,
+            goal_given=not goal_when_ready,
+        )
+    except BaseException:
+        controller_bus.shutdown()
+        sim_bus.shutdown()
+        raise
+    clock.barriers.append(controller.odometry)
+    clock.barriers.append(controller)  # the VLM answers due (mode dct; nothing otherwise)
+    telemetry = TickTelemetry()
+    loop = FixedRateLoop(
+        clock,
+        period_s=config.loop.period_s,
+        stage_budgets_s=config.loop.stage_budgets_s,
+        command_deadline_s=config.loop.command_deadline_s,
+        keepalive_period_s=config.loop.keepalive_period_s,
+        telemetry=telemetry,
+        slack_work_min_s=config.loop.slack_work_min_s,
+        after_tick=recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed, "clock": "lockstep"})
+        if recorder is not None else None,
+    )
+    t_switch_on = sim.time_s
+    clock_start = [sim.time_s]  # where the navigation clock starts (moved on by goal_when_ready)
+    finished_at: list[float] = []
+    patrol = PatrolSequencer(scenario, t_switch_on) if scenario.is_patrol else None
+
+    def should_stop() -> bool:
+        if observe is not None and telemetry.ticks:
+            observe(controller)  # after each tick (the loop asks before every tick and once at the end)
+        now = sim.time_s
+        if progress is not None:
+            progress(now)
+        if (not controller.goal_given and controller.state is ControllerState.ACTIVE
+                and controller.partition.ready(now)):
+            controller.give_goal(now)  # this coming tick plans
+            clock_start[0] = now
+        if patrol is not None:  # the operator: the next goal once the controller is done with this one
+            goal = patrol.update(now, world.robot_pose(), (controller.goal.x_m, controller.goal.y_m),
+                                 controller.finished, controller.state is ControllerState.STOPPED, controller.pose)
+            if goal is not None:
+                controller.request_goal(goal, "patrol")
+            return patrol.done or now >= clock_start[0] + scenario.time_limit_s
+        if now >= clock_start[0] + scenario.time_limit_s:
+            return True
+        if controller.finished:
+            if not finished_at:
+                finished_at.append(now)
+            return now >= finished_at[0] + settle_s
+        return False
+
+    wall0 = time.perf_counter()
+    try:
+        if on_start is not None:
+            on_start(sim, controller)
+        controller.activate()
+        loop.run(controller, should_stop)
+    finally:
+        controller.deactivate()
+        sim.advance_to(sim.time_s + 0.02)  # let the firmware consume the final zero command
+        controller_bus.shutdown()
+        sim_bus.shutdown()
+    wall = time.perf_counter() - wall0
+
+    t_start = clock_start[0]
+    if patrol is not None:
+        reached = patrol.succeeded
+        nav_time = sim.time_s - t_start
+        x, y, _ = world.robot_pose()
+        final_distance = patrol.distance_to_current_m((x, y))
+    else:
+        reached = controller.state is ControllerState.GOAL_REACHED and world_goal_reached(world, scenario)
+        if controller.goal_reached_at_s is not None:
+            nav_time = controller.goal_reached_at_s - t_start
+        else:
+            nav_time = sim.time_s - t_start
+        final_distance = world_distance_to_goal(world, scenario)
+    report = controller.describe()
+    result_metrics = metrics.to_dict(
+        goal_reached=reached,
+        navigation_time_s=nav_time,
+        deadline_misses=telemetry.deadline_misses,
+        extra={
+            "controller_state": controller.state.name,
+            "stop_reason": controller.stop_reason,
+            "final_distance_to_goal_m": final_distance,
+            "final_pose_world": [float(v) for v in world.robot_pose()],
+            "sim_time_s": sim.time_s - t_switch_on,
+            # the navigation clock: "switch-on" (the goal given at start) or "goal-when-ready"
+            "navigation_clock": "goal-when-ready" if goal_when_ready else "switch-on",
+            "standby_s": t_start - t_switch_on,
+            "planner": config.planner.mode,
+            "faults": [{**f.to_dict(), "acted_on": injector.applied[f.name]} for f in faults],
+            "events": controller.events.to_list(t0_s=t_start),
+            # DCT correcting mode (runtime.modes.correcting): how often, and each one's start,
+            # duration, object relabelled fixed (None) and reason.
+            "correcting_events": int(report.get("correcting_events", 0)),
+            "correcting": controller.modes.correcting_report(t0_s=t_start),
+            "controller": report,
+            "sensor_errors": dict(sorted(inbox.error_counts.items())),
+            "firmware_frames_rejected": firmware.frames_rejected,
+            "scenario_warnings": list(world.scenario_warnings),
+            **({"patrol": patrol.report(sim.time_s)} if patrol is not None else {}),
+        },
+    )
+    result_metrics["failure_reason"] = failure_reason(result_metrics, report)
+    return EpisodeResult(
+        metrics=result_metrics,
+        telemetry=telemetry.summary(),
+        controller=report,
+        wall_time_s=wall,
+        sim_time_s=sim.time_s - t_switch_on,
+        extra={
+            "keepalives_sent": loop.keepalives_sent,
+            "firmware_frames_rejected": firmware.frames_rejected,
+            "physics_steps": sim.steps,
+            "timestep_s": world.timestep_s,
+            "sensor_errors": dict(inbox.error_counts),
+            "sensor_frames": dict(inbox.accepted),
+            "faults_applied": dict(injector.applied),
+            "odometry_wall_clock": controller.odometry.wall_clock(),
+        },
+        tick_records=telemetry.snapshot(),
+    )
+
+
+def failure_reason(metrics: dict, controller: dict) -> str | None:
+    """Why the episode failed, in words (None on success). The first that applies:
+    fixed contact; a latched safety stop; an input fault the robot was holding for at the end;
+    never became active; a patrol's missed goals or its early end (hil_sim.episode.patrol); time limit
+    while blocked (no path); stalled without progress with a valid reference path; the
+    controller's goal not the world's (odometry drift); time limit.
+    """
+    if metrics["success"]:
+        return None
+    if metrics["fixed_contacts"]:
+        hit = [o["name"] for o in metrics["obstacles"] if o["class"] != "movable" and o["contact_count"]]
+        return f"fixed contact: {', '.join(hit)} ({metrics['fixed_contacts']} contact events)"
+    state = controller["state"]
+    if state == "STOPPED":
+        return f"safety stop: {controller['stop_reason']}"
+    base_faults = [f["reason"] for f in controller["input_faults"] if f["stream"] == "0x211"]
+    if state == "HOLDING":
+        if controller["hold_reason"] in base_faults:
+            return f"base not ready: {controller['hold_reason']} (held still at the time limit)"
+        return f"sensor stale: {controller['hold_reason']} (held still at the time limit)"
+    if state == "INITIALIZING":
+        faults = "; ".join(f["reason"] for f in controller["input_faults"]) or "base not ready"
+        if controller["restarts"]:
+            return f"start-up sequence not complete after {controller['restarts']} restarts: {faults}"
+        return f"never became active: {faults}"
+    if "patrol" in metrics:
+        reason = patrol_failure_reason(metrics)
+        if reason is not None:
+            return reason
+    if state == "GOAL_REACHED":
+        return (
+            f"odometry drift: the controller reached the goal in its odom frame, the robot is "
+            f"{metrics['final_distance_to_goal_m']:.2f} m from it"
+        )
+    if controller.get("blocked_now"):
+        return (
+            f"time limit while blocked: no path to the goal in the local map for the last "
+            f"{controller['blocked_for_s']:.1f} s ({controller['blocked_ticks']} blocked ticks)"
+        )
+    if controller.get("stalled_now") or controller.get("stalls"):
+        return (
+            f"stalled without progress with a valid reference path: {controller['stalls']} stalls, "
+            f"{controller['backoffs']} backoffs and {controller.get('correcting_events', 0)} corrections did not "
+            f"free it, "
+            f"{metrics['final_distance_to_goal_m']:.2f} m from the goal"
+        )
+    return f"time limit: {metrics['final_distance_to_goal_m']:.2f} m from the goal"
+
+
+def world_distance_to_goal(world: World, scenario: Scenario) -> float:
+    x, y, _ = world.robot_pose()
+    return float(((x - scenario.goal.x_m) ** 2 + (y - scenario.goal.y_m) ** 2) ** 0.5)
+
+
+def world_goal_reached(world: World, scenario: Scenario) -> bool:
+    return world_distance_to_goal(world, scenario) <= scenario.goal.tolerance_m

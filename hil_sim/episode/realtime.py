@@ -1,0 +1,335 @@
+"""`dct hil run SCENARIO --realtime`: the simulator and the controller as two real processes.
+
+    dct hil serve SCENARIO ...  (physics on the wall clock, emulated firmware, sensors over DDS)
+    dct run --goal ...          (the controller process, exactly as on the robot)
+
+Each run gets its own DDS domain id and its own CAN multicast group and port, so runs in parallel
+(CI, campaigns) never hear each other. The simulator starts first; the controller starts when
+the simulator says it is serving. The episode ends when the simulator ends it (goal, time limit);
+the controller is then stopped with SIGTERM, as an operator would stop it, and writes its
+summary. If the controller exits first (bad input, crash), the simulator is stopped too.
+
+Planner mode dct (the config's, or `planner`): the controller's config asks for the sim-oracle
+(vpp.backend kind sim-oracle), which only the simulator can answer. `dct hil serve` then serves
+it as a remote VLM over HTTP (hil_sim.vlm.service: the OpenAI chat-completions API and the
+grounding detector API, from the ground truth of the frames it rendered), and the controller
+gets a generated copy of its config whose vpp.backend is `openai-compatible` at that URL, with
+`grounding-http` regions at the same server (`controller_config`): the controller runs the code
+and the client it runs on the robot. A config whose backend is already openai-compatible is
+passed as it is (the controller then asks that server about the simulator's images).
+
+The metrics JSON is the lockstep one (the simulator's ground truth) with what only the
+controller knows merged in (its state, events, deadline misses: goal_reached needs the
+controller's GOAL_REACHED as in lockstep) and `realtime`: the controller's `tick_ms` and
+`sensor_to_command_ms` (p50, p99, max), `deadline_misses`, and the processes' `pids`.
+
+`--record run.mcap` is the controller process's recording (`dct run --record`, what `dct report
+latency` reads); `--duration S` is a patrol's length (`dct hil serve --duration`, hil_sim.episode.patrol).
+"""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from importlib import resources
+from pathlib import Path
+
+from hil_sim.episode.lockstep import failure_reason, goal_in_odom_frame
+
+#: Seconds to wait for the simulator to say it is serving (imports, world build).
+SERVE_READY_TIMEOUT_S = 120.0
+#: Seconds the controller has to exit after SIGTERM before it is killed.
+STOP_TIMEOUT_S = 30.0
+
+
+def _dct(*args: str) -> list[str]:
+    return [sys.executable, "-m", "runtime.app.cli", *args]
+
+
+def unique_channels(rng: random.Random | None = None) -> tuple[int, str, int]:
+    """(DDS domain id, CAN multicast group, UDP port) for one run; random, so parallel runs differ."""
+    rng = rng or random.Random(int.from_bytes(os.urandom(8), "little") ^ os.getpid())
+    domain = rng.randint(1, 230)
+    group = f"239.74.{rng.randint(0, 255)}.{rng.randint(1, 254)}"
+    port = rng.randint(20000, 60000)
+    return domain, group, port
+
+
+class _Lines(threading.Thread):
+    """Forwards a child's stderr lines to ours (prefixed) and remembers them."""
+
+    def __init__(self, stream, prefix: str, echo) -> None:
+        super().__init__(daemon=True)
+        self.stream, self.prefix, self.echo = stream, prefix, echo
+        self.lines: list[str] = []
+        self.ready = threading.Event()
+        self.start()
+
+    def run(self) -> None:
+        for raw in self.stream:
+            line = raw.rstrip("\n")
+            self.lines.append(line)
+            if " serving:" in line:
+                self.ready.set()
+            if self.echo is not None:
+                self.echo(f"[{self.prefix}] {line}")
+
+
+def _stop(p: subprocess.Popen | None) -> None:
+    """SIGTERM (the process writes its files and exits), SIGKILL after STOP_TIMEOUT_S."""
+    if p is None or p.poll() is not None:
+        return
+    p.send_signal(signal.SIGTERM)
+    try:
+        p.wait(STOP_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.wait()
+
+
+def _sigterm_raises() -> None:
+    """In the main thread: SIGTERM raises KeyboardInterrupt, so that the children are stopped (the
+    default action would end this process at once and leave them running)."""
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        def handler(signum, frame):  # noqa: ARG001
+            raise KeyboardInterrupt("SIGTERM")
+
+        signal.signal(signal.SIGTERM, handler)
+
+
+_ORACLE_LINE = re.compile(r"VLM oracle at (http://\S+)/v1 ")
+
+
+def controller_config(config: dict, oracle_url: str, latency_s: float) -> dict:
+    """The controller config (as loaded from YAML) with vpp.backend asking the simulator's oracle
+    service at `oracle_url` over the real wire protocols (module docstring). Timeouts: the
+    detector 2 s, the chat `latency_s` + 2 s, no retries (a failed answer is one failure, as in
+    lockstep); the VPP runner's timeout is raised to cover both when it is shorter."""
+    out = copy.deepcopy(config)
+    vpp = out.setdefault("vpp", {}) or {}
+    out["vpp"] = vpp
+    detect_s, chat_s = 2.0, latency_s + 2.0
+    vpp["backend"] = {
+        "kind": "openai-compatible", "base_url": f"{oracle_url}/v1", "model": "sim-oracle",
+        "timeout_s": chat_s, "max_retries": 0,
+        "regions": {"kind": "grounding-http", "base_url": oracle_url, "return_masks": True, "timeout_s": detect_s,
+                    "max_retries": 0, "fallback_opencv": False},
+    }
+    runner = vpp.setdefault("runner", {}) or {}
+    vpp["runner"] = runner
+    runner["timeout_s"] = max(float(runner.get("timeout_s", 5.0)), detect_s + chat_s + 1.0)
+    return out
+
+
+def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None = None,
+                         robot_path: Path | None = None, calibration_path: Path | None = None,
+                         echo=None, keep_dir: Path | None = None, planner: str | None = None, *,
+                         duration_s: float | None = None, record_path: Path | None = None,
+                         force: bool = False) -> dict:
+    """Run one real-time episode with two processes; returns the merged metrics (module docstring).
+    planner: overrides the config's planner.mode (dct, all-fixed).
+    Raises RuntimeError when a process could not run (the message says which and its last words).
+    duration_s: a patrol's duration (`dct hil serve --duration`); record_path: the controller
+    records the run (`dct run --record`, `--force` overwrites)."""
+    import yaml
+
+    from calibration.outputs import atomic_write_text
+    from hil_sim.episode.patrol import with_duration
+    from hil_sim.world.scenario import load_scenario
+    from runtime.config import load_controller_config
+
+    sc = with_duration(load_scenario(scenario, seed=seed), duration_s)  # a generated scene: from the seed
+    config = load_controller_config(config_path)
+    mode = planner or config.planner.mode
+    oracle = mode == "dct" and config.vpp.backend.kind == "sim-oracle"
+    _sigterm_raises()
+    goal = goal_in_odom_frame(sc)
+    domain, group, port = unique_channels()
+    common: list[str] = []
+    if config_path is not None:
+        common += ["--config", str(config_path)]
+    if robot_path is not None:
+        common += ["--robot", str(robot_path)]
+    with tempfile.TemporaryDirectory(prefix="dct-rt-") as tmp:
+        work = Path(keep_dir) if keep_dir is not None else Path(tmp)
+        sim_json, ctl_json = work / "simulator.json", work / "controller.json"
+        serve_cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json), "--force",
+                         "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port),
+                         "--oracle" if oracle else "--no-oracle", *common)
+        if duration_s is not None:
+            serve_cmd += ["--duration", repr(float(duration_s))]
+        run_cmd = _dct("run", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
+                       "--domain-id", str(domain), "--can-interface", "udp_multicast", "--can-channel", group,
+                       "--can-port", str(port))
+        if robot_path is not None:
+            run_cmd += ["--robot", str(robot_path)]
+        if planner is not None:
+            run_cmd += ["--planner", planner]
+        if calibration_path is not None:
+            run_cmd += ["--calibration", str(calibration_path)]
+        if record_path is not None:
+            run_cmd += ["--record", str(record_path)] + (["--force"] if force else [])
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        t0 = time.monotonic()
+        # Own sessions: a Ctrl-C in the terminal reaches this process only, which stops both
+        # children in order (SIGTERM, then SIGKILL after STOP_TIMEOUT_S) so that they write their files.
+        sim = subprocess.Popen(serve_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+        sim_log = _Lines(sim.stderr, "sim", echo)
+        ctl = None
+        try:
+            while not sim_log.ready.wait(0.2):
+                if sim.poll() is not None or time.monotonic() - t0 > SERVE_READY_TIMEOUT_S:
+                    raise RuntimeError(f"dct hil serve did not start (exit {sim.poll()}): "
+                                       f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
+            if oracle:  # the controller asks the simulator's oracle service (module docstring)
+                urls = [m.group(1) for m in map(_ORACLE_LINE.search, sim_log.lines) if m]
+                if not urls:
+                    raise RuntimeError("dct hil serve did not say where its VLM oracle is: "
+                                       f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
+                source = config_path or Path(str(resources.files("runtime") / "config" / "default.yaml"))
+                generated = controller_config(yaml.safe_load(Path(source).read_text()) or {}, urls[-1],
+                                              config.vpp.backend.latency_s)
+                ctl_config = work / "controller_config.yaml"
+                atomic_write_text(ctl_config, yaml.safe_dump(generated, sort_keys=False))
+                run_cmd += ["--config", str(ctl_config)]
+            elif config_path is not None:
+                run_cmd += ["--config", str(config_path)]
+            ctl = subprocess.Popen(run_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+            ctl_log = _Lines(ctl.stderr, "ctl", echo)
+            limit = SERVE_READY_TIMEOUT_S + sc.time_limit_s + 120.0
+            while sim.poll() is None:
+                if ctl.poll() is not None or time.monotonic() - t0 > limit:
+                    break  # the controller ended first, or the episode overran: end it
+                time.sleep(0.1)
+            _stop(sim)
+            _stop(ctl)
+            ctl_log.join(2.0)
+            sim_log.join(2.0)
+        finally:  # also on an exception or a SIGINT/SIGTERM of this process
+            _stop(ctl)
+            _stop(sim)
+        if not sim_json.is_file():
+            raise RuntimeError(f"dct hil serve (exit {sim.returncode}) wrote no metrics: "
+                               f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
+        if not ctl_json.is_file():
+            raise RuntimeError(f"dct run (exit {ctl.returncode}) wrote no summary: "
+                               f"{' | '.join(ctl_log.lines[-3:]) or 'no output'}")
+        metrics = json.loads(sim_json.read_text())
+        summary = json.loads(ctl_json.read_text())
+    return merge(metrics, summary, {"simulator": sim.pid, "controller": ctl.pid},
+                 {"simulator": sim.returncode, "controller": ctl.returncode}, time.monotonic() - t0)
+
+
+def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: float) -> dict:
+    """The simulator's metrics with the controller's side merged in (module docstring)."""
+    m = dict(metrics)
+    report = summary["controller"]
+    # A patrol's verdict is the simulator's (hil_sim.episode.patrol); at its end the controller may be
+    # on its way to the next goal. A controller that reached its goal (goal_reached_at_s, no goal
+    # since) and then held (the simulator ends first: its last inputs go stale) reached it.
+    at_goal = summary["state"] == "GOAL_REACHED" or (summary["state"] == "HOLDING"
+                                                      and summary.get("goal_reached_at_s") is not None)
+    reached = bool(m["goal_reached"]) and (at_goal or ("patrol" in m and summary["state"] != "STOPPED"))
+    m["goal_reached"] = reached
+    m["success"] = reached and m["fixed_contacts"] == 0
+    rt = summary["realtime"]
+    m["deadline_misses"] = rt["deadline_misses"]
+    m["controller_state"] = summary["state"]
+    m["stop_reason"] = summary["stop_reason"]
+    m["planner"] = report.get("mode")
+    m["events"] = summary["events"]
+    m["controller"] = report
+    m["sensor_errors"] = summary["sensor_errors"]
+    m["faults"] = []  # (fault injection is lockstep only so far)
+    m["failure_reason"] = failure_reason(m, report)
+    m["realtime"] = {
+        "tick_ms": {k: rt["tick_ms"][k] for k in ("p50", "p99", "max")},
+        "sensor_to_command_ms": {k: rt["sensor_to_command_ms"][k] for k in ("p50", "p99", "max")},
+        "deadline_misses": rt["deadline_misses"],
+        "pids": pids,
+        "exit_codes": exit_codes,
+        "lidar_frames_used": rt["sensor_to_command_ms"]["count"],
+        "ticks": rt["ticks"],
+        "ticks_skipped": rt["ticks_skipped"],
+        "wall_deadline_misses": rt["wall_deadline_misses"],
+        "lateness_ms": rt["lateness_ms"],
+        "sensor_frames": summary["sensor_frames"],
+        "simulator_lag_ms": m.get("simulator", {}).get("sim_lag_ms"),
+        "end_reason": m.get("end_reason"),
+        "wall_time_s": wall_s,
+    }
+    if "recording" in summary:  # `--record`: the controller's MCAP file (path, records dropped)
+        m["realtime"]["recording"] = summary["recording"]
+    return m
+
+
+__all__ = ["run_realtime_episode", "run_realtime_benchmark", "merge", "unique_channels"]
+
+
+def run_realtime_benchmark(scenario: str, runs: int, seed: int = 0, config_path: Path | None = None,
+                           echo=print) -> dict:
+    """`dct bench realtime`: `runs` real-time episodes in a row; prints each and the aggregate
+    (success count; tick, sensor-to-command and simulator-lag percentiles over all runs' maxima and
+    medians; deadline misses). Figures only: nothing passes or fails on them."""
+    rows = []
+    for k in range(runs):
+        try:
+            m = run_realtime_episode(scenario, seed + k, config_path)
+        except RuntimeError as exc:
+            echo(f"run {k + 1}/{runs} seed {seed + k}: could not run: {exc}")
+            rows.append({"seed": seed + k, "error": str(exc)})
+            continue
+        rt = m["realtime"]
+        row = {"seed": seed + k, "success": m["success"], "failure_reason": m["failure_reason"],
+               "fixed_contacts": m["fixed_contacts"], "navigation_time_s": m["navigation_time_s"],
+               "tick_ms": rt["tick_ms"], "sensor_to_command_ms": rt["sensor_to_command_ms"],
+               "deadline_misses": rt["deadline_misses"], "ticks": rt["ticks"],
+               "simulator_lag_ms": rt["simulator_lag_ms"], "pids": rt["pids"]}
+        rows.append(row)
+        echo(f"run {k + 1}/{runs} seed {seed + k}: {'SUCCESS' if m['success'] else 'FAIL (' + str(m['failure_reason']) + ')'}"
+             f" time {m['navigation_time_s']:.2f} s fixed_contacts {m['fixed_contacts']}; tick ms "
+             f"{_fmt(rt['tick_ms'])}; sensor-to-command ms {_fmt(rt['sensor_to_command_ms'])}; deadline misses "
+             f"{rt['deadline_misses']}; sim lag ms {_fmt(rt['simulator_lag_ms'])}")
+    ok = [r for r in rows if "error" not in r]
+
+    def agg(key: str) -> dict:
+        vals = {q: [r[key][q] for r in ok if r[key].get(q) is not None] for q in ("p50", "p99", "max")}
+        return {"median_of_p50": _median(vals["p50"]), "max_of_p99": max(vals["p99"], default=None),
+                "max": max(vals["max"], default=None)}
+
+    out = {"scenario": scenario, "runs": runs, "successes": sum(1 for r in ok if r["success"]),
+           "deadline_misses_total": sum(r["deadline_misses"] for r in ok),
+           "tick_ms": agg("tick_ms"), "sensor_to_command_ms": agg("sensor_to_command_ms"),
+           "simulator_lag_ms": agg("simulator_lag_ms"), "rows": rows}
+    echo(f"{scenario}: {out['successes']}/{runs} successes; deadline misses {out['deadline_misses_total']} in all; "
+         f"tick ms p50 (median over runs) {_num(out['tick_ms']['median_of_p50'])}, p99 (worst run) "
+         f"{_num(out['tick_ms']['max_of_p99'])}, max {_num(out['tick_ms']['max'])}; sensor-to-command ms p50 "
+         f"{_num(out['sensor_to_command_ms']['median_of_p50'])}, p99 {_num(out['sensor_to_command_ms']['max_of_p99'])}"
+         f", max {_num(out['sensor_to_command_ms']['max'])}")
+    return out
+
+
+def _median(v: list) -> float | None:
+    import statistics
+
+    return statistics.median(v) if v else None
+
+
+def _num(v) -> str:
+    return "-" if v is None else f"{v:.1f}"
+
+
+def _fmt(d: dict | None) -> str:
+    if not d:
+        return "-"
+    return "/".join(_num(d.get(k)) for k in ("p50", "p99", "max")) + " (p50/p99/max)"

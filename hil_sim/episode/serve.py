@@ -1,0 +1,404 @@
+"""`dct hil serve`: the simulator in real time, as its own process, looking like the robot.
+
+To a controller process (`dct run`) it is indistinguishable from the LIMO: the emulated base
+firmware (firmware_bridge.firmware_emulator) answers on a CAN bus (udp_multicast: python-can's
+bus between processes), and the sensors are ROS 2 topics over DDS with the types the real
+drivers publish: livox_ros_driver2/CustomMsg (per-point offset_time, ros_io's numpy encoder),
+sensor_msgs/Imu, sensor_msgs/Image (only when a camera rate is asked for: rendering is costly).
+For planner mode dct it also serves the sim-oracle as a remote VLM (the OpenAI chat-completions
+API and the grounding detector API over HTTP on 127.0.0.1: hil_sim.vlm.service), answering
+from the ground truth of the frames it rendered.
+
+Physics is paced to the wall clock: every loop iteration steps the world until simulated time
+catches up with the time elapsed since start, then sleeps. When the machine cannot keep up, the
+simulation runs late rather than skipping physics (the lag is measured: `sim_lag_ms`), and the
+sensor stamps follow simulated time mapped onto the wall clock, so a late simulator looks to the
+controller like late sensor data, which is what it is.
+
+Stamps: ROS time, i.e. the system clock, through runtime.app.run_process.EpochMonotonicClock (the
+same clock the controller runs on).
+
+The episode: starts when the controller puts the base into CAN command mode (0x421), so the
+controller's start-up time is not counted; ends `settle_s` after the controller says it has
+finished (at the goal with a zero command, or stopped), as lockstep's episode does: the
+simulator reads what an operator would, the controller's DiagnosticArray (its `finished` value)
+on the configured diagnostics topic. It also ends when the scenario's time limit has passed
+since the start, when no controller has connected within `connect_timeout_s`, or on
+SIGINT/SIGTERM. (A robot that merely stands still in the goal region is not finished: it may be
+holding for stale data, as it does when this simulator falls behind.) The metrics
+(hil_sim.episode.metrics) are then written atomically, as lockstep writes them, with `end_reason`.
+What the controller knows (its state, deadline misses) is not here: `dct hil run --realtime`
+adds it from the controller's own summary.
+
+A patrol scenario (`goals:`, hil_sim.episode.patrol): the controller starts with the first goal (its
+`--goal`); whenever its DiagnosticArray says it has finished with the goal sent last (`finished`
+with that goal's `goal_x`, `goal_y`), the next goal is published as a geometry_msgs/PoseStamped
+on the goal topic (/goal_pose, odometry frame), as an operator would send it from RViz. The
+episode ends with the patrol (its loops, or `duration_s`: `--duration` overrides the file's
+patrol), and the metrics add `patrol`.
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+
+@dataclass
+class ServeOptions:
+    scenario: str
+    seed: int = 0
+    json_path: Path | None = None
+    robot_path: Path | None = None
+    config_path: Path | None = None
+    domain_id: int | None = None
+    can_channel: str | None = None
+    can_port: int | None = None
+    camera_rate_hz: float = 0.0
+    connect_timeout_s: float = 120.0
+    settle_s: float = 0.5
+    #: The sim-oracle's settings (models.vlm.sim_oracle.SimOracleConfig): when given, the oracle
+    #: is served over HTTP for planner mode dct (hil_sim.vlm.service) and the camera renders
+    #: with segmentation (at camera_rate_hz, or lockstep's 2 Hz when that is 0).
+    oracle: object = None
+    #: A patrol's duration (s), instead of the scenario's `patrol` (hil_sim.episode.patrol.with_duration).
+    duration_s: float | None = None
+
+
+class DdsSensorSink:
+    """Stands where the lockstep rig's SensorInbox stands (put_scan / put_imu / put_image) and
+    publishes each piece as the robot's drivers would (module docstring)."""
+
+    def __init__(self, participant, inputs, to_wall) -> None:
+        from runtime.io.ros.dds import RosWriter, ros_qos
+        from runtime.io.ros.messages import CustomMsg, Image, Imu
+
+        self.to_wall = to_wall
+        self._lidar = self._imu = self._camera = None
+        if inputs.lidar is not None:
+            if inputs.lidar.type != "livox_ros_driver2/msg/CustomMsg":
+                raise ValueError("dct hil serve publishes the lidar as livox_ros_driver2/msg/CustomMsg; "
+                                 f"ros.inputs.lidar.type is {inputs.lidar.type}")
+            self._lidar = RosWriter(participant, inputs.lidar.topic, CustomMsg,
+                                    ros_qos(inputs.lidar.qos.reliability, inputs.lidar.qos.depth))
+        if inputs.imu is not None:
+            self._imu = RosWriter(participant, inputs.imu.topic, Imu, ros_qos(inputs.imu.qos.reliability,
+                                                                             inputs.imu.qos.depth))
+        if inputs.camera is not None and inputs.camera.type == "sensor_msgs/msg/Image":
+            self._camera = RosWriter(participant, inputs.camera.topic, Image, ros_qos(inputs.camera.qos.reliability, 1))
+        self.published = {"lidar": 0, "imu": 0, "camera": 0}
+        self.skipped_empty_scans = 0
+        self.publish_s = {"lidar": 0.0, "imu": 0.0, "camera": 0.0}
+
+    def put_scan(self, scan) -> bool:
+        from runtime.io.ros.messages import CUSTOM_POINT_DTYPE, Header, encode_custom_msg, stamp_to_time
+
+        if self._lidar is None:
+            return True
+        if scan.num_points == 0:  # a Livox driver never sends an empty frame (nothing seen: no frame)
+            self.skipped_empty_scans += 1
+            return True
+        t0 = time.perf_counter()
+        stamp = self.to_wall(scan.stamp_s)
+        timebase = int(round(stamp * 1e9))
+        pts = np.zeros(scan.num_points, dtype=CUSTOM_POINT_DTYPE)
+        pts["offset_time"] = np.round(scan.point_time_offsets_s.astype(np.float64) * 1e9).astype(np.uint32)
+        pts["x"], pts["y"], pts["z"] = scan.points_m[:, 0], scan.points_m[:, 1], scan.points_m[:, 2]
+        pts["reflectivity"] = 100
+        header = Header(stamp_to_time(timebase * 1e-9), scan.frame_id or "livox_frame")
+        self._lidar.write_cdr(encode_custom_msg(header, timebase, pts))
+        self.published["lidar"] += 1
+        self.publish_s["lidar"] += time.perf_counter() - t0
+        return True
+
+    def put_imu(self, sample) -> bool:
+        from runtime.io.ros.fast_imu import encode_imu
+
+        if self._imu is None:
+            return True
+        t0 = time.perf_counter()
+        # No orientation (covariance[0] = -1, the ROS convention); the bytes of to_cdr(Imu(...)).
+        self._imu.write_cdr(encode_imu(self.to_wall(sample.stamp_s), "imu", sample.gyro_radps, sample.accel_mps2))
+        self.published["imu"] += 1
+        self.publish_s["imu"] += time.perf_counter() - t0
+        return True
+
+    def put_image(self, image) -> bool:
+        from runtime.io.ros.messages import Header, Image, stamp_to_time
+
+        if self._camera is None:
+            return True
+        t0 = time.perf_counter()
+        h, w = image.pixels.shape[:2]
+        self._camera.write(Image(header=Header(stamp_to_time(self.to_wall(image.stamp_s)), image.frame_id),
+                                 height=h, width=w, encoding="rgb8", is_bigendian=0, step=3 * w,
+                                 data=np.ascontiguousarray(image.pixels).tobytes()))
+        self.published["camera"] += 1
+        self.publish_s["camera"] += time.perf_counter() - t0
+        return True
+
+
+def _controller_finished(reader) -> bool:
+    """Whether the newest DiagnosticArray from the controller says `finished` = True."""
+    from runtime.io.ros.messages import DiagnosticArray, from_cdr
+
+    samples = reader.take_raw()
+    for data in reversed(samples):
+        try:
+            msg = from_cdr(DiagnosticArray, data)
+        except Exception:  # noqa: BLE001 - not ours to judge; the next one will do
+            continue
+        for status in msg.status:
+            for kv in status.values:
+                if kv.key == "finished":
+                    return kv.value == "True"
+    return False
+
+
+def _controller_status(reader, last: dict) -> dict:
+    """The newest DiagnosticArray's values from the controller (key -> string), or `last` when no
+    new one has arrived."""
+    from runtime.io.ros.messages import DiagnosticArray, from_cdr
+
+    for data in reversed(reader.take_raw()):
+        try:
+            msg = from_cdr(DiagnosticArray, data)
+        except Exception:  # noqa: BLE001 - not ours to judge; the next one will do
+            continue
+        for status in msg.status:
+            return {kv.key: kv.value for kv in status.values}
+    return last
+
+
+class _PatrolOperator:
+    """A patrol's operator in real time: hil_sim.episode.patrol.PatrolSequencer fed from the controller's
+    diagnostics, its goals published on the goal topic (module docstring)."""
+
+    def __init__(self, scenario, participant, inputs, odom_frame: str, reader, t0_s: float, to_wall, echo) -> None:
+        from hil_sim.episode.patrol import PatrolSequencer
+        from runtime.io.ros.dds import RosWriter, ros_qos
+        from runtime.io.ros.messages import PoseStamped
+
+        self.echo = echo
+        self.sequencer = PatrolSequencer(scenario, t0_s)
+        self.reader = reader
+        self.writer = RosWriter(participant, inputs.goal.topic, PoseStamped,
+                                ros_qos(inputs.goal.qos.reliability, inputs.goal.qos.depth))
+        self.frame = odom_frame
+        self.to_wall = to_wall
+        self.status: dict = {}
+        self.goals_published = 0
+
+    def step(self, t_s: float, robot_world_pose) -> None:
+        from runtime.common.geometry import Pose2D
+        from runtime.io.ros.convert import goal_pose_msg
+
+        self.status = _controller_status(self.reader, self.status)
+        st = self.status
+        try:
+            goal_xy = (float(st["goal_x"]), float(st["goal_y"]))
+        except (KeyError, ValueError):
+            goal_xy = None
+        try:
+            pose = Pose2D(float(st["pose_x"]), float(st["pose_y"]), float(st["pose_yaw"]))
+        except (KeyError, ValueError):
+            pose = None
+        seq = self.sequencer
+        goal = seq.update(t_s, robot_world_pose, goal_xy, st.get("finished") == "True", st.get("state") == "STOPPED",
+                          pose)
+        if goal is None and seq.resend_due(t_s, goal_xy):
+            goal = seq.current_goal_odom()
+        if goal is not None:
+            self.writer.write(goal_pose_msg(self.to_wall(t_s), goal, frame_id=self.frame))
+            self.goals_published += 1
+            v = seq.current
+            if len(seq.visits) > 1 and v.sent_at_s == t_s - seq.t0_s:  # a new goal, not a repeat
+                last = seq.visits[-2]
+                self.echo(f"dct hil serve: t={t_s - seq.t0_s:.1f} s: goal {last.visit} {last.outcome} "
+                          f"({last.world_error_m:.2f} m off); goal {v.visit} (goals[{v.goal_index}], loop {v.loop}) "
+                          "published on the goal topic")
+
+
+def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -> dict:
+    """Run one real-time episode of opts.scenario until it ends (module docstring); returns the
+    metrics (also written to opts.json_path)."""
+    from cyclonedds.domain import DomainParticipant
+
+    from calibration.robot_description import load_robot_description
+    from firmware_bridge import protocol
+    from firmware_bridge.buses import DEFAULT_UDP_GROUP, DEFAULT_UDP_PORT, BusConfig, open_bus
+    from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+    from hil_sim.episode.metrics import EpisodeMetrics
+    from hil_sim.episode.patrol import with_duration
+    from hil_sim.episode.lockstep import LockstepSimulation, world_distance_to_goal, world_goal_reached
+    from hil_sim.world.scenario import load_scenario
+    from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
+    from hil_sim.world.mujoco_world import World
+    from runtime.config import load_controller_config
+    from runtime.app.run_process import EpochMonotonicClock
+
+    stop = stop or threading.Event()
+    scenario = load_scenario(opts.scenario, seed=opts.seed)  # a generated scene is drawn from the seed
+    scenario = with_duration(scenario, opts.duration_s)
+    robot = load_robot_description(opts.robot_path)
+    config = load_controller_config(opts.config_path)
+    inputs = config.ros.inputs
+    if opts.domain_id is not None:
+        inputs = inputs.model_copy(update={"domain_id": opts.domain_id})
+    bus_config = BusConfig(interface="udp_multicast", channel=opts.can_channel or DEFAULT_UDP_GROUP,
+                           udp_port=opts.can_port or DEFAULT_UDP_PORT)
+
+    world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
+    world.reset(opts.seed)
+    metrics = EpisodeMetrics(world, scenario, opts.seed)
+    clock = EpochMonotonicClock()
+    if scenario.is_patrol and (inputs.goal is None or not config.ros.outputs.diagnostics):
+        raise ValueError(f"scenario {scenario.name} is a patrol: it needs ros.inputs.goal (where its goals are "
+                         "published) and ros.outputs.diagnostics (where it watches the controller) in the config")
+    bus = open_bus(bus_config)
+    participant = DomainParticipant(inputs.domain_id)
+    sim_t0 = world.time_s
+    wall_t0 = [clock.now()]
+
+    def to_wall(t_sim: float) -> float:
+        return wall_t0[0] + (t_sim - sim_t0)
+
+    sink = DdsSensorSink(participant, inputs, to_wall)
+    oracle_service = None
+    camera_rate_hz, segmentation = opts.camera_rate_hz, False
+    if opts.oracle is not None:
+        from hil_sim.vlm.service import OracleService, RecordingSink
+        from hil_sim.episode.lockstep import DCT_CAMERA_RATE_HZ
+
+        oracle_service = OracleService.for_world(world, opts.oracle).start()
+        sink = RecordingSink(sink, oracle_service)
+        camera_rate_hz, segmentation = camera_rate_hz or DCT_CAMERA_RATE_HZ, True
+        echo(f"dct hil serve: VLM oracle at {oracle_service.base_url}/v1 (chat completions) and "
+             f"{oracle_service.base_url} (grounding /detect)")
+    diagnostics = None
+    if config.ros.outputs.diagnostics:
+        from runtime.io.ros.dds import raw_reader, ros_qos
+        from runtime.io.ros.messages import DiagnosticArray
+
+        diagnostics = raw_reader(participant, config.ros.outputs.diagnostics, DiagnosticArray, ros_qos("best_effort", 4))
+    rig = SensorRig(world, robot, sink, SensorRigConfig(seed=opts.seed, camera_rate_hz=camera_rate_hz,
+                                                       camera_segmentation=segmentation, camera_async=True))
+    firmware = EmulatedBaseFirmware(bus, robot)
+    sim = LockstepSimulation(world, firmware, metrics, [rig])
+    dt = world.timestep_s
+    half = 0.5 * dt
+    # every catch-up of a 10-minute run (at most one per physics step: 600k in 10 min at 1 ms)
+    lag_samples = np.zeros(1 << 20)
+    n_lag = 0
+    t_start: float | None = None
+    finished_at: float | None = None
+    end_reason = "signal"
+    t_goal: float | None = None
+    patrol: _PatrolOperator | None = None
+    echo(f"dct hil serve: {scenario.name} seed {opts.seed} serving: CAN udp_multicast {bus_config.channel}:"
+         f"{bus_config.udp_port}, DDS domain {inputs.domain_id}, pid {os.getpid()}")
+    wall_t0[0] = clock.now()
+    wall_start = time.monotonic()
+    try:
+        while not stop.is_set():
+            now = clock.now()
+            target = sim_t0 + (now - wall_t0[0])
+            behind = target - world.time_s  # how late physics is before this catch-up
+            stepped = 0
+            while world.time_s < target - half and stepped < 200:
+                sim.step()
+                stepped += 1
+            if stepped:
+                lag_samples[n_lag % len(lag_samples)] = max(0.0, behind)
+                n_lag += 1
+            t = world.time_s
+            if t_start is None:
+                if firmware.control_mode == protocol.CONTROL_MODE_CAN:
+                    t_start = t
+                    echo(f"dct hil serve: controller connected at t={t - sim_t0:.2f} s; episode starts")
+                    if scenario.is_patrol:
+                        patrol = _PatrolOperator(scenario, participant, inputs, config.ros.outputs.odom_frame,
+                                                 diagnostics, t, to_wall, echo)
+                elif t - sim_t0 > opts.connect_timeout_s:
+                    end_reason = "no_controller"
+                    break
+            elif patrol is not None:
+                patrol.step(t, world.robot_pose())
+                if patrol.sequencer.done:
+                    end_reason = f"patrol_{patrol.sequencer.end_reason}"
+                    break
+                if t - t_start >= scenario.time_limit_s:
+                    end_reason = "time_limit"
+                    break
+            else:
+                if finished_at is None and diagnostics is not None and _controller_finished(diagnostics):
+                    finished_at = t
+                    echo(f"dct hil serve: the controller says it has finished at t={t - t_start:.2f} s")
+                if finished_at is not None and t - finished_at >= opts.settle_s:
+                    end_reason, t_goal = "controller_finished", finished_at
+                    break
+                if t - t_start >= scenario.time_limit_s:
+                    end_reason = "time_limit"
+                    break
+            if not stepped:
+                time.sleep(0.5 * dt)  # the next step is due within dt
+    finally:
+        wall = time.monotonic() - wall_start
+        sensor_stats = rig.stats()  # before close: it lets the renderer go
+        rig.close()
+        bus.shutdown()
+        if oracle_service is not None:
+            oracle_service.close()
+    t_end = world.time_s
+    started = t_start if t_start is not None else t_end
+    nav_time = (t_goal if t_goal is not None else t_end) - started
+    lags = lag_samples[: min(n_lag, len(lag_samples))] * 1e3
+    x_end, y_end, _ = world.robot_pose()
+    out = metrics.to_dict(
+        # As in lockstep: where the robot is when the episode ends (a goal reached just before the
+        # time limit counts; `dct hil run --realtime` also needs the controller's GOAL_REACHED).
+        # A patrol: its verdict (hil_sim.episode.patrol).
+        goal_reached=patrol.sequencer.succeeded if patrol is not None else world_goal_reached(world, scenario),
+        navigation_time_s=nav_time,
+        deadline_misses=0,
+        extra={
+            "end_reason": end_reason,
+            **({"patrol": {**patrol.sequencer.report(t_end), "goals_published": patrol.goals_published}}
+               if patrol is not None else {}),
+            "final_distance_to_goal_m": (patrol.sequencer.distance_to_current_m((x_end, y_end)) if patrol is not None
+                                         else world_distance_to_goal(world, scenario)),
+            "final_pose_world": [float(v) for v in world.robot_pose()],
+            "sim_time_s": t_end - started,
+            "scenario_warnings": list(world.scenario_warnings),
+            "firmware_frames_rejected": firmware.frames_rejected,
+            "simulator": {
+                "pid": os.getpid(),
+                "wall_time_s": wall,
+                "cpu_time_s": time.process_time(),
+                "sim_time_total_s": t_end - sim_t0,
+                "realtime_factor": (t_end - sim_t0) / wall if wall > 0 else None,
+                "physics_steps": sim.steps,
+                "controller_connected_after_s": None if t_start is None else t_start - sim_t0,
+                "sim_lag_ms": {"p50": float(np.percentile(lags, 50)) if len(lags) else None,
+                               "p99": float(np.percentile(lags, 99)) if len(lags) else None,
+                               "max": float(lags.max()) if len(lags) else None},
+                "published": dict(sink.published),
+                "publish_ms_total": {k: v * 1e3 for k, v in sink.publish_s.items()},
+                "sensors": sensor_stats,
+                "oracle": oracle_service.stats() if oracle_service is not None else None,
+            },
+        },
+    )
+    if opts.json_path is not None:
+        from calibration.outputs import atomic_write_json
+
+        atomic_write_json(opts.json_path, out)
+    return out
+
+
+__all__ = ["serve", "ServeOptions", "DdsSensorSink"]

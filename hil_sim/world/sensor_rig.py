@@ -1,0 +1,325 @@
+"""The robot's simulated sensors in one lockstep device: lidar, IMU and (on demand) camera.
+
+`SensorRig.step(t_s)` is the `SimulatedDevice` protocol of hil_sim.episode.lockstep.LockstepSimulation.
+Time convention: `t_s` is the simulation time *before* the physics step just taken. MuJoCo's
+`mj_step` computes positions, sensors and everything derived from them for the state at the
+start of the step and then integrates, so after `world.step()` the body poses (`xpos`,
+`xmat`, `geom_xpos`) and `sensordata` in `data` belong to time `world.time_s - timestep`.
+LockstepSimulation.step() passes that time; a caller that drives the rig itself after
+`mj_forward` passes `data.time`.
+
+Per call:
+- the lidar casts every slice due up to t_s (hil_sim.sensors.lidar.SimLidar) and every completed frame
+  goes to `inbox.put_scan`;
+- the IMU samples when a sample is due at `imu.rate_hz` and each goes to `inbox.put_imu`;
+- the camera renders only when a frame is due at `camera_rate_hz` (0 = off, no renderer is
+  even created): rendering costs tens of ms, never do it every physics step. Each image goes
+  to `inbox.put_image`. If steps are so coarse that several frame instants passed, one frame is
+  rendered and the others are counted in `camera_frames_missed`.
+
+Robustness: no physics state makes `step` raise (a crash into a wall saturates the IMU, whose
+samples are then clipped and flagged; NaN readings give no IMU sample, lidar no-returns and no
+camera image; see hil_sim.sensors.imu and hil_sim.sensors.lidar); only a bad call does (time not finite or going backwards).
+
+The robot's own geoms (groups World.ROBOT_OWN_GEOM_GROUPS) are invisible to the lidar rays
+and hidden from the camera: both mounts lie inside the coarse chassis boxes.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import math
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from calibration.robot_description import RobotDescription
+from hil_sim.sensors.imu import ImuConfig, SimImu
+from hil_sim.sensors.lidar import LidarConfig, SimLidar
+from hil_sim.world.mujoco_world import ROBOT_OWN_GEOM_GROUPS, World
+from runtime.common.sensor_data import CameraImage, LidarScan
+from runtime.io.sensor_inbox import SensorInbox
+
+_EPS_S = 1e-9
+
+
+class SensorRigError(ValueError):
+    """A bad sensor-rig configuration or call (robot groups visible to the lidar, time going back)."""
+
+
+class SensorRigConfig(BaseModel):
+    """Which sensors run in the simulator, and how."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    lidar_enabled: bool = True
+    #: geomgroup None: the world's lidar_geomgroup (everything but the robot) is used.
+    lidar: LidarConfig = Field(default_factory=LidarConfig)
+    imu_enabled: bool = True
+    imu: ImuConfig = Field(default_factory=ImuConfig)
+    #: Camera frames per second of simulated time; 0 = camera off (the VLM asks for ~1-2 Hz).
+    camera_rate_hz: float = Field(0.0, ge=0.0, le=100.0)
+    #: Also render ground-truth segmentation (geom ids) into each image (doubles the cost).
+    camera_segmentation: bool = False
+    #: Render beside the physics, in a thread of its own (the real-time simulator, `dct hil
+    #: serve`): a frame costs tens of ms (55 with segmentation), which inline stalls physics, the
+    #: lidar and the IMU every frame. The state of the frame instant is copied (mj_copyData, a
+    #: few microseconds) and rendered from the copy; the image is delivered when it is done,
+    #: stamped with that instant, as a camera driver's image arrives after its exposure. A frame
+    #: due while the last one still renders is skipped (camera_frames_missed). Lockstep keeps it
+    #: off: there an image must reach the controller at a deterministic point of the run.
+    camera_async: bool = False
+    seed: int = Field(0, ge=0)
+
+
+def _camera_pose_is_finite(data, camera_name: str) -> bool:
+    """False when the camera pose in data is NaN or infinite (a diverged simulation): a render
+    would be a blank image that looks like a real one."""
+    cam = data.camera(camera_name)
+    return bool(np.isfinite(cam.xpos).all() and np.isfinite(cam.xmat).all())
+
+
+class CameraThread:
+    """SensorRigConfig.camera_async: a SimCamera in a thread of its own, rendering copies of the
+    state. The renderer (and its EGL context) is made and used in that thread only."""
+
+    def __init__(self, model, camera_args: tuple, segmentation: bool, deliver: Callable[[CameraImage], None]) -> None:
+        import mujoco
+
+        self._mujoco = mujoco
+        self._model = model
+        self._snap = mujoco.MjData(model)
+        self._args = camera_args
+        self._segmentation = bool(segmentation)
+        self._deliver = deliver
+        self._job = threading.Event()
+        self._idle = threading.Event()
+        self._stop = False
+        self._stamp = 0.0
+        self._started = threading.Event()
+        self._camera = None
+        #: The exception that ended the thread (re-raised by the next submit), if any.
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="sim-camera", daemon=True)
+        self._thread.start()
+        self._started.wait()
+        if self.error is not None:
+            raise self.error
+
+    @property
+    def renders(self) -> int:
+        return 0 if self._camera is None else self._camera.renders
+
+    def submit(self, data, t_s: float) -> bool:
+        """Render the state now in data, stamped t_s, beside the caller; False (nothing done)
+        while the last frame still renders."""
+        if self.error is not None:
+            raise self.error
+        if not self._idle.is_set():
+            return False
+        self._mujoco.mj_copyData(self._snap, self._model, data)
+        self._stamp = float(t_s)
+        self._idle.clear()
+        self._job.set()
+        return True
+
+    def _run(self) -> None:
+        from hil_sim.sensors.camera import SimCamera
+
+        try:
+            self._camera = SimCamera(self._model, self._snap, *self._args)
+        except BaseException as exc:  # reported by __init__
+            self.error = exc
+            self._started.set()
+            return
+        self._idle.set()
+        self._started.set()
+        try:
+            while True:
+                self._job.wait()
+                self._job.clear()
+                if self._stop:
+                    return
+                cam = self._camera
+                image = cam.render_rgb_with_segmentation(self._stamp) if self._segmentation else cam.render_rgb(
+                    self._stamp)
+                self._deliver(image)
+                self._idle.set()
+        except BaseException as exc:  # the simulator's loop raises it at the next frame
+            self.error = exc
+        finally:
+            self._camera.close()
+
+    def close(self) -> None:
+        self._stop = True
+        self._job.set()
+        self._thread.join(timeout=5.0)
+
+
+class SensorRig:
+    """Lidar + IMU + camera of the robot in a World, feeding a SensorInbox (see module docstring)."""
+
+    def __init__(self, world: World, robot: RobotDescription, inbox: SensorInbox,
+                 config: SensorRigConfig | None = None, intrinsics: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """intrinsics: (K, distortion) the images reach the inbox with: the controller's
+        calibration, as on the robot, where the camera driver's image carries none and the
+        controller attaches its calibration's (runtime.io.ros.convert). None: the simulated
+        camera's true ones. Listeners get the true ones (ground truth for evaluations)."""
+        self._intrinsics = intrinsics
+        self.world = world
+        self.robot = robot
+        self.inbox = inbox
+        self.config = c = config or SensorRigConfig()
+        m, d = world.model, world.data
+        start_s = world.time_s
+        seeds = np.random.SeedSequence(c.seed).generate_state(2)
+
+        self.lidar: SimLidar | None = None
+        if c.lidar_enabled:
+            lidar_cfg = c.lidar
+            if lidar_cfg.geomgroup is None:
+                lidar_cfg = lidar_cfg.model_copy(update={"geomgroup": world.lidar_geomgroup})
+            else:
+                seen = [g for g in ROBOT_OWN_GEOM_GROUPS if lidar_cfg.geomgroup[g]]
+                if seen:
+                    raise SensorRigError(f"SensorRigConfig.lidar.geomgroup {lidar_cfg.geomgroup} lets the lidar see "
+                                         f"the robot's own geom groups {seen}; set them to 0 (or leave geomgroup None)")
+            self.lidar = SimLidar(m, d, world.robot_body_id, world.lidar_mount, lidar_cfg, seed=int(seeds[0]),
+                                  start_s=start_s)
+
+        self.imu: SimImu | None = None
+        if c.imu_enabled:
+            gyro, accel = world.imu_sensor_names
+            self.imu = SimImu(m, d, gyro, accel, c.imu, seed=int(seeds[1]), start_s=start_s)
+
+        self.camera = None
+        self._camera_period_s = 1.0 / c.camera_rate_hz if c.camera_rate_hz > 0 else math.inf
+        self._camera_start_s = start_s
+        self._camera_next = 0
+        if c.camera_rate_hz > 0:
+            from hil_sim.sensors.camera import SimCamera  # creates an EGL context: only when the camera is on
+
+            cam = robot.sensors.camera
+            args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups)
+            if c.camera_async:
+                self.camera = CameraThread(m, args, c.camera_segmentation, self._deliver_image)
+            else:
+                self.camera = SimCamera(m, d, *args)
+
+        self._last_t: float | None = None
+        #: Called with every scan and image the rig produces, before the inbox gets it, in the
+        #: simulator's time (evaluations read the ground truth beside them: `dct vpp eval`).
+        self.listeners: list[Callable[[LidarScan | CameraImage], None]] = []
+        self.scans_produced = 0
+        self.images_produced = 0
+        self.imu_samples_produced = 0
+        self.camera_frames_missed = 0
+        #: Camera frames not rendered because the camera pose in data was not finite.
+        self.camera_invalid_poses = 0
+        #: put_* calls the inbox refused (validation or stamp order), per stream.
+        self.rejected = {"lidar": 0, "camera": 0, "imu": 0}
+        #: Wall-clock seconds spent in each sensor (including the inbox's validation).
+        self.time_spent_s = {"lidar": 0.0, "camera": 0.0, "imu": 0.0}
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, t_s: float) -> None:
+        """Advance every sensor to t_s (the time of the state now in data; see module docstring)."""
+        t_s = float(t_s)
+        if not math.isfinite(t_s):
+            raise SensorRigError(f"SensorRig.step: time {t_s} is not finite")
+        if self._last_t is not None and t_s < self._last_t:
+            raise SensorRigError(f"SensorRig.step: time went backwards ({t_s} < {self._last_t}); "
+                                 f"make a new rig after World.reset()")
+        self._last_t = t_s
+        inbox = self.inbox
+        spent = self.time_spent_s
+        clock = time.perf_counter
+
+        if self.lidar is not None:
+            t0 = clock()
+            self.lidar.step(t_s)
+            scan = self.lidar.pop_frame()
+            while scan is not None:
+                self.scans_produced += 1
+                for listener in self.listeners:
+                    listener(scan)
+                if not inbox.put_scan(scan):
+                    self.rejected["lidar"] += 1
+                scan = self.lidar.pop_frame()
+            spent["lidar"] += clock() - t0
+
+        if self.imu is not None:
+            t0 = clock()
+            self.imu.step(t_s)
+            for sample in self.imu.pop_samples():
+                self.imu_samples_produced += 1
+                if not inbox.put_imu(sample):
+                    self.rejected["imu"] += 1
+            spent["imu"] += clock() - t0
+
+        if self.camera is not None:
+            due = self._camera_start_s + self._camera_next * self._camera_period_s
+            if t_s + _EPS_S >= due:
+                t0 = clock()
+                n_due = int(math.floor((t_s + _EPS_S - self._camera_start_s) / self._camera_period_s)) + 1
+                self.camera_frames_missed += max(0, n_due - self._camera_next - 1)
+                self._camera_next = max(self._camera_next + 1, n_due)
+                if not _camera_pose_is_finite(self.world.data, self.world.camera_name):
+                    self.camera_invalid_poses += 1  # no image rather than a blank one
+                elif isinstance(self.camera, CameraThread):
+                    if not self.camera.submit(self.world.data, t_s):
+                        self.camera_frames_missed += 1  # the last frame still renders
+                elif self.config.camera_segmentation:
+                    self._deliver_image(self.camera.render_rgb_with_segmentation(t_s))
+                else:
+                    self._deliver_image(self.camera.render_rgb(t_s))
+                spent["camera"] += clock() - t0
+
+    def _deliver_image(self, image: CameraImage) -> None:
+        self.images_produced += 1
+        for listener in self.listeners:
+            listener(image)
+        if self._intrinsics is not None:
+            image = dataclasses.replace(image, K=self._intrinsics[0], distortion=self._intrinsics[1])
+        if not self.inbox.put_image(image):
+            self.rejected["camera"] += 1
+
+    # ------------------------------------------------------------------ reporting
+    @property
+    def renders(self) -> int:
+        """Renderer passes so far (RGB and segmentation each count one)."""
+        return 0 if self.camera is None else self.camera.renders
+
+    def stats(self) -> dict:
+        """Counters: frames produced per sensor, late/missed/dropped, saturated IMU samples, physics
+        readings that were not finite (no IMU sample; lidar slices with no returns), inbox
+        rejections, renders."""
+        return {
+            "scans_produced": self.scans_produced,
+            "images_produced": self.images_produced,
+            "imu_samples_produced": self.imu_samples_produced,
+            "renders": self.renders,
+            "camera_frames_missed": self.camera_frames_missed,
+            "lidar_late_slices": 0 if self.lidar is None else self.lidar.late_slices,
+            "lidar_dropped_frames": 0 if self.lidar is None else self.lidar.dropped_frames,
+            "imu_missed_samples": 0 if self.imu is None else self.imu.missed_samples,
+            "imu_saturated_samples": 0 if self.imu is None else self.imu.saturated_samples,
+            "imu_invalid_readings": 0 if self.imu is None else self.imu.invalid_readings,
+            "lidar_invalid_pose_slices": 0 if self.lidar is None else self.lidar.invalid_pose_slices,
+            "camera_invalid_poses": self.camera_invalid_poses,
+            "rejected": dict(self.rejected),
+            "time_spent_s": dict(self.time_spent_s),
+        }
+
+    def close(self) -> None:
+        """Release the renderer (if any)."""
+        if self.camera is not None:
+            self.camera.close()
+            self.camera = None
+            self._camera_period_s = math.inf
+
+
+__all__ = ["SensorRig", "SensorRigConfig", "SensorRigError"]

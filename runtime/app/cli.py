@@ -1,0 +1,92 @@
+"""The `dct` command line.
+
+Convention for the group modules (`*/cli.py`): import heavy libraries (MuJoCo, torch)
+inside the commands, not at module level, so that `dct --help` stays fast.
+
+Each package contributes its command group through the `dct.commands` entry point
+(pyproject.toml). A group is imported only when it is invoked, so `dct can decode` on
+the robot never imports MuJoCo, and this module never imports hil_sim directly.
+"""
+from __future__ import annotations
+
+import os
+import sys
+from importlib.metadata import EntryPoint, entry_points
+
+import click
+
+
+def _command_entry_points() -> dict:
+    eps = {ep.name: ep for ep in entry_points(group="dct.commands")}
+    for name, value in _RUNTIME_COMMANDS.items():  # runtime's own, loaded as lazily as the groups
+        eps.setdefault(name, EntryPoint(name=name, value=value, group="dct.commands"))
+    return eps
+
+
+#: Commands of this package itself: `dct run` (the controller process, runtime.app.run_process).
+_RUNTIME_COMMANDS = {"run": "runtime.app.run_process:run_command"}
+
+
+class LazyGroup(click.Group):
+    """A click group whose sub-groups are loaded from entry points on first use."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(super().list_commands(ctx)) | set(_command_entry_points()))
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        cmd = super().get_command(ctx, name)
+        if cmd is not None:
+            return cmd
+        ep = _command_entry_points().get(name)
+        if ep is None:
+            return None
+        try:
+            return ep.load()
+        except ImportError as exc:
+            why = str(exc)  # `exc` is unbound after the except block; the command runs later
+            # Show the group as unavailable rather than break the whole command line.
+            @click.command(name=name, help=f"(unavailable: {why})")
+            def unavailable() -> None:
+                raise click.ClickException(f"command group '{name}' cannot be loaded: {why}")
+
+            return unavailable
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+def dct() -> None:
+    """DCT contact-tolerant navigation controller: CAN tools, HIL simulation, calibration, models."""
+
+
+def main() -> None:
+    # Offscreen rendering for the simulator's camera: there is no display on a robot computer
+    # or a CI machine. Set before any group imports MuJoCo; an explicit setting wins.
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+    try:
+        rv = dct.main(standalone_mode=False)
+    except click.UsageError as exc:
+        path = exc.ctx.command_path if exc.ctx is not None else "dct"
+        click.echo(f"Error: {path}: {_one_line(exc.format_message())} (see {path} --help)", err=True)
+        sys.exit(exc.exit_code)
+    except click.ClickException as exc:
+        click.echo(f"Error: {_one_line(exc.format_message())}", err=True)
+        sys.exit(exc.exit_code)
+    except (click.exceptions.Abort, KeyboardInterrupt):  # click turns Ctrl-C into Abort
+        click.echo("Aborted!", err=True)
+        sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, never a traceback
+        if os.environ.get("DCT_DEBUG"):
+            raise
+        click.echo(f"Error: internal error: {type(exc).__name__}: {_one_line(str(exc))} "
+                   "(set DCT_DEBUG=1 for the traceback)", err=True)
+        sys.exit(3)
+    sys.exit(rv if isinstance(rv, int) else 0)
+
+
+def _one_line(text: str, limit: int = 1000) -> str:
+    """Every CLI error is one line (DEVELOPERS.md): fold newlines, cap the length."""
+    folded = " ".join(str(text).split())
+    return folded if len(folded) <= limit else folded[: limit - 3] + "..."
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,87 @@
+"""`dct report latency RUN.mcap`: the latency report of a recorded run (HTML and JSON)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+class InputError(click.ClickException):
+    """Bad input (file, option): one line on stderr, exit status 2."""
+
+    exit_code = 2
+
+
+@click.group(name="report")
+def report_group() -> None:
+    """Reports from recorded runs (MCAP files of `dct hil run --record`)."""
+
+
+@report_group.command("latency")
+@click.argument("run", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--html", "html_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the report as one self-contained HTML page (figures inline).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the figures as JSON (stages, tick, jitter_ms, deadline_misses, sensor_to_command_ms, "
+                   "image_to_mask_ms, threads).")
+@click.option("--compare", "compare_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="A second recording to put beside RUN (before and after a change).")
+@click.option("--force", is_flag=True, help="Overwrite existing --html / --json files.")
+def latency_command(run: Path, html_path: Path | None, json_path: Path | None, compare_path: Path | None,
+                    force: bool) -> None:
+    """Per-stage p50/p90/p99/p99.9/max against the budgets recorded with RUN, the whole tick, period
+    jitter, deadline misses with their context, sensor-to-command latency. Prints a summary; exit
+    status 2 on bad input (a file that is not a recording, an existing output without --force)."""
+    from calibration.outputs import OutputPathError, atomic_write_json, atomic_write_text, check_output_path
+    from runtime.app.reports.latency import ReportInputError, latency_report, load_ticks
+
+    inputs = [run] + ([compare_path] if compare_path is not None else [])
+    try:
+        for what, p in (("--html", html_path), ("--json", json_path)):
+            if p is not None:
+                check_output_path(p, what=what, inputs=inputs, overwrite=force)
+        if html_path is not None and json_path is not None and html_path.resolve() == json_path.resolve():
+            raise InputError(f"--html and --json are the same file {html_path}")
+        data = [load_ticks(p) for p in inputs]
+    except (OutputPathError, ReportInputError) as exc:
+        raise InputError(str(exc)) from exc
+    reports = [latency_report(d) for d in data]
+    labels = [p.name if len(inputs) == 1 or inputs[0].name != inputs[1].name else str(p) for p in inputs]
+    if json_path is not None:
+        payload = dict(reports[0])
+        if compare_path is not None:
+            payload["compare"] = reports[1]
+        atomic_write_json(json_path, payload)
+    if html_path is not None:
+        from runtime.app.reports.html import render_html
+        from runtime.app.reports.plots import all_figures
+
+        title = "Latency report: " + " vs ".join(labels)
+        page = render_html([(lab, rep, all_figures(d)) for lab, rep, d in zip(labels, reports, data)], title)
+        atomic_write_text(html_path, page)
+    for lab, rep in zip(labels, reports):
+        click.echo(summary_text(lab, rep))
+
+
+def summary_text(label: str, rep: dict) -> str:
+    def f(v) -> str:
+        return "-" if v is None else f"{v:.2f}"
+
+    run = rep["run"]
+    lines = [f"{label}: {run['ticks']} ticks, {run['duration_s']:.1f} s"
+             + ("" if run["recording_complete"] else f" (cut off: {run['recording_stopped_by']})")]
+    lines.append(f"  {'stage':10s} {'p50':>8s} {'p99':>8s} {'p99.9':>8s} {'max':>8s} {'budget':>8s} overruns")
+    for name, s in list(rep["stages"].items()) + [("tick", rep["tick"])]:
+        lines.append(f"  {name:10s} {f(s['p50_ms']):>8s} {f(s['p99_ms']):>8s} {f(s['p999_ms']):>8s} "
+                     f"{f(s['max_ms']):>8s} {f(s['budget_ms']):>8s} {s['overruns']}")
+    m = rep["deadline_misses"]
+    s2c = rep["sensor_to_command_ms"]
+    lines.append(f"  deadline misses: {m['count']} (loop clock), {m['wall_clock_count']} (wall clock); "
+                 f"jitter p99 {f(rep['jitter_ms']['p99_ms'])} ms; sensor-to-command p99 "
+                 + (f"{f(s2c['p99_ms'])} ms" if s2c["recorded"] else "not recorded"))
+    i2m, th = rep.get("image_to_mask_ms", {}), rep.get("threads", {})
+    lines.append("  image capture -> mask: " + (f"p50 {f(i2m['p50_ms'])} ms, max {f(i2m['max_ms'])} ms, "
+                                                f"{i2m['count']} answers" if i2m.get("recorded") else "not recorded")
+                 + "; CPU per thread: " + (", ".join(f"{n} {f(t['cpu_s'])} s" for n, t in th["by_name"].items())
+                                           if th.get("recorded") else "not recorded"))
+    return "\n".join(lines)

@@ -1,0 +1,514 @@
+"""Record a run to MCAP from a thread outside the tick.
+
+The tick's side only copies a few values into a bounded queue (a deque append of a tuple: no
+I/O, no JSON, no lock the writer could hold); a writer thread serialises them to JSON and writes
+a chunked MCAP file. When the queue is full (the writer is behind: slow disk, busy CPU) or the
+file cannot be written (full disk), records are dropped and counted per kind, never waited for:
+a recording must not stall the control loop. The counts are printed by the caller and written
+into the file's `dct.recording` metadata.
+
+A cut-off file (power loss) reads up to its last complete chunk (runtime.io.recording.reader):
+chunks are small (`chunk_size`) and the writer also closes a chunk every `flush_interval_s`.
+The file is written under a temporary name beside the output and renamed onto it at the end;
+the run's description (stages, budgets, config) is written first, so a cut-off file keeps it.
+
+Masks when they arrive: the hook notices a new VPP answer (the mask memory's `last_answer_s`
+changed) and queues references to its entries (immutable) and three floats; the writer thread
+counts their pixels, paints one downscaled label image coloured by contact cost and PNG-encodes
+it (`/dct/vpp/answer` and `/dct/vpp/masks`). The writer also samples every live Python thread's
+CPU time about once a second of wall time (`/dct/threads`, from /proc/self/task; nothing where
+there is no /proc), with a first sample at start and a last at close, so the report can say what
+each thread spent over the run.
+
+Used by any loop: `attach()` returns the per-tick hook (FixedRateLoop's `after_tick`), and
+`wrap_bus()` puts a recording proxy between a driver and its CAN bus.
+"""
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+import os
+import struct
+import tempfile
+import threading
+import time
+import zlib
+from collections import deque
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from runtime.io.recording import schemas as S
+from runtime.loop.telemetry import STAGES
+
+#: Channel message kinds, and how each is counted when dropped.
+KINDS = ("tick", "can", "points", "plan", "answer")
+#: Size of the recorded mask image (width, height): small, the masks are coarse anyway.
+MASK_IMAGE_WH = (160, 120)
+#: Wall-clock seconds between two samples of the threads' CPU time.
+THREAD_SAMPLE_EVERY_S = 1.0
+_STATE_NAMES = {0: "INITIALIZING", 1: "ACTIVE", 2: "GOAL_REACHED", 3: "STOPPED", 4: "HOLDING"}
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be made (bad output path); the message says why in one line."""
+
+
+def _stamp(t_s: float) -> dict:
+    ns = max(0, int(round(t_s * 1e9)))
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
+def _ns(t_s: float) -> int:
+    return max(0, int(round(t_s * 1e9)))
+
+
+def _pose(x: float, y: float, yaw: float) -> dict:
+    return {"position": {"x": x, "y": y, "z": 0.0},
+            "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(0.5 * yaw), "w": math.cos(0.5 * yaw)}}
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def cost_rgb(cost: np.ndarray) -> np.ndarray:
+    """Contact cost 0..10 -> RGB uint8: green (free to touch) through yellow to red (keep off)."""
+    c = np.clip(np.asarray(cost, float) / 10.0, 0.0, 1.0)
+    r = np.clip(2.0 * c, 0.0, 1.0)
+    g = np.clip(2.0 * (1.0 - c), 0.0, 1.0)
+    return (np.stack([r, g, np.zeros_like(c)], axis=-1) * 255).round().astype(np.uint8)
+
+
+def mask_label_image(entries: tuple, wh: tuple[int, int] = MASK_IMAGE_WH) -> np.ndarray:
+    """(h, w, 3) uint8: each entry's mask downscaled (nearest pixel) and painted in its cost's
+    colour on black, in ascending cost so that the costliest object shows where masks overlap."""
+    w, h = wh
+    img = np.zeros((h, w, 3), np.uint8)
+    for e in sorted(entries, key=lambda e: float(e.contact_cost)):
+        m = np.asarray(e.mask, bool)
+        if m.ndim != 2 or not m.size:
+            continue
+        rows = (np.arange(h) * m.shape[0]) // h
+        cols = (np.arange(w) * m.shape[1]) // w
+        img[m[np.ix_(rows, cols)]] = cost_rgb(float(e.contact_cost))
+    return img
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """A truecolour PNG of an (h, w, 3) uint8 image (zlib only: no imaging library needed)."""
+    h, w, _ = rgb.shape
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rgb.reshape(h, 3 * w)], axis=1).tobytes()  # filter 0 rows
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+
+
+def thread_cpu_seconds(proc_root: str = "/proc") -> list[dict] | None:
+    """[{name, tid, cpu_s}] of every live Python thread (user + system time from
+    /proc/self/task/<tid>/stat); None where there is no /proc (not Linux). A thread that ended
+    between the listing and the read is left out."""
+    task = os.path.join(proc_root, "self", "task")
+    if not os.path.isdir(task):
+        return None
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    out = []
+    for th in threading.enumerate():
+        tid = getattr(th, "native_id", None)
+        if tid is None:
+            continue
+        try:
+            with open(os.path.join(task, str(tid), "stat"), "rb") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        fields = stat[stat.rfind(b")") + 2:].split()  # after "pid (comm) ": state is field 3
+        try:
+            cpu_s = (int(fields[11]) + int(fields[12])) / tick  # utime, stime: fields 14 and 15
+        except (IndexError, ValueError):
+            continue
+        out.append({"name": th.name, "tid": int(tid), "cpu_s": cpu_s})
+    return out
+
+
+class RunRecorder:
+    """One MCAP recording. Use as a context manager (or call `close()`): the file is finished
+    and renamed onto `path` even when the run raised (the log of a failed run is the one wanted).
+
+    queue_capacity: records waiting for the writer; beyond it records are dropped and counted.
+    points_every_ticks: P_fix / partition counts / plan every this many ticks (the lower rate).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        force: bool = False,
+        stages: tuple[str, ...] = STAGES,
+        queue_capacity: int = 1 << 15,
+        chunk_size: int = 64 * 1024,
+        flush_interval_s: float = 1.0,
+        points_every_ticks: int = 10,
+        compression: str = "zstd",
+        opener: Callable[[str], Any] | None = None,
+    ) -> None:
+        from calibration.outputs import OutputPathError, check_output_path
+        from mcap.writer import CompressionType, Writer
+
+        if queue_capacity <= 0 or points_every_ticks <= 0:
+            raise RecordingError("recorder queue_capacity and points_every_ticks must be positive")
+        try:
+            self.path = check_output_path(path, what="--record", overwrite=force)
+        except OutputPathError as exc:
+            raise RecordingError(str(exc)) from exc
+        if not str(self.path).endswith(".mcap"):
+            raise RecordingError(f"--record {self.path}: the file name must end in .mcap")
+        self.force = force
+        self.stages = tuple(stages)
+        self.queue_capacity = int(queue_capacity)
+        self.points_every_ticks = int(points_every_ticks)
+        self.flush_interval_s = float(flush_interval_s)
+        parent = self.path.parent if str(self.path.parent) else Path(".")
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=parent)
+        os.close(fd)
+        self.tmp_path = Path(tmp)
+        # opener: tests put a slow or failing file object here (full disk, slow disk).
+        self._file = opener(tmp) if opener is not None else open(tmp, "wb")
+        if isinstance(self._file, io.RawIOBase):  # our buffer, so that close() flushes it
+            self._file = io.BufferedWriter(self._file)
+        self._writer = Writer(self._file, chunk_size=chunk_size,
+                              compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+                                           "none": CompressionType.NONE}[compression])
+        self._queue: deque = deque()
+        self.dropped = dict.fromkeys(KINDS, 0)  # queue full (counted on the tick's side)
+        self.dropped_write_error = 0  # counted on the writer's side
+        self.written = dict.fromkeys(KINDS, 0)
+        self.write_error: str | None = None
+        self.bad_records = 0  # records that would not serialise (a bug, not the disk)
+        self.bad_record_error: str | None = None
+        self.ticks_seen = 0
+        self._channels: dict[str, int] = {}
+        self._closing = False
+        self._closed = False
+        self._started = False
+        self._run_ended_with: str | None = None
+        self._last_plan: object = None
+        self._last_reference: object = None
+        self._last_answer_s: float | None = None
+        self.thread_samples = 0
+        self._threads_supported = True
+        self._last_t_s = 0.0  # loop-clock time of the newest tick written: the threads' log time
+        self._wall0 = time.monotonic()
+        self._thread = threading.Thread(target=self._writer_main, name="dct-mcap-writer", daemon=True)
+        self._thread.start()
+
+    # ---------------------------------------------------------------- the tick's side
+    def _put(self, kind: str, item: tuple) -> None:
+        """O(1), never blocks: append, or count a drop when the writer is behind."""
+        if len(self._queue) >= self.queue_capacity or self._closing:
+            self.dropped[kind] += 1
+        else:
+            self._queue.append(item)
+
+    def wrap_bus(self, bus, clock: Callable[[], float]) -> "RecordingBus":
+        """A proxy for `bus` that records every frame the driver sends and receives."""
+        return RecordingBus(bus, self, clock)
+
+    def attach(self, controller, config, run_info: dict | None = None) -> Callable[[np.void], None]:
+        """Write the run's description and return the hook to call after each tick (with the
+        tick's telemetry row, outside its stage timings): FixedRateLoop(after_tick=...).
+
+        controller: read after each tick for the pose, the lidar frame it used, P_fix and the plan
+        (any of them may be missing: a loop without them records the tick alone).
+        config: the ControllerConfig (its loop section gives the budgets the report compares to).
+        """
+        loop = config.loop
+        budgets = {s: float(loop.stage_budgets_s.get(s, loop.period_s)) for s in self.stages}
+        info = {
+            "stages": json.dumps(list(self.stages)),
+            "stage_budgets_ms": json.dumps({s: b * 1e3 for s, b in budgets.items()}),
+            "period_ms": repr(loop.period_s * 1e3),
+            "command_deadline_ms": repr(loop.command_deadline_s * 1e3),
+            "planner": str(config.planner.mode),
+            "controller_config": json.dumps(config.model_dump(mode="json")),
+            "recorded_at_unix_s": repr(time.time()),
+            **{k: str(v) for k, v in (run_info or {}).items()},
+        }
+        self._queue.append(("meta", S.META_RUN, info))  # never dropped
+        every = self.points_every_ticks
+        put = self._put
+
+        def after_tick(row: np.void) -> None:
+            self.ticks_seen += 1
+            pose = getattr(controller, "pose", None)
+            xyyaw = (float(pose.x_m), float(pose.y_m), float(pose.yaw_rad)) if pose is not None else None
+            frame_end = None
+            monitor = getattr(controller, "monitor", None)
+            scan = getattr(monitor, "good_scan", None)
+            if scan is not None:
+                offs = scan.point_time_offsets_s
+                frame_end = float(scan.stamp_s) + (float(offs.max()) if len(offs) else float(scan.frame_duration_s))
+            put("tick", ("tick", row.copy(), xyyaw, frame_end))
+            vpp = getattr(controller, "vpp", None)
+            memory = getattr(vpp, "memory", None) if vpp is not None else None
+            stamp = getattr(memory, "last_answer_s", None)
+            if stamp is not None and stamp != self._last_answer_s:
+                self._last_answer_s = stamp
+                t = float(row["scheduled_s"])  # references only: entries and their masks are immutable
+                put("answer", ("answer", t, float(stamp), int(getattr(vpp, "answers", 0)), tuple(memory.entries)))
+            if int(row["tick"]) % every == 0:
+                self._sample_points(controller, row, scan)
+
+        return after_tick
+
+    def _sample_points(self, controller, row: np.void, scan) -> None:
+        t_s = float(row["scheduled_s"])
+        points = getattr(controller, "points_fix", None)
+        vpp = getattr(controller, "vpp", None)
+        frame = getattr(vpp, "last_frame", None) if vpp is not None else None
+        p_mov = frame.movable_count if frame is not None else None
+        returns = int(scan.num_points) if scan is not None else 0
+        fix = np.array(points, dtype=np.float32, copy=True) if points is not None else np.zeros((0, 2), np.float32)
+        self._put("points", ("points", t_s, int(row["tick"]), returns, fix, p_mov))
+        normal = getattr(getattr(controller, "modes", None), "normal", None)
+        plan = getattr(normal, "last_plan", None)
+        ref = getattr(normal, "last_reference", None)
+        if plan is not None and plan is not self._last_plan or ref is not None and ref is not self._last_reference:
+            states = np.array(plan.states, copy=True) if plan is not None and plan is not self._last_plan else None
+            path = getattr(ref, "path_world", None)
+            path = np.array(path, copy=True) if path is not None and ref is not self._last_reference else None
+            self._last_plan, self._last_reference = plan, ref
+            self._put("plan", ("plan", t_s, states, path))
+
+    # ---------------------------------------------------------------- the writer thread
+    def _register(self) -> None:
+        w = self._writer
+        w.start(profile="", library="dct runtime.io.recording")
+        for topic, (name, schema) in S.channel_schemas(self.stages).items():
+            sid = w.register_schema(name=name, encoding="jsonschema", data=S.schema_bytes(schema))
+            self._channels[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+        self._started = True
+
+    def _emit(self, topic: str, t_s: float, msg: dict) -> None:
+        data = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode()
+        ns = _ns(t_s)
+        self._writer.add_message(self._channels[topic], log_time=ns, publish_time=ns, data=data)
+
+    def _write_item(self, item: tuple) -> None:
+        kind = item[0]
+        if kind == "meta":
+            self._writer.add_metadata(item[1], item[2])
+            return
+        if kind == "tick":
+            _, r, xyyaw, frame_end = item
+            t = float(r["scheduled_s"])
+            self._last_t_s = t
+            mask = int(r["overrun_mask"])
+            cmd_t = t + float(r["command_latency_s"])
+            msg = {
+                "timestamp": _stamp(t),
+                "tick": int(r["tick"]),
+                "scheduled_s": t,
+                "lateness_ms": float(r["lateness_s"]) * 1e3,
+                "stage_ms": {s: float(v) * 1e3 for s, v in zip(self.stages, r["stage_s"])},
+                "tick_ms": float(r["tick_s"]) * 1e3,
+                "slack_work_ms": float(r["slack_work_s"]) * 1e3,
+                "command_latency_ms": float(r["command_latency_s"]) * 1e3,
+                "overrun_stages": [s for i, s in enumerate(self.stages) if mask & (1 << i)],
+                "deadline_missed": bool(r["deadline_missed"]),
+                "wall_command_latency_ms": float(r["wall_command_latency_s"]) * 1e3,
+                "wall_deadline_missed": bool(r["wall_deadline_missed"]),
+                "state": _STATE_NAMES.get(int(r["state"]), str(int(r["state"]))),
+                "v_cmd_mps": _finite(float(r["v_cmd_mps"])),
+                "omega_cmd_radps": _finite(float(r["omega_cmd_radps"])),
+                "lidar_frame_end_s": frame_end,
+                "sensor_to_command_ms": (cmd_t - frame_end) * 1e3 if frame_end is not None else None,
+            }
+            self._emit(S.TOPIC_TICK, t, msg)
+            if xyyaw is not None:
+                self._emit(S.TOPIC_POSE, t, {"timestamp": _stamp(t), "frame_id": "odom", "pose": _pose(*xyyaw)})
+        elif kind == "can":
+            _, t, direction, can_id, data = item
+            self._emit(S.TOPIC_CAN, t, {"timestamp": _stamp(t), "direction": direction, "id": can_id,
+                                        "id_hex": f"0x{can_id:03X}", "dlc": len(data), "data_hex": data.hex()})
+        elif kind == "points":
+            _, t, tick, returns, fix, p_mov = item
+            self._emit(S.TOPIC_PARTITION, t, {"timestamp": _stamp(t), "tick": tick, "lidar_returns": returns,
+                                              "p_fix": int(len(fix)), "p_mov": p_mov})
+            xyz = np.zeros((len(fix), 3), np.float32)  # P_fix is (N, 2) in the odom frame
+            if fix.ndim == 2 and len(fix):
+                k = min(3, fix.shape[1])
+                xyz[:, :k] = fix[:, :k]
+            self._emit(S.TOPIC_P_FIX, t, {
+                "timestamp": _stamp(t), "frame_id": "odom", "pose": _pose(0.0, 0.0, 0.0), "point_stride": 12,
+                "fields": [{"name": n, "offset": 4 * i, "type": 7} for i, n in enumerate("xyz")],
+                "data": base64.b64encode(xyz.tobytes()).decode(),
+            })
+        elif kind == "plan":
+            _, t, states, path = item
+            if states is not None:
+                self._emit(S.TOPIC_PLAN, t, {"timestamp": _stamp(t), "frame_id": "odom",
+                                             "poses": [_pose(float(s[0]), float(s[1]), float(s[2])) for s in states]})
+            if path is not None:
+                self._emit(S.TOPIC_REFERENCE, t, {"timestamp": _stamp(t), "frame_id": "odom",
+                                                  "poses": [_pose(float(p[0]), float(p[1]), 0.0) for p in path]})
+        elif kind == "answer":
+            _, t, stamp, answers, entries = item
+            self._emit(S.TOPIC_VPP_ANSWER, t, {
+                "timestamp": _stamp(t), "arrival_s": t, "capture_s": stamp, "latency_ms": (t - stamp) * 1e3,
+                "answers": answers,
+                "objects": [{"object_id": int(e.object_id), "label": str(e.label), "movable": bool(e.movable),
+                             "contact_cost": float(e.contact_cost), "pixels": int(np.count_nonzero(e.mask))}
+                            for e in entries],
+            })
+            png = png_bytes(mask_label_image(entries))
+            self._emit(S.TOPIC_VPP_MASKS, t, {"timestamp": _stamp(stamp), "frame_id": "camera", "format": "png",
+                                              "data": base64.b64encode(png).decode()})
+        self.written[kind] += 1
+
+    def _sample_threads(self) -> None:
+        """One /dct/threads message (writer thread only); off for good where there is no /proc."""
+        if not self._threads_supported:
+            return
+        threads = thread_cpu_seconds()
+        if threads is None:
+            self._threads_supported = False
+            return
+        t = self._last_t_s
+        self._emit(S.TOPIC_THREADS, t, {"timestamp": _stamp(t), "wall_s": time.monotonic() - self._wall0,
+                                        "process_cpu_s": time.process_time(), "threads": threads})
+        self.thread_samples += 1
+
+    def _writer_main(self) -> None:
+        try:
+            self._register()
+        except OSError as exc:
+            self.write_error = f"{type(exc).__name__}: {exc}"
+        last_flush = time.monotonic()
+        last_threads = -math.inf
+        q = self._queue
+        while True:
+            now = time.monotonic()
+            if self.write_error is None and self._started and (
+                    now - last_threads >= THREAD_SAMPLE_EVERY_S or (self._closing and not q)):
+                last_threads = now
+                try:
+                    self._sample_threads()
+                except OSError as exc:
+                    self.write_error = f"{type(exc).__name__}: {exc}"
+                except Exception as exc:  # noqa: BLE001 - never die
+                    self.bad_records += 1
+                    self.bad_record_error = f"threads: {type(exc).__name__}: {exc}"
+            if not q:
+                if self._closing:
+                    return
+                time.sleep(0.01)
+                continue
+            item = q.popleft()
+            if self.write_error is not None:
+                if item[0] != "meta":
+                    self.dropped_write_error += 1
+                continue
+            try:
+                self._write_item(item)
+                time.sleep(0)  # hand the GIL to the loop thread if it waits (else up to the 5 ms switch interval)
+                now = time.monotonic()
+                if now - last_flush >= self.flush_interval_s:
+                    self._writer.flush()  # closes the chunk: a power loss loses at most this much
+                    last_flush = now
+            except OSError as exc:  # full disk, I/O error: count the rest, stop writing
+                self.write_error = f"{type(exc).__name__}: {exc}"
+                if item[0] != "meta":
+                    self.dropped_write_error += 1
+            except Exception as exc:  # noqa: BLE001 - one record that would not serialise: skip it, never die
+                self.bad_records += 1
+                self.bad_record_error = f"{item[0]}: {type(exc).__name__}: {exc}"
+
+    # ---------------------------------------------------------------- the end
+    def note_run_end(self, error: BaseException | None) -> None:
+        if error is not None:
+            self._run_ended_with = f"{type(error).__name__}: {error}"
+
+    def summary(self) -> dict:
+        return {
+            "path": str(self.path),
+            "ticks_seen": self.ticks_seen,
+            "written": dict(self.written),
+            "thread_samples": self.thread_samples,
+            "dropped_queue_full": dict(self.dropped),
+            "dropped_write_error": self.dropped_write_error,
+            "dropped_total": sum(self.dropped.values()) + self.dropped_write_error,
+            "write_error": self.write_error,
+            "bad_records": self.bad_records,
+            "bad_record_error": self.bad_record_error,
+            "run_error": self._run_ended_with,
+        }
+
+    def close(self) -> dict:
+        """Drain the queue, write the recorder's account, finish the file and rename it onto the
+        output. Returns summary(). Idempotent."""
+        if self._closed:
+            return self.summary()
+        self._closing = True  # records put from now on are dropped and counted
+        self._thread.join()
+        self._closed = True
+        meta = {k: json.dumps(v) for k, v in self.summary().items() if k != "path"}
+        try:
+            if self.write_error is None:
+                self._writer.add_metadata(S.META_RECORDING, meta)
+                self._writer.finish()
+        except OSError as exc:
+            self.write_error = f"{type(exc).__name__}: {exc}"
+        finally:
+            try:
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except (OSError, ValueError, io.UnsupportedOperation):
+                pass
+            try:
+                self._file.close()
+            except OSError as exc:
+                self.write_error = self.write_error or f"{type(exc).__name__}: {exc}"
+        if not self.force and self.path.exists():  # appeared during the run: keep both
+            raise RecordingError(f"--record {self.path} appeared during the run; the recording is in {self.tmp_path}")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(self.tmp_path, 0o666 & ~umask)
+        os.replace(self.tmp_path, self.path)
+        return self.summary()
+
+    def __enter__(self) -> "RunRecorder":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.note_run_end(exc)
+        self.close()
+
+
+class RecordingBus:
+    """Stands between a driver and its python-can bus and records each frame it passes (the
+    frame's id and bytes and the loop clock's time: a tuple appended to the recorder's queue)."""
+
+    def __init__(self, bus, recorder: RunRecorder, clock: Callable[[], float]) -> None:
+        self._bus = bus
+        self._recorder = recorder
+        self._clock = clock
+
+    def send(self, msg, timeout: float | None = None) -> None:
+        self._bus.send(msg, timeout)
+        self._recorder._put("can", ("can", self._clock(), "tx", int(msg.arbitration_id), bytes(msg.data)))
+
+    def recv(self, timeout: float | None = None):
+        msg = self._bus.recv(timeout)
+        if msg is not None:
+            self._recorder._put("can", ("can", self._clock(), "rx", int(msg.arbitration_id), bytes(msg.data)))
+        return msg
+
+    def __getattr__(self, name: str):
+        return getattr(self._bus, name)

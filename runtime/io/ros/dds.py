@@ -1,0 +1,116 @@
+"""DDS plumbing for ROS 2 topics with cyclonedds: topic names, QoS, a writer and a raw reader.
+
+Why a writer and a reader of our own around cyclonedds' DataWriter / DataReader:
+- Bytes, not Python objects, cross the wire in both directions. Writing goes through
+  `to_cdr` (XCDR1 always, and the numpy CustomMsg encoder where it applies); reading takes each
+  sample's CDR bytes (`RawDataReader.take_raw`), so the receiver decodes with the fast paths and
+  turns undecodable bytes into named rejections instead of cyclonedds parser exceptions.
+- Topic types: cyclonedds must build an XTypes type object for every topic's type, and it cannot
+  for a field annotated `bytes` ("Cannot construct typeobject for entity <class 'bytes'>"),
+  which messages.py uses for `uint8[]` payloads (one memory copy instead of a Python int per
+  byte). `wire_type(cls)` gives the topic a twin of the message with the same DDS type name and
+  `sequence<uint8>` fields: the same type on the wire, only used to register the topic; the
+  samples themselves are (de)serialized with the `bytes`-typed struct.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+
+from cyclonedds.core import InstanceState, SampleState, ViewState
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct, make_idl_struct
+from cyclonedds.idl.types import sequence, uint8
+from cyclonedds.pub import DataWriter
+from cyclonedds.qos import Policy, Qos
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+
+# cyclonedds' own take primitive, what DataReader.take calls before decoding (version pinned).
+from cyclonedds._clayer import ddspy_take  # noqa: I001
+
+from runtime.io.ros.messages import CustomMsg, CustomMsgArrays, PreSerialized, encode_custom_msg, to_cdr
+
+
+def dds_topic_name(ros_topic: str) -> str:
+    """ROS 2 topic `/a/b` (or `a/b`) -> its DDS topic `rt/a/b`."""
+    return "rt/" + ros_topic.lstrip("/")
+
+
+def ros_qos(reliability: str = "best_effort", depth: int = 1) -> Qos:
+    """DDS QoS of a ROS 2 topic: best effort (sensor data) or reliable, keep last `depth`, volatile,
+    and CDR v0 / XCDR1 data representation (what ROS 2 speaks)."""
+    if reliability not in ("best_effort", "reliable"):
+        raise ValueError(f"reliability must be best_effort or reliable, got {reliability!r}")
+    rel = (Policy.Reliability.BestEffort if reliability == "best_effort"
+           else Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)))
+    return Qos(rel, Policy.History.KeepLast(int(depth)), Policy.Durability.Volatile,
+               Policy.DataRepresentation(use_cdrv0_representation=True))
+
+
+_WIRE_TYPES: dict[type, type] = {}
+_WIRE_LOCK = threading.Lock()
+
+
+def wire_type(cls: type[IdlStruct]) -> type[IdlStruct]:
+    """The struct to register a topic of `cls` with: `cls` itself, or for a message with `bytes`
+    fields, a twin (same DDS type name, same field order) with those fields as sequence<uint8>."""
+    with _WIRE_LOCK:
+        if cls in _WIRE_TYPES:
+            return _WIRE_TYPES[cls]
+        fields = {f.name: f.type for f in dataclasses.fields(cls)}
+        if bytes not in fields.values():
+            twin = cls
+        else:
+            twin = make_idl_struct(f"{cls.__name__}Wire", cls.__idl_typename__,
+                                   {k: (sequence[uint8] if v is bytes else v) for k, v in fields.items()})
+        _WIRE_TYPES[cls] = twin
+        return twin
+
+
+class RosWriter:
+    """Publishes messages of one ROS 2 type on one topic, as ROS 2 CDR."""
+
+    def __init__(self, participant: DomainParticipant, ros_topic: str, cls: type[IdlStruct],
+                 qos: Qos | None = None) -> None:
+        self.cls = cls
+        self._wire = wire_type(cls)
+        q = qos or ros_qos()
+        self.topic = Topic(participant, dds_topic_name(ros_topic), self._wire, qos=q)
+        self.writer = DataWriter(participant, self.topic, qos=q)
+
+    def write(self, msg: IdlStruct | CustomMsgArrays) -> None:
+        if isinstance(msg, CustomMsgArrays):
+            if self.cls is not CustomMsg:
+                raise TypeError(f"CustomMsgArrays written on a {self.cls.__name__} topic")
+            cdr = encode_custom_msg(msg.header, msg.timebase, msg.points, lidar_id=msg.lidar_id, rsvd=msg.rsvd,
+                                    point_num=msg.point_num)
+        elif isinstance(msg, self.cls):
+            cdr = to_cdr(msg)
+        else:
+            raise TypeError(f"{type(msg).__name__} written on a {self.cls.__name__} topic")
+        self.write_cdr(cdr)
+
+    def write_cdr(self, cdr: bytes) -> None:
+        """Publish CDR bytes already made (e.g. by encode_custom_msg)."""
+        self.writer.write(PreSerialized.of(self._wire, cdr))
+
+
+_ANY = SampleState.Any | ViewState.Any | InstanceState.Any
+
+
+class RawDataReader(DataReader):
+    """A DataReader that hands out each sample's CDR bytes undecoded."""
+
+    def take_raw(self, n: int = 64) -> list[bytes]:
+        ret = ddspy_take(self._ref, _ANY, n)
+        if isinstance(ret, int):
+            raise RuntimeError(f"dds take failed with return code {ret} on {self.topic.name}")
+        return [data for data, info in ret if info.valid_data]
+
+
+def raw_reader(participant: DomainParticipant, ros_topic: str, cls: type[IdlStruct],
+               qos: Qos | None = None) -> RawDataReader:
+    q = qos or ros_qos()
+    return RawDataReader(participant, Topic(participant, dds_topic_name(ros_topic), wire_type(cls), qos=q), qos=q)

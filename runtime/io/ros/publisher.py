@@ -1,0 +1,133 @@
+"""What the controller publishes for an operator, from a thread fed by the tick.
+
+The tick never touches DDS: `RosPublisher.offer()` (called from the loop's after_tick hook,
+outside the tick's timings) puts a few references into a bounded deque and returns; a thread
+turns them into ROS 2 messages (runtime.io.ros.convert) and writes them. When the thread is
+behind, the oldest queued tick is dropped and counted: an operator's view may skip a frame, the
+loop may not wait for it.
+
+References, not copies: P_fix, the plan's states and the lidar scan are arrays the controller
+replaces (never mutates in place) from one tick to the next, so handing them over is safe.
+
+Published (RosOutputConfig): nav_msgs/Odometry and diagnostic_msgs/DiagnosticArray (state and
+stage timings) every tick; nav_msgs/Path (the MPC's predicted states), P_fix (odom frame) and
+P_mov (lidar frame, planner mode dct) as PointCloud2 every `clouds_every_ticks` ticks.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from cyclonedds.domain import DomainParticipant
+
+from runtime.common.geometry import Pose2D
+from runtime.io.ros import convert
+from runtime.io.ros.dds import RosWriter, ros_qos
+from runtime.io.ros.messages import DIAG_ERROR, DIAG_OK, DIAG_WARN, DiagnosticArray, Odometry, Path, PointCloud2
+from runtime.io.ros.settings import RosOutputConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TickView:
+    """What one tick hands to the publisher (references; see the module docstring)."""
+
+    stamp_s: float
+    pose: Pose2D
+    v_mps: float
+    omega_radps: float
+    state: str
+    stage_ms: dict
+    tick_ms: float
+    extra: dict
+    points_fix: np.ndarray | None = None  # (N, 2) odom frame
+    plan_states: np.ndarray | None = None  # (H+1, 3) odom frame
+    points_mov: np.ndarray | None = None  # (M, 3) lidar frame
+
+
+class RosPublisher:
+    def __init__(self, participant: DomainParticipant, config: RosOutputConfig) -> None:
+        self.config = config
+        qos = ros_qos("best_effort", 1)
+
+        def writer(topic: str | None, cls):
+            return RosWriter(participant, topic, cls, qos) if topic else None
+
+        self._odom = writer(config.odometry, Odometry)
+        self._diag = writer(config.diagnostics, DiagnosticArray)
+        self._plan = writer(config.plan, Path)
+        self._fix = writer(config.p_fix, PointCloud2)
+        self._mov = writer(config.p_mov, PointCloud2)
+        self._queue: deque[TickView] = deque()
+        self._cond = threading.Condition()
+        self._stop = False
+        self.offered = 0
+        self.published = 0
+        self.dropped = 0
+        self.errors = 0
+        self.last_error: str | None = None
+        self._thread = threading.Thread(target=self._run, name="ros_io-publisher", daemon=True)
+        self._thread.start()
+
+    def offer(self, view: TickView) -> None:
+        """From the loop thread: O(1), never blocks on DDS."""
+        with self._cond:
+            self.offered += 1
+            if len(self._queue) >= self.config.queue_depth:
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append(view)
+            self._cond.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    self._cond.wait(0.5)
+                if not self._queue and self._stop:
+                    return
+                view = self._queue.popleft()
+            try:
+                self._publish(view)
+                self.published += 1
+            except Exception as exc:  # noqa: BLE001 - a bad message must not end the thread
+                self.errors += 1
+                self.last_error = f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
+                log.warning("ros_io publisher: %s", self.last_error)
+
+    def _publish(self, v: TickView) -> None:
+        c = self.config
+        if self._odom is not None:
+            self._odom.write(convert.odometry_msg(v.stamp_s, v.pose, v.v_mps, v.omega_radps, frame_id=c.odom_frame,
+                                                  child_frame_id=c.base_frame))
+        if self._diag is not None:
+            level = {"STOPPED": DIAG_ERROR, "HOLDING": DIAG_WARN}.get(v.state, DIAG_OK)
+            timings = {**v.stage_ms, "tick": v.tick_ms}
+            self._diag.write(convert.diagnostics_msg(v.stamp_s, v.state, timings, level=level, extra=v.extra))
+        if self._plan is not None and v.plan_states is not None and len(v.plan_states):
+            self._plan.write(convert.path_msg(v.stamp_s, np.asarray(v.plan_states)[:, :3], frame_id=c.odom_frame))
+        if self._fix is not None and v.points_fix is not None:
+            p = np.asarray(v.points_fix, dtype=np.float32)
+            xyz = np.zeros((len(p), 3), np.float32)
+            xyz[:, :2] = p[:, :2]
+            self._fix.write(convert.pointcloud2_msg(v.stamp_s, xyz, frame_id=c.odom_frame))
+        if self._mov is not None and v.points_mov is not None:
+            self._mov.write(convert.pointcloud2_msg(v.stamp_s, v.points_mov, frame_id="lidar"))
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Publish what is queued (flush), then end the thread."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self._thread.join(timeout_s)
+
+    def stats(self) -> dict:
+        return {"offered": self.offered, "published": self.published, "dropped": self.dropped,
+                "errors": self.errors, "last_error": self.last_error}
+
+
+__all__ = ["RosPublisher", "TickView"]

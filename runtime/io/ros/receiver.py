@@ -1,0 +1,284 @@
+"""Sensor topics over DDS -> SensorInbox, decoded and validated off the tick.
+
+`RosSensorReceiver` owns DDS readers for the configured lidar, camera, IMU and goal topics and
+one thread that waits on them, takes each sample's raw CDR bytes, decodes and converts it
+(convert.py) and puts the result into a SensorInbox. The tick only calls `inbox.take()`: it
+never decodes, and a slow or malformed sample costs the receiver thread, not the tick.
+
+Raw bytes, not cyclonedds' decoded objects: cyclonedds' generic decoder builds a Python object
+per Livox point (0.13 s for a 20k-point frame here, longer than the frame period) and raises
+whatever its parser hits on malformed bytes. Taking the bytes (`RawDataReader.take_raw`) lets the
+Livox frame use the numpy decoder and turns every undecodable sample into a named rejection.
+
+A sample that fails is counted by `<stream>.<reason>` in `error_counts`, remembered in
+`last_error`, and handed to the tick through the inbox's rejections, as SensorInbox does for the
+data it refuses itself (non-monotonic stamps, frozen frames).
+
+Topic names are ROS names (`/livox/lidar`); on the DDS wire they are `rt/livox/lidar`. QoS:
+sensor data best effort, keep last (the ROS 2 sensor-data profile), the goal reliable.
+"""
+from __future__ import annotations
+
+import logging
+import re
+import threading
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.util import duration
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from runtime.io.ros import convert
+from runtime.io.ros.dds import RawDataReader, dds_topic_name, raw_reader, ros_qos
+from runtime.io.ros.messages import ROS_TYPES, RosMessageError, decode_custom_msg, from_cdr
+from runtime.common.sensor_data import SensorDataError
+from runtime.io.sensor_inbox import SensorInbox
+
+log = logging.getLogger(__name__)
+
+_ROS_NAME = re.compile(r"^/?[A-Za-z_~{][A-Za-z0-9_/{}]*$")
+
+
+# ----------------------------------------------------------------------------- config
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class TopicQos(_Strict):
+    reliability: Literal["best_effort", "reliable"] = "best_effort"
+    depth: int = Field(default=1, ge=1, le=1000)
+
+
+class _Topic(_Strict):
+    topic: str
+    qos: TopicQos = TopicQos()
+
+    @field_validator("topic")
+    @classmethod
+    def _ros_name(cls, v: str) -> str:
+        if not _ROS_NAME.match(v) or "//" in v or v.endswith("/"):
+            raise ValueError(f"{v!r} is not a ROS 2 topic name (e.g. /livox/lidar)")
+        return v
+
+
+class LidarTopic(_Topic):
+    type: Literal["livox_ros_driver2/msg/CustomMsg", "sensor_msgs/msg/PointCloud2"]
+    #: PointCloud2 only: the per-point time field and its unit (see convert.pointcloud2_to_scan).
+    time_field: str | None = None
+    time_unit_s: float = Field(default=1.0, gt=0.0)
+    time_is_absolute: bool = False
+    nominal_frame_duration_s: float = Field(default=convert.DEFAULT_FRAME_DURATION_S, gt=0.0, le=1.0)
+
+    @model_validator(mode="after")
+    def _time_field_only_for_pointcloud2(self) -> "LidarTopic":
+        if self.type != "sensor_msgs/msg/PointCloud2" and (self.time_field is not None or self.time_is_absolute):
+            raise ValueError("time_field / time_is_absolute apply to PointCloud2 only (CustomMsg has offset_time)")
+        return self
+
+
+class CameraTopic(_Topic):
+    type: Literal["sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"]
+
+
+class ImuTopic(_Topic):
+    type: Literal["sensor_msgs/msg/Imu"] = "sensor_msgs/msg/Imu"
+    qos: TopicQos = TopicQos(depth=50)     # 200 Hz and more: keep what arrives between two wake-ups
+
+
+class GoalTopic(_Topic):
+    topic: str = "/goal_pose"               # the Nav2 / RViz "2D Goal Pose" convention
+    type: Literal["geometry_msgs/msg/PoseStamped"] = "geometry_msgs/msg/PoseStamped"
+    qos: TopicQos = TopicQos(reliability="reliable", depth=1)
+
+
+class RosInputConfig(_Strict):
+    """Which ROS 2 topics the controller reads, with their types and QoS."""
+
+    domain_id: int = Field(default=0, ge=0, le=232)
+    lidar: LidarTopic | None = None
+    camera: CameraTopic | None = None
+    imu: ImuTopic | None = None
+    goal: GoalTopic | None = None
+
+
+# ----------------------------------------------------------------------------- decoding
+
+
+def decode_cdr(type_name: str, data: bytes):
+    """CDR bytes -> our IDL struct (CustomMsg: the numpy CustomMsgArrays); every failure a RosMessageError."""
+    if type_name == "livox_ros_driver2/msg/CustomMsg":
+        return decode_custom_msg(data)
+    if type_name == "sensor_msgs/msg/Imu":  # 200 Hz: struct, not the generic decoder (fast_imu.py)
+        from runtime.io.ros.fast_imu import decode_imu
+
+        try:
+            return decode_imu(data)
+        except RosMessageError as exc:  # named as the generic decoder's failures are
+            raise RosMessageError(f"undecodable CDR ({exc})"[:200], name="undecodable",
+                                  field_name=exc.field_name) from exc
+    try:
+        return from_cdr(ROS_TYPES[type_name], data)
+    except Exception as exc:    # cyclonedds' parser on untrusted bytes: struct.error, UnicodeDecodeError, ...
+        raise RosMessageError(f"undecodable CDR ({type(exc).__name__}: {exc})".splitlines()[0][:200],
+                              name="undecodable", field_name=f"{type_name}.(bytes)") from exc
+
+
+# ----------------------------------------------------------------------------- the receiver
+
+
+class RosSensorReceiver:
+    """Reads the configured topics on its own thread and feeds `inbox` (and the newest goal).
+
+    camera_K / camera_distortion: the camera's intrinsics from the calibration (ROS images
+    carry none); required when a camera topic is configured.
+    participant: an existing DomainParticipant on config.domain_id (one is created otherwise).
+    """
+
+    def __init__(self, config: RosInputConfig, inbox: SensorInbox, *, camera_K: np.ndarray | None = None,
+                 camera_distortion: np.ndarray | None = None, participant: DomainParticipant | None = None) -> None:
+        if config.camera is not None and camera_K is None:
+            raise ValueError("RosSensorReceiver: a camera topic is configured but no camera_K was given")
+        self.config = config
+        self.inbox = inbox
+        self._K, self._dist = camera_K, camera_distortion
+        self.participant = participant or DomainParticipant(config.domain_id)
+        self._lock = threading.Lock()
+        self._goal: convert.GoalPose | None = None
+        self.received: dict[str, int] = {}
+        self.error_counts: dict[str, int] = {}
+        self.last_error: str | None = None
+        self._readers: list[tuple[str, str, RawDataReader, Callable[[object], None]]] = []
+        self._waitset = WaitSet(self.participant)
+        self._wake = GuardCondition(self.participant)
+        self._waitset.attach(self._wake)
+        self._conditions = []
+        for stream, topic in (("lidar", config.lidar), ("camera", config.camera), ("imu", config.imu),
+                              ("goal", config.goal)):
+            if topic is None:
+                continue
+            reader = raw_reader(self.participant, topic.topic, ROS_TYPES[topic.type],
+                                ros_qos(topic.qos.reliability, topic.qos.depth))
+            cond = ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any)
+            self._waitset.attach(cond)
+            self._conditions.append(cond)
+            self._readers.append((stream, topic.type, reader, self._handler(stream, topic)))
+            self.received[stream] = 0
+        self._stop = threading.Event()
+        self.thread_errors = 0  # exceptions the receiver thread survived (last_thread_error names the last)
+        self.last_thread_error: str | None = None
+        self._thread: threading.Thread | None = None
+
+    # -- conversion per stream
+
+    def _handler(self, stream: str, topic: _Topic) -> Callable[[object], None]:
+        inbox = self.inbox
+        if stream == "lidar":
+            assert isinstance(topic, LidarTopic)
+            if topic.type == "livox_ros_driver2/msg/CustomMsg":
+                def lidar(msg):
+                    inbox.put_scan(convert.custom_msg_to_scan(
+                        msg, nominal_frame_duration_s=topic.nominal_frame_duration_s))
+            else:
+                def lidar(msg):
+                    inbox.put_scan(convert.pointcloud2_to_scan(
+                        msg, time_field=topic.time_field, time_unit_s=topic.time_unit_s,
+                        time_is_absolute=topic.time_is_absolute,
+                        nominal_frame_duration_s=topic.nominal_frame_duration_s))
+            return lidar
+        if stream == "camera":
+            to_camera = (convert.image_to_camera if topic.type == "sensor_msgs/msg/Image"
+                         else convert.compressed_image_to_camera)
+            return lambda msg: inbox.put_image(to_camera(msg, self._K, self._dist))
+        if stream == "imu":
+            return lambda msg: inbox.put_imu(convert.imu_to_sample(msg))
+
+        def goal(msg):
+            g = convert.pose_stamped_to_goal(msg)
+            with self._lock:
+                self._goal = g
+        return goal
+
+    def _reject(self, stream: str, exc: SensorDataError) -> None:
+        key = f"{stream}.{exc.name}"
+        with self._lock:
+            self.error_counts[key] = self.error_counts.get(key, 0) + 1
+            self.last_error = f"{stream}: {exc}"
+        if stream != "goal":
+            # Hand the rejection to the tick with the inbox's own (SensorInbox has no public
+            # method for data refused before it became a LidarScan / CameraImage / ImuSample).
+            self.inbox._reject(stream, exc, None)
+
+    def process(self, stream: str, type_name: str, data: bytes, handle: Callable[[object], None]) -> bool:
+        """Decode, convert and deliver one sample; False when it was rejected (and counted)."""
+        with self._lock:
+            self.received[stream] = self.received.get(stream, 0) + 1
+        try:
+            handle(decode_cdr(type_name, data))
+            return True
+        except SensorDataError as exc:          # RosMessageError included
+            self._reject(stream, exc)
+        except Exception as exc:                # a bug in a converter must not end the thread
+            log.exception("ros_io: %s sample crashed its converter", stream)
+            self._reject(stream, SensorDataError(f"{type(exc).__name__}: {exc}".splitlines()[0][:200],
+                                                 name="internal_error", field_name=type_name))
+        return False
+
+    def poll(self, timeout_s: float = 0.0) -> int:
+        """Wait up to timeout_s for samples, then process everything pending; returns how many."""
+        if timeout_s > 0:
+            self._waitset.wait(duration(seconds=timeout_s))
+        n = 0
+        for stream, type_name, reader, handle in self._readers:
+            for data in reader.take_raw():
+                self.process(stream, type_name, data, handle)
+                n += 1
+        return n
+
+    # -- thread
+
+    def start(self) -> "RosSensorReceiver":
+        if self._thread is not None:
+            raise RuntimeError("RosSensorReceiver already started")
+        self._thread = threading.Thread(target=self._run, name="ros_io-receiver", daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.poll(timeout_s=0.1)
+            except Exception as exc:  # noqa: BLE001 - a DDS take that fails must not end the thread silently
+                self.thread_errors += 1
+                self.last_thread_error = f"{type(exc).__name__}: {exc}"
+                self._stop.wait(0.1)  # back off; the inbox goes stale meanwhile and the monitor holds the robot
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        self._wake.set(True)
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                raise RuntimeError(f"RosSensorReceiver: the receiver thread did not stop within {timeout_s} s")
+            self._thread = None
+        self._stop.clear()
+
+    def __enter__(self) -> "RosSensorReceiver":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def take_goal(self) -> convert.GoalPose | None:
+        """The newest goal received since the last call (None if none)."""
+        with self._lock:
+            g, self._goal = self._goal, None
+        return g
+
+
+__all__ = ["RosInputConfig", "LidarTopic", "CameraTopic", "ImuTopic", "GoalTopic", "TopicQos", "RosSensorReceiver",
+           "decode_cdr", "dds_topic_name"]

@@ -1,0 +1,209 @@
+"""The partition stage of the tick (Algorithm 1 lines 3-13): which lidar points are P_fix.
+
+A strategy with one interface, chosen once when the controller is built (by the planner mode's
+builder, runtime.modes; DESIGN.md section 11: modes are objects, not `if mode` branches in the
+tick):
+
+* `AllFixedPartition`: every point is P_fix and the planner may always drive (modes all-fixed
+  and pure-pursuit; the NeuPAN-like baseline).
+* `VppPartition`: the VLM point partition (runtime.vpp.stage.VppStage): the points of objects
+  the backend called movable and cheap to touch leave P_fix; the planner waits for the first
+  answer (or its failure, or the stage's timeout) before it drives (mode dct).
+
+Per tick the controller calls `update(now, pose, image, scan)`, which returns the `only` mask of
+the obstacle extractor (runtime.perception.obstacle_points: (N,) bool per scan point, True = P_fix) or None
+for "every point"; then `ready(now)` says whether the planner may drive yet. `settle(t_s)` is the
+simulator's lockstep barrier, `close()` ends work beside the tick, `describe()` adds the stage's
+counters to the episode report; `relabel_fixed_in_front(...)` is correcting mode's eq. 14 (the
+object a failed push was on becomes fixed).
+"""
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from runtime.common.sensor_data import CameraImage, LidarScan
+
+
+class PartitionStage(Protocol):
+    name: str
+    #: The VPP stage behind it (runtime.vpp.stage.VppStage), None when there is none: its
+    #: counters and last frame are read outside the tick (controller.vpp: tests, benches).
+    vpp: object | None
+
+    def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
+               scan: LidarScan | None, image_pose: tuple[float, float, float] | None = None) -> np.ndarray | None:
+        """This tick's partition of `scan` (every point where it is at now_s, at `pose`): (N,)
+        bool, True = P_fix; None = every point P_fix. image_pose: the robot's pose when `image`
+        was captured (None: `pose`)."""
+
+    def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The last partitioned scan's P_mov: ((N,) bool over its points, (N,) contact costs
+        0..10); None when nothing is touchable."""
+
+    def carried_region(self) -> tuple[float, float, float, float] | None:
+        """Where the object the robot is pushing lies in base_link (x min, x max, y min, y max),
+        from the last scan; None when it pushes nothing."""
+
+    def ready(self, now_s: float) -> bool:
+        """Whether the planner may drive on what the stage knows by now."""
+
+    def settle(self, t_s: float) -> None:
+        """Lockstep barrier (the simulator calls it before time t_s): work due by t_s is done."""
+
+    def close(self) -> None:
+        """End the work beside the tick (a backend runner)."""
+
+    def describe(self) -> dict:
+        """JSON-ready entries for the controller's report ({} when there is nothing to say)."""
+
+    def movable_points_lidar(self) -> np.ndarray | None:
+        """The last partitioned scan's P_mov in the lidar frame (None: none): the odometry leaves
+        their neighbourhood out of the next frames' ICP (a pushed box moves with the robot)."""
+
+    def observe_contact(self, now_s: float, pose: tuple[float, float, float], v_mps: float, currents_a) -> None:
+        """Push evidence for the belief (mode dct): this tick's forward speed and wheel motor
+        currents (None when stale) with the robot's pose; nothing elsewhere."""
+
+    def relabel_fixed_in_front(self, pose: tuple[float, float, float], half_length_m: float, half_width_m: float,
+                               margin_m: float, forward: bool) -> int | None:
+        """Correcting mode (DCT eq. 14): the movable object in front of the robot (within its
+        footprint + margin_m) becomes fixed for the rest of the episode; returns its id, or None
+        when no movable object is there."""
+
+
+class AllFixedPartition:
+    """Every point is P_fix; nothing runs beside the tick; the planner never waits."""
+
+    name = "all-fixed"
+    vpp = None  # no VPP stage (controller.vpp reads it)
+
+    def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
+               scan: LidarScan | None, image_pose: tuple[float, float, float] | None = None) -> np.ndarray | None:
+        return None
+
+    def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return None
+
+    def carried_region(self) -> tuple[float, float, float, float] | None:
+        return None
+
+    def ready(self, now_s: float) -> bool:
+        return True
+
+    def settle(self, t_s: float) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def describe(self) -> dict:
+        return {}
+
+    def observe_contact(self, now_s, pose, v_mps, currents_a) -> None:
+        pass
+
+    def movable_points_lidar(self) -> np.ndarray | None:
+        return None
+
+    def relabel_fixed_in_front(self, pose, half_length_m, half_width_m, margin_m, forward) -> int | None:
+        return None  # every point is fixed already
+
+
+class VppPartition:
+    """The VLM point partition (runtime.vpp.stage.VppStage, its public API only)."""
+
+    name = "vpp"
+
+    def __init__(self, stage, footprint: tuple[float, float] = (0.161, 0.11), contact_margin_m: float = 0.08) -> None:
+        self.vpp = stage  # runtime.vpp.stage.VppStage: tests and telemetry read its counters
+        #: (half length, half width) of the robot (m) and the distance in front of it that is contact
+        self._half_length_m, self._half_width_m = footprint
+        self._contact_margin_m = contact_margin_m
+
+    def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
+               scan: LidarScan | None, image_pose: tuple[float, float, float] | None = None) -> np.ndarray | None:
+        frame = self.vpp.update(now_s, pose, image, scan, image_pose)
+        return frame.fixed if frame is not None else None
+
+    def movable(self) -> tuple[np.ndarray, np.ndarray] | None:
+        frame = self.vpp.last_frame
+        if frame is None:
+            return None
+        mov = ~frame.fixed  # P_mov: the points of touchable objects
+        if not mov.any():
+            return None
+        part = frame.partition
+        cost = part.cost.astype(np.float64)  # NaN off P_mov; on it the belief's expected cost
+        cost[mov] = self.vpp.expected_costs(part.object_id[mov], part.cost[mov])
+        return mov, cost
+
+    def ready(self, now_s: float) -> bool:
+        """The VLM's first answer (or failure) came back, or the stage stopped waiting for it:
+        before that the partition knows nothing the all-fixed one does not, and the controller
+        waits rather than commit to a detour."""
+        return self.vpp.ready(now_s)
+
+    def settle(self, t_s: float) -> None:
+        self.vpp.settle(t_s)
+
+    def close(self) -> None:
+        self.vpp.close()
+
+    def describe(self) -> dict:
+        return {"vpp": self.vpp.describe()}
+
+    def movable_points_lidar(self) -> np.ndarray | None:
+        return self.vpp.movable_points_lidar()
+
+    def carried_region(self) -> tuple[float, float, float, float] | None:
+        # touching: within 3 cm of the bumper (the contact margin's 8-12 cm would carry a box
+        # still standing a tenth of a second ahead, and put its points that far off)
+        return self.vpp.carried_region(self._half_length_m, self._half_width_m, 0.03)
+
+    def observe_contact(self, now_s, pose, v_mps, currents_a) -> None:
+        self.vpp.observe_contact(now_s, pose, v_mps, currents_a, self._half_length_m, self._half_width_m,
+                                 self._contact_margin_m)
+
+    def relabel_fixed_in_front(self, pose, half_length_m, half_width_m, margin_m, forward) -> int | None:
+        oid = self.vpp.movable_in_front(pose, half_length_m, half_width_m, margin_m, forward)
+        if oid is not None:
+            self.vpp.demote(oid)
+        return oid
+
+
+def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_cam_lidar=None) -> VppPartition:
+    """The VPP stage of mode dct: the robot's camera, the backend in a runner on the
+    controller's clock (simulated time in lockstep, the wall clock otherwise).
+
+    config: runtime.config.ControllerConfig; robot: calibration.robot_description.RobotDescription;
+    backend: a models.vlm backend (VlmBackend). camera: the calibration file's CameraModel (its
+    intrinsics and distortion: Phase III projects with them, and the stage takes only images
+    that carry them); None: the robot description's nominal intrinsics, no distortion.
+    T_cam_lidar: the calibration's lidar-to-camera extrinsic (4x4); the camera's pose on the
+    base is then the lidar mount's composed with it. None: the description's camera mount."""
+    from calibration.camera_model import CameraModel
+    from models.vlm.runner import BackendRunner
+    from runtime.vpp.belief import PushResistanceEstimator
+    from runtime.vpp.deformable import RobotBox
+    from runtime.vpp.stage import VppStage
+
+    cam = robot.sensors.camera
+    if camera is None:
+        camera = CameraModel(cam.nominal_intrinsics(), np.zeros(5), cam.width_px, cam.height_px)
+    elif (camera.width_px, camera.height_px) != (cam.width_px, cam.height_px):
+        raise ValueError(f"calibration camera: {camera.width_px}x{camera.height_px} px, the robot's camera "
+                         f"({robot.name}) is {cam.width_px}x{cam.height_px} px: a calibration of another camera")
+    T_base_lidar = robot.sensors.lidar.mount.transform()
+    T_base_cam = cam.mount.transform() if T_cam_lidar is None else T_base_lidar @ np.linalg.inv(T_cam_lidar)
+    runner_config = config.vpp.runner.model_copy(update={"clock": "lockstep" if lockstep else "realtime"})
+    footprint = (robot.footprint.length_m / 2.0, robot.footprint.width_m / 2.0)
+    stage = VppStage(config.vpp, camera, T_base_cam, T_base_lidar, BackendRunner(backend, runner_config),
+                     resistance=PushResistanceEstimator(
+                         robot, traction_coefficient=config.vpp.belief.traction_coefficient),
+                     robot_box=RobotBox(footprint[0], footprint[1]))
+    return VppPartition(stage, footprint, config.correcting.contact_margin_m)
+
+
+__all__ = ["AllFixedPartition", "PartitionStage", "VppPartition", "build_vpp_partition"]

@@ -1,6 +1,0 @@
-"""MCAP recordings of a run (recorder.py: written from a thread outside the tick; reader.py:
-read back, also when cut off). Channel schemas: schemas.py."""
-from runtime.recording.reader import Recording, RecordingReadError, read_recording
-from runtime.recording.recorder import RecordingError, RunRecorder
-
-__all__ = ["Recording", "RecordingError", "RecordingReadError", "RunRecorder", "read_recording"]

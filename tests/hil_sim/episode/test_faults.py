@@ -1,0 +1,234 @@
+"""Faults injected into HIL episodes: the robot never drives on what it cannot see or no longer
+hears, says why, and resumes when the input is good again. Plus the lockstep verdict under load."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from hil_sim.episode.faults import FAULT_NAMES, FaultSpec, FaultSpecError
+from hil_sim.episode.lockstep import run_episode
+from hil_sim.world.scenario import load_scenario
+from runtime.config import load_controller_config
+
+#: The tests below that must reach case1's goal after a fault early in the run drive all-fixed:
+#: they test the watchdogs and the restart, timed on all-fixed's drive (under way by 1 s). Mode dct
+#: (the default) waits 1.5 s for the VLM, then pushes case1's box 2.2 m to the goal, and a fault
+#: in its first 2 s leaves the box parked 0.2-0.27 m short of the goal, fixed again: blocked
+#: (lidar-frozen, estop, imu-silent + drop-0x311 at seed 0; a dct limit, not a watchdog's).
+ALL_FIXED = load_controller_config().with_planner_mode("all-fixed")
+
+
+def _short(name: str, time_limit_s: float):
+    return load_scenario(name).model_copy(update={"time_limit_s": time_limit_s})
+
+
+# -- the --fault argument -----------------------------------------------------------------------
+
+def test_fault_spec_parses_name_start_and_duration():
+    assert FaultSpec.parse("lidar-blind:2") == FaultSpec("lidar-blind", 2.0, None)
+    assert FaultSpec.parse("drop-0x311:1.5:0.5") == FaultSpec("drop-0x311", 1.5, 0.5)
+    f = FaultSpec.parse("estop:1:2")
+    assert not f.active(0.99) and f.active(1.0) and f.active(2.99) and not f.active(3.0)
+    assert FaultSpec.parse("imu-silent:0").active(1e6)  # no duration: to the end
+    assert set(FAULT_NAMES) >= {"lidar-blind", "lidar-far", "lidar-frozen", "drop-0x311", "drop-0x211",
+                                "drop-0x221", "imu-silent", "estop"}
+
+
+@pytest.mark.parametrize("text, words", [
+    ("lidar-blind", "expected NAME:START_S"),
+    ("bogus:1", "unknown fault 'bogus'"),
+    ("estop:nan", "NaN"),
+    ("estop:-1", "must be in [0, 3600]"),
+    ("estop:1:0", "DURATION_S must be > 0"),
+    ("estop:1:x", "not a number"),
+    ("estop:1e400", "must be in"),
+])
+def test_bad_fault_specs_are_one_line_errors(text, words):
+    with pytest.raises(FaultSpecError) as info:
+        FaultSpec.parse(text)
+    assert words in str(info.value) and "\n" not in str(info.value)
+
+
+@given(st.text(max_size=40))
+def test_fault_spec_parser_raises_only_its_own_error(text):
+    try:
+        spec = FaultSpec.parse(text)
+    except FaultSpecError:
+        return
+    assert spec.name in FAULT_NAMES and math.isfinite(spec.start_s)
+
+
+# -- the robot's reaction, in HIL -----------------------------------------------------------------
+
+def _stops(m):
+    return [e for e in m["events"] if e["event"] == "stop"]
+
+
+@pytest.mark.parametrize("fault, words", [
+    ("lidar-blind", "lidar blind: no returns"),
+    ("lidar-far", "beyond it"),
+])
+def test_a_blind_lidar_never_lets_the_robot_drive_into_case3s_shelf(fault, words):
+    """Today's main drove into the fixed shelf on an empty scan or one far point. Fault from
+    1 s to the end: the robot stops within a frame and a braking distance, touches nothing, and
+    the metrics say why it failed."""
+    result = run_episode(_short("case3", 6.0), seed=0, faults=[FaultSpec(fault, 1.0)])
+    m = result.metrics
+    assert m["fixed_contacts"] == 0 and not m["success"]
+    stops = _stops(m)
+    assert stops and words in stops[0]["reason"] and 1.0 <= stops[0]["t_s"] <= 1.2
+    assert m["controller_state"] == "HOLDING"
+    assert m["failure_reason"].startswith("sensor stale: lidar blind")
+    # It had driven about 0.4 m when the fault began, and at most 1 m/s for a frame plus braking.
+    assert m["path_length_m"] < 1.2
+    assert result.extra["faults_applied"][fault] > 0
+
+
+@pytest.mark.parametrize("fault, words", [
+    ("lidar-frozen", "lidar frozen"),
+    ("drop-0x311", "0x311 stale"),
+    ("drop-0x211", "0x211 stale"),
+    ("drop-0x221", "0x221 stale"),
+    ("imu-silent", "IMU stale"),
+])
+def test_a_stale_input_stops_the_robot_naming_it_and_good_data_resumes_it(fault, words):
+    """Each watchdog: the robot stops (zero command) with the stream named, resumes when the
+    stream is back, and still reaches case1's goal without touching anything fixed."""
+    result = run_episode("case1", config=ALL_FIXED, seed=0, faults=[FaultSpec(fault, 1.0, 0.6)])
+    m = result.metrics
+    stops = _stops(m)
+    assert stops and words in stops[0]["reason"], m["events"]
+    assert 1.0 <= stops[0]["t_s"] <= 1.0 + 0.45
+    resumes = [e for e in m["events"] if e["event"] == "resume"]
+    assert resumes and 1.6 <= resumes[0]["t_s"] <= 1.6 + 0.45
+    assert m["success"] and m["fixed_contacts"] == 0 and m["failure_reason"] is None
+
+
+def test_estop_stops_and_clearing_it_restarts_the_start_up_sequence():
+    result = run_episode("case1", config=ALL_FIXED, seed=0, faults=[FaultSpec("estop", 1.0, 1.0)])
+    m = result.metrics
+    names = [e["event"] for e in m["events"]]
+    assert names[:3] == ["stop", "restart", "resume"], m["events"]
+    stop, restart = m["events"][0], m["events"][1]
+    assert stop["reason"] == "E-stop" and 1.0 <= stop["t_s"] <= 1.2
+    assert restart["t_s"] >= 2.0  # not before the E-stop cleared
+    assert m["success"] and m["controller"]["restarts"] == 1
+
+
+def test_a_permanent_estop_is_the_failure_reason():
+    m = run_episode(_short("case1", 3.0), seed=0, faults=[FaultSpec("estop", 0.5)]).metrics
+    assert not m["success"] and m["failure_reason"] == "base not ready: E-stop (held still at the time limit)"
+
+
+# -- lockstep verdicts do not depend on the machine's load ----------------------------------------
+
+def test_same_seed_gives_identical_metrics_json_with_a_cpu_hog_beside_it():
+    """QP caps are iteration counts and deadlines are judged on simulated time in lockstep: two
+    busy processes beside the run change its wall-clock timing, not a single metric."""
+    quiet = run_episode("case3", seed=1).metrics
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        loaded = run_episode("case3", seed=1)
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+    assert json.dumps(quiet, sort_keys=True) == json.dumps(loaded.metrics, sort_keys=True)
+    assert quiet["success"]
+    assert "wall_deadline_misses" in loaded.telemetry  # measured, reported apart from the metrics
+
+
+def test_dct_hil_run_with_faults_writes_events_and_the_failure_reason(tmp_path):
+    out = tmp_path / "m.json"
+    env = dict(os.environ)
+    proc = subprocess.run(
+        [sys.executable, "-m", "runtime.app.cli", "hil", "run", "case1", "--json", str(out), "--planner", "all-fixed",
+         "--fault", "imu-silent:0.8:0.4", "--fault", "drop-0x311:2:0.3"],
+        capture_output=True, text=True, timeout=300, env=env,
+    )
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(out.read_text())
+    assert data["failure_reason"] is None
+    assert [f["name"] for f in data["faults"]] == ["imu-silent", "drop-0x311"]
+    reasons = [e["reason"] for e in data["events"] if e["event"] == "stop"]
+    assert any("IMU stale" in r for r in reasons) and any("0x311 stale" in r for r in reasons)
+    assert {"wall_time_s", "tick_median_ms", "stages", "wall_deadline_misses"} <= set(data["wall_clock"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json"]  # no temporary file left
+
+
+def test_dct_hil_run_fails_fast_on_bad_input_and_writes_nothing(tmp_path):
+    for args, words in (
+        (["--fault", "lidar-blind"], "expected NAME:START_S"),
+        (["--json", str(tmp_path / "nodir" / "m.json")], "does not exist"),
+    ):
+        proc = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case1", *args],
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2 and words in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_fail_summary_line_says_why(tmp_path):
+    scen = tmp_path / "short.yaml"
+    raw = load_scenario("case3").model_dump(by_alias=True, mode="json")
+    raw["time_limit_s"] = 2.0
+    import yaml
+
+    scen.write_text(yaml.safe_dump(raw))
+    proc = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", str(scen), "--fault", "lidar-blind:0.5"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1
+    assert proc.stdout.startswith("case3: FAIL (sensor stale: lidar blind"), proc.stdout
+
+
+def test_injector_pushes_returns_out_and_blinds_frames():
+    from hil_sim.episode.faults import _blind, _pushed_out
+    from runtime.common.sensor_data import LidarScan
+
+    pts = np.array([[1.0, 0.0, 0.0], [0.0, 3.0, 0.0], [20.0, 0.0, 0.0]], dtype=np.float32)
+    scan = LidarScan(1.0, pts, np.zeros(3, np.float32), 0.1)
+    far = _pushed_out(scan, 10.0)
+    r = np.linalg.norm(far.points_m, axis=1)
+    assert np.allclose(r, [10.0, 10.0, 20.0]) and np.allclose(far.points_m[1] / r[1], [0, 1, 0])
+    blind = _blind(scan)
+    assert blind.num_points == 0 and blind.nothing_seen and blind.stamp_s == 1.0
+
+
+@pytest.mark.parametrize("make_args, words", [
+    (lambda d: ["--robot", _robot_with(d, "  width_m: 0.220", "  width_m: 0.250")], "trained for footprint"),
+    (lambda d: ["--robot", _robot_with(d, "mass_kg: 4.8", "mass_kg: true")], "mass_kg: Input should be a valid number (got true)"),
+    (lambda d: ["--robot", _robot_with(d, "mass_kg: 4.8", "mass_kg: .nan")], "got nan"),
+    (lambda d: ["--config", _write(d, "c.yaml", "loop: {period_s: .nan}\n")], "loop.period_s: must be a finite number (got nan)"),
+    (lambda d: [_write(d, "s.yaml", b"\xbd\x00\xff binary")], "scenario"),
+])
+def test_dct_hil_run_bad_files_are_one_line_errors(tmp_path, make_args, words):
+    args = make_args(tmp_path)
+    if not args[0].startswith("--"):
+        cmd = ["hil", "run", *args]
+    else:
+        cmd = ["hil", "run", "case1", *args]
+    proc = subprocess.run([sys.executable, "-m", "runtime.app.cli", *cmd], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert words in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def _write(d, name, content):
+    path = d / name
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    return str(path)
+
+
+def _robot_with(d, old, new):
+    from importlib import resources
+
+    text = (resources.files("calibration") / "robots" / "limo.yaml").read_text()
+    assert old in text
+    return _write(d, "robot.yaml", text.replace(old, new))

@@ -1,0 +1,103 @@
+"""Real-time HIL end to end: `dct hil run case3 --realtime` starts `dct hil serve` and `dct run` as two
+real processes (CAN over udp_multicast, sensors over DDS) and writes the lockstep metrics plus
+`realtime`, the controller in planner mode dct asking the simulator's oracle over HTTP. Figures are
+printed, never asserted (the machine's load decides them)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from hil_sim.episode.realtime import controller_config, merge, unique_channels
+
+
+def test_unique_channels_differ_between_runs():
+    seen = {unique_channels() for _ in range(20)}
+    assert len({s[0] for s in seen}) > 1 and len({s[1:] for s in seen}) == 20
+    for domain, group, port in seen:
+        assert 1 <= domain <= 230 and group.startswith("239.") and 20000 <= port <= 60000
+
+
+def test_merge_needs_the_controller_at_the_goal():
+    sim = {"goal_reached": True, "success": True, "fixed_contacts": 0, "obstacles": [], "deadline_misses": 0,
+           "final_distance_to_goal_m": 0.05, "simulator": {"sim_lag_ms": {"p50": 0, "p99": 1, "max": 2}}}
+    report = {"state": "ACTIVE", "stop_reason": None, "input_faults": [], "hold_reason": None, "restarts": 0,
+              "mode": "all-fixed", "blocked_now": False, "stalls": 0}
+    pct = {"p50": 1.0, "p99": 2.0, "max": 3.0, "count": 4}
+    ctl = {"state": "ACTIVE", "stop_reason": None, "controller": report, "events": [], "sensor_errors": {},
+           "sensor_frames": {}, "realtime": {"tick_ms": pct, "sensor_to_command_ms": pct, "deadline_misses": 2,
+                                             "ticks": 10, "ticks_skipped": 0, "wall_deadline_misses": 2,
+                                             "lateness_ms": pct}}
+    m = merge(sim, ctl, {"simulator": 1, "controller": 2}, {"simulator": 0, "controller": 0}, 1.0)
+    assert not m["success"] and not m["goal_reached"] and m["failure_reason"]
+    assert m["deadline_misses"] == 2 and m["realtime"]["tick_ms"] == {"p50": 1.0, "p99": 2.0, "max": 3.0}
+    ctl["state"] = "GOAL_REACHED"
+    assert merge(sim, ctl, {}, {}, 1.0)["success"]
+
+
+def test_controller_config_asks_the_oracle_service():
+    from importlib import resources
+
+    import yaml
+
+    from runtime.config import ControllerConfig
+
+    shipped = yaml.safe_load((resources.files("runtime") / "config" / "default.yaml").read_text())
+    assert shipped["vpp"]["backend"]["kind"] == "sim-oracle"
+    cfg = controller_config(shipped, "http://127.0.0.1:4321", 1.5)
+    backend = cfg["vpp"]["backend"]
+    assert backend["kind"] == "openai-compatible" and backend["base_url"] == "http://127.0.0.1:4321/v1"
+    assert backend["regions"]["kind"] == "grounding-http" and backend["regions"]["base_url"] == "http://127.0.0.1:4321"
+    assert backend["max_retries"] == 0 and backend["timeout_s"] > 1.5
+    # The VPP runner waits for the detector and the chat both.
+    assert cfg["vpp"]["runner"]["timeout_s"] > backend["timeout_s"] + backend["regions"]["timeout_s"]
+    assert ControllerConfig.model_validate(cfg).vpp.backend.kind == "openai-compatible"
+    assert shipped["vpp"]["backend"]["kind"] == "sim-oracle"  # the input is not changed
+
+
+def test_case3_realtime_two_processes(tmp_path):
+    out = tmp_path / "out.json"
+    r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case3", "--realtime", "--json", str(out)],
+                       capture_output=True, text=True, timeout=400)
+    print(r.stdout, r.stderr[-3000:])
+    assert r.returncode in (0, 1), r.stderr[-2000:]
+    m = json.loads(out.read_text())
+    rt = m["realtime"]
+    pids = rt["pids"]
+    assert pids["simulator"] != pids["controller"] and os.getpid() not in pids.values()
+    assert rt["exit_codes"] == {"simulator": 0, "controller": 0}
+    assert rt["lidar_frames_used"] > 0 and rt["ticks"] > 0
+    for key in ("tick_ms", "sensor_to_command_ms"):
+        assert set(rt[key]) == {"p50", "p99", "max"} and rt[key]["max"] >= rt[key]["p50"] > 0
+    assert isinstance(rt["deadline_misses"], int)
+    # The product's default mode, its VLM the simulator's oracle over HTTP (hil_sim.vlm.service).
+    assert m["planner"] == "dct"
+    oracle = m["simulator"]["oracle"]
+    assert oracle["detect"] > 0 and oracle["chat"] > 0 and oracle["bad_request"] == 0
+    # (The episode's end stops the simulator, and its service, before the controller: a request
+    # in flight then fails, once at most.)
+    assert m["controller"]["vpp"]["answers"] > 0 and m["controller"]["vpp"]["failed_answers"] <= 1
+    assert m["fixed_contacts"] == 0, m["failure_reason"]
+    assert m["success"], m["failure_reason"]
+
+
+def test_merge_takes_a_patrols_verdict_from_the_simulator_unless_the_controller_stopped():
+    patrol = {"visits": [], "goals_missed": 0, "goals_sent": 3, "goals_reached": 2, "goal_timeout_s": 60.0,
+              "end_reason": "duration"}
+    sim = {"goal_reached": True, "success": True, "fixed_contacts": 0, "obstacles": [], "deadline_misses": 0,
+           "final_distance_to_goal_m": 1.5, "patrol": patrol, "simulator": {"sim_lag_ms": {}}}
+    report = {"state": "ACTIVE", "stop_reason": None, "input_faults": [], "hold_reason": None, "restarts": 0,
+              "mode": "all-fixed", "blocked_now": False, "stalls": 0}
+    pct = {"p50": 1.0, "p99": 2.0, "max": 3.0, "count": 4}
+    ctl = {"state": "ACTIVE", "stop_reason": None, "controller": report, "events": [], "sensor_errors": {},
+           "sensor_frames": {}, "recording": {"path": "/tmp/x.mcap", "dropped": 0},
+           "realtime": {"tick_ms": pct, "sensor_to_command_ms": pct, "deadline_misses": 0, "ticks": 10,
+                        "ticks_skipped": 0, "wall_deadline_misses": 0, "lateness_ms": pct}}
+    m = merge(sim, ctl, {}, {}, 1.0)  # on its way to the next goal when the patrol's time was up
+    assert m["success"] and m["failure_reason"] is None
+    assert m["realtime"]["recording"] == {"path": "/tmp/x.mcap", "dropped": 0}
+    ctl["state"], ctl["stop_reason"] = "STOPPED", "3 deadline misses in a row"
+    report["state"], report["stop_reason"] = "STOPPED", "3 deadline misses in a row"
+    m = merge(sim, ctl, {}, {}, 1.0)
+    assert not m["success"] and m["failure_reason"] == "safety stop: 3 deadline misses in a row"

@@ -1,0 +1,206 @@
+"""The sensor rig in a scenario world: rates, inbox delivery, own-body exclusion, what the sensors see."""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from calibration.robot_description import load_robot_description
+from hil_sim.sensors.lidar import LidarConfig
+from hil_sim.world.scenario import load_scenario
+from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig, SensorRigError
+from hil_sim.world.mujoco_world import World
+from runtime.common.sensor_data import MAX_GYRO_RADPS
+from runtime.io.sensor_inbox import SensorInbox
+
+ROBOT = load_robot_description()
+SCENARIO = load_scenario("case1")
+
+
+def _run(world: World, rig: SensorRig, inbox: SensorInbox, seconds: float):
+    """Step physics and the rig like LockstepSimulation (rig gets the pre-step time); collect the inbox."""
+    scans, images, imu = [], [], []
+    for _ in range(int(round(seconds / world.timestep_s))):
+        t_before = world.time_s
+        world.step()
+        rig.step(t_before)
+        snap = inbox.take()
+        if snap.scan is not None:
+            scans.append(snap.scan)
+        if snap.image is not None:
+            images.append(snap.image)
+        imu.extend(snap.imu)
+    return scans, images, imu
+
+
+@pytest.fixture(scope="module")
+def one_second():
+    world = World(SCENARIO, ROBOT)
+    inbox = SensorInbox()
+    rig = SensorRig(world, ROBOT, inbox, SensorRigConfig(camera_rate_hz=2.0, camera_segmentation=True, seed=3))
+    scans, images, imu = _run(world, rig, inbox, 1.0)
+    stats = rig.stats()
+    rig.close()
+    return world, scans, images, imu, stats
+
+
+def test_rates_over_one_second(one_second):
+    world, scans, images, imu, stats = one_second
+    assert len(scans) == 10 and stats["scans_produced"] == 10
+    assert len(imu) == 200 and stats["imu_samples_produced"] == 200
+    assert len(images) == 2 and stats["images_produced"] == 2
+    assert stats["renders"] == 4  # RGB + segmentation per image, nothing else
+    assert [im.stamp_s for im in images] == pytest.approx([0.0, 0.5], abs=1e-9)
+    assert [s.stamp_s for s in scans] == pytest.approx([0.1 * k for k in range(10)], abs=1e-9)
+    np.testing.assert_allclose([s.stamp_s for s in imu], 0.005 * np.arange(200), atol=1e-9)
+    assert stats["rejected"] == {"lidar": 0, "camera": 0, "imu": 0}
+    assert stats["lidar_late_slices"] == 0 and stats["imu_missed_samples"] == 0
+    for scan in scans:
+        scan.validate()
+        assert scan.frame_id == "lidar"
+        # 20k rays per frame; rays above the 0.8 m walls escape (no ceiling), so fewer returns.
+        assert 5_000 < scan.num_points <= LidarConfig().points_per_frame
+    for im in images:
+        im.validate()
+        assert im.pixels.shape == (ROBOT.sensors.camera.height_px, ROBOT.sensors.camera.width_px, 3)
+
+
+def test_imu_reads_gravity_at_rest(one_second):
+    _, _, _, imu, _ = one_second
+    late = [s for s in imu if s.stamp_s > 0.5]  # after the drop onto the floor has settled
+    accel = np.mean([s.accel_mps2 for s in late], axis=0)
+    gyro = np.mean([s.gyro_radps for s in late], axis=0)
+    assert accel == pytest.approx([0.0, 0.0, 9.81], abs=0.05)
+    assert np.abs(gyro).max() < 0.01
+
+
+def test_lidar_sees_the_box_straight_ahead_at_the_right_range(one_second):
+    world, scans, _, _, _ = one_second
+    box = next(o for o in SCENARIO.obstacles if o.name == "box")
+    start = SCENARIO.robot.start
+    assert start.yaw_rad == 0.0 and start.y_m == box.pose.y_m  # the box is straight ahead
+    lidar_x = start.x_m + ROBOT.sensors.lidar.mount.xyz_m[0]
+    expected = (box.pose.x_m - box.size.xyz_m[0] / 2) - lidar_x  # to the near face
+    p = scans[-1].points_m.astype(np.float64)
+    az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
+    el = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+    ahead = (np.abs(az) < 3.0) & (np.abs(el) < 3.0)
+    assert ahead.sum() >= 10
+    ranges = np.linalg.norm(p[ahead], axis=1)
+    assert np.median(ranges) == pytest.approx(expected, abs=0.05)
+
+
+def test_lidar_sees_nothing_of_the_robot_itself(one_second):
+    """No point inside the footprint (chassis, wheels, tyres are excluded from the rays)."""
+    _, scans, _, _, _ = one_second
+    mount = ROBOT.sensors.lidar.mount.transform()
+    hl, hw = ROBOT.footprint.length_m / 2, ROBOT.footprint.width_m / 2
+    for scan in scans:
+        base = scan.points_m.astype(np.float64) @ mount[:3, :3].T + mount[:3, 3]
+        inside = (np.abs(base[:, 0]) <= hl + 0.03) & (np.abs(base[:, 1]) <= hw + 0.03) & (base[:, 2] > 0.02)
+        assert not inside.any(), f"{inside.sum()} lidar points inside the robot footprint"
+
+
+def test_camera_segmentation_shows_the_box_near_the_image_centre(one_second):
+    world, _, images, _, _ = one_second
+    seg = images[-1].segmentation
+    assert seg is not None
+    robot_geoms = set(world.robot_geom_ids.tolist())
+    assert robot_geoms.isdisjoint(np.unique(seg).tolist())  # chassis hidden from its own camera
+    ys, xs = np.nonzero(seg == world.obstacle_geom_id("box"))
+    assert xs.size > 1000
+    h, w = seg.shape
+    assert abs(xs.mean() - (w - 1) / 2) < 0.05 * w
+    assert abs(ys.mean() - (h - 1) / 2) < 0.1 * h
+
+
+def test_camera_off_renders_nothing():
+    world = World(SCENARIO, ROBOT)
+    inbox = SensorInbox()
+    rig = SensorRig(world, ROBOT, inbox, SensorRigConfig(camera_rate_hz=0.0, lidar_enabled=False))
+    scans, images, imu = _run(world, rig, inbox, 0.6)
+    assert images == [] and scans == [] and rig.camera is None and rig.renders == 0
+    assert len(imu) == 120
+
+
+def test_rig_rejects_a_lidar_that_sees_the_robot_and_time_going_back():
+    world = World(SCENARIO, ROBOT)
+    cfg = SensorRigConfig(lidar=LidarConfig(geomgroup=(1, 1, 1, 1, 1, 1)))
+    with pytest.raises(SensorRigError, match="robot's own geom groups"):
+        SensorRig(world, ROBOT, SensorInbox(), cfg)
+    rig = SensorRig(world, ROBOT, SensorInbox(), SensorRigConfig(lidar_enabled=False))
+    rig.step(0.01)
+    with pytest.raises(SensorRigError, match="backwards"):
+        rig.step(0.0)
+    with pytest.raises(SensorRigError, match="not finite"):
+        rig.step(math.nan)
+
+
+def test_violent_motion_saturates_the_imu_and_the_inbox_takes_the_flagged_samples():
+    world = World(SCENARIO, ROBOT)
+    inbox = SensorInbox()
+    rig = SensorRig(world, ROBOT, inbox, SensorRigConfig(camera_rate_hz=0.0))
+    adr = world.model.jnt_dofadr[world.model.body_jntadr[world.robot_body_id]]
+    world.data.qvel[adr + 3] = 80.0  # roll at 80 rad/s: beyond the gyro's 2000 deg/s
+    scans, _, imu = _run(world, rig, inbox, 0.1)
+    stats = rig.stats()
+    assert len(imu) == 20 and stats["rejected"]["imu"] == 0
+    assert stats["imu_saturated_samples"] == sum(s.saturated for s in imu) > 0
+    assert imu[0].saturated and max(abs(s.gyro_radps[0]) for s in imu) == MAX_GYRO_RADPS
+    assert len(scans) == 1 and stats["imu_invalid_readings"] == 0
+
+
+def test_a_broken_physics_state_never_raises_from_the_rig():
+    world = World(SCENARIO, ROBOT)
+    inbox = SensorInbox()
+    rig = SensorRig(world, ROBOT, inbox, SensorRigConfig(camera_rate_hz=20.0))
+    _run(world, rig, inbox, 0.05)
+    assert rig.images_produced == 1
+    # What a diverged simulation leaves in data: NaN sensor readings and body and camera poses.
+    world.data.sensordata[:] = np.nan
+    world.data.xpos[world.robot_body_id] = np.nan
+    world.data.cam_xpos[world.camera_id] = np.nan
+    for k in range(1, 11):  # 0.051 .. 0.060 s (the last good step was at 0.049 s)
+        rig.step(0.05 + k * 0.001)
+    rig.step(0.07)  # a coarse step: 5 lidar slices at once
+    stats = rig.stats()
+    rig.close()
+    assert stats["imu_invalid_readings"] == 4  # samples due at 0.050, 0.055, 0.060 and 0.065 s
+    assert stats["lidar_invalid_pose_slices"] == 6 + 5  # slices every 2 ms from 0.050 s
+    assert stats["camera_invalid_poses"] == 1 and stats["images_produced"] == 1  # no blank image
+    assert stats["rejected"] == {"lidar": 0, "camera": 0, "imu": 0}
+
+
+def test_the_real_time_camera_renders_beside_the_physics_what_the_inline_one_renders():
+    """camera_async (dct hil serve): the frame instant's state is copied and rendered in the
+    camera's thread; the image is that of the inline camera, pixel for pixel, with the same
+    stamp and segmentation, and a frame due while the last one renders is skipped and counted."""
+    world = World(SCENARIO, ROBOT)
+    inline_rig = SensorRig(world, ROBOT, SensorInbox(), SensorRigConfig(camera_rate_hz=2.0, camera_segmentation=True,
+                                                                       lidar_enabled=False, imu_enabled=False))
+    got = []
+    inbox = SensorInbox()
+    rig = SensorRig(world, ROBOT, inbox, SensorRigConfig(camera_rate_hz=2.0, camera_segmentation=True,
+                                                        camera_async=True, lidar_enabled=False, imu_enabled=False))
+    rig.listeners.append(got.append)
+    try:
+        expected = inline_rig.camera.render_rgb_with_segmentation(0.0)
+        rig.step(0.0)
+        for _ in range(500):  # the thread delivers within a few tens of ms
+            if got:
+                break
+            time.sleep(0.01)
+        assert len(got) == 1 and got[0].stamp_s == 0.0
+        np.testing.assert_array_equal(got[0].pixels, expected.pixels)
+        np.testing.assert_array_equal(got[0].segmentation, expected.segmentation)
+        assert inbox.take().image is got[0]
+        # busy: the next frame is due but the thread has not finished the one before
+        rig.camera._idle.clear()
+        rig.step(0.5)
+        assert rig.camera_frames_missed == 1 and rig.images_produced == 1
+        rig.camera._idle.set()
+    finally:
+        rig.close()
+        inline_rig.close()
