@@ -296,7 +296,6 @@ def test_a_box_knocked_further_than_icp_can_follow_is_not_followed_and_its_motio
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra.numpy import arrays  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
 
 from runtime.vpp.tracking import _thin  # noqa: E402
 
