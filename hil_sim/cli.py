@@ -122,7 +122,7 @@ def run_command(
             check_output_path(record_path, what="--record", inputs=inputs, overwrite=force)
             if json_path is not None and record_path.resolve() == json_path.resolve():
                 raise InputError(f"--record {record_path} is also the --json file; write them to two files")
-        if config.uses_mpc:  # the distance net must fit this robot (checked again at start-up)
+        if config.uses_distance_net:  # the distance net must fit this robot (checked again at start-up)
             from models.distance_net import DistanceNet
             from models.errors import DistanceNetError
 
@@ -303,7 +303,7 @@ def _serve_oracle_config(config_path: Path | None, seed: int, oracle: bool | Non
 
     config = load_controller_config(config_path)
     if oracle is None:
-        oracle = config.planner.mode == "dct"
+        oracle = config.uses_vlm_backend
     if not oracle:
         return None
     backend = config.vpp.backend

@@ -17,7 +17,6 @@ import can
 import numpy as np
 
 from calibration.robot_description import RobotDescription, load_robot_description
-from firmware_bridge.base_driver import AgileXBaseDriver
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
 from hil_sim.episode.faults import FaultInjector, FaultSpec
 from hil_sim.episode.metrics import EpisodeMetrics
@@ -25,12 +24,10 @@ from hil_sim.episode.patrol import PatrolSequencer, patrol_failure_reason
 from hil_sim.world.scenario import Scenario, load_scenario
 from hil_sim.world.mujoco_world import World
 from runtime.config import ControllerConfig, load_controller_config
+from runtime.controller.builder import RobotSetup, Wiring, assemble
 from runtime.controller.navigation import ControllerState, NavigationController
 from runtime.common.geometry import Pose2D
-from runtime.io.hardware import AgileXBaseHardware
-from runtime.loop.fixed_rate import FixedRateLoop
 from runtime.io.sensor_inbox import SensorInbox
-from runtime.loop.telemetry import TickTelemetry
 
 if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
     from calibration.camera_model import CameraModel
@@ -158,6 +155,7 @@ def goal_in_odom_frame(scenario: Scenario) -> Pose2D:
 
 def run_episode(
     scenario: Scenario | str,
+    *,
     robot: RobotDescription | None = None,
     config: ControllerConfig | None = None,
     seed: int = 0,
@@ -182,8 +180,9 @@ def run_episode(
     camera_calibration: (camera model, T_cam_lidar or None) from the calibration file: the
     controller's VPP partition projects with them, and the images reach it carrying them (the
     simulated camera renders with its true intrinsics: a calibration's error is real here).
-    observe: called with the controller once after every tick, outside the tick and its timing
-    (`dct bench tick` reads the frame's point counts and the planner's counters with it).
+    observe: called with the controller once after every tick, outside the tick and its timing:
+    evaluation harnesses that inspect the stages they measure (`dct bench tick` reads the frame's
+    point counts and the planner's counters with it); other observers read `controller.snapshot`.
     on_start: called once with the simulation and the controller before the first tick
     (evaluations attach to the sensor rig's listeners: `dct vpp eval`).
     recorder: records the ticks, poses, CAN frames, P_fix and plan to MCAP (runtime.io.recording);
@@ -191,16 +190,16 @@ def run_episode(
     goal_when_ready: the navigation clock of a robot switched on before it is sent: the controller
     starts in standby (start-up sequence, odometry, the VLM partition's first answer; the robot
     stands still) and the goal is given at the first tick at which it is ACTIVE and its partition
-    ready (mode dct: the VLM answered once; other modes: the start-up sequence done). Navigation
-    time, the time limit and the events count from then (`standby_s` says how long it stood).
-    False (default): the goal is given at switch-on and the clock starts there.
-    oracle: planner mode dct's sim-oracle settings, used as given (its seed too) instead of the
-    config's `vpp.backend` (whose seed is added to the episode seed). With no `oracle` and a
-    backend other than the sim-oracle in the config, the controller builds that backend.
+    ready (the vpp partition: the VLM answered once; otherwise the start-up sequence done).
+    Navigation time, the time limit and the events count from then (`standby_s` says how long it
+    stood). False (default): the goal is given at switch-on and the clock starts there.
+    oracle: the VPP's sim-oracle settings, used as given (its seed too) instead of the config's
+    `vpp.backend` (whose seed is added to the episode seed). With no `oracle` and a backend other
+    than the sim-oracle in the config, the controller builds that backend.
 
-    A patrol scenario (`goals:`): hil_sim.episode.patrol.PatrolSequencer sends the next goal to the
-    controller (`request_goal`, between two ticks) when it has finished with the current one; the
-    episode ends with the patrol (its loops or duration), and the metrics add `patrol` (goals
+    A patrol scenario (`goals:`): hil_sim.episode.patrol.PatrolSequencer sends the next goal to
+    the controller (`request_goal`, between two ticks) when it has finished with the current one;
+    the episode ends with the patrol (its loops or duration), and the metrics add `patrol` (goals
     sent, reached, missed, every visit); `goal_reached` is the patrol's verdict.
 
     Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
@@ -212,117 +211,145 @@ def run_episode(
         scenario = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
     robot = robot or load_robot_description()
     config = config or load_controller_config()
-
-    world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
-    world.reset(seed)
-    metrics = EpisodeMetrics(world, scenario, seed)
-    controller_bus, sim_bus = virtual_bus_pair()
-    firmware = EmulatedBaseFirmware(sim_bus, robot)
-    inbox = SensorInbox()
-    injector = FaultInjector(
-        faults, firmware, inbox, start_s=world.time_s,
-        far_m=config.planner.obstacle_points.max_range_m + 4.0,
-    )
-    devices: list = []
-    if sensors is None:
-        sensors = config.uses_lidar
-    has_sensors = sensors is not False
-    if has_sensors:
-        from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
-
-        rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
-        if config.planner.mode == "dct":
-            # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle.
-            # (A rig config that asks for a camera rate of its own keeps it: `dct vpp eval`.)
-            rate = rig_config.camera_rate_hz or DCT_CAMERA_RATE_HZ
-            rig_config = rig_config.model_copy(update={"camera_rate_hz": rate, "camera_segmentation": True})
-        intrinsics = None
-        if camera_calibration is not None:
-            intrinsics = (camera_calibration[0].K, camera_calibration[0].dist)
-        devices.append(SensorRig(world, robot, injector, rig_config, intrinsics=intrinsics))
+    bench = _SimulatedBench.build(scenario, robot, config, seed, faults, sensors, camera_calibration)
     vlm_backend = None
-    if config.planner.mode == "dct" and (oracle is not None or config.vpp.backend.kind == "sim-oracle"):
+    if config.uses_vlm_backend and (oracle is not None or config.vpp.backend.kind == "sim-oracle"):
         # The sim-oracle needs this world's object table: built here, passed to the controller.
         # Any other backend the controller builds from the config itself.
         from hil_sim.vlm.oracle import oracle_backend
 
-        vlm_backend = oracle_backend(world, oracle or config.vpp.backend.oracle_config(episode_seed=seed))
-    sim = LockstepSimulation(world, firmware, metrics, devices, controls=[injector])
+        vlm_backend = oracle_backend(bench.world, oracle or config.vpp.backend.oracle_config(episode_seed=seed))
+    sim = LockstepSimulation(bench.world, bench.firmware, bench.metrics, bench.devices, controls=[bench.injector])
     clock = LockstepClock(sim)
-
-    bus = recorder.wrap_bus(controller_bus, clock.now) if recorder is not None else controller_bus
-    driver = AgileXBaseDriver(bus, clock=clock.now, feedback_timeout_s=robot.can.feedback_timeout_s)
-    hardware = AgileXBaseHardware(driver, robot.drive.skid_steer_yaw_factor)
+    bus = recorder.wrap_bus(bench.controller_bus, clock.now) if recorder is not None else bench.controller_bus
+    camera, T_cam_lidar = camera_calibration if camera_calibration is not None else (None, None)
     try:  # loads the distance net: a bad model file must not leave the buses open
-        controller = NavigationController(
-            robot, config, hardware, goal_in_odom_frame(scenario), clock=clock.now,
-            sensors=inbox if has_sensors else None, lockstep=True, wheel_calibration=wheel_calibration,
-            vlm_backend=vlm_backend,
-            camera=camera_calibration[0] if camera_calibration is not None else None,
-            T_cam_lidar=camera_calibration[1] if camera_calibration is not None else None,
-            goal_given=not goal_when_ready,
-        )
+        parts = assemble(RobotSetup(robot, config, wheel_calibration, camera, T_cam_lidar),
+                         Wiring(bus, clock, goal_in_odom_frame(scenario), bench.inbox if bench.has_sensors else None,
+                                lockstep=True, vlm_backend=vlm_backend, goal_given=not goal_when_ready))
     except BaseException:
-        controller_bus.shutdown()
-        sim_bus.shutdown()
+        bench.close()
         raise
+    controller = parts.controller
     clock.barriers.append(controller.odometry)
-    clock.barriers.append(controller)  # the VLM answers due (mode dct; nothing otherwise)
-    telemetry = TickTelemetry()
-    loop = FixedRateLoop(
-        clock,
-        period_s=config.loop.period_s,
-        stage_budgets_s=config.loop.stage_budgets_s,
-        command_deadline_s=config.loop.command_deadline_s,
-        keepalive_period_s=config.loop.keepalive_period_s,
-        telemetry=telemetry,
-        slack_work_min_s=config.loop.slack_work_min_s,
-        after_tick=recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed, "clock": "lockstep"})
-        if recorder is not None else None,
-    )
-    t_switch_on = sim.time_s
-    clock_start = [sim.time_s]  # where the navigation clock starts (moved on by goal_when_ready)
-    finished_at: list[float] = []
-    patrol = PatrolSequencer(scenario, t_switch_on) if scenario.is_patrol else None
+    clock.barriers.append(controller)  # the VLM answers due (the vpp partition; nothing otherwise)
+    if recorder is not None:
+        parts.loop.after_tick = recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed,
+                                                                      "clock": "lockstep"})
+    operator = _Operator(sim, controller, scenario, settle_s, progress, observe)
+    wall0 = time.perf_counter()
+    try:
+        parts.run(operator.should_stop, before=(lambda: on_start(sim, controller)) if on_start is not None else None)
+    finally:
+        sim.advance_to(sim.time_s + 0.02)  # let the firmware consume the final zero command
+        bench.close()
+    wall = time.perf_counter() - wall0
+    return _result(bench, sim, parts, operator, config, faults, goal_when_ready, wall)
 
-    def should_stop() -> bool:
-        if observe is not None and telemetry.ticks:
-            observe(controller)  # after each tick (the loop asks before every tick and once at the end)
-        now = sim.time_s
-        if progress is not None:
-            progress(now)
+
+@dataclass
+class _SimulatedBench:
+    """The simulated robot on its bench: the world, the emulated firmware on one end of a virtual
+    CAN bus, the sensor rig feeding the inbox, the fault injector, the episode's metrics."""
+
+    world: World
+    metrics: EpisodeMetrics
+    controller_bus: can.BusABC
+    sim_bus: can.BusABC
+    firmware: EmulatedBaseFirmware
+    inbox: SensorInbox
+    injector: FaultInjector
+    devices: list
+    has_sensors: bool
+
+    @classmethod
+    def build(cls, scenario, robot, config, seed, faults, sensors, camera_calibration) -> "_SimulatedBench":
+        world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
+        world.reset(seed)
+        metrics = EpisodeMetrics(world, scenario, seed)
+        controller_bus, sim_bus = virtual_bus_pair()
+        firmware = EmulatedBaseFirmware(sim_bus, robot)
+        inbox = SensorInbox()
+        injector = FaultInjector(
+            faults, firmware, inbox, start_s=world.time_s,
+            far_m=config.planner.obstacle_points.max_range_m + 4.0,
+        )
+        if sensors is None:
+            sensors = config.uses_lidar
+        has_sensors = sensors is not False
+        devices = [_sensor_rig(world, robot, config, injector, sensors, seed, camera_calibration)] if has_sensors else []
+        return cls(world, metrics, controller_bus, sim_bus, firmware, inbox, injector, devices, has_sensors)
+
+    def close(self) -> None:
+        self.controller_bus.shutdown()
+        self.sim_bus.shutdown()
+
+
+def _sensor_rig(world, robot, config, injector, sensors, seed, camera_calibration):
+    from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
+
+    rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
+    if config.uses_camera:
+        # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle.
+        # (A rig config that asks for a camera rate of its own keeps it: `dct vpp eval`.)
+        rate = rig_config.camera_rate_hz or DCT_CAMERA_RATE_HZ
+        rig_config = rig_config.model_copy(update={"camera_rate_hz": rate, "camera_segmentation": True})
+    intrinsics = None
+    if camera_calibration is not None:
+        intrinsics = (camera_calibration[0].K, camera_calibration[0].dist)
+    return SensorRig(world, robot, injector, rig_config, intrinsics=intrinsics)
+
+
+class _Operator:
+    """Between ticks (the loop asks before every tick and once at the end): the observer, the
+    goal-when-ready clock, the patrol's next goal, and when the episode ends."""
+
+    def __init__(self, sim, controller, scenario, settle_s, progress, observe) -> None:
+        self.sim, self.controller, self.scenario = sim, controller, scenario
+        self.settle_s, self.progress, self.observe = settle_s, progress, observe
+        self.t_switch_on = sim.time_s
+        self.clock_start = sim.time_s  # where the navigation clock starts (moved on by goal_when_ready)
+        self.finished_at: float | None = None
+        self.patrol = PatrolSequencer(scenario, self.t_switch_on) if scenario.is_patrol else None
+
+    def should_stop(self) -> bool:
+        controller, snap = self.controller, self.controller.snapshot
+        if self.observe is not None and snap is not None:
+            self.observe(controller)  # after each tick
+        now = self.sim.time_s
+        if self.progress is not None:
+            self.progress(now)
         if (not controller.goal_given and controller.state is ControllerState.ACTIVE
                 and controller.partition.ready(now)):
             controller.give_goal(now)  # this coming tick plans
-            clock_start[0] = now
-        if patrol is not None:  # the operator: the next goal once the controller is done with this one
-            goal = patrol.update(now, world.robot_pose(), (controller.goal.x_m, controller.goal.y_m),
-                                 controller.finished, controller.state is ControllerState.STOPPED, controller.pose)
-            if goal is not None:
-                controller.request_goal(goal, "patrol")
-            return patrol.done or now >= clock_start[0] + scenario.time_limit_s
-        if now >= clock_start[0] + scenario.time_limit_s:
+            self.clock_start = now
+        time_up = now >= self.clock_start + self.scenario.time_limit_s
+        if self.patrol is not None:  # the operator: the next goal once the controller is done with this one
+            return self._patrol(now, snap) or time_up
+        if time_up:
             return True
         if controller.finished:
-            if not finished_at:
-                finished_at.append(now)
-            return now >= finished_at[0] + settle_s
+            if self.finished_at is None:
+                self.finished_at = now
+            return now >= self.finished_at + self.settle_s
         return False
 
-    wall0 = time.perf_counter()
-    try:
-        if on_start is not None:
-            on_start(sim, controller)
-        controller.activate()
-        loop.run(controller, should_stop)
-    finally:
-        controller.deactivate()
-        sim.advance_to(sim.time_s + 0.02)  # let the firmware consume the final zero command
-        controller_bus.shutdown()
-        sim_bus.shutdown()
-    wall = time.perf_counter() - wall0
+    def _patrol(self, now: float, snap) -> bool:
+        controller = self.controller
+        goal = controller.goal if snap is None else snap.goal
+        finished = controller.finished if snap is None else snap.finished
+        state = controller.state if snap is None else snap.state
+        pose = controller.pose if snap is None else snap.pose
+        nxt = self.patrol.update(now, self.sim.world.robot_pose(), (goal.x_m, goal.y_m), finished,
+                                 state is ControllerState.STOPPED, pose)
+        if nxt is not None:
+            controller.request_goal(nxt, "patrol")
+        return self.patrol.done
 
-    t_start = clock_start[0]
+
+def _result(bench, sim, parts, operator, config, faults, goal_when_ready, wall) -> EpisodeResult:
+    controller, telemetry, world, scenario = parts.controller, parts.telemetry, bench.world, operator.scenario
+    t_start, patrol = operator.clock_start, operator.patrol
     if patrol is not None:
         reached = patrol.succeeded
         nav_time = sim.time_s - t_start
@@ -336,7 +363,7 @@ def run_episode(
             nav_time = sim.time_s - t_start
         final_distance = world_distance_to_goal(world, scenario)
     report = controller.describe()
-    result_metrics = metrics.to_dict(
+    result_metrics = bench.metrics.to_dict(
         goal_reached=reached,
         navigation_time_s=nav_time,
         deadline_misses=telemetry.deadline_misses,
@@ -345,20 +372,20 @@ def run_episode(
             "stop_reason": controller.stop_reason,
             "final_distance_to_goal_m": final_distance,
             "final_pose_world": [float(v) for v in world.robot_pose()],
-            "sim_time_s": sim.time_s - t_switch_on,
+            "sim_time_s": sim.time_s - operator.t_switch_on,
             # the navigation clock: "switch-on" (the goal given at start) or "goal-when-ready"
             "navigation_clock": "goal-when-ready" if goal_when_ready else "switch-on",
-            "standby_s": t_start - t_switch_on,
-            "planner": config.planner.mode,
-            "faults": [{**f.to_dict(), "acted_on": injector.applied[f.name]} for f in faults],
+            "standby_s": t_start - operator.t_switch_on,
+            "planner": config.preset,
+            "faults": [{**f.to_dict(), "acted_on": bench.injector.applied[f.name]} for f in faults],
             "events": controller.events.to_list(t0_s=t_start),
             # DCT correcting mode (runtime.modes.correcting): how often, and each one's start,
             # duration, object relabelled fixed (None) and reason.
             "correcting_events": int(report.get("correcting_events", 0)),
             "correcting": controller.modes.correcting_report(t0_s=t_start),
             "controller": report,
-            "sensor_errors": dict(sorted(inbox.error_counts.items())),
-            "firmware_frames_rejected": firmware.frames_rejected,
+            "sensor_errors": dict(sorted(bench.inbox.error_counts.items())),
+            "firmware_frames_rejected": bench.firmware.frames_rejected,
             "scenario_warnings": list(world.scenario_warnings),
             **({"patrol": patrol.report(sim.time_s)} if patrol is not None else {}),
         },
@@ -369,15 +396,15 @@ def run_episode(
         telemetry=telemetry.summary(),
         controller=report,
         wall_time_s=wall,
-        sim_time_s=sim.time_s - t_switch_on,
+        sim_time_s=sim.time_s - operator.t_switch_on,
         extra={
-            "keepalives_sent": loop.keepalives_sent,
-            "firmware_frames_rejected": firmware.frames_rejected,
+            "keepalives_sent": parts.loop.keepalives_sent,
+            "firmware_frames_rejected": bench.firmware.frames_rejected,
             "physics_steps": sim.steps,
             "timestep_s": world.timestep_s,
-            "sensor_errors": dict(inbox.error_counts),
-            "sensor_frames": dict(inbox.accepted),
-            "faults_applied": dict(injector.applied),
+            "sensor_errors": dict(bench.inbox.error_counts),
+            "sensor_frames": dict(bench.inbox.accepted),
+            "faults_applied": dict(bench.injector.applied),
             "odometry_wall_clock": controller.odometry.wall_clock(),
         },
         tick_records=telemetry.snapshot(),

@@ -148,8 +148,9 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
 
     sc = with_duration(load_scenario(scenario, seed=seed), duration_s)  # a generated scene: from the seed
     config = load_controller_config(config_path)
-    mode = planner or config.planner.mode
-    oracle = mode == "dct" and config.vpp.backend.kind == "sim-oracle"
+    if planner is not None:
+        config = config.with_planner_mode(planner)
+    oracle = config.uses_vlm_backend and config.vpp.backend.kind == "sim-oracle"
     _sigterm_raises()
     goal = goal_in_odom_frame(sc)
     domain, group, port = unique_channels()

@@ -23,8 +23,9 @@ def _command_entry_points() -> dict:
     return eps
 
 
-#: Commands of this package itself: `dct run` (the controller process, runtime.app.run_process).
-_RUNTIME_COMMANDS = {"run": "runtime.app.run_process:run_command"}
+#: Commands of this package itself: `dct run` (the controller process, runtime.app.run_process) and
+#: `dct config` (runtime.app.config_cli).
+_RUNTIME_COMMANDS = {"run": "runtime.app.run_process:run_command", "config": "runtime.app.config_cli:config_group"}
 
 
 class LazyGroup(click.Group):

@@ -119,10 +119,10 @@ def check_files(robot_path: str | Path | None, calibration_path: str | Path | No
     try:
         out.config = load_controller_config(config_path)
         out.checks.append(Check("config", "PASS", f"controller config {config_path or '(shipped default)'}: valid, "
-                                f"planner mode {out.config.planner.mode}"))
+                                f"planner {out.config.preset}"))
     except ConfigFileError as exc:
         out.checks.append(Check("config", "FAIL", _one_line(exc), "correct the controller config file"))
-    needs_camera = out.config is not None and out.config.planner.mode == "dct"
+    needs_camera = out.config is not None and out.config.uses_camera
     if calibration_path is None:
         out.checks.append(Check("calibration", "FAIL" if needs_camera else "WARN", "no calibration file given",
                                 "pass --calibration (made by `dct calibrate`)" + (
@@ -183,8 +183,8 @@ def distance_net_path(config: Any) -> str | None:
 
 
 def _check_distance_net(robot: Any, config: Any) -> Check:
-    if config is not None and not config.uses_mpc:
-        return Check("distance_net", "PASS", f"not used (planner mode {config.planner.mode})")
+    if config is not None and not config.uses_distance_net:
+        return Check("distance_net", "PASS", f"not used (planner {config.preset})")
     if robot is None:
         return Check("distance_net", "FAIL", "not checked: no valid robot description", "fix the robot description")
     from models.distance_net import DistanceNet, shipped_artifact_path
@@ -650,7 +650,7 @@ def run_preflight(opts: PreflightOptions, echo: Callable[[str], None] | None = N
     if "sensors" in opts.skip:
         add(skipped("topics", "sensors"))
     else:
-        required = ["lidar", "imu"] + (["camera"] if files.config is not None and files.config.planner.mode == "dct"
+        required = ["lidar", "imu"] + (["camera"] if files.config is not None and files.config.uses_camera
                                        else [])
         add(check_topics(topics_from_config(files.config, opts.ros_domain), expected_rates_hz(files.config),
                          listen_s=opts.listen_s, required=required))

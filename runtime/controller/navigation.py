@@ -1,10 +1,12 @@
 """The navigation controller: one tick = Algorithm 1 of the DCT paper, stage by stage.
 
-    read() + watchdogs -> odometry -> partition (VPP) -> planner (mode) -> safety -> write()
+    read() + watchdogs -> odometry -> partition (P_fix) -> planner -> safety -> write()
 
 The controller talks to the base only through a hardware interface with a lifecycle
 (configure / activate / deactivate, as in ros2_control); it never knows whether the base
-is a real LIMO or the simulator's emulated firmware.
+is a real LIMO or the simulator's emulated firmware. Its stages are built once from the robot
+and the config (runtime.controller.parts): the partition and the planner are the config's two
+settings; the watchdogs and the safety supervisor are the controller's own, whatever the planner.
 
 Its lifecycle is a small state machine:
 
@@ -15,192 +17,90 @@ Its lifecycle is a small state machine:
     any state --base fault, remote control, deadline misses (real time), no base--> STOPPED
 
 Goals: the first is given at construction; a new one may come at any time from any source
-(`dct run --goal`, /goal_pose, the simulator's patrol) through `request_goal`, which validates
-it at once (GoalError naming the source and the field) and leaves it for the next tick's read
-stage, which replaces the goal: while driving the mode stack starts afresh towards it (the
-reference path is searched again, per-goal recovery counts restart; the command ramps at the
-robot's limits, it never jumps), at the goal (GOAL_REACHED: waiting for the next goal, a
-normal idle state with a zero command) the robot drives again. A goal within
-GOAL_SAME_TOLERANCE_M of the current one changes nothing (a repeated publication). While
-holding or starting up the goal is replaced and driven to on resuming; a latched stop stays.
+through `request_goal` (runtime.controller.goals: validated at once, taken by the next tick's
+read stage). While driving the planner starts afresh towards it (the reference path is searched
+again, per-goal recovery counts restart; the command ramps at the robot's limits, it never
+jumps); at the goal (GOAL_REACHED: waiting for the next goal, a normal idle state with a zero
+command) the robot drives again. A goal within GOAL_SAME_TOLERANCE_M of the current one changes
+nothing (a repeated publication). While holding or starting up the goal is replaced and driven
+to on resuming; a latched stop stays.
 
-"No data" is never "free space": every input has a watchdog (runtime.safety.input_monitor); while one
-fails the robot holds still with the failing inputs named in the event log, and resumes by
-itself when they are good again. An E-stop (or any vehicle state that is not normal) is also
-a hold, but clearing it does not resume driving at the last command: the controller re-enters
-its start-up sequence. Which planner drives while ACTIVE is a navigation mode chosen by
-`runtime.modes.selector.ModeSelector` (the all-fixed MPC, pure pursuit, or the stall recovery);
-which lidar points it must not touch (P_fix) is the partition stage the planner mode brings
-(`runtime.perception.partition`: every point, or the VLM partition of mode dct).
+"No data" is never "free space": every input has a watchdog (runtime.safety.input_monitor); while
+one fails the robot holds still with the failing inputs named in the event log, and resumes by
+itself when they are good again. An E-stop (or any vehicle state that is not normal) is also a
+hold, but clearing it does not resume driving at the last command: the controller re-enters its
+start-up sequence. After each tick the controller publishes a `ControllerSnapshot`
+(runtime.controller.snapshot) for observers outside the tick.
 """
 from __future__ import annotations
 
 import math
-import threading
-from enum import IntEnum
 from typing import Callable
 
 import numpy as np
 
 from calibration.robot_description import RobotDescription
-from runtime.safety.command_limits import CommandLimiter
-from runtime.config import ControllerConfig
-from runtime.common.events import EventLog
 from runtime.common.geometry import Pose2D
+from runtime.config import ControllerConfig
+from runtime.controller.goals import GOAL_SAME_TOLERANCE_M, GoalError, GoalMailbox, check_goal, same_goal
+from runtime.controller.parts import PartsOptions, build_parts
+from runtime.controller.snapshot import ControllerSnapshot
+from runtime.controller.state import ControllerState
 from runtime.io.hardware import BaseHardware, BaseInputs
-from runtime.safety.input_monitor import InputFault, InputMonitor
-from runtime.loop.fixed_rate import StageClock
-from runtime.modes.base import ModeContext, ModeDecision, Situation
-from runtime.modes.registry import build_mode
-from runtime.modes.selector import ModeSelector
-from runtime.perception.moving_obstacles import MovingObstacles, MovingObstaclesConfig
-from runtime.perception.obstacle_points import ObstaclePointExtractor
-from runtime.odometry.stage import OdometryStage
-from runtime.safety.stop import SafetyStop
 from runtime.io.sensor_inbox import SensorInbox, SensorSnapshot
+from runtime.loop.fixed_rate import StageClock
 from runtime.loop.telemetry import STAGES
+from runtime.modes.base import ModeDecision, Situation
+from runtime.safety.gate import SafetyGate
+from runtime.safety.input_monitor import InputFault
 
 _NO_SENSORS = SensorSnapshot(None, None, ())
-_NO_POINTS = np.zeros((0, 2))
 
 READ, ODOMETRY, PARTITION, PLANNER, SAFETY, WRITE = range(len(STAGES))
 #: While the base still reports a lost command stream after a fresh enable (its next 0x211 is
 #: up to 100 ms away), enable again at most this often.
 RESTART_RETRY_S = 0.5
-#: The supervisor's stops are logged once per episode of stops: `supervisor_clear` only after
-#: this many ticks in a row without one (in a tight passage it stops and lets go tick by tick).
-SUPERVISOR_CLEAR_TICKS = 10
-#: A requested goal within this of the current one (x and y, m) is the same goal (not replanned).
-GOAL_SAME_TOLERANCE_M = 1e-3
-#: Goals farther than this from the odometry frame's origin (m) are refused (not a place).
-GOAL_MAX_ABS_M = 1.0e4
 
-
-class GoalError(ValueError):
-    """A goal that cannot be driven to (not finite, out of range): names the source and field."""
-
-
-def check_goal(goal: Pose2D, source: str) -> Pose2D:
-    """The goal as floats, or GoalError naming `source` and the bad field."""
-    for name in ("x_m", "y_m", "yaw_rad"):
-        v = getattr(goal, name)
-        try:
-            v = float(v)
-        except (TypeError, ValueError):
-            raise GoalError(f"goal from {source}: {name} {v!r} is not a number") from None
-        if not math.isfinite(v):
-            raise GoalError(f"goal from {source}: {name} {v!r} is not finite")
-        if name != "yaw_rad" and abs(v) > GOAL_MAX_ABS_M:
-            raise GoalError(f"goal from {source}: {name} {v!r} is farther than {GOAL_MAX_ABS_M:g} m from the "
-                            "odometry frame's origin")
-    return Pose2D(float(goal.x_m), float(goal.y_m), float(goal.yaw_rad))
-
-
-class ControllerState(IntEnum):
-    INITIALIZING = 0  # start-up sequence: base enabled, waiting for it and for every input
-    ACTIVE = 1  # navigating
-    GOAL_REACHED = 2  # at the goal, commanding zero; waiting for the next goal (idle, not a fault)
-    STOPPED = 3  # latched stop: commanding zero until a new run
-    HOLDING = 4  # controlled stop while an input is faulty; resumes by itself
+__all__ = ["ControllerState", "GOAL_SAME_TOLERANCE_M", "GoalError", "NavigationController", "check_goal"]
 
 
 class NavigationController:
-    def __init__(
-        self,
-        robot: RobotDescription,
-        config: ControllerConfig,
-        hardware: BaseHardware,
-        goal: Pose2D,
-        clock: Callable[[], float],
-        sensors: SensorInbox | None = None,
-        lockstep: bool = False,
-        wheel_calibration: tuple[float, float] | None = None,
-        vlm_backend=None,
-        camera=None,
-        T_cam_lidar: np.ndarray | None = None,
-        goal_given: bool = True,
-    ) -> None:
+    def __init__(self, robot: RobotDescription, config: ControllerConfig, hardware: BaseHardware, goal: Pose2D,
+                 clock: Callable[[], float], *, sensors: SensorInbox | None = None, lockstep: bool = False,
+                 goal_given: bool = True, **options) -> None:
         """lockstep: the clock is simulated time; nothing that decides behaviour may read the wall
         clock (solver caps are iteration counts, ICP results arrive at a fixed simulated latency).
         False on the robot and in real-time HIL.
-        wheel_calibration: (effective track m, wheel scale) from the robot's calibration file
-        (`dct calibrate wheels`); None: the robot description's track x skid_steer_yaw_factor, 1.0.
-        vlm_backend: the contact-tolerance backend (models.vlm) of planner mode dct: the simulator
-        passes its sim-oracle; None builds the one the config names (`vpp.backend`,
-        models.vlm.factory). It runs beside the tick (models.vlm.runner).
-        camera, T_cam_lidar: the calibration file's camera (CameraModel) and lidar-to-camera
-        extrinsic, for the VPP partition (runtime.perception.partition.build_vpp_partition); None:
-        the robot description's nominal camera and mounts.
+        sensors: where the lidar, IMU and camera frames arrive (None: a sensorless planner).
         goal_given: False starts the controller in standby: every stage runs (start-up sequence,
         odometry, the VLM partition sees the scene) but the planner does not drive until
-        `give_goal(now)`, as on a robot switched on before it is sent (`dct bench paper --clock
-        goal`: the navigation clock starts there)."""
+        `give_goal(now)`, as on a robot switched on before it is sent.
+        options: the rest of runtime.controller.parts.PartsOptions (wheel_calibration,
+        vlm_backend, camera, T_cam_lidar)."""
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
         self.hardware = hardware
-        goal = check_goal(goal, "the start")
-        self.goal = goal
-        self._goal_xy = np.array([goal.x_m, goal.y_m])
-        #: (goal, source) requested since the last tick (request_goal), applied in the next read().
-        self._pending_goal: tuple[Pose2D, str] | None = None
-        self._goal_lock = threading.Lock()  # request_goal may come from another thread
+        self.goal = check_goal(goal, "the start")
+        self._goal_xy = np.array([self.goal.x_m, self.goal.y_m])
+        self.goals = GoalMailbox()
         self.goals_received = 1  # the start's goal included
         self.goals_reached = 0
         self.goals_repeated = 0  # requests equal to the current goal (nothing to change)
         self.clock = clock
         self.sensors = sensors
         self.state = ControllerState.INITIALIZING
-        self.events = EventLog()
-        self.mode_name = config.planner.mode  # the configured planner mode (a name)
-        uses_sensors = sensors is not None
-        track_factor, wheel_scale = robot.drive.skid_steer_yaw_factor, 1.0
-        if wheel_calibration is not None:
-            track_factor = wheel_calibration[0] / robot.drive.track_m
-            wheel_scale = wheel_calibration[1]
-        self.odometry = OdometryStage(
-            config.odometry, robot.drive.track_m, track_factor, robot.sensors.lidar.mount.transform(),
-            lockstep=lockstep, events=self.events, wheel_scale=wheel_scale, uses_lidar=uses_sensors,
-        )
-        op = config.planner.obstacle_points
-        self.monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=uses_sensors, uses_imu=uses_sensors)
-        # P_fix in the odom frame: every lidar point, or (mode dct) those the VPP partition keeps.
-        self.points_fix = _NO_POINTS
-        # P_mov in the odom frame (mode dct) and its points' contact costs: the reference path's
-        # graded cost (runtime.planning.reference_path); never a constraint of the MPC.
-        self.points_mov = _NO_POINTS
-        self.costs_mov = np.zeros(0)
-        self.obstacles = ObstaclePointExtractor(
-            robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
-        )
-        # People walking: P_fix clusters followed scan to scan; where they go next joins P_fix for
-        # the planner and the supervisor (points_plan), not for the odometry checks.
-        # (its range, cruise speed, acceleration and footprint are the obstacle points', the
-        # reference path's and the robot's: set here, validated)
-        self.moving = MovingObstacles(MovingObstaclesConfig.model_validate({
-            **config.moving_obstacles.model_dump(), "range_m": op.max_range_m,
-            "cruise_speed_mps": config.planner.reference_path.target_speed_mps,
-            "accel_mps2": robot.limits.max_linear_accel_mps2,
-            "robot_half_length_m": robot.footprint.length_m / 2.0,
-            "robot_half_width_m": robot.footprint.width_m / 2.0}))
-        self.points_plan = _NO_POINTS
-        stack = build_mode(config.planner.mode, ModeContext(robot, config, goal, self.wall_clock_caps, vlm_backend,
-                                                              camera, T_cam_lidar))
-        #: Which lidar points are P_fix, and whether the planner may drive yet: chosen once, by
-        #: the mode (runtime.perception.partition: every point, or the VLM partition of mode dct).
-        self.partition = stack.partition
-        self.supervisor = stack.supervisor
-        self.last_safety = None
-        self.modes = ModeSelector(stack.normal, stack.recovery, config.recovery, self.events, stack.correcting)
-        self.limiter = CommandLimiter(
-            robot.limits.max_linear_speed_mps,
-            robot.body_max_angular_speed_radps,
-            robot.limits.max_linear_accel_mps2,
-            robot.body_max_angular_accel_radps2,
-        )
-        self.safety_stop = SafetyStop(
-            config.safety_stop.max_consecutive_deadline_misses, config.safety_stop.startup_timeout_s
-        )
+        parts = build_parts(robot, config, self.goal,
+                            PartsOptions(lockstep=lockstep, uses_sensors=sensors is not None, **options))
+        self.events = parts.events
+        self.odometry = parts.odometry
+        self.monitor = parts.monitor
+        self.perception = parts.perception
+        self.partition = parts.perception.partition
+        self.modes = parts.modes
+        self.gate = SafetyGate(parts.supervisor, parts.events) if parts.supervisor is not None else None
+        self.limiter = parts.limiter
+        self.safety_stop = parts.safety_stop
         self.period_s = config.loop.period_s
         self.command = (0.0, 0.0)  # (v_mps, omega_radps) last written
         self.pose = Pose2D(0.0, 0.0, 0.0)
@@ -216,8 +116,7 @@ class NavigationController:
         self._last_restart_s = -math.inf
         self.last_decision = ModeDecision()
         self.blocked_since_s: float | None = None
-        self._supervisor_stopping = False
-        self._supervisor_clear_ticks = 0
+        self.snapshot: ControllerSnapshot | None = None
         # Counters (never reset).
         self.hold_ticks = 0
         self.blocked_ticks = 0
@@ -254,9 +153,13 @@ class NavigationController:
 
     @property
     def vpp(self):
-        """The VPP stage of mode dct (runtime.vpp.stage.VppStage), None in the other modes: its
-        counters and last frame, for tests and telemetry (the tick goes through `partition`)."""
+        """The VPP stage (runtime.vpp.stage.VppStage) of the vpp partition, None otherwise: for
+        evaluations that inspect it (`dct vpp eval`); the tick goes through `partition`."""
         return self.partition.vpp
+
+    @property
+    def points_fix(self) -> np.ndarray:
+        return self.perception.points_fix
 
     def settle(self, t_s: float) -> None:
         """Lockstep barrier (the simulator calls it before time t_s): the VLM answers due."""
@@ -276,56 +179,26 @@ class NavigationController:
     # -- the tick (Algorithm 1) ----------------------------------------------------------------
     def tick(self, scheduled_s: float, stages: StageClock) -> None:
         now = self.clock()
-        inputs = self.hardware.read(now)
-        sensors = self.sensors.take() if self.sensors is not None else _NO_SENSORS
-        self.faults = self.monitor.check(inputs, sensors, now)
-        if self._pending_goal is not None:
-            self._apply_goal(now)
-        self._update_state(inputs, now)
+        inputs, sensors = self._read(now)
         stages.mark(READ)
 
-        # a box the robot pushes moves with it: kept out of the lidar odometry (last scan's P_mov)
-        self.odometry.exclude_near(self.partition.movable_points_lidar())
-        # ... and so are the people walking (where the last scan's tracks put them now)
-        self.odometry.exclude_movers(self.moving.moving_points(now))
+        self.perception.exclude_from_odometry(self.odometry, now)
         self._update_odometry(now, inputs, sensors)
-        self._follow_correction(self.odometry.correction)
+        self.perception.follow_correction(self.odometry.correction)
         stages.mark(ODOMETRY)
 
-        scan = self.monitor.good_scan  # only a frame that passed its checks reaches P_fix
-        if scan is not None and self.partition.vpp is not None:
-            # every point where it is now, as the pose places it, for the VPP partition and the
-            # obstacle points alike (obstacle_points.deskew; without a partition the extractor
-            # deskews as it places)
-            scan = self.obstacles.deskew(scan, now, inputs.linear_mps, self.odometry.yaw_rate_radps,
-                                         carried=self.partition.carried_region())
-        pose = (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad)
         image_pose = None
         if sensors.image is not None:  # the camera's pose when the frame was taken, not when it arrived
             at = self.odometry.pose_at(sensors.image.stamp_s)
             image_pose = None if at is None else (at.x_m, at.y_m, at.yaw_rad)
-        only = self.partition.update(now, pose, sensors.image, scan, image_pose)
-        # what pushing tells about the object pushed (mode dct's belief; wheel currents of 0x251-0x254)
-        self.partition.observe_contact(now, pose, inputs.linear_mps, inputs.motor_currents_a)
-        if scan is not None:
-            self.points_fix = self.obstacles.extract(
-                scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps, only=only
-            )
-            self.moving.update(now, self.points_fix, (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad),
-                               inputs.linear_mps)
-            self.points_plan = self.moving.with_predictions(self.points_fix)
-            movable = self.partition.movable()
-            if movable is None:
-                self.points_mov, self.costs_mov = _NO_POINTS, np.zeros(0)
-            else:
-                self.points_mov, index = self.obstacles.extract_indexed(
-                    scan, self.pose, now, inputs.linear_mps, self.odometry.yaw_rate_radps, only=movable[0])
-                self.costs_mov = movable[1][index].astype(np.float64)
+        # only a frame that passed its checks reaches P_fix
+        self.perception.update(now, self.pose, self.monitor.good_scan, sensors.image, image_pose, inputs,
+                               self.odometry.yaw_rate_radps)
         stages.mark(PARTITION)
 
         v, omega = 0.0, 0.0
         if self.state is ControllerState.ACTIVE and self.goal_given:
-            # Mode dct before the VLM's first answer (or its failure): every point P_fix, of unknown
+            # Before the VLM's first answer (or its failure): every point P_fix, of unknown
             # touchability for the reference path (vpp.before_first_answer drive), or hold still (wait).
             ready = self.partition.ready(now)
             if ready or self._drive_unclassified:
@@ -339,23 +212,49 @@ class NavigationController:
         self.hardware.write(v, omega)
         stages.mark_command_written()
         stages.mark(WRITE)
+        self._publish(now)
+
+    def _read(self, now: float) -> tuple[BaseInputs, SensorSnapshot]:
+        """The base's feedback and the newest sensor frames, the watchdogs, a new goal, the state."""
+        inputs = self.hardware.read(now)
+        sensors = self.sensors.take() if self.sensors is not None else _NO_SENSORS
+        self.faults = self.monitor.check(inputs, sensors, now)
+        if self.goals.pending:
+            self._apply_goal(now)
+        self._update_state(inputs, now)
+        return inputs, sensors
+
+    def _publish(self, now: float) -> None:
+        normal = self.modes.normal
+        reference = getattr(normal, "last_reference", None)
+        vpp = self.partition.vpp
+        memory = vpp.memory if vpp is not None else None
+        self.snapshot = ControllerSnapshot(
+            t_s=now, state=self.state, pose=self.pose, command=self.command, goal=self.goal,
+            finished=self.finished, hold_reason=self.hold_reason, active_mode=self.modes.mode_name,
+            scan=self.monitor.good_scan, points_fix=self.perception.points_fix,
+            plan=getattr(normal, "last_plan", None),
+            reference_path=reference.path_world if reference is not None else None,
+            partition_frame=vpp.last_frame if vpp is not None else None,
+            p_mov_lidar=self.partition.movable_points_lidar,
+            vlm_answers=vpp.answers if vpp is not None else 0,
+            vlm_last_answer_s=memory.last_answer_s if memory is not None else None,
+            vlm_masks=memory.entries if memory is not None else (),
+        )
 
     # -- goals -------------------------------------------------------------------------------
     def request_goal(self, goal: Pose2D, source: str) -> None:
         """A new goal (odom frame) from `source` (a topic, the command line, a patrol): validated
         now (GoalError), replaces the current goal at the next tick's read stage (module
         docstring). Any thread may call it; the newest request wins."""
-        checked = check_goal(goal, source)
-        with self._goal_lock:
-            self._pending_goal = (checked, source)
+        self.goals.request(goal, source)
 
     def _apply_goal(self, now: float) -> None:
-        with self._goal_lock:
-            pending, self._pending_goal = self._pending_goal, None
+        pending = self.goals.take()
         if pending is None:
             return
         goal, source = pending
-        if math.hypot(goal.x_m - self.goal.x_m, goal.y_m - self.goal.y_m) <= GOAL_SAME_TOLERANCE_M:
+        if same_goal(goal, self.goal):
             self.goals_repeated += 1
             return
         old = self.goal
@@ -373,7 +272,7 @@ class NavigationController:
             self.modes.new_goal(now)
             self.events.add(now, "new_goal", f"{what}; driving")
         elif state is ControllerState.ACTIVE:
-            # Driving: the mode stack starts afresh towards the new goal (a fresh reference-path
+            # Driving: the planner starts afresh towards the new goal (a fresh reference-path
             # search; the stall clock and per-goal recovery counts restart).
             self.modes.new_goal(now)
             self.events.add(now, "new_goal", f"{what} while driving; replanning")
@@ -472,24 +371,12 @@ class NavigationController:
         speed = inputs.linear_mps if inputs.motion_state_age_s <= limits.motion_state_timeout_s else None
         self.pose = self.odometry.update(now, wheels, imu, self.monitor.good_scan, speed)
 
-    def _follow_correction(self, correction: np.ndarray | None) -> None:
-        """An ICP correction moves the pose; P_fix, placed with the pose before it, moves with it,
-        so the robot-to-obstacle geometry the planner and the supervisor see does not jump."""
-        if correction is None:
-            return
-        self.moving.shift(correction)
-        c, s = math.cos(correction[2]), math.sin(correction[2])
-        for name in ("points_fix", "points_mov", "points_plan"):
-            p = getattr(self, name)
-            if len(p):
-                setattr(self, name, np.column_stack([c * p[:, 0] - s * p[:, 1] + correction[0],
-                                                     s * p[:, 0] + c * p[:, 1] + correction[1]]))
-
     # -- planner stage -----------------------------------------------------------------------
     def _plan(self, now: float, unclassified: bool = False) -> tuple[float, float]:
         pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
-        situation = Situation(now, pose, np.asarray(self.command), self.points_plan, self._goal_xy,
-                              self.points_mov, self.costs_mov, unclassified, points_observed=self.points_fix)
+        p = self.perception
+        situation = Situation(now, pose, np.asarray(self.command), p.points_plan, self._goal_xy,
+                              p.points_mov, p.costs_mov, unclassified, points_observed=p.points_fix)
         d = self.modes.plan(situation)
         self.last_decision = d
         if d.at_goal:
@@ -513,48 +400,6 @@ class NavigationController:
         self.degraded_ticks += int(d.degraded)
         return d.v_mps, d.omega_radps
 
-    # -- safety stage ------------------------------------------------------------------------
-    def _safety(self, v: float, omega: float) -> tuple[float, float]:
-        state = self.state
-        if state is ControllerState.ACTIVE:
-            if self.supervisor is not None:
-                v, omega = self._supervise(v, omega)
-                if self.last_safety.stopped:
-                    # A stop is zero now, as a hold is (the base brakes at its own limits), not a
-                    # ramp: ramping from the command before it, a stop that cleared the next tick
-                    # let the robot drive on at 90% of its speed into what it had stopped for
-                    # (mode dct, case2: a pushed box back in P_fix, a stop every other tick).
-                    self.limiter.reset()
-                    return 0.0, 0.0
-            return self.limiter.limit(v, omega, self.period_s)
-        if state is ControllerState.GOAL_REACHED:
-            return self.limiter.limit(0.0, 0.0, self.period_s)  # ramp down at the limits
-        # Holding, starting up or stopped: zero now (the base brakes at its own limits), and
-        # whatever comes next ramps up from zero.
-        if state is ControllerState.HOLDING:
-            self.hold_ticks += 1
-        self.limiter.reset()
-        return 0.0, 0.0
-
-    def _supervise(self, v: float, omega: float) -> tuple[float, float]:
-        """The independent check of the command against P_fix and the predicted way of a person
-        it would meet (Nav2's collision monitor)."""
-        pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
-        decision = self.supervisor.check(pose, np.array([v, omega]), self.points_plan)
-        self.last_safety = decision
-        if decision.stopped:
-            self._supervisor_clear_ticks = 0
-            if not self._supervisor_stopping:
-                self._supervisor_stopping = True
-                self.events.add(self.clock(), "supervisor_stop", decision.reason)
-        elif self._supervisor_stopping:
-            self._supervisor_clear_ticks += 1
-            if self._supervisor_clear_ticks >= SUPERVISOR_CLEAR_TICKS:
-                self._supervisor_stopping = False
-                self.events.add(self.clock(), "supervisor_clear",
-                                f"no supervisor stop for {SUPERVISOR_CLEAR_TICKS} ticks")
-        return float(decision.command_out[0]), float(decision.command_out[1])
-
     def _goal_reached(self, now: float) -> None:
         self.state = ControllerState.GOAL_REACHED
         self.goal_reached_at_s = now
@@ -567,6 +412,33 @@ class NavigationController:
         else:
             self.events.add(now, "goal_reached", f"within {self._goal_distance_m():.2f} m of the goal (odometry)")
 
+    # -- safety stage ------------------------------------------------------------------------
+    def _safety(self, v: float, omega: float) -> tuple[float, float]:
+        state = self.state
+        if state is ControllerState.ACTIVE:
+            if self.gate is not None:
+                # The independent check of the command against P_fix and the predicted way of a
+                # person it would meet (as Nav2's collision monitor).
+                pose = np.array([self.pose.x_m, self.pose.y_m, self.pose.yaw_rad])
+                v, omega = self.gate.check(self.clock(), pose, v, omega, self.perception.points_plan)
+                if self.gate.last.stopped:
+                    # A stop is zero now, as a hold is (the base brakes at its own limits), not a
+                    # ramp: ramping from the command before it, a stop that cleared the next tick
+                    # let the robot drive on into what it had stopped for (docs/decisions/
+                    # controller-stop-is-zero.md).
+                    self.limiter.reset()
+                    return 0.0, 0.0
+            return self.limiter.limit(v, omega, self.period_s)
+        if state is ControllerState.GOAL_REACHED:
+            return self.limiter.limit(0.0, 0.0, self.period_s)  # ramp down at the limits
+        # Holding, starting up or stopped: zero now (the base brakes at its own limits), and
+        # whatever comes next ramps up from zero.
+        if state is ControllerState.HOLDING:
+            self.hold_ticks += 1
+        self.limiter.reset()
+        return 0.0, 0.0
+
+    # -- between ticks -----------------------------------------------------------------------
     def slack_work(self) -> bool:
         """After the tick's command is written: the mode's deferred work (a reference search);
         returns whether there was any."""
@@ -581,10 +453,11 @@ class NavigationController:
         """The loop's verdict on this tick's command deadline (on the loop's clock: simulated
         time in lockstep, where it is never missed; the wall clock on the robot)."""
         self.safety_stop.note_deadline(missed)
-        if self.safety_stop.tripped:
-            self._stop(self.clock())
+        if self.safety_stop.tripped and self.state is not ControllerState.STOPPED:
+            now = self.clock()
+            self._stop(now)
+            self._publish(now)  # observers see the stop before the next tick
 
-    # -- internals ---------------------------------------------------------------------------
     def _stop(self, now: float) -> None:
         if self.state is not ControllerState.STOPPED:
             self.state = ControllerState.STOPPED
@@ -603,7 +476,7 @@ class NavigationController:
         now = self.clock()
         d = self.last_decision
         out = {
-            "mode": self.mode_name,
+            "mode": self.config.preset,
             "active_mode": self.modes.mode_name,
             "state": self.state.name,
             "stop_reason": self.stop_reason,
@@ -627,10 +500,11 @@ class NavigationController:
             "distance_to_goal_m": self._goal_distance_m(),
             "events_dropped": self.events.dropped,
             "odometry": self.odometry.describe(),
-            "moving_obstacles": self.moving.describe(),
+            "moving_obstacles": self.perception.moving.describe(),
         }
         out.update(self.partition.describe())
         out.update(self.modes.counters())
-        if self.supervisor is not None:
-            out.update(safety_stops=self.supervisor.stops, safety_slowdowns=self.supervisor.slowdowns)
+        if self.gate is not None:
+            supervisor = self.gate.supervisor
+            out.update(safety_stops=supervisor.stops, safety_slowdowns=supervisor.slowdowns)
         return out

@@ -1,4 +1,4 @@
-"""The interface every navigation mode implements, and what a mode's builder returns."""
+"""The interface every navigation mode implements, and what a planner's builder returns."""
 from __future__ import annotations
 
 import math
@@ -7,7 +7,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from runtime.perception.partition import AllFixedPartition, PartitionStage
+from runtime.perception.partition import PartitionStage
 
 
 @dataclass(frozen=True)
@@ -66,32 +66,23 @@ class NavigationMode(Protocol):
 
 @dataclass(frozen=True)
 class ModeContext:
-    """What a mode's builder may use."""
+    """What a planner's builder may use."""
 
     robot: Any  # calibration.robot_description.RobotDescription
     config: Any  # runtime.config.ControllerConfig
     goal: Any  # runtime.common.geometry.Pose2D in the odom frame
     wall_clock_caps: bool  # False in lockstep: iteration caps only
-    #: The contact-tolerance backend (models.vlm) a mode with a VLM partition uses: the simulator
-    #: passes its sim-oracle; None: the mode builds the one the config names (`vpp.backend`).
-    vlm_backend: Any = None
-    #: The camera as the robot's calibration file gives it (calibration.camera_model.CameraModel:
-    #: intrinsics and distortion) and the lidar-to-camera extrinsic (4x4 T_cam_lidar); None: the
-    #: robot description's nominal intrinsics and its mounts.
-    camera: Any = None
-    T_cam_lidar: Any = None
+    #: The controller's partition stage (runtime.perception.partition): correcting mode relabels
+    #: the object a failed push was on through it (eq. 14).
+    partition: PartitionStage
 
 
 @dataclass
 class ModeStack:
-    """A planner mode as the controller runs it: the mode, its stall recovery (or None), the
-    safety supervisor that checks its commands against P_fix (or None for a sensorless mode), and
-    the partition stage that says which lidar points are P_fix (runtime.perception.partition)."""
+    """A planner as the controller runs it: the mode, its stall recovery (or None) and correcting
+    mode (runtime.modes.correcting.CorrectingMode, or None: the selector then recovers from a
+    stall with `recovery` alone). Safety and the partition are the controller's, not a mode's."""
 
     normal: NavigationMode
     recovery: Any = None  # runtime.modes.backoff.BackoffMode
-    supervisor: Any = None  # runtime.safety.supervisor.SafetySupervisor
-    partition: PartitionStage = field(default_factory=AllFixedPartition)
-    #: Correcting mode (runtime.modes.correcting.CorrectingMode), None where the mode has none:
-    #: the selector then recovers from a stall with `recovery` alone.
     correcting: Any = None

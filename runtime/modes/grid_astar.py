@@ -1,9 +1,10 @@
 """`grid-astar`: occupancy grid + A* + pure pursuit, the Ellis22-like baseline (DCT Table I).
 
-Every lidar point is an obstacle (the all-fixed partition); the grid, the A* search and the
-path follower are runtime.planning.grid_astar's. The safety supervisor checks its commands as it
-checks every mode's (a baseline gets the same safety layer, not a weaker one); there is no
-stall recovery (the backoff tracks its way back with the MPC, which this mode does not have).
+Every point of P_fix is an obstacle (with the all-fixed partition, every lidar point); the grid,
+the A* search and the path follower are runtime.planning.grid_astar's. The controller's safety
+supervisor checks its commands as it checks every planner's (a baseline gets the same safety
+layer, not a weaker one); there is no stall recovery (the backoff tracks its way back with the
+MPC, which this planner does not have).
 
 Per tick: at the goal -> done. A search (bounded: grid cells and A* expansions are capped) runs
 on the first tick, every `replan_every_ticks` ticks, and at once when a point lies on the path
@@ -108,12 +109,9 @@ class GridAStarMode:
 
 
 def build(ctx: ModeContext) -> ModeStack:
-    """The grid planner, the path follower with pure pursuit's speed law, the safety supervisor;
-    every point fixed (the default partition), no stall recovery."""
-    from runtime.safety.supervisor import SafetySupervisor
-
+    """The grid planner and the path follower with pure pursuit's speed law; no stall recovery
+    (the backoff tracks its way back with the MPC, which this planner does not have)."""
     from runtime.modes.pure_pursuit import steering
 
     cfg, robot = ctx.config.planner.grid_astar, ctx.robot
-    mode = GridAStarMode(cfg, GridAStarPlanner(cfg, robot), PathPursuit(steering(cfg, robot)))
-    return ModeStack(mode, None, SafetySupervisor(ctx.config.planner.safety_supervisor, robot))
+    return ModeStack(GridAStarMode(cfg, GridAStarPlanner(cfg, robot), PathPursuit(steering(cfg, robot))))

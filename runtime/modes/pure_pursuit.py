@@ -40,15 +40,16 @@ class PurePursuitMode:
 
 
 def build(ctx: ModeContext) -> ModeStack:
-    """No sensors, no supervisor, no recovery: the placeholder it always was."""
+    """No sensors (so no supervisor either: nothing to check against), no recovery."""
     return ModeStack(PurePursuitMode(steering(ctx.config.planner.pure_pursuit, ctx.robot)))
 
 
 def steering(cfg, robot) -> PurePursuitPlanner:
     """Pure pursuit's steering and speed law from a config section with its fields (target
-    speed, lookahead, goal tolerance, slowdown, heading limit), within the robot's limits."""
+    speed, lookahead, goal tolerance, slowdown, heading limit); the target speed within the
+    robot's limits (runtime.config.check_against_robot refuses one above them)."""
     return PurePursuitPlanner(
-        target_speed_mps=min(cfg.target_speed_mps, robot.limits.max_linear_speed_mps),
+        target_speed_mps=cfg.target_speed_mps,
         lookahead_m=cfg.lookahead_m,
         goal_tolerance_m=cfg.goal_tolerance_m,
         slowdown_distance_m=cfg.slowdown_distance_m,

@@ -1,26 +1,46 @@
-"""Planner modes by name (`planner.mode` in the controller config). Adding a mode adds a file
-with a `build(context) -> ModeStack` and a line here, not a branch in the controller."""
+"""The planners by name (`planner.algorithm` in the controller config), and what each needs.
+
+Adding a planner adds a module with `build(context) -> ModeStack` and an entry here, not a
+branch in the controller. Which lidar points the planner must keep clear of (P_fix) is the other
+setting, the partition (runtime.perception.partition); presets name common pairs
+(runtime.config.presets: `dct` is the MPC on the VLM partition).
+"""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from importlib import import_module
 
 from runtime.modes.base import ModeContext, ModeStack
 
-#: mode name -> module with `build(context) -> ModeStack` (imported only when used: the MPC
-#: mode loads TorchScript).
-MODES = {
-    "pure-pursuit": "runtime.modes.pure_pursuit",
-    "all-fixed": "runtime.modes.all_fixed",
-    # The same planner, with the VLM partition stage: only the VPP's P_fix reaches it.
-    "dct": "runtime.modes.dct",
-    # Occupancy grid + A* + pure pursuit, every point fixed: the Ellis22-like baseline.
-    "grid-astar": "runtime.modes.grid_astar",
+
+@dataclass(frozen=True)
+class PlannerSpec:
+    #: The module with `build(context) -> ModeStack` (imported only when used: the MPC loads
+    #: TorchScript).
+    module: str
+    #: Reads the lidar and the IMU (every planner but the blind placeholder).
+    uses_lidar: bool
+    #: Needs the distance net for the robot's footprint (checked at start-up).
+    uses_distance_net: bool
+    summary: str
+
+
+PLANNERS = {
+    "mpc": PlannerSpec("runtime.modes.mpc", uses_lidar=True, uses_distance_net=True,
+                       summary="reference path, then the OSQP MPC with the distance net's collision rows"),
+    "grid-astar": PlannerSpec("runtime.modes.grid_astar", uses_lidar=True, uses_distance_net=False,
+                              summary="inflated occupancy grid, A*, pure pursuit (the Ellis22-like baseline)"),
+    "pure-pursuit": PlannerSpec("runtime.modes.pure_pursuit", uses_lidar=False, uses_distance_net=False,
+                                summary="straight at the goal, blind to obstacles (tests and benches only)"),
 }
 
 
-def build_mode(name: str, context: ModeContext) -> ModeStack:
+def planner_spec(name: str) -> PlannerSpec:
     try:
-        module = MODES[name]
+        return PLANNERS[name]
     except KeyError:
-        raise ValueError(f"unknown planner mode {name!r}; known: {', '.join(MODES)}") from None
-    return import_module(module).build(context)
+        raise ValueError(f"unknown planner {name!r}; known: {', '.join(PLANNERS)}") from None
+
+
+def build_planner(name: str, context: ModeContext) -> ModeStack:
+    return import_module(planner_spec(name).module).build(context)

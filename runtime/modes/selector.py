@@ -66,12 +66,6 @@ class StallDetector:
         self._since_s = now_s
         self.stalled = False
 
-    def stalled_for_s(self, now_s: float) -> float:
-        """Seconds without progress beyond the window (0 when not stalled)."""
-        if self._since_s is None:
-            return 0.0
-        return max(0.0, now_s - self._since_s - self.config.stall_window_s)
-
     def no_progress_s(self, now_s: float) -> float:
         return 0.0 if self._since_s is None else now_s - self._since_s
 
@@ -96,9 +90,11 @@ class StallDetector:
 
 class ModeSelector:
     def __init__(self, normal: NavigationMode, recovery: BackoffMode | None, config: RecoveryConfig,
-                 events: EventLog, correcting: CorrectingMode | None = None) -> None:
-        """correcting: correcting mode (None: the stall backoff alone, as before it)."""
+                 events: EventLog, correcting: CorrectingMode | None = None, label: str | None = None) -> None:
+        """correcting: correcting mode (None: the stall backoff alone). label: the name reported
+        while the normal mode drives (the configured preset; None: the mode's own name)."""
         self.normal = normal
+        self.label = label or normal.name
         self.recovery = recovery if config.enabled else None
         self.correcting = correcting
         self.config = config
@@ -121,7 +117,7 @@ class ModeSelector:
 
     @property
     def mode_name(self) -> str:
-        return self.active.name
+        return self.label if self.active is self.normal else self.active.name
 
     def counters(self) -> dict:
         out = {**self.normal.counters(), "stalls": self.stall.stalls, "stalled_now": self.stall.stalled,

@@ -1,14 +1,14 @@
 """The partition stage of the tick (Algorithm 1 lines 3-13): which lidar points are P_fix.
 
-A strategy with one interface, chosen once when the controller is built (by the planner mode's
-builder, runtime.modes; DESIGN.md section 11: modes are objects, not `if mode` branches in the
-tick):
+A strategy with one interface, chosen once when the controller is built from the config's
+`partition` setting (PARTITIONS below; strategies are objects, not `if` branches in the tick):
 
-* `AllFixedPartition`: every point is P_fix and the planner may always drive (modes all-fixed
-  and pure-pursuit; the NeuPAN-like baseline).
-* `VppPartition`: the VLM point partition (runtime.vpp.stage.VppStage): the points of objects
-  the backend called movable and cheap to touch leave P_fix; the planner waits for the first
-  answer (or its failure, or the stage's timeout) before it drives (mode dct).
+* `all-fixed` (`AllFixedPartition`): every point is P_fix and the planner may always drive (the
+  NeuPAN-like baseline, and every planner that does not read the camera).
+* `vpp` (`VppPartition`): the VLM point partition (runtime.vpp.stage.VppStage): the points of
+  objects the backend called movable and cheap to touch leave P_fix; before the first answer
+  (or its failure, or the stage's timeout) the planner drives on every point fixed or waits
+  (`vpp.before_first_answer`). The partition of the `dct` preset.
 
 Per tick the controller calls `update(now, pose, image, scan)`, which returns the `only` mask of
 the obstacle extractor (runtime.perception.obstacle_points: (N,) bool per scan point, True = P_fix) or None
@@ -19,7 +19,8 @@ object a failed push was on becomes fixed).
 """
 from __future__ import annotations
 
-from typing import Protocol
+from dataclasses import dataclass
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -28,6 +29,9 @@ from runtime.common.sensor_data import CameraImage, LidarScan
 
 class PartitionStage(Protocol):
     name: str
+    #: Whether the scan is deskewed to the tick before it is partitioned (the VPP projects every
+    #: point where it is now; without a partition the obstacle extractor deskews as it places).
+    deskews_scan: bool
     #: The VPP stage behind it (runtime.vpp.stage.VppStage), None when there is none: its
     #: counters and last frame are read outside the tick (controller.vpp: tests, benches).
     vpp: object | None
@@ -77,6 +81,7 @@ class AllFixedPartition:
     """Every point is P_fix; nothing runs beside the tick; the planner never waits."""
 
     name = "all-fixed"
+    deskews_scan = False
     vpp = None  # no VPP stage (controller.vpp reads it)
 
     def update(self, now_s: float, pose: tuple[float, float, float], image: CameraImage | None,
@@ -115,6 +120,7 @@ class VppPartition:
     """The VLM point partition (runtime.vpp.stage.VppStage, its public API only)."""
 
     name = "vpp"
+    deskews_scan = True
 
     def __init__(self, stage, footprint: tuple[float, float] = (0.161, 0.11), contact_margin_m: float = 0.08) -> None:
         self.vpp = stage  # runtime.vpp.stage.VppStage: tests and telemetry read its counters
@@ -174,8 +180,8 @@ class VppPartition:
 
 
 def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_cam_lidar=None) -> VppPartition:
-    """The VPP stage of mode dct: the robot's camera, the backend in a runner on the
-    controller's clock (simulated time in lockstep, the wall clock otherwise).
+    """The VPP stage: the robot's camera, the backend in a runner on the controller's clock
+    (simulated time in lockstep, the wall clock otherwise).
 
     config: runtime.config.ControllerConfig; robot: calibration.robot_description.RobotDescription;
     backend: a models.vlm backend (VlmBackend). camera: the calibration file's CameraModel (its
@@ -206,4 +212,61 @@ def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_c
     return VppPartition(stage, footprint, config.correcting.contact_margin_m)
 
 
-__all__ = ["AllFixedPartition", "PartitionStage", "VppPartition", "build_vpp_partition"]
+@dataclass(frozen=True)
+class PartitionContext:
+    """What a partition's builder may use."""
+
+    config: object  # runtime.config.ControllerConfig
+    robot: object  # calibration.robot_description.RobotDescription
+    lockstep: bool
+    #: The contact-tolerance backend (models.vlm): the simulator passes its sim-oracle; None: the
+    #: one the config names (`vpp.backend`, models.vlm.factory).
+    vlm_backend: object = None
+    #: The calibration file's camera (CameraModel) and lidar-to-camera extrinsic (4x4); None:
+    #: the robot description's nominal camera and mounts.
+    camera: object = None
+    T_cam_lidar: np.ndarray | None = None
+
+
+def _build_vpp(ctx: PartitionContext) -> VppPartition:
+    backend = ctx.vlm_backend
+    if backend is None:  # (the sim-oracle cannot be built outside the simulator: a clear error)
+        from models.vlm.factory import build_backend
+
+        backend = build_backend(ctx.config.vpp.backend)
+    return build_vpp_partition(ctx.config, ctx.robot, backend, lockstep=ctx.lockstep, camera=ctx.camera,
+                               T_cam_lidar=ctx.T_cam_lidar)
+
+
+@dataclass(frozen=True)
+class PartitionSpec:
+    build: Callable[[PartitionContext], PartitionStage]
+    #: Reads camera images (the simulator renders them; `dct run` subscribes to the image topic).
+    uses_camera: bool
+    #: Asks a contact-tolerance backend (models.vlm) beside the tick.
+    uses_vlm_backend: bool
+    summary: str
+
+
+#: The partitions by name (`partition` in the controller config).
+PARTITIONS = {
+    "all-fixed": PartitionSpec(lambda ctx: AllFixedPartition(), uses_camera=False, uses_vlm_backend=False,
+                               summary="every lidar point is P_fix"),
+    "vpp": PartitionSpec(_build_vpp, uses_camera=True, uses_vlm_backend=True,
+                         summary="the VLM point partition: touchable objects' points leave P_fix"),
+}
+
+
+def partition_spec(name: str) -> PartitionSpec:
+    try:
+        return PARTITIONS[name]
+    except KeyError:
+        raise ValueError(f"unknown partition {name!r}; known: {', '.join(PARTITIONS)}") from None
+
+
+def build_partition(name: str, context: PartitionContext) -> PartitionStage:
+    return partition_spec(name).build(context)
+
+
+__all__ = ["AllFixedPartition", "PARTITIONS", "PartitionContext", "PartitionSpec", "PartitionStage",
+           "VppPartition", "build_partition", "build_vpp_partition", "partition_spec"]

@@ -29,13 +29,6 @@ class SafetyStop:
         if self.consecutive_deadline_misses >= self.max_consecutive_deadline_misses:
             self.trip(f"command deadline missed {self.consecutive_deadline_misses} ticks in a row")
 
-    def check_feedback(self, feedback_lost: bool, since_activation_s: float, ever_received: bool) -> None:
-        if ever_received:
-            if feedback_lost:
-                self.trip("base feedback lost (no 0x221 motion state within the feedback timeout)")
-        elif since_activation_s > self.startup_timeout_s:
-            self.trip(f"no base feedback within {self.startup_timeout_s} s of activation")
-
     def reset(self) -> None:
         self.tripped_reason = None
         self.consecutive_deadline_misses = 0

@@ -235,7 +235,7 @@ class RunRecorder:
             "stage_budgets_ms": json.dumps({s: b * 1e3 for s, b in budgets.items()}),
             "period_ms": repr(loop.period_s * 1e3),
             "command_deadline_ms": repr(loop.command_deadline_s * 1e3),
-            "planner": str(config.planner.mode),
+            "planner": str(config.preset),
             "controller_config": json.dumps(config.model_dump(mode="json")),
             "recorded_at_unix_s": repr(time.time()),
             **{k: str(v) for k, v in (run_info or {}).items()},

@@ -135,12 +135,12 @@ def _box(cx, cy, half):
     return np.concatenate([_segment(c[k], c[(k + 1) % 4]) for k in range(4)])
 
 
-def _all_fixed_mode(mpc):
-    from runtime.modes.all_fixed import AllFixedMode
+def _mpc_mode(mpc):
+    from runtime.modes.mpc import MpcMode
     from runtime.planning.reference_path import ReferencePathConfig, ReferencePathPlanner
 
     mpc.reset()
-    return AllFixedMode(ReferencePathPlanner(ReferencePathConfig(), load_robot_description()), mpc)
+    return MpcMode(ReferencePathPlanner(ReferencePathConfig(), load_robot_description()), mpc)
 
 
 def _first_plans(mode, points, unclassified, movable=None, ticks=3):
@@ -157,7 +157,7 @@ def _first_plans(mode, points, unclassified, movable=None, ticks=3):
 def test_before_the_first_answer_a_free_detour_is_driven(mpc):
     """An unclassified box in open space: the reference path sees it touchable at the unknown
     cost (10), goes round it, and the robot drives (the MPC keeps clear of it: it is P_fix)."""
-    mode = _all_fixed_mode(mpc)
+    mode = _mpc_mode(mpc)
     box = _box(1.5, 0.0, 0.2)
     d = _first_plans(mode, box, unclassified=True)[-1]
     assert mode.reference.last_choice == "detour" and d.v_mps > 0.0 and not d.blocked
@@ -167,7 +167,7 @@ def test_before_the_first_answer_a_way_through_something_waits_and_the_answer_re
     """A box filling a corridor: the only way leads through it. Unclassified, the robot holds
     still (closing in would only shrink the VLM's view of it); once the answer calls it
     touchable (P_mov) the push is driven."""
-    mode = _all_fixed_mode(mpc)
+    mode = _mpc_mode(mpc)
     walls = np.concatenate([_segment([-5.0, 0.3], [8.0, 0.3]), _segment([-5.0, -0.3], [8.0, -0.3])])
     box = _box(1.5, 0.0, 0.2)
     d = _first_plans(mode, np.concatenate([walls, box]), unclassified=True)[-1]

@@ -1,7 +1,7 @@
-"""`all-fixed`: reference path on a grid from P_fix, then the OSQP MPC with the distance net.
+"""`mpc`: the reference path on a grid from P_fix, then the OSQP MPC with the distance net.
 
-Every lidar point is P_fix (the NeuPAN-like baseline); the VPP partition (roadmap step 5)
-adds the DCT mode beside it, with only the non-touchable points in P_fix.
+The planner of the `dct` preset (on the VLM partition's P_fix) and of `all-fixed` (every lidar
+point in P_fix: the NeuPAN-like baseline). docs/algorithms/planning.md.
 """
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from runtime.planning.mpc import MpcPlanner, PlanResult
 from runtime.planning.reference_path import ReferencePathPlanner, ReferenceUpdate
 
 
-class AllFixedMode:
-    name = "all-fixed"
+class MpcMode:
+    name = "mpc"
 
     def __init__(self, reference: ReferencePathPlanner, mpc: MpcPlanner, unknown_contact_cost: float = 10.0) -> None:
         self.reference = reference
@@ -87,24 +87,22 @@ class AllFixedMode:
 
 def build(ctx: ModeContext) -> ModeStack:
     """The distance net (checked against the robot's footprint), the MPC warmed up, the
-    reference path, the backoff recovery sharing the MPC, and the safety supervisor."""
+    reference path, the backoff recovery sharing the MPC, and correcting mode when enabled."""
     from models.distance_net import DistanceNet  # TorchScript: only when the MPC is used
     from runtime.modes.backoff import BackoffMode
-    from runtime.safety.supervisor import SafetySupervisor
 
     pc, rc, robot = ctx.config.planner, ctx.config.recovery, ctx.robot
     net = DistanceNet.load(pc.distance_net_path, robot=robot)
     mpc = MpcPlanner(pc.mpc, robot, net, wall_clock_caps=ctx.wall_clock_caps)
     mpc.warm_up()  # here, not in the first tick (TorchScript optimizes on its first calls)
     reference = ReferencePathPlanner(pc.reference_path, robot)
-    backoff = BackoffMode(mpc, rc.backoff_distance_m, min(rc.backoff_speed_mps, pc.mpc.max_reverse_speed_mps),
-                          rc.backoff_timeout_s)
-    stack = ModeStack(AllFixedMode(reference, mpc, ctx.config.vpp.unknown_contact_cost), backoff, SafetySupervisor(pc.safety_supervisor, robot))
+    # (the reverse speeds are within planner.mpc.max_reverse_speed_mps: runtime.config checks it)
+    backoff = BackoffMode(mpc, rc.backoff_distance_m, rc.backoff_speed_mps, rc.backoff_timeout_s)
+    stack = ModeStack(MpcMode(reference, mpc, ctx.config.vpp.unknown_contact_cost), backoff)
     cc = ctx.config.correcting
     if cc.enabled:  # its reverse is a backoff of its own (the distance is set per correction)
         from runtime.modes.correcting import CorrectingMode
 
-        reverse = BackoffMode(mpc, cc.traceback_states * cc.trail_spacing_m,
-                              min(cc.v_rev_mps, pc.mpc.max_reverse_speed_mps), cc.timeout_s)
-        stack.correcting = CorrectingMode(cc, reverse, robot, stack.partition)
+        reverse = BackoffMode(mpc, cc.traceback_states * cc.trail_spacing_m, cc.v_rev_mps, cc.timeout_s)
+        stack.correcting = CorrectingMode(cc, reverse, robot, ctx.partition)
     return stack

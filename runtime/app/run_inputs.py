@@ -1,0 +1,159 @@
+"""`dct run`'s inputs: every file and option loaded and checked before anything moves.
+
+A problem is one line naming the file and the field (RunInputError, exit status 2), and the
+base is never enabled.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+class RunInputError(ValueError):
+    """Bad input to `dct run`: one line naming the file and the field (exit status 2)."""
+
+
+@dataclass
+class RunOptions:
+    robot_path: Path | None = None
+    calibration_path: Path | None = None
+    config_path: Path | None = None
+    goal: tuple[float, float, float] | None = None
+    record_path: Path | None = None
+    json_path: Path | None = None
+    force: bool = False
+    #: Overrides of the config (`dct hil run --realtime` gives each run its own domain and group).
+    domain_id: int | None = None
+    can_interface: str | None = None
+    can_channel: str | None = None
+    can_port: int | None = None
+    #: Without --goal: how long to wait for the first goal on the goal topic (None: forever).
+    goal_wait_s: float | None = None
+    #: A preset (runtime.config.presets) in place of the config's planner and partition.
+    planner: str | None = None
+    #: Leave the loop thread at normal priority (config `realtime:` not asked for): real-time HIL
+    #: on a machine shared with the simulator, where SCHED_FIFO could starve it.
+    normal_priority: bool = False
+    #: Let the blind pure-pursuit planner run (no obstacle awareness: tests and benches only).
+    allow_pure_pursuit: bool = False
+
+
+@dataclass
+class Loaded:
+    robot: object
+    config: object
+    wheel_calibration: tuple[float, float] | None
+    camera_K: np.ndarray
+    camera_dist: np.ndarray
+    bus_config: object
+    #: The calibration file's camera (CameraModel) and lidar-to-camera extrinsic (4x4) for the
+    #: VPP partition; None: the robot description's nominal camera and mounts.
+    camera: object = None
+    T_cam_lidar: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def load_inputs(opts: RunOptions) -> Loaded:
+    """Load and validate every file and option; RunInputError (one line) on the first problem."""
+    robot, config, cal, wheel_calibration = _load_files(opts)
+    cfg_name = str(opts.config_path or "the shipped controller config")
+    camera = T_cam_lidar = None
+    if cal is not None:
+        from calibration.calibration_file import camera_for_robot
+        from calibration.errors import ConfigFileError
+
+        try:
+            camera, T_cam_lidar = camera_for_robot(cal, robot, opts.calibration_path)
+        except ConfigFileError as exc:
+            raise RunInputError(str(exc)) from None
+        K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
+    else:
+        K, dist = robot.sensors.camera.nominal_intrinsics(), np.zeros(5)
+    if opts.planner is not None:
+        config = config.with_planner_mode(opts.planner)
+    _check_planner(config, robot, opts, cfg_name)
+    if opts.goal is not None:
+        from runtime.common.geometry import Pose2D
+        from runtime.controller.goals import GoalError, check_goal
+
+        try:
+            check_goal(Pose2D(*opts.goal), "--goal")
+        except (GoalError, TypeError) as exc:
+            raise RunInputError(f"--goal: {opts.goal}: {exc}") from None
+    bus_config = _bus_config(config, opts, cfg_name)
+    if opts.domain_id is not None:
+        inputs = config.ros.inputs.model_copy(update={"domain_id": opts.domain_id})
+        config = config.model_copy(update={"ros": config.ros.model_copy(update={"inputs": inputs})})
+    if config.ros.inputs.lidar is None and config.uses_lidar:
+        raise RunInputError(f"{cfg_name}: ros.inputs.lidar: planner {config.planner.algorithm} needs a lidar topic")
+    if config.uses_distance_net:  # the distance net must fit this robot
+        from models.distance_net import DistanceNet
+        from models.errors import DistanceNetError
+
+        try:
+            DistanceNet.load(config.planner.distance_net_path, robot=robot)
+        except DistanceNetError as exc:
+            raise RunInputError(f"{cfg_name}: planner.distance_net_path: {exc}") from None
+    return Loaded(robot, config, wheel_calibration, K, dist, bus_config, camera=camera, T_cam_lidar=T_cam_lidar)
+
+
+def _load_files(opts: RunOptions):
+    """(robot description, config, calibration file or None, wheel calibration)."""
+    from calibration.errors import ConfigFileError
+    from calibration.robot_description import load_robot_description
+    from calibration.wheel_odometry import wheel_params
+    from runtime.config import load_controller_config
+
+    try:
+        robot = load_robot_description(opts.robot_path)
+        config = load_controller_config(opts.config_path)
+        cal = None
+        if opts.calibration_path is not None:
+            from calibration.calibration_file import load_calibration
+
+            cal = load_calibration(opts.calibration_path)
+        params = wheel_params(robot, cal)
+    except ConfigFileError as exc:
+        raise RunInputError(str(exc)) from None
+    return robot, config, cal, (params.effective_track_m, params.wheel_scale)
+
+
+def _check_planner(config, robot, opts: RunOptions, cfg_name: str) -> None:
+    from runtime.config import check_against_robot
+
+    if not config.uses_lidar and not opts.allow_pure_pursuit:
+        raise RunInputError(f"{cfg_name}: planner {config.planner.algorithm} has no obstacle awareness (it drives at "
+                            "the goal through whatever is there): only with --allow-pure-pursuit, never on a robot "
+                            "among people")
+    if config.uses_vlm_backend and config.vpp.backend.kind == "sim-oracle":
+        raise RunInputError(f"{cfg_name}: planner.mode {config.preset} with vpp.backend.kind sim-oracle: the "
+                            f"{config.partition} partition's sim-oracle exists only inside the lockstep simulator's "
+                            "process; set vpp.backend.kind: openai-compatible (docs/algorithms/vpp.md, backends) or "
+                            "run --planner all-fixed")
+    try:
+        check_against_robot(config, robot)
+    except ValueError as exc:
+        raise RunInputError(f"{cfg_name}: {exc}") from None
+
+
+def _bus_config(config, opts: RunOptions, cfg_name: str):
+    """The config's CAN bus with the command line's overrides."""
+    from pydantic import ValidationError
+
+    from firmware_bridge.buses import BusConfig
+
+    bus = config.can_bus.model_dump()
+    if opts.can_interface is not None:
+        bus = {"interface": opts.can_interface, "channel": None}
+    if opts.can_channel is not None:
+        bus["channel"] = opts.can_channel
+    if opts.can_port is not None:
+        bus["udp_port"] = opts.can_port
+    try:
+        return BusConfig(**bus)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"]) or "can_bus"
+        raise RunInputError(f"{cfg_name}: can_bus.{where}: {err['msg']}") from None

@@ -1,0 +1,84 @@
+"""The stages one controller runs, built once at start-up from the robot and the config.
+
+The partition (which points are P_fix) and the planner (what drives) are the config's two
+settings (runtime.perception.partition, runtime.modes.registry); the safety supervisor and the
+watchdogs are built here for every planner, never by one: a planner cannot leave them out.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from calibration.robot_description import RobotDescription
+from runtime.common.events import EventLog
+from runtime.config import ControllerConfig, check_against_robot
+from runtime.modes.base import ModeContext
+from runtime.modes.registry import build_planner
+from runtime.modes.selector import ModeSelector
+from runtime.odometry.stage import OdometryStage
+from runtime.perception.partition import PartitionContext, build_partition
+from runtime.perception.stage import PerceptionStage
+from runtime.safety.command_limits import CommandLimiter
+from runtime.safety.input_monitor import InputMonitor
+from runtime.safety.stop import SafetyStop
+from runtime.safety.supervisor import SafetySupervisor
+
+
+@dataclass
+class ControllerParts:
+    events: EventLog
+    odometry: OdometryStage
+    monitor: InputMonitor  # the input watchdogs
+    perception: PerceptionStage  # partition, P_fix, P_mov, people
+    modes: ModeSelector  # the planner and its recoveries
+    supervisor: SafetySupervisor | None  # None only without a lidar (nothing to check against)
+    limiter: CommandLimiter
+    safety_stop: SafetyStop
+
+
+@dataclass(frozen=True)
+class PartsOptions:
+    """How the parts are built beyond the robot and the config."""
+
+    #: Simulated time: iteration caps only, work beside the tick at a fixed simulated latency.
+    lockstep: bool = False
+    #: Lidar and IMU come in (False: the blind pure-pursuit, no watchdogs on them, no supervisor).
+    uses_sensors: bool = True
+    #: (effective track m, wheel scale) from the robot's calibration file; None: the robot
+    #: description's track x skid_steer_yaw_factor, 1.0.
+    wheel_calibration: tuple[float, float] | None = None
+    #: The VPP's backend (the simulator's sim-oracle); None: the one `vpp.backend` names.
+    vlm_backend: object = None
+    #: The calibration file's camera (CameraModel) and lidar-to-camera extrinsic (4x4); None: nominal.
+    camera: object = None
+    T_cam_lidar: object = None
+
+
+def build_parts(robot: RobotDescription, config: ControllerConfig, goal, options: PartsOptions) -> ControllerParts:
+    check_against_robot(config, robot)
+    events = EventLog()
+    track_factor, wheel_scale = robot.drive.skid_steer_yaw_factor, 1.0
+    if options.wheel_calibration is not None:
+        track_factor = options.wheel_calibration[0] / robot.drive.track_m
+        wheel_scale = options.wheel_calibration[1]
+    odometry = OdometryStage(
+        config.odometry, robot.drive.track_m, track_factor, robot.sensors.lidar.mount.transform(),
+        lockstep=options.lockstep, events=events, wheel_scale=wheel_scale, uses_lidar=options.uses_sensors,
+    )
+    op = config.planner.obstacle_points
+    monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=options.uses_sensors,
+                           uses_imu=options.uses_sensors)
+    partition = build_partition(config.partition, PartitionContext(
+        config, robot, options.lockstep, options.vlm_backend, options.camera, options.T_cam_lidar))
+    perception = PerceptionStage(robot, config, partition)
+    stack = build_planner(config.planner.algorithm, ModeContext(robot, config, goal, not options.lockstep, partition))
+    modes = ModeSelector(stack.normal, stack.recovery, config.recovery, events, stack.correcting,
+                         label=config.preset)
+    supervisor = SafetySupervisor(config.safety_supervisor, robot) if options.uses_sensors else None
+    limiter = CommandLimiter(
+        robot.limits.max_linear_speed_mps,
+        robot.body_max_angular_speed_radps,
+        robot.limits.max_linear_accel_mps2,
+        robot.body_max_angular_accel_radps2,
+    )
+    safety_stop = SafetyStop(config.safety_stop.max_consecutive_deadline_misses, config.safety_stop.startup_timeout_s)
+    return ControllerParts(events, odometry, monitor, perception, modes, supervisor, limiter, safety_stop)
