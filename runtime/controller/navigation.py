@@ -424,8 +424,8 @@ class NavigationController:
                 if self.gate.last.stopped:
                     # A stop is zero now, as a hold is (the base brakes at its own limits), not a
                     # ramp: ramping from the command before it, a stop that cleared the next tick
-                    # let the robot drive on into what it had stopped for (docs/decisions/
-                    # controller-stop-is-zero.md).
+                    # let the robot drive on into what it had stopped for
+                    # (docs/decisions/docs-supervisor-stop-is-zero.md).
                     self.limiter.reset()
                     return 0.0, 0.0
             return self.limiter.limit(v, omega, self.period_s)

@@ -91,23 +91,31 @@ def test_all_fixed_mpc_avoids_fixed_obstacles(scenario):
     assert result.controller["mpc_plans"] > 20
 
 
-def test_steep_approach_to_the_tight_gap_succeeds_through_correcting_mode():
-    """Issue 14: `dct hil run gap_offset` reaches the goal with zero fixed contacts. From 0.5 m
-    off the gap's axis the MPC wedges itself in the mouth (its known local minimum: the
-    supervisor stops it, the heading-blind reference path leads straight back into the wedge);
-    correcting mode finds it stuck (planned v >= v_min, moved < d_stuck in tau_stuck), finds
-    nothing movable in front to relabel, reverses to a point on the passage's axis, turns along
-    it and replans. Mode dct (the default), seed 0."""
-    result = run_episode("gap_offset", seed=0)
+def test_a_robot_wedged_at_the_gap_mouth_recovers_through_correcting_mode():
+    """gap_wedged starts the robot nose-in against a block, turned 40 degrees across the 0.32 m
+    gap: it can neither drive on nor turn into the gap without touching a block, so the MPC's
+    forward command gets it nowhere. Correcting mode must find it stuck, find nothing movable to
+    relabel (a wedge), reverse, and the planner must then take it through the gap without a
+    fixed contact. The recovery is forced by the geometry, on any CPU."""
+    result = run_episode("gap_wedged", seed=0)
     m = result.metrics
     assert m["success"] and m["fixed_contacts"] == 0, (m["failure_reason"], m["events"])
-    assert m["min_fixed_clearance_m"] > 0.0
     assert m["correcting_events"] >= 1
     first = m["correcting"][0]
     assert first["object_id"] is None and first["reason"].startswith("stuck")  # a wedge: nothing relabelled
-    assert first["duration_s"] is not None and "lined up" in first["outcome"]
+    assert first["duration_s"] is not None and first["outcome"].startswith("backed off")
     names = [e["event"] for e in m["events"]]
     assert names.index("correcting") < names.index("correcting_end") < names.index("goal_reached")
+
+
+@pytest.mark.slow
+def test_steep_approach_to_the_tight_gap_reaches_the_goal_without_contact():
+    """gap_offset: from 0.5 m off the gap's axis, facing 25 degrees away. Whether the MPC threads
+    the gap at once or wedges itself at the mouth and correcting mode lines it up depends on how
+    the trajectory rounds on the machine; either way the goal is reached without a fixed contact."""
+    for seed in (0, 1):
+        m = run_episode("gap_offset", seed=seed).metrics
+        assert m["success"] and m["fixed_contacts"] == 0, (seed, m["failure_reason"], m["events"])
 
 
 @pytest.mark.slow
@@ -118,7 +126,6 @@ def test_steep_approach_to_the_tight_gap_succeeds_in_all_fixed_mode_too():
     for seed in (0, 3):
         m = run_episode("gap_offset", config=config, seed=seed).metrics
         assert m["success"] and m["fixed_contacts"] == 0, (seed, m["failure_reason"], m["events"])
-        assert m["correcting_events"] >= 1
 
 
 def test_a_walled_off_goal_fails_as_blocked_and_says_so():
