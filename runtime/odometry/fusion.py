@@ -140,13 +140,6 @@ class PoseFusion:
         a, b = ds[j - 1], ds[j]
         return np.array([a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), wrap(a[2] + w * wrap(b[2] - a[2]))])
 
-    def dead_reckoning_between(self, t0_s: float, t1_s: float) -> np.ndarray | None:
-        """The wheel + gyro increment from t0 to t1, in the base frame at t0 (None: not in history)."""
-        a, b = self.dead_reckoning_at(t0_s), self.dead_reckoning_at(t1_s)
-        if a is None or b is None:
-            return None
-        return se2_between(a, b)
-
     def motion_samples(self, t0_s: float, t1_s: float) -> np.ndarray:
         """Dead-reckoning samples (K, 4: t, x, y, yaw) covering [t0, t1] (for deskew)."""
         n = min(self._n, self._cap)
