@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-GOLDEN = Path(__file__).parents[1] / "data" / "planner_golden" / "golden.npz"
+GOLDEN = Path(__file__).parents[2] / "data" / "planner_golden" / "golden.npz"
 CASES = ("corridor_h10", "corridor_h20", "gap_h10", "slalom_h10", "slalom_h30", "tight_h10")
 #: Largest difference of the first command (v m/s, omega rad/s), and of any command of a plan.
 TOL_FIRST_MAX = np.array([0.01, 0.25])
@@ -55,7 +55,8 @@ def robot_and_net():
 
 def replay(golden: dict, case: str, robot, model, **config) -> dict:
     """Differences between a fresh planner's commands and the recorded ones over a case."""
-    from runtime.planning.mpc import MpcConfig, MpcPlanner
+    from runtime.planning.mpc import MpcPlanner
+    from runtime.planning.mpc_config import MpcConfig
 
     horizon = int(golden[f"{case}/horizon"])
     planner = MpcPlanner(MpcConfig(horizon_steps=horizon, **config), robot, model, wall_clock_caps=False)
@@ -96,7 +97,7 @@ def _within(out: dict) -> bool:
 def test_golden_comparison_detects_a_changed_planner(golden, robot_and_net):
     """The comparison has teeth: a 25% heavier speed-change weight fails it at the gap, a d_min
     of 5 cm instead of 3 in the S-bend."""
-    from runtime.planning.mpc import MpcWeights
+    from runtime.planning.mpc_config import MpcWeights
 
     assert not _within(replay(golden, "gap_h10", *robot_and_net, weights=MpcWeights(speed_change=2.5)))
     assert not _within(replay(golden, "tight_h10", *robot_and_net, d_min_m=0.05))
