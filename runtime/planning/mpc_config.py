@@ -54,8 +54,7 @@ class MpcConfig(BaseModel):
     )
     max_iterations: int = Field(
         default=1000, ge=10, le=100000,
-        description="OSQP iterations per solve: the cap (measured need in the library's scenes: at most 515, "
-        "p99 under 380; 200 capped 15 of 283 solves at gap_offset)",
+        description="OSQP iterations per solve: the cap (docs/decisions/planning-osqp-settings.md)",
     )
     qp_time_budget_s: float = Field(
         default=0.008, gt=0.0, le=1.0, description="all alternations together; wall clock, real time only"

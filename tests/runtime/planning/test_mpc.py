@@ -1,5 +1,6 @@
 """The OSQP MPC: closed loop around obstacles, through a narrow gap, bounds, capped solves, and
-the causes of issue 10's stalls (rows it could not meet, unreachable targets, the nominal)."""
+the causes of stalls beside obstacles (rows it could not meet, unreachable targets, the nominal;
+docs/decisions/planning-mpc-standstill.md)."""
 from __future__ import annotations
 
 
@@ -208,7 +209,7 @@ def test_bad_inputs_raise_named_errors() -> None:
         MpcPlanner(MpcConfig(), ROBOT, object())
 
 
-# -- Issue 10: the MPC stood still beside obstacles while the reference path was valid ---------
+# -- The MPC must not stand still beside obstacles while the reference path is valid ----------
 
 
 def _segment_points(a, b, step_m: float = 0.02) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The optimized planner returns the commands the planner before the speed work returned.
 
 tests/data/planner_golden/golden.npz was recorded by make_golden.py (beside it) with the planner
-as of commit 5daa12b, before issue 12's optimizations: closed loops in a cluttered corridor
+as of commit 5daa12b, before the planner's speed optimizations: closed loops in a cluttered corridor
 (H = 10 and 20), at an offset 40 cm gap, weaving through a 70 cm slalom (H = 10 and 30) and
 through an S-bend 36 cm wide, 7 cm each side of the robot (H = 10), with the shipped distance
 net. Here each recorded tick's inputs go into a fresh planner (lockstep caps: iterations only)
@@ -16,7 +16,7 @@ What fails it (measured): a 25% heavier speed-change weight (mean first speed at
 instead of 5 (plan omega 0.43 rad/s), K = 3 points per pose instead of 10 (mean first speed,
 just). What it cannot see: changes that move commands less than the solver's own spread; a 50%
 heavier heading weight, half the slack weight, max_distance 0.6 m, and thinning once per cell
-for all poses (issue 10's bug) all pass. The point selection is held to its definition exactly
+for all poses (an earlier bug) all pass. The point selection is held to its definition exactly
 by tests/runtime/planning/test_point_selection.py (brute force, hypothesis), not by this test.
 """
 from __future__ import annotations
