@@ -111,17 +111,17 @@ class MovingObstaclesConfig(BaseModel):
     in_the_way_m: float = Field(0.45, ge=0.0, le=5.0)
     own_clearance_m: float = Field(0.35, ge=0.0, le=5.0)
     #: ... the channel out keeps the way's points farther than this on the robot's far side (m):
-    #: the path may not cross the person's line there (_exit_channel).
+    #: the path may not cross the person's line there (runtime.perception.exit_channel).
     far_side_m: float = Field(0.22, ge=0.0, le=5.0)
     #: ... and, head-on, reaches this much further towards the person (m).
     head_on_reach_m: float = Field(0.4, ge=0.0, le=5.0)
     #: ... and a robot along the line goes to the side it will be on after this much driving on
-    #: (m): the side it heads to, unless it is well on the other (_exit_channel).
+    #: (m): the side it heads to, unless it is well on the other (runtime.perception.exit_channel).
     exit_heading_lead_m: float = Field(0.3, ge=0.0, le=5.0)
     #: A side once chosen is kept until the robot is this far (m) on the other side of the line
     #: (with the lead above, along it).
     exit_switch_m: float = Field(0.15, ge=0.0, le=5.0)
-    #: Going on or yielding (step 5, _goes_first): the footprint (the robot description's, set by
+    #: Going on or yielding (step 5, WayPredictor._goes_first): the footprint (the robot description's, set by
     #: the controller) against the person's predicted points every go_dt_s, braking at the
     #: acceleration limit and hurrying on to cruise; a way's margin is its gap less
     #: go_uncertainty_mps x the time ahead (at most horizon_s: a velocity estimated over 0.6 s of

@@ -99,7 +99,8 @@ class MpcPlanner:
         """wall_clock_caps: False in lockstep (iteration caps only; see the module docstring)."""
         if not callable(getattr(distance_model, "dual", None)):
             raise PlannerInputError(f"MpcPlanner: distance_model {type(distance_model).__name__} has no dual()")
-        if "torch" in sys.modules:  # the distance net runs on one thread (docs/decisions/planning-distance-net-threads.md)
+        # The distance net runs on one thread (docs/decisions/planning-distance-net-threads.md).
+        if "torch" in sys.modules:
             sys.modules["torch"].set_num_threads(1)
         self.config = config
         self.robot = robot
