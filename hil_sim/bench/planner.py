@@ -28,7 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.planning.mpc import MpcConfig, MpcLimits, MpcLinearization, MpcPlanner, OsqpMpcBackend, QpOutcome
+from runtime.planning.mpc import MpcPlanner
+from runtime.planning.mpc_config import MpcConfig, MpcLimits
+from runtime.planning.mpc_qp import MpcLinearization, OsqpMpcBackend, QpOutcome
 
 TICK_S = 0.05
 #: The controller's obstacle range (runtime.config ObstaclePointsConfig.max_range_m).

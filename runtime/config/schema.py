@@ -18,7 +18,7 @@ from runtime.modes.correcting import CorrectingConfig
 from runtime.modes.selector import RecoveryConfig
 from runtime.odometry.stage import OdometryConfig
 from runtime.planning.grid_astar import GridAStarConfig
-from runtime.planning.mpc import MpcConfig
+from runtime.planning.mpc_config import MpcConfig
 from runtime.planning.reference_path import ReferencePathConfig
 from runtime.loop.realtime_setup import RealtimeConfig
 from runtime.safety.supervisor import SafetySupervisorConfig

@@ -5,8 +5,8 @@ Rules (as in `dct calibrate`): an input error is ONE line on stderr and exit sta
 is written; an output path is checked before the work, an existing file is refused unless
 --force, and the JSON is written atomically after the work succeeded.
 
-`--scenario` runs in the simulator, which `runtime` must not import (DESIGN.md, section 4): its
-evaluation is found through the entry point group "dct.odom_scenario" (name "evaluate", in
+`--scenario` runs in the simulator, which `runtime` must not import (the package layering of
+docs/architecture.md): its evaluation is found through the entry point group "dct.odom_scenario" (name "evaluate", in
 pyproject.toml: hil_sim.eval.odometry:evaluate_scenario) and loaded only when asked for. Its
 contract: `evaluate_scenario(scenario: str, seed: int, progress: Callable[[float, float], None])
 -> dict` (JSON-ready: `icp`, `wheels_imu`, `fused`, `stage_ms`, ...; progress(done, total) in
@@ -115,7 +115,7 @@ of the registration time per frame); a short summary goes to stdout.
                    "`dct calibrate wheels`")
 @click.option("--trajectory", "trajectory_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="also write the estimated poses here (KITTI format; with --scans)")
-def eval_command(scans_dir: Path | None, poses_file: Path | None, times_file: Path | None, scenario: str | None,
+def eval_command(*, scans_dir: Path | None, poses_file: Path | None, times_file: Path | None, scenario: str | None,
                  seed: int | None, json_path: Path, force: bool, voxel_size: float | None, max_range: float | None,
                  min_range: float | None, deskew: str, trajectory_path: Path | None, record_path: Path | None = None) -> None:
     """See EVAL_HELP."""
@@ -232,7 +232,7 @@ sensors.
 @click.option("--voxel-size", type=float, default=None, callback=_length, help="KISS-ICP voxel (m) [default: 0.5]")
 @click.option("--max-range", type=float, default=None, callback=_length, help="farthest point used (m) [default: 60]")
 @click.option("--min-range", type=float, default=None, callback=_length, help="nearest point used (m) [default: 0]")
-def register_command(source: Path, target: Path, reference: Path | None, json_path: Path | None, force: bool,
+def register_command(*, source: Path, target: Path, reference: Path | None, json_path: Path | None, force: bool,
                      voxel_size: float | None, max_range: float | None, min_range: float | None) -> None:
     """See REGISTER_HELP."""
     import numpy as np

@@ -42,17 +42,10 @@ from runtime.odometry.se2 import compose_jacobians, se2_between, se2_compose, wr
 class FusionConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    # Increment noise (1 sigma), per ICP frame (0.1 s). Measured on odom_loop (725 frames
-    # against ground truth): wheels + gyro increments err 1.1 mm along / 0.3 mm across per frame,
-    # 7 mm sideways per radian turned, 0.37 mrad in yaw (gyro bias walk); KISS-ICP's increments
-    # jitter 6 mm and 1.7 mrad per frame, but frame-to-map registration keeps that from
-    # accumulating (alone it drifts 0.05% and 0.16 deg over the 24 m loop, wheels + gyro 0.14% and
-    # 0.6 deg). The ICP sigmas are a choice between those, checked in HIL (README, Odometry):
-    # - translation 2 mm: ICP leads where the scan constrains it. At 0.5 mm (its drift alone) the
-    #   pose carried its jitter and, in gap_offset's wedge, one seed of five touched a block;
-    # - yaw 2 mrad (its jitter): the gyro leads. In sparse rooms ICP's yaw is weaker than the
-    #   gyro's (gap_offset: 2-3 deg off in the first fast turn; a pillar room: 0.43 deg against
-    #   the gyro's 0.14); wheels and gyro lead along a degenerate direction in any case.
+    # Increment noise (1 sigma), per ICP frame (0.1 s): wheels + gyro from their measured errors;
+    # the ICP sigmas a choice between its drift and its jitter: translation 2 mm (ICP leads where
+    # the scan constrains it), yaw 2 mrad (the gyro leads); wheels and gyro lead along a
+    # degenerate direction in any case. See docs/decisions/odometry-fusion-noise.md.
     wheel_along_fraction: float = Field(0.03, gt=0.0, le=1.0)  # of the distance (skid, scale)
     wheel_across_fraction: float = Field(0.02, gt=0.0, le=1.0)  # of the distance (sideways slip)
     wheel_across_per_rad_m: float = Field(0.01, ge=0.0, le=1.0)  # sideways slip per radian turned
@@ -139,13 +132,6 @@ class PoseFusion:
         w = 0.0 if t1 <= t0 else (t_s - t0) / (t1 - t0)
         a, b = ds[j - 1], ds[j]
         return np.array([a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), wrap(a[2] + w * wrap(b[2] - a[2]))])
-
-    def dead_reckoning_between(self, t0_s: float, t1_s: float) -> np.ndarray | None:
-        """The wheel + gyro increment from t0 to t1, in the base frame at t0 (None: not in history)."""
-        a, b = self.dead_reckoning_at(t0_s), self.dead_reckoning_at(t1_s)
-        if a is None or b is None:
-            return None
-        return se2_between(a, b)
 
     def motion_samples(self, t0_s: float, t1_s: float) -> np.ndarray:
         """Dead-reckoning samples (K, 4: t, x, y, yaw) covering [t0, t1] (for deskew)."""

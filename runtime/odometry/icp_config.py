@@ -14,7 +14,7 @@ class IcpConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     enabled: bool = True
-    #: KISS-ICP's map voxel (m). Its cost rises steeply as it shrinks (ENVIRONMENT.md).
+    #: KISS-ICP's map voxel (m). Its cost rises steeply as it shrinks (docs/decisions/odometry-icp-voxel.md).
     voxel_size_m: float = Field(0.3, gt=0.01, le=5.0)
     min_range_m: float = Field(0.3, ge=0.0, le=10.0)
     max_range_m: float = Field(12.0, gt=0.5, le=200.0)

@@ -30,7 +30,7 @@ so only the order of the times within the sweep matters, not their unit or origi
 The field must span the sweep: a field whose values are all equal carries no time, and a
 sequence whose first scan has no usable time field is registered WITHOUT deskew (the result
 says so, `deskew: false` with the reason) rather than with invented times, which make drift
-worse (ENVIRONMENT.md). Every later scan must then agree with the first.
+worse (docs/decisions/odometry-deskew-times.md). Every later scan must then agree with the first.
 
 Which time the poses are compared at: the estimate of scan i is KISS-ICP's `last_pose` after
 registering it, the pose at the time of its last point when deskewed. Reference poses are

@@ -1,12 +1,10 @@
 """Where KISS-ICP runs: beside the tick, never in it.
 
-KISS-ICP's registration holds Python's GIL for its whole duration (measured: a thread running it
-delays a 1 ms sleep of the main thread by as long as the registration takes, 10-90 ms), so a
-thread would stall the tick. It runs in its own process (`ProcessIcpWorker`): jobs and results
-cross a pipe (a 20k-point frame is 320 kB; pickling it costs well under a millisecond), the tick
-only sends and polls, never waits.
+KISS-ICP's registration holds Python's GIL for its whole duration, so a thread would stall the
+tick. It runs in its own process (`ProcessIcpWorker`): jobs and results cross a pipe, the tick
+only sends and polls, never waits (docs/decisions/odometry-icp-worker-process.md).
 
-Two clocks (DESIGN.md section 6):
+Two clocks (real time and lockstep, docs/architecture.md):
 - Real time: a result is used when it has arrived. One frame is registered at a time; while the
   worker is busy, the newest frame waits and an older waiting one is dropped (counted): ICP
   always works on the newest data and its latency stays bounded.
@@ -47,10 +45,9 @@ class IcpWorker(Protocol):
 
 
 #: The worker process runs this much below the controller (os.nice): when the cores are
-#: contended, the scheduler gives the tick the core before the registration (measured with two
-#: busy processes beside a lockstep episode: the odometry stage's p50 on frame ticks fell from
-#: 3.6-5.3 ms to 0.5 ms, its p90 from 11-13 ms to 3.5 ms). ICP's results may come later then; the
-#: tick never waits for them (dead reckoning carries the pose meanwhile).
+#: contended, the scheduler gives the tick the core before the registration. ICP's results may
+#: come later then; the tick never waits for them (dead reckoning carries the pose meanwhile).
+#: See docs/decisions/odometry-icp-worker-process.md.
 WORKER_NICENESS = 10
 
 

@@ -94,9 +94,9 @@ class ObstaclePointExtractor:
 
         Why the VPP partition needs it: it places the scan in the odom frame and projects it into
         the camera with the pose of the tick. Undeskewed, a frame cast over 100 ms at 1 m/s is
-        smeared by up to 14 cm along the motion (10 cm of frame, the tick's lag behind it): a box's
-        face reached a few points 10 cm deep, off its tracked template, and those points stayed
-        P_fix on the face of a box the robot was about to push (case1 seed 0's detour).
+        smeared by up to 14 cm along the motion (10 cm of frame, the tick's lag behind it), and a
+        box's face points land off its tracked template and stay P_fix
+        (docs/decisions/planning-obstacle-points-deskew.md).
 
         carried: (x min, x max, y min, y max) in base_link: the object the robot pushes, which
         moves with it. Its points stay where the robot saw them (relative to the robot); deskewed

@@ -1,7 +1,8 @@
 """Planning stage: reference path (A* on a local grid), point selection, the OSQP MPC."""
 from runtime.planning.distance_model import DistanceModel, ExactRectangleDual
 from runtime.planning.errors import DistanceModelError, PlannerInputError
-from runtime.planning.mpc import MpcConfig, MpcPlanner, MpcWeights, PlanResult
+from runtime.planning.mpc import MpcPlanner, PlanResult
+from runtime.planning.mpc_config import MpcConfig, MpcWeights
 from runtime.planning.point_selection import PointSelectionConfig, PointSelector, SelectedPoints
 from runtime.planning.reference_path import ReferencePathConfig, ReferencePathPlanner, ReferenceUpdate
 

@@ -7,12 +7,11 @@ rows of a pose with one spot). The thinning is per pose because a cell's nearest
 on the pose: thinning once for all poses (say, the first point of each cell) can drop the point a
 later pose passes closest to, by up to the cell's diagonal (7 cm at 5 cm cells), and the
 collision rows would then see more clearance than the safety supervisor (raw points) does
-(issue 10: plans that clip a box corner). Points farther than `max_distance_m` from a pose's
+(plans that clip a box corner). Points farther than `max_distance_m` from a pose's
 footprint do not constrain it.
 
-The cost is bounded by the cells, not by the points (issue 12: 10,000 points in range cost the
-old (poses x points) tables 4 ms at H = 30). Vectorized throughout, no Python loop over points
-or poses:
+The cost is bounded by the cells, not by the points (docs/decisions/planning-point-selection-cost.md).
+Vectorized throughout, no Python loop over points or poses:
 
 1. box prefilter: points within max_distance + the footprint's circumradius of some pose;
 2. bucket them into cells once (one sort of the cell keys);

@@ -69,7 +69,8 @@ def offset_gap(rng: np.random.Generator) -> np.ndarray:
 def run_case(points: np.ndarray, horizon: int, ticks: int, goal: np.ndarray, start: np.ndarray) -> dict:
     from calibration.robot_description import load_robot_description
     from models.distance_net import DistanceNet
-    from runtime.planning.mpc import MpcConfig, MpcPlanner
+    from runtime.planning.mpc import MpcPlanner
+    from runtime.planning.mpc_config import MpcConfig
     from runtime.planning.reference_path import ReferencePathConfig, ReferencePathPlanner
 
     robot = load_robot_description()

@@ -10,7 +10,8 @@ from runtime.common.events import EventLog
 from runtime.modes.backoff import BackoffMode, PoseTrail
 from runtime.modes.base import ModeDecision, Situation
 from runtime.modes.selector import ModeSelector, RecoveryConfig, StallDetector
-from runtime.planning.mpc import MpcConfig, MpcPlanner
+from runtime.planning.mpc import MpcPlanner
+from runtime.planning.mpc_config import MpcConfig
 
 
 def test_stall_detector_fires_once_after_the_window_without_progress():

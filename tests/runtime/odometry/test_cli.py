@@ -16,7 +16,7 @@ from runtime.odometry.metrics import trajectory_errors
 from runtime.odometry.sequence import read_kitti_poses
 from tests.runtime.odometry.synthetic_sequence import make_sequence
 
-REAL = Path(__file__).resolve().parents[1] / "data" / "real" / "hdl32_pair_small_gicp"
+REAL = Path(__file__).resolve().parents[2] / "data" / "real" / "hdl32_pair_small_gicp"
 STREAM_KEYS = {"length_m", "drift_percent", "rpe_percent", "yaw_drift_deg", "end_error_m"}
 
 

@@ -7,7 +7,7 @@ import pytest
 from runtime.odometry.pair import OUTDOOR_PAIR_CONFIG, register_pair, transform_difference
 from runtime.odometry.sequence import load_scan, read_transform
 
-REAL = Path(__file__).resolve().parents[1] / "data" / "real" / "hdl32_pair_small_gicp"
+REAL = Path(__file__).resolve().parents[2] / "data" / "real" / "hdl32_pair_small_gicp"
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from runtime.odometry.sequence import (
 )
 from tests.runtime.odometry.synthetic_sequence import make_sequence
 
-REAL = Path(__file__).resolve().parents[1] / "data" / "real" / "hdl32_pair_small_gicp"
+REAL = Path(__file__).resolve().parents[2] / "data" / "real" / "hdl32_pair_small_gicp"
 POSE_LINE = "1 0 0 0 0 1 0 0 0 0 1 0"
 
 

@@ -1,4 +1,5 @@
-"""Moving obstacles (runtime/perception/moving_obstacles.py): P_fix clusters followed scan to scan, their
+"""Moving obstacles (runtime/perception/moving_obstacles.py and the modules it uses: cluster_tracking,
+way_prediction, exit_channel): P_fix clusters followed scan to scan, their
 velocity, and the predicted way of one that would meet the robot."""
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from runtime.perception.moving_obstacles import MovingObstacles, MovingObstaclesConfig, Track
+from runtime.perception.cluster_tracking import Track
+from runtime.perception.exit_channel import exit_channel
+from runtime.perception.moving_obstacles import MovingObstacles, MovingObstaclesConfig
 
 
 def _disc(cx: float, cy: float, r: float = 0.25, n: int = 30) -> np.ndarray:
@@ -278,8 +281,8 @@ def test_the_side_chosen_is_given_up_when_the_robot_is_well_on_the_other_side_an
     for heading_deg, side_y in ((0.0, 1.0), (-40.0, -1.0)):
         track = Track(0, exit_side=np.array([0.0, -1.0]))
         h = math.radians(heading_deg)
-        mo._exit_channel(way, np.array([3.0, 0.0]), np.array([-1.0, 0.0]), np.array([0.0, 0.25]),
-                         np.array([math.cos(h), math.sin(h)]), track)
+        exit_channel(mo.config, way, np.array([3.0, 0.0]), np.array([-1.0, 0.0]), np.array([0.0, 0.25]),
+                     np.array([math.cos(h), math.sin(h)]), track)
         assert track.exit_side[1] == pytest.approx(side_y), heading_deg
 
 

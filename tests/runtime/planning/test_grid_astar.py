@@ -67,7 +67,7 @@ def test_grid_astar_holds_still_and_says_why_when_the_goal_is_walled_off(tmp_pat
     from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
 
-    raw = yaml.safe_load((Path(__file__).parents[2] / "hil_sim" / "scenarios" / "case3.yaml").read_text())
+    raw = yaml.safe_load((Path(__file__).parents[3] / "hil_sim" / "scenarios" / "case3.yaml").read_text())
     raw["name"] = "case3_walled_off"
     raw["time_limit_s"] = 4.0
     # A wall across the room between the robot and everything else, in full view of the lidar

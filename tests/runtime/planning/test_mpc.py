@@ -1,5 +1,6 @@
 """The OSQP MPC: closed loop around obstacles, through a narrow gap, bounds, capped solves, and
-the causes of issue 10's stalls (rows it could not meet, unreachable targets, the nominal)."""
+the causes of stalls beside obstacles (rows it could not meet, unreachable targets, the nominal;
+docs/decisions/planning-mpc-standstill.md)."""
 from __future__ import annotations
 
 
@@ -9,7 +10,9 @@ import pytest
 from calibration.robot_description import load_robot_description
 from runtime.planning.distance_model import ExactRectangleDual, footprint_distance_to_points
 from runtime.planning.errors import PlannerInputError
-from runtime.planning.mpc import MpcConfig, MpcPlanner, OsqpMpcBackend, QpOutcome
+from runtime.planning.mpc import MpcPlanner
+from runtime.planning.mpc_config import MpcConfig
+from runtime.planning.mpc_qp import OsqpMpcBackend, QpOutcome
 from runtime.planning.point_selection import PointSelectionConfig, PointSelector
 from runtime.planning.reference_path import ReferencePathConfig, ReferencePathPlanner
 from runtime.safety.supervisor import SafetySupervisor, SafetySupervisorConfig
@@ -160,7 +163,7 @@ def test_collision_rows_are_the_first_order_expansion_of_the_exact_distance(seed
     pts = pts[footprint_distance_to_points(np.zeros((1, 3)), pts, HL, HW)[0] > 0.05]
     nominal = np.array([[0.0, 0.0, 0.0], [0.1, 0.02, 0.1], [0.2, 0.05, 0.3], [0.3, 0.1, 0.4], [0.4, 0.1, 0.6]])
     timings = {"select": 0.0, "net": 0.0, "rows": 0.0}
-    planner._linearize_collisions(nominal, pts, timings)
+    planner.rows.linearize(planner.lin, nominal, pts, timings)
     lin, sel = planner.lin, planner.last_selection
     eps = 1e-6
     for h in range(4):
@@ -206,7 +209,7 @@ def test_bad_inputs_raise_named_errors() -> None:
         MpcPlanner(MpcConfig(), ROBOT, object())
 
 
-# -- Issue 10: the MPC stood still beside obstacles while the reference path was valid ---------
+# -- The MPC must not stand still beside obstacles while the reference path is valid ----------
 
 
 def _segment_points(a, b, step_m: float = 0.02) -> np.ndarray:
@@ -277,7 +280,7 @@ def test_rows_of_points_already_inside_d_min_demand_the_current_distance() -> No
     planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
     planner.lin.state0[:] = start
     nominal = np.repeat(start[None], cfg.horizon_steps + 1, axis=0)  # standing still
-    planner._linearize_collisions(nominal, pts, {"select": 0.0, "net": 0.0, "rows": 0.0})
+    planner.rows.linearize(planner.lin, nominal, pts, {"select": 0.0, "net": 0.0, "rows": 0.0})
     lin, sel = planner.lin, planner.last_selection
     d_now = footprint_distance_to_points(start[None], sel.points_world.reshape(-1, 2), HL, HW).reshape(sel.valid.shape)
     row_at_standstill = np.einsum("hkj,j->hk", lin.coll_coef, start) - lin.coll_rhs

@@ -1,7 +1,7 @@
 """The optimized planner returns the commands the planner before the speed work returned.
 
 tests/data/planner_golden/golden.npz was recorded by make_golden.py (beside it) with the planner
-as of commit 5daa12b, before issue 12's optimizations: closed loops in a cluttered corridor
+as of commit 5daa12b, before the planner's speed optimizations: closed loops in a cluttered corridor
 (H = 10 and 20), at an offset 40 cm gap, weaving through a 70 cm slalom (H = 10 and 30) and
 through an S-bend 36 cm wide, 7 cm each side of the robot (H = 10), with the shipped distance
 net. Here each recorded tick's inputs go into a fresh planner (lockstep caps: iterations only)
@@ -16,7 +16,7 @@ What fails it (measured): a 25% heavier speed-change weight (mean first speed at
 instead of 5 (plan omega 0.43 rad/s), K = 3 points per pose instead of 10 (mean first speed,
 just). What it cannot see: changes that move commands less than the solver's own spread; a 50%
 heavier heading weight, half the slack weight, max_distance 0.6 m, and thinning once per cell
-for all poses (issue 10's bug) all pass. The point selection is held to its definition exactly
+for all poses (an earlier bug) all pass. The point selection is held to its definition exactly
 by tests/runtime/planning/test_point_selection.py (brute force, hypothesis), not by this test.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-GOLDEN = Path(__file__).parents[1] / "data" / "planner_golden" / "golden.npz"
+GOLDEN = Path(__file__).parents[2] / "data" / "planner_golden" / "golden.npz"
 CASES = ("corridor_h10", "corridor_h20", "gap_h10", "slalom_h10", "slalom_h30", "tight_h10")
 #: Largest difference of the first command (v m/s, omega rad/s), and of any command of a plan.
 TOL_FIRST_MAX = np.array([0.01, 0.25])
@@ -55,7 +55,8 @@ def robot_and_net():
 
 def replay(golden: dict, case: str, robot, model, **config) -> dict:
     """Differences between a fresh planner's commands and the recorded ones over a case."""
-    from runtime.planning.mpc import MpcConfig, MpcPlanner
+    from runtime.planning.mpc import MpcPlanner
+    from runtime.planning.mpc_config import MpcConfig
 
     horizon = int(golden[f"{case}/horizon"])
     planner = MpcPlanner(MpcConfig(horizon_steps=horizon, **config), robot, model, wall_clock_caps=False)
@@ -96,7 +97,7 @@ def _within(out: dict) -> bool:
 def test_golden_comparison_detects_a_changed_planner(golden, robot_and_net):
     """The comparison has teeth: a 25% heavier speed-change weight fails it at the gap, a d_min
     of 5 cm instead of 3 in the S-bend."""
-    from runtime.planning.mpc import MpcWeights
+    from runtime.planning.mpc_config import MpcWeights
 
     assert not _within(replay(golden, "gap_h10", *robot_and_net, weights=MpcWeights(speed_change=2.5)))
     assert not _within(replay(golden, "tight_h10", *robot_and_net, d_min_m=0.05))

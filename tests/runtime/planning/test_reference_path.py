@@ -267,7 +267,7 @@ def test_a_new_goal_after_a_failed_search_waits_for_its_own_search() -> None:
     assert not up.blocked and np.allclose(up.path_world[-1], [-2.0, 0.0])
 
 
-# ---------------------------------------------------------------- touchable objects (issue 14)
+# --------------------------------------------------------- touchable objects (push or detour)
 def _box_points(cx, cy, half):
     """The outline of a square box (P_mov), 2 cm spacing."""
     c = [(cx - half, cy - half), (cx + half, cy - half), (cx + half, cy + half), (cx - half, cy + half)]
