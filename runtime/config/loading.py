@@ -22,7 +22,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from calibration.errors import ConfigFileError, format_validation_error, load_yaml_data
-from runtime.config.schema import ControllerConfig
+from runtime.config.schema import DERIVED, ControllerConfig
 
 #: Keys that say which kind of thing a mapping describes: a change of kind replaces the mapping.
 KIND_KEYS = ("kind", "interface", "type")
@@ -112,6 +112,8 @@ def config_sources(path: str | Path | None = None,
             source = SHIPPED
         elif field in preset_fields and not _has(merged, field):
             source = f"{PRESET} {config.preset}" if field != "planner.mode" else "the pair's preset name"
+        elif field in DERIVED and not _has(merged, field):
+            source = f"derived from {DERIVED[field]}"
         else:
             source = BUILT_IN
         rows.append((field, value, source))

@@ -31,6 +31,19 @@ from firmware_bridge.buses import BusConfig
 from runtime.io.ros.settings import RosConfig
 
 
+#: Fields computed from another when the user leaves them unset: field -> the field it comes from.
+DERIVED = {
+    "moving_obstacles.range_m": "planner.obstacle_points.max_range_m",
+    "moving_obstacles.cruise_speed_mps": "planner.reference_path.target_speed_mps",
+}
+
+
+def _get(model: BaseModel, dotted: str):
+    for part in dotted.split("."):
+        model = getattr(model, part)
+    return model
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -206,7 +219,19 @@ class ControllerConfig(_Strict):
                              "(use partition all-fixed)")
         planner = self.planner.model_copy(update={"algorithm": algorithm,
                                                   "mode": presets.preset_of(algorithm, partition)})
-        return self.model_copy(update={"planner": planner, "partition": partition})
+        return self.model_copy(update={"planner": planner, "partition": partition,
+                                       "moving_obstacles": self._derived_moving_obstacles()})
+
+    def _derived_moving_obstacles(self) -> MovingObstaclesConfig:
+        """The people predictor's range and cruise speed, when unset: the obstacle points' range
+        and the reference path's target speed (DERIVED)."""
+        mo = self.moving_obstacles
+        update = {}
+        for field, source in DERIVED.items():
+            section, name = field.split(".")
+            if section == "moving_obstacles" and getattr(mo, name) is None:
+                update[name] = _get(self, source)
+        return mo.model_copy(update=update) if update else mo
 
     @property
     def preset(self) -> str:

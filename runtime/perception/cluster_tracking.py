@@ -65,7 +65,7 @@ class Track:
 
 
 class ClusterTracker:
-    """Steps 1-3 (module docstring); config: MovingObstaclesConfig."""
+    """Steps 1-3 (module docstring); config: PredictorSettings."""
 
     def __init__(self, config) -> None:
         self.config = config

@@ -24,7 +24,7 @@ def exit_channel(config, way: np.ndarray, a: np.ndarray, velocity: np.ndarray, r
                  heading: np.ndarray, track: Track | None = None) -> np.ndarray:
     """(M,) bool: the predicted points `way` kept for a robot at robot_xy heading along the unit
     vector `heading`, in the way of a person at `a` walking at `velocity` (module docstring);
-    the side chosen is kept in track.exit_side. config: MovingObstaclesConfig."""
+    the side chosen is kept in track.exit_side. config: PredictorSettings."""
     c = config
     d = velocity / max(float(np.hypot(*velocity)), 1e-9)
     normal = np.array([-d[1], d[0]])

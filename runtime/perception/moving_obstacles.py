@@ -44,7 +44,7 @@ class MovingObstaclesConfig(BaseModel):
     enabled: bool = True
     #: The obstacle points' range (the controller sets planner.obstacle_points.max_range_m): a
     #: cluster with a point within range_margin_m of it is cut by it, and not followed.
-    range_m: float = Field(6.0, gt=0.5, le=100.0)
+    range_m: float | None = Field(None, gt=0.5, le=100.0)
     range_margin_m: float = Field(0.3, ge=0.0, le=5.0)
     cell_m: float = Field(0.10, gt=0.01, le=1.0)
     min_points: int = Field(8, ge=1, le=10000)
@@ -96,11 +96,9 @@ class MovingObstaclesConfig(BaseModel):
     conflict_radius_m: float = Field(0.45, gt=0.0, le=5.0)
     #: The extrapolation's speeds: the robot's own, at least this (a robot standing, waiting,
     #: asks whether going would meet the person), and its cruise speed (the reference path's
-    #: target speed, set by the controller): a conflict is one at both.
+    #: target speed unless set here): a conflict is one at both.
     min_extrapolation_speed_mps: float = Field(0.5, ge=0.0, le=5.0)
-    cruise_speed_mps: float = Field(1.0, gt=0.0, le=5.0)
-    #: ... reached at this acceleration (the robot description's limit, set by the controller).
-    accel_mps2: float = Field(2.0, gt=0.0, le=20.0)
+    cruise_speed_mps: float | None = Field(None, gt=0.0, le=5.0)
     #: A conflict holds this long (s) after the last scan that found it (no flicker).
     conflict_hold_s: float = Field(0.5, ge=0.0, le=10.0)
     #: A robot whose centre is within in_the_way_m of the person's predicted centre line (a
@@ -132,18 +130,38 @@ class MovingObstaclesConfig(BaseModel):
     go_uncertainty_mps: float = Field(0.25, ge=0.0, le=5.0)
     go_commit_clearance_m: float = Field(0.05, ge=0.0, le=5.0)
     go_dt_s: float = Field(0.05, ge=0.01, le=1.0)
-    robot_half_length_m: float = Field(0.161, gt=0.0, le=5.0)
-    robot_half_width_m: float = Field(0.11, gt=0.0, le=5.0)
     #: A track moving this far (m) since it was found moving is left out of the lidar odometry
     #: (moving_points).
     odometry_travel_m: float = Field(0.3, ge=0.0, le=10.0)
 
 
+class PredictorSettings(MovingObstaclesConfig):
+    """What the predictor runs with: the user's `moving_obstacles:` section with its derived
+    fields filled (runtime.config: the obstacle points' range, the reference path's cruise
+    speed), and the robot description's acceleration limit and footprint. The defaults are the
+    LIMO's (tests)."""
+
+    range_m: float = Field(6.0, gt=0.5, le=100.0)
+    cruise_speed_mps: float = Field(1.0, gt=0.0, le=5.0)
+    #: The robot reaches its cruise speed and brakes at this acceleration (m/s^2).
+    accel_mps2: float = Field(2.0, gt=0.0, le=20.0)
+    robot_half_length_m: float = Field(0.161, gt=0.0, le=5.0)
+    robot_half_width_m: float = Field(0.11, gt=0.0, le=5.0)
+
+    @classmethod
+    def for_robot(cls, config: MovingObstaclesConfig, robot) -> "PredictorSettings":
+        """config: resolved (range_m and cruise_speed_mps set); robot: a RobotDescription."""
+        return cls.model_validate({
+            **config.model_dump(), "accel_mps2": robot.limits.max_linear_accel_mps2,
+            "robot_half_length_m": robot.footprint.length_m / 2.0,
+            "robot_half_width_m": robot.footprint.width_m / 2.0})
+
+
 class MovingObstacles:
     """Tracks of P_fix clusters and their predicted points (module docstring)."""
 
-    def __init__(self, config: MovingObstaclesConfig | None = None) -> None:
-        self.config = config or MovingObstaclesConfig()
+    def __init__(self, config: PredictorSettings | None = None) -> None:
+        self.config = config or PredictorSettings()
         self._tracker = ClusterTracker(self.config)
         self._ways = WayPredictor(self.config)
         self._predicted = np.zeros((0, 2))

@@ -19,7 +19,7 @@ import numpy as np
 
 from runtime.common.geometry import Pose2D
 from runtime.common.sensor_data import CameraImage, LidarScan
-from runtime.perception.moving_obstacles import MovingObstacles, MovingObstaclesConfig
+from runtime.perception.moving_obstacles import MovingObstacles, PredictorSettings
 from runtime.perception.obstacle_points import ObstaclePointExtractor
 from runtime.perception.partition import PartitionStage
 
@@ -37,14 +37,7 @@ class PerceptionStage:
         )
         # People walking: P_fix clusters followed scan to scan; where they go next joins P_fix for
         # the planner and the supervisor (points_plan), not for the odometry checks.
-        # (its range, cruise speed, acceleration and footprint are the obstacle points', the
-        # reference path's and the robot's: set here, validated)
-        self.moving = MovingObstacles(MovingObstaclesConfig.model_validate({
-            **config.moving_obstacles.model_dump(), "range_m": op.max_range_m,
-            "cruise_speed_mps": config.planner.reference_path.target_speed_mps,
-            "accel_mps2": robot.limits.max_linear_accel_mps2,
-            "robot_half_length_m": robot.footprint.length_m / 2.0,
-            "robot_half_width_m": robot.footprint.width_m / 2.0}))
+        self.moving = MovingObstacles(PredictorSettings.for_robot(config.moving_obstacles, robot))
         self.points_fix = _NO_POINTS
         self.points_mov = _NO_POINTS
         self.costs_mov = np.zeros(0)

@@ -32,7 +32,7 @@ from runtime.perception.exit_channel import exit_channel
 class RobotMotion:
     """The robot going straight on from p0 along the unit vector u, from speed v0: how far it
     goes in time tau holding its speed (at least the minimum), hurrying on to cruise at its
-    acceleration limit, or braking at it. config: MovingObstaclesConfig."""
+    acceleration limit, or braking at it. config: PredictorSettings."""
 
     def __init__(self, config, robot_pose, robot_speed_mps: float) -> None:
         c = config
@@ -73,7 +73,7 @@ class RobotMotion:
 
 
 class WayPredictor:
-    """Steps 4-5 (module docstring); config: MovingObstaclesConfig."""
+    """Steps 4-5 (module docstring); config: PredictorSettings."""
 
     def __init__(self, config) -> None:
         self.config = config

@@ -98,3 +98,15 @@ def test_dct_config_show_prints_json_with_sources(tmp_path):
     r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "config", "show", "--config", str(bad)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "planner.algorithm" in r.stderr
+
+
+def test_a_derived_value_follows_its_source_unless_the_user_set_it(tmp_path):
+    c = load_controller_config(_write(tmp_path, {"planner": {"obstacle_points": {"max_range_m": 4.0}}}))
+    assert c.moving_obstacles.range_m == 4.0  # derived from the obstacle points' range
+    mine = _write(tmp_path, {"planner": {"obstacle_points": {"max_range_m": 4.0}}, "moving_obstacles": {"range_m": 3.0}})
+    assert load_controller_config(mine).moving_obstacles.range_m == 3.0  # the user's, not replaced
+    _, rows = config_sources(mine)
+    assert {f: s for f, _, s in rows}["moving_obstacles.range_m"] == str(mine)
+    _, rows = config_sources(None)
+    assert {f: s for f, _, s in rows}["moving_obstacles.cruise_speed_mps"] == \
+        "derived from planner.reference_path.target_speed_mps"

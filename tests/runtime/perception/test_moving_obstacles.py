@@ -10,7 +10,7 @@ import pytest
 
 from runtime.perception.cluster_tracking import Track
 from runtime.perception.exit_channel import exit_channel
-from runtime.perception.moving_obstacles import MovingObstacles, MovingObstaclesConfig
+from runtime.perception.moving_obstacles import MovingObstacles, PredictorSettings
 
 
 def _disc(cx: float, cy: float, r: float = 0.25, n: int = 30) -> np.ndarray:
@@ -71,7 +71,7 @@ def test_a_crossing_the_robot_clears_first_or_one_far_to_the_side_gives_nothing(
                     walls=False)) == 0
     assert any(t.moving for t in mo.tracks), "the person was seen walking"
     # ... while a robot at a walk would meet the person: the way ahead is predicted
-    slow = MovingObstacles(MovingObstaclesConfig(cruise_speed_mps=0.3, min_extrapolation_speed_mps=0.3))
+    slow = MovingObstacles(PredictorSettings(cruise_speed_mps=0.3, min_extrapolation_speed_mps=0.3))
     assert len(_run(slow, lambda t: (1.0, -3.0 + 1.0 * t), robot_pose=(0.5, 0.0, 0.0), speed=0.3, seconds=1.0,
                     walls=False)) > 0
 
@@ -105,7 +105,7 @@ def test_a_robot_in_the_persons_way_keeps_no_prediction_on_itself():
     """A robot already standing in the person's way leaves it: the predicted points on itself and
     in a channel out to its side of the line are left out; one beside the way keeps them all and
     holds."""
-    cfg = MovingObstaclesConfig()
+    cfg = PredictorSettings()
     mo = MovingObstacles(cfg)
     pred = _run(mo, lambda t: (0.05, -1.6 + 1.0 * t), robot_pose=(0.0, 0.0, 0.0), speed=0.0, seconds=0.6)
     assert len(pred) > 0 and np.hypot(*pred.T).min() > cfg.far_side_m
@@ -144,7 +144,7 @@ def test_shift_moves_tracks_and_predictions_with_the_odom_frame():
 
 
 def test_disabled_it_predicts_nothing():
-    mo = MovingObstacles(MovingObstaclesConfig(enabled=False))
+    mo = MovingObstacles(PredictorSettings(enabled=False))
     assert len(_run(mo, lambda t: (1.5, -1.4 + 1.0 * t), speed=0.6)) == 0
     assert len(mo.with_predictions(np.zeros((3, 2)))) == 3
 
@@ -167,11 +167,11 @@ def test_a_static_box_whose_visible_faces_change_is_not_moving():
             seen_moving |= any(t.moving for t in mo.tracks)
         return seen_moving
 
-    assert not run(MovingObstaclesConfig())
+    assert not run(PredictorSettings())
     # the centroid alone says "moving": without the vacated test (every old cell may stay filled)
     # and the free-space test
-    assert run(MovingObstaclesConfig(max_still_filled=1.0, min_moved_in=0.0))
-    assert not run(MovingObstaclesConfig(min_moved_in=0.0)), "the vacated test alone stops this one"
+    assert run(PredictorSettings(max_still_filled=1.0, min_moved_in=0.0))
+    assert not run(PredictorSettings(min_moved_in=0.0)), "the vacated test alone stops this one"
 
 
 def _visible_box(robot_xy) -> np.ndarray:
@@ -200,8 +200,8 @@ def test_a_shelf_driven_past_is_not_moving_though_its_front_is_hidden():
             seen |= any(tr.moving for tr in mo.tracks)
         return seen
 
-    assert not run(MovingObstaclesConfig())
-    assert run(MovingObstaclesConfig(min_moved_in=0.0)), "without the moved-in test the shelf moves"
+    assert not run(PredictorSettings())
+    assert run(PredictorSettings(min_moved_in=0.0)), "without the moved-in test the shelf moves"
 
 
 @pytest.mark.parametrize("walk", [(0.0, 1.0), (-1.0, 0.0), (-0.5, 0.0)], ids=["crossing", "head-on", "head-on slow"])
@@ -219,7 +219,7 @@ def test_a_person_coming_down_the_robots_line_is_predicted_past_the_robot():
     has only the sides to go to, and the robot keeps none of it on itself; with the way cut at
     horizon_s (max_horizon_s 0) it ends between them, and a path could go round its end."""
     for max_h, past in ((4.0, True), (0.0, False)):
-        cfg = MovingObstaclesConfig(max_horizon_s=max_h)
+        cfg = PredictorSettings(max_horizon_s=max_h)
         mo = MovingObstacles(cfg)
         pred = _run(mo, lambda t: (4.0 - 1.1 * t, 0.1), robot_pose=(0.0, 0.0, 0.0), speed=0.8, seconds=0.6)
         assert len(pred) > 0
