@@ -9,7 +9,7 @@ same bytes as ROS 2; tests/runtime/io/test_ros_messages.py checks every type aga
 ROS 2 CDR serializer.
 
 Field names and order follow the ROS 2 Jazzy `.msg` definitions (and, for the Livox types,
-livox_ros_driver2's, see ../shared/protocol/livox_ros_driver2.md). `uint8[]` payloads (image
+livox_ros_driver2's, see docs/ros.md). `uint8[]` payloads (image
 bytes, point cloud bytes) are typed `bytes`: cyclonedds writes `bytes` as a uint32 length and
 the raw octets, exactly the CDR of `sequence<uint8>`, but as one memory copy instead of a
 Python int per byte (a `sequence[uint8]` of a 1920x1200 RGB image is 6.9 M Python ints).
