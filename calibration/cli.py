@@ -243,40 +243,19 @@ def extrinsics_cmd(*, folder: Path, cal_path: Path, out: Path, pattern, square_m
 
     from calibration.calibration_file import RigidTransform
     from calibration.errors import format_validation_error
-    from calibration.extrinsics import (BoardGeometry, BoardObservation, calibrate_lidar_camera,
-                                        extrinsics_quality_problems, segment_board)
-    from calibration.intrinsics import CalibrationError, board_pose_in_camera, detect_board
-    from calibration.robot_description import load_robot_description
+    from calibration.extrinsics import BoardGeometry, calibrate_lidar_camera, extrinsics_quality_problems
+    from calibration.intrinsics import CalibrationError
 
     checked_output(out, "calibration file", inputs=[cal_path, robot_description, *folder.iterdir()])
     cal = _load_cal(cal_path)
-    K, dist = cal.camera.K(), np.array(cal.camera.distortion)
-    if cal.lidar_to_camera is not None:
-        T_guess = cal.T_cam_lidar()
-    else:
-        try:
-            desc = load_robot_description(robot_description)
-        except ConfigFileError as exc:
-            raise OneLineError(str(exc)) from None
-        T_guess = np.linalg.inv(desc.sensors.camera.mount.transform()) @ desc.sensors.lidar.mount.transform()
+    T_guess = _initial_extrinsic(cal, robot_description)
     board = BoardGeometry(pattern, square_m, border_m)
     images = _load_images(folder)
     for name, img in images.items():
         _check_image_size(str(folder / name), img, cal)
     scans = _load_scans(folder, list(images))
-    observations = []
-    for name, pts_all in scans.items():
-        det = detect_board(images[name], pattern)
-        if det is None:
-            click.echo(f"  skipped {name}: checkerboard not found")
-            continue
-        try:
-            T_cb, _ = board_pose_in_camera(det.corners_px, pattern, square_m, K, dist)
-            pts = segment_board(pts_all, board, T_cb, T_guess)
-        except CalibrationError as exc:
-            click.echo(f"  skipped {name}: {exc}")
-            continue
-        observations.append(BoardObservation(T_cb, pts, Path(name).stem))
+    K, dist = cal.camera.K(), np.array(cal.camera.distortion)
+    observations = _board_observations(images, scans, board, K, dist, T_guess)
     try:
         res = calibrate_lidar_camera(observations, board)
     except CalibrationError as exc:
@@ -297,6 +276,44 @@ def extrinsics_cmd(*, folder: Path, cal_path: Path, out: Path, pattern, square_m
     _save(cal, out)
     forced = f" (quality target missed, written because of --force: {'; '.join(problems)})" if problems else ""
     click.echo(f"extrinsic -> {out}{forced}")
+
+
+def _initial_extrinsic(cal, robot_description: Path | None):
+    """The first guess of T_camera<-lidar: the calibration's own, else the robot description's mounts."""
+    import numpy as np
+
+    from calibration.robot_description import load_robot_description
+
+    if cal.lidar_to_camera is not None:
+        return cal.T_cam_lidar()
+    try:
+        desc = load_robot_description(robot_description)
+    except ConfigFileError as exc:
+        raise OneLineError(str(exc)) from None
+    return np.linalg.inv(desc.sensors.camera.mount.transform()) @ desc.sensors.lidar.mount.transform()
+
+
+def _board_observations(images: dict, scans: dict, board, K, dist, T_guess) -> list:
+    """One BoardObservation per view whose board is found in the image and segmented in the scan;
+    the other views are skipped, each with a line saying why."""
+    from calibration.extrinsics import BoardObservation, segment_board
+    from calibration.intrinsics import CalibrationError, board_pose_in_camera, detect_board
+
+    pattern, square_m = board.pattern_size, board.square_m
+    observations = []
+    for name, pts_all in scans.items():
+        det = detect_board(images[name], pattern)
+        if det is None:
+            click.echo(f"  skipped {name}: checkerboard not found")
+            continue
+        try:
+            T_cb, _ = board_pose_in_camera(det.corners_px, pattern, square_m, K, dist)
+            pts = segment_board(pts_all, board, T_cb, T_guess)
+        except CalibrationError as exc:
+            click.echo(f"  skipped {name}: {exc}")
+            continue
+        observations.append(BoardObservation(T_cb, pts, Path(name).stem))
+    return observations
 
 
 # ---------------------------------------------------------------------------- import, project, report

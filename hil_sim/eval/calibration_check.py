@@ -308,7 +308,7 @@ def write_board_views(folder: str | Path, seed: int = 0, n_poses: int = 20,
     """
     import cv2
 
-    from calibration.pointcloud_io import write_pcd
+    from calibration.pointcloud_write import write_pcd
 
     desc = desc or load_robot_description()
     rng = np.random.default_rng(seed)
