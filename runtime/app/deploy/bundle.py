@@ -251,11 +251,7 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
     times: dict[str, float] = {}
     t = time.perf_counter()
     out = check_out_path(Path(out), force)
-    if not 0 <= compresslevel <= 9:
-        raise BundleError(f"compresslevel must be 0-9, got {compresslevel}")
-    if not 0.5 <= watchdog_s <= 600:
-        raise BundleError(f"watchdog_s must be in [0.5, 600], got {watchdog_s}")
-    manylinux_platforms(glibc)  # a bad --glibc fails here, before the long work
+    _check_options(compresslevel, watchdog_s, glibc)
     source = project_root() if source is None and wheelhouse_builder is None else source
     files = validate_inputs(inputs)
     robot, config = files.robot, files.config
@@ -271,12 +267,7 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
         wheelhouse = folder / "wheelhouse"
         wheelhouse.mkdir(parents=True)
         t = time.perf_counter()
-        echo(f"wheelhouse: building ({'custom' if wheelhouse_builder else f'pip, CPython {python_version} {MACHINE}'})")
-        if wheelhouse_builder is not None:
-            wheelhouse_builder(source, wheelhouse)
-        else:
-            build_wheelhouse(source, wheelhouse, python_version=python_version, glibc=glibc)
-        wheels = check_wheelhouse(wheelhouse)
+        wheels = _fill_wheelhouse(wheelhouse, source, wheelhouse_builder, python_version, glibc, echo)
         times["wheelhouse_s"] = time.perf_counter() - t
         echo(f"wheelhouse: {len(wheels)} wheels, {sum(p.stat().st_size for p in wheelhouse.iterdir()) / 1e6:.0f} MB "
              f"in {times['wheelhouse_s']:.1f} s")
@@ -306,6 +297,26 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
         times["archive_s"] = time.perf_counter() - t
     return BundleResult(path=out, folder=folder_name, files=len(manifest["files"]) + 1, size_bytes=out.stat().st_size,
                         wheels=len(wheels), seconds=times, notes=notes)
+
+
+def _check_options(compresslevel: int, watchdog_s: float, glibc: str) -> None:
+    """Refuse bad options before the long work."""
+    if not 0 <= compresslevel <= 9:
+        raise BundleError(f"compresslevel must be 0-9, got {compresslevel}")
+    if not 0.5 <= watchdog_s <= 600:
+        raise BundleError(f"watchdog_s must be in [0.5, 600], got {watchdog_s}")
+    manylinux_platforms(glibc)  # a bad --glibc fails here, before the long work
+
+
+def _fill_wheelhouse(wheelhouse: Path, source: Path | None, builder: Callable[[Path, Path], None] | None,
+                     python_version: str, glibc: str, echo: Callable[[str], None]) -> list[str]:
+    """The wheels, by `builder` when given (tests), else by pip; checked (no CUDA torch)."""
+    echo(f"wheelhouse: building ({'custom' if builder else f'pip, CPython {python_version} {MACHINE}'})")
+    if builder is not None:
+        builder(source, wheelhouse)
+    else:
+        build_wheelhouse(source, wheelhouse, python_version=python_version, glibc=glibc)
+    return check_wheelhouse(wheelhouse)
 
 
 def _service_cpus(rt, service_cpus: str | None) -> str:
