@@ -243,7 +243,8 @@ class EmulatedBaseFirmware:
         self.wheel_targets_radps = np.array([right, left, left, right])
 
     def _speed_loop(self, dt: float, speeds: np.ndarray) -> np.ndarray:
-        # Plain floats: for 4 wheels this is several times faster than numpy per physics step.
+        # Plain floats, not numpy, for the 4 wheels of every physics step
+        # (docs/decisions/can-emulator-plain-float-speed-loop.md).
         kp, ki, lim, ke, r_ohm, v = self._kp, self._ki, self._i_limit, self._ke, self._r_ohm, self._v_supply
         targets = self.wheel_targets_radps.tolist()
         currents = [0.0] * 4
