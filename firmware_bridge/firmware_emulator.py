@@ -5,7 +5,7 @@ command frames from the bus, runs the wheel-speed loop of the four hub motors, r
 motor torques to the physics, and sends the feedback frames. `step()` is called once per
 physics step with the simulated time and the measured wheel speeds and angles (lockstep).
 
-Behaviour (docs/protocol.md, sections Control (command) frames to Heartbeat, timeout and mode
+Behaviour (docs/protocol.md, sections Control frames (host to base) to Heartbeat, timeout and mode
 switching, and the choices made where the sources are silent):
 
 * Starts in standby (0x211 control_mode 0): 0x111 is ignored until 0x421 mode = 0x01 (CAN).

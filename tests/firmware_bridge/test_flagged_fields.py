@@ -53,8 +53,8 @@ def test_direction_of_every_frame_comes_from_the_dbc():
     ],
 )
 def test_dbc_states_the_documented_ranges(signal, fids, lo, hi):
-    # docs/protocol.md, sections Control (command) frames and State feedback frames (the ranges
-    # the flagging relies on).
+    # The ranges the flagging relies on: docs/protocol.md, sections Control frames (host to base)
+    # and State feedback frames (base to host).
     for fid in fids:
         assert codec.signal_limits(fid, signal)[:2] == (lo, hi)
 

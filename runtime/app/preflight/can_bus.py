@@ -14,7 +14,7 @@ from typing import Any
 from runtime.app.preflight.check import Check, one_line, read_text
 
 #: The base must answer the enable frame with 0x221 within this (it sends 0x221 every 20 ms:
-#: docs/protocol.md, section State feedback frames).
+#: docs/protocol.md, section State feedback frames (base to host)).
 BASE_ANSWER_TIMEOUT_S = 0.100
 #: After the first 0x221, how long to wait for 0x211 (sent every 100 ms).
 SYSTEM_STATE_WAIT_S = 0.35
