@@ -304,9 +304,9 @@ def time_to_s(t: Time) -> float:
 #
 # A Mid-360 frame is ~20k CustomPoints; cyclonedds' generic decoder builds one Python object per
 # point, too slow for the 0.1 s frame period, and its encoder is as slow
-# (docs/decisions/docs-ros-decoding.md). On the wire (XCDR1) a CustomPoint is uint32, 3 x float32, 3 x uint8:
-# 19 bytes, each point aligned to 4, so the sequence is an array of 20-byte records (the last one
-# without its pad byte). numpy reads and writes that directly; tests check these bytes against
+# (docs/decisions/docs-ros-decoding.md). On the wire (XCDR1) a CustomPoint is uint32,
+# 3 x float32, 3 x uint8: 19 bytes, each point aligned to 4, so the sequence is an array of
+# 20-byte records (the last one without its pad byte). numpy reads and writes that directly; tests check these bytes against
 # both cyclonedds' and rosbags' serializers.
 
 CUSTOM_POINT_DTYPE = np.dtype({
