@@ -462,5 +462,5 @@ def parse_point_cloud(data: bytes, where: str = "<bytes>", suffix: str = "") -> 
     raise _fail(where, "neither a PLY nor a PCD file (unknown header)")
 
 
-__all__ = ["PointCloud", "PointCloudFormatError", "finite_xyz", "MAX_LZF_EXPANSION", "load_point_cloud", "parse_point_cloud", "parse_pcd",
-           "parse_ply", "lzf_decompress", "lzf_store"]
+__all__ = ["PointCloud", "PointCloudFormatError", "finite_xyz", "MAX_LZF_EXPANSION", "load_point_cloud",
+           "parse_point_cloud", "parse_pcd", "parse_ply", "lzf_decompress", "lzf_store"]

@@ -2,7 +2,8 @@
 
 * ``agilex_v2.dbc``: frame layouts, the single source of truth (read with cantools).
 * ``protocol``: frame ids, constants and the typed records.
-* ``codec``: SDK-exact ``encode``, ``decode`` / ``FrameDecoder`` (frame faults rejected, out-of-range feedback fields flagged).
+* ``codec``: SDK-exact ``encode``, ``decode`` / ``FrameDecoder`` (frame faults rejected,
+  out-of-range feedback fields flagged).
 * ``frame_errors``: ``FrameError`` and its named subclasses.
 * ``candump``: candump text in and out.
 * ``buses``: ``BusConfig`` / ``open_bus`` (virtual, udp_multicast, socketcan, limo_serial).

@@ -38,7 +38,9 @@ import can
 import cantools
 import numpy as np
 
-from firmware_bridge.frame_errors import FlaggedRecordError, FrameError, MalformedFrame, OutOfRange, UnknownFrameId, WrongDlc
+from firmware_bridge.frame_errors import (
+    FlaggedRecordError, FrameError, MalformedFrame, OutOfRange, UnknownFrameId, WrongDlc,
+)
 from firmware_bridge.protocol import (
     ID_ACTUATOR_HS_BASE, ID_ACTUATOR_LS_BASE, ID_BY_RECORD, ID_MOTION_COMMAND, ID_MOTION_STATE, NUM_MOTORS,
     RECORD_BY_ID, ActuatorHighSpeed, ActuatorLowSpeed,
