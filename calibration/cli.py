@@ -20,76 +20,21 @@ Rules every sub-command follows:
 from __future__ import annotations
 
 import math
-from importlib.metadata import entry_points
 from pathlib import Path
 
 import click
 
+from calibration.cli_support import LazyGroup, OneLineError, OneLineGroup, checked_output
 from calibration.errors import ConfigFileError
 from calibration.extrinsics import EXTRINSIC_MAX_RMS_M, EXTRINSIC_MIN_POSES
 from calibration.intrinsics import INTRINSICS_MAX_RMS_PX, INTRINSICS_MIN_VIEWS
-from calibration.outputs import OutputPathError, check_output_path
 
 
-# ---------------------------------------------------------------------------- one-line errors
-class OneLineError(click.ClickException):
-    """A command-line error printed as one line ("Error: <message>"); newlines are folded."""
-
-    def format_message(self) -> str:
-        return " ".join(str(self.message).split())
-
-
-def _usage_error(ctx: click.Context, exc: click.UsageError) -> OneLineError:
-    err = OneLineError(f"{ctx.command_path}: {exc.format_message()} (see --help)")
-    err.exit_code = exc.exit_code
-    return err
-
-
-class OneLineCommand(click.Command):
-    """A click command whose usage errors (bad option, missing argument) are one line, exit 2."""
-
-    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        try:
-            return super().parse_args(ctx, args)
-        except click.UsageError as exc:
-            raise _usage_error(ctx, exc) from None
-
-
-def _plugin_entry_points() -> dict:
-    return {ep.name: ep for ep in entry_points(group="dct.calibrate")}
-
-
-class LazyCalibrateGroup(click.Group):
+class _CalibrateGroup(OneLineGroup, LazyGroup):
     """Built-in sub-commands plus lazily loaded ones from the "dct.calibrate" entry points."""
 
-    command_class = OneLineCommand
-
-    def list_commands(self, ctx: click.Context) -> list[str]:
-        return sorted(set(super().list_commands(ctx)) | set(_plugin_entry_points()))
-
-    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
-        cmd = super().get_command(ctx, name)
-        if cmd is not None:
-            return cmd
-        ep = _plugin_entry_points().get(name)
-        if ep is None:
-            return None
-        try:
-            return ep.load()
-        except ImportError as exc:
-            why = str(exc)  # `exc` is unbound after the except block; the command runs later
-
-            @click.command(name=name, help=f"(unavailable: {why})")
-            def unavailable() -> None:
-                raise OneLineError(f"calibrate command '{name}' cannot be loaded: {why}")
-
-            return unavailable
-
-    def resolve_command(self, ctx: click.Context, args: list[str]):
-        try:
-            return super().resolve_command(ctx, args)
-        except click.UsageError as exc:
-            raise _usage_error(ctx, exc) from None
+    entry_point_group = "dct.calibrate"
+    unavailable_what = "calibrate command"
 
 
 # ---------------------------------------------------------------------------- option checks
@@ -112,14 +57,6 @@ def _non_negative_length(ctx, param, value: float) -> float:
     if not (math.isfinite(value) and value >= 0):
         raise click.BadParameter(f"must be a length >= 0 in metres, got {value}")
     return value
-
-
-def checked_output(path: Path, what: str, inputs=(), overwrite: bool = True) -> Path:
-    """check_output_path as a one-line CLI error."""
-    try:
-        return check_output_path(path, what=what, inputs=[p for p in inputs if p is not None], overwrite=overwrite)
-    except OutputPathError as exc:
-        raise OneLineError(str(exc)) from None
 
 
 def _load_cal(path: Path):
@@ -167,7 +104,7 @@ def _save(cal, out: Path) -> None:
         raise OneLineError(f"{out}: not written: {exc}") from None
 
 
-@click.group(name="calibrate", cls=LazyCalibrateGroup)
+@click.group(name="calibrate", cls=_CalibrateGroup)
 def calibrate_group() -> None:
     """Camera intrinsics, lidar-camera extrinsics, projection checks, calibration reports."""
 
@@ -212,7 +149,7 @@ the command exits 1, unless --force is given.
 @click.option("--robot", default=None, help="robot name stored in the file [default: the --out file's, else limo]")
 @click.option("--force", is_flag=True,
               help="write even if the quality target is missed (see above)")
-def intrinsics_cmd(folder: Path, pattern, square_m: float, out: Path, robot: str | None, force: bool) -> None:
+def intrinsics_cmd(*, folder: Path, pattern, square_m: float, out: Path, robot: str | None, force: bool) -> None:
     """See INTRINSICS_HELP."""
     from calibration.calibration_file import make_calibration
     from calibration.intrinsics import CalibrationError, calibrate_intrinsics, intrinsics_quality_problems
@@ -298,7 +235,7 @@ written, and the command exits 1, unless --force is given.
               help="for the initial guess of T_camera<-lidar (default: the shipped LIMO description)")
 @click.option("--force", is_flag=True,
               help="write even if the quality target is missed (see above)")
-def extrinsics_cmd(folder: Path, cal_path: Path, out: Path, pattern, square_m: float, border_m: float,
+def extrinsics_cmd(*, folder: Path, cal_path: Path, out: Path, pattern, square_m: float, border_m: float,
                    robot_description: Path | None, force: bool) -> None:
     """See EXTRINSICS_HELP."""
     import numpy as np
@@ -306,40 +243,19 @@ def extrinsics_cmd(folder: Path, cal_path: Path, out: Path, pattern, square_m: f
 
     from calibration.calibration_file import RigidTransform
     from calibration.errors import format_validation_error
-    from calibration.extrinsics import (BoardGeometry, BoardObservation, calibrate_lidar_camera,
-                                        extrinsics_quality_problems, segment_board)
-    from calibration.intrinsics import CalibrationError, board_pose_in_camera, detect_board
-    from calibration.robot_description import load_robot_description
+    from calibration.extrinsics import BoardGeometry, calibrate_lidar_camera, extrinsics_quality_problems
+    from calibration.intrinsics import CalibrationError
 
     checked_output(out, "calibration file", inputs=[cal_path, robot_description, *folder.iterdir()])
     cal = _load_cal(cal_path)
-    K, dist = cal.camera.K(), np.array(cal.camera.distortion)
-    if cal.lidar_to_camera is not None:
-        T_guess = cal.T_cam_lidar()
-    else:
-        try:
-            desc = load_robot_description(robot_description)
-        except ConfigFileError as exc:
-            raise OneLineError(str(exc)) from None
-        T_guess = np.linalg.inv(desc.sensors.camera.mount.transform()) @ desc.sensors.lidar.mount.transform()
+    T_guess = _initial_extrinsic(cal, robot_description)
     board = BoardGeometry(pattern, square_m, border_m)
     images = _load_images(folder)
     for name, img in images.items():
         _check_image_size(str(folder / name), img, cal)
     scans = _load_scans(folder, list(images))
-    observations = []
-    for name, pts_all in scans.items():
-        det = detect_board(images[name], pattern)
-        if det is None:
-            click.echo(f"  skipped {name}: checkerboard not found")
-            continue
-        try:
-            T_cb, _ = board_pose_in_camera(det.corners_px, pattern, square_m, K, dist)
-            pts = segment_board(pts_all, board, T_cb, T_guess)
-        except CalibrationError as exc:
-            click.echo(f"  skipped {name}: {exc}")
-            continue
-        observations.append(BoardObservation(T_cb, pts, Path(name).stem))
+    K, dist = cal.camera.K(), np.array(cal.camera.distortion)
+    observations = _board_observations(images, scans, board, K, dist, T_guess)
     try:
         res = calibrate_lidar_camera(observations, board)
     except CalibrationError as exc:
@@ -362,6 +278,44 @@ def extrinsics_cmd(folder: Path, cal_path: Path, out: Path, pattern, square_m: f
     click.echo(f"extrinsic -> {out}{forced}")
 
 
+def _initial_extrinsic(cal, robot_description: Path | None):
+    """The first guess of T_camera<-lidar: the calibration's own, else the robot description's mounts."""
+    import numpy as np
+
+    from calibration.robot_description import load_robot_description
+
+    if cal.lidar_to_camera is not None:
+        return cal.T_cam_lidar()
+    try:
+        desc = load_robot_description(robot_description)
+    except ConfigFileError as exc:
+        raise OneLineError(str(exc)) from None
+    return np.linalg.inv(desc.sensors.camera.mount.transform()) @ desc.sensors.lidar.mount.transform()
+
+
+def _board_observations(images: dict, scans: dict, board, K, dist, T_guess) -> list:
+    """One BoardObservation per view whose board is found in the image and segmented in the scan;
+    the other views are skipped, each with a line saying why."""
+    from calibration.extrinsics import BoardObservation, segment_board
+    from calibration.intrinsics import CalibrationError, board_pose_in_camera, detect_board
+
+    pattern, square_m = board.pattern_size, board.square_m
+    observations = []
+    for name, pts_all in scans.items():
+        det = detect_board(images[name], pattern)
+        if det is None:
+            click.echo(f"  skipped {name}: checkerboard not found")
+            continue
+        try:
+            T_cb, _ = board_pose_in_camera(det.corners_px, pattern, square_m, K, dist)
+            pts = segment_board(pts_all, board, T_cb, T_guess)
+        except CalibrationError as exc:
+            click.echo(f"  skipped {name}: {exc}")
+            continue
+        observations.append(BoardObservation(T_cb, pts, Path(name).stem))
+    return observations
+
+
 # ---------------------------------------------------------------------------- import, project, report
 @calibrate_group.command("import-opencalib")
 @click.argument("intrinsic_json", type=click.Path(exists=True, dir_okay=False, path_type=Path))
@@ -370,7 +324,7 @@ def extrinsics_cmd(folder: Path, cal_path: Path, out: Path, pattern, square_m: f
 @click.option("--height", type=click.IntRange(1, 16384), required=True)
 @click.option("--robot", default="opencalib", show_default=True)
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True)
-def import_opencalib_cmd(intrinsic_json: Path, extrinsic_json: Path, width: int, height: int, robot: str,
+def import_opencalib_cmd(*, intrinsic_json: Path, extrinsic_json: Path, width: int, height: int, robot: str,
                          out: Path) -> None:
     """Convert OpenCalib camera-intrinsic + lidar-to-camera JSON files into a calibration YAML."""
     from calibration.calibration_file import calibration_from_opencalib
@@ -391,7 +345,7 @@ def import_opencalib_cmd(intrinsic_json: Path, extrinsic_json: Path, width: int,
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="overlay image (.png, .jpg, ...)")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None)
-def project_cmd(scan: Path, image: Path, cal_path: Path, out: Path, json_path: Path | None) -> None:
+def project_cmd(*, scan: Path, image: Path, cal_path: Path, out: Path, json_path: Path | None) -> None:
     """Project SCAN into IMAGE; write an overlay (colour = depth) and stats."""
     import json
 
@@ -450,7 +404,7 @@ def project_cmd(scan: Path, image: Path, cal_path: Path, out: Path, json_path: P
               help="recompute per-image reprojection errors on these checkerboard images")
 @click.option("--pattern", default="9x6", show_default=True, callback=_pattern)
 @click.option("--square-m", type=float, default=0.025, show_default=True, callback=_positive_length)
-def report_cmd(cal_path: Path, images: Path | None, pattern, square_m: float) -> None:
+def report_cmd(*, cal_path: Path, images: Path | None, pattern, square_m: float) -> None:
     """Print a calibration file's values and reprojection errors (stored, or recomputed on --images)."""
     import numpy as np
 
@@ -500,4 +454,4 @@ def _report_images(cal, folder: Path, pattern, square_m: float) -> None:
         click.echo(f"mean per-image RMS {np.mean(errs):.3f} px over {len(errs)} images")
 
 
-__all__ = ["calibrate_group", "OneLineCommand", "OneLineError", "checked_output"]
+__all__ = ["calibrate_group"]

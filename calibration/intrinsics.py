@@ -124,10 +124,30 @@ def calibrate_intrinsics(
         images = {f"image_{i:03d}": img for i, img in enumerate(images)}
     if not images:
         raise CalibrationError("no images given")
+    (h, w), found, rejected = _find_boards(images, pattern_size)
+    obj = board_object_points(pattern_size, square_m).astype(np.float32)
+    views = _Views(obj, found, (w, h), cv2.CALIB_FIX_K3 if fix_k3 else 0, min_views, rejected)
+    names = list(found)
+    rms, K, dist, rvecs, tvecs, per = views.calibrate(names)
+    limit = min(max_view_rms_px, outlier_factor * max(float(np.median(list(per.values()))), 0.1))
+    bad = [n for n in names if per[n] > limit]
+    if bad:
+        for n in bad:
+            rejected[n] = f"reprojection RMS {per[n]:.2f} px > {limit:.2f} px (outlier view)"
+        names = [n for n in names if n not in bad]
+        rms, K, dist, rvecs, tvecs, per = views.calibrate(names)
+    return IntrinsicsResult(
+        K=K, dist=dist.ravel(), width_px=w, height_px=h, rms_px=float(rms), per_image_rms_px=per, rejected=rejected,
+        rvecs={n: r.ravel() for n, r in zip(names, rvecs)}, tvecs={n: t.ravel() for n, t in zip(names, tvecs)},
+    )
+
+
+def _find_boards(images: Mapping[str, np.ndarray], pattern_size: tuple[int, int]):
+    """((h, w) of the first image, {name: board corners (float32)}, {name: why rejected}): the
+    views of another size or without the board are rejected."""
     sizes = {name: img.shape[:2] for name, img in images.items()}
     h, w = next(iter(sizes.values()))
     rejected: dict[str, str] = {}
-    obj = board_object_points(pattern_size, square_m).astype(np.float32)
     found: dict[str, np.ndarray] = {}
     for name, img in images.items():
         if sizes[name] != (h, w):
@@ -138,35 +158,37 @@ def calibrate_intrinsics(
             rejected[name] = f"checkerboard {pattern_size[0]}x{pattern_size[1]} not found"
             continue
         found[name] = det.corners_px.astype(np.float32)
-    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
+    return (h, w), found, rejected
 
-    def _run(names: list[str]):
-        if len(names) < min_views:
+
+@dataclass
+class _Views:
+    """The board views found, calibrated together by cv2.calibrateCamera."""
+
+    obj: np.ndarray  # the board's corner points (N, 3) float32
+    found: dict[str, np.ndarray]  # name -> detected corners
+    size_wh: tuple[int, int]
+    flags: int
+    min_views: int
+    rejected: dict[str, str]  # named in the error when too few views are left
+
+    def calibrate(self, names: list[str]):
+        """(rms, K, dist, rvecs, tvecs, {name: per-view RMS px}) over the views `names`."""
+        import cv2
+
+        obj, found = self.obj, self.found
+        if len(names) < self.min_views:
             raise CalibrationError(
-                f"only {len(names)} usable views (need {min_views}); rejected: {rejected or 'none'}"
+                f"only {len(names)} usable views (need {self.min_views}); rejected: {self.rejected or 'none'}"
             )
         rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-            [obj] * len(names), [found[n] for n in names], (w, h), None, None, flags=flags
+            [obj] * len(names), [found[n] for n in names], self.size_wh, None, None, flags=self.flags
         )
         per = {}
         for n, rv, tv in zip(names, rvecs, tvecs):
             proj, _ = cv2.projectPoints(obj, rv, tv, K, dist)
             per[n] = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - found[n]) ** 2, axis=1))))
         return rms, K, dist, rvecs, tvecs, per
-
-    names = list(found)
-    rms, K, dist, rvecs, tvecs, per = _run(names)
-    limit = min(max_view_rms_px, outlier_factor * max(float(np.median(list(per.values()))), 0.1))
-    bad = [n for n in names if per[n] > limit]
-    if bad:
-        for n in bad:
-            rejected[n] = f"reprojection RMS {per[n]:.2f} px > {limit:.2f} px (outlier view)"
-        names = [n for n in names if n not in bad]
-        rms, K, dist, rvecs, tvecs, per = _run(names)
-    return IntrinsicsResult(
-        K=K, dist=dist.ravel(), width_px=w, height_px=h, rms_px=float(rms), per_image_rms_px=per, rejected=rejected,
-        rvecs={n: r.ravel() for n, r in zip(names, rvecs)}, tvecs={n: t.ravel() for n, t in zip(names, tvecs)},
-    )
 
 
 def intrinsics_quality_problems(

@@ -1,6 +1,6 @@
 """Writing output files so that nothing is lost or overwritten.
 
-Rules every command follows (DEVELOPERS.md, "Nothing is lost or overwritten"):
+Rules every command follows (docs/commands.md):
 
 * Check the output path *before* the long work starts (`check_output_path`): its folder must
   exist and be writable, it must not be a folder, and it must not be a shipped artifact (a file

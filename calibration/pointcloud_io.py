@@ -1,8 +1,9 @@
-"""Point-cloud files: PCD (ascii, binary, binary_compressed) and PLY (ascii, binary LE/BE).
+"""Point-cloud files: PCD (ascii, binary, binary_compressed) and PLY (ascii, binary LE/BE), read.
 
 `load_point_cloud(path)` returns a `PointCloud` (named per-point fields plus an (N,3) `xyz`).
 Any malformed file raises `PointCloudFormatError` naming the file and what is wrong; nothing
-else escapes the parsers (they are fuzzed with arbitrary bytes in the tests).
+else escapes the parsers (they are fuzzed with arbitrary bytes in the tests). Writing them:
+calibration.pointcloud_write.
 """
 from __future__ import annotations
 
@@ -133,9 +134,8 @@ _LZF_ERRORS = {
 def _lzf_kernel_source(src, out):  # pragma: no cover - runs compiled by numba
     """LibLZF's lzf_decompress (liblzf 3.6 lzf_d.c) over uint8 arrays.
 
-    Returns the number of bytes written, or a negative code from _LZF_ERRORS. Hand-written
-    because no maintained LZF package installs here (the PyPI bindings are unmaintained source
-    builds); numba (a dependency already) compiles it, so it runs at C speed.
+    Returns the number of bytes written, or a negative code from _LZF_ERRORS. numba compiles it
+    (docs/decisions/io-lzf-decoder.md).
     """
     ip = 0
     op = 0
@@ -221,12 +221,44 @@ def lzf_store(data: bytes) -> bytes:
 def parse_pcd(data: bytes, where: str = "<pcd>") -> PointCloud:
     """Parse PCD bytes (v0.6/v0.7; DATA ascii, binary or binary_compressed)."""
     lines, pos = _read_header_lines(data, where, b"DATA")
+    layout = _pcd_layout(lines, where)
+    mode = layout.mode
+    body = data[pos:]
+    if mode == "ascii":
+        fields = _pcd_ascii(body, layout, where)
+    elif mode == "binary":
+        fields = _pcd_binary(body, layout, where)
+    elif mode == "binary_compressed":
+        fields = _pcd_compressed(body, layout, where)
+    else:
+        raise _fail(where, f"unsupported DATA mode {mode!r} (ascii, binary, binary_compressed)")
+    return _check_xyz(fields, where)
+
+
+@dataclass(frozen=True)
+class _PcdLayout:
+    """What a PCD header says: the fields (name, numpy type, byte size, count), points, DATA mode."""
+
+    names: list[str]
+    dtypes: list[str]
+    sizes: list[int]
+    counts: list[int]
+    n: int
+    mode: str
+
+
+def _pcd_header(lines: list[str]) -> dict[str, list[str]]:
     hdr: dict[str, list[str]] = {}
     for line in lines:
         if not line or line.startswith("#"):
             continue
         key, *vals = line.split()
         hdr[key.upper()] = vals
+    return hdr
+
+
+def _pcd_layout(lines: list[str], where: str) -> _PcdLayout:
+    hdr = _pcd_header(lines)
     for key in ("FIELDS", "SIZE", "TYPE", "DATA"):
         if key not in hdr:
             raise _fail(where, f"header has no {key} line")
@@ -245,6 +277,13 @@ def parse_pcd(data: bytes, where: str = "<pcd>") -> PointCloud:
         if (t, s) not in _PCD_TYPES:
             raise _fail(where, f"field {name}: unsupported TYPE {t} with SIZE {s}")
         dtypes.append(_PCD_TYPES[(t, s)])
+    n = _pcd_points(hdr, where)
+    mode = hdr["DATA"][0].lower() if hdr["DATA"] else ""
+    return _PcdLayout(names, dtypes, sizes, counts, n, mode)
+
+
+def _pcd_points(hdr: dict[str, list[str]], where: str) -> int:
+    """POINTS (else WIDTH x HEIGHT), checked against WIDTH x HEIGHT when both are given."""
     if "POINTS" in hdr and hdr["POINTS"]:
         n = _parse_int(hdr["POINTS"][0], where, "POINTS")
     elif "WIDTH" in hdr and "HEIGHT" in hdr and hdr["WIDTH"] and hdr["HEIGHT"]:
@@ -258,87 +297,63 @@ def parse_pcd(data: bytes, where: str = "<pcd>") -> PointCloud:
         h = _parse_int(hdr["HEIGHT"][0], where, "HEIGHT")
         if w * h != n:
             raise _fail(where, f"WIDTH*HEIGHT = {w * h} does not match POINTS = {n}")
-    mode = hdr["DATA"][0].lower() if hdr["DATA"] else ""
-    body = data[pos:]
+    return n
+
+
+def _pcd_ascii(body: bytes, layout: _PcdLayout, where: str) -> dict[str, np.ndarray]:
+    n, counts = layout.n, layout.counts
+    table = _ascii_table(body, n, sum(counts), where, exact=True)
     fields: dict[str, np.ndarray] = {}
-    if mode == "ascii":
-        table = _ascii_table(body, n, sum(counts), where, exact=True)
-        col = 0
-        for name, dt, c in zip(names, dtypes, counts):
-            vals = table[:, col:col + c]
-            col += c
-            if dt.startswith(("i", "u")):
-                if not np.all(np.isfinite(vals)) or np.any(vals != np.round(vals)):
-                    raise _fail(where, f"field {name} is an integer field but has non-integer values")
-                info = np.iinfo(np.dtype(dt))
-                if np.any(vals < info.min) or np.any(vals > info.max):
-                    raise _fail(where, f"field {name}: value out of range for {dt}")
-            arr = vals.astype(dt)
-            fields[name] = arr[:, 0] if c == 1 else arr
-    elif mode == "binary":
-        dtype = np.dtype([(nm, "<" + dt, (c,) if c > 1 else ()) for nm, dt, c in zip(names, dtypes, counts)])
-        need = n * dtype.itemsize
-        if len(body) != need:
-            raise _fail(where, f"binary data has {len(body)} bytes, header's {n} points x {dtype.itemsize} bytes "
-                               f"need {need}")
-        rec = np.frombuffer(body, dtype=dtype, count=n)
-        fields = {nm: np.ascontiguousarray(rec[nm]) for nm in names}
-    elif mode == "binary_compressed":
-        if len(body) < 8:
-            raise _fail(where, "binary_compressed data is shorter than its 8-byte size header")
-        comp_size, raw_size = np.frombuffer(body[:8], dtype="<u4")
-        comp_size, raw_size = int(comp_size), int(raw_size)
-        item_sizes = [s * c for s, c in zip(sizes, counts)]
-        if raw_size != n * sum(item_sizes):
-            raise _fail(where, f"binary_compressed: uncompressed size {raw_size} does not match "
-                               f"{n} points x {sum(item_sizes)} bytes")
-        if comp_size != len(body) - 8:
-            raise _fail(where, f"binary_compressed: {comp_size} compressed bytes announced, "
-                               f"{len(body) - 8} present")
-        try:
-            raw = lzf_decompress(body[8:8 + comp_size], raw_size)
-        except PointCloudFormatError as exc:
-            raise _fail(where, f"binary_compressed: {exc}") from None
-        off = 0  # column-major: all values of field 0, then field 1, ...
-        for name, dt, c, isz in zip(names, dtypes, counts, item_sizes):
-            arr = np.frombuffer(raw, dtype="<" + dt, count=n * c, offset=off).reshape(n, c)
-            off += n * isz
-            fields[name] = arr[:, 0].copy() if c == 1 else arr.copy()
-    else:
-        raise _fail(where, f"unsupported DATA mode {mode!r} (ascii, binary, binary_compressed)")
-    return _check_xyz(fields, where)
+    col = 0
+    for name, dt, c in zip(layout.names, layout.dtypes, counts):
+        vals = table[:, col:col + c]
+        col += c
+        if dt.startswith(("i", "u")):
+            if not np.all(np.isfinite(vals)) or np.any(vals != np.round(vals)):
+                raise _fail(where, f"field {name} is an integer field but has non-integer values")
+            info = np.iinfo(np.dtype(dt))
+            if np.any(vals < info.min) or np.any(vals > info.max):
+                raise _fail(where, f"field {name}: value out of range for {dt}")
+        arr = vals.astype(dt)
+        fields[name] = arr[:, 0] if c == 1 else arr
+    return fields
 
 
-def write_pcd(path: str | Path, fields: dict[str, np.ndarray], mode: str = "binary") -> None:
-    """Write 1-D fields (float32/float64/int/uint) as PCD v0.7; mode ascii|binary|binary_compressed."""
-    names = list(fields)
-    arrays = [np.ascontiguousarray(fields[k]) for k in names]
-    n = len(arrays[0])
-    kinds = {"f": "F", "i": "I", "u": "U"}
-    header = [
-        "# .PCD v0.7 - Point Cloud Data file format", "VERSION 0.7",
-        "FIELDS " + " ".join(names),
-        "SIZE " + " ".join(str(a.dtype.itemsize) for a in arrays),
-        "TYPE " + " ".join(kinds[a.dtype.kind] for a in arrays),
-        "COUNT " + " ".join("1" for _ in arrays),
-        f"WIDTH {n}", "HEIGHT 1", "VIEWPOINT 0 0 0 1 0 0 0", f"POINTS {n}", f"DATA {mode}",
-    ]
-    head = ("\n".join(header) + "\n").encode("ascii")
-    if mode == "ascii":
-        body = "\n".join(" ".join(repr(a[i].item()) for a in arrays) for i in range(n)).encode() + b"\n"
-    elif mode == "binary":
-        dtype = np.dtype([(k, a.dtype.newbyteorder("<")) for k, a in zip(names, arrays)])
-        rec = np.empty(n, dtype=dtype)
-        for k, a in zip(names, arrays):
-            rec[k] = a
-        body = rec.tobytes()
-    elif mode == "binary_compressed":
-        raw = b"".join(a.astype(a.dtype.newbyteorder("<")).tobytes() for a in arrays)
-        comp = lzf_store(raw)
-        body = np.array([len(comp), len(raw)], dtype="<u4").tobytes() + comp
-    else:
-        raise ValueError(f"unknown PCD mode {mode!r}")
-    Path(path).write_bytes(head + body)
+def _pcd_binary(body: bytes, layout: _PcdLayout, where: str) -> dict[str, np.ndarray]:
+    names, n = layout.names, layout.n
+    dtype = np.dtype([(nm, "<" + dt, (c,) if c > 1 else ()) for nm, dt, c in zip(names, layout.dtypes, layout.counts)])
+    need = n * dtype.itemsize
+    if len(body) != need:
+        raise _fail(where, f"binary data has {len(body)} bytes, header's {n} points x {dtype.itemsize} bytes "
+                           f"need {need}")
+    rec = np.frombuffer(body, dtype=dtype, count=n)
+    return {nm: np.ascontiguousarray(rec[nm]) for nm in names}
+
+
+def _pcd_compressed(body: bytes, layout: _PcdLayout, where: str) -> dict[str, np.ndarray]:
+    n = layout.n
+    if len(body) < 8:
+        raise _fail(where, "binary_compressed data is shorter than its 8-byte size header")
+    comp_size, raw_size = np.frombuffer(body[:8], dtype="<u4")
+    comp_size, raw_size = int(comp_size), int(raw_size)
+    item_sizes = [s * c for s, c in zip(layout.sizes, layout.counts)]
+    if raw_size != n * sum(item_sizes):
+        raise _fail(where, f"binary_compressed: uncompressed size {raw_size} does not match "
+                           f"{n} points x {sum(item_sizes)} bytes")
+    if comp_size != len(body) - 8:
+        raise _fail(where, f"binary_compressed: {comp_size} compressed bytes announced, "
+                           f"{len(body) - 8} present")
+    try:
+        raw = lzf_decompress(body[8:8 + comp_size], raw_size)
+    except PointCloudFormatError as exc:
+        raise _fail(where, f"binary_compressed: {exc}") from None
+    fields: dict[str, np.ndarray] = {}
+    off = 0  # column-major: all values of field 0, then field 1, ...
+    for name, dt, c, isz in zip(layout.names, layout.dtypes, layout.counts, item_sizes):
+        arr = np.frombuffer(raw, dtype="<" + dt, count=n * c, offset=off).reshape(n, c)
+        off += n * isz
+        fields[name] = arr[:, 0].copy() if c == 1 else arr.copy()
+    return fields
 
 
 # ---------------------------------------------------------------------------- PLY
@@ -354,9 +369,37 @@ def parse_ply(data: bytes, where: str = "<ply>") -> PointCloud:
     lines, pos = _read_header_lines(data, where, b"end_header")
     if lines[0] != "ply":
         raise _fail(where, "first line must be exactly 'ply'")
+    fmt, elements = _ply_header(lines[1:-1], where)
+    if fmt is None:
+        raise _fail(where, "header has no format line")
+    if not elements or elements[0][0] != "vertex":
+        raise _fail(where, "the first element must be 'vertex'")
+    _, n, props = elements[0]
+    if any(t == "list" for _, t in props):
+        raise _fail(where, "list properties in the vertex element are not supported")
+    names = [p for p, _ in props]
+    if len(set(names)) != len(names) or not names:
+        raise _fail(where, f"vertex properties must be distinct and non-empty, got {names}")
+    body = data[pos:]
+    if fmt == "ascii":
+        fields = _ply_ascii(body, n, props, where)
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dtype = np.dtype([(nm, order + dt) for nm, dt in props])
+        need = n * dtype.itemsize
+        if len(body) < need:
+            raise _fail(where, f"binary vertex data has {len(body)} bytes, {n} vertices need {need}")
+        rec = np.frombuffer(body, dtype=dtype, count=n)
+        fields = {nm: rec[nm].astype(rec[nm].dtype.newbyteorder("=")) for nm in names}
+    return _check_xyz(fields, where)
+
+
+def _ply_header(lines: list[str], where: str) -> tuple[str | None, list[tuple[str, int, list[tuple[str, str]]]]]:
+    """The format and the elements (name, count, [(property, numpy type or "list")]) of the
+    header lines between 'ply' and 'end_header'."""
     fmt = None
     elements: list[tuple[str, int, list[tuple[str, str]]]] = []
-    for line in lines[1:-1]:
+    for line in lines:
         parts = line.split()
         if not parts or parts[0] in ("comment", "obj_info"):
             continue
@@ -379,59 +422,22 @@ def parse_ply(data: bytes, where: str = "<ply>") -> PointCloud:
             elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
         else:
             raise _fail(where, f"unknown header line {line!r}")
-    if fmt is None:
-        raise _fail(where, "header has no format line")
-    if not elements or elements[0][0] != "vertex":
-        raise _fail(where, "the first element must be 'vertex'")
-    _, n, props = elements[0]
-    if any(t == "list" for _, t in props):
-        raise _fail(where, "list properties in the vertex element are not supported")
-    names = [p for p, _ in props]
-    if len(set(names)) != len(names) or not names:
-        raise _fail(where, f"vertex properties must be distinct and non-empty, got {names}")
-    body = data[pos:]
-    if fmt == "ascii":
-        table = _ascii_table(body, n, len(props), where)
-        fields = {}
-        for i, (nm, dt) in enumerate(props):
-            vals = table[:, i]
-            if dt.startswith(("i", "u")):
-                if not np.all(np.isfinite(vals)) or np.any(vals != np.round(vals)):
-                    raise _fail(where, f"property {nm} is an integer but has non-integer values")
-                info = np.iinfo(np.dtype(dt))
-                if np.any(vals < info.min) or np.any(vals > info.max):
-                    raise _fail(where, f"property {nm}: value out of range for {dt}")
-            fields[nm] = vals.astype(dt)
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        dtype = np.dtype([(nm, order + dt) for nm, dt in props])
-        need = n * dtype.itemsize
-        if len(body) < need:
-            raise _fail(where, f"binary vertex data has {len(body)} bytes, {n} vertices need {need}")
-        rec = np.frombuffer(body, dtype=dtype, count=n)
-        fields = {nm: rec[nm].astype(rec[nm].dtype.newbyteorder("=")) for nm in names}
-    return _check_xyz(fields, where)
+    return fmt, elements
 
 
-def write_ply(path: str | Path, fields: dict[str, np.ndarray], binary: bool = True) -> None:
-    """Write 1-D fields as a PLY vertex element (binary little-endian or ascii)."""
-    inv = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
-           "f4": "float", "f8": "double"}
-    names = list(fields)
-    arrays = [np.ascontiguousarray(fields[k]) for k in names]
-    n = len(arrays[0])
-    header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0", f"element vertex {n}"]
-    header += [f"property {inv[a.dtype.str[1:]]} {k}" for k, a in zip(names, arrays)]
-    header.append("end_header")
-    head = ("\n".join(header) + "\n").encode("ascii")
-    if binary:
-        rec = np.empty(n, dtype=np.dtype([(k, a.dtype.newbyteorder("<")) for k, a in zip(names, arrays)]))
-        for k, a in zip(names, arrays):
-            rec[k] = a
-        body = rec.tobytes()
-    else:
-        body = "".join(" ".join(repr(a[i].item()) for a in arrays) + "\n" for i in range(n)).encode()
-    Path(path).write_bytes(head + body)
+def _ply_ascii(body: bytes, n: int, props: list[tuple[str, str]], where: str) -> dict[str, np.ndarray]:
+    table = _ascii_table(body, n, len(props), where)
+    fields = {}
+    for i, (nm, dt) in enumerate(props):
+        vals = table[:, i]
+        if dt.startswith(("i", "u")):
+            if not np.all(np.isfinite(vals)) or np.any(vals != np.round(vals)):
+                raise _fail(where, f"property {nm} is an integer but has non-integer values")
+            info = np.iinfo(np.dtype(dt))
+            if np.any(vals < info.min) or np.any(vals > info.max):
+                raise _fail(where, f"property {nm}: value out of range for {dt}")
+        fields[nm] = vals.astype(dt)
+    return fields
 
 
 # ---------------------------------------------------------------------------- entry point
@@ -456,5 +462,5 @@ def parse_point_cloud(data: bytes, where: str = "<bytes>", suffix: str = "") -> 
     raise _fail(where, "neither a PLY nor a PCD file (unknown header)")
 
 
-__all__ = ["PointCloud", "PointCloudFormatError", "finite_xyz", "MAX_LZF_EXPANSION", "load_point_cloud", "parse_point_cloud", "parse_pcd",
-           "parse_ply", "write_pcd", "write_ply", "lzf_decompress", "lzf_store"]
+__all__ = ["PointCloud", "PointCloudFormatError", "finite_xyz", "MAX_LZF_EXPANSION", "load_point_cloud",
+           "parse_point_cloud", "parse_pcd", "parse_ply", "lzf_decompress", "lzf_store"]

@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 import can
 
+from firmware_bridge import codec
 from firmware_bridge import protocol as p
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,7 @@ class AgileXBaseDriver:
         self._bus = bus
         self._clock = clock
         self.feedback_timeout_s = float(feedback_timeout_s)
-        self._decoder = p.FrameDecoder()
+        self._decoder = codec.FrameDecoder()
         self._motion: Stamped | None = None
         self._system: Stamped | None = None
         self._hs: list[Stamped | None] = [None] * p.NUM_MOTORS
@@ -76,7 +77,7 @@ class AgileXBaseDriver:
 
     # ---------------------------------------------------------------- commands
     def _send(self, record: Any) -> can.Message:
-        msg = p.encode(record)
+        msg = codec.encode(record)
         self._bus.send(msg)
         self.frames_sent += 1
         return msg
@@ -84,10 +85,6 @@ class AgileXBaseDriver:
     def enable(self) -> can.Message:
         """Switch the base to CAN command mode (0x421 = 0x01). Confirm with ``control_mode``."""
         return self._send(p.ControlModeCommand(p.CONTROL_MODE_CAN))
-
-    def clear_errors(self, code: int = p.ERROR_CLEAR_ALL) -> can.Message:
-        """Send 0x441 (0 = clear all)."""
-        return self._send(p.ErrorClearCommand(code))
 
     def send_motion(self, linear_mps: float, angular_radps: float) -> can.Message:
         """Send one 0x111. Call every control tick (>= 50 Hz); the caller clamps to robot limits.
@@ -98,7 +95,7 @@ class AgileXBaseDriver:
             if not isinstance(value, numbers.Real) or isinstance(value, bool) or not math.isfinite(value):
                 raise ValueError(f"send_motion: {name} must be a finite number, got {value!r}")
         cmd = p.MotionCommand(float(linear_mps), float(angular_radps))
-        msg = self._send(cmd)  # p.OutOfRange (a ValueError) if outside int16 after scaling
+        msg = self._send(cmd)  # OutOfRange (a ValueError) if outside int16 after scaling
         self.last_command = cmd
         self.last_command_stamp_s = self._clock()
         return msg
@@ -194,7 +191,7 @@ class AgileXBaseDriver:
         """Seconds since the last frame of `frame_id` was received (inf before the first).
 
         Tracked for the feedback streams a controller watches: 0x221 motion state, 0x211 system
-        state, 0x311 odometry (a watchdog per stream: DESIGN.md section 9).
+        state, 0x311 odometry (a watchdog per stream: docs/algorithms/safety.md).
         """
         if frame_id == p.ID_MOTION_STATE:
             st = self._motion
@@ -254,7 +251,7 @@ class AgileXBaseDriver:
         sent = 0
         for _ in range(max(1, zero_frames)):
             try:
-                self._bus.send(p.encode(p.MotionCommand(0.0, 0.0)))
+                self._bus.send(codec.encode(p.MotionCommand(0.0, 0.0)))
                 sent += 1
                 self.frames_sent += 1
             except Exception as exc:  # noqa: BLE001 - a dead bus must not break shutdown

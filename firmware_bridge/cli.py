@@ -19,6 +19,7 @@ from typing import Any, BinaryIO
 import can
 import click
 
+from firmware_bridge import candump, codec, frame_errors
 from firmware_bridge import protocol as p
 
 #: Longest candump line (bytes, without the line end) that ``decode`` accepts. A candump line is
@@ -113,12 +114,12 @@ class SignalValue(click.ParamType):
         if number is None:
             raise click.ClickException(f"{name}: {_shown(repr(value))} is not a number ({where})")
         if isinstance(number, float) and math.isinf(number) and value.strip().lower().lstrip("+-") not in _INF_WORDS:
-            lo, hi, unit = p.signal_limits(self.frame_id, self.signal)
+            lo, hi, unit = codec.signal_limits(self.frame_id, self.signal)
             raise click.ClickException(f"{name}: {_shown(value.strip())} is out of range, "
                                        f"allowed [{lo}, {hi}]{' ' + unit if unit else ''} ({where})")
         try:
-            p.signal_raw(self.frame_id, self.signal, number)
-        except p.FrameError as exc:
+            codec.signal_raw(self.frame_id, self.signal, number)
+        except frame_errors.FrameError as exc:
             raise click.ClickException(f"{name}: {exc}") from None
         return number
 
@@ -145,8 +146,8 @@ class Seconds(click.ParamType):
 # Bus opening
 # --------------------------------------------------------------------------------------
 def _decoded_json(record: object, msg_id: int) -> str:
-    out = {"id": f"0x{msg_id:03X}", "message": p.message_name(msg_id)}
-    out.update(p.record_to_dict(record))
+    out = {"id": f"0x{msg_id:03X}", "message": codec.message_name(msg_id)}
+    out.update(codec.record_to_dict(record))
     return json.dumps(out, separators=(", ", ": "))
 
 
@@ -213,10 +214,10 @@ def encode_group() -> None:
 
 def _print_encoded(record: object) -> None:
     try:
-        msg = p.encode(record)
-    except p.FrameError as exc:
+        msg = codec.encode(record)
+    except frame_errors.FrameError as exc:
         raise click.ClickException(f"{exc.name}: {exc}") from None
-    click.echo(p.format_candump(msg))
+    click.echo(candump.format_candump(msg))
 
 
 _MOTION = p.ID_MOTION_COMMAND
@@ -231,7 +232,7 @@ _MOTION = p.ID_MOTION_COMMAND
               show_default=True, help="lateral velocity, m/s (mecanum)")
 @click.option("--steering", "steering_rad", type=SignalValue(_MOTION, "steering_angle"), default=0.0,
               show_default=True, help="steering angle, rad (Ackermann)")
-def encode_motion(linear_mps: float, angular_radps: float, lateral_mps: float, steering_rad: float) -> None:
+def encode_motion(*, linear_mps: float, angular_radps: float, lateral_mps: float, steering_rad: float) -> None:
     """0x111 motion command (SDK float32-truncation scaling)."""
     _print_encoded(p.MotionCommand(float(linear_mps), float(angular_radps), float(lateral_mps), float(steering_rad)))
 
@@ -244,7 +245,7 @@ def encode_enable() -> None:
 
 @encode_group.command(name="mode")
 @click.argument("mode", type=SignalValue(p.ID_CONTROL_MODE, "mode"))
-def encode_mode(mode: int) -> None:
+def encode_mode(*, mode: int) -> None:
     """0x421 control mode (0 standby, 1 CAN, 2 UART)."""
     _print_encoded(p.ControlModeCommand(int(mode)))
 
@@ -252,7 +253,7 @@ def encode_mode(mode: int) -> None:
 @encode_group.command(name="clear-errors")
 @click.option("--code", type=SignalValue(p.ID_ERROR_CLEAR, "clear_code"), default=0, show_default=True,
               help="0 all, 1..4 motor 1..4")
-def encode_clear(code: int) -> None:
+def encode_clear(*, code: int) -> None:
     """0x441 error clear."""
     _print_encoded(p.ErrorClearCommand(int(code)))
 
@@ -344,20 +345,20 @@ def _decode_line(line: _Line, tally: _DecodeTally, numbered: bool) -> None:
         tally.blank += 1
         return
     try:
-        msg = p.parse_candump(text)
-        record = p.decode(msg)
-    except p.FrameError as exc:
+        msg = candump.parse_candump(text)
+        record = codec.decode(msg)
+    except frame_errors.FrameError as exc:
         tally.reject(where, text, exc.name, f"{label}{exc}" if numbered else str(exc))
         return
     tally.decoded += 1
-    for flag in p.describe_flags(record):
+    for flag in codec.describe_flags(record):
         tally.flagged[flag.key] = tally.flagged.get(flag.key, 0) + 1
     click.echo(_decoded_json(record, msg.arbitration_id))  # click.echo flushes: live through a pipe
 
 
 @can_group.command(name="decode")
 @click.argument("frames", nargs=-1)
-def decode_cmd(frames: tuple[str, ...]) -> None:
+def decode_cmd(*, frames: tuple[str, ...]) -> None:
     """Decode candump frames ('221#03E8FE0C00000000'; '-' or none reads lines from stdin).
 
     Stdin is decoded line by line as it arrives (`candump can0 | dct can decode` is live);
@@ -392,7 +393,7 @@ def decode_cmd(frames: tuple[str, ...]) -> None:
 @click.option("--count", type=click.IntRange(min=0), default=0, help="stop after this many frames (0 = forever)")
 @click.option("--duration", "duration_s", type=Seconds(), default=0.0,
               help="stop after this many seconds (0 = forever)")
-def dump_cmd(interface: str, channel: str | None, udp_port: int | None, serial_baud: int | None,
+def dump_cmd(*, interface: str, channel: str | None, udp_port: int | None, serial_baud: int | None,
              count: int, duration_s: float) -> None:
     """Print received frames as candump lines followed by the decoded JSON (or the error)."""
     bus = _open(interface, channel, udp_port, serial_baud)
@@ -408,10 +409,10 @@ def dump_cmd(interface: str, channel: str | None, udp_port: int | None, serial_b
                 continue
             n += 1
             try:
-                tail = _decoded_json(p.decode(msg), msg.arbitration_id)
-            except p.FrameError as exc:
+                tail = _decoded_json(codec.decode(msg), msg.arbitration_id)
+            except frame_errors.FrameError as exc:
                 tail = json.dumps({"error": exc.name, "detail": str(exc)})
-            click.echo(f"({msg.timestamp:.6f}) {interface} {p.format_candump(msg)} {tail}")
+            click.echo(f"({msg.timestamp:.6f}) {interface} {candump.format_candump(msg)} {tail}")
     except KeyboardInterrupt:
         pass
     finally:
@@ -421,7 +422,7 @@ def dump_cmd(interface: str, channel: str | None, udp_port: int | None, serial_b
 @can_group.command(name="send")
 @_bus_options
 @click.argument("frames", nargs=-1, required=True)
-def send_cmd(interface: str, channel: str | None, udp_port: int | None, serial_baud: int | None,
+def send_cmd(*, interface: str, channel: str | None, udp_port: int | None, serial_baud: int | None,
              frames: tuple[str, ...]) -> None:
     """Send candump frames once each (no periodic sending)."""
     msgs = []
@@ -429,8 +430,8 @@ def send_cmd(interface: str, channel: str | None, udp_port: int | None, serial_b
         if len(text) > MAX_LINE_BYTES:
             raise click.ClickException(f"frame {number}: {_shown(repr(text))} is longer than a candump frame")
         try:
-            msgs.append(p.parse_candump(text))
-        except p.FrameError as exc:
+            msgs.append(candump.parse_candump(text))
+        except frame_errors.FrameError as exc:
             raise click.ClickException(f"{exc.name}: {exc}") from None
     bus = _open(interface, channel, udp_port, serial_baud)
     try:
@@ -438,7 +439,7 @@ def send_cmd(interface: str, channel: str | None, udp_port: int | None, serial_b
             try:
                 bus.send(msg, timeout=1.0)
             except (OSError, can.CanError) as exc:
-                raise _bus_failure(f"send of frame {number} ({p.format_candump(msg)})", interface, channel,
+                raise _bus_failure(f"send of frame {number} ({candump.format_candump(msg)})", interface, channel,
                                    exc) from None
     finally:
         bus.shutdown()

@@ -5,7 +5,8 @@ command frames from the bus, runs the wheel-speed loop of the four hub motors, r
 motor torques to the physics, and sends the feedback frames. `step()` is called once per
 physics step with the simulated time and the measured wheel speeds and angles (lockstep).
 
-Behaviour (AGILEX_V2.md sections 2-6, and the choices made where the sources are silent):
+Behaviour (docs/protocol.md, sections Control frames (host to base) to Heartbeat, timeout and mode
+switching, and the choices made where the sources are silent):
 
 * Starts in standby (0x211 control_mode 0): 0x111 is ignored until 0x421 mode = 0x01 (CAN).
   0x421 mode 0 (standby) or 2 (UART) stops the wheels and ignores CAN motion commands.
@@ -42,6 +43,7 @@ import can
 import numpy as np
 
 from calibration.robot_description import RobotDescription
+from firmware_bridge import codec
 from firmware_bridge import protocol as p
 
 #: Feedback periods (s).
@@ -81,7 +83,7 @@ class EmulatedBaseFirmware:
     def __init__(self, bus: can.BusABC, robot: RobotDescription) -> None:
         self.bus = bus
         self.robot = robot
-        self.decoder = p.FrameDecoder()
+        self.decoder = codec.FrameDecoder()
         mot = robot.motors
         self._kt = mot.torque_constant_nm_per_a
         self._ke = mot.torque_constant_nm_per_a  # back-EMF constant, V/(rad/s) = N m/A in SI
@@ -241,7 +243,8 @@ class EmulatedBaseFirmware:
         self.wheel_targets_radps = np.array([right, left, left, right])
 
     def _speed_loop(self, dt: float, speeds: np.ndarray) -> np.ndarray:
-        # Plain floats: for 4 wheels this is several times faster than numpy per physics step.
+        # Plain floats, not numpy, for the 4 wheels of every physics step
+        # (docs/decisions/can-emulator-plain-float-speed-loop.md).
         kp, ki, lim, ke, r_ohm, v = self._kp, self._ki, self._i_limit, self._ke, self._r_ohm, self._v_supply
         targets = self.wheel_targets_radps.tolist()
         currents = [0.0] * 4
@@ -280,7 +283,7 @@ class EmulatedBaseFirmware:
 
     # ------------------------------------------------------------------------------------
     def _send(self, record: object, t_s: float) -> None:
-        msg = p.encode(record)
+        msg = codec.encode(record)
         if msg.arbitration_id in self.suppressed_frame_ids:
             self.frames_suppressed += 1
             return

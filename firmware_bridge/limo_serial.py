@@ -1,4 +1,4 @@
-"""The LIMO chassis UART link as a python-can bus (AGILEX_V2.md section 7).
+"""The LIMO chassis UART link as a python-can bus (docs/protocol.md, section LIMO serial link).
 
 Each frame is 14 bytes: ``0x55 0x0E idH idL d0..d7 count checksum`` with
 ``checksum = sum(d0..d7) mod 256``. The host sends ``count = 0``. The reader resynchronises on

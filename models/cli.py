@@ -11,7 +11,7 @@ from typing import Any
 
 import click
 
-# Accuracy targets of a distance net (issue: distance net), on the held-out check of
+# Accuracy targets of a distance net, on the held-out check of
 # models.distance_check.evaluate_mu_function (100 000 points up to 3 m outside, as many inside):
 # `train-distance` does not write a net that misses one (unless --force), `check-distance` exits 1.
 DISTANCE_TARGETS = {
@@ -101,7 +101,7 @@ def models_group() -> None:
                    "(the export and check follow, about 10 s).")
 @click.option("--json", "json_path", type=click.Path(), default=None,
               help="Write the artifact metadata (training info, error statistics, integrity record) here.")
-def train_distance(output: str, replace_shipped: bool, force: bool, robot_path: str | None, steps: int | None,
+def train_distance(*, output: str, replace_shipped: bool, force: bool, robot_path: str | None, steps: int | None,
                    dataset_size: int | None, eval_points: int, seed: int, threads: int, time_limit_s: float,
                    json_path: str | None) -> None:
     """Train the distance net on exact dual solutions and export it as frozen TorchScript.
@@ -160,7 +160,7 @@ def train_distance(output: str, replace_shipped: bool, force: bool, robot_path: 
               help="Also time the net (1 thread) against one OSQP solve per point.")
 @click.option("--json", "json_path", type=click.Path(), default=None,
               help="Write the figures here (also when targets are missed: the report says targets_met).")
-def check_distance(model_path: str | None, robot_path: str | None, n_points: int, seed: int, timing: bool,
+def check_distance(*, model_path: str | None, robot_path: str | None, n_points: int, seed: int, timing: bool,
                    json_path: str | None) -> None:
     """Evaluate the distance net on held-out points against the exact distance (float64).
 
@@ -196,7 +196,7 @@ def check_distance(model_path: str | None, robot_path: str | None, n_points: int
               help="Allow --output inside the installed package, e.g. the shipped LIMO net.")
 @click.option("--robot", "robot_path", type=click.Path(), default=None,
               help="Robot description YAML [default: the shipped LIMO description].")
-def upgrade_distance(model_path: str, output: str, replace_shipped: bool, robot_path: str | None) -> None:
+def upgrade_distance(*, model_path: str, output: str, replace_shipped: bool, robot_path: str | None) -> None:
     """Re-save an older-format distance net (same weights) with the integrity record of the
     current format, after re-checking its held-out figures against the stored ones."""
     from models.distance_net import upgrade_artifact

@@ -21,7 +21,7 @@ import click
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calibration.cli import OneLineCommand
+from calibration.cli_support import OneLineCommand
 from calibration.robot_description import RobotDescription, load_robot_description
 
 BOARD_PATTERN = (9, 6)  # inner corners
@@ -308,7 +308,7 @@ def write_board_views(folder: str | Path, seed: int = 0, n_poses: int = 20,
     """
     import cv2
 
-    from calibration.pointcloud_io import write_pcd
+    from calibration.pointcloud_write import write_pcd
 
     desc = desc or load_robot_description()
     rng = np.random.default_rng(seed)
@@ -339,7 +339,7 @@ def hil_check_command(json_path: Path | None, seed: int, n_poses: int) -> None:
     Exit 0 when the targets are met, 1 when they are not (the JSON is written in both cases:
     it is the check's verdict), 1 with a one-line error when the check could not run.
     """
-    from calibration.cli import OneLineError, checked_output
+    from calibration.cli_support import OneLineError, checked_output
     from calibration.errors import ConfigFileError
     from calibration.intrinsics import CalibrationError
     from calibration.outputs import atomic_write_json

@@ -1,6 +1,6 @@
 """The contact-tolerance backend of planner mode dct, from the controller config (`vpp.backend`).
 
-Issue 13: the backend and its parameters are chosen in the controller config; a backend that is
+The backend and its parameters are chosen in the controller config; a backend that is
 down or slow degrades to no new masks (the runner turns it into error answers; the points fall
 back to P_fix), never a stall. Two kinds:
 

@@ -240,69 +240,16 @@ def parse_detections(
 
 
 def _parse_detections(body, full_hw, sent_hw, config, sent_image, depth) -> ParsedDetections:
-    if isinstance(body, (bytes, bytearray)):
-        try:
-            text = bytes(body).decode("utf-8")
-        except UnicodeDecodeError:
-            return ParsedDetections((), (), f"response body is not UTF-8: {bytes(body)[:80]!r}")
-    elif isinstance(body, str):
-        text = body
-    else:
-        return ParsedDetections((), (), f"response body is not text ({type(body).__name__})")
-    try:
-        data = json.loads(text)
-    except (ValueError, RecursionError) as e:
-        return ParsedDetections((), (), f"response body is not JSON ({type(e).__name__}): {text[:80]!r}")
-    if not isinstance(data, dict) or not isinstance(data.get("detections"), list):
-        return ParsedDetections((), (), f"response has no 'detections' list: {text[:80]!r}")
-
-    H, W = full_hw
-    h, w = sent_hw
+    data, error = _detections_json(body)
+    if error is not None:
+        return ParsedDetections((), (), error)
     kept: list[tuple[float, int, np.ndarray, str | None]] = []
     rejected: list[str] = []
     for i, det in enumerate(data["detections"]):
-        where = f"detection {i}"
         try:
-            if not isinstance(det, dict):
-                raise ValueError(f"expected an object, got {type(det).__name__}")
-            if "box_xyxy" not in det or "score" not in det:
-                raise ValueError("missing " + ", ".join(k for k in ("box_xyxy", "score") if k not in det))
-            box = _box(det["box_xyxy"], sent_hw, full_hw, config.box_tolerance_frac)
-            score = det["score"]
-            if not _is_number(score):
-                raise ValueError(f"score must be a number, got {score!r:.40}")
-            try:
-                s = float(score)
-            except OverflowError:
-                raise ValueError("score is too large a number") from None
-            if not (math.isfinite(s) and 0.0 <= s <= 1.0):
-                raise ValueError(f"score must be in 0..1, got {score!r:.40}")
-            label = det.get("label")
-            if label is not None and (not isinstance(label, str) or len(label) > MAX_LABEL_CHARS):
-                raise ValueError(f"label must be text of at most {MAX_LABEL_CHARS} characters or null, got {label!r:.40}")
-            label = label.strip() or None if isinstance(label, str) else None
-            if det.get("mask") is not None:
-                m = decode_mask(det["mask"], sent_hw)
-                if (h, w) != (H, W):
-                    m = cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
-                    if not m.any():
-                        raise ValueError("mask vanishes at the image's resolution")
-            else:
-                m = None
-                if config.refine == "grabcut" and sent_image is not None:
-                    sx, sy = w / W, h / H
-                    sbox = (int(box[0] * sx), int(box[1] * sy), max(int(box[0] * sx) + 1, math.ceil(box[2] * sx)),
-                            max(int(box[1] * sy) + 1, math.ceil(box[3] * sy)))
-                    g = grabcut_mask(sent_image, sbox)
-                    if g is not None:
-                        m = cv2.resize(g.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool) if (h, w) != (H, W) else g
-                        m &= _box_mask(full_hw, box)
-                        if not m.any():
-                            m = None
-                if m is None:
-                    m = _box_mask(full_hw, box)
+            s, m, label = _detection(det, full_hw, sent_hw, config, sent_image)
         except ValueError as e:
-            rejected.append(f"{where}: {e}")
+            rejected.append(f"detection {i}: {e}")
             continue
         kept.append((s, i, m, label))
 
@@ -319,6 +266,84 @@ def _parse_detections(body, full_hw, sent_hw, config, sent_image, depth) -> Pars
         assert box is not None  # masks are checked non-empty above
         regions.append(CandidateRegion(mask=m, box_xyxy=box, score=s, label_hint=label, depth_m=z))
     return ParsedDetections(tuple(regions), tuple(rejected), None)
+
+
+def _detections_json(body) -> tuple[dict | None, str | None]:
+    """The body as a JSON object with a 'detections' list, or why it is not one."""
+    if isinstance(body, (bytes, bytearray)):
+        try:
+            text = bytes(body).decode("utf-8")
+        except UnicodeDecodeError:
+            return None, f"response body is not UTF-8: {bytes(body)[:80]!r}"
+    elif isinstance(body, str):
+        text = body
+    else:
+        return None, f"response body is not text ({type(body).__name__})"
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError) as e:
+        return None, f"response body is not JSON ({type(e).__name__}): {text[:80]!r}"
+    if not isinstance(data, dict) or not isinstance(data.get("detections"), list):
+        return None, f"response has no 'detections' list: {text[:80]!r}"
+    return data, None
+
+
+def _detection(det: Any, full_hw: tuple[int, int], sent_hw: tuple[int, int], config: GroundingHttpConfig,
+               sent_image: np.ndarray | None) -> tuple[float, np.ndarray, str | None]:
+    """(score, mask at full resolution, label) of one detection; ValueError says what is wrong."""
+    if not isinstance(det, dict):
+        raise ValueError(f"expected an object, got {type(det).__name__}")
+    if "box_xyxy" not in det or "score" not in det:
+        raise ValueError("missing " + ", ".join(k for k in ("box_xyxy", "score") if k not in det))
+    box = _box(det["box_xyxy"], sent_hw, full_hw, config.box_tolerance_frac)
+    score = det["score"]
+    if not _is_number(score):
+        raise ValueError(f"score must be a number, got {score!r:.40}")
+    try:
+        s = float(score)
+    except OverflowError:
+        raise ValueError("score is too large a number") from None
+    if not (math.isfinite(s) and 0.0 <= s <= 1.0):
+        raise ValueError(f"score must be in 0..1, got {score!r:.40}")
+    label = det.get("label")
+    if label is not None and (not isinstance(label, str) or len(label) > MAX_LABEL_CHARS):
+        raise ValueError(f"label must be text of at most {MAX_LABEL_CHARS} characters or null, got {label!r:.40}")
+    label = label.strip() or None if isinstance(label, str) else None
+    if det.get("mask") is not None:
+        m = decode_mask(det["mask"], sent_hw)
+        if tuple(sent_hw) != tuple(full_hw):
+            m = _resize_mask(m, full_hw)
+            if not m.any():
+                raise ValueError("mask vanishes at the image's resolution")
+        return s, m, label
+    return s, _box_region(box, full_hw, sent_hw, config, sent_image), label
+
+
+def _box_region(box: tuple[int, int, int, int], full_hw: tuple[int, int], sent_hw: tuple[int, int],
+                config: GroundingHttpConfig, sent_image: np.ndarray | None) -> np.ndarray:
+    """The mask of a detection that came without one: GrabCut's foreground inside the box when
+    asked for (refine="grabcut") and found, else the whole box."""
+    H, W = full_hw
+    h, w = sent_hw
+    m = None
+    if config.refine == "grabcut" and sent_image is not None:
+        sx, sy = w / W, h / H
+        sbox = (int(box[0] * sx), int(box[1] * sy), max(int(box[0] * sx) + 1, math.ceil(box[2] * sx)),
+                max(int(box[1] * sy) + 1, math.ceil(box[3] * sy)))
+        g = grabcut_mask(sent_image, sbox)
+        if g is not None:
+            m = _resize_mask(g, full_hw) if (h, w) != (H, W) else g
+            m &= _box_mask(full_hw, box)
+            if not m.any():
+                m = None
+    if m is None:
+        m = _box_mask(full_hw, box)
+    return m
+
+
+def _resize_mask(m: np.ndarray, full_hw: tuple[int, int]) -> np.ndarray:
+    H, W = full_hw
+    return cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
 
 
 def _box_mask(full_hw: tuple[int, int], box: tuple[int, int, int, int]) -> np.ndarray:

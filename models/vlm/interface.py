@@ -5,7 +5,7 @@ prompt, a backend names the objects in view, each with a mask, a label, whether 
 whether it is deformable: a curtain the robot passes through rather than pushes along), a contact cost 0..10 (IMPACT: 0 = brush freely, 10 = never touch) and a confidence. Backends are
 slow (a hosted VLM answers in about a second); they run outside the tick (a runner thread or
 process) and their answers carry the capture stamp and the camera pose at capture, so the mask
-memory can warp them to the robot's pose when they arrive (DESIGN.md section 5.1).
+memory can warp them to the robot's pose when they arrive (docs/algorithms/vpp.md).
 
 Every answer is validated where it enters (`validate_object`): a mask of the wrong shape, a cost
 outside 0..10, a confidence outside 0..1, a label that is not text are errors naming the field;

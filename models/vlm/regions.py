@@ -344,6 +344,60 @@ def absorb_small_regions(labels: np.ndarray, min_area: int, features: np.ndarray
     return labels
 
 
+def _colour_seeds(colour: np.ndarray, edges: np.ndarray, n_colors: int, seed_min: int) -> tuple[np.ndarray, int]:
+    """Seeds: connected pieces of one colour class that no edge crosses, of at least `seed_min`
+    pixels, numbered from 1. Returns the marker image and the next free id."""
+    h, w = colour.shape
+    markers = np.zeros((h, w), np.int32)
+    next_id = 1
+    for c in range(n_colors):
+        part = ((colour == c) & ~edges).astype(np.uint8)
+        if not part.any():
+            continue
+        n, cc, stats, _ = cv2.connectedComponentsWithStats(part, connectivity=4)
+        keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= seed_min) + 1
+        if keep.size == 0:
+            continue
+        lut = np.zeros(n, np.int32)
+        lut[keep] = np.arange(next_id, next_id + keep.size, dtype=np.int32)
+        next_id += keep.size
+        sel = lut[cc]
+        markers = np.where(sel > 0, sel, markers)
+    return markers, next_id
+
+
+def _grow_seeds(blur: np.ndarray, markers: np.ndarray) -> None:
+    """Grow the seeds over edges and fragments (in place), then give the watershed's -1 lines (and
+    the image border, which cv2.watershed marks -1) to a neighbouring region."""
+    cv2.watershed(cv2.cvtColor(blur, cv2.COLOR_RGB2BGR), markers)
+    line = markers < 0
+    if line.any():
+        grown = cv2.dilate(np.where(line, 0, markers).astype(np.float32), np.ones((3, 3), np.uint8))
+        markers[line] = grown[line].astype(np.int32)
+
+
+def _rank_regions(markers: np.ndarray, n_ids: int, cfg: OpenCvProposerConfig) -> tuple[list[int], list[float]]:
+    """The region ids that pass the size and fill tests, best first (area x fill), with their
+    scores (the fill of their bounding box)."""
+    h, w = markers.shape
+    area = np.bincount(markers.ravel(), minlength=n_ids).astype(np.float64)
+    ids, scores, keys = [], [], []
+    for i, sl in enumerate(ndimage.find_objects(markers, max_label=n_ids - 1), start=1):
+        if sl is None:
+            continue
+        bh, bw = sl[0].stop - sl[0].start, sl[1].stop - sl[1].start
+        a = area[i]
+        fill = a / float(bh * bw)
+        frac = a / float(h * w)
+        if not (cfg.min_area_frac <= frac <= cfg.max_area_frac) or min(bh, bw) < cfg.min_side_px or fill < cfg.min_fill:
+            continue
+        ids.append(i)
+        scores.append(float(fill))
+        keys.append(a * fill)
+    order = sorted(range(len(ids)), key=lambda j: (-keys[j], ids[j]))[: cfg.max_regions]
+    return [ids[j] for j in order], [scores[j] for j in order]
+
+
 class OpenCvProposer:
     """Colour/edge segmentation proposer (module docstring). Thread-safe, stateless."""
 
@@ -372,53 +426,13 @@ class OpenCvProposer:
         if depth is not None and cfg.depth_jump_frac is not None:
             edges |= depth_edges(depth, (H, W), (h, w), cfg.depth_jump_frac, cfg.depth_max_gap_px)
 
-        # Seeds: connected pieces of one colour class that no edge crosses.
-        markers = np.zeros((h, w), np.int32)
-        seed_min = max(1, int(cfg.seed_min_area_frac * h * w))
-        next_id = 1
-        for c in range(cfg.n_colors):
-            part = ((colour == c) & ~edges).astype(np.uint8)
-            if not part.any():
-                continue
-            n, cc, stats, _ = cv2.connectedComponentsWithStats(part, connectivity=4)
-            keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= seed_min) + 1
-            if keep.size == 0:
-                continue
-            lut = np.zeros(n, np.int32)
-            lut[keep] = np.arange(next_id, next_id + keep.size, dtype=np.int32)
-            next_id += keep.size
-            sel = lut[cc]
-            markers = np.where(sel > 0, sel, markers)
+        markers, next_id = _colour_seeds(colour, edges, cfg.n_colors, max(1, int(cfg.seed_min_area_frac * h * w)))
         if next_id == 1:
             return markers, [], []
-
-        # Grow the seeds over edges and fragments, then give the watershed's -1 lines (and the
-        # image border, which cv2.watershed marks -1) to a neighbouring region.
-        cv2.watershed(cv2.cvtColor(blur, cv2.COLOR_RGB2BGR), markers)
-        line = markers < 0
-        if line.any():
-            grown = cv2.dilate(np.where(line, 0, markers).astype(np.float32), np.ones((3, 3), np.uint8))
-            markers[line] = grown[line].astype(np.int32)
-
+        _grow_seeds(blur, markers)
         markers = absorb_small_regions(markers, max(1, int(cfg.min_area_frac * h * w)), lab)
-
-        n_ids = next_id
-        area = np.bincount(markers.ravel(), minlength=n_ids).astype(np.float64)
-        ids, scores, keys = [], [], []
-        for i, sl in enumerate(ndimage.find_objects(markers, max_label=n_ids - 1), start=1):
-            if sl is None:
-                continue
-            bh, bw = sl[0].stop - sl[0].start, sl[1].stop - sl[1].start
-            a = area[i]
-            fill = a / float(bh * bw)
-            frac = a / float(h * w)
-            if not (cfg.min_area_frac <= frac <= cfg.max_area_frac) or min(bh, bw) < cfg.min_side_px or fill < cfg.min_fill:
-                continue
-            ids.append(i)
-            scores.append(float(fill))
-            keys.append(a * fill)
-        order = sorted(range(len(ids)), key=lambda j: (-keys[j], ids[j]))[: cfg.max_regions]
-        return markers, [ids[j] for j in order], [scores[j] for j in order]
+        ids, scores = _rank_regions(markers, next_id, cfg)
+        return markers, ids, scores
 
     def propose(self, image: np.ndarray, prompt: str = "", depth: DepthInput = None) -> tuple[CandidateRegion, ...]:
         """Regions best first (module docstring). `prompt` is ignored: this proposer is not open-set."""

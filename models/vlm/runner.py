@@ -1,7 +1,7 @@
 """Runs a contact-tolerance backend beside the tick and hands its answers back when they are due.
 
 A backend answers in about a second (a hosted VLM) or hangs (a server that is down); the tick
-must never wait for it (DESIGN.md sections 5.1 and 6). The tick calls `submit(request)`, which
+must never wait for it (docs/algorithms/vpp.md, docs/architecture.md). The tick calls `submit(request)`, which
 returns at once, and `poll(now_s)` each tick, which returns the answers ready by then. A backend
 that is down, slow or raising degrades to error answers (no objects): the mask memory ages out
 and points fall back to P_fix, never a stall.
@@ -10,7 +10,7 @@ One request is in flight at a time. A request submitted while one is in flight w
 one replaces a waiting one (counted in `replaced`): the backend always works on the newest
 image, and the latency of what it answers stays bounded.
 
-Two clocks (DESIGN.md section 6), as runtime.odometry.worker:
+Two clocks (docs/architecture.md), as runtime.odometry.worker:
 - Lockstep (`clock="lockstep"`): behaviour depends on simulated time only. A request that
   starts at simulated time t0 (its submit time, `now_s` or else its stamp, or when the one
   before it was delivered, whichever is later) is delivered at exactly t0 + latency_s of

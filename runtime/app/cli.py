@@ -15,6 +15,8 @@ from importlib.metadata import EntryPoint, entry_points
 
 import click
 
+from calibration.cli_support import LazyGroup
+
 
 def _command_entry_points() -> dict:
     eps = {ep.name: ep for ep in entry_points(group="dct.commands")}
@@ -28,32 +30,16 @@ def _command_entry_points() -> dict:
 _RUNTIME_COMMANDS = {"run": "runtime.app.run_process:run_command", "config": "runtime.app.config_cli:config_group"}
 
 
-class LazyGroup(click.Group):
-    """A click group whose sub-groups are loaded from entry points on first use."""
+class _DctGroup(LazyGroup):
+    """The `dct` group: each package's command group is imported when it is invoked."""
 
-    def list_commands(self, ctx: click.Context) -> list[str]:
-        return sorted(set(super().list_commands(ctx)) | set(_command_entry_points()))
+    unavailable_what = "command group"
 
-    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
-        cmd = super().get_command(ctx, name)
-        if cmd is not None:
-            return cmd
-        ep = _command_entry_points().get(name)
-        if ep is None:
-            return None
-        try:
-            return ep.load()
-        except ImportError as exc:
-            why = str(exc)  # `exc` is unbound after the except block; the command runs later
-            # Show the group as unavailable rather than break the whole command line.
-            @click.command(name=name, help=f"(unavailable: {why})")
-            def unavailable() -> None:
-                raise click.ClickException(f"command group '{name}' cannot be loaded: {why}")
-
-            return unavailable
+    def lazy_commands(self) -> dict:
+        return _command_entry_points()
 
 
-@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=_DctGroup, context_settings={"help_option_names": ["-h", "--help"]})
 def dct() -> None:
     """DCT contact-tolerant navigation controller: CAN tools, HIL simulation, calibration, models."""
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import click
 
-from calibration.cli import OneLineCommand, OneLineError
+from calibration.cli_support import OneLineCommand, OneLineError
 
 
 class InputError(OneLineError):

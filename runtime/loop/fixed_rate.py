@@ -12,7 +12,7 @@ in lockstep HIL the simulator supplies a clock whose `sleep_until` advances phys
 same loop runs on simulation time. Stage durations are always measured on the monotonic
 wall clock (they are what the computer really spent).
 
-Two clocks, never mixed (DESIGN.md section 6): the command deadline that the controller acts on
+Two clocks, never mixed (docs/architecture.md): the command deadline that the controller acts on
 is judged on the loop's clock (the wall clock on the robot; simulated time in lockstep, where
 the simulator waits for the tick, so a lockstep verdict never depends on the machine's load).
 The wall-clock latency of every command is measured beside it and recorded as what it is
@@ -114,6 +114,7 @@ class FixedRateLoop:
     def __init__(
         self,
         clock: Clock,
+        *,
         period_s: float,
         stage_budgets_s: dict[str, float],
         command_deadline_s: float,
@@ -189,53 +190,68 @@ class FixedRateLoop:
             row["tick_s"] = stages.elapsed_s()
             row["state"] = controlled.state_code
             row["v_cmd_mps"], row["omega_cmd_radps"] = controlled.command
-            # The verdict, on the loop's clock (module docstring).
-            written = stages.write_done_loop_s if stages.write_done_loop_s is not None else clock.now()
-            latency = max(0.0, written - scheduled)
-            row["command_latency_s"] = latency
-            missed = latency > self.command_deadline_s
-            row["deadline_missed"] = missed
-            # The measurement, on the wall clock.
-            wall_latency = (lateness if self.wall_clock_loop else 0.0) + stages.write_done_s
-            row["wall_command_latency_s"] = wall_latency
-            row["wall_deadline_missed"] = wall_latency > self.command_deadline_s
-            controlled.note_deadline(missed)
+            controlled.note_deadline(self._judge_command(row, scheduled, lateness))
             if slack_work is not None:
-                left = t0 + (k + 1) * self.period_s - clock.now()
-                if left >= self.slack_work_min_s or self._postponed_in_row >= self.slack_work_max_postpone:
-                    self._postponed_in_row = 0
-                    w0 = time.perf_counter_ns()
-                    if slack_work():
-                        row["slack_work_s"] = (time.perf_counter_ns() - w0) * 1e-9
-                        telemetry.slack_work_runs += 1
-                else:
-                    self._postponed_in_row += 1
-                    telemetry.slack_windows_skipped += 1
+                self._slack_work(slack_work, row, t0 + (k + 1) * self.period_s)
             telemetry.commit_tick(row)
             if self.after_tick is not None:
-                try:
-                    self.after_tick(row)
-                except Exception as exc:  # noqa: BLE001 - an observer (a recorder) never ends the loop
-                    self.after_tick_errors += 1
-                    self.after_tick_error = f"{type(exc).__name__}: {exc}"
-                    self.after_tick = None  # off for the rest of the run; said in after_tick_error
+                self._call_after_tick(row)
             ticks_run += 1
 
-            # Next grid point; skip (and count) grid points that have already passed.
-            k += 1
-            now = clock.now()
-            next_tick = t0 + k * self.period_s
-            if now > next_tick:
-                behind = int((now - next_tick) // self.period_s) + 1
-                telemetry.ticks_skipped += behind
-                k += behind
-                next_tick = t0 + k * self.period_s
-
+            k, next_tick = self._next_grid_point(t0, k + 1)
             if self.gc_every_ticks and ticks_run % self.gc_every_ticks == 0:
                 gc.collect()  # in the slack after write(), never inside a tick
             elif ticks_run % 10 == 0:
                 gc.collect(0)
             self._keepalives(controlled, scheduled, next_tick)
+
+    def _judge_command(self, row: np.void, scheduled: float, lateness: float) -> bool:
+        """Record the command's latency: the verdict on the loop's clock (module docstring), the
+        measurement on the wall clock. Returns whether the command missed its deadline."""
+        stages = self.stage_clock
+        written = stages.write_done_loop_s if stages.write_done_loop_s is not None else self.clock.now()
+        latency = max(0.0, written - scheduled)
+        row["command_latency_s"] = latency
+        missed = latency > self.command_deadline_s
+        row["deadline_missed"] = missed
+        wall_latency = (lateness if self.wall_clock_loop else 0.0) + stages.write_done_s
+        row["wall_command_latency_s"] = wall_latency
+        row["wall_deadline_missed"] = wall_latency > self.command_deadline_s
+        return missed
+
+    def _slack_work(self, slack_work: Callable[[], bool], row: np.void, period_end: float) -> None:
+        """Run the controller's slack work when enough of the period is left (or it was postponed
+        too often); time it into the row when there was any."""
+        telemetry = self.telemetry
+        left = period_end - self.clock.now()
+        if left >= self.slack_work_min_s or self._postponed_in_row >= self.slack_work_max_postpone:
+            self._postponed_in_row = 0
+            w0 = time.perf_counter_ns()
+            if slack_work():
+                row["slack_work_s"] = (time.perf_counter_ns() - w0) * 1e-9
+                telemetry.slack_work_runs += 1
+        else:
+            self._postponed_in_row += 1
+            telemetry.slack_windows_skipped += 1
+
+    def _call_after_tick(self, row: np.void) -> None:
+        try:
+            self.after_tick(row)
+        except Exception as exc:  # noqa: BLE001 - an observer (a recorder) never ends the loop
+            self.after_tick_errors += 1
+            self.after_tick_error = f"{type(exc).__name__}: {exc}"
+            self.after_tick = None  # off for the rest of the run; said in after_tick_error
+
+    def _next_grid_point(self, t0: float, k: int) -> tuple[int, float]:
+        """Grid point k, or the first one not yet passed (the ones skipped are counted)."""
+        now = self.clock.now()
+        next_tick = t0 + k * self.period_s
+        if now > next_tick:
+            behind = int((now - next_tick) // self.period_s) + 1
+            self.telemetry.ticks_skipped += behind
+            k += behind
+            next_tick = t0 + k * self.period_s
+        return k, next_tick
 
     def _keepalives(self, controlled: LoopControlled, tick_start: float, next_tick: float) -> None:
         """Re-send the current command at the CAN command rate until the next tick."""

@@ -1,6 +1,6 @@
 """Ask the OS for real-time scheduling (SCHED_FIFO) and CPU pinning for the control loop.
 
-DESIGN.md section 6: on the robot the loop may ask for SCHED_FIFO and CPU affinity when allowed,
+On the robot the loop may ask for SCHED_FIFO and CPU affinity when allowed,
 and says so at start. `request_realtime` does the asking and never raises: what was granted and
 what was refused (with the OS reason and how to allow it) comes back in a `RealtimeGrant` whose
 `summary()` is the start-up line. The loop runs either way; without SCHED_FIFO it runs at normal

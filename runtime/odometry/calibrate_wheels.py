@@ -12,7 +12,7 @@ from pathlib import Path
 
 import click
 
-from calibration.cli import OneLineCommand, OneLineError, checked_output
+from calibration.cli_support import OneLineCommand, OneLineError, checked_output
 from calibration.wheel_odometry import (DEFAULT_WINDOW_S, MAX_TRACK_FACTOR, MIN_DISTANCE_M, MIN_ROTATION_DEG,
                                         SCALE_RANGE)
 

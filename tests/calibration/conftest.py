@@ -95,7 +95,7 @@ def write_synthetic_capture(folder: Path, n_poses: int, seed: int = 0, noise_m: 
     from scipy.spatial.transform import Rotation
 
     from calibration.camera_model import CameraModel, transform_points
-    from calibration.pointcloud_io import write_pcd
+    from calibration.pointcloud_write import write_pcd
 
     import cv2
 

@@ -15,7 +15,7 @@ from calibration import extrinsics as extrinsics_module
 from calibration import intrinsics as intrinsics_module
 from calibration.calibration_file import load_calibration, make_calibration, save_calibration
 from calibration.cli import calibrate_group
-from calibration.pointcloud_io import write_pcd
+from calibration.pointcloud_write import write_pcd
 
 from .conftest import (CAPTURE_BORDER_M, CAPTURE_SQUARE_M, PANDAR, capture_calibration, capture_T_cam_lidar,
                        render_board_view, write_synthetic_capture)

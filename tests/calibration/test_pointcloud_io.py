@@ -5,7 +5,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from calibration.pointcloud_io import (PointCloudFormatError, load_point_cloud, lzf_decompress, parse_pcd,
-                                       parse_ply, parse_point_cloud, write_pcd, write_ply)
+                                       parse_ply, parse_point_cloud)
+from calibration.pointcloud_write import write_pcd, write_ply
 
 from .conftest import PANDAR, REAL
 

@@ -5,7 +5,7 @@ import pytest
 from calibration.extrinsics import (edge_alignment_score, image_edge_map, intensity_mutual_information,
                                     perturb_transform)
 
-README_IN_IMAGE = 9954  # ../shared/data/pandar64_camera_opencalib/README.md
+README_IN_IMAGE = 9954  # tests/data/real/pandar64_camera_opencalib/README.md
 
 
 def test_projected_count_matches_readme(pandar_calibration, pandar_cloud):

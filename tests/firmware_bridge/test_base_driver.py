@@ -7,6 +7,7 @@ import can
 import numpy as np
 import pytest
 
+from firmware_bridge import candump, codec
 from firmware_bridge import protocol as p
 from firmware_bridge.base_driver import AgileXBaseDriver
 
@@ -14,7 +15,7 @@ from firmware_bridge.base_driver import AgileXBaseDriver
 def drain(bus: can.BusABC) -> list[str]:
     out = []
     while (m := bus.recv(timeout=0)) is not None:
-        out.append(p.format_candump(m))
+        out.append(candump.format_candump(m))
     return out
 
 
@@ -34,7 +35,7 @@ def test_feedback_staleness_with_fake_clock(virtual_pair, clock):
     assert drv.feedback_lost  # before the first 0x221
     assert drv.poll() == 0
     clock.t = 1.0
-    peer.send(p.encode(p.MotionState(0.4, -0.1)))
+    peer.send(codec.encode(p.MotionState(0.4, -0.1)))
     assert drv.poll() == 1
     fb = drv.feedback
     assert fb.motion.record == p.MotionState(0.4, -0.1) and fb.motion.stamp_s == 1.0
@@ -44,10 +45,10 @@ def test_feedback_staleness_with_fake_clock(virtual_pair, clock):
     clock.t = 1.101
     assert drv.feedback_lost
     # Other frames do not refresh the 0x221 stamp.
-    peer.send(p.encode(p.SystemState(0, 1, 12.0, 0, 0, 0)))
+    peer.send(codec.encode(p.SystemState(0, 1, 12.0, 0, 0, 0)))
     drv.poll()
     assert drv.feedback_lost
-    peer.send(p.encode(p.MotionState(0.0, 0.0)))
+    peer.send(codec.encode(p.MotionState(0.0, 0.0)))
     drv.poll()
     assert not drv.feedback_lost and math.isclose(drv.feedback_age_s, 0.0)
 
@@ -56,16 +57,16 @@ def test_control_mode_and_errors(virtual_pair, clock):
     bus, peer = virtual_pair
     drv = AgileXBaseDriver(bus, clock)
     assert drv.control_mode is None and drv.error_code is None and drv.errors_active() == []
-    peer.send(p.encode(p.SystemState(0, p.CONTROL_MODE_STANDBY, 12.1, 0, 0, 0)))
+    peer.send(codec.encode(p.SystemState(0, p.CONTROL_MODE_STANDBY, 12.1, 0, 0, 0)))
     drv.poll()
     assert drv.control_mode == p.CONTROL_MODE_STANDBY and drv.control_mode_name == "standby"
-    peer.send(p.encode(p.SystemState(0, p.CONTROL_MODE_CAN, 12.1,
+    peer.send(codec.encode(p.SystemState(0, p.CONTROL_MODE_CAN, 12.1,
                                      p.ERROR_HOST_COMM_LOST | p.ERROR_MOTOR2_COMM, 0, 1)))
     drv.poll()
     assert drv.control_mode == p.CONTROL_MODE_CAN
     assert drv.error_code == 0x0210
     assert drv.errors_active() == ["motor2_comm", "host_comm_lost"]
-    peer.send(p.encode(p.SystemState(0, 1, 12.1, 0, 0, 5)))  # counter jumped 1 -> 5
+    peer.send(codec.encode(p.SystemState(0, 1, 12.1, 0, 0, 5)))  # counter jumped 1 -> 5
     drv.poll()
     assert drv.feedback.system_count_gaps == 1
 
@@ -73,7 +74,7 @@ def test_control_mode_and_errors(virtual_pair, clock):
 def test_bad_frames_counted_and_never_acted_on(virtual_pair, clock):
     bus, peer = virtual_pair
     drv = AgileXBaseDriver(bus, clock)
-    peer.send(p.encode(p.MotionState(0.2, 0.0)))
+    peer.send(codec.encode(p.MotionState(0.2, 0.0)))
     peer.send(can.Message(arbitration_id=0x221, data=b"\x7f\xff", is_extended_id=False))  # short
     peer.send(can.Message(arbitration_id=0x5AA, data=bytes(8), is_extended_id=False))  # unknown
     peer.send(can.Message(arbitration_id=0x211, data=bytes([0, 9, 0, 0, 0, 0, 0, 0]), is_extended_id=False))
@@ -104,9 +105,9 @@ def test_actuator_and_odometry_feedback(virtual_pair, clock):
     drv = AgileXBaseDriver(bus, clock)
     clock.t = 2.5
     for i in range(4):
-        peer.send(p.encode(p.ActuatorHighSpeed(i, 100 * (i + 1), 0.5, 1000 * i)))
-        peer.send(p.encode(p.ActuatorLowSpeed(i, 12.0, 30, 31, 0)))
-    peer.send(p.encode(p.Odometry(1.5, 1.6)))
+        peer.send(codec.encode(p.ActuatorHighSpeed(i, 100 * (i + 1), 0.5, 1000 * i)))
+        peer.send(codec.encode(p.ActuatorLowSpeed(i, 12.0, 30, 31, 0)))
+    peer.send(codec.encode(p.Odometry(1.5, 1.6)))
     assert drv.poll() == 9
     fb = drv.feedback
     assert [s.record.rpm for s in fb.actuator_hs] == [100, 200, 300, 400]
@@ -121,10 +122,10 @@ def test_motor_currents_need_all_four_motors(virtual_pair, clock):
     drv = AgileXBaseDriver(bus, clock)
     clock.t = 1.0
     for i in range(3):
-        peer.send(p.encode(p.ActuatorHighSpeed(i, 100, -1.2, 0)))
+        peer.send(codec.encode(p.ActuatorHighSpeed(i, 100, -1.2, 0)))
     drv.poll()
     assert drv.motor_currents_a(1.0, 0.1) is None
-    peer.send(p.encode(p.ActuatorHighSpeed(3, 100, 2.4, 0)))
+    peer.send(codec.encode(p.ActuatorHighSpeed(3, 100, 2.4, 0)))
     drv.poll()
     assert drv.motor_currents_a(1.0, 0.1) == (-1.2, -1.2, -1.2, 2.4)
 
@@ -174,11 +175,11 @@ def test_each_watched_stream_has_its_own_age_and_the_vehicle_state_is_kept(virtu
         assert drv.frame_age_s(fid) == math.inf
     assert drv.vehicle_state is None
     clock.t = 2.0
-    peer.send(p.encode(p.Odometry(1.0, 1.0)))
-    peer.send(p.encode(p.SystemState(p.VEHICLE_STATE_ESTOP, 1, 12.0, 0, 0, 0)))
+    peer.send(codec.encode(p.Odometry(1.0, 1.0)))
+    peer.send(codec.encode(p.SystemState(p.VEHICLE_STATE_ESTOP, 1, 12.0, 0, 0, 0)))
     drv.poll()
     clock.t = 2.5
-    peer.send(p.encode(p.MotionState(0.0, 0.0)))
+    peer.send(codec.encode(p.MotionState(0.0, 0.0)))
     drv.poll()
     assert drv.frame_age_s(p.ID_ODOMETRY) == pytest.approx(0.5)
     assert drv.frame_age_s(p.ID_SYSTEM_STATE, now_s=3.0) == pytest.approx(1.0)

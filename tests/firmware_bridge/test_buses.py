@@ -9,6 +9,7 @@ import can
 import pydantic
 import pytest
 
+from firmware_bridge import candump, codec
 from firmware_bridge import protocol as p
 from firmware_bridge.base_driver import AgileXBaseDriver
 from firmware_bridge.buses import DEFAULT_UDP_GROUP, BusConfig, BusOpenError, open_bus
@@ -46,8 +47,8 @@ def test_virtual_via_config():
     cfg = BusConfig(interface="virtual", channel=f"fb-{uuid.uuid4().hex}")
     a, b = open_bus(cfg), open_bus(cfg)
     try:
-        a.send(p.encode(p.ControlModeCommand(1)))
-        assert p.format_candump(b.recv(timeout=1.0)) == "421#0100000000000000"
+        a.send(codec.encode(p.ControlModeCommand(1)))
+        assert candump.format_candump(b.recv(timeout=1.0)) == "421#0100000000000000"
     finally:
         a.shutdown()
         b.shutdown()
@@ -105,9 +106,9 @@ def test_udp_multicast_two_buses_exchange(udp_port):
     cfg = BusConfig(interface="udp_multicast", channel=GROUP, udp_port=udp_port)
     a, b = open_bus(cfg), open_bus(cfg)
     try:
-        a.send(p.encode(p.MotionCommand(0.15, 0.0)))
+        a.send(codec.encode(p.MotionCommand(0.15, 0.0)))
         m = _recv_until(b, 0x111)
-        assert m is not None and p.format_candump(m) == "111#0096000000000000"
+        assert m is not None and candump.format_candump(m) == "111#0096000000000000"
     finally:
         a.shutdown()
         b.shutdown()
@@ -120,7 +121,7 @@ def test_driver_over_udp_ignores_own_frames(udp_port):
         drv = AgileXBaseDriver(bus, time.monotonic)
         drv.send_motion(0.3, 0.0)  # multicast loops it back to our own socket
         assert _recv_until(peer, 0x111) is not None
-        peer.send(p.encode(p.MotionState(0.3, 0.0)))
+        peer.send(codec.encode(p.MotionState(0.3, 0.0)))
         deadline = time.monotonic() + 2.0
         while drv.feedback.motion is None and time.monotonic() < deadline:
             drv.poll()

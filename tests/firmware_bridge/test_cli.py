@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from firmware_bridge.cli import can_group
 
-DCT = Path(sys.executable).parent / "dct"  # /work/main/.venv/bin/dct in this project
+DCT = Path(sys.executable).parent / "dct"  # the dct script of the running virtualenv
 
 
 def run(*args: str, input: str | None = None):
@@ -66,7 +66,7 @@ def test_dump_prints_candump_and_json(tmp_path):
     import random
     import time
 
-    from firmware_bridge import protocol as p
+    from firmware_bridge import candump
     from firmware_bridge.buses import BusConfig, open_bus
 
     group, port = "239.74.163.98", random.randint(42000, 48000)
@@ -82,7 +82,7 @@ def test_dump_prints_candump_and_json(tmp_path):
     try:
         deadline = time.monotonic() + 20
         while proc.poll() is None and time.monotonic() < deadline:  # resend until the dumper has joined
-            bus.send(p.parse_candump("221#03E8FE0C00000000"))
+            bus.send(candump.parse_candump("221#03E8FE0C00000000"))
             time.sleep(0.05)
         out, err = proc.communicate(timeout=10)
     finally:
@@ -114,6 +114,6 @@ def test_send_over_virtual_bus():
 
 
 def p_fmt(m):
-    from firmware_bridge.protocol import format_candump
+    from firmware_bridge.candump import format_candump
 
     return format_candump(m)

@@ -18,6 +18,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from calibration.robot_description import RobotDescription, load_robot_description
+from firmware_bridge import codec, frame_errors
 from firmware_bridge import protocol as p
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware, FirmwareEmulatorError
 from hil_sim.world.scenario import Scenario, load_scenario
@@ -84,7 +85,7 @@ def drive(
     fw = firmware or EmulatedBaseFirmware(fw_bus, robot)
     trace = Trace()
     if enable:
-        host.send(p.encode(p.ControlModeCommand(mode=p.CONTROL_MODE_CAN)))
+        host.send(codec.encode(p.ControlModeCommand(mode=p.CONTROL_MODE_CAN)))
     t_end = world.time_s + duration_s
     next_cmd = world.time_s
     try:
@@ -93,7 +94,7 @@ def drive(
             if t >= next_cmd - 1e-9:
                 cmd = command(t)
                 if cmd is not None:
-                    host.send(p.encode(p.MotionCommand(linear_mps=cmd[0], angular_radps=cmd[1])))
+                    host.send(codec.encode(p.MotionCommand(linear_mps=cmd[0], angular_radps=cmd[1])))
                     trace.command_times.append(t)
                 next_cmd += COMMAND_PERIOD_S
             angles = world.wheel_angles_rad()
@@ -104,7 +105,7 @@ def drive(
             if on_step is not None:
                 on_step(world)
             while (msg := host.recv(timeout=0.0)) is not None:
-                trace.frames.append((t, p.decode(msg)))
+                trace.frames.append((t, codec.decode(msg)))
             trace.t.append(world.time_s)
             trace.pose.append(world.robot_pose())
             trace.body_vel.append(world.robot_body_velocity())
@@ -118,7 +119,7 @@ def drive(
 
 
 # ------------------------------------------------------------------------------------------
-# Physics requirements (issue item 6)
+# Physics requirements
 # ------------------------------------------------------------------------------------------
 def test_straight_0p5_mps_reaches_speed_within_5_percent():
     world = World(open_floor(), ROBOT)
@@ -241,7 +242,7 @@ def test_timeout_latch_needs_a_new_enable():
         assert fw.comm_lost and fw.commands_ignored > 0
         assert abs(world.robot_pose()[0] - x0) < 0.01
         # 0x441 does not clear it either.
-        host.send(p.encode(p.ErrorClearCommand(code=p.ERROR_CLEAR_ALL)))
+        host.send(codec.encode(p.ErrorClearCommand(code=p.ERROR_CLEAR_ALL)))
         _, fw = drive(world, lambda t: (0.3, 0.0), 0.2, enable=False, firmware=fw, buses=(fw_bus, host))
         assert fw.comm_lost and fw.error_clears == 1
         # A new enable clears the bit and the robot moves again.
@@ -259,7 +260,7 @@ def test_feedback_periods_counters_and_odometry():
     trace, fw = drive(world, lambda t: (0.4, 0.0), 2.0)
     counts: dict[int, int] = defaultdict(int)
     for _, r in trace.frames:
-        fid = p._record_frame_id(r)
+        fid = codec._record_frame_id(r)
         counts[fid] += 1
     assert counts[p.ID_MOTION_STATE] in (100, 101)
     assert counts[p.ID_ODOMETRY] in (100, 101)
@@ -291,15 +292,15 @@ def test_feedback_periods_counters_and_odometry():
 def test_bad_frames_are_counted_and_never_acted_on(frame_id, data, extended):
     msg = can.Message(arbitration_id=frame_id, is_extended_id=extended, data=data, dlc=len(data))
     try:
-        p.decode(msg)
+        codec.decode(msg)
         bad = False
-    except p.FrameError:
+    except frame_errors.FrameError:
         bad = True
     assume(bad)
     fw_bus, host = bus_pair()
     try:
         fw = EmulatedBaseFirmware(fw_bus, ROBOT)
-        host.send(p.encode(p.ControlModeCommand(mode=p.CONTROL_MODE_CAN)))
+        host.send(codec.encode(p.ControlModeCommand(mode=p.CONTROL_MODE_CAN)))
         fw.step(0.0, np.zeros(4), np.zeros(4))
         host.send(msg)
         torques = fw.step(0.01, np.zeros(4), np.zeros(4))
@@ -318,8 +319,8 @@ def test_bad_frames_are_counted_and_never_acted_on(frame_id, data, extended):
 def _enabled_firmware(v: float, omega: float) -> tuple[EmulatedBaseFirmware, can.BusABC, can.BusABC]:
     fw_bus, host = bus_pair()
     fw = EmulatedBaseFirmware(fw_bus, ROBOT)
-    host.send(p.encode(p.ControlModeCommand(mode=p.CONTROL_MODE_CAN)))
-    host.send(p.encode(p.MotionCommand(linear_mps=v, angular_radps=omega)))
+    host.send(codec.encode(p.ControlModeCommand(mode=p.CONTROL_MODE_CAN)))
+    host.send(codec.encode(p.MotionCommand(linear_mps=v, angular_radps=omega)))
     fw.step(0.0, np.zeros(4), np.zeros(4))
     return fw, fw_bus, host
 
@@ -353,14 +354,14 @@ def test_current_is_clamped_by_limit_and_back_emf():
     try:
         for k in range(1, 700):
             if k % 300 == 0:  # keep-alive
-                b.send(p.encode(p.MotionCommand(linear_mps=1.0, angular_radps=ROBOT.limits.max_angular_speed_radps)))
+                b.send(codec.encode(p.MotionCommand(linear_mps=1.0, angular_radps=ROBOT.limits.max_angular_speed_radps)))
             fw.step(k * 0.001, np.zeros(4), np.zeros(4))  # blocked wheels
         assert np.all(np.abs(fw.last_currents_a) <= mot.current_limit_a + 1e-12)
         assert np.allclose(np.abs(fw.last_currents_a), mot.current_limit_a)
         # A blocked wheel shows high current and zero rpm on 0x251..0x254.
         frames = []
         while (msg := b.recv(timeout=0.0)) is not None:
-            frames.append(p.decode(msg))
+            frames.append(codec.decode(msg))
         hs = [r for r in frames if isinstance(r, p.ActuatorHighSpeed)][-4:]
         assert [r.rpm for r in hs] == [0, 0, 0, 0]
         assert all(abs(r.current_a) == pytest.approx(mot.current_limit_a) for r in hs)

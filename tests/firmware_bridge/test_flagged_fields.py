@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from firmware_bridge import candump, codec, frame_errors
 from firmware_bridge import protocol as p
 
 FEEDBACK_IDS = [0x211, 0x221, 0x231, 0x241, 0x251, 0x252, 0x253, 0x254, 0x261, 0x262, 0x263, 0x264,
@@ -25,7 +26,7 @@ def msg(fid: int, data: bytes) -> can.Message:
 
 def out_of_range_signals(fid: int, data: bytes) -> set[str]:
     """DBC signal names whose raw value in ``data`` lies outside the DBC [min|max] (reference)."""
-    message = p.load_dbc().get_message_by_frame_id(fid)
+    message = codec.load_dbc().get_message_by_frame_id(fid)
     raw = message.decode(data.ljust(8, b"\0"), scaling=False, decode_choices=False)
     out = set()
     for sig in message.signals:
@@ -38,8 +39,8 @@ def out_of_range_signals(fid: int, data: bytes) -> set[str]:
 
 
 def test_direction_of_every_frame_comes_from_the_dbc():
-    assert p.feedback_frame_ids() == FEEDBACK_IDS
-    assert p.command_frame_ids() == COMMAND_IDS
+    assert codec.feedback_frame_ids() == FEEDBACK_IDS
+    assert codec.command_frame_ids() == COMMAND_IDS
 
 
 @pytest.mark.parametrize(
@@ -52,14 +53,15 @@ def test_direction_of_every_frame_comes_from_the_dbc():
     ],
 )
 def test_dbc_states_the_documented_ranges(signal, fids, lo, hi):
-    # AGILEX_V2.md sections 2 and 3 (the ranges the flagging relies on).
+    # The ranges the flagging relies on: docs/protocol.md, sections Control frames (host to base)
+    # and State feedback frames (base to host).
     for fid in fids:
-        assert p.signal_limits(fid, signal)[:2] == (lo, hi)
+        assert codec.signal_limits(fid, signal)[:2] == (lo, hi)
 
 
 def test_out_of_range_system_state_keeps_error_code_and_voltage():
     # vehicle_state 7 and control_mode 9 are undocumented; the SDK keeps every field, so do we.
-    rec = p.decode(msg(0x211, bytes([7, 9, 0x00, 0xF0, 0x02, 0x01, 0x02, 0x2A])))
+    rec = codec.decode(msg(0x211, bytes([7, 9, 0x00, 0xF0, 0x02, 0x01, 0x02, 0x2A])))
     assert isinstance(rec, p.SystemState)
     assert rec.flagged_fields == ("vehicle_state", "control_mode")
     assert rec.vehicle_state == 7 and rec.control_mode == 9  # kept as decoded, never clamped
@@ -79,7 +81,7 @@ def test_out_of_range_system_state_keeps_error_code_and_voltage():
     ],
 )
 def test_feedback_field_out_of_range_is_flagged(fid, data, field, value):
-    rec = p.decode(msg(fid, data))
+    rec = codec.decode(msg(fid, data))
     assert rec.flagged_fields == (field,) and getattr(rec, field) == value
     if fid == 0x361:
         assert rec.voltage_v == 12.4 and rec.temperature_c == 31.7  # the rest of the frame survives
@@ -87,30 +89,30 @@ def test_feedback_field_out_of_range_is_flagged(fid, data, field, value):
 
 def test_frame_level_faults_still_reject_a_feedback_frame():
     bad = bytes([7, 9, 0, 0, 0, 0, 0, 0])
-    with pytest.raises(p.WrongDlc):
-        p.decode(msg(0x211, bad[:7]))
-    with pytest.raises(p.MalformedFrame):
-        p.decode(can.Message(arbitration_id=0x211, data=bad, is_extended_id=True))
-    with pytest.raises(p.MalformedFrame):
-        p.decode(can.Message(arbitration_id=0x211, dlc=8, is_remote_frame=True, is_extended_id=False))
+    with pytest.raises(frame_errors.WrongDlc):
+        codec.decode(msg(0x211, bad[:7]))
+    with pytest.raises(frame_errors.MalformedFrame):
+        codec.decode(can.Message(arbitration_id=0x211, data=bad, is_extended_id=True))
+    with pytest.raises(frame_errors.MalformedFrame):
+        codec.decode(can.Message(arbitration_id=0x211, dlc=8, is_remote_frame=True, is_extended_id=False))
 
 
 def test_encode_refuses_flagged_records_and_stays_strict():
-    rec = p.decode(msg(0x211, bytes([7, 1, 0, 0xF0, 0, 0, 0, 0])))
-    with pytest.raises(p.FlaggedRecordError, match="flagged_fields") as exc_info:
-        p.encode(rec)
+    rec = codec.decode(msg(0x211, bytes([7, 1, 0, 0xF0, 0, 0, 0, 0])))
+    with pytest.raises(frame_errors.FlaggedRecordError, match="flagged_fields") as exc_info:
+        codec.encode(rec)
     assert exc_info.value.name == "flagged_record" and isinstance(exc_info.value, ValueError)
     # Flags with in-range values are refused too: a flagged record is decoded data, not a command.
-    with pytest.raises(p.FlaggedRecordError):
-        p.encode(dataclasses.replace(rec, vehicle_state=0))
-    with pytest.raises(p.OutOfRange, match="vehicle_state"):
-        p.encode(dataclasses.replace(rec, flagged_fields=()))
-    assert p.format_candump(p.encode(dataclasses.replace(rec, vehicle_state=0, flagged_fields=()))) \
+    with pytest.raises(frame_errors.FlaggedRecordError):
+        codec.encode(dataclasses.replace(rec, vehicle_state=0))
+    with pytest.raises(frame_errors.OutOfRange, match="vehicle_state"):
+        codec.encode(dataclasses.replace(rec, flagged_fields=()))
+    assert candump.format_candump(codec.encode(dataclasses.replace(rec, vehicle_state=0, flagged_fields=()))) \
         == "211#000100F000000000"
 
 
 def test_frame_decoder_counts_flags_and_names_the_last():
-    dec = p.FrameDecoder()
+    dec = codec.FrameDecoder()
     recs = [dec.decode(msg(0x211, bytes([7, 9, 0, 0, 0, 0, 0, 0]))),
             dec.decode(msg(0x211, bytes([5, 1, 0, 0, 0, 0, 0, 1]))),
             dec.decode(msg(0x361, bytes([150, 100, 0, 0, 0, 0, 0, 0]))),
@@ -124,24 +126,24 @@ def test_frame_decoder_counts_flags_and_names_the_last():
 
 
 def test_record_to_dict_lists_flagged_signal_names_only_when_any():
-    rec = p.decode(msg(0x361, bytes([150, 100, 0, 0, 0, 0, 0, 0])))
-    assert p.record_to_dict(rec)["flagged"] == ["battery_soc"]  # DBC name, not the attribute soc_pct
-    assert "flagged" not in p.record_to_dict(p.decode(msg(0x361, bytes([50, 100, 0, 0, 0, 0, 0, 0]))))
+    rec = codec.decode(msg(0x361, bytes([150, 100, 0, 0, 0, 0, 0, 0])))
+    assert codec.record_to_dict(rec)["flagged"] == ["battery_soc"]  # DBC name, not the attribute soc_pct
+    assert "flagged" not in codec.record_to_dict(codec.decode(msg(0x361, bytes([50, 100, 0, 0, 0, 0, 0, 0]))))
 
 
 @settings(max_examples=3000, deadline=None)
 @given(fid=st.sampled_from(FEEDBACK_IDS), data=st.binary(min_size=8, max_size=8))
 def test_fuzz_feedback_decodes_whole_and_flags_exactly_the_out_of_range_fields(fid, data):
-    rec = p.decode(msg(fid, data))  # never raises for a well-formed 8-byte feedback frame
+    rec = codec.decode(msg(fid, data))  # never raises for a well-formed 8-byte feedback frame
     expected = out_of_range_signals(fid, data)
     signals = type(rec)._signals
     assert {signals[f] for f in rec.flagged_fields} == expected
     assert len(set(rec.flagged_fields)) == len(rec.flagged_fields)
     # Flagged values are the raw decoded values (integer signals), never clamped.
-    raw = p.load_dbc().get_message_by_frame_id(fid).decode(data, scaling=False, decode_choices=False)
+    raw = codec.load_dbc().get_message_by_frame_id(fid).decode(data, scaling=False, decode_choices=False)
     for field in rec.flagged_fields:
         assert getattr(rec, field) == raw[signals[field]]
-    assert p.FrameDecoder().decode(msg(fid, data)) == rec
+    assert codec.FrameDecoder().decode(msg(fid, data)) == rec
 
 
 @settings(max_examples=2000, deadline=None)
@@ -149,13 +151,13 @@ def test_fuzz_feedback_decodes_whole_and_flags_exactly_the_out_of_range_fields(f
 def test_fuzz_commands_stay_strict(fid, data):
     expected = out_of_range_signals(fid, data)
     if expected:
-        with pytest.raises(p.OutOfRange) as exc_info:
-            p.decode(msg(fid, data))
+        with pytest.raises(frame_errors.OutOfRange) as exc_info:
+            codec.decode(msg(fid, data))
         assert any(name in str(exc_info.value) for name in expected)
-        dec = p.FrameDecoder()
+        dec = codec.FrameDecoder()
         assert dec.decode(msg(fid, data)) is None and dec.error_counts == {"out_of_range": 1}
     else:
-        assert p.decode(msg(fid, data)).flagged_fields == ()
+        assert codec.decode(msg(fid, data)).flagged_fields == ()
 
 
 @pytest.mark.parametrize(
@@ -164,5 +166,5 @@ def test_fuzz_commands_stay_strict(fid, data):
      (0x121, bytes([1, 0, 0, 3, 200, 0, 0, 0]))],
 )
 def test_command_with_out_of_range_byte_raises(fid, data):
-    with pytest.raises(p.OutOfRange):
-        p.decode(msg(fid, data))
+    with pytest.raises(frame_errors.OutOfRange):
+        codec.decode(msg(fid, data))

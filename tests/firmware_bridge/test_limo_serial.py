@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from firmware_bridge import candump, codec
 from firmware_bridge import protocol as p
 from firmware_bridge.base_driver import AgileXBaseDriver
 from firmware_bridge.buses import BusConfig, open_bus
@@ -47,15 +48,15 @@ def test_receive_framed_bytes(pty_bus):
     master, bus = pty_bus
     os.write(master, frame_limo(0x221, bytes.fromhex("03E8FE0C00000000"), count=42))
     m = bus.recv(timeout=2.0)
-    assert m is not None and p.format_candump(m) == "221#03E8FE0C00000000"
-    assert p.decode(m) == p.MotionState(1.0, -0.5)
+    assert m is not None and candump.format_candump(m) == "221#03E8FE0C00000000"
+    assert codec.decode(m) == p.MotionState(1.0, -0.5)
     assert bus.last_rx_count == 42 and bus.bad_frames == 0
     assert bus.recv(timeout=0.05) is None
 
 
 def test_send_produces_framed_bytes(pty_bus):
     master, bus = pty_bus
-    bus.send(p.encode(p.MotionCommand(0.15, 0.0)))
+    bus.send(codec.encode(p.MotionCommand(0.15, 0.0)))
     got = read_exact(master, 14)
     assert got == bytes([0x55, 0x0E, 0x01, 0x11, 0x00, 0x96, 0, 0, 0, 0, 0, 0, 0x00, 0x96])
     bus.send(can.Message(arbitration_id=0x421, data=b"\x01", is_extended_id=False))  # DLC 1 padded
@@ -66,7 +67,7 @@ def test_send_produces_framed_bytes(pty_bus):
 
 def test_resync_after_garbage_and_bad_checksum(pty_bus):
     master, bus = pty_bus
-    good = frame_limo(0x211, p.encode(p.SystemState(0, 1, 12.3, 0, 0, 3)).data)
+    good = frame_limo(0x211, codec.encode(p.SystemState(0, 1, 12.3, 0, 0, 3)).data)
     corrupt = bytearray(frame_limo(0x221, bytes(range(1, 9))))
     corrupt[-1] ^= 0xFF  # bad checksum
     garbage = bytes([0x00, 0x55, 0x13, 0xAA, 0x55])  # stray header with a wrong length byte
@@ -76,7 +77,7 @@ def test_resync_after_garbage_and_bad_checksum(pty_bus):
         os.write(master, stream[i:i + 5])
     m = bus.recv(timeout=2.0)
     assert m is not None and m.arbitration_id == 0x211
-    assert p.decode(m).battery_voltage_v == 12.3
+    assert codec.decode(m).battery_voltage_v == 12.3
     assert bus.bad_frames >= 2  # the wrong length byte and the bad checksum
     assert bus.recv(timeout=0.05) is None
 
@@ -87,7 +88,7 @@ def test_driver_over_serial(pty_bus):
     drv = AgileXBaseDriver(bus, lambda: t[0])
     drv.enable()
     assert read_exact(master, 14)[2:5] == bytes([0x04, 0x21, 0x01])
-    os.write(master, frame_limo(0x221, p.encode(p.MotionState(0.25, 0.0)).data))
+    os.write(master, frame_limo(0x221, codec.encode(p.MotionState(0.25, 0.0)).data))
     deadline = time.monotonic() + 2.0
     while drv.feedback.motion is None and time.monotonic() < deadline:
         drv.poll()

@@ -98,7 +98,7 @@ def check_out_path(out: Path, force: bool) -> Path:
 
 def validate_inputs(inputs: BundleInputs):
     """Preflight's file checks: every FAIL stops the build; returns the loaded files."""
-    from runtime.app.preflight import check_files
+    from runtime.app.preflight.files import check_files
 
     files = check_files(inputs.robot, inputs.calibration, inputs.config)
     failed = [c for c in files.checks if c.status == "FAIL"]
@@ -192,7 +192,7 @@ def check_wheelhouse(wheelhouse: Path) -> list[str]:
     torch = [n for n in names if n.startswith("torch-")]
     if cuda or any("+cpu" not in n for n in torch):
         raise BundleError(f"the wheelhouse got a CUDA torch ({torch}, {len(cuda)} nvidia/triton wheels): "
-                          "pip must find torch==2.13.0+cpu (ENVIRONMENT.md: pip's find-links holds it; or "
+                          "pip must find torch==2.13.0+cpu (docs/deploy.md: pip's find-links holds it; or "
                           "PIP_FIND_LINKS=<folder with the CPU wheel>)")
     return names
 
@@ -248,27 +248,15 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
                  echo: Callable[[str], None] = lambda s: None) -> BundleResult:
     """Build the bundle at `out` (see the module docstring). `wheelhouse_builder(source, wheelhouse)`
     replaces the pip steps (tests use a tiny fake wheelhouse)."""
-    from models.distance_net import shipped_artifact_path
-
     times: dict[str, float] = {}
     t = time.perf_counter()
     out = check_out_path(Path(out), force)
-    if not 0 <= compresslevel <= 9:
-        raise BundleError(f"compresslevel must be 0-9, got {compresslevel}")
-    if not 0.5 <= watchdog_s <= 600:
-        raise BundleError(f"watchdog_s must be in [0.5, 600], got {watchdog_s}")
-    manylinux_platforms(glibc)  # a bad --glibc fails here, before the long work
+    _check_options(compresslevel, watchdog_s, glibc)
     source = project_root() if source is None and wheelhouse_builder is None else source
     files = validate_inputs(inputs)
     robot, config = files.robot, files.config
     rt = config.realtime
-    cpus = service_cpus or " ".join(str(c) for c in sorted(set(rt.cpus or ()) | {0, 1}))
-    try:
-        cpu_set = {int(c) for c in cpus.replace(",", " ").split()}
-    except ValueError:
-        raise BundleError(f"service CPUs {cpus!r}: give CPU numbers like '0 1'") from None
-    if rt.cpus and not set(rt.cpus) <= cpu_set:
-        raise BundleError(f"config realtime.cpus {list(rt.cpus)} is not within the service's CPUs {sorted(cpu_set)}")
+    cpus = _service_cpus(rt, service_cpus)
     times["validate_s"] = time.perf_counter() - t
 
     version = _project_version()
@@ -279,46 +267,19 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
         wheelhouse = folder / "wheelhouse"
         wheelhouse.mkdir(parents=True)
         t = time.perf_counter()
-        echo(f"wheelhouse: building ({'custom' if wheelhouse_builder else f'pip, CPython {python_version} {MACHINE}'})")
-        if wheelhouse_builder is not None:
-            wheelhouse_builder(source, wheelhouse)
-        else:
-            build_wheelhouse(source, wheelhouse, python_version=python_version, glibc=glibc)
-        wheels = check_wheelhouse(wheelhouse)
+        wheels = _fill_wheelhouse(wheelhouse, source, wheelhouse_builder, python_version, glibc, echo)
         times["wheelhouse_s"] = time.perf_counter() - t
         echo(f"wheelhouse: {len(wheels)} wheels, {sum(p.stat().st_size for p in wheelhouse.iterdir()) / 1e6:.0f} MB "
              f"in {times['wheelhouse_s']:.1f} s")
 
         t = time.perf_counter()
-        rdir = folder / "robot"
-        (rdir / "models").mkdir(parents=True)
-        robot_src = inputs.robot or Path(str(resources.files("calibration") / "robots" / "limo.yaml"))
-        shutil.copyfile(robot_src, rdir / "robot.yaml")
-        if inputs.calibration is not None:
-            shutil.copyfile(inputs.calibration, rdir / "calibration.yaml")
-        else:
-            (rdir / "calibration.yaml").write_text(nominal_calibration_yaml(robot), encoding="utf-8")
-            notes.append("calibration.yaml is NOMINAL (from the robot description): calibrate the robot's camera "
-                         "(dct calibrate) and replace it; dct preflight warns until then")
-        model_src = Path(config.planner.distance_net_path) if config.planner.distance_net_path else shipped_artifact_path()
-        shutil.copyfile(model_src, rdir / "models" / model_src.name)
-        custom_model = config.planner.distance_net_path is not None
-        (rdir / "config.yaml").write_text(_config_text(inputs.config, model_src.name, custom_model), encoding="utf-8")
-        if not custom_model:
-            notes.append(f"config.yaml uses the distance net shipped in the wheel; robot/models/{model_src.name} is "
-                         "the same file (compare the sha256 in MANIFEST.json)")
-
+        notes += _write_robot_files(folder / "robot", inputs, robot, config)
         values = dict(MACHINE=MACHINE, PYTHON=python_version, GLIBC=glibc, PROJECT=PROJECT, VERSION=version,
                       ROBOT=robot.name, UNIT=templates.UNIT_NAME, PRIORITY=rt.fifo_priority, CPUS=cpus,
                       WATCHDOG_S=f"{watchdog_s:g}", CAN_INTERFACE=can_interface, CAN_CHANNEL=can_channel,
                       ARCHIVE=out.name, FOLDER=folder_name,
                       NOTES="".join(f"\nNote: {n}\n" for n in notes))
-        (folder / "systemd").mkdir()
-        (folder / "systemd" / templates.UNIT_NAME).write_text(templates.render(templates.UNIT, **values), encoding="utf-8")
-        install = folder / "install.sh"
-        install.write_text(templates.render(templates.INSTALL_SH, **values), encoding="utf-8")
-        install.chmod(0o755)
-        (folder / "README.txt").write_text(templates.render(templates.README, **values), encoding="utf-8")
+        _write_scripts(folder, values)
         manifest = write_manifest(folder, {
             "format": 1, "robot": robot.name,
             "project": {"name": PROJECT, "version": version},
@@ -336,6 +297,74 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
         times["archive_s"] = time.perf_counter() - t
     return BundleResult(path=out, folder=folder_name, files=len(manifest["files"]) + 1, size_bytes=out.stat().st_size,
                         wheels=len(wheels), seconds=times, notes=notes)
+
+
+def _check_options(compresslevel: int, watchdog_s: float, glibc: str) -> None:
+    """Refuse bad options before the long work."""
+    if not 0 <= compresslevel <= 9:
+        raise BundleError(f"compresslevel must be 0-9, got {compresslevel}")
+    if not 0.5 <= watchdog_s <= 600:
+        raise BundleError(f"watchdog_s must be in [0.5, 600], got {watchdog_s}")
+    manylinux_platforms(glibc)  # a bad --glibc fails here, before the long work
+
+
+def _fill_wheelhouse(wheelhouse: Path, source: Path | None, builder: Callable[[Path, Path], None] | None,
+                     python_version: str, glibc: str, echo: Callable[[str], None]) -> list[str]:
+    """The wheels, by `builder` when given (tests), else by pip; checked (no CUDA torch)."""
+    echo(f"wheelhouse: building ({'custom' if builder else f'pip, CPython {python_version} {MACHINE}'})")
+    if builder is not None:
+        builder(source, wheelhouse)
+    else:
+        build_wheelhouse(source, wheelhouse, python_version=python_version, glibc=glibc)
+    return check_wheelhouse(wheelhouse)
+
+
+def _service_cpus(rt, service_cpus: str | None) -> str:
+    """The unit's CPUAffinity: the given CPUs, else 0 and 1 plus the config's realtime.cpus,
+    which must lie within them."""
+    cpus = service_cpus or " ".join(str(c) for c in sorted(set(rt.cpus or ()) | {0, 1}))
+    try:
+        cpu_set = {int(c) for c in cpus.replace(",", " ").split()}
+    except ValueError:
+        raise BundleError(f"service CPUs {cpus!r}: give CPU numbers like '0 1'") from None
+    if rt.cpus and not set(rt.cpus) <= cpu_set:
+        raise BundleError(f"config realtime.cpus {list(rt.cpus)} is not within the service's CPUs {sorted(cpu_set)}")
+    return cpus
+
+
+def _write_robot_files(rdir: Path, inputs: BundleInputs, robot, config) -> list[str]:
+    """robot.yaml, calibration.yaml, config.yaml and the distance net into `rdir`; returns the
+    notes for the user (a nominal calibration, the shipped net)."""
+    from models.distance_net import shipped_artifact_path
+
+    notes = []
+    (rdir / "models").mkdir(parents=True)
+    robot_src = inputs.robot or Path(str(resources.files("calibration") / "robots" / "limo.yaml"))
+    shutil.copyfile(robot_src, rdir / "robot.yaml")
+    if inputs.calibration is not None:
+        shutil.copyfile(inputs.calibration, rdir / "calibration.yaml")
+    else:
+        (rdir / "calibration.yaml").write_text(nominal_calibration_yaml(robot), encoding="utf-8")
+        notes.append("calibration.yaml is NOMINAL (from the robot description): calibrate the robot's camera "
+                     "(dct calibrate) and replace it; dct preflight warns until then")
+    model_src = Path(config.planner.distance_net_path) if config.planner.distance_net_path else shipped_artifact_path()
+    shutil.copyfile(model_src, rdir / "models" / model_src.name)
+    custom_model = config.planner.distance_net_path is not None
+    (rdir / "config.yaml").write_text(_config_text(inputs.config, model_src.name, custom_model), encoding="utf-8")
+    if not custom_model:
+        notes.append(f"config.yaml uses the distance net shipped in the wheel; robot/models/{model_src.name} is "
+                     "the same file (compare the sha256 in MANIFEST.json)")
+    return notes
+
+
+def _write_scripts(folder: Path, values: dict) -> None:
+    """The systemd unit, install.sh and README.txt, rendered with `values`."""
+    (folder / "systemd").mkdir()
+    (folder / "systemd" / templates.UNIT_NAME).write_text(templates.render(templates.UNIT, **values), encoding="utf-8")
+    install = folder / "install.sh"
+    install.write_text(templates.render(templates.INSTALL_SH, **values), encoding="utf-8")
+    install.chmod(0o755)
+    (folder / "README.txt").write_text(templates.render(templates.README, **values), encoding="utf-8")
 
 
 __all__ = ["BundleError", "BundleInputs", "BundleResult", "build_bundle", "build_wheelhouse", "check_wheelhouse",

@@ -27,7 +27,7 @@ def deploy_group() -> None:
               help="the unit's WatchdogSec")
 @click.option("--compress", "compresslevel", type=click.IntRange(0, 9), default=1, show_default=True,
               help="gzip level (the wheels inside are already compressed)")
-def bundle_command(robot, calibration, config, out, force, python_version, glibc, can_interface, can_channel,
+def bundle_command(*, robot, calibration, config, out, force, python_version, glibc, can_interface, can_channel,
                    service_cpus, watchdog_s, compresslevel) -> None:
     """Build the offline install bundle: wheelhouse, robot files, systemd unit, install.sh, manifest.
 

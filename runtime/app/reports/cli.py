@@ -27,7 +27,7 @@ def report_group() -> None:
 @click.option("--compare", "compare_path", type=click.Path(dir_okay=False, path_type=Path),
               help="A second recording to put beside RUN (before and after a change).")
 @click.option("--force", is_flag=True, help="Overwrite existing --html / --json files.")
-def latency_command(run: Path, html_path: Path | None, json_path: Path | None, compare_path: Path | None,
+def latency_command(*, run: Path, html_path: Path | None, json_path: Path | None, compare_path: Path | None,
                     force: bool) -> None:
     """Per-stage p50/p90/p99/p99.9/max against the budgets recorded with RUN, the whole tick, period
     jitter, deadline misses with their context, sensor-to-command latency. Prints a summary; exit

@@ -194,43 +194,19 @@ def thread_cpu(d: TickData) -> dict:
 
 
 def latency_report(d: TickData) -> dict:
-    """The report as JSON-ready data. Keys the issue fixes: stages, tick, jitter_ms,
-    deadline_misses, sensor_to_command_ms; `run` says what was measured and how."""
+    """The report as JSON-ready data. Fixed keys: stages, tick, jitter_ms, deadline_misses,
+    sensor_to_command_ms; `run` says what was measured and how."""
     stages = {
         s: distribution(d.stage_ms[:, i], d.budgets_ms[s], overruns=int(np.count_nonzero(d.overrun[:, i])))
         for i, s in enumerate(d.stages)
     }
     tick = distribution(d.tick_ms, d.command_deadline_ms)
-    jitter = distribution(d.lateness_ms)
-    jitter.pop("budget_ms"), jitter.pop("overruns")
-    jitter["mean_ms"] = _opt(np.nanmean(d.lateness_ms))
-    skipped = int(np.sum(np.maximum(np.diff(d.tick) - 1, 0))) if len(d.tick) > 1 else 0
-    jitter["ticks_skipped"] = skipped
-    jitter["note"] = ("actual start - scheduled start on the loop's clock; zero in lockstep (the simulator "
-                      "waits for each tick)" if d.info.get("clock") == "lockstep"
-                      else "actual start - scheduled start on the loop's clock")
-    miss_idx = np.flatnonzero(d.missed | d.wall_missed)
-    misses = {
-        "count": int(np.count_nonzero(d.missed)),
-        "judged_on": "loop clock" + (" (simulated time in lockstep)" if d.info.get("clock") == "lockstep" else ""),
-        "wall_clock_count": int(np.count_nonzero(d.wall_missed)),
-        "command_deadline_ms": _opt(d.command_deadline_ms),
-        "listed": int(min(len(miss_idx), MAX_MISSES_LISTED)),
-        "events": [_miss_context(d, int(i)) for i in miss_idx[:MAX_MISSES_LISTED]],
-    }
-    if d.sensor_recorded and np.isfinite(d.sensor_to_command_ms).any():
-        s2c = distribution(d.sensor_to_command_ms)
-        s2c.pop("budget_ms"), s2c.pop("overruns")
-        s2c.update(recorded=True, frames=int(np.count_nonzero(np.isfinite(d.sensor_to_command_ms))),
-                   what="lidar frame end -> the command of the tick that used the frame (loop clock)")
-    else:
-        s2c = {"recorded": False,
-               "why": "no tick in this recording used a lidar frame" if d.sensor_recorded
-               else "this recording has no sensor timestamps"}
+    jitter = _jitter(d)
+    misses = _deadline_misses(d)
+    s2c = _sensor_to_command(d)
     i2m = image_to_mask(d)
     s2c["image_to_mask"] = "see image_to_mask_ms" if i2m["recorded"] else "not recorded"
     threads = thread_cpu(d)
-    duration = float(d.t_s[-1] - d.t_s[0]) + d.period_ms * 1e-3 if len(d.t_s) else 0.0
     return {
         "stages": stages,
         "tick": tick,
@@ -239,22 +215,67 @@ def latency_report(d: TickData) -> dict:
         "sensor_to_command_ms": s2c,
         "image_to_mask_ms": i2m,
         "threads": threads,
-        "run": {
-            "file": str(d.path),
-            "ticks": int(len(d.tick)),
-            "duration_s": duration,
-            "period_ms": _opt(d.period_ms),
-            "command_deadline_ms": _opt(d.command_deadline_ms),
-            "tick_budget": "the command deadline (start of read() to end of write())",
-            "tick_p99_share_of_period": _opt(tick["p99_ms"] / d.period_ms) if tick["p99_ms"] is not None else None,
-            "stage_times": "wall clock (what the computer spent)",
-            "scenario": d.info.get("scenario"),
-            "seed": d.info.get("seed"),
-            "clock": d.info.get("clock"),
-            "planner": d.info.get("planner"),
-            "recording_complete": d.complete,
-            "recording_stopped_by": d.stopped_by,
-            "recorder": d.recorder,
-            "cpu_time_per_thread": "see threads" if threads["recorded"] else "not recorded",
-        },
+        "run": _run_info(d, tick, threads),
+    }
+
+
+def _jitter(d: TickData) -> dict:
+    """Tick start lateness on the loop's clock, and the ticks skipped."""
+    jitter = distribution(d.lateness_ms)
+    jitter.pop("budget_ms"), jitter.pop("overruns")
+    jitter["mean_ms"] = _opt(np.nanmean(d.lateness_ms))
+    skipped = int(np.sum(np.maximum(np.diff(d.tick) - 1, 0))) if len(d.tick) > 1 else 0
+    jitter["ticks_skipped"] = skipped
+    jitter["note"] = ("actual start - scheduled start on the loop's clock; zero in lockstep (the simulator "
+                      "waits for each tick)" if d.info.get("clock") == "lockstep"
+                      else "actual start - scheduled start on the loop's clock")
+    return jitter
+
+
+def _deadline_misses(d: TickData) -> dict:
+    """The command deadline misses (loop clock) and the wall clock's, the first ones listed."""
+    miss_idx = np.flatnonzero(d.missed | d.wall_missed)
+    return {
+        "count": int(np.count_nonzero(d.missed)),
+        "judged_on": "loop clock" + (" (simulated time in lockstep)" if d.info.get("clock") == "lockstep" else ""),
+        "wall_clock_count": int(np.count_nonzero(d.wall_missed)),
+        "command_deadline_ms": _opt(d.command_deadline_ms),
+        "listed": int(min(len(miss_idx), MAX_MISSES_LISTED)),
+        "events": [_miss_context(d, int(i)) for i in miss_idx[:MAX_MISSES_LISTED]],
+    }
+
+
+def _sensor_to_command(d: TickData) -> dict:
+    """Lidar frame end -> command, over the ticks that used a frame (or why it is not recorded)."""
+    if d.sensor_recorded and np.isfinite(d.sensor_to_command_ms).any():
+        s2c = distribution(d.sensor_to_command_ms)
+        s2c.pop("budget_ms"), s2c.pop("overruns")
+        s2c.update(recorded=True, frames=int(np.count_nonzero(np.isfinite(d.sensor_to_command_ms))),
+                   what="lidar frame end -> the command of the tick that used the frame (loop clock)")
+        return s2c
+    return {"recorded": False,
+            "why": "no tick in this recording used a lidar frame" if d.sensor_recorded
+            else "this recording has no sensor timestamps"}
+
+
+def _run_info(d: TickData, tick: dict, threads: dict) -> dict:
+    """What was recorded (file, ticks, duration, scenario, clock, recorder) and how it was measured."""
+    duration = float(d.t_s[-1] - d.t_s[0]) + d.period_ms * 1e-3 if len(d.t_s) else 0.0
+    return {
+        "file": str(d.path),
+        "ticks": int(len(d.tick)),
+        "duration_s": duration,
+        "period_ms": _opt(d.period_ms),
+        "command_deadline_ms": _opt(d.command_deadline_ms),
+        "tick_budget": "the command deadline (start of read() to end of write())",
+        "tick_p99_share_of_period": _opt(tick["p99_ms"] / d.period_ms) if tick["p99_ms"] is not None else None,
+        "stage_times": "wall clock (what the computer spent)",
+        "scenario": d.info.get("scenario"),
+        "seed": d.info.get("seed"),
+        "clock": d.info.get("clock"),
+        "planner": d.info.get("planner"),
+        "recording_complete": d.complete,
+        "recording_stopped_by": d.stopped_by,
+        "recorder": d.recorder,
+        "cpu_time_per_thread": "see threads" if threads["recorded"] else "not recorded",
     }

@@ -22,92 +22,39 @@ each thread spent over the run.
 
 Used by any loop: `attach()` returns the per-tick hook (FixedRateLoop's `after_tick`), and
 `wrap_bus()` puts a recording proxy between a driver and its CAN bus.
+The messages each record becomes are built in runtime.io.recording.messages.
 """
 from __future__ import annotations
 
-import base64
 import io
 import json
 import math
 import os
-import struct
 import tempfile
 import threading
 import time
-import zlib
 from collections import deque
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
+from runtime.io.recording import messages as M
 from runtime.io.recording import schemas as S
 from runtime.loop.telemetry import STAGES
 
 #: Channel message kinds, and how each is counted when dropped.
 KINDS = ("tick", "can", "points", "plan", "answer")
-#: Size of the recorded mask image (width, height): small, the masks are coarse anyway.
-MASK_IMAGE_WH = (160, 120)
 #: Wall-clock seconds between two samples of the threads' CPU time.
 THREAD_SAMPLE_EVERY_S = 1.0
-_STATE_NAMES = {0: "INITIALIZING", 1: "ACTIVE", 2: "GOAL_REACHED", 3: "STOPPED", 4: "HOLDING"}
 
 
 class RecordingError(ValueError):
     """A recording that cannot be made (bad output path); the message says why in one line."""
 
 
-def _stamp(t_s: float) -> dict:
-    ns = max(0, int(round(t_s * 1e9)))
-    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
-
-
 def _ns(t_s: float) -> int:
     return max(0, int(round(t_s * 1e9)))
-
-
-def _pose(x: float, y: float, yaw: float) -> dict:
-    return {"position": {"x": x, "y": y, "z": 0.0},
-            "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(0.5 * yaw), "w": math.cos(0.5 * yaw)}}
-
-
-def _finite(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
-
-
-def cost_rgb(cost: np.ndarray) -> np.ndarray:
-    """Contact cost 0..10 -> RGB uint8: green (free to touch) through yellow to red (keep off)."""
-    c = np.clip(np.asarray(cost, float) / 10.0, 0.0, 1.0)
-    r = np.clip(2.0 * c, 0.0, 1.0)
-    g = np.clip(2.0 * (1.0 - c), 0.0, 1.0)
-    return (np.stack([r, g, np.zeros_like(c)], axis=-1) * 255).round().astype(np.uint8)
-
-
-def mask_label_image(entries: tuple, wh: tuple[int, int] = MASK_IMAGE_WH) -> np.ndarray:
-    """(h, w, 3) uint8: each entry's mask downscaled (nearest pixel) and painted in its cost's
-    colour on black, in ascending cost so that the costliest object shows where masks overlap."""
-    w, h = wh
-    img = np.zeros((h, w, 3), np.uint8)
-    for e in sorted(entries, key=lambda e: float(e.contact_cost)):
-        m = np.asarray(e.mask, bool)
-        if m.ndim != 2 or not m.size:
-            continue
-        rows = (np.arange(h) * m.shape[0]) // h
-        cols = (np.arange(w) * m.shape[1]) // w
-        img[m[np.ix_(rows, cols)]] = cost_rgb(float(e.contact_cost))
-    return img
-
-
-def png_bytes(rgb: np.ndarray) -> bytes:
-    """A truecolour PNG of an (h, w, 3) uint8 image (zlib only: no imaging library needed)."""
-    h, w, _ = rgb.shape
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), rgb.reshape(h, 3 * w)], axis=1).tobytes()  # filter 0 rows
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
 
 
 def thread_cpu_seconds(proc_root: str = "/proc") -> list[dict] | None:
@@ -159,7 +106,6 @@ class RunRecorder:
         opener: Callable[[str], Any] | None = None,
     ) -> None:
         from calibration.outputs import OutputPathError, check_output_path
-        from mcap.writer import CompressionType, Writer
 
         if queue_capacity <= 0 or points_every_ticks <= 0:
             raise RecordingError("recorder queue_capacity and points_every_ticks must be positive")
@@ -174,17 +120,7 @@ class RunRecorder:
         self.queue_capacity = int(queue_capacity)
         self.points_every_ticks = int(points_every_ticks)
         self.flush_interval_s = float(flush_interval_s)
-        parent = self.path.parent if str(self.path.parent) else Path(".")
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=parent)
-        os.close(fd)
-        self.tmp_path = Path(tmp)
-        # opener: tests put a slow or failing file object here (full disk, slow disk).
-        self._file = opener(tmp) if opener is not None else open(tmp, "wb")
-        if isinstance(self._file, io.RawIOBase):  # our buffer, so that close() flushes it
-            self._file = io.BufferedWriter(self._file)
-        self._writer = Writer(self._file, chunk_size=chunk_size,
-                              compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-                                           "none": CompressionType.NONE}[compression])
+        self._open(opener, chunk_size, compression)
         self._queue: deque = deque()
         self.dropped = dict.fromkeys(KINDS, 0)  # queue full (counted on the tick's side)
         self.dropped_write_error = 0  # counted on the writer's side
@@ -207,6 +143,22 @@ class RunRecorder:
         self._wall0 = time.monotonic()
         self._thread = threading.Thread(target=self._writer_main, name="dct-mcap-writer", daemon=True)
         self._thread.start()
+
+    def _open(self, opener: Callable[[str], Any] | None, chunk_size: int, compression: str) -> None:
+        """The temporary file beside the output and the MCAP writer on it."""
+        from mcap.writer import CompressionType, Writer
+
+        parent = self.path.parent if str(self.path.parent) else Path(".")
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=parent)
+        os.close(fd)
+        self.tmp_path = Path(tmp)
+        # opener: tests put a slow or failing file object here (full disk, slow disk).
+        self._file = opener(tmp) if opener is not None else open(tmp, "wb")
+        if isinstance(self._file, io.RawIOBase):  # our buffer, so that close() flushes it
+            self._file = io.BufferedWriter(self._file)
+        self._writer = Writer(self._file, chunk_size=chunk_size,
+                              compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+                                           "none": CompressionType.NONE}[compression])
 
     # ---------------------------------------------------------------- the tick's side
     def _put(self, kind: str, item: tuple) -> None:
@@ -306,70 +258,9 @@ class RunRecorder:
             self._writer.add_metadata(item[1], item[2])
             return
         if kind == "tick":
-            _, r, xyyaw, frame_end = item
-            t = float(r["scheduled_s"])
-            self._last_t_s = t
-            mask = int(r["overrun_mask"])
-            cmd_t = t + float(r["command_latency_s"])
-            msg = {
-                "timestamp": _stamp(t),
-                "tick": int(r["tick"]),
-                "scheduled_s": t,
-                "lateness_ms": float(r["lateness_s"]) * 1e3,
-                "stage_ms": {s: float(v) * 1e3 for s, v in zip(self.stages, r["stage_s"])},
-                "tick_ms": float(r["tick_s"]) * 1e3,
-                "slack_work_ms": float(r["slack_work_s"]) * 1e3,
-                "command_latency_ms": float(r["command_latency_s"]) * 1e3,
-                "overrun_stages": [s for i, s in enumerate(self.stages) if mask & (1 << i)],
-                "deadline_missed": bool(r["deadline_missed"]),
-                "wall_command_latency_ms": float(r["wall_command_latency_s"]) * 1e3,
-                "wall_deadline_missed": bool(r["wall_deadline_missed"]),
-                "state": _STATE_NAMES.get(int(r["state"]), str(int(r["state"]))),
-                "v_cmd_mps": _finite(float(r["v_cmd_mps"])),
-                "omega_cmd_radps": _finite(float(r["omega_cmd_radps"])),
-                "lidar_frame_end_s": frame_end,
-                "sensor_to_command_ms": (cmd_t - frame_end) * 1e3 if frame_end is not None else None,
-            }
-            self._emit(S.TOPIC_TICK, t, msg)
-            if xyyaw is not None:
-                self._emit(S.TOPIC_POSE, t, {"timestamp": _stamp(t), "frame_id": "odom", "pose": _pose(*xyyaw)})
-        elif kind == "can":
-            _, t, direction, can_id, data = item
-            self._emit(S.TOPIC_CAN, t, {"timestamp": _stamp(t), "direction": direction, "id": can_id,
-                                        "id_hex": f"0x{can_id:03X}", "dlc": len(data), "data_hex": data.hex()})
-        elif kind == "points":
-            _, t, tick, returns, fix, p_mov = item
-            self._emit(S.TOPIC_PARTITION, t, {"timestamp": _stamp(t), "tick": tick, "lidar_returns": returns,
-                                              "p_fix": int(len(fix)), "p_mov": p_mov})
-            xyz = np.zeros((len(fix), 3), np.float32)  # P_fix is (N, 2) in the odom frame
-            if fix.ndim == 2 and len(fix):
-                k = min(3, fix.shape[1])
-                xyz[:, :k] = fix[:, :k]
-            self._emit(S.TOPIC_P_FIX, t, {
-                "timestamp": _stamp(t), "frame_id": "odom", "pose": _pose(0.0, 0.0, 0.0), "point_stride": 12,
-                "fields": [{"name": n, "offset": 4 * i, "type": 7} for i, n in enumerate("xyz")],
-                "data": base64.b64encode(xyz.tobytes()).decode(),
-            })
-        elif kind == "plan":
-            _, t, states, path = item
-            if states is not None:
-                self._emit(S.TOPIC_PLAN, t, {"timestamp": _stamp(t), "frame_id": "odom",
-                                             "poses": [_pose(float(s[0]), float(s[1]), float(s[2])) for s in states]})
-            if path is not None:
-                self._emit(S.TOPIC_REFERENCE, t, {"timestamp": _stamp(t), "frame_id": "odom",
-                                                  "poses": [_pose(float(p[0]), float(p[1]), 0.0) for p in path]})
-        elif kind == "answer":
-            _, t, stamp, answers, entries = item
-            self._emit(S.TOPIC_VPP_ANSWER, t, {
-                "timestamp": _stamp(t), "arrival_s": t, "capture_s": stamp, "latency_ms": (t - stamp) * 1e3,
-                "answers": answers,
-                "objects": [{"object_id": int(e.object_id), "label": str(e.label), "movable": bool(e.movable),
-                             "contact_cost": float(e.contact_cost), "pixels": int(np.count_nonzero(e.mask))}
-                            for e in entries],
-            })
-            png = png_bytes(mask_label_image(entries))
-            self._emit(S.TOPIC_VPP_MASKS, t, {"timestamp": _stamp(stamp), "frame_id": "camera", "format": "png",
-                                              "data": base64.b64encode(png).decode()})
+            self._last_t_s = float(item[1]["scheduled_s"])
+        for topic, t, msg in M.messages_of(item, self.stages):
+            self._emit(topic, t, msg)
         self.written[kind] += 1
 
     def _sample_threads(self) -> None:
@@ -381,7 +272,7 @@ class RunRecorder:
             self._threads_supported = False
             return
         t = self._last_t_s
-        self._emit(S.TOPIC_THREADS, t, {"timestamp": _stamp(t), "wall_s": time.monotonic() - self._wall0,
+        self._emit(S.TOPIC_THREADS, t, {"timestamp": M.stamp(t), "wall_s": time.monotonic() - self._wall0,
                                         "process_cpu_s": time.process_time(), "threads": threads})
         self.thread_samples += 1
 

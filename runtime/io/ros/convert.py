@@ -21,11 +21,10 @@ its calibration, as the simulator's camera does today.
 """
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-
-import io
 
 import cv2
 import numpy as np
@@ -143,24 +142,9 @@ def _field_dtype(msg: PointCloud2) -> tuple[np.dtype, dict[str, PointField]]:
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": msg.point_step}), by_name
 
 
-def pointcloud2_to_scan(msg: PointCloud2, *, time_field: str | None = None, time_unit_s: float = 1.0,
-                        time_is_absolute: bool = False,
-                        nominal_frame_duration_s: float = DEFAULT_FRAME_DURATION_S,
-                        default_frame_id: str = "lidar") -> LidarScan:
-    """A PointCloud2 as a LidarScan: fields x, y, z (float32 or float64) and an optional per-point time.
-
-    Any point_step, field offsets, endianness and row padding (row_step) the message declares
-    are honoured. time_field: the per-point time field (Ouster `t` in ns: time_unit_s=1e-9;
-    Velodyne `time` in s relative to the header; Hesai `timestamp`, absolute s:
-    time_is_absolute=True); when None every point gets the header stamp. The scan starts at the
-    earliest point (a driver that stamps the frame's end gives negative relative times).
-
-    Non-finite points: an `is_dense=False` cloud declares that some points are invalid (no
-    return); those rows are dropped, and a cloud of only such points is `nothing_seen`. In an
-    `is_dense=True` cloud a NaN is a driver fault and LidarScan's `non_finite` rejection applies.
-    """
+def _cloud_size(msg: PointCloud2) -> int:
+    """The number of points of a cloud whose sizes (width, height, steps, data) agree."""
     t = POINTCLOUD2
-    stamp = _stamp_of(t, msg.header)
     n = int(msg.width) * int(msg.height)
     if n == 0:
         _fail(t, "width", f"empty cloud ({msg.width} x {msg.height})", "empty_scan")
@@ -173,6 +157,12 @@ def pointcloud2_to_scan(msg: PointCloud2, *, time_field: str | None = None, time
     if len(msg.data) != msg.row_step * msg.height:
         _fail(t, "data", f"{len(msg.data)} bytes, expected row_step {msg.row_step} x height {msg.height} "
               f"= {msg.row_step * msg.height}", "bad_size")
+    return n
+
+
+def _cloud_layout(msg: PointCloud2, time_field: str | None) -> np.dtype:
+    """The record type of one point, with float x, y, z and (when asked for) a scalar time field."""
+    t = POINTCLOUD2
     try:
         dtype, fields = _field_dtype(msg)
     except RosMessageError:
@@ -192,6 +182,29 @@ def pointcloud2_to_scan(msg: PointCloud2, *, time_field: str | None = None, time
             _fail(t, "fields", f"no time field {time_field!r} (has {sorted(fields)})", "missing_field")
         if f.count != 1:
             _fail(t, f"fields[{time_field!r}]", f"count {f.count}, expected 1", "bad_field")
+    return dtype
+
+
+def pointcloud2_to_scan(msg: PointCloud2, *, time_field: str | None = None, time_unit_s: float = 1.0,
+                        time_is_absolute: bool = False,
+                        nominal_frame_duration_s: float = DEFAULT_FRAME_DURATION_S,
+                        default_frame_id: str = "lidar") -> LidarScan:
+    """A PointCloud2 as a LidarScan: fields x, y, z (float32 or float64) and an optional per-point time.
+
+    Any point_step, field offsets, endianness and row padding (row_step) the message declares
+    are honoured. time_field: the per-point time field (Ouster `t` in ns: time_unit_s=1e-9;
+    Velodyne `time` in s relative to the header; Hesai `timestamp`, absolute s:
+    time_is_absolute=True); when None every point gets the header stamp. The scan starts at the
+    earliest point (a driver that stamps the frame's end gives negative relative times).
+
+    Non-finite points: an `is_dense=False` cloud declares that some points are invalid (no
+    return); those rows are dropped, and a cloud of only such points is `nothing_seen`. In an
+    `is_dense=True` cloud a NaN is a driver fault and LidarScan's `non_finite` rejection applies.
+    """
+    t = POINTCLOUD2
+    stamp = _stamp_of(t, msg.header)
+    n = _cloud_size(msg)
+    dtype = _cloud_layout(msg, time_field)
     buf = np.frombuffer(msg.data, dtype=np.uint8).reshape(msg.height, msg.row_step)[:, :msg.width * msg.point_step]
     rec = np.ascontiguousarray(buf).view(dtype).reshape(-1)
     xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)

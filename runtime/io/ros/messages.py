@@ -9,7 +9,7 @@ same bytes as ROS 2; tests/runtime/io/test_ros_messages.py checks every type aga
 ROS 2 CDR serializer.
 
 Field names and order follow the ROS 2 Jazzy `.msg` definitions (and, for the Livox types,
-livox_ros_driver2's, see ../shared/protocol/livox_ros_driver2.md). `uint8[]` payloads (image
+livox_ros_driver2's, see docs/ros.md). `uint8[]` payloads (image
 bytes, point cloud bytes) are typed `bytes`: cyclonedds writes `bytes` as a uint32 length and
 the raw octets, exactly the CDR of `sequence<uint8>`, but as one memory copy instead of a
 Python int per byte (a `sequence[uint8]` of a 1920x1200 RGB image is 6.9 M Python ints).
@@ -303,10 +303,10 @@ def time_to_s(t: Time) -> float:
 # ----------------------------------------------------------------------------- CustomMsg fast path
 #
 # A Mid-360 frame is ~20k CustomPoints; cyclonedds' generic decoder builds one Python object per
-# point (about 0.13 s for 20k points on this machine, longer than the 0.1 s frame period), and
-# its encoder is as slow. On the wire (XCDR1) a CustomPoint is uint32, 3 x float32, 3 x uint8:
-# 19 bytes, each point aligned to 4, so the sequence is an array of 20-byte records (the last one
-# without its pad byte). numpy reads and writes that directly; tests check these bytes against
+# point, too slow for the 0.1 s frame period, and its encoder is as slow
+# (docs/decisions/docs-ros-decoding.md). On the wire (XCDR1) a CustomPoint is uint32,
+# 3 x float32, 3 x uint8: 19 bytes, each point aligned to 4, so the sequence is an array of
+# 20-byte records (the last one without its pad byte). numpy reads and writes that directly; tests check these bytes against
 # both cyclonedds' and rosbags' serializers.
 
 CUSTOM_POINT_DTYPE = np.dtype({

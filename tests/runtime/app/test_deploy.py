@@ -20,7 +20,7 @@ import tarfile
 import threading
 import time
 import zipfile
-from importlib import metadata
+from importlib import metadata, resources
 from pathlib import Path
 
 import pytest
@@ -28,9 +28,9 @@ import yaml
 
 from runtime.app.deploy import bundle as B
 from runtime.app.deploy.sd_notify import SystemdNotifier
-from tests.runtime.app.preflight_fakes import unique_domain, unique_port
+from tests.runtime.app.preflight.fakes import unique_domain, unique_port
 
-LIMO = Path(__file__).resolve().parents[2] / "calibration" / "robots" / "limo.yaml"
+LIMO = Path(str(resources.files("calibration") / "robots" / "limo.yaml"))
 VERSION = metadata.version("dct-controller")
 
 

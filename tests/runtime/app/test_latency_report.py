@@ -42,7 +42,7 @@ def report(recording, tmp_path_factory):
     return html, js, res.output
 
 
-def test_the_json_has_the_issue_keys_and_the_recorded_figures(recording, report):
+def test_the_json_has_the_fixed_keys_and_the_recorded_figures(recording, report):
     _, result = recording
     _, js, output = report
     rep = json.loads(js.read_text())

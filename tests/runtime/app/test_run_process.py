@@ -20,6 +20,7 @@ import numpy as np
 import yaml
 
 from calibration.robot_description import load_robot_description
+from firmware_bridge import codec
 from firmware_bridge import protocol as p
 from firmware_bridge.buses import BusConfig, open_bus
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
@@ -133,7 +134,7 @@ def test_controller_process_drives_and_stops_on_sigterm(tmp_path):
              "--can-channel", group, "--can-port", str(port)),
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        decoder = p.FrameDecoder()
+        decoder = codec.FrameDecoder()
         moving = False
         t_end = time.monotonic() + 90
         next_goal = 0.0

@@ -126,7 +126,7 @@ def test_vlm_answers_are_recorded_when_they_arrive_with_their_masks(recorded_cas
 def test_the_hook_records_a_new_answer_once_and_counts_drops(tmp_path):
     """A fake VPP stage: an answer is queued when last_answer_s changes, once; with a full queue it is
     dropped and counted."""
-    from runtime.io.recording.recorder import mask_label_image
+    from runtime.io.recording.messages import mask_label_image
 
     mask = np.zeros((480, 640), bool)
     mask[100:200, 300:400] = True

@@ -18,7 +18,7 @@ from runtime.common.sensor_data import LidarScan
 from tests.runtime.io.test_ros_messages import strategy_for
 
 K = np.array([[500.0, 0.0, 16.0], [0.0, 500.0, 12.0], [0.0, 0.0, 1.0]])
-REAL = Path(__file__).resolve().parents[1] / "data" / "real" / "pandar64_camera_opencalib"
+REAL = Path(__file__).resolve().parents[2] / "data" / "real" / "pandar64_camera_opencalib"
 ERR = r"^\[[a-z_]+\] [a-z_0-9]+/msg/[A-Za-z0-9]+\.[^\n]+$"        # one line: [reason] pkg/msg/Type.field: ...
 
 

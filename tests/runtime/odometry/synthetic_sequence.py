@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.pointcloud_io import write_pcd, write_ply
+from calibration.pointcloud_write import write_pcd, write_ply
 from runtime.odometry.metrics import interpolate_poses, planar_to_se3
 from runtime.odometry.sequence import format_kitti_poses
 

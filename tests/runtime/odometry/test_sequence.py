@@ -7,7 +7,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from calibration.pointcloud_io import write_pcd, write_ply
+from calibration.pointcloud_write import write_pcd, write_ply
 from runtime.odometry.icp_config import IcpConfig
 from runtime.odometry.sequence import (
     SequenceInputError, format_kitti_poses, list_scans, load_scan, load_sequence, natural_key, read_kitti_poses,

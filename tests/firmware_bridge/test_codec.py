@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from firmware_bridge import candump, codec, frame_errors
 from firmware_bridge import protocol as p
 
 FRAME_ERROR_NAMES = {"unknown_frame_id", "wrong_dlc", "out_of_range", "malformed_frame"}
@@ -31,21 +32,21 @@ def msg(fid: int, data: bytes, **kw) -> can.Message:
     ],
 )
 def test_published_examples_encode_exactly(record, expected):
-    m = p.encode(record)
-    assert p.format_candump(m) == expected
+    m = codec.encode(record)
+    assert candump.format_candump(m) == expected
     assert m.dlc == 8 and not m.is_extended_id
 
 
 def test_sdk_truncates_float32_product_toward_zero():
-    # AGILEX_V2.md section 1: 0.251 m/s becomes 250 (0x00FA), not 251.
-    assert p.format_candump(p.encode(p.MotionCommand(0.251, 0.0))) == "111#00FA000000000000"
+    # docs/protocol.md, section Bus-level facts: 0.251 m/s becomes 250 (0x00FA), not 251.
+    assert candump.format_candump(codec.encode(p.MotionCommand(0.251, 0.0))) == "111#00FA000000000000"
     # Toward zero for negatives too: -0.251 -> -250 = 0xFF06.
-    assert p.format_candump(p.encode(p.MotionCommand(-0.251, 0.0))) == "111#FF06000000000000"
-    assert p.sdk_scale(0.251) == 250 and p.sdk_scale(-0.251) == -250
+    assert candump.format_candump(codec.encode(p.MotionCommand(-0.251, 0.0))) == "111#FF06000000000000"
+    assert codec.sdk_scale(0.251) == 250 and codec.sdk_scale(-0.251) == -250
 
 
 def test_decode_published_feedback_example():
-    rec = p.decode(p.parse_candump("221#03E8FE0C00000000"))
+    rec = codec.decode(candump.parse_candump("221#03E8FE0C00000000"))
     assert rec == p.MotionState(1.0, -0.5, 0.0, 0.0)
 
 
@@ -58,10 +59,10 @@ def test_motion_command_roundtrip_10k_random():
     ref_raw = np.trunc(vals.astype(np.float32) * np.float32(1000)).astype(np.int64)
     for row, raw in zip(vals, ref_raw):
         cmd = p.MotionCommand(*map(float, row))
-        m = p.encode(cmd)
+        m = codec.encode(cmd)
         wire = np.frombuffer(bytes(m.data), dtype=">i2").astype(np.int64)
         np.testing.assert_array_equal(wire, raw)
-        back = p.decode(m)
+        back = codec.decode(m)
         assert isinstance(back, p.MotionCommand)
         got = np.array([back.linear_mps, back.angular_radps, back.lateral_mps, back.steering_rad])
         # Truncation loses < 1 mm/s; float32 adds at most a few ulp of the value.
@@ -92,73 +93,73 @@ def _sample_records():
 
 @pytest.mark.parametrize("record", _sample_records(), ids=lambda r: type(r).__name__)
 def test_every_record_roundtrips(record):
-    m = p.encode(record)
+    m = codec.encode(record)
     assert m.dlc == 8 and len(m.data) == 8 and m.arbitration_id <= 0x7FF
-    back = p.decode(m)
+    back = codec.decode(m)
     assert type(back) is type(record)
     for f in dataclasses.fields(record):
         a, b = getattr(record, f.name), getattr(back, f.name)
         assert a == pytest.approx(b, abs=1.01e-3), f.name
-    d = p.record_to_dict(back)
-    assert set(d) - {"motor_index"} == {s.name for s in p.load_dbc().get_message_by_frame_id(m.arbitration_id).signals}
+    d = codec.record_to_dict(back)
+    assert set(d) - {"motor_index"} == {s.name for s in codec.load_dbc().get_message_by_frame_id(m.arbitration_id).signals}
 
 
 def test_actuator_id_from_motor_index():
     for i in range(p.NUM_MOTORS):
-        assert p.encode(p.ActuatorHighSpeed(i, 0, 0.0, 0)).arbitration_id == p.ID_ACTUATOR_HS_BASE + i
-        assert p.encode(p.ActuatorLowSpeed(i, 0.0, 0, 0, 0)).arbitration_id == p.ID_ACTUATOR_LS_BASE + i
-        assert p.decode(msg(p.ID_ACTUATOR_HS_BASE + i, bytes(8))).motor_index == i
-    with pytest.raises(p.OutOfRange):
-        p.encode(p.ActuatorHighSpeed(4, 0, 0.0, 0))
+        assert codec.encode(p.ActuatorHighSpeed(i, 0, 0.0, 0)).arbitration_id == p.ID_ACTUATOR_HS_BASE + i
+        assert codec.encode(p.ActuatorLowSpeed(i, 0.0, 0, 0, 0)).arbitration_id == p.ID_ACTUATOR_LS_BASE + i
+        assert codec.decode(msg(p.ID_ACTUATOR_HS_BASE + i, bytes(8))).motor_index == i
+    with pytest.raises(frame_errors.OutOfRange):
+        codec.encode(p.ActuatorHighSpeed(4, 0, 0.0, 0))
 
 
 def test_big_endian_layout():
-    m = p.encode(p.ActuatorHighSpeed(0, 0x0102, 0.0, 0x01020304))
+    m = codec.encode(p.ActuatorHighSpeed(0, 0x0102, 0.0, 0x01020304))
     assert bytes(m.data) == bytes([0x01, 0x02, 0, 0, 0x01, 0x02, 0x03, 0x04])
-    m = p.encode(p.SystemState(0, 1, 24.0, 0x0200, 0, 7))
-    assert p.format_candump(m) == "211#000100F002000007"
+    m = codec.encode(p.SystemState(0, 1, 24.0, 0x0200, 0, 7))
+    assert candump.format_candump(m) == "211#000100F002000007"
 
 
 # ------------------------------------------------------------------ rejection
 @pytest.mark.parametrize(
     ("frame", "error", "fragment"),
     [
-        (msg(0x221, bytes(7)), p.WrongDlc, "DLC 7"),
-        (msg(0x211, bytes(0)), p.WrongDlc, "0x211"),
-        (msg(0x421, b""), p.WrongDlc, "0x421"),
-        (msg(0x555, bytes(8)), p.UnknownFrameId, "0x555"),
-        (msg(0x255, bytes(8)), p.UnknownFrameId, "0x255"),  # only 4 motors
+        (msg(0x221, bytes(7)), frame_errors.WrongDlc, "DLC 7"),
+        (msg(0x211, bytes(0)), frame_errors.WrongDlc, "0x211"),
+        (msg(0x421, b""), frame_errors.WrongDlc, "0x421"),
+        (msg(0x555, bytes(8)), frame_errors.UnknownFrameId, "0x555"),
+        (msg(0x255, bytes(8)), frame_errors.UnknownFrameId, "0x255"),  # only 4 motors
         # Commands stay strict (feedback out of range is flagged instead: test_flagged_fields.py).
-        (msg(0x421, bytes([5])), p.OutOfRange, "mode"),
-        (msg(0x121, bytes([1, 4, 0, 0, 0, 0, 0, 0])), p.OutOfRange, "front_mode"),
-        (msg(0x121, bytes([2, 0, 0, 0, 0, 0, 0, 0])), p.OutOfRange, "enable_cmd_ctrl"),
-        (msg(0x121, bytes([1, 3, 101, 0, 0, 0, 0, 0])), p.OutOfRange, "front_custom"),
+        (msg(0x421, bytes([5])), frame_errors.OutOfRange, "mode"),
+        (msg(0x121, bytes([1, 4, 0, 0, 0, 0, 0, 0])), frame_errors.OutOfRange, "front_mode"),
+        (msg(0x121, bytes([2, 0, 0, 0, 0, 0, 0, 0])), frame_errors.OutOfRange, "enable_cmd_ctrl"),
+        (msg(0x121, bytes([1, 3, 101, 0, 0, 0, 0, 0])), frame_errors.OutOfRange, "front_custom"),
         (can.Message(arbitration_id=0x211, data=bytes(8), is_extended_id=False, is_error_frame=True),
-         p.MalformedFrame, "error frame"),
+         frame_errors.MalformedFrame, "error frame"),
         (can.Message(arbitration_id=0x211, data=bytes(8), is_extended_id=False, is_fd=True),
-         p.MalformedFrame, "FD"),
-        (can.Message(arbitration_id=0x221, data=bytes(8), is_extended_id=True), p.MalformedFrame, "extended"),
-        (can.Message(arbitration_id=0x221, is_remote_frame=True, dlc=8, is_extended_id=False), p.MalformedFrame, "remote"),
+         frame_errors.MalformedFrame, "FD"),
+        (can.Message(arbitration_id=0x221, data=bytes(8), is_extended_id=True), frame_errors.MalformedFrame, "extended"),
+        (can.Message(arbitration_id=0x221, is_remote_frame=True, dlc=8, is_extended_id=False), frame_errors.MalformedFrame, "remote"),
     ],
 )
 def test_bad_frames_rejected_with_named_error(frame, error, fragment):
     with pytest.raises(error) as exc_info:
-        p.decode(frame)
-    assert isinstance(exc_info.value, p.FrameError) and isinstance(exc_info.value, ValueError)
+        codec.decode(frame)
+    assert isinstance(exc_info.value, frame_errors.FrameError) and isinstance(exc_info.value, ValueError)
     assert fragment in str(exc_info.value)
     assert exc_info.value.name in FRAME_ERROR_NAMES
 
 
 def test_short_dlc_accepted_for_control_mode():
     # Docs send 0x421 with DLC 1; the SDK with 8. Both are valid commands.
-    assert p.decode(msg(0x421, b"\x01")) == p.ControlModeCommand(1)
-    assert p.decode(msg(0x441, b"\x02")) == p.ErrorClearCommand(2)
-    assert p.decode(msg(0x421, b"\x01\x00\x01")) == p.ControlModeCommand(1)  # LIMO mecanum byte ignored
+    assert codec.decode(msg(0x421, b"\x01")) == p.ControlModeCommand(1)
+    assert codec.decode(msg(0x441, b"\x02")) == p.ErrorClearCommand(2)
+    assert codec.decode(msg(0x421, b"\x01\x00\x01")) == p.ControlModeCommand(1)  # LIMO mecanum byte ignored
 
 
 def test_reserved_bytes_ignored():
     # SDK leaves garbage in 0x26x bytes 6-7.
-    rec = p.decode(msg(0x261, bytes([0, 240, 0, 25, 30, 0, 0xAB, 0xCD])))
+    rec = codec.decode(msg(0x261, bytes([0, 240, 0, 25, 30, 0, 0xAB, 0xCD])))
     assert rec == p.ActuatorLowSpeed(0, 24.0, 25, 30, 0)
 
 
@@ -171,8 +172,8 @@ def test_reserved_bytes_ignored():
      (np.float64(3e38), "out of range"), (10**400, "out of range"), ("fast", "not a number")],
 )
 def test_encode_rejects_non_finite_and_overflow(bad, says):
-    with pytest.raises(p.OutOfRange) as exc_info:
-        p.encode(p.MotionCommand(bad, 0.0))
+    with pytest.raises(frame_errors.OutOfRange) as exc_info:
+        codec.encode(p.MotionCommand(bad, 0.0))
     text = str(exc_info.value)
     assert says in text and "linear_velocity" in text and "allowed [-32.768, 32.767] m/s" in text
     assert len(text) < 160
@@ -186,26 +187,26 @@ def test_fuzz_encode_raises_only_out_of_range(value, which):
     records = [p.MotionCommand(value, 0.0), p.SystemState(0, 1, value, 0),
                p.Odometry(value, 0.0), p.ControlModeCommand(value)]
     try:
-        m = p.encode(records[which])
-    except p.OutOfRange as exc:
+        m = codec.encode(records[which])
+    except frame_errors.OutOfRange as exc:
         assert "allowed [" in str(exc)
         return
     assert len(m.data) == 8
 
 
 def test_encode_rejects_out_of_range_feedback():
-    with pytest.raises(p.OutOfRange, match="control_mode"):
-        p.encode(p.SystemState(0, 4, 12.0, 0, 0, 0))
-    with pytest.raises(p.OutOfRange, match="count"):
-        p.encode(p.SystemState(0, 1, 12.0, 0, 0, 256))
-    with pytest.raises(p.OutOfRange, match="not an integer"):
-        p.encode(p.ControlModeCommand(1.5))
+    with pytest.raises(frame_errors.OutOfRange, match="control_mode"):
+        codec.encode(p.SystemState(0, 4, 12.0, 0, 0, 0))
+    with pytest.raises(frame_errors.OutOfRange, match="count"):
+        codec.encode(p.SystemState(0, 1, 12.0, 0, 0, 256))
+    with pytest.raises(frame_errors.OutOfRange, match="not an integer"):
+        codec.encode(p.ControlModeCommand(1.5))
     with pytest.raises(TypeError):
-        p.encode(object())
+        codec.encode(object())
 
 
 def test_frame_decoder_counts_by_name():
-    dec = p.FrameDecoder()
+    dec = codec.FrameDecoder()
     frames = [msg(0x221, bytes(4)), msg(0x221, bytes(4)), msg(0x600, bytes(8)),
               msg(0x421, bytes([9] + [0] * 7)), msg(0x221, bytes(8))]
     out = [dec.decode(f) for f in frames]
@@ -223,7 +224,7 @@ def test_error_names():
 
 
 # ------------------------------------------------------------------ fuzzing
-KNOWN = p.known_frame_ids()
+KNOWN = codec.known_frame_ids()
 frame_ids = st.one_of(st.integers(0, 0x7FF), st.sampled_from(KNOWN))
 
 
@@ -235,19 +236,19 @@ def test_fuzz_decode_raises_only_named_errors(fid, data, extended, remote, dlc_d
                     is_remote_frame=remote and fid % 5 == 0, check=False)
     m.dlc = max(0, len(data) + dlc_delta)
     try:
-        rec = p.decode(m)
-    except p.FrameError as exc:
+        rec = codec.decode(m)
+    except frame_errors.FrameError as exc:
         assert exc.name in FRAME_ERROR_NAMES
         assert f"0x{fid:03X}" in str(exc)
         return
     # Accepted: a well-formed standard data frame of a known id, and it re-encodes unless flagged.
     assert fid in KNOWN and not m.is_extended_id and not m.is_remote_frame and m.dlc == len(data)
     if rec.flagged_fields:
-        assert fid in p.feedback_frame_ids()
-        with pytest.raises(p.FlaggedRecordError):
-            p.encode(rec)
+        assert fid in codec.feedback_frame_ids()
+        with pytest.raises(frame_errors.FlaggedRecordError):
+            codec.encode(rec)
         return
-    again = p.decode(p.encode(rec))
+    again = codec.decode(codec.encode(rec))
     assert type(again) is type(rec)
     for f in dataclasses.fields(rec):
         assert getattr(again, f.name) == pytest.approx(getattr(rec, f.name), abs=1.01e-3)
@@ -256,60 +257,14 @@ def test_fuzz_decode_raises_only_named_errors(fid, data, extended, remote, dlc_d
 @settings(max_examples=2000, deadline=None)
 @given(fid=st.integers(0, 0x7FF), data=st.binary(min_size=0, max_size=8))
 def test_fuzz_frame_decoder_never_raises(fid, data):
-    dec = p.FrameDecoder()
+    dec = codec.FrameDecoder()
     rec = dec.decode(msg(fid, data))
     assert (rec is None) == (dec.errors_total == 1)
     assert sum(dec.error_counts.values()) + dec.frames_ok == 1
 
 
-# ------------------------------------------------------------------ candump text
-def test_candump_roundtrip():
-    for text in ["111#0096000000000000", "421#01", "7FF#", "12345678#DEADBEEF", "123#R", "123#R8"]:
-        assert p.format_candump(p.parse_candump(text)) == text
-    m = p.parse_candump("(1700000000.123) can0 221#03E8FE0C00000000")
-    assert m.arbitration_id == 0x221 and not m.is_extended_id and m.dlc == 8
-    assert p.parse_candump("221#03.E8.FE.0C.00.00.00.00").data == bytes.fromhex("03E8FE0C00000000")
-    assert p.parse_candump("123#R").is_remote_frame
-
-
-@pytest.mark.parametrize(
-    ("line", "expected"),
-    [
-        # candump's default output (can-utils lib.c sprint_long_canframe), as `candump can0` prints it.
-        ("  can0  111   [8]  00 96 00 00 00 00 00 00", "111#0096000000000000"),
-        (" (1700000000.123456)  can0  211   [8]  07 01 00 F0 02 00 00 07   '........'", "211#070100F002000007"),
-        ("  can0  421   [1]  01", "421#01"),
-        ("  vcan0  12345678   [3]  11 22 33", "12345678#112233"),
-        ("  can0  123   [8]  remote request", "123#R8"),
-        (" (000.000123)  can0  RX - -  221   [8]  03 E8 FE 0C 00 00 00 00", "221#03E8FE0C00000000"),
-        ("(1700000000.123456) can0 221#03E8FE0C00000000", "221#03E8FE0C00000000"),  # candump -L
-    ],
-)
-def test_candump_default_output_format(line, expected):
-    assert p.format_candump(p.parse_candump(line)) == expected
-
-
-@pytest.mark.parametrize("text", ["", "111", "111#0", "111#ZZ", "800#00", "11#00", "111#000000000000000000", "1111#00",
-                                  "  can0  111   [8]  00 96", "  can0  111   [2]  00 96 00", "  can0  111   [9]  00",
-                                  "  can0  800   [1]  00", "  can0  111   [1]  0G"])
-def test_candump_parse_errors(text):
-    with pytest.raises(p.CandumpSyntaxError) as exc_info:
-        p.parse_candump(text)
-    assert exc_info.value.name == "candump_syntax"
-
-
-@settings(max_examples=500, deadline=None)
-@given(text=st.text(max_size=30))
-def test_fuzz_parse_candump(text):
-    try:
-        m = p.parse_candump(text)
-    except p.CandumpSyntaxError:
-        return
-    assert p.parse_candump(p.format_candump(m)).arbitration_id == m.arbitration_id
-
-
 def test_dbc_covers_required_frames():
-    db = p.load_dbc()
+    db = codec.load_dbc()
     required = [0x111, 0x121, 0x421, 0x441, 0x211, 0x221, 0x231, 0x251, 0x252, 0x253, 0x254,
                 0x261, 0x262, 0x263, 0x264, 0x311, 0x321, 0x322, 0x323, 0x361]
     for fid in required:
@@ -354,8 +309,8 @@ def test_sdk_scaling_matches_compiled_c(tmp_path):
     text = "\n".join(float(v).hex() for v in vals32)
     out = subprocess.run([str(exe)], input=text, capture_output=True, text=True, check=True).stdout.split()
     c_raw = [int(x) for x in out]
-    ours = [p.sdk_scale(float(v)) for v in vals32]
+    ours = [codec.sdk_scale(float(v)) for v in vals32]
     assert ours == c_raw
     # And through encode(): the wire bytes are the C result, big-endian.
     for v, r in zip(vals32[:500], c_raw[:500]):
-        assert bytes(p.encode(p.MotionCommand(float(v), 0.0)).data[:2]) == int(r).to_bytes(2, "big", signed=True)
+        assert bytes(codec.encode(p.MotionCommand(float(v), 0.0)).data[:2]) == int(r).to_bytes(2, "big", signed=True)
