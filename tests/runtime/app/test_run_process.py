@@ -26,7 +26,7 @@ from firmware_bridge.buses import BusConfig, open_bus
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
 from hil_sim.episode.realtime import unique_channels
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 DEFAULT_CONFIG = REPO / "runtime" / "config" / "default.yaml"
 
 
