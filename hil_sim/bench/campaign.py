@@ -7,7 +7,7 @@ depend on how the episodes were spread: one process, N worker processes (`--work
 a Ray cluster (`--ray ADDRESS`) give the same rows; only the wall-clock fields differ
 (`wall_time_s`).
 
-Campaigns (DESIGN.md section 8 has the papers' figures):
+Campaigns (the papers' figures: TABLE1_PAPER, TABLE2_PAPER and BEACON_PUBLISHED below):
 
 * `table1`: DCT paper Table I, cases 1-3 (hil_sim/scenarios/case*.yaml), against DCT, NeuPAN
   and Ellis22;
@@ -292,7 +292,7 @@ def _run_on_ray(tasks: list[EpisodeTask], address: str, workers: int,
         ray.shutdown()
 
 
-def run_campaign(name: str, methods: Iterable[str] = METHODS, seeds: int = 1, first_seed: int = 0,
+def run_campaign(name: str, methods: Iterable[str] = METHODS, *, seeds: int = 1, first_seed: int = 0,
                  workers: int | None = None, ray_address: str | None = None, only: Iterable[str] = (),
                  config_path: str | None = None, on_done: Callable[[dict], None] | None = None,
                  on_start: Callable[[int], None] | None = None, clock: str = "switch-on") -> dict:

@@ -29,8 +29,9 @@ import numpy as np  # noqa: E402
 from calibration.robot_description import RobotDescription  # noqa: E402
 from hil_sim.sensors.camera import add_camera_to_spec, ensure_offscreen_buffer
 from hil_sim.sensors.imu import add_imu_to_spec
-from hil_sim.world.scenario import (DEFAULT_GROUND_CLEARANCE_M, BoxObstacle, CylinderObstacle, Scenario,
-                              check_scenario_against_robot)
+from hil_sim.world.scenario import Scenario
+from hil_sim.world.scenario_checks import DEFAULT_GROUND_CLEARANCE_M, check_scenario_against_robot
+from hil_sim.world.scenario_objects import BoxObstacle, CylinderObstacle
 
 #: Physics step. 1 ms: the firmware's discrete wheel-speed loop (run once per step) on the
 #: light wheel inertia needs it to stop a wheel within a few ms without chatter (see the
@@ -130,7 +131,7 @@ def build_spec(scenario: Scenario, robot: RobotDescription) -> mujoco.MjSpec:
     world.add_light(name="sun", pos=[0, 0, 6], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, castshadow=False)
 
     for wall, name in zip(scenario.walls, scenario.wall_names()):
-        # The same box as hil_sim.world.scenario.wall_footprint (what the scenario check measures).
+        # The same box as hil_sim.world.footprints.wall_footprint (what the scenario check measures).
         (hx, hy), (cx, cy) = wall.half_extents_m, wall.centre_xy_m
         world.add_geom(
             name=name, type=mujoco.mjtGeom.mjGEOM_BOX,
@@ -280,7 +281,7 @@ def _add_robot(spec: mujoco.MjSpec, scenario: Scenario, robot: RobotDescription)
 class World:
     """A compiled scenario: MuJoCo model and data plus the robot/obstacle accessors.
 
-    The scenario is checked against the robot first (hil_sim.world.scenario.check_scenario_against_robot:
+    The scenario is checked against the robot first (hil_sim.world.scenario_checks.check_scenario_against_robot:
     ScenarioError for a start pose in an obstacle, an unreachable goal, an obstacle the lidar
     cannot see; its warnings are kept in `scenario_warnings`). ground_clearance_m: the
     controller's ground cut (ObstaclePointsConfig.ground_clearance_m).
@@ -296,7 +297,7 @@ class World:
                  ground_clearance_m: float = DEFAULT_GROUND_CLEARANCE_M) -> None:
         # First: a scenario this robot cannot start in (inside a wall, an invisible obstacle,
         # an unreachable goal) is a ScenarioError naming the field, before any physics runs.
-        #: Warnings of hil_sim.world.scenario.check_scenario_against_robot (each names its field).
+        #: Warnings of hil_sim.world.scenario_checks.check_scenario_against_robot (each names its field).
         self.scenario_warnings: list[str] = check_scenario_against_robot(
             scenario, robot, ground_clearance_m=ground_clearance_m)
         self.scenario = scenario

@@ -249,7 +249,8 @@ TIME_LIMIT_SLACK = 0.5
 
 def route_time_s(raw: dict[str, Any]) -> float:
     """Drive time of a scenario's route at its speed plus its turns at TURN_RATE_FOR_TIME_LIMIT_RADPS."""
-    from hil_sim.world.scenario import Pose2D, Route
+    from hil_sim.world.scenario import Route
+    from hil_sim.world.scenario_objects import Pose2D
 
     route = Route.model_validate(raw["route"])
     start = Pose2D.model_validate(raw["robot"]["start"])

@@ -6,7 +6,7 @@ plain `Scenario` (the same schema as the YAML files: `python -m hil_sim.world.sc
 --seed N` prints one as YAML), named `<generator>_s<seed>`.
 
 Every scene is checked before it is returned, and redrawn (from the same seeded stream) until it
-passes: hil_sim.world.scenario.check_scenario_against_robot with the default robot (start and goal
+passes: hil_sim.world.scenario_checks.check_scenario_against_robot with the default robot (start and goal
 free, nothing the lidar cannot see, free bodies not inside anything), no two obstacles closer
 than MIN_OBSTACLE_GAP_M (a barrier's members: touching allowed), and a path from start to goal
 on a 5 cm grid for a disc of the generator's inflation radius through everything the robot must
@@ -50,18 +50,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from hil_sim.world.scenario import (
-    PASSABLE_CLASSES,
-    Disc2D,
-    Rect2D,
-    Scenario,
-    ScenarioError,
-    Shape2D,
-    check_scenario_against_robot,
-    obstacle_footprint,
-    signed_gap_m,
-    wall_footprint,
-)
+from hil_sim.world.footprints import Disc2D, Rect2D, Shape2D, obstacle_footprint, signed_gap_m, wall_footprint
+from hil_sim.world.scenario import Scenario
+from hil_sim.world.scenario_checks import ScenarioError, check_scenario_against_robot
+from hil_sim.world.scenario_objects import PASSABLE_CLASSES
 
 #: Obstacles of a generated scene keep at least this gap (m) (barrier members: 0, touching).
 MIN_OBSTACLE_GAP_M = 0.02

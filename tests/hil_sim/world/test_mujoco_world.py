@@ -9,7 +9,9 @@ import pytest
 
 from calibration.errors import ConfigFileError
 from calibration.robot_description import load_robot_description
-from hil_sim.world.scenario import Scenario, ScenarioError, load_scenario, wall_footprint
+from hil_sim.world.footprints import wall_footprint
+from hil_sim.world.scenario import Scenario, load_scenario
+from hil_sim.world.scenario_checks import ScenarioError
 from hil_sim.world.mujoco_world import FREE_BODY_GEOM_GROUP, ROBOT_GEOM_GROUP, SCENE_GEOM_GROUP, World, WorldError
 
 ROBOT = load_robot_description()

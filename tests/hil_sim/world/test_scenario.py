@@ -13,22 +13,15 @@ from hypothesis import strategies as st
 
 from calibration.errors import ConfigFileError
 from calibration.robot_description import load_robot_description
-from hil_sim.world.scenario import (
+from hil_sim.world.footprints import Disc2D, Rect2D, obstacle_footprint, robot_footprint_at, signed_gap_m
+from hil_sim.world.scenario import Scenario, UnknownScenarioError, list_scenarios, load_scenario
+from hil_sim.world.scenario_checks import (
     DEFAULT_GROUND_CLEARANCE_M,
-    Disc2D,
-    Pose2D,
-    Rect2D,
-    Scenario,
     ScenarioError,
-    UnknownScenarioError,
     check_scenario_against_robot,
-    list_scenarios,
-    load_scenario,
-    obstacle_footprint,
-    robot_footprint_at,
     route_clearances,
-    signed_gap_m,
 )
+from hil_sim.world.scenario_objects import Pose2D
 
 ROBOT = load_robot_description()
 WIDTH = ROBOT.footprint.width_m
