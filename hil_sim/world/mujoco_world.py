@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported: no display here (ENVIRONMENT.md)
+os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported: no display here, headless EGL
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402

@@ -1,4 +1,4 @@
-"""The odometry scenes of the library (issue 11): their routes, their clutter, what the lidar sees.
+"""The odometry scenes of the library: their routes, their clutter, what the lidar sees.
 
 odom_loop must give the lidar odometry realistic structure all along a closed route of more than
 20 m; odom_corridor must give it none along its axis (the degenerate case).
