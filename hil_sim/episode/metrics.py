@@ -27,9 +27,10 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from hil_sim.world.model_spec import ROBOT_GEOM_GROUP
+from hil_sim.world.mujoco_world import World
 from hil_sim.world.scenario import Scenario
 from hil_sim.world.scenario_objects import HIGH_COST_THRESHOLD, NON_MOVABLE_CLASSES
-from hil_sim.world.mujoco_world import ROBOT_GEOM_GROUP, World
 
 #: Path length is accumulated in hops of at least this length, so that contact jitter of the
 #: resting robot (micrometres per step) does not add up to phantom distance.

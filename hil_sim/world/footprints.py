@@ -112,7 +112,7 @@ def obstacle_footprint(obstacle: BoxObstacle | CylinderObstacle) -> Shape2D:
 
 
 def wall_footprint(wall: Wall) -> Rect2D:
-    """The wall's box footprint (the same box hil_sim.world.mujoco_world builds)."""
+    """The wall's box footprint (the same box hil_sim.world.model_spec builds)."""
     return Rect2D(wall.centre_xy_m, wall.half_extents_m, wall.yaw_rad)
 
 

@@ -9,7 +9,7 @@ Obstacle classes (docs/simulator.md):
   events in the metrics. A free body when the file gives mass_kg and friction (it looks
   movable), a static geom otherwise.
 * ``deformable``: a curtain of light slats hanging from hinges along its top edge; the robot
-  passes through it (hil_sim.world.mujoco_world builds it; the box `size` is its depth, width, height).
+  passes through it (hil_sim.world.model_spec builds it; the box `size` is its depth, width, height).
 * ``person``: a cylinder walking `walk.waypoints` at `walk.speed_mps` (a kinematic mocap body:
   never pushed, whatever pushes it). Contact counts as a fixed contact and as a person contact.
 
