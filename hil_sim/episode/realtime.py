@@ -286,7 +286,7 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
     m["events"] = summary["events"]
     m["controller"] = report
     m["sensor_errors"] = summary["sensor_errors"]
-    m["faults"] = []  # (fault injection is lockstep only so far)
+    m["faults"] = []  # fault injection is lockstep only
     m["failure_reason"] = failure_reason(m, report)
     m["realtime"] = {
         "tick_ms": {k: rt["tick_ms"][k] for k in ("p50", "p99", "max")},
