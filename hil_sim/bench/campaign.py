@@ -7,7 +7,7 @@ depend on how the episodes were spread: one process, N worker processes (`--work
 a Ray cluster (`--ray ADDRESS`) give the same rows; only the wall-clock fields differ
 (`wall_time_s`).
 
-Campaigns (DESIGN.md section 8 has the papers' figures):
+Campaigns (the papers' figures: TABLE1_PAPER, TABLE2_PAPER and BEACON_PUBLISHED below):
 
 * `table1`: DCT paper Table I, cases 1-3 (hil_sim/scenarios/case*.yaml), against DCT, NeuPAN
   and Ellis22;
@@ -18,14 +18,14 @@ Campaigns (DESIGN.md section 8 has the papers' figures):
 
 Methods: `dct` (ours), `all-fixed` (every point fixed: NeuPAN-like), `grid-astar` (inflated
 occupancy grid + A* + pure pursuit: Ellis22-like) and `fixed-labels` (dct with the belief off,
-`vpp.belief.enabled: false`; until the belief lands it behaves exactly as dct). The paper column
+`vpp.belief.enabled: false`). The paper column
 of a method: DCT for dct and fixed-labels (the paper's DCT keeps its VLM labels), NeuPAN for
 all-fixed, Ellis22 for grid-astar.
 
 Row figures: success rate; navigation time, average speed and navigation distance as means over
 the successful episodes (None when there is none); fixed contacts, fragile damage events,
-correcting events and deadline misses as totals; path cost (IMPACT) as the mean per episode.
-`correcting_events` is 0 until correcting mode adds the metric to the episode JSON.
+correcting events (the episode JSON's `correcting_events`) and deadline misses as totals; path
+cost (IMPACT) as the mean per episode.
 
 The navigation clock (`clock`, in the JSON as `navigation_clock`): "switch-on" (the default) gives
 the goal when the controller is switched on, so navigation time includes its start-up sequence
@@ -292,7 +292,7 @@ def _run_on_ray(tasks: list[EpisodeTask], address: str, workers: int,
         ray.shutdown()
 
 
-def run_campaign(name: str, methods: Iterable[str] = METHODS, seeds: int = 1, first_seed: int = 0,
+def run_campaign(name: str, methods: Iterable[str] = METHODS, *, seeds: int = 1, first_seed: int = 0,
                  workers: int | None = None, ray_address: str | None = None, only: Iterable[str] = (),
                  config_path: str | None = None, on_done: Callable[[dict], None] | None = None,
                  on_start: Callable[[int], None] | None = None, clock: str = "switch-on") -> dict:

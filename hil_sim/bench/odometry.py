@@ -64,34 +64,12 @@ def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None, se
                           robot.sensors.lidar.mount.transform(), lockstep=False)
     budget_ms = config.loop.stage_budgets_s.get("odometry", 0.01) * 1e3
     hog_procs: list[subprocess.Popen] = []
-    stage_ms: list[float] = []
-    late_starts = 0
     try:
         hog_procs += [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(hogs)]
         stage.start()
         # Wait for the worker to be up (its start is part of activation, not of a tick).
         time.sleep(1.5)
-        t_rec0 = ticks[0].t_s
-        wall0 = time.perf_counter() + 0.05
-        shift = wall0 - t_rec0
-        for tick in ticks:
-            due = tick.t_s + shift
-            now = time.perf_counter()
-            if now < due:
-                time.sleep(due - now)
-            elif now - due > 0.05:
-                late_starts += 1
-            now = time.perf_counter()
-            scan = _restamp(tick.scan, shift) if tick.scan is not None else None
-            imu = tuple(_restamp(s, shift) for s in tick.imu)
-            w0 = time.perf_counter()
-            if tick.t_s - t_rec0 < settle_s:
-                stage.calibrate_bias(imu)
-                imu = ()
-            stage.update(now, tick.wheels, imu, scan)
-            stage_ms.append((time.perf_counter() - w0) * 1e3)
-        time.sleep(0.5)  # the last results
-        stage.update(time.perf_counter(), ticks[-1].wheels, (), None)
+        stage_ms, late_starts = _replay_ticks(stage, ticks, settle_s)
     finally:
         stage.close()
         for p in hog_procs:
@@ -112,6 +90,35 @@ def replay(ticks: list[RecordedTick], hogs: int = 0, config=None, robot=None, se
         "icp_fused": stage.describe()["icp_fused"],
         "late_tick_starts": late_starts,
     }
+
+
+def _replay_ticks(stage, ticks: list[RecordedTick], settle_s: float) -> tuple[list[float], int]:
+    """Feed the stage each tick at its recorded time moved onto the wall clock; (ms in the stage per
+    tick, ticks started more than 50 ms late)."""
+    stage_ms: list[float] = []
+    late_starts = 0
+    t_rec0 = ticks[0].t_s
+    wall0 = time.perf_counter() + 0.05
+    shift = wall0 - t_rec0
+    for tick in ticks:
+        due = tick.t_s + shift
+        now = time.perf_counter()
+        if now < due:
+            time.sleep(due - now)
+        elif now - due > 0.05:
+            late_starts += 1
+        now = time.perf_counter()
+        scan = _restamp(tick.scan, shift) if tick.scan is not None else None
+        imu = tuple(_restamp(s, shift) for s in tick.imu)
+        w0 = time.perf_counter()
+        if tick.t_s - t_rec0 < settle_s:
+            stage.calibrate_bias(imu)
+            imu = ()
+        stage.update(now, tick.wheels, imu, scan)
+        stage_ms.append((time.perf_counter() - w0) * 1e3)
+    time.sleep(0.5)  # the last results
+    stage.update(time.perf_counter(), ticks[-1].wheels, (), None)
+    return stage_ms, late_starts
 
 
 def print_odometry_benchmark(scenario: str, seconds: float, hogs: tuple[int, ...], echo) -> dict:

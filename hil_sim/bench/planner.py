@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -211,7 +212,22 @@ def _pct(values, q: float) -> float:
     return float(np.percentile(np.asarray(values), q))
 
 
+@dataclass(frozen=True)
+class _Bench:
+    """What every (H, N) cell of the planner benchmark shares."""
+
+    robot: object
+    model: object
+    model_name: str
+    scene: np.ndarray
+    repeats: int
+    cvxpy_repeats: int
+    cvxpy_solvers: tuple[str, ...]
+    seed: int
+
+
 def run_planner_benchmark(
+    *,
     horizons: tuple[int, ...] = HORIZONS,
     point_counts: tuple[int, ...] = POINT_COUNTS,
     repeats: int = 300,
@@ -237,6 +253,7 @@ def run_planner_benchmark(
     base = config or load_controller_config().planner.mpc
     length = 2.0 + (repeats + 40) * TICK_S * 1.0 + 4.0
     scene = cluttered_corridor(length, np.random.default_rng(seed))
+    bench = _Bench(robot, model, model_name, scene, repeats, cvxpy_repeats, cvxpy_solvers, seed)
     out = []
     for H in horizons:
         cfg = base.model_copy(update={"horizon_steps": H, "tick_period_s": TICK_S})
@@ -245,76 +262,95 @@ def run_planner_benchmark(
         for n in point_counts:
             if progress is not None:
                 progress(f"H={H} points={n}")
-            planner = MpcPlanner(cfg, robot, model, wall_clock_caps=False)
-            _run_closed_loop(planner, scene, n, 10, seed)  # warm-up (allocations, first solves)
-            planner.reset()
-            solves0, capped0, fallbacks0 = planner.qp_solves, planner.qp_capped, planner.fallbacks
-            skipped0 = planner.alternations_skipped
-            t = _run_closed_loop(planner, scene, n, repeats, seed + 1)
-            solves = planner.qp_solves - solves0
-            total_mean = float(t["total"].mean())
-            row = {
-                "horizon": H,
-                "points": n,
-                "points_in_range_median": float(np.median(t["points"])),
-                "points_per_pose": cfg.points.points_per_pose,
-                "points_in_reach_median": float(np.median(t["reach"])),
-                "cells_median": float(np.median(t["cells"])),
-                "pairs_expanded_median": float(np.median(t["expanded"])),
-                "constraint_rows_median": float(np.median(t["rows_used"])),
-                "constraint_rows_max": int(t["rows_used"].max()),
-                "distance_model": model_name,
-                "repeats": repeats,
-                "p50_ms": _pct(t["total"], 50),
-                "p90_ms": _pct(t["total"], 90),
-                "p99_ms": _pct(t["total"], 99),
-                "max_ms": float(t["total"].max()),
-                **{f"{k}_p50_ms": _pct(t[k], 50) for k in PARTS},
-                "share": {k: float(t[k].mean()) / total_mean for k in PARTS},
-                "iterations_median": float(np.median(t["iterations"])),
-                "qp_solves": solves,
-                "capped_solves": planner.qp_capped - capped0,
-                "capped_fraction": (planner.qp_capped - capped0) / max(solves, 1),
-                "fallbacks": planner.fallbacks - fallbacks0,
-                "alternations_skipped": planner.alternations_skipped - skipped0,
-            }
-            # The same with both net/QP alternations always run (alternation_tolerance 0): what a
-            # tick pays when the first solution moves (always, in the HIL scenes).
-            cfg2 = cfg.model_copy(update={"alternation_tolerance_m": 0.0, "alternation_tolerance_rad": 0.0})
-            planner2 = MpcPlanner(cfg2, robot, model, wall_clock_caps=False)
-            _run_closed_loop(planner2, scene, n, 10, seed)
-            planner2.reset()
-            t2 = _run_closed_loop(planner2, scene, n, repeats, seed + 1)
-            row["two_qps_p50_ms"] = _pct(t2["total"], 50)
-            row["two_qps_p99_ms"] = _pct(t2["total"], 99)
-            row["two_qps_capped_solves"] = planner2.qp_capped
-            lin_snapshot = planner.lin  # the last QP, for the cross-check below
-            osqp_inputs = OsqpMpcBackend(cfg, planner.limits, wall_clock_caps=False).solve(lin_snapshot).inputs
-            ratios = []
-            for solver in cvxpy_solvers:
-                if cvxpy_repeats <= 0:
-                    break
-                if solver not in cv_backends:  # the cvxpy problem depends on H and K only
-                    cv_backends[solver] = CvxpyMpcBackend(cfg, planner.limits, solver)
-                backend = cv_backends[solver]
-                check = backend.solve(lin_snapshot)
-                cv_planner = MpcPlanner(cfg, robot, model, qp_backend=backend, wall_clock_caps=False)
-                _run_closed_loop(cv_planner, scene, n, 2, seed)
-                cv_planner.reset()
-                cv = _run_closed_loop(cv_planner, scene, n, cvxpy_repeats, seed + 1)
-                key = solver.lower()
-                row[f"cvxpy_{key}_p50_ms"] = _pct(cv["total"], 50)
-                row[f"cvxpy_{key}_solve_p50_ms"] = _pct(cv["build"] + cv["solve"], 50)
-                row[f"cvxpy_{key}_ratio"] = row[f"cvxpy_{key}_p50_ms"] / row["p50_ms"]
-                row[f"cvxpy_{key}_max_input_diff"] = (  # None: a solver failed the check (JSON has no NaN)
-                    float(np.abs(check.inputs - osqp_inputs).max())
-                    if check.ok and osqp_inputs is not None else None
-                )
-                ratios.append(row[f"cvxpy_{key}_ratio"])
-            # The cvxpy ratio: the fastest cvxpy solver's step p50 over ours (how much faster we are).
-            row["cvxpy_ratio"] = min(ratios) if ratios else None
+            row, planner = _osqp_row(bench, cfg, n)
+            row.update(_two_qps_columns(bench, cfg, n))
+            row.update(_cvxpy_columns(bench, cfg, n, planner, cv_backends, row["p50_ms"]))
             out.append(row)
     return out
+
+
+def _osqp_row(bench: _Bench, cfg: MpcConfig, n: int) -> tuple[dict, MpcPlanner]:
+    """The planner's step with N points in range at horizon cfg.horizon_steps: the row's figures,
+    and the planner (its last QP is the cvxpy cross-check's)."""
+    planner = MpcPlanner(cfg, bench.robot, bench.model, wall_clock_caps=False)
+    _run_closed_loop(planner, bench.scene, n, 10, bench.seed)  # warm-up (allocations, first solves)
+    planner.reset()
+    solves0, capped0, fallbacks0 = planner.qp_solves, planner.qp_capped, planner.fallbacks
+    skipped0 = planner.alternations_skipped
+    t = _run_closed_loop(planner, bench.scene, n, bench.repeats, bench.seed + 1)
+    solves = planner.qp_solves - solves0
+    total_mean = float(t["total"].mean())
+    row = {
+        "horizon": cfg.horizon_steps,
+        "points": n,
+        "points_in_range_median": float(np.median(t["points"])),
+        "points_per_pose": cfg.points.points_per_pose,
+        "points_in_reach_median": float(np.median(t["reach"])),
+        "cells_median": float(np.median(t["cells"])),
+        "pairs_expanded_median": float(np.median(t["expanded"])),
+        "constraint_rows_median": float(np.median(t["rows_used"])),
+        "constraint_rows_max": int(t["rows_used"].max()),
+        "distance_model": bench.model_name,
+        "repeats": bench.repeats,
+        "p50_ms": _pct(t["total"], 50),
+        "p90_ms": _pct(t["total"], 90),
+        "p99_ms": _pct(t["total"], 99),
+        "max_ms": float(t["total"].max()),
+        **{f"{k}_p50_ms": _pct(t[k], 50) for k in PARTS},
+        "share": {k: float(t[k].mean()) / total_mean for k in PARTS},
+        "iterations_median": float(np.median(t["iterations"])),
+        "qp_solves": solves,
+        "capped_solves": planner.qp_capped - capped0,
+        "capped_fraction": (planner.qp_capped - capped0) / max(solves, 1),
+        "fallbacks": planner.fallbacks - fallbacks0,
+        "alternations_skipped": planner.alternations_skipped - skipped0,
+    }
+    return row, planner
+
+
+def _two_qps_columns(bench: _Bench, cfg: MpcConfig, n: int) -> dict:
+    """The same with both net/QP alternations always run (alternation_tolerance 0): what a tick
+    pays when the first solution moves (always, in the HIL scenes)."""
+    cfg2 = cfg.model_copy(update={"alternation_tolerance_m": 0.0, "alternation_tolerance_rad": 0.0})
+    planner2 = MpcPlanner(cfg2, bench.robot, bench.model, wall_clock_caps=False)
+    _run_closed_loop(planner2, bench.scene, n, 10, bench.seed)
+    planner2.reset()
+    t2 = _run_closed_loop(planner2, bench.scene, n, bench.repeats, bench.seed + 1)
+    return {"two_qps_p50_ms": _pct(t2["total"], 50), "two_qps_p99_ms": _pct(t2["total"], 99),
+            "two_qps_capped_solves": planner2.qp_capped}
+
+
+def _cvxpy_columns(bench: _Bench, cfg: MpcConfig, n: int, planner: MpcPlanner,
+                   cv_backends: dict[str, CvxpyMpcBackend], p50_ms: float) -> dict:
+    """Per cvxpy solver: its step p50, its solve p50, its ratio to ours (p50_ms) and the largest
+    input difference on the planner's last QP; and `cvxpy_ratio`, the fastest solver's."""
+    row: dict = {}
+    lin_snapshot = planner.lin  # the last QP, for the cross-check below
+    osqp_inputs = OsqpMpcBackend(cfg, planner.limits, wall_clock_caps=False).solve(lin_snapshot).inputs
+    ratios = []
+    for solver in bench.cvxpy_solvers:
+        if bench.cvxpy_repeats <= 0:
+            break
+        if solver not in cv_backends:  # the cvxpy problem depends on H and K only
+            cv_backends[solver] = CvxpyMpcBackend(cfg, planner.limits, solver)
+        backend = cv_backends[solver]
+        check = backend.solve(lin_snapshot)
+        cv_planner = MpcPlanner(cfg, bench.robot, bench.model, qp_backend=backend, wall_clock_caps=False)
+        _run_closed_loop(cv_planner, bench.scene, n, 2, bench.seed)
+        cv_planner.reset()
+        cv = _run_closed_loop(cv_planner, bench.scene, n, bench.cvxpy_repeats, bench.seed + 1)
+        key = solver.lower()
+        row[f"cvxpy_{key}_p50_ms"] = _pct(cv["total"], 50)
+        row[f"cvxpy_{key}_solve_p50_ms"] = _pct(cv["build"] + cv["solve"], 50)
+        row[f"cvxpy_{key}_ratio"] = row[f"cvxpy_{key}_p50_ms"] / p50_ms
+        row[f"cvxpy_{key}_max_input_diff"] = (  # None: a solver failed the check (JSON has no NaN)
+            float(np.abs(check.inputs - osqp_inputs).max())
+            if check.ok and osqp_inputs is not None else None
+        )
+        ratios.append(row[f"cvxpy_{key}_ratio"])
+    # The cvxpy ratio: the fastest cvxpy solver's step p50 over ours (how much faster we are).
+    row["cvxpy_ratio"] = min(ratios) if ratios else None
+    return row
 
 
 def cap_warnings(rows: list[dict]) -> list[str]:

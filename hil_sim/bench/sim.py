@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import statistics
+from dataclasses import dataclass
 from typing import Callable
 
 from hil_sim.episode.lockstep import run_episode
@@ -37,6 +38,17 @@ def run_sim_speed_benchmark(scenario_name: str, seconds: float, repeats: int, ec
     return summary
 
 
+@dataclass(frozen=True)
+class _Drive:
+    """How run_sensor_sim_speed_benchmark drives: simulated seconds, the 0x111 period and command,
+    the camera's rate."""
+
+    seconds: float
+    period_s: float
+    linear_mps: float
+    angular_radps: float
+    camera_rate_hz: float
+
 
 def run_sensor_sim_speed_benchmark(
     scenario_name: str = "case1",
@@ -59,78 +71,93 @@ def run_sensor_sim_speed_benchmark(
     like the controller's read(). No planner: this isolates the simulator's cost. With
     `baseline`, each repeat also runs the same loop without the rig, for the sensors' overhead.
     """
-    import time
-
     from calibration.robot_description import load_robot_description
-    from firmware_bridge.base_driver import AgileXBaseDriver
-    from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
-    from hil_sim.episode.lockstep import LockstepSimulation, virtual_bus_pair
-    from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
-    from hil_sim.world.mujoco_world import World
-    from runtime.io.sensor_inbox import SensorInbox
 
     if seconds <= 0 or repeats < 1:
         raise ValueError(f"run_sensor_sim_speed_benchmark: need seconds > 0 and repeats >= 1, got {seconds}, {repeats}")
     scenario = load_scenario(scenario_name)
     robot = load_robot_description()
-    period_s = robot.can.command_period_s
-
-    def one_run(seed: int, with_sensors: bool) -> dict:
-        world = World(scenario, robot, seed=seed)
-        controller_bus, sim_bus = virtual_bus_pair()
-        firmware = EmulatedBaseFirmware(sim_bus, robot)
-        inbox = SensorInbox()
-        rig = None
-        if with_sensors:
-            rig = SensorRig(world, robot, inbox, SensorRigConfig(camera_rate_hz=camera_rate_hz, seed=seed))
-        sim = LockstepSimulation(world, firmware, devices=[rig] if rig is not None else [])
-        driver = AgileXBaseDriver(controller_bus, clock=lambda: sim.time_s,
-                                  feedback_timeout_s=robot.can.feedback_timeout_s)
-        scans = images = imu = 0
-        try:
-            wall0 = time.perf_counter()
-            driver.enable()
-            t0 = sim.time_s
-            tick = 0
-            while sim.time_s < t0 + seconds - 0.5 * world.timestep_s:
-                driver.poll()
-                snap = inbox.take()
-                scans += snap.scan is not None
-                images += snap.image is not None
-                imu += len(snap.imu)
-                driver.send_motion(linear_mps, angular_radps)
-                tick += 1
-                sim.advance_to(t0 + tick * period_s)
-            wall = time.perf_counter() - wall0
-            x, y, _ = world.robot_pose()
-            st = rig.stats() if rig is not None else None
-        finally:
-            if rig is not None:
-                rig.close()
-            controller_bus.shutdown()
-            sim_bus.shutdown()
-        out = {"wall_s": wall, "sim_s": sim.time_s - t0, "realtime_factor": (sim.time_s - t0) / wall,
-               "scans_taken": scans, "images_taken": images, "imu_taken": imu,
-               "driven_m": math.hypot(x - scenario.robot_start.x_m, y - scenario.robot_start.y_m)}
-        if st is not None:
-            out.update(st)
-            out["lidar_ms_per_frame"] = 1e3 * st["time_spent_s"]["lidar"] / max(1, st["scans_produced"])
-            out["camera_ms_per_image"] = 1e3 * st["time_spent_s"]["camera"] / max(1, st["images_produced"])
-            out["imu_ms_per_sim_s"] = 1e3 * st["time_spent_s"]["imu"] / out["sim_s"]
-        return out
+    drive = _Drive(seconds, robot.can.command_period_s, linear_mps, angular_radps, camera_rate_hz)
 
     runs, bases = [], []
     for i in range(repeats):
-        r = one_run(i, True)
+        r = _sensor_run(scenario, robot, i, True, drive)
         runs.append(r)
         echo(f"run {i}: {r['sim_s']:.1f} s simulated in {r['wall_s']:.2f} s wall = {r['realtime_factor']:.2f}x real "
              f"time; {r['scans_produced']} scans ({r['lidar_ms_per_frame']:.1f} ms each), {r['imu_samples_produced']} "
              f"IMU samples, {r['images_produced']} images ({r['renders']} renders, "
              f"{r['camera_ms_per_image']:.1f} ms each); robot {r['driven_m']:.2f} m from start")
         if baseline:
-            b = one_run(i, False)
+            b = _sensor_run(scenario, robot, i, False, drive)
             bases.append(b)
             echo(f"run {i} without sensors: {b['realtime_factor']:.2f}x real time")
+    summary = _sensor_summary(scenario_name, seconds, runs, bases)
+    echo(f"sim-speed --sensors {scenario_name}: median {summary['realtime_factor_median']:.2f}x real time "
+         f"(min {summary['realtime_factor_min']:.2f}x) with lidar 10 Hz, IMU 200 Hz, camera {camera_rate_hz:g} Hz; "
+         f"{summary['lidar_ms_per_frame_median']:.1f} ms per lidar frame in the loop, "
+         f"{summary['renders_total']} renders" + (
+             f"; without sensors {summary['realtime_factor_without_sensors_median']:.2f}x" if bases else ""))
+    return summary
+
+
+def _sensor_run(scenario, robot, seed: int, with_sensors: bool, drive: _Drive) -> dict:
+    """One timed drive: the wall and simulated seconds, what the inbox got, and (with the sensors)
+    the rig's figures per frame."""
+    import time
+
+    from firmware_bridge.base_driver import AgileXBaseDriver
+    from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+    from hil_sim.episode.lockstep import LockstepSimulation, virtual_bus_pair
+    from hil_sim.world.mujoco_world import World
+    from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
+    from runtime.io.sensor_inbox import SensorInbox
+
+    world = World(scenario, robot, seed=seed)
+    controller_bus, sim_bus = virtual_bus_pair()
+    firmware = EmulatedBaseFirmware(sim_bus, robot)
+    inbox = SensorInbox()
+    rig = None
+    if with_sensors:
+        rig = SensorRig(world, robot, inbox, SensorRigConfig(camera_rate_hz=drive.camera_rate_hz, seed=seed))
+    sim = LockstepSimulation(world, firmware, devices=[rig] if rig is not None else [])
+    driver = AgileXBaseDriver(controller_bus, clock=lambda: sim.time_s,
+                              feedback_timeout_s=robot.can.feedback_timeout_s)
+    scans = images = imu = 0
+    try:
+        wall0 = time.perf_counter()
+        driver.enable()
+        t0 = sim.time_s
+        tick = 0
+        while sim.time_s < t0 + drive.seconds - 0.5 * world.timestep_s:
+            driver.poll()
+            snap = inbox.take()
+            scans += snap.scan is not None
+            images += snap.image is not None
+            imu += len(snap.imu)
+            driver.send_motion(drive.linear_mps, drive.angular_radps)
+            tick += 1
+            sim.advance_to(t0 + tick * drive.period_s)
+        wall = time.perf_counter() - wall0
+        x, y, _ = world.robot_pose()
+        st = rig.stats() if rig is not None else None
+    finally:
+        if rig is not None:
+            rig.close()
+        controller_bus.shutdown()
+        sim_bus.shutdown()
+    out = {"wall_s": wall, "sim_s": sim.time_s - t0, "realtime_factor": (sim.time_s - t0) / wall,
+           "scans_taken": scans, "images_taken": images, "imu_taken": imu,
+           "driven_m": math.hypot(x - scenario.robot_start.x_m, y - scenario.robot_start.y_m)}
+    if st is not None:
+        out.update(st)
+        out["lidar_ms_per_frame"] = 1e3 * st["time_spent_s"]["lidar"] / max(1, st["scans_produced"])
+        out["camera_ms_per_image"] = 1e3 * st["time_spent_s"]["camera"] / max(1, st["images_produced"])
+        out["imu_ms_per_sim_s"] = 1e3 * st["time_spent_s"]["imu"] / out["sim_s"]
+    return out
+
+
+def _sensor_summary(scenario_name: str, seconds: float, runs: list[dict], bases: list[dict]) -> dict:
+    """Medians and totals over the runs (and the runs without sensors)."""
     summary = {
         "scenario": scenario_name,
         "seconds": seconds,
@@ -146,9 +173,4 @@ def run_sensor_sim_speed_benchmark(
     }
     if bases:
         summary["realtime_factor_without_sensors_median"] = statistics.median(b["realtime_factor"] for b in bases)
-    echo(f"sim-speed --sensors {scenario_name}: median {summary['realtime_factor_median']:.2f}x real time "
-         f"(min {summary['realtime_factor_min']:.2f}x) with lidar 10 Hz, IMU 200 Hz, camera {camera_rate_hz:g} Hz; "
-         f"{summary['lidar_ms_per_frame_median']:.1f} ms per lidar frame in the loop, "
-         f"{summary['renders_total']} renders" + (
-             f"; without sensors {summary['realtime_factor_without_sensors_median']:.2f}x" if bases else ""))
     return summary

@@ -1,4 +1,4 @@
-"""Episode metrics from ground truth, updated every physics step (DESIGN.md section 7).
+"""Episode metrics from ground truth, updated every physics step (docs/simulator.md).
 
 A contact *event* is the robot going from not touching to touching an obstacle (any robot geom
 against any geom of that obstacle), after having been apart for at least CONTACT_RELEASE_S:
@@ -9,7 +9,7 @@ heavy, person, walls): success requires none of them. Person contacts are also c
 own (`person_contacts`, must be 0); contacts with a curtain (deformable) or a fragile object are
 neither fixed nor movable contacts (`deformable_contacts`, `fragile_contacts`).
 
-IMPACT's metrics (contact cost 0..10 per object, hil_sim.world.scenario.CLASS_DEFAULT_COST unless the
+IMPACT's metrics (contact cost 0..10 per object, hil_sim.world.scenario_objects.CLASS_DEFAULT_COST unless the
 file sets one): `path_cost` is the sum of the costs of the objects the robot touched, each object
 once however often; `high_cost_displacement_m` the summed displacement of objects of cost >=
 HIGH_COST_THRESHOLD (8) but people (who walk by themselves; a person's `displacement_m` is
@@ -27,8 +27,10 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from hil_sim.world.scenario import HIGH_COST_THRESHOLD, NON_MOVABLE_CLASSES, Scenario
-from hil_sim.world.mujoco_world import ROBOT_GEOM_GROUP, World
+from hil_sim.world.model_spec import ROBOT_GEOM_GROUP
+from hil_sim.world.mujoco_world import World
+from hil_sim.world.scenario import Scenario
+from hil_sim.world.scenario_objects import HIGH_COST_THRESHOLD, NON_MOVABLE_CLASSES
 
 #: Path length is accumulated in hops of at least this length, so that contact jitter of the
 #: resting robot (micrometres per step) does not add up to phantom distance.

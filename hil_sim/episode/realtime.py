@@ -139,9 +139,6 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
     Raises RuntimeError when a process could not run (the message says which and its last words).
     duration_s: a patrol's duration (`dct hil serve --duration`); record_path: the controller
     records the run (`dct run --record`, `--force` overwrites)."""
-    import yaml
-
-    from calibration.outputs import atomic_write_text
     from hil_sim.episode.patrol import with_duration
     from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
@@ -153,31 +150,14 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
     oracle = config.uses_vlm_backend and config.vpp.backend.kind == "sim-oracle"
     _sigterm_raises()
     goal = goal_in_odom_frame(sc)
-    domain, group, port = unique_channels()
-    common: list[str] = []
-    if config_path is not None:
-        common += ["--config", str(config_path)]
-    if robot_path is not None:
-        common += ["--robot", str(robot_path)]
+    channels = unique_channels()
     with tempfile.TemporaryDirectory(prefix="dct-rt-") as tmp:
         work = Path(keep_dir) if keep_dir is not None else Path(tmp)
         sim_json, ctl_json = work / "simulator.json", work / "controller.json"
-        serve_cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json), "--force",
-                         "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port),
-                         "--oracle" if oracle else "--no-oracle", *common)
-        if duration_s is not None:
-            serve_cmd += ["--duration", repr(float(duration_s))]
-        run_cmd = _dct("run", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json", str(ctl_json),
-                       "--domain-id", str(domain), "--can-interface", "udp_multicast", "--can-channel", group,
-                       "--can-port", str(port))
-        if robot_path is not None:
-            run_cmd += ["--robot", str(robot_path)]
-        if planner is not None:
-            run_cmd += ["--planner", planner]
-        if calibration_path is not None:
-            run_cmd += ["--calibration", str(calibration_path)]
-        if record_path is not None:
-            run_cmd += ["--record", str(record_path)] + (["--force"] if force else [])
+        serve_cmd = _serve_command(scenario, seed, sim_json, channels, oracle=oracle, config_path=config_path,
+                                   robot_path=robot_path, duration_s=duration_s)
+        run_cmd = _run_command(goal, ctl_json, channels, robot_path=robot_path, planner=planner,
+                               calibration_path=calibration_path, record_path=record_path, force=force)
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         t0 = time.monotonic()
         # Own sessions: a Ctrl-C in the terminal reaches this process only, which stops both
@@ -187,33 +167,12 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         sim_log = _Lines(sim.stderr, "sim", echo)
         ctl = None
         try:
-            while not sim_log.ready.wait(0.2):
-                if sim.poll() is not None or time.monotonic() - t0 > SERVE_READY_TIMEOUT_S:
-                    raise RuntimeError(f"dct hil serve did not start (exit {sim.poll()}): "
-                                       f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
-            if oracle:  # the controller asks the simulator's oracle service (module docstring)
-                urls = [m.group(1) for m in map(_ORACLE_LINE.search, sim_log.lines) if m]
-                if not urls:
-                    raise RuntimeError("dct hil serve did not say where its VLM oracle is: "
-                                       f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
-                source = config_path or Path(str(resources.files("runtime") / "config" / "default.yaml"))
-                generated = controller_config(yaml.safe_load(Path(source).read_text()) or {}, urls[-1],
-                                              config.vpp.backend.latency_s)
-                ctl_config = work / "controller_config.yaml"
-                atomic_write_text(ctl_config, yaml.safe_dump(generated, sort_keys=False))
-                run_cmd += ["--config", str(ctl_config)]
-            elif config_path is not None:
-                run_cmd += ["--config", str(config_path)]
+            _await_serving(sim, sim_log, t0)
+            run_cmd += _controller_config_args(oracle, config_path, config.vpp.backend.latency_s, work, sim_log)
             ctl = subprocess.Popen(run_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                    stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
             ctl_log = _Lines(ctl.stderr, "ctl", echo)
-            limit = SERVE_READY_TIMEOUT_S + sc.time_limit_s + 120.0
-            while sim.poll() is None:
-                if ctl.poll() is not None or time.monotonic() - t0 > limit:
-                    break  # the controller ended first, or the episode overran: end it
-                time.sleep(0.1)
-            _stop(sim)
-            _stop(ctl)
+            _supervise(sim, ctl, t0, SERVE_READY_TIMEOUT_S + sc.time_limit_s + 120.0)
             ctl_log.join(2.0)
             sim_log.join(2.0)
         finally:  # also on an exception or a SIGINT/SIGTERM of this process
@@ -229,6 +188,83 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         summary = json.loads(ctl_json.read_text())
     return merge(metrics, summary, {"simulator": sim.pid, "controller": ctl.pid},
                  {"simulator": sim.returncode, "controller": ctl.returncode}, time.monotonic() - t0)
+
+
+def _serve_command(scenario: str, seed: int, sim_json: Path, channels: tuple[int, str, int], *, oracle: bool,
+                   config_path: Path | None, robot_path: Path | None, duration_s: float | None) -> list[str]:
+    """`dct hil serve` of one real-time run, on its own DDS domain and CAN channel."""
+    domain, group, port = channels
+    cmd = _dct("hil", "serve", scenario, "--seed", str(seed), "--json", str(sim_json), "--force",
+               "--domain-id", str(domain), "--can-channel", group, "--can-port", str(port),
+               "--oracle" if oracle else "--no-oracle")
+    if config_path is not None:
+        cmd += ["--config", str(config_path)]
+    if robot_path is not None:
+        cmd += ["--robot", str(robot_path)]
+    if duration_s is not None:
+        cmd += ["--duration", repr(float(duration_s))]
+    return cmd
+
+
+def _run_command(goal, ctl_json: Path, channels: tuple[int, str, int], *, robot_path: Path | None,
+                 planner: str | None, calibration_path: Path | None, record_path: Path | None,
+                 force: bool) -> list[str]:
+    """`dct run` of one real-time run, without its --config (_controller_config_args)."""
+    domain, group, port = channels
+    cmd = _dct("run", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json",
+               str(ctl_json), "--domain-id", str(domain), "--can-interface", "udp_multicast", "--can-channel", group,
+               "--can-port", str(port))
+    if robot_path is not None:
+        cmd += ["--robot", str(robot_path)]
+    if planner is not None:
+        cmd += ["--planner", planner]
+    if calibration_path is not None:
+        cmd += ["--calibration", str(calibration_path)]
+    if record_path is not None:
+        cmd += ["--record", str(record_path)] + (["--force"] if force else [])
+    return cmd
+
+
+def _await_serving(sim: subprocess.Popen, sim_log: _Lines, t0: float) -> None:
+    """Until the simulator says it is serving; RuntimeError when it exits or takes too long."""
+    while not sim_log.ready.wait(0.2):
+        if sim.poll() is not None or time.monotonic() - t0 > SERVE_READY_TIMEOUT_S:
+            raise RuntimeError(f"dct hil serve did not start (exit {sim.poll()}): "
+                               f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
+
+
+def _controller_config_args(oracle: bool, config_path: Path | None, latency_s: float, work: Path,
+                            sim_log: _Lines) -> list[str]:
+    """The controller's --config: with the oracle, a generated copy asking the simulator's oracle
+    service (module docstring), written to `work`; else config_path as given (none: nothing)."""
+    if oracle:
+        import yaml
+
+        from calibration.outputs import atomic_write_text
+
+        urls = [m.group(1) for m in map(_ORACLE_LINE.search, sim_log.lines) if m]
+        if not urls:
+            raise RuntimeError("dct hil serve did not say where its VLM oracle is: "
+                               f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
+        source = config_path or Path(str(resources.files("runtime") / "config" / "default.yaml"))
+        generated = controller_config(yaml.safe_load(Path(source).read_text()) or {}, urls[-1], latency_s)
+        ctl_config = work / "controller_config.yaml"
+        atomic_write_text(ctl_config, yaml.safe_dump(generated, sort_keys=False))
+        return ["--config", str(ctl_config)]
+    if config_path is not None:
+        return ["--config", str(config_path)]
+    return []
+
+
+def _supervise(sim: subprocess.Popen, ctl: subprocess.Popen, t0: float, limit_s: float) -> None:
+    """Until the simulator ends the episode, the controller exits first or limit_s have passed since
+    t0 (monotonic); then both are stopped (SIGTERM: they write their files)."""
+    while sim.poll() is None:
+        if ctl.poll() is not None or time.monotonic() - t0 > limit_s:
+            break  # the controller ended first, or the episode overran: end it
+        time.sleep(0.1)
+    _stop(sim)
+    _stop(ctl)
 
 
 def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: float) -> dict:
@@ -251,7 +287,7 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
     m["events"] = summary["events"]
     m["controller"] = report
     m["sensor_errors"] = summary["sensor_errors"]
-    m["faults"] = []  # (fault injection is lockstep only so far)
+    m["faults"] = []  # fault injection is lockstep only
     m["failure_reason"] = failure_reason(m, report)
     m["realtime"] = {
         "tick_ms": {k: rt["tick_ms"][k] for k in ("p50", "p99", "max")},

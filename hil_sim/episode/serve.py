@@ -48,7 +48,6 @@ from pathlib import Path
 import numpy as np
 
 
-
 @dataclass
 class ServeOptions:
     scenario: str
@@ -227,22 +226,24 @@ class _PatrolOperator:
 def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -> dict:
     """Run one real-time episode of opts.scenario until it ends (module docstring); returns the
     metrics (also written to opts.json_path)."""
-    from cyclonedds.domain import DomainParticipant
-
-    from calibration.robot_description import load_robot_description
-    from firmware_bridge import protocol
-    from firmware_bridge.buses import DEFAULT_UDP_GROUP, DEFAULT_UDP_PORT, BusConfig, open_bus
-    from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
-    from hil_sim.episode.metrics import EpisodeMetrics
-    from hil_sim.episode.patrol import with_duration
-    from hil_sim.episode.lockstep import LockstepSimulation, world_distance_to_goal, world_goal_reached
-    from hil_sim.world.scenario import load_scenario
-    from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
-    from hil_sim.world.mujoco_world import World
-    from runtime.config import load_controller_config
-    from runtime.app.run_process import EpochMonotonicClock
-
     stop = stop or threading.Event()
+    server = _Server(opts, echo)
+    wall, sensor_stats = server.run(stop)
+    out = server.report(wall, sensor_stats)
+    if opts.json_path is not None:
+        from calibration.outputs import atomic_write_json
+
+        atomic_write_json(opts.json_path, out)
+    return out
+
+
+def _load(opts: ServeOptions):
+    """(scenario, robot, controller config, its ros.inputs with --domain-id) of `dct hil serve`."""
+    from calibration.robot_description import load_robot_description
+    from hil_sim.episode.patrol import with_duration
+    from hil_sim.world.scenario import load_scenario
+    from runtime.config import load_controller_config
+
     scenario = load_scenario(opts.scenario, seed=opts.seed)  # a generated scene is drawn from the seed
     scenario = with_duration(scenario, opts.duration_s)
     robot = load_robot_description(opts.robot_path)
@@ -250,155 +251,215 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
     inputs = config.ros.inputs
     if opts.domain_id is not None:
         inputs = inputs.model_copy(update={"domain_id": opts.domain_id})
-    bus_config = BusConfig(interface="udp_multicast", channel=opts.can_channel or DEFAULT_UDP_GROUP,
-                           udp_port=opts.can_port or DEFAULT_UDP_PORT)
+    return scenario, robot, config, inputs
 
-    world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
-    world.reset(opts.seed)
-    metrics = EpisodeMetrics(world, scenario, opts.seed)
-    clock = EpochMonotonicClock()
-    if scenario.is_patrol and (inputs.goal is None or not config.ros.outputs.diagnostics):
-        raise ValueError(f"scenario {scenario.name} is a patrol: it needs ros.inputs.goal (where its goals are "
-                         "published) and ros.outputs.diagnostics (where it watches the controller) in the config")
-    bus = open_bus(bus_config)
-    participant = DomainParticipant(inputs.domain_id)
-    sim_t0 = world.time_s
-    wall_t0 = [clock.now()]
 
-    def to_wall(t_sim: float) -> float:
-        return wall_t0[0] + (t_sim - sim_t0)
+@dataclass
+class _EpisodeState:
+    """What the paced loop learns about the episode (module docstring)."""
 
-    sink = DdsSensorSink(participant, inputs, to_wall)
-    oracle_service = None
-    camera_rate_hz, segmentation = opts.camera_rate_hz, False
-    if opts.oracle is not None:
-        from hil_sim.vlm.service import OracleService, RecordingSink
+    t_start: float | None = None  # when the controller took the base (0x421)
+    finished_at: float | None = None  # when the controller said it had finished
+    t_goal: float | None = None
+    end_reason: str = "signal"
+    patrol: _PatrolOperator | None = None
+
+
+class _Server:
+    """One `dct hil serve` episode: the world, the CAN bus and DDS, the sensors, the oracle, and the
+    loop that paces physics to the wall clock (module docstring)."""
+
+    def __init__(self, opts: ServeOptions, echo) -> None:
+        from cyclonedds.domain import DomainParticipant
+
+        from firmware_bridge import protocol
+        from firmware_bridge.buses import DEFAULT_UDP_GROUP, DEFAULT_UDP_PORT, BusConfig, open_bus
+        from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+        from hil_sim.episode.lockstep import LockstepSimulation
+        from hil_sim.episode.metrics import EpisodeMetrics
+        from hil_sim.world.mujoco_world import World
+        from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
+        from runtime.app.run_process import EpochMonotonicClock
+
+        self.opts, self.echo = opts, echo
+        scenario, robot, config, inputs = _load(opts)
+        self.scenario, self.config, self.inputs = scenario, config, inputs
+        self.bus_config = BusConfig(interface="udp_multicast", channel=opts.can_channel or DEFAULT_UDP_GROUP,
+                                    udp_port=opts.can_port or DEFAULT_UDP_PORT)
+        self.world = world = World(scenario, robot,
+                                   ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
+        world.reset(opts.seed)
+        self.metrics = EpisodeMetrics(world, scenario, opts.seed)
+        self.clock = EpochMonotonicClock()
+        if scenario.is_patrol and (inputs.goal is None or not config.ros.outputs.diagnostics):
+            raise ValueError(f"scenario {scenario.name} is a patrol: it needs ros.inputs.goal (where its goals are "
+                             "published) and ros.outputs.diagnostics (where it watches the controller) in the config")
+        self.bus = open_bus(self.bus_config)
+        self.participant = DomainParticipant(inputs.domain_id)
+        self.sim_t0 = world.time_s
+        self.wall_t0 = self.clock.now()
+        self.sink = DdsSensorSink(self.participant, inputs, self.to_wall)
+        self.oracle_service = None
+        camera_rate_hz, segmentation = opts.camera_rate_hz, False
+        if opts.oracle is not None:
+            camera_rate_hz, segmentation = self._start_oracle(camera_rate_hz)
+        self.diagnostics = self._diagnostics_reader()
+        self.rig = SensorRig(world, robot, self.sink, SensorRigConfig(
+            seed=opts.seed, camera_rate_hz=camera_rate_hz, camera_segmentation=segmentation, camera_async=True))
+        self.firmware = EmulatedBaseFirmware(self.bus, robot)
+        self.sim = LockstepSimulation(world, self.firmware, self.metrics, [self.rig])
+        self._can_mode = protocol.CONTROL_MODE_CAN
+        # every catch-up of a 10-minute run (at most one per physics step: 600k in 10 min at 1 ms)
+        self.lag_samples = np.zeros(1 << 20)
+        self.n_lag = 0
+        self.state = _EpisodeState()
+
+    def to_wall(self, t_sim: float) -> float:
+        """A simulated time on the wall clock (ROS time) of the loop's start."""
+        return self.wall_t0 + (t_sim - self.sim_t0)
+
+    def _start_oracle(self, camera_rate_hz: float) -> tuple[float, bool]:
+        """Serve the sim-oracle over HTTP; the sink records what the oracle answers about. Returns the
+        camera's rate (lockstep's 2 Hz when none is asked for) and segmentation on."""
         from hil_sim.episode.lockstep import DCT_CAMERA_RATE_HZ
+        from hil_sim.vlm.service import OracleService, RecordingSink
 
-        oracle_service = OracleService.for_world(world, opts.oracle).start()
-        sink = RecordingSink(sink, oracle_service)
-        camera_rate_hz, segmentation = camera_rate_hz or DCT_CAMERA_RATE_HZ, True
-        echo(f"dct hil serve: VLM oracle at {oracle_service.base_url}/v1 (chat completions) and "
-             f"{oracle_service.base_url} (grounding /detect)")
-    diagnostics = None
-    if config.ros.outputs.diagnostics:
+        self.oracle_service = OracleService.for_world(self.world, self.opts.oracle).start()
+        self.sink = RecordingSink(self.sink, self.oracle_service)
+        self.echo(f"dct hil serve: VLM oracle at {self.oracle_service.base_url}/v1 (chat completions) and "
+                  f"{self.oracle_service.base_url} (grounding /detect)")
+        return camera_rate_hz or DCT_CAMERA_RATE_HZ, True
+
+    def _diagnostics_reader(self):
+        """A reader of the controller's DiagnosticArray topic, or None when the config names none."""
+        topic = self.config.ros.outputs.diagnostics
+        if not topic:
+            return None
         from runtime.io.ros.dds import raw_reader, ros_qos
         from runtime.io.ros.messages import DiagnosticArray
 
-        diagnostics = raw_reader(participant, config.ros.outputs.diagnostics, DiagnosticArray, ros_qos("best_effort", 4))
-    rig = SensorRig(world, robot, sink, SensorRigConfig(seed=opts.seed, camera_rate_hz=camera_rate_hz,
-                                                       camera_segmentation=segmentation, camera_async=True))
-    firmware = EmulatedBaseFirmware(bus, robot)
-    sim = LockstepSimulation(world, firmware, metrics, [rig])
-    dt = world.timestep_s
-    half = 0.5 * dt
-    # every catch-up of a 10-minute run (at most one per physics step: 600k in 10 min at 1 ms)
-    lag_samples = np.zeros(1 << 20)
-    n_lag = 0
-    t_start: float | None = None
-    finished_at: float | None = None
-    end_reason = "signal"
-    t_goal: float | None = None
-    patrol: _PatrolOperator | None = None
-    echo(f"dct hil serve: {scenario.name} seed {opts.seed} serving: CAN udp_multicast {bus_config.channel}:"
-         f"{bus_config.udp_port}, DDS domain {inputs.domain_id}, pid {os.getpid()}")
-    wall_t0[0] = clock.now()
-    wall_start = time.monotonic()
-    try:
-        while not stop.is_set():
-            now = clock.now()
-            target = sim_t0 + (now - wall_t0[0])
-            behind = target - world.time_s  # how late physics is before this catch-up
-            stepped = 0
-            while world.time_s < target - half and stepped < 200:
-                sim.step()
-                stepped += 1
-            if stepped:
-                lag_samples[n_lag % len(lag_samples)] = max(0.0, behind)
-                n_lag += 1
-            t = world.time_s
-            if t_start is None:
-                if firmware.control_mode == protocol.CONTROL_MODE_CAN:
-                    t_start = t
-                    echo(f"dct hil serve: controller connected at t={t - sim_t0:.2f} s; episode starts")
-                    if scenario.is_patrol:
-                        patrol = _PatrolOperator(scenario, participant, inputs, config.ros.outputs.odom_frame,
-                                                 diagnostics, t, to_wall, echo)
-                elif t - sim_t0 > opts.connect_timeout_s:
-                    end_reason = "no_controller"
-                    break
-            elif patrol is not None:
-                patrol.step(t, world.robot_pose())
-                if patrol.sequencer.done:
-                    end_reason = f"patrol_{patrol.sequencer.end_reason}"
-                    break
-                if t - t_start >= scenario.time_limit_s:
-                    end_reason = "time_limit"
-                    break
-            else:
-                if finished_at is None and diagnostics is not None and _controller_finished(diagnostics):
-                    finished_at = t
-                    echo(f"dct hil serve: the controller says it has finished at t={t - t_start:.2f} s")
-                if finished_at is not None and t - finished_at >= opts.settle_s:
-                    end_reason, t_goal = "controller_finished", finished_at
-                    break
-                if t - t_start >= scenario.time_limit_s:
-                    end_reason = "time_limit"
-                    break
-            if not stepped:
-                time.sleep(0.5 * dt)  # the next step is due within dt
-    finally:
-        wall = time.monotonic() - wall_start
-        sensor_stats = rig.stats()  # before close: it lets the renderer go
-        rig.close()
-        bus.shutdown()
-        if oracle_service is not None:
-            oracle_service.close()
-    t_end = world.time_s
-    started = t_start if t_start is not None else t_end
-    nav_time = (t_goal if t_goal is not None else t_end) - started
-    lags = lag_samples[: min(n_lag, len(lag_samples))] * 1e3
-    x_end, y_end, _ = world.robot_pose()
-    out = metrics.to_dict(
-        # As in lockstep: where the robot is when the episode ends (a goal reached just before the
-        # time limit counts; `dct hil run --realtime` also needs the controller's GOAL_REACHED).
-        # A patrol: its verdict (hil_sim.episode.patrol).
-        goal_reached=patrol.sequencer.succeeded if patrol is not None else world_goal_reached(world, scenario),
-        navigation_time_s=nav_time,
-        deadline_misses=0,
-        extra={
-            "end_reason": end_reason,
-            **({"patrol": {**patrol.sequencer.report(t_end), "goals_published": patrol.goals_published}}
-               if patrol is not None else {}),
-            "final_distance_to_goal_m": (patrol.sequencer.distance_to_current_m((x_end, y_end)) if patrol is not None
-                                         else world_distance_to_goal(world, scenario)),
-            "final_pose_world": [float(v) for v in world.robot_pose()],
-            "sim_time_s": t_end - started,
-            "scenario_warnings": list(world.scenario_warnings),
-            "firmware_frames_rejected": firmware.frames_rejected,
-            "simulator": {
-                "pid": os.getpid(),
-                "wall_time_s": wall,
-                "cpu_time_s": time.process_time(),
-                "sim_time_total_s": t_end - sim_t0,
-                "realtime_factor": (t_end - sim_t0) / wall if wall > 0 else None,
-                "physics_steps": sim.steps,
-                "controller_connected_after_s": None if t_start is None else t_start - sim_t0,
-                "sim_lag_ms": {"p50": float(np.percentile(lags, 50)) if len(lags) else None,
-                               "p99": float(np.percentile(lags, 99)) if len(lags) else None,
-                               "max": float(lags.max()) if len(lags) else None},
-                "published": dict(sink.published),
-                "publish_ms_total": {k: v * 1e3 for k, v in sink.publish_s.items()},
-                "sensors": sensor_stats,
-                "oracle": oracle_service.stats() if oracle_service is not None else None,
-            },
-        },
-    )
-    if opts.json_path is not None:
-        from calibration.outputs import atomic_write_json
+        return raw_reader(self.participant, topic, DiagnosticArray, ros_qos("best_effort", 4))
 
-        atomic_write_json(opts.json_path, out)
-    return out
+    def run(self, stop: threading.Event) -> tuple[float, dict]:
+        """Step physics up to the wall clock, sleep, repeat until the episode ends or `stop` is set;
+        returns (wall seconds, the sensors' stats)."""
+        world, sim = self.world, self.sim
+        dt = world.timestep_s
+        half = 0.5 * dt
+        self.echo(f"dct hil serve: {self.scenario.name} seed {self.opts.seed} serving: CAN udp_multicast "
+                  f"{self.bus_config.channel}:{self.bus_config.udp_port}, DDS domain {self.inputs.domain_id}, "
+                  f"pid {os.getpid()}")
+        self.wall_t0 = self.clock.now()
+        wall_start = time.monotonic()
+        try:
+            while not stop.is_set():
+                now = self.clock.now()
+                target = self.sim_t0 + (now - self.wall_t0)
+                behind = target - world.time_s  # how late physics is before this catch-up
+                stepped = 0
+                while world.time_s < target - half and stepped < 200:
+                    sim.step()
+                    stepped += 1
+                if stepped:
+                    self.lag_samples[self.n_lag % len(self.lag_samples)] = max(0.0, behind)
+                    self.n_lag += 1
+                if self._episode_ended(world.time_s):
+                    break
+                if not stepped:
+                    time.sleep(0.5 * dt)  # the next step is due within dt
+        finally:
+            wall = time.monotonic() - wall_start
+            sensor_stats = self.rig.stats()  # before close: it lets the renderer go
+            self.rig.close()
+            self.bus.shutdown()
+            if self.oracle_service is not None:
+                self.oracle_service.close()
+        return wall, sensor_stats
+
+    def _episode_ended(self, t: float) -> bool:
+        """Start the episode when the controller takes the base; True (end_reason set) when it ends."""
+        st = self.state
+        if st.t_start is None:
+            if self.firmware.control_mode == self._can_mode:
+                st.t_start = t
+                self.echo(f"dct hil serve: controller connected at t={t - self.sim_t0:.2f} s; episode starts")
+                if self.scenario.is_patrol:
+                    st.patrol = _PatrolOperator(self.scenario, self.participant, self.inputs,
+                                                self.config.ros.outputs.odom_frame, self.diagnostics, t, self.to_wall,
+                                                self.echo)
+            elif t - self.sim_t0 > self.opts.connect_timeout_s:
+                st.end_reason = "no_controller"
+                return True
+        elif st.patrol is not None:
+            st.patrol.step(t, self.world.robot_pose())
+            if st.patrol.sequencer.done:
+                st.end_reason = f"patrol_{st.patrol.sequencer.end_reason}"
+                return True
+            if t - st.t_start >= self.scenario.time_limit_s:
+                st.end_reason = "time_limit"
+                return True
+        else:
+            if st.finished_at is None and self.diagnostics is not None and _controller_finished(self.diagnostics):
+                st.finished_at = t
+                self.echo(f"dct hil serve: the controller says it has finished at t={t - st.t_start:.2f} s")
+            if st.finished_at is not None and t - st.finished_at >= self.opts.settle_s:
+                st.end_reason, st.t_goal = "controller_finished", st.finished_at
+                return True
+            if t - st.t_start >= self.scenario.time_limit_s:
+                st.end_reason = "time_limit"
+                return True
+        return False
+
+    def report(self, wall: float, sensor_stats: dict) -> dict:
+        """The episode's metrics (hil_sim.episode.metrics) with end_reason, the patrol's and the simulator's figures."""
+        from hil_sim.episode.lockstep import world_distance_to_goal, world_goal_reached
+
+        world, scenario, st, patrol = self.world, self.scenario, self.state, self.state.patrol
+        t_end = world.time_s
+        started = st.t_start if st.t_start is not None else t_end
+        nav_time = (st.t_goal if st.t_goal is not None else t_end) - started
+        x_end, y_end, _ = world.robot_pose()
+        return self.metrics.to_dict(
+            # As in lockstep: where the robot is when the episode ends (a goal reached just before the
+            # time limit counts; `dct hil run --realtime` also needs the controller's GOAL_REACHED).
+            # A patrol: its verdict (hil_sim.episode.patrol).
+            goal_reached=patrol.sequencer.succeeded if patrol is not None else world_goal_reached(world, scenario),
+            navigation_time_s=nav_time,
+            deadline_misses=0,
+            extra={
+                "end_reason": st.end_reason,
+                **({"patrol": {**patrol.sequencer.report(t_end), "goals_published": patrol.goals_published}}
+                   if patrol is not None else {}),
+                "final_distance_to_goal_m": (patrol.sequencer.distance_to_current_m((x_end, y_end))
+                                             if patrol is not None else world_distance_to_goal(world, scenario)),
+                "final_pose_world": [float(v) for v in world.robot_pose()],
+                "sim_time_s": t_end - started,
+                "scenario_warnings": list(world.scenario_warnings),
+                "firmware_frames_rejected": self.firmware.frames_rejected,
+                "simulator": self._simulator_report(wall, sensor_stats, t_end),
+            },
+        )
+
+    def _simulator_report(self, wall: float, sensor_stats: dict, t_end: float) -> dict:
+        """What the simulator process spent and published: pid, times, lag, publications, sensors, oracle."""
+        lags = self.lag_samples[: min(self.n_lag, len(self.lag_samples))] * 1e3
+        t_start = self.state.t_start
+        return {
+            "pid": os.getpid(),
+            "wall_time_s": wall,
+            "cpu_time_s": time.process_time(),
+            "sim_time_total_s": t_end - self.sim_t0,
+            "realtime_factor": (t_end - self.sim_t0) / wall if wall > 0 else None,
+            "physics_steps": self.sim.steps,
+            "controller_connected_after_s": None if t_start is None else t_start - self.sim_t0,
+            "sim_lag_ms": {"p50": float(np.percentile(lags, 50)) if len(lags) else None,
+                           "p99": float(np.percentile(lags, 99)) if len(lags) else None,
+                           "max": float(lags.max()) if len(lags) else None},
+            "published": dict(self.sink.published),
+            "publish_ms_total": {k: v * 1e3 for k, v in self.sink.publish_s.items()},
+            "sensors": sensor_stats,
+            "oracle": self.oracle_service.stats() if self.oracle_service is not None else None,
+        }
 
 
 __all__ = ["serve", "ServeOptions", "DdsSensorSink"]

@@ -232,13 +232,21 @@ def cast_lidar(scene: CalibrationScene, T_cam_board: np.ndarray, rng: np.random.
 def run_hil_check(seed: int = 0, n_poses: int = 20, desc: RobotDescription | None = None,
                   T_guess_error: tuple[float, float] = (0.05, 3.0)) -> dict:
     """Render, ray-cast, calibrate and compare with the truth; returns the figures as a dict."""
-    from calibration.extrinsics import (BoardGeometry, BoardObservation, calibrate_lidar_camera, segment_board,
-                                        transform_error)
-    from calibration.intrinsics import board_pose_in_camera, calibrate_intrinsics, detect_board
+    from calibration.intrinsics import calibrate_intrinsics
 
     desc = desc or load_robot_description()
     rng = np.random.default_rng(seed)
     scene = build_scene(desc)
+    pixel_offset, images, scans = _capture(scene, n_poses, rng)
+    intr = calibrate_intrinsics(images, BOARD_PATTERN, BOARD_SQUARE_M)
+    # A rough prior, as a user would take from the robot description: truth perturbed.
+    T_guess = _perturbed(scene.T_cam_lidar_true, T_guess_error, rng)
+    ext = _calibrate_extrinsics(images, scans, intr, T_guess)
+    return _figures(seed, n_poses, scene, intr, ext, pixel_offset)
+
+
+def _capture(scene: CalibrationScene, n_poses: int, rng: np.random.Generator) -> tuple[np.ndarray, dict, dict]:
+    """(the renderer's pixel offset, BGR image per view, lidar points per view) of n_poses board poses."""
     renderer = _make_renderer(scene)
     try:
         pixel_offset = measure_pixel_offset(scene, renderer)
@@ -251,23 +259,40 @@ def run_hil_check(seed: int = 0, n_poses: int = 20, desc: RobotDescription | Non
             scans[name] = cast_lidar(scene, T_cb, rng)
     finally:
         renderer.close()
+    return pixel_offset, images, scans
 
-    intr = calibrate_intrinsics(images, BOARD_PATTERN, BOARD_SQUARE_M)
-    K, dist = intr.K, intr.dist
-    board = BoardGeometry(BOARD_PATTERN, BOARD_SQUARE_M, BOARD_BORDER_M)
-    # A rough prior, as a user would take from the robot description: truth perturbed.
-    dt, dr = T_guess_error
-    T_guess = scene.T_cam_lidar_true.copy()
+
+def _perturbed(T_true: np.ndarray, error: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
+    """T_true moved by `error` = (metres, degrees) in random directions."""
+    dt, dr = error
+    T_guess = T_true.copy()
     T_guess[:3, 3] += dt * rng.normal(size=3) / np.sqrt(3)
     axis = rng.normal(size=3)
     T_guess[:3, :3] = Rotation.from_rotvec(np.radians(dr) * axis / np.linalg.norm(axis)).as_matrix() @ T_guess[:3, :3]
+    return T_guess
+
+
+def _calibrate_extrinsics(images: dict, scans: dict, intr, T_guess: np.ndarray):
+    """The lidar-camera extrinsics from the views the intrinsic calibration used."""
+    from calibration.extrinsics import BoardGeometry, BoardObservation, calibrate_lidar_camera, segment_board
+    from calibration.intrinsics import board_pose_in_camera, detect_board
+
+    K, dist = intr.K, intr.dist
+    board = BoardGeometry(BOARD_PATTERN, BOARD_SQUARE_M, BOARD_BORDER_M)
     observations = []
     for name in intr.per_image_rms_px:
         det = detect_board(images[name], BOARD_PATTERN)
         T_cb, _ = board_pose_in_camera(det.corners_px, BOARD_PATTERN, BOARD_SQUARE_M, K, dist)
         pts = segment_board(scans[name], board, T_cb, T_guess)
         observations.append(BoardObservation(T_cb, pts, name))
-    ext = calibrate_lidar_camera(observations, board)
+    return calibrate_lidar_camera(observations, board)
+
+
+def _figures(seed: int, n_poses: int, scene: CalibrationScene, intr, ext, pixel_offset: np.ndarray) -> dict:
+    """The calibration's errors against the simulator's truth, and the verdict (`passed`)."""
+    from calibration.extrinsics import transform_error
+
+    K, dist = intr.K, intr.dist
     t_err, r_err = transform_error(ext.T_cam_lidar, scene.T_cam_lidar_true)
     K_true = scene.K_true
     result = {

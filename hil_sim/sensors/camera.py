@@ -17,7 +17,7 @@ import math
 import os
 from typing import Any
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # no display on these machines (ENVIRONMENT.md)
+os.environ.setdefault("MUJOCO_GL", "egl")  # no display on these machines: headless rendering through EGL
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
@@ -123,12 +123,6 @@ class SimCamera:
     def intrinsics(self) -> np.ndarray:
         """K (3x3, read-only)."""
         return self._K
-
-    def pose_is_finite(self) -> bool:
-        """False when the camera pose in data is NaN or infinite (a diverged simulation): a
-        render would be a blank image that looks like a real one."""
-        cid = self.camera_id
-        return bool(np.isfinite(self._d.cam_xpos[cid]).all() and np.isfinite(self._d.cam_xmat[cid]).all())
 
     def render_rgb(self, stamp_s: float) -> CameraImage:
         """Render the current state of `data` as an RGB CameraImage stamped stamp_s."""

@@ -6,7 +6,7 @@ MuJoCo geom ids: render the camera with `kind="geom"` (SimCamera.render_rgb_with
 default, SensorRigConfig.camera_segmentation). Body ids would not do: every wall and fixed
 obstacle is a geom of the one world body.
 
-Each scenario obstacle is one geom named after it (hil_sim.world.mujoco_world.build_spec); walls are fixed
+Each scenario obstacle is one geom named after it (hil_sim.world.model_spec.build_spec); walls are fixed
 and marked as structure (the precision knob does not call a wall movable). The floor and the
 robot are not in the table: the oracle ignores their pixels. A curtain is one geom per slat:
 every slat's id names the curtain.

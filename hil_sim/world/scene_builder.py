@@ -1,10 +1,10 @@
 """Furniture made of scenario primitives, and the odometry scenes of the library built from it.
 
-A scenario obstacle is one box or cylinder. Realistic clutter for the lidar odometry (issue 11;
-ENVIRONMENT.md: a world of large flat boxes is a weak case for point-to-point ICP) needs
-furniture: chairs on thin legs with a seat and a backrest, shelves with side panels and boards
-at several heights, tables. The helpers here expand one piece of furniture into its primitives
-(fixed obstacles, raised ones with `pose.z_m`), placed and turned as a whole.
+A scenario obstacle is one box or cylinder. Realistic clutter for the lidar odometry (a world
+of large flat boxes is a weak case for point-to-point ICP; docs/decisions/sim-odometry-scenes.md)
+needs furniture: chairs on thin legs with a seat and a backrest, shelves with side panels and
+boards at several heights, tables. The helpers here expand one piece of furniture into its
+primitives (fixed obstacles, raised ones with `pose.z_m`), placed and turned as a whole.
 
 The library files `odom_loop.yaml` and `odom_corridor.yaml` are written from the layouts below,
 so that a chair stays a chair when it is moved: edit the layout here, then regenerate them with
@@ -144,9 +144,8 @@ def room_walls(half_x_m: float, half_y_m: float, height_m: float, thickness_m: f
 LOOP_HALF_X_M, LOOP_HALF_Y_M = 4.95, 3.45
 
 
-def odom_loop() -> dict[str, Any]:
-    """A furnished room, 10 x 7 m, and a closed loop through it (see the description)."""
-    hx, hy = LOOP_HALF_X_M, LOOP_HALF_Y_M
+def _odom_loop_furniture(hx: float, hy: float) -> list[Obstacle]:
+    """The furniture of odom_loop, in the file's order: along each wall, then the island in the middle."""
     ob: list[Obstacle] = []
     # Along the south wall: a shelf, a chair, a cluster of boxes (one stacked) the route jogs around.
     ob += shelf("shelf_s", -2.2, -hy + 0.175, 0.0, width_m=1.2, boards_z_m=(0.13, 0.52, 0.95),
@@ -189,14 +188,20 @@ def odom_loop() -> dict[str, Any]:
     ob.append(box("crate_c3", 1.55, -0.8, (0.2, 0.35, 0.18), 60.0))
     ob.append(box("cabinet_c", 2.85, -0.25, (0.8, 0.4, 1.0), 70.0))
     ob.append(cylinder("bin_c", 2.75, 0.95, 0.18, 0.55))
+    return ob
 
+
+def odom_loop() -> dict[str, Any]:
+    """A furnished room, 10 x 7 m, and a closed loop through it (see the description)."""
+    hx, hy = LOOP_HALF_X_M, LOOP_HALF_Y_M
+    ob = _odom_loop_furniture(hx, hy)
     start = (-3.4, -2.3)
     waypoints = [(-0.9, -2.3), (0.4, -1.55), (2.4, -1.55), (3.7, -2.25), (3.8, 0.3), (2.9, 2.3), (0.7, 2.3),
                  (-0.45, 1.65), (-2.4, 1.6), (-3.7, 2.25), (-3.85, -0.4), (-3.4, -2.3), (-2.6, -2.3)]
     return {
         "name": "odom_loop",
         "description": (
-            "Lidar odometry in clutter (issue 11): a furnished room 10 x 7 m (walls 1.5 m) with shelves "
+            "Lidar odometry in clutter: a furnished room 10 x 7 m (walls 1.5 m) with shelves "
             "(side panels, boards at several heights, boxes on them), chairs on four thin legs with raised "
             "seats and backrests, tables, boxes of many sizes and turns, bins and pillars. The route is a "
             "closed loop of 24.6 m with twelve turns through the clutter, back over its start: "
@@ -226,7 +231,7 @@ def odom_corridor() -> dict[str, Any]:
     return {
         "name": "odom_corridor",
         "description": (
-            "The degenerate case of lidar odometry (issue 11): a straight corridor 100 m long and 2.0 m wide "
+            "The degenerate case of lidar odometry: a straight corridor 100 m long and 2.0 m wide "
             "(walls 2.0 m high, smooth: no doors, no features). The route drives 18 m straight down the "
             "middle; the end walls stay more than 41 m away, beyond the lidar's range, so nothing in a scan "
             "fixes the position along the corridor: ICP alone cannot tell how far the robot went, wheels and "
@@ -249,7 +254,8 @@ TIME_LIMIT_SLACK = 0.5
 
 def route_time_s(raw: dict[str, Any]) -> float:
     """Drive time of a scenario's route at its speed plus its turns at TURN_RATE_FOR_TIME_LIMIT_RADPS."""
-    from hil_sim.world.scenario import Pose2D, Route
+    from hil_sim.world.scenario import Route
+    from hil_sim.world.scenario_objects import Pose2D
 
     route = Route.model_validate(raw["route"])
     start = Pose2D.model_validate(raw["robot"]["start"])
@@ -293,7 +299,9 @@ def scene_yaml(name: str) -> str:
 
 
 def _library_path(name: str) -> Path:
-    return Path(__file__).parents[1] / "scenarios" / f"{name}.yaml"
+    from hil_sim.world.scenario import library_dir
+
+    return library_dir() / f"{name}.yaml"
 
 
 def main(argv: list[str] | None = None) -> int:

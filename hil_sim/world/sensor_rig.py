@@ -39,7 +39,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from calibration.robot_description import RobotDescription
 from hil_sim.sensors.imu import ImuConfig, SimImu
 from hil_sim.sensors.lidar import LidarConfig, SimLidar
-from hil_sim.world.mujoco_world import ROBOT_OWN_GEOM_GROUPS, World
+from hil_sim.world.model_spec import ROBOT_OWN_GEOM_GROUPS
+from hil_sim.world.mujoco_world import World
 from runtime.common.sensor_data import CameraImage, LidarScan
 from runtime.io.sensor_inbox import SensorInbox
 
@@ -159,6 +160,21 @@ class CameraThread:
         self._thread.join(timeout=5.0)
 
 
+def _make_lidar(world: World, c: SensorRigConfig, seed: int, start_s: float) -> SimLidar:
+    """The lidar on the world's mount, blind to the robot's own geom groups (SensorRigError when
+    the config's geomgroup lets it see them)."""
+    lidar_cfg = c.lidar
+    if lidar_cfg.geomgroup is None:
+        lidar_cfg = lidar_cfg.model_copy(update={"geomgroup": world.lidar_geomgroup})
+    else:
+        seen = [g for g in ROBOT_OWN_GEOM_GROUPS if lidar_cfg.geomgroup[g]]
+        if seen:
+            raise SensorRigError(f"SensorRigConfig.lidar.geomgroup {lidar_cfg.geomgroup} lets the lidar see "
+                                 f"the robot's own geom groups {seen}; set them to 0 (or leave geomgroup None)")
+    return SimLidar(world.model, world.data, world.robot_body_id, world.lidar_mount, lidar_cfg, seed=seed,
+                    start_s=start_s)
+
+
 class SensorRig:
     """Lidar + IMU + camera of the robot in a World, feeding a SensorInbox (see module docstring)."""
 
@@ -177,18 +193,7 @@ class SensorRig:
         start_s = world.time_s
         seeds = np.random.SeedSequence(c.seed).generate_state(2)
 
-        self.lidar: SimLidar | None = None
-        if c.lidar_enabled:
-            lidar_cfg = c.lidar
-            if lidar_cfg.geomgroup is None:
-                lidar_cfg = lidar_cfg.model_copy(update={"geomgroup": world.lidar_geomgroup})
-            else:
-                seen = [g for g in ROBOT_OWN_GEOM_GROUPS if lidar_cfg.geomgroup[g]]
-                if seen:
-                    raise SensorRigError(f"SensorRigConfig.lidar.geomgroup {lidar_cfg.geomgroup} lets the lidar see "
-                                         f"the robot's own geom groups {seen}; set them to 0 (or leave geomgroup None)")
-            self.lidar = SimLidar(m, d, world.robot_body_id, world.lidar_mount, lidar_cfg, seed=int(seeds[0]),
-                                  start_s=start_s)
+        self.lidar: SimLidar | None = _make_lidar(world, c, int(seeds[0]), start_s) if c.lidar_enabled else None
 
         self.imu: SimImu | None = None
         if c.imu_enabled:
@@ -200,14 +205,7 @@ class SensorRig:
         self._camera_start_s = start_s
         self._camera_next = 0
         if c.camera_rate_hz > 0:
-            from hil_sim.sensors.camera import SimCamera  # creates an EGL context: only when the camera is on
-
-            cam = robot.sensors.camera
-            args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups)
-            if c.camera_async:
-                self.camera = CameraThread(m, args, c.camera_segmentation, self._deliver_image)
-            else:
-                self.camera = SimCamera(m, d, *args)
+            self.camera = self._make_camera()
 
         self._last_t: float | None = None
         #: Called with every scan and image the rig produces, before the inbox gets it, in the
@@ -223,6 +221,17 @@ class SensorRig:
         self.rejected = {"lidar": 0, "camera": 0, "imu": 0}
         #: Wall-clock seconds spent in each sensor (including the inbox's validation).
         self.time_spent_s = {"lidar": 0.0, "camera": 0.0, "imu": 0.0}
+
+    def _make_camera(self):
+        """The camera: rendered in a thread of its own (camera_async) or inline (SimCamera)."""
+        from hil_sim.sensors.camera import SimCamera  # creates an EGL context: only when the camera is on
+
+        world, c = self.world, self.config
+        cam = self.robot.sensors.camera
+        args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups)
+        if c.camera_async:
+            return CameraThread(world.model, args, c.camera_segmentation, self._deliver_image)
+        return SimCamera(world.model, world.data, *args)
 
     # ------------------------------------------------------------------ stepping
     def step(self, t_s: float) -> None:

@@ -14,7 +14,7 @@ from hil_sim.bench.campaign import (
     parse_methods,
     run_campaign,
 )
-from hil_sim.cli import bench_group
+from hil_sim.bench.cli import bench_group
 
 ROW_KEYS = {"case", "method", "episodes", "success_rate", "navigation_time_s", "average_speed_mps",
             "navigation_distance_m", "fixed_contacts", "path_cost", "fragile_damage", "correcting_events",

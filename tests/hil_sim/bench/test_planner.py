@@ -6,7 +6,7 @@ import json
 from click.testing import CliRunner
 
 from hil_sim.bench import planner as planner_bench
-from hil_sim.cli import bench_group
+from hil_sim.bench.cli import bench_group
 
 ROW_KEYS = {"horizon", "points", "p50_ms", "p99_ms", "capped_fraction", "cvxpy_ratio"}
 

@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from hil_sim.bench import tick as tick_bench
-from hil_sim.cli import bench_group
+from hil_sim.bench.cli import bench_group
 from runtime.loop.telemetry import STAGES
 
 

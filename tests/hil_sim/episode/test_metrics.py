@@ -14,7 +14,7 @@ REQUIRED_KEYS = {
     "success", "goal_reached", "navigation_time_s", "path_length_m", "average_speed_mps",
     "fixed_contacts", "movable_contacts", "deadline_misses", "obstacles", "scenario", "seed",
     "min_fixed_clearance_m",
-    # issue 14: IMPACT's graded-cost metrics, people and fragile objects.
+    # IMPACT's graded-cost metrics, people and fragile objects.
     "path_cost", "person_contacts", "fragile_contacts", "deformable_contacts", "fragile_damage_events",
     "fragile_damage", "high_cost_displacement_m", "contact_duration_s",
 }

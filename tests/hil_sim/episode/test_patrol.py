@@ -15,7 +15,8 @@ from calibration.errors import ConfigFileError
 from calibration.robot_description import load_robot_description
 from hil_sim.episode.patrol import PatrolError, PatrolSequencer, goal_in_odom, with_duration
 from hil_sim.episode.lockstep import run_episode
-from hil_sim.world.scenario import Scenario, ScenarioError, check_scenario_against_robot, load_scenario
+from hil_sim.world.scenario import Scenario, load_scenario
+from hil_sim.world.scenario_checks import ScenarioError, check_scenario_against_robot
 from runtime.config import load_controller_config
 from runtime.common.geometry import Pose2D
 

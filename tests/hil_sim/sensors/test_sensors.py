@@ -13,7 +13,7 @@ from hil_sim.sensors.camera import SimCamera, add_camera_to_spec, fovy_deg_from_
 from hil_sim.sensors.imu import ImuConfig, SimImu, add_imu_to_spec
 from hil_sim.sensors.lidar import LidarConfig, SimLidar, pattern_directions, ray_returns
 from hil_sim.world.scenario import Scenario
-from hil_sim.world.mujoco_world import IMU_NAME, build_spec
+from hil_sim.world.model_spec import IMU_NAME, build_spec
 from runtime.common.sensor_data import MAX_ACCEL_MPS2, MAX_GYRO_RADPS, CameraImage, ImuSample, LidarScan
 
 DESC = load_robot_description()

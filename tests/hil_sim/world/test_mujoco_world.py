@@ -9,8 +9,11 @@ import pytest
 
 from calibration.errors import ConfigFileError
 from calibration.robot_description import load_robot_description
-from hil_sim.world.scenario import Scenario, ScenarioError, load_scenario, wall_footprint
-from hil_sim.world.mujoco_world import FREE_BODY_GEOM_GROUP, ROBOT_GEOM_GROUP, SCENE_GEOM_GROUP, World, WorldError
+from hil_sim.world.footprints import wall_footprint
+from hil_sim.world.scenario import Scenario, load_scenario
+from hil_sim.world.scenario_checks import ScenarioError
+from hil_sim.world.model_spec import FREE_BODY_GEOM_GROUP, ROBOT_GEOM_GROUP, SCENE_GEOM_GROUP, WorldError
+from hil_sim.world.mujoco_world import World
 
 ROBOT = load_robot_description()
 

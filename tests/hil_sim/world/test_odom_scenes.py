@@ -1,4 +1,4 @@
-"""The odometry scenes of the library (issue 11): their routes, their clutter, what the lidar sees.
+"""The odometry scenes of the library: their routes, their clutter, what the lidar sees.
 
 odom_loop must give the lidar odometry realistic structure all along a closed route of more than
 20 m; odom_corridor must give it none along its axis (the degenerate case).
@@ -14,13 +14,8 @@ import pytest
 from calibration.robot_description import load_robot_description
 from hil_sim.world import scene_builder
 from hil_sim.sensors.lidar import LidarConfig, SimLidar
-from hil_sim.world.scenario import (
-    DEFAULT_ROUTE_MARGIN_M,
-    check_scenario_against_robot,
-    list_scenarios,
-    load_scenario,
-    route_clearances,
-)
+from hil_sim.world.scenario import list_scenarios, load_scenario
+from hil_sim.world.scenario_checks import DEFAULT_ROUTE_MARGIN_M, check_scenario_against_robot, route_clearances
 from hil_sim.world.mujoco_world import World
 
 ROBOT = load_robot_description()

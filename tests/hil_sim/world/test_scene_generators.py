@@ -9,17 +9,11 @@ import yaml
 from click.testing import CliRunner
 
 from calibration.robot_description import load_robot_description
-from hil_sim.world.scenario import (
-    Scenario,
-    UnknownScenarioError,
-    check_scenario_against_robot,
-    load_scenario,
-    robot_footprint_at,
-    signed_gap_m,
-    obstacle_footprint,
-)
+from hil_sim.world.footprints import obstacle_footprint, robot_footprint_at, signed_gap_m
+from hil_sim.world.scenario import Scenario, UnknownScenarioError, load_scenario
+from hil_sim.world.scenario_checks import check_scenario_against_robot
+from hil_sim.world.scene_families.draft import FREE_INFLATION_M
 from hil_sim.world.scene_generators import (
-    FREE_INFLATION_M,
     GENERATORS,
     SceneGeneratorError,
     generate_scene,

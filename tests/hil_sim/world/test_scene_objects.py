@@ -12,7 +12,8 @@ import yaml
 from calibration.errors import ConfigFileError
 from hil_sim.sensors.lidar import LidarConfig, SimLidar
 from hil_sim.episode.metrics import EpisodeMetrics
-from hil_sim.world.scenario import CLASS_DEFAULT_COST, Scenario, load_scenario
+from hil_sim.world.scenario import Scenario, load_scenario
+from hil_sim.world.scenario_objects import CLASS_DEFAULT_COST
 from hil_sim.world.scene_generators import generate_scene
 from hil_sim.vlm.oracle import oracle_table
 from hil_sim.world.mujoco_world import World
@@ -184,7 +185,7 @@ def test_the_person_walks_its_waypoints_at_its_speed():
 
 
 def test_walk_modes_once_loop_and_delay():
-    from hil_sim.world.scenario import PersonWalk
+    from hil_sim.world.scenario_objects import PersonWalk
 
     walk = PersonWalk(waypoints=[(1.0, 0.0)], speed_mps=0.5, mode="once", start_delay_s=1.0)
     np.testing.assert_allclose(walk.positions((0.0, 0.0), [0.0, 1.0, 2.0, 3.0, 10.0])[:, 0], [0, 0, 0.5, 1.0, 1.0])

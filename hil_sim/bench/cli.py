@@ -1,0 +1,300 @@
+"""`dct bench`: benchmarks that print figures (no pass/fail)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from hil_sim.episode.cli_checks import InputError, check_scenario_and_output
+
+
+@click.group(name="bench")
+def bench_group() -> None:
+    """Benchmarks: each prints its figures (no pass/fail)."""
+
+
+@bench_group.command("sim-speed")
+@click.option("--scenario", default="case1", show_default=True)
+@click.option("--seconds", default=10.0, show_default=True, help="Simulated seconds per run.")
+@click.option("--repeats", default=3, show_default=True)
+@click.option("--sensors", is_flag=True, help="Sensors on (lidar 10 Hz, IMU 200 Hz, camera 2 Hz), robot driven by "
+              "constant 0x111 commands (no planner); also times the same loop without sensors.")
+def sim_speed_command(*, scenario: str, seconds: float, repeats: int, sensors: bool) -> None:
+    """Lockstep speed as a multiple of real time, with the robot driving (controller in the loop)."""
+    if sensors:
+        from hil_sim.bench.sim import run_sensor_sim_speed_benchmark
+
+        run_sensor_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)
+        return
+    from hil_sim.bench.sim import run_sim_speed_benchmark
+
+    run_sim_speed_benchmark(scenario, seconds, repeats, echo=click.echo)
+
+
+@bench_group.command("realtime")
+@click.option("--scenario", default="case3", show_default=True)
+@click.option("--runs", default=10, show_default=True, type=click.IntRange(1, 100))
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1),
+              help="Seed of the first run (run k uses seed + k).")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the figures as JSON.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def realtime_bench_command(*, scenario: str, runs: int, seed: int, config_path: Path | None, json_path: Path | None,
+                           force: bool) -> None:
+    """Real-time HIL episodes in a row (`dct hil run --realtime`, two processes each): success count, the
+    controller's tick and sensor-to-command latency (end of lidar frame -> the 0x111 written from it), deadline
+    misses, simulator lag."""
+    from calibration.outputs import atomic_write_json
+    from hil_sim.episode.realtime import run_realtime_benchmark
+
+    check_scenario_and_output(scenario, seed, json_path, force)
+    out = run_realtime_benchmark(scenario, runs, seed, config_path, echo=click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
+
+
+@bench_group.command("sensors")
+@click.option("--frames", default=10, show_default=True, help="Lidar frames to time.")
+@click.option("--renders", default=10, show_default=True, help="RGB and segmentation renders to time.")
+@click.option("--boxes", default=60, show_default=True, help="Clutter boxes in the benchmark room.")
+def sensors_command(*, frames: int, renders: int, boxes: int) -> None:
+    """ms per 20k-point lidar frame, per RGB render and per segmentation render."""
+    from hil_sim.bench.sensors import run_sensor_benchmark
+
+    result = run_sensor_benchmark(n_frames=frames, n_renders=renders, n_boxes=boxes)
+    for key, value in result.items():
+        click.echo(f"{key}: {value:.3f}" if isinstance(value, float) else f"{key}: {value}")
+
+
+@bench_group.command("odometry")
+@click.option("--scenario", default="odom_loop", show_default=True, help="Scenario with a route (recorded in lockstep).")
+@click.option("--seconds", default=30.0, show_default=True, type=click.FloatRange(1.0, 600.0))
+@click.option("--hog", "hogs", multiple=True, type=click.IntRange(0, 64), default=(0, 2), show_default=True,
+              help="Busy processes beside it (repeat for several runs).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the figures as JSON.")
+def odometry_bench_command(*, scenario: str, seconds: float, hogs: tuple[int, ...], json_path: Path | None) -> None:
+    """The odometry stage on the wall clock with 20k-point frames: time in the tick, ICP time
+    per frame in its worker process, pose latency (frame end -> pose), with N busy processes."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.bench.odometry import print_odometry_benchmark
+    from hil_sim.world.scenario import load_scenario
+
+    try:
+        if load_scenario(scenario).route is None:
+            raise InputError(f"dct bench odometry: scenario {scenario} has no route to drive (odom_loop has one)")
+        if json_path is not None:
+            check_output_path(json_path, what="--json")
+    except (ConfigFileError, OutputPathError) as exc:
+        raise InputError(str(exc)) from exc
+    out = print_odometry_benchmark(scenario, seconds, hogs, click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
+
+
+@bench_group.command("tick")
+@click.option("--scenario", "scenarios", multiple=True, metavar="NAME",
+              help="Scene to run (repeatable): a library name, a scenario .yaml, or odom_loop_far (odom_loop with "
+                   "its goal 5.8 m along its route). Default: corridor_boxes, case1, case3, odom_loop_far "
+                   "(increasing clutter).")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1),
+              help="Seed of the first run of each scene (run k uses seed + k).")
+@click.option("--runs", default=2, show_default=True, type=click.IntRange(1, 100), help="Episodes per scene.")
+@click.option("--hog", "hogs", default=0, show_default=True, type=click.IntRange(0, 64),
+              help="Busy processes beside the benchmark (the robot's other software), killed at the end.")
+@click.option("--seconds", type=click.FloatRange(0.5, 600.0),
+              help="Cap on each episode's simulated seconds (default: the scene's time limit; episodes end at "
+                   "the goal).")
+@click.option("--odometry-scaling/--no-odometry-scaling", default=True, show_default=True,
+              help="Also the odometry table: ICP time per frame against lidar points per frame.")
+@click.option("--scaling-rays", multiple=True, type=click.IntRange(100, 200_000), metavar="N",
+              help="Rays per frame of the odometry table (repeatable; default 5000, 10000, 20000, 40000).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the figures as JSON (checked before the run, written atomically after it).")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def tick_bench_command(*, scenarios: tuple[str, ...], seed: int, runs: int, hogs: int, seconds: float | None,
+                       odometry_scaling: bool, scaling_rays: tuple[int, ...], json_path: Path | None,
+                       force: bool) -> None:
+    """The whole controller tick (read, odometry, partition, planner, safety, write) on the wall clock,
+    in lockstep episodes with 20k-ray lidar frames: per stage and per tick p50/p90/p99/max against the
+    budgets, deadline misses, points per frame, capped QP solves; and ICP time against points per frame."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.bench.tick import DEFAULT_SCALING_RAYS, DEFAULT_SCENES, resolve_scene, run_tick_benchmark
+
+    names = scenarios or DEFAULT_SCENES
+    try:
+        for name in names:
+            resolve_scene(name)
+        if json_path is not None:
+            check_output_path(json_path, what="--json", inputs=[Path(n) for n in names if Path(n).is_file()],
+                              overwrite=force)
+    except (ConfigFileError, OutputPathError) as exc:
+        raise InputError(str(exc)) from exc
+    rays = (scaling_rays or DEFAULT_SCALING_RAYS) if odometry_scaling else ()
+    out = run_tick_benchmark(tuple(names), seed, runs, hogs, seconds, rays, echo=click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
+
+
+@bench_group.command("vpp")
+@click.option("--masks", "mask_counts", multiple=True, type=click.IntRange(1, 64), metavar="N",
+              help="Movable masks in memory (repeatable).  [default: 1, 4, 8]")
+@click.option("--repeats", default=300, show_default=True, type=click.IntRange(10, 100000), help="Timed scans per row.")
+@click.option("--points", "n_points", default=20000, show_default=True, type=click.IntRange(100, 1000000),
+              help="Lidar points per scan.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--cpu", type=click.IntRange(0, 1023), help="Pin the process to this core.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the figures as JSON (checked before the run, written atomically after it).")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def vpp_bench_command(*, mask_counts: tuple[int, ...], repeats: int, n_points: int, seed: int, cpu: int | None,
+                      json_path: Path | None, force: bool) -> None:
+    """The whole VPP stage per scan (VppStage.update: Phase I, partition, tracking), single-threaded,
+    with 1, 4 and 8 movable masks in memory and the camera moving: p50/p99/max and the split."""
+    import os
+
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.bench.vpp import DEFAULT_MASK_COUNTS, run_vpp_benchmark
+
+    try:
+        if cpu is not None and cpu not in os.sched_getaffinity(0):
+            raise InputError(f"--cpu {cpu}: not one of this process's cores {sorted(os.sched_getaffinity(0))}")
+        if json_path is not None:
+            check_output_path(json_path, what="--json", overwrite=force)
+    except OutputPathError as exc:
+        raise InputError(str(exc)) from exc
+    counts = tuple(sorted(set(mask_counts))) or DEFAULT_MASK_COUNTS
+    if n_points // 4 // max(counts) < 32:  # synthetic_frame: a quarter of the points on the boxes
+        raise InputError(f"--points {n_points}: too few for {max(counts)} masks (each box needs 32 points for its "
+                         f"plane; at least {128 * max(counts)})")
+    out = run_vpp_benchmark(counts, repeats, n_points, seed, cpu, echo=click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, out)
+
+
+@bench_group.command("planner")
+@click.option("--repeats", default=300, show_default=True, type=click.IntRange(10, 100000),
+              help="Planner steps per (horizon, points).")
+@click.option("--cvxpy-repeats", default=20, show_default=True, type=click.IntRange(0, 10000),
+              help="cvxpy planner steps per (horizon, points); 0 skips cvxpy.")
+@click.option("--horizon", "horizons", multiple=True, type=click.IntRange(2, 60),
+              help="Horizon H (repeatable).  [default: 10, 20, 30]")
+@click.option("--points", "point_counts", multiple=True, type=click.IntRange(1, 1000000),
+              help="Points in range N (repeatable).  [default: 100, 300, 1000, 3000, 10000]")
+@click.option("--net", "net_path", type=click.Path(exists=True, dir_okay=False), help="Distance net (default: shipped).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the rows as JSON.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def planner_command(*, repeats: int, cvxpy_repeats: int, horizons: tuple[int, ...], point_counts: tuple[int, ...],
+                    net_path: str | None, json_path: Path | None, force: bool) -> None:
+    """Planner step time (selection + net + QP, one thread) against points in range and horizon,
+    with the share of each part and the constraint set's size, against cvxpy (ECOS, Clarabel)."""
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.bench.planner import HORIZONS, POINT_COUNTS, cap_warnings, print_planner_benchmark
+
+    if json_path is not None:
+        try:
+            check_output_path(json_path, what="--json", overwrite=force)
+        except OutputPathError as exc:
+            raise InputError(str(exc)) from exc
+    rows = print_planner_benchmark(
+        echo=click.echo, repeats=repeats, cvxpy_repeats=cvxpy_repeats, distance_net_path=net_path,
+        horizons=tuple(sorted(set(horizons))) or HORIZONS, point_counts=tuple(sorted(set(point_counts))) or POINT_COUNTS,
+        progress=lambda what: click.echo(f"... {what}", err=True),
+    )
+    if json_path is not None:
+        atomic_write_json(json_path, {"rows": rows, "warnings": cap_warnings(rows)})
+
+
+def _campaign_options(func):
+    """The options `dct bench paper` and `dct bench beacon` share (their callbacks take them as **options,
+    _run_campaign_command's keywords)."""
+    options = [
+        click.option("--seeds", default=10, show_default=True, type=click.IntRange(1, 10000),
+                     help="Episodes per row (seeds --seed .. --seed + N - 1)."),
+        click.option("--seed", "first_seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1),
+                     help="Seed of the first episode of each row."),
+        click.option("--methods", default=None, metavar="M1,M2",
+                     help="Comma-separated methods: dct, all-fixed, grid-astar, fixed-labels.  [default: all]"),
+        click.option("--only", multiple=True, metavar="SCENE",
+                     help="Run only this scene of the campaign (repeatable; e.g. case1, F2M2, sparse)."),
+        click.option("--workers", type=click.IntRange(1, 1024),
+                     help="Episodes in parallel (worker processes; the rows do not depend on it).  [default: all "
+                          "cores]"),
+        click.option("--ray", "ray_address", metavar="ADDRESS",
+                     help="Run the episodes as Ray tasks: 'local' (a private Ray on this machine, --workers CPUs), "
+                          "'auto', 'ray://HEAD:10001' or 'HEAD:6379' (optional dependency: the [ray] extra)."),
+        click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+                     help="Base controller config (each method sets its planner mode and belief switch on it)."),
+        click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+                     help="Write rows, episodes and the papers' figures as JSON (checked before the run, written "
+                          "atomically after it)."),
+        click.option("--force", is_flag=True, help="Overwrite an existing --json file."),
+        click.option("--clock", type=click.Choice(["switch-on", "goal-when-ready"]), default="switch-on",
+                     show_default=True,
+                     help="Navigation clock: switch-on gives the goal at start (start-up and the VLM's first answer "
+                          "count); goal-when-ready gives it once the controller runs and the VLM has answered once "
+                          "(a robot switched on before it is sent)."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def _run_campaign_command(name: str, *, seeds: int, first_seed: int, methods: str | None, only: tuple[str, ...],
+                          workers: int | None, ray_address: str | None, config_path: Path | None,
+                          json_path: Path | None, force: bool, clock: str = "switch-on") -> None:
+    """Check the inputs (one line, exit 2), run with a rich progress bar, print the table, write the JSON."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import atomic_write_json
+    from hil_sim.bench.campaign import CAMPAIGNS, CampaignError, RichProgress, format_table, parse_methods, \
+        run_campaign, select_scenes
+    from runtime.common.cli_support import checked_output
+    from runtime.config import load_controller_config
+
+    try:
+        method_list = parse_methods(methods)
+        select_scenes(CAMPAIGNS[name], only)
+        load_controller_config(config_path)
+    except (CampaignError, ConfigFileError) as exc:
+        raise InputError(str(exc)) from None
+    if ray_address is not None:
+        import importlib.util
+
+        if importlib.util.find_spec("ray") is None:
+            raise InputError("--ray: Ray is not installed (pip install 'dct-controller[ray]', or run without --ray "
+                             "for local worker processes)") from None
+    checked_output(json_path, "--json", [config_path], force)
+    progress = RichProgress(name)
+    try:
+        result = run_campaign(name, method_list, seeds=seeds, first_seed=first_seed, workers=workers,
+                              ray_address=ray_address, only=only,
+                              config_path=str(config_path) if config_path is not None else None,
+                              on_done=progress.done, on_start=progress.start, clock=clock)
+    except CampaignError as exc:
+        raise InputError(str(exc)) from None
+    finally:
+        progress.close()
+    for line in format_table(result):
+        click.echo(line)
+    if json_path is not None:
+        atomic_write_json(json_path, result)
+
+
+@bench_group.command("paper")
+@click.option("--table", type=click.Choice(["1", "2"]), required=True,
+              help="1: DCT Table I (cases 1-3); 2: DCT Table II (layouts F4M0, F3M1, F2M2, F1M3, drawn per seed).")
+@_campaign_options
+def paper_command(*, table: str, **options) -> None:
+    """The DCT paper's tables in the simulator: success, navigation time, average speed, navigation distance
+    (plus fixed contacts, path cost, fragile damage, correcting events, deadline misses) for dct, all-fixed
+    (NeuPAN-like), grid-astar (Ellis22-like) and fixed-labels, next to the paper's figures."""
+    _run_campaign_command(f"table{table}", **options)
+
+
+@bench_group.command("beacon")
+@_campaign_options
+def beacon_command(**options) -> None:
+    """BEACON's four families (sparse, cluttered, collision-required, collision-shortcut), drawn per seed: the
+    same figures per family and overall, next to BEACON's published success and path length."""
+    _run_campaign_command("beacon", **options)
