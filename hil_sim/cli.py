@@ -12,6 +12,7 @@ from typing import Any
 import click
 
 from hil_sim.episode.cli_checks import InputError, check_scenario_and_output
+from runtime.config import presets
 
 
 @click.group(name="hil")
@@ -47,7 +48,7 @@ def list_command() -> None:
                    "odometry's effective track and wheel scale.")
 @click.option(
     "--planner",
-    type=click.Choice(["pure-pursuit", "all-fixed", "dct", "grid-astar"]),
+    type=click.Choice(list(presets.PRESETS)),
     help="Override the config's planner mode (default dct: the MPC on the VLM partition's P_fix only, with the "
          "config's backend (the sim-oracle) and a 2 Hz camera; all-fixed: every lidar point fixed, the NeuPAN-like "
          "baseline; grid-astar: inflated occupancy grid + A* + pure pursuit, the Ellis22-like baseline; "
@@ -236,8 +237,9 @@ def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None
     for what, given in (("--fault", fault_texts),):
         if given:
             raise InputError(f"{what} is not supported with --realtime yet")
-    if planner not in (None, "dct", "all-fixed"):
-        raise InputError(f"--planner {planner} is not supported with --realtime (dct or all-fixed: `dct run` runs those)")
+    if planner is not None and presets.blind(planner):
+        raise InputError(f"--planner {planner} is not supported with --realtime: `dct run` refuses a planner blind to "
+                         "obstacles")
     try:
         m = run_realtime_episode(scenario, seed, config_path, robot_path, calibration_path,
                                  echo=lambda s: click.echo(s, err=True), planner=planner, duration_s=duration_s,

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from runtime.config import presets
+
 
 class _InputError(click.ClickException):
     exit_code = 2
@@ -19,7 +21,7 @@ def config_group() -> None:
 @config_group.command("show")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Your config file: an overlay on the shipped defaults (set only what you change).")
-@click.option("--planner", type=click.Choice(["dct", "all-fixed", "grid-astar", "pure-pursuit"]), default=None,
+@click.option("--planner", type=click.Choice(list(presets.PRESETS)), default=None,
               help="A preset in place of the config's planner and partition, as `dct hil run --planner` does.")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON: {field: {value, source}}.")
 def show_command(*, config_path, planner, as_json) -> None:

@@ -269,6 +269,8 @@ def summary_line(s: dict) -> str:
 def _make_command():
     import click
 
+    from runtime.config import presets
+
     class InputError(click.ClickException):
         exit_code = 2
 
@@ -291,9 +293,10 @@ def _make_command():
                   help="Override can_bus.interface (the channel then defaults for it).")
     @click.option("--can-channel", help="Override can_bus.channel.")
     @click.option("--can-port", type=click.IntRange(1, 65535), help="Override can_bus.udp_port (udp_multicast).")
-    @click.option("--planner", type=click.Choice(["dct", "all-fixed"]), default=None,
+    @click.option("--planner", type=click.Choice(list(presets.PRESETS)), default=None,
                   help="A preset in place of the config's planner and partition (dct: the MPC on the VLM "
-                       "partition; all-fixed: the MPC on every point).")
+                       "partition; all-fixed: the MPC on every point; grid-astar: the grid baseline; "
+                       "pure-pursuit: blind, only with --allow-pure-pursuit).")
     @click.option("--allow-pure-pursuit", is_flag=True,
                   help="Let planner mode pure-pursuit run: no obstacle awareness (tests and benches only).")
     @click.option("--normal-priority", is_flag=True,

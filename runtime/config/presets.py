@@ -20,6 +20,13 @@ PRESETS: dict[str, tuple[str, str]] = {
 DEFAULT_PRESET = "dct"
 
 
+def blind(preset: str) -> bool:
+    """Whether the preset's planner reads no sensors (it drives through whatever is there)."""
+    from runtime.modes.registry import planner_spec
+
+    return not planner_spec(PRESETS[preset][0]).uses_lidar
+
+
 def preset_of(algorithm: str, partition: str) -> str | None:
     """The preset naming this pair, None when none does."""
     for name, pair in PRESETS.items():
