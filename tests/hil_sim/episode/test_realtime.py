@@ -9,6 +9,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from hil_sim.episode.realtime import controller_config, merge, unique_channels
 
 
@@ -56,13 +58,20 @@ def test_controller_config_asks_the_oracle_service():
     assert shipped["vpp"]["backend"]["kind"] == "sim-oracle"  # the input is not changed
 
 
-def test_case3_realtime_two_processes(tmp_path):
+def _realtime_case3(tmp_path) -> dict:
     out = tmp_path / "out.json"
     r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case3", "--realtime", "--json", str(out)],
                        capture_output=True, text=True, timeout=400)
     print(r.stdout, r.stderr[-3000:])
     assert r.returncode in (0, 1), r.stderr[-2000:]
-    m = json.loads(out.read_text())
+    return json.loads(out.read_text())
+
+
+def test_case3_realtime_two_processes(tmp_path):
+    """The two processes start, find each other over CAN and DDS, the controller drives on the
+    wall clock and both exit cleanly. Whether the episode succeeds depends on the machine's load
+    (wall-clock deadlines): a controller that misses its deadlines stops the robot, and says so."""
+    m = _realtime_case3(tmp_path)
     rt = m["realtime"]
     pids = rt["pids"]
     assert pids["simulator"] != pids["controller"] and os.getpid() not in pids.values()
@@ -71,8 +80,17 @@ def test_case3_realtime_two_processes(tmp_path):
     for key in ("tick_ms", "sensor_to_command_ms"):
         assert set(rt[key]) == {"p50", "p99", "max"} and rt[key]["max"] >= rt[key]["p50"] > 0
     assert isinstance(rt["deadline_misses"], int)
-    # The product's default mode, its VLM the simulator's oracle over HTTP (hil_sim.vlm.service).
+    # The product's default preset, its VLM the simulator's oracle over HTTP (hil_sim.vlm.service).
     assert m["planner"] == "dct"
+    assert m["simulator"]["oracle"]["bad_request"] == 0
+    assert m["fixed_contacts"] == 0, m["failure_reason"]
+    assert m["success"] or "deadline missed" in m["failure_reason"], m["failure_reason"]
+
+
+@pytest.mark.slow
+def test_case3_realtime_reaches_the_goal_with_the_vlm_answering(tmp_path):
+    """On a machine not loaded beyond its two cores: the goal, the oracle asked and answering."""
+    m = _realtime_case3(tmp_path)
     oracle = m["simulator"]["oracle"]
     assert oracle["detect"] > 0 and oracle["chat"] > 0 and oracle["bad_request"] == 0
     # (The episode's end stops the simulator, and its service, before the controller: a request
