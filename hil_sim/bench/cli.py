@@ -6,6 +6,7 @@ from pathlib import Path
 import click
 
 from hil_sim.episode.cli_checks import InputError, check_scenario_and_output
+from runtime.common.provenance import with_provenance
 
 
 @click.group(name="bench")
@@ -50,7 +51,7 @@ def realtime_bench_command(*, scenario: str, runs: int, seed: int, config_path: 
     check_scenario_and_output(scenario, seed, json_path, force)
     out = run_realtime_benchmark(scenario, runs, seed, config_path, echo=click.echo)
     if json_path is not None:
-        atomic_write_json(json_path, out)
+        atomic_write_json(json_path, with_provenance(out))
 
 
 @bench_group.command("sensors")
@@ -89,7 +90,7 @@ def odometry_bench_command(*, scenario: str, seconds: float, hogs: tuple[int, ..
         raise InputError(str(exc)) from exc
     out = print_odometry_benchmark(scenario, seconds, hogs, click.echo)
     if json_path is not None:
-        atomic_write_json(json_path, out)
+        atomic_write_json(json_path, with_provenance(out))
 
 
 @bench_group.command("tick")
@@ -134,7 +135,7 @@ def tick_bench_command(*, scenarios: tuple[str, ...], seed: int, runs: int, hogs
     rays = (scaling_rays or DEFAULT_SCALING_RAYS) if odometry_scaling else ()
     out = run_tick_benchmark(tuple(names), seed, runs, hogs, seconds, rays, echo=click.echo)
     if json_path is not None:
-        atomic_write_json(json_path, out)
+        atomic_write_json(json_path, with_provenance(out))
 
 
 @bench_group.command("vpp")
@@ -170,7 +171,7 @@ def vpp_bench_command(*, mask_counts: tuple[int, ...], repeats: int, n_points: i
                          f"plane; at least {128 * max(counts)})")
     out = run_vpp_benchmark(counts, repeats, n_points, seed, cpu, echo=click.echo)
     if json_path is not None:
-        atomic_write_json(json_path, out)
+        atomic_write_json(json_path, with_provenance(out))
 
 
 @bench_group.command("planner")
@@ -203,7 +204,7 @@ def planner_command(*, repeats: int, cvxpy_repeats: int, horizons: tuple[int, ..
         progress=lambda what: click.echo(f"... {what}", err=True),
     )
     if json_path is not None:
-        atomic_write_json(json_path, {"rows": rows, "warnings": cap_warnings(rows)})
+        atomic_write_json(json_path, with_provenance({"rows": rows, "warnings": cap_warnings(rows)}))
 
 
 def _campaign_options(func):
@@ -278,7 +279,7 @@ def _run_campaign_command(name: str, *, seeds: int, first_seed: int, methods: st
     for line in format_table(result):
         click.echo(line)
     if json_path is not None:
-        atomic_write_json(json_path, result)
+        atomic_write_json(json_path, with_provenance(result))
 
 
 @bench_group.command("paper")

@@ -1,4 +1,5 @@
-"""`dct report latency RUN.mcap`: the latency report of a recorded run (HTML and JSON)."""
+"""`dct report latency RUN.mcap`: the latency report of a recorded run (HTML and JSON);
+`dct report results`: a results page from benchmarks' JSON."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -85,3 +86,24 @@ def summary_text(label: str, rep: dict) -> str:
                  + "; CPU per thread: " + (", ".join(f"{n} {f(t['cpu_s'])} s" for n, t in th["by_name"].items())
                                            if th.get("recorded") else "not recorded"))
     return "\n".join(lines)
+
+
+@report_group.command("results")
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--out", "out_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="The Markdown page to write (e.g. docs/results/tick.md).")
+@click.option("--title", default="Benchmark results", help="The page's title.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --out file.")
+def results_command(*, inputs: tuple[Path, ...], out_path: Path, title: str, force: bool) -> None:
+    """A Markdown page from benchmarks' --json files (`dct bench ... --json`): each one's command,
+    commit, machine and date, then its figures. Exit status 2 on a file without provenance."""
+    from calibration.outputs import OutputPathError, atomic_write_text, check_output_path
+    from runtime.app.reports.results import ResultsInputError, load_result, results_page
+
+    try:
+        check_output_path(out_path, what="--out", inputs=list(inputs), overwrite=force)
+        docs = [(p.name, load_result(p)) for p in inputs]
+    except (OutputPathError, ResultsInputError) as exc:
+        raise InputError(str(exc)) from None
+    atomic_write_text(out_path, results_page(title, docs))
+    click.echo(f"wrote {out_path}")
