@@ -11,7 +11,7 @@ software would; they are killed at the end, also on error.
 Figures (measurements, printed; no pass/fail), per scene and pooled over every scene:
 - per stage and for the whole tick: p50, p90, p99, max (ms), the stage's budget
   (`loop.stage_budgets_s`) and its overruns;
-- ticks over a quarter of the period (12.5 ms at 20 Hz: the issue's target for the whole tick);
+- ticks over a quarter of the period (12.5 ms at 20 Hz: the whole tick's target);
 - deadline misses measured on the wall clock (tick start -> command written later than
   `loop.command_deadline_s`); the loop's own verdict in lockstep is judged on simulated time
   and is never missed (README: lockstep verdicts do not depend on the machine's load);

@@ -71,7 +71,7 @@ def main() -> None:
 
 
 def _one_line(text: str, limit: int = 1000) -> str:
-    """Every CLI error is one line (DEVELOPERS.md): fold newlines, cap the length."""
+    """Every CLI error is one line: fold newlines, cap the length."""
     folded = " ".join(str(text).split())
     return folded if len(folded) <= limit else folded[: limit - 3] + "..."
 

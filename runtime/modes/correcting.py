@@ -1,4 +1,4 @@
-"""`correcting`: DCT's correcting mode (paper IV-C-3, DESIGN.md 5.4) as a recovery strategy.
+"""`correcting`: DCT's correcting mode (paper IV-C-3; docs/algorithms/contact.md) as a recovery strategy.
 
 When a push fails the robot is stuck: it commands forward motion (v >= v_min, the planner's
 command) but moves less than d_stuck in tau_stuck (or the selector's progress stall fires).

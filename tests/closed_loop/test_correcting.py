@@ -1,4 +1,4 @@
-"""Correcting mode end to end (issue 14): the heavy look-alike box (the backend says movable, it
+"""Correcting mode end to end: the heavy look-alike box (the backend says movable, it
 is not) is pushed, found stuck, relabelled fixed, backed away from and driven around; a light
 box that gives way is never corrected. Lockstep episodes (deterministic per seed).
 

@@ -26,7 +26,7 @@ def test_dct_mode_partitions_the_box_as_movable_and_never_touches_a_fixed_object
         frame = controller.vpp.last_frame
         movable_points.append(0 if frame is None else frame.movable_count)
         waited.append(controller.vpp.answers == 0 and controller.command == (0.0, 0.0))
-        mov_costs.extend(np.unique(controller.costs_mov).tolist())
+        mov_costs.extend(np.unique(controller.perception.costs_mov).tolist())
 
     result = run_episode(scenario, config=cfg, seed=0, observe=observe)
     vpp = result.controller["vpp"]

@@ -1,4 +1,4 @@
-"""Passing a curtain (issue 14: "the curtain is passed"), the DCT paper's real-robot run: the
+"""Passing a curtain, the DCT paper's real-robot run: the
 backend calls it deformable, its region (runtime/vpp/deformable.py) keeps its slats P_mov while
 they swing, lie on the robot and hang in front of the camera; a fixed crate standing behind it
 stays P_fix and is never touched."""

@@ -120,8 +120,8 @@ def test_steep_approach_to_the_tight_gap_reaches_the_goal_without_contact():
 
 @pytest.mark.slow
 def test_steep_approach_to_the_tight_gap_succeeds_in_all_fixed_mode_too():
-    """The seeds that wedged the all-fixed planner at issue 12 (0 and 3: stalled, the backoff did
-    not free them) pass with correcting mode, without contact. (About 30 s.)"""
+    """Seeds 0 and 3, which once wedged the all-fixed planner (stalled, the backoff did not free
+    them), pass with correcting mode, without contact. (About 30 s.)"""
     config = load_controller_config().with_planner_mode("all-fixed")
     for seed in (0, 3):
         m = run_episode("gap_offset", config=config, seed=seed).metrics

@@ -1,4 +1,4 @@
-"""People (issue 14): a person walking across or down the robot's way is never touched; the
+"""People: a person walking across or down the robot's way is never touched; the
 robot yields to where the person is going (runtime/perception/moving_obstacles.py) and goes on when the
 way clears. Lockstep episodes, deterministic per seed."""
 from __future__ import annotations

@@ -1,12 +1,12 @@
-"""Issue 10's stall scenes in the library: the geometry they promise, and one episode each.
+"""The stall scenes in the library: the geometry they promise, and one episode each.
 
 The MPC sat still (zero command, reference path valid, solved QPs, no fallback) in an L-shaped
 corridor 0.8 m wide when turned towards a wall, and in a corridor 1.2 m wide with three boxes.
-The causes were in the formulation (runtime/planning/mpc.py, point_selection.py); these
-episodes fail on the code before that fix (corridor_l: stalled for the whole 25 s;
-corridor_boxes seed 1: stalled at the second box) and pass after it. The third scene of the
-issue, gap_offset, is a true local minimum (wedged in the mouth of the gap) left to the stall
-recovery; tests/closed_loop/test_episodes.py checks that it never touches.
+The causes were in the formulation (docs/decisions/planning-mpc-standstill.md); these episodes
+failed before that fix (corridor_l: stalled for the whole 25 s; corridor_boxes seed 1: stalled at
+the second box). The third stall scene, gap_offset, is a true local minimum (wedged in the mouth
+of the gap) left to the recoveries; tests/closed_loop/test_episodes.py checks it and the forced
+wedge of gap_wedged.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Records the MPC planner's commands on fixed closed-loop problems (tests/runtime/planning/test_planner_golden.py).
 
-Run once with the planner as it was before the issue-12 speed work (commit 5daa12b), so that the
+Run once with the planner as it was before its speed work (commit 5daa12b), so that the
 test compares the optimized planner against what it replaced:
 
     .venv/bin/python tests/data/planner_golden/make_golden.py tests/data/planner_golden/golden.npz
@@ -92,7 +92,7 @@ def run_case(points: np.ndarray, horizon: int, ticks: int, goal: np.ndarray, sta
         rec["commands"].append(res.commands.copy())
         rec["fallback"].append(res.fallback)
         u = res.commands[0].copy()
-        # Replans deferred to the slack after the tick (issue 12; the recording predates them).
+        # Replans deferred to the slack after the tick (the recording predates them).
         getattr(ref_planner, "replan_in_slack", lambda: None)()
         for _ in range(5):  # 50 ms of the unicycle
             state = state + 0.01 * np.array([u[0] * math.cos(state[2]), u[0] * math.sin(state[2]), u[1]])

@@ -1,4 +1,4 @@
-"""`dct bench planner`: the JSON rows the issue names, cap warnings, bad input (no timing asserted)."""
+"""`dct bench planner`: the JSON rows it promises, cap warnings, bad input (no timing asserted)."""
 from __future__ import annotations
 
 import json
@@ -11,7 +11,7 @@ from hil_sim.bench.cli import bench_group
 ROW_KEYS = {"horizon", "points", "p50_ms", "p99_ms", "capped_fraction", "cvxpy_ratio"}
 
 
-def test_json_rows_have_the_issue_keys_and_sane_values(tmp_path):
+def test_json_rows_have_their_keys_and_sane_values(tmp_path):
     out = tmp_path / "planner.json"
     res = CliRunner().invoke(bench_group, ["planner", "--repeats", "12", "--cvxpy-repeats", "2", "--horizon", "10",
                                     "--points", "100", "--points", "3000", "--json", str(out)])

@@ -1,7 +1,7 @@
 """`dct bench tick`: the JSON it writes, its bad-input errors, and the busy processes it starts.
 
 No timing is asserted (the machine is slow and noisy): only that the figures exist, have the
-keys the issue names, and are consistent with each other.
+keys it promises, and are consistent with each other.
 """
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ def _check_percentiles(d: dict) -> None:
     assert d["p50_ms"] <= d["p90_ms"] <= d["p99_ms"] <= d["max_ms"]
 
 
-def test_json_has_the_issue_keys_and_sane_values(short_run):
+def test_json_has_its_keys_and_sane_values(short_run):
     _, d = short_run
     assert set(d["stages"]) == set(STAGES)
     for s in d["stages"].values():

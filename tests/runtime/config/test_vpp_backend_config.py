@@ -1,4 +1,4 @@
-"""The contact-tolerance backend chosen in the controller config (`vpp.backend`, issue 13): the
+"""The contact-tolerance backend chosen in the controller config (`vpp.backend`): the
 config's errors name the field, the factory builds each kind, the sim-oracle is refused outside
 the simulator, and a backend that is down degrades to no new masks (every point P_fix), never a
 stall."""
