@@ -57,8 +57,9 @@ from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
 from models.vlm.sim_oracle import SimOracleConfig
 from runtime.config import load_controller_config
 from runtime.common.sensor_data import CameraImage, LidarScan
-from runtime.vpp.homography import MaskWarper, relative_motion
-from runtime.vpp.partition import MOVABLE
+from runtime.vpp.homography.image_warp import MaskWarper
+from runtime.vpp.homography.plane import relative_motion
+from runtime.vpp.partition.labels import MOVABLE
 from runtime.vpp.stage import pose_matrix
 
 #: Travel distances (m) after capture at which warped masks are scored (issue 13).

@@ -19,7 +19,7 @@ from runtime.planning.mpc import MpcConfig
 from runtime.planning.reference_path import ReferencePathConfig
 from runtime.loop.realtime_setup import RealtimeConfig
 from runtime.safety.supervisor import SafetySupervisorConfig
-from runtime.vpp.stage import VppConfig
+from runtime.vpp.config import VppConfig
 from runtime.loop.telemetry import STAGES
 from firmware_bridge.buses import BusConfig
 from runtime.io.ros.settings import RosConfig

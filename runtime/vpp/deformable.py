@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from runtime.vpp.partition import FIXED, IGNORED, MOVABLE, PointPartition
+from runtime.vpp.partition.labels import FIXED, IGNORED, MOVABLE, PointPartition
 
 
 class DeformableConfig(BaseModel):

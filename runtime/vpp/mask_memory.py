@@ -33,17 +33,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.camera_model import CameraModel
 from models.vlm.interface import MAX_CONTACT_COST, MIN_CONTACT_COST, VlmAnswer
-from runtime.vpp.homography import (
-    HomographyError,
-    MaskWarper,
-    Plane,
-    WarpLookup,
-    WarpSource,
-    check_rigid,
-    estimate_plane,
-    mask_outline,
-    relative_motion,
-)
+from runtime.vpp.homography.image_warp import MaskWarper
+from runtime.vpp.homography.lookup import WarpLookup, WarpSource, mask_outline
+from runtime.vpp.homography.plane import HomographyError, Plane, check_rigid, estimate_plane, relative_motion
 
 
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
