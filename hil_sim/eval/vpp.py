@@ -62,7 +62,7 @@ from runtime.vpp.homography.plane import relative_motion
 from runtime.vpp.partition.labels import MOVABLE
 from runtime.vpp.stage import pose_matrix
 
-#: Travel distances (m) after capture at which warped masks are scored (issue 13).
+#: Travel distances (m) after capture at which warped masks are scored.
 DISTANCES_M = (0.25, 0.5, 1.0, 2.0)
 METHODS = ("plane", "rotation", "reprojection")
 REPROJECTION_DEPTH_GATE_M = 0.5

@@ -12,19 +12,19 @@ Per tick, in this order:
    camera pose at capture is the caller's `image_pose` (the controller's odometry at the image's
    stamp: OdometryStage.pose_at), else the pose of the tick that received the image (at 20 Hz,
    at most one period late: 5 cm at 1 m/s);
-3. a new scan is partitioned (Phase III, partition.py) against the memory's masks warped to the
-   camera pose now (Phase I, homography.py; per pixel: each point's pixel is looked up through
-   the warp in the capture mask, no warped image is made, see MaskMemory.lookup): only objects
-   the backend called movable with a contact cost below `never_touch_cost` become P_mov;
+3. a new scan is partitioned (Phase III, runtime/vpp/partition/) against the memory's masks
+   warped to the camera pose now (Phase I, runtime/vpp/homography/; per pixel: each point's
+   pixel is looked up through the warp in the capture mask, no warped image is made, see
+   MaskMemory.lookup): only objects the backend called movable with a contact cost below `never_touch_cost` become P_mov;
    everything else, and every point the camera does not see and the label memory does not
    know, stays P_fix.
 
-Cost per scan (issue 13 budget: 3 ms p99 at 20k points and 8 masks, one core): `dct bench vpp`.
+Cost per scan (budget: 3 ms p99 at 20k points and 8 masks, one core): `dct bench vpp`.
 
 The stage never waits: the runner answers beside the tick (lockstep: at a fixed simulated
 latency, `settle` is the simulator's barrier; real time: when the backend answers, or an error
 after its timeout). A backend that is down or slow means no new masks: the memory ages out and
-the points fall back to P_fix (issue 13).
+the points fall back to P_fix.
 
 Frames: poses are 4x4 homogeneous transforms; T_a_b maps b coordinates to a. The camera frame
 is the optical frame (z forward, x right, y down), as the robot description mounts it.
@@ -425,7 +425,7 @@ class VppStage:
         the partition only at the points' pixels); a camera whose distortion the per-pixel warp
         does not implement (the 14-coefficient tilted model) gets full-image warps (propagate).
         The growth test takes the warped area from the lookup (exact for a warped mask whose
-        bounding box has at most homography.AREA_SAMPLES pixels, else estimated on a grid)."""
+        bounding box has at most homography.lookup.AREA_SAMPLES pixels, else estimated on a grid)."""
         if self._per_pixel:
             entries, lk = self.memory.lookup(now_s, T_odom_cam, select=self._may_gate)
             px = self.memory.mask_px()

@@ -59,7 +59,7 @@ def check_transform(T: np.ndarray, field: str, known: dict | None = None) -> np.
     if not np.isfinite(T).all():
         raise fail(field, "is not finite")
     R = T[:3, :3]
-    # explicit checks, not np.allclose (that costs 0.1 ms a call, three calls a scan)
+    # explicit checks, not np.allclose (too slow for three calls a scan: docs/decisions/vpp-compiled-kernels.md)
     if T[3, 0] != 0.0 or T[3, 1] != 0.0 or T[3, 2] != 0.0 or T[3, 3] != 1.0 \
             or float(np.abs(R @ R.T - _EYE3).max()) > 1e-5 or np.linalg.det(R) < 0:
         raise fail(field, "is not a rigid transform (rotation not orthonormal or last row not [0, 0, 0, 1])")

@@ -38,7 +38,7 @@ How, per object, with the points of one scan in the odom frame:
 Points a tracked object would take are only ever FIXED ones (not ground, not another object's).
 
 Templates, not label spreading from the previous scan's movable points: a spread hops into
-whatever the object touches (docs/decisions/vpp-tracking-templates.md).
+whatever the object touches (docs/decisions/vpp-tracking.md).
 
 Cost: a template is voxel-thinned to `template_voxel_m` (a 0.4 m box: ~200 points); per object
 and scan one compiled pass each for the registration (a grid of the candidate points, at most

@@ -23,16 +23,15 @@ class TrackingConfig(BaseModel):
     max_correspondence_m: float = Field(0.10, gt=0.0, le=1.0)
     icp_iterations: int = Field(6, ge=1, le=50)
     #: The registration fits every k-th template point, at most this many (a pushed box seen from
-    #: 0.2 m fills its 600-point template: 2.5 ms a scan with all of them, ~0.5 ms with 150).
+    #: close fills its template: all of them cost too much a scan; docs/decisions/vpp-tracking.md).
     icp_max_points: int = Field(150, ge=10, le=100000)
     #: Fewer matched pairs than this: not registered (the object is not in the scan this time).
     min_pairs: int = Field(12, ge=3, le=100000)
     #: A registration that moves the object farther than this in one scan is refused (m).
     max_step_m: float = Field(0.2, gt=0.0, le=2.0)
     #: A registration must match at least this share of the template within
-    #: max_correspondence_m (its far side is hidden: not all of it), at most this rms (m).
-    #: (Measured on case1's registrations: inliers >= 0.72, rms 0.03-0.046 m with the simulated
-    #: lidar's 2 cm range noise and point spacing.)
+    #: max_correspondence_m (its far side is hidden: not all of it), at most this rms (m)
+    #: (docs/decisions/vpp-tracking.md).
     min_inlier_fraction: float = Field(0.5, gt=0.0, le=1.0)
     max_rms_m: float = Field(0.06, gt=0.0, le=1.0)
     #: Fixed points within this of the registered template join the object (m).
@@ -40,9 +39,9 @@ class TrackingConfig(BaseModel):
     #: A fixed point up to this far behind the template along its own lidar ray (the ray passes
     #: within label_radius_m of a template point on its last behind_m) is the object's too: the
     #: lidar does not see through a solid object, and range noise (2 cm sigma on a Mid-360; the
-    #: template's points carry theirs) puts 1-3 points a scan of a box's face 6-8 cm deep. One
-    #: such point left P_fix on case1's box made the straight push lethal for a replan and sent
-    #: the robot round the box's corner (0.25 s). 0: off.
+    #: template's points carry theirs) puts 1-3 points a scan of a box's face 6-8 cm deep, and one
+    #: of them left P_fix in front of the bumper blocks a push (docs/decisions/vpp-tracking.md).
+    #: 0: off.
     behind_m: float = Field(0.10, ge=0.0, le=0.5)
     #: The template may span at most this much more than the newest confirming view (m).
     max_growth_m: float = Field(0.3, ge=0.0, le=5.0)

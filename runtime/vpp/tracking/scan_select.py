@@ -52,7 +52,7 @@ def group_masked(label, in_view, from_memory, oid):  # pragma: no cover - compil
             sel[m] = i
             m += 1
     ids = np.empty(m, np.int64)  # at most one per point (no growth: reassigning an array in the
-    counts = np.zeros(m, np.int64)  # loop makes numba count references every iteration: 10x slower)
+    counts = np.zeros(m, np.int64)  # loop makes numba count references every iteration)
     slot = np.empty(m, np.int64)
     k_ids = 0
     last = -1

@@ -34,7 +34,7 @@ class TrackedObject:
     #: template's centre also shifts as views and spread add points: not a motion).
     anchor: np.ndarray | None = None
     #: What the object turned since the tracker first saw it (rad, the sum of its registrations'
-    #: yaws): its own frame, in which its size is measured (_extent_nb).
+    #: yaws): its own frame, in which its size is measured (geometry.extent_nb).
     yaw: float = 0.0
     #: (time, anchor x, y, known) after every scan: where the object was when, and whether this
     #: scan registered it or a mask saw it (moved_since).
@@ -156,13 +156,9 @@ class ObjectTracker:
         this scan, or registered or seen within max_unknown_s) and the view's centre lies
         farther from the template's than half their two footprints' diagonals and max_step_m
         together (two views of one object have their centres on its footprint), once the template
-        has min_confirmations views. Measured on BEACON cluttered seed 0: 9 scans running of a
-        box's view on the room's wall 2.4 m away. And (BEACON
-        collision-required seed 0, on a route an experimental planner change took past a low box
-        0.7 m from a wall): one scan's mask view of the box was a strip of the wall behind it (the
-        partition's refinement took the wall, which outnumbered the box in the mask, for the
-        object); the view replaced the box's template 1.15 m away, the tracker labelled
-        thousands of wall points touchable, and the robot drove into the wall."""
+        has min_confirmations views. A mask's view can be a strip of the wall behind the object
+        (the refinement may take a wall that outnumbers the object in its mask for the object);
+        taken, it would make the wall touchable (docs/decisions/vpp-tracking.md)."""
         c = self.config
         out = []
         for k, sel in confirming.items():
@@ -290,7 +286,7 @@ class ObjectTracker:
         return np.ascontiguousarray(np.concatenate([o.template for o in objs]), dtype=np.float64), off
 
     def _register_all(self, label, oid, cost, near: np.ndarray, points_odom: np.ndarray) -> set[int]:
-        """Move every template onto this scan's points (planar ICP, _icp: the fixed points and the
+        """Move every template onto this scan's points (planar ICP, registration.icp: the fixed points and the
         object's own in its box grown by search_margin_m), all objects in one compiled call;
         returns the ids registered. A template stays where it was when the scan does not show
         the object or the registration is refused."""
