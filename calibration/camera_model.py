@@ -3,9 +3,9 @@
 Conventions (OpenCV): the optical frame has z forward, x right, y down; pixel centres sit at
 integer coordinates, so the image spans [-0.5, width - 0.5) x [-0.5, height - 0.5).
 Distortion coefficients are in OpenCV order (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4
-[, tau_x, tau_y]]]]); lengths 0, 4, 5, 8 and 12 are evaluated with a vectorized formula (this
-runs in the control tick for about 20k points), length 14 (tilted sensor) goes through
-cv2.projectPoints.
+[, tau_x, tau_y]]]]); lengths 0, 4, 5, 8 and 12 are evaluated by the compiled lens kernel
+(calibration/lens.py, the one implementation the VPP's kernels share), length 14 (tilted sensor)
+goes through cv2.projectPoints.
 """
 from __future__ import annotations
 
@@ -13,32 +13,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calibration.lens import Lens, make_lens, max_monotone_radius, project_points
+
 #: Distortion vector lengths OpenCV accepts.
 VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
 class CameraModelError(ValueError):
     """Invalid camera parameters or invalid input to a projection."""
-
-
-def _max_monotone_radius(dist: np.ndarray) -> float:
-    """Largest normalized radius below which the radial distortion map r -> r*f(r) increases.
-
-    Beyond it a polynomial model folds back, so points far outside the field of view could land
-    inside the image; they are reported invalid instead.
-    """
-    k = np.zeros(8)
-    k[: min(len(dist), 8)] = dist[:8]
-    k1, k2, _, _, k3, k4, k5, k6 = k
-    r = np.linspace(0.0, 10.0, 20001)
-    r2 = r * r
-    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        g = r * num / den
-    dg = np.diff(g)
-    bad = np.nonzero(~(dg > 0) | ~np.isfinite(dg))[0]
-    return float(r[bad[0]]) if len(bad) else float(r[-1])
 
 
 @dataclass
@@ -50,7 +32,8 @@ class CameraModel:
     width_px: int
     height_px: int
     _r2_max: float = field(init=False, repr=False)
-    _work: dict = field(init=False, repr=False, default_factory=dict)
+    #: K and the distortion as the compiled kernels take them (calibration/lens.py).
+    lens: Lens = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)
@@ -71,8 +54,9 @@ class CameraModel:
             raise CameraModelError(f"image size must be positive, got {self.width_px}x{self.height_px}")
         self.K, self.dist = K, dist
         self.width_px, self.height_px = int(self.width_px), int(self.height_px)
-        r_max = _max_monotone_radius(dist) if len(dist) else np.inf
+        r_max = max_monotone_radius(dist) if len(dist) else np.inf
         self._r2_max = float(r_max * r_max)
+        self.lens = make_lens(K, dist, self._r2_max)
 
     # ------------------------------------------------------------------ basics
     @property
@@ -91,16 +75,6 @@ class CameraModel:
     def cy(self) -> float:
         return float(self.K[1, 2])
 
-    def _buffers(self, n: int) -> dict:
-        """Work arrays reused between calls of the same size (no allocation in the tick)."""
-        w = self._work
-        if w.get("n") != n:
-            w.clear()
-            w["n"] = n
-            for name in ("x", "y", "r2", "a", "b", "c"):
-                w[name] = np.empty(n)
-        return w
-
     # ------------------------------------------------------------------ projection
     def project(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project (N,3) points in the optical frame to pixels.
@@ -118,60 +92,9 @@ class CameraModel:
             return uv, np.zeros(0, dtype=bool)
         if len(self.dist) == 14:
             return self._project_cv2(p, uv)
-        w = self._buffers(n)
-        x, y, r2, a, b, c = w["x"], w["y"], w["r2"], w["a"], w["b"], w["c"]
-        z = p[:, 2]
-        valid = (z > 1e-9) & (z < np.inf)  # NaN compares False
-        np.divide(p[:, 0], z, out=x, where=valid)
-        np.divide(p[:, 1], z, out=y, where=valid)
-        x[~valid] = 0.0
-        y[~valid] = 0.0
-        np.multiply(x, x, out=r2)
-        r2 += y * y
-        valid &= r2 < self._r2_max
-        d = self.dist
-        if len(d):
-            k1, k2, p1, p2 = d[:4]
-            k3 = d[4] if len(d) > 4 else 0.0
-            # radial factor a = (1 + k1 r2 + k2 r4 + k3 r6) / (1 + k4 r2 + k5 r4 + k6 r6)
-            np.multiply(r2, k3, out=a)
-            a += k2
-            a *= r2
-            a += k1
-            a *= r2
-            a += 1.0
-            if len(d) >= 8:
-                k4, k5, k6 = d[5:8]
-                np.multiply(r2, k6, out=b)
-                b += k5
-                b *= r2
-                b += k4
-                b *= r2
-                b += 1.0
-                a /= b
-            # b = x_distorted, c = y_distorted; xy = x*y kept in uv[:,0] temporarily
-            xy = uv[:, 0]
-            np.multiply(x, y, out=xy)
-            np.multiply(x, a, out=b)
-            b += 2.0 * p1 * xy
-            b += p2 * (r2 + 2.0 * x * x)
-            np.multiply(y, a, out=c)
-            c += p1 * (r2 + 2.0 * y * y)
-            c += 2.0 * p2 * xy
-            if len(d) >= 12:
-                s1, s2, s3, s4 = d[8:12]
-                r4 = r2 * r2
-                b += s1 * r2 + s2 * r4
-                c += s3 * r2 + s4 * r4
-            xd, yd = b, c
-        else:
-            xd, yd = x, y
-        K = self.K
-        np.multiply(xd, K[0, 0], out=uv[:, 0])
-        uv[:, 0] += K[0, 1] * yd + K[0, 2]
-        np.multiply(yd, K[1, 1], out=uv[:, 1])
-        uv[:, 1] += K[1, 2]
-        valid &= self.inside_image(uv)
+        p = np.ascontiguousarray(p if p.dtype in (np.float32, np.float64) else p.astype(np.float64))
+        valid = np.empty(n, dtype=bool)
+        project_points(p, self.lens, self.width_px, self.height_px, uv, valid)
         return uv, valid
 
     def _project_cv2(self, p: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,8 @@
-"""`dct bench vpp`: the whole VPP stage (VppStage.update) per scan, against issue 13's budget
-(3 ms p99 for a 20k-point frame with up to 8 masks, one core).
+"""`dct bench vpp`: the whole VPP stage (VppStage.update) per scan, against the stage's budget
+(3 ms p99 for a 20k-point frame with up to 8 masks, one core); and the partition alone
+(time_partition; `python -m hil_sim.bench.vpp` prints it).
 
-The scene is runtime.vpp.partition.synthetic_frame (a room, a floor and boxes in front of the
+The scene is synthetic_frame (a room, a floor and boxes in front of the
 camera, with lens distortion), fixed in the odom frame. The stage runs as in the controller: a
 tiny in-process backend behind a lockstep BackendRunner answers the first image with one movable
 mask per box (the masks of synthetic_frame, capture pose = the start), so the memory holds
@@ -16,7 +17,7 @@ runner's worker (`prepare`), and the tick only applies it (`apply`).
 Split (wrapped methods, so the figures stay comparable across versions of the stage):
 `masks` = the memory's Phase I per scan (propagate, or whatever the stage now calls to carry
 the masks to the current pose), `partition` = PointPartitioner.partition (Phase III), `track`
-= the object tracker (runtime/vpp/tracking.py), `other` = the rest of update.
+= the object tracker (runtime/vpp/tracking/), `other` = the rest of update.
 
 Single-threaded: numba and OpenCV set to one thread (the product budgets one core for the
 stage); `--cpu N` also pins the process to core N. Figures are measurements on this machine, no
@@ -86,6 +87,75 @@ def _stats(ms: np.ndarray) -> dict:
     return {"p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max())}
 
 
+def synthetic_frame(n_points: int = 20000, n_masks: int = 8, width: int = 640, height: int = 480, seed: int = 0):
+    """A LIMO-like scan: a room (walls 4-6 m away), a floor, and n_masks boxes in front of the
+    camera, each with a rectangular mask a little larger than its silhouette (so the mask's
+    edge sees the wall behind). Returns (points float32, T_cam_lidar, camera, masks, ids, costs,
+    T_base_lidar)."""
+    from calibration.camera_model import CameraModel, transform_points
+
+    rng = np.random.default_rng(seed)
+    K = np.array([[520.0, 0, (width - 1) / 2], [0, 520.0, (height - 1) / 2], [0, 0, 1]])
+    cam = CameraModel(K, np.array([-0.05, 0.01, 0.0005, -0.0003, 0.0]), width, height)
+    T = np.eye(4)  # lidar x fwd, y left, z up -> optical x right, y down, z fwd; camera 5 cm above
+    T[:3, :3] = np.array([[0, -1, 0], [0, 0, -1], [1, 0, 0]], float)
+    T[:3, 3] = T[:3, :3] @ np.array([0.0, 0.0, -0.05])
+    T_base = np.eye(4)
+    T_base[2, 3] = 0.25  # lidar 25 cm above the floor
+    n_box = n_points // 4
+    n_floor = n_points // 4
+    n_wall = n_points - n_box - n_floor
+    az = rng.uniform(-np.pi, np.pi, n_wall)
+    r = 5.0 + 0.5 * np.sin(3 * az)
+    walls = np.column_stack([r * np.cos(az), r * np.sin(az), rng.uniform(-0.25, 1.0, n_wall)])
+    rr = np.sqrt(rng.uniform(0.04, 25.0, n_floor))
+    fa = rng.uniform(-np.pi, np.pi, n_floor)
+    floor = np.column_stack([rr * np.cos(fa), rr * np.sin(fa), np.full(n_floor, -0.25) + rng.normal(0, 0.005, n_floor)])
+    boxes, masks = [], np.zeros((n_masks, height, width), bool)
+    per = n_box // max(n_masks, 1)
+    for k in range(n_masks):
+        y0 = -0.75 + 1.5 * (k + 0.5) / max(n_masks, 1)
+        x0 = 1.5 + 0.3 * (k % 3)
+        b = np.column_stack([np.full(per, x0) + rng.normal(0, 0.005, per), rng.uniform(y0 - 0.06, y0 + 0.06, per),
+                             rng.uniform(-0.2, 0.2, per)])
+        boxes.append(b)
+        uv, ok = cam.project(transform_points(T, b))
+        u0, v0 = np.floor(uv[ok].min(0)).astype(int) - 4
+        u1, v1 = np.ceil(uv[ok].max(0)).astype(int) + 4
+        masks[k, max(v0, 0):v1 + 1, max(u0, 0):u1 + 1] = True
+    extra = n_points - n_wall - n_floor - per * n_masks
+    pts = np.vstack([walls, floor] + boxes + [walls[:extra]]).astype(np.float32)
+    return pts, T, cam, masks, np.arange(n_masks), np.linspace(1.0, 8.0, n_masks), T_base
+
+
+def time_partition(n_points: int = 20000, n_masks: int = 8, width: int = 640, height: int = 480,
+                   repeats: int = 300, with_memory: bool = True, seed: int = 0,
+                   config=None) -> dict:
+    """Wall time of PointPartitioner.partition alone on synthetic_frame (after a warm-up call that
+    compiles the kernels; config: a PartitionConfig, None for the defaults). Returns ms figures:
+    p50, p99, max, and the frame's counts. A figure to print, not a test: run it on an idle core
+    (OMP_NUM_THREADS=1); `python -m hil_sim.bench.vpp` prints it with and without the memory."""
+    from runtime.vpp.partition.partitioner import PointPartitioner
+
+    pts, T, cam, masks, ids, costs, T_base = synthetic_frame(n_points, n_masks, width, height, seed)
+    part = PointPartitioner(config)
+    T_odom = np.eye(4)
+    res = None
+    times = []
+    for r in range(repeats + 3):
+        T_odom[0, 3] = 0.01 * r
+        kw = dict(T_odom_lidar=T_odom, stamp_s=0.1 * r) if with_memory else {}
+        t0 = time.perf_counter()
+        res = part.partition(pts, T, cam, masks, ids, costs, T_base_lidar=T_base, **kw)
+        if r >= 3:
+            times.append(time.perf_counter() - t0)
+    ms = np.array(times) * 1e3
+    return {"p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
+            "max_ms": float(ms.max()), "n_points": n_points, "n_masks": n_masks, "n_in_view": int(res.in_view.sum()),
+            "n_movable": int(res.movable.sum()), "n_outliers_removed": res.n_outliers_removed,
+            "n_completed": res.n_completed, "repeats": repeats}
+
+
 def _build(n_points: int, n_masks: int, seed: int):
     """(stage, world points (odom), n box points, capture info) with the memory filled through the
     stage's own request -> answer -> reconcile path."""
@@ -93,8 +163,8 @@ def _build(n_points: int, n_masks: int, seed: int):
     from models.vlm.interface import DetectedObject, VlmAnswer, VlmRequest
     from models.vlm.runner import BackendRunner, BackendRunnerConfig
     from runtime.common.sensor_data import CameraImage, LidarScan
-    from runtime.vpp.partition import synthetic_frame
-    from runtime.vpp.stage import VppConfig, VppStage, pose_matrix
+    from runtime.vpp.config import VppConfig
+    from runtime.vpp.stage import VppStage, pose_matrix
 
     pts, T_cam_lidar, cam, masks, _, _, T_base_lidar = synthetic_frame(n_points, n_masks, seed=seed)
     T_base_cam = T_base_lidar @ np.linalg.inv(T_cam_lidar)
@@ -135,11 +205,33 @@ def _pose(k: int) -> tuple[float, float, float]:
     return (0.25 * math.sin(0.11 * k), 0.15 * math.sin(0.07 * k + 1.0), 0.08 * math.sin(0.05 * k))
 
 
-def time_stage(n_masks: int, repeats: int = 300, n_points: int = 20000, seed: int = 0, warmup: int = 5) -> dict:
-    """Times `repeats` VppStage.update calls with n_masks entries in memory (module docstring)."""
+def _time_answers(stage, scan_at, masks, costs, t: float, dt: float, n: int) -> tuple[list, list]:
+    """Phase II, n times: a fresh answer (the same objects, at the start pose's capture), prepared
+    beside the tick (the runner's worker: planes, warps, IoU) and applied in the tick
+    (MaskMemory.apply). Returns the CPU seconds of each (prepare, apply)."""
     from models.vlm.interface import DetectedObject, VlmAnswer
     from runtime.vpp.stage import pose_matrix
 
+    mem = stage.memory
+    prep, app = [], []
+    T_cam = pose_matrix(*_pose(0)) @ stage.T_base_cam
+    points_cam = np.asarray(scan_at(t, _pose(0)).points_m, np.float64)
+    points_cam = points_cam @ stage.T_cam_lidar[:3, :3].T + stage.T_cam_lidar[:3, 3]
+    for _ in range(n):
+        objs = tuple(DetectedObject(masks[j], f"box{j}", True, float(costs[j]), 0.9) for j in range(len(masks)))
+        t += dt
+        ans = VlmAnswer(t, T_cam, objs, "bench", 0.0)
+        t0 = time.thread_time()
+        prepared = stage._preparer.prepare(ans, tuple(mem.entries), prompt=stage.config.prompt, points_cam=points_cam)
+        t1 = time.thread_time()
+        mem.apply(prepared, now_s=t)
+        app.append(time.thread_time() - t1)
+        prep.append(t1 - t0)
+    return prep, app
+
+
+def time_stage(n_masks: int, repeats: int = 300, n_points: int = 20000, seed: int = 0, warmup: int = 5) -> dict:
+    """Times `repeats` VppStage.update calls with n_masks entries in memory (module docstring)."""
     stage, scan_at, masks, costs = _build(n_points, n_masks, seed)
     timer = _Timer()
     mem = stage.memory
@@ -173,22 +265,7 @@ def time_stage(n_masks: int, repeats: int = 300, n_points: int = 20000, seed: in
             parts[clock]["other"].append(el[i] - sum(a[i] for a in acc.values()))
         movable.append(frame.movable_count)
         used.append(frame.masks_used)
-    # Phase II: a fresh answer (same objects, at the current pose's capture): prepared beside the
-    # tick (the runner's worker: planes, warps, IoU), applied in the tick (MaskMemory.apply)
-    prep, app = [], []
-    T_cam = pose_matrix(*_pose(0)) @ stage.T_base_cam
-    points_cam = np.asarray(scan_at(t, _pose(0)).points_m, np.float64)
-    points_cam = points_cam @ stage.T_cam_lidar[:3, :3].T + stage.T_cam_lidar[:3, 3]
-    for k in range(max(3, min(30, repeats // 10))):
-        objs = tuple(DetectedObject(masks[j], f"box{j}", True, float(costs[j]), 0.9) for j in range(n_masks))
-        t += dt
-        ans = VlmAnswer(t, T_cam, objs, "bench", 0.0)
-        t0 = time.thread_time()
-        prepared = stage._preparer.prepare(ans, tuple(mem.entries), prompt=stage.config.prompt, points_cam=points_cam)
-        t1 = time.thread_time()
-        mem.apply(prepared, now_s=t)
-        app.append(time.thread_time() - t1)
-        prep.append(t1 - t0)
+    prep, app = _time_answers(stage, scan_at, masks, costs, t, dt, max(3, min(30, repeats // 10)))
     stage.close()
     out = {"n_masks": n_masks, "n_points": n_points, "repeats": repeats}
     for clock in ("wall", "cpu"):
@@ -208,7 +285,7 @@ def run_vpp_benchmark(mask_counts=DEFAULT_MASK_COUNTS, repeats: int = 300, n_poi
     threads = _single_thread(cpu)
     echo(f"VppStage.update, {n_points} points, {repeats} scans per row, camera moving, single thread "
          f"(numba {threads['numba_threads']}, OpenCV {threads['opencv_threads']}"
-         + (f", cpu {cpu}" if cpu is not None else "") + "); budget 3 ms p99 at 8 masks (issue 13)")
+         + (f", cpu {cpu}" if cpu is not None else "") + "); budget 3 ms p99 at 8 masks")
     head = (f"{'masks':>5} {'clock':>5} {'p50':>6} {'p99':>6} {'max':>6} | {'Phase I':>11} {'partition':>11} "
             f"{'track':>11} {'other':>11} | {'used':>4} {'movable':>7} {'apply':>11} {'prepare':>7}")
     echo(head)
@@ -231,4 +308,11 @@ def run_vpp_benchmark(mask_counts=DEFAULT_MASK_COUNTS, repeats: int = 300, n_poi
     return {"threads": threads, "rows": rows}
 
 
-__all__ = ["DEFAULT_MASK_COUNTS", "run_vpp_benchmark", "time_stage"]
+__all__ = ["DEFAULT_MASK_COUNTS", "run_vpp_benchmark", "synthetic_frame", "time_partition", "time_stage"]
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import json
+
+    print(json.dumps(time_partition(), indent=1))
+    print(json.dumps(time_partition(with_memory=False), indent=1))

@@ -57,11 +57,12 @@ from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
 from models.vlm.sim_oracle import SimOracleConfig
 from runtime.config import load_controller_config
 from runtime.common.sensor_data import CameraImage, LidarScan
-from runtime.vpp.homography import MaskWarper, relative_motion
-from runtime.vpp.partition import MOVABLE
+from runtime.vpp.homography.image_warp import MaskWarper
+from runtime.vpp.homography.plane import relative_motion
+from runtime.vpp.partition.labels import MOVABLE
 from runtime.vpp.stage import pose_matrix
 
-#: Travel distances (m) after capture at which warped masks are scored (issue 13).
+#: Travel distances (m) after capture at which warped masks are scored.
 DISTANCES_M = (0.25, 0.5, 1.0, 2.0)
 METHODS = ("plane", "rotation", "reprojection")
 REPROJECTION_DEPTH_GATE_M = 0.5

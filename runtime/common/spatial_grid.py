@@ -5,8 +5,14 @@ and queried per object per scan costs ~0.1 ms of Python and allocation each time
 stage tracks up to 8 objects inside a 3 ms budget. The queries are all "nearest within r" with r
 fixed per query set, which a dense grid of cell >= r answers exactly from the 27 cells around the
 query (a point within r of q lies at most one cell away on each axis), in one compiled pass with
-no Python per object step. Used by the object tracker (runtime.vpp.tracking) and the odometry's
-mover exclusion (runtime.odometry.stage).
+no Python per object step. Used by the object tracker (runtime/vpp/tracking/: registration and
+labelling) and the odometry's mover exclusion (runtime/odometry/stage.py).
+
+The one index for "nearest within r" / "any within r" over a bounded set of points built per
+call. The VPP's other spatial structures answer other questions: the partition's cluster cells
+(runtime/vpp/partition/clustering.py: eps-connectivity of a whole scan's movable points, per
+object) and the voxel hash (runtime/vpp/voxel_hash.py: the label memory kept between scans, the
+template thinning).
 """
 from __future__ import annotations
 
@@ -22,9 +28,11 @@ MAX_GRID_CELLS = 1 << 20
 def grid(pts, r, split):  # pragma: no cover - compiled
     """A dense grid over pts' bounding box for queries "nearest within r": cells of r / split
     (split 3 for raw scan points: a scanned face holds tens of points in a cell of r, and the
-    pruning in _nearest skips most cells of r / 3; split 1 for thinned templates), grown while the grid would have more than MAX_GRID_CELLS cells. Returns
-    (lo, cell, reach, dims, start, order): the points of cell c are order[start[c]:start[c + 1]];
-    a point within r of a query lies within `reach` cells of the query's cell on every axis."""
+    pruning in `nearest` skips most cells of r / 3; split 1 for thinned templates), grown while
+    the grid would have more than MAX_GRID_CELLS cells. Returns the grid as one tuple (lo, cell,
+    reach, dims, start, order), the form `nearest` and `any_within` take: the points of cell c
+    are order[start[c]:start[c + 1]]; a point within r of a query lies within `reach` cells of
+    the query's cell on every axis."""
     n = pts.shape[0]
     lo = np.empty(3)
     hi = np.empty(3)
@@ -81,12 +89,13 @@ def gap2(x, lo, cell, k):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def nearest(pts, lo, cell, reach, dims, start, order, x, y, z, r2):  # pragma: no cover - compiled
+def nearest(pts, g, x, y, z, r2):  # pragma: no cover - compiled
     """(index, squared distance) of the grid's point nearest to (x, y, z) at a squared distance
-    below r2; (-1, inf) when there is none. The query's own cell first, then the cells within
+    below r2; (-1, inf) when there is none (g: the grid of pts, as `grid` returns it). The query's own cell first, then the cells within
     reach whose box is nearer than the best so far (exact: a cell is skipped only when none of
     its points can be nearer). A query outside the grid is clamped to its border cells: a
     point within r is still within reach of them."""
+    lo, cell, reach, dims, start, order = g
     q0 = min(max(int(math.floor((x - lo[0]) / cell)), 0), dims[0] - 1)
     q1 = min(max(int(math.floor((y - lo[1]) / cell)), 0), dims[1] - 1)
     q2 = min(max(int(math.floor((z - lo[2]) / cell)), 0), dims[2] - 1)
@@ -169,13 +178,14 @@ def near_any(query, ref, r):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def any_within(pts, lo, cell, reach, dims, start, order, x, y, z, r2):  # pragma: no cover - compiled
-    """Whether a grid point lies at a squared distance below r2 from (x, y, z): _nearest's
-    answer (j >= 0) without the search for the nearest: the query's own cell first (on a
-    template's surface it mostly holds one: a pushed box's ~6000 points a scan each stop at
+def any_within(pts, g, x, y, z, r2):  # pragma: no cover - compiled
+    """Whether a grid point lies at a squared distance below r2 from (x, y, z) (g: the grid of
+    pts): nearest's answer (j >= 0) without the search for the nearest: the query's own cell
+    first (on a template's surface it mostly holds one: a pushed box's points each stop at
     their first), then the others within reach, stopping at the first. Written out beside
-    _nearest, not as _nearest with a stop-at-first flag: that version (same points taken) ran
-    0.38 / 0.59 ms on case2's pushed box (6094 / 7996 near points) against 0.22 / 0.32 here."""
+    nearest, not as nearest with a stop-at-first flag, which is slower
+    (docs/decisions/vpp-compiled-kernels.md)."""
+    lo, cell, reach, dims, start, order = g
     q0 = min(max(int(math.floor((x - lo[0]) / cell)), 0), dims[0] - 1)
     q1 = min(max(int(math.floor((y - lo[1]) / cell)), 0), dims[1] - 1)
     q2 = min(max(int(math.floor((z - lo[2]) / cell)), 0), dims[2] - 1)

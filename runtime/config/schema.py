@@ -25,7 +25,7 @@ from runtime.safety.supervisor import SafetySupervisorConfig
 from runtime.config import presets
 from runtime.modes.registry import PLANNERS, planner_spec
 from runtime.perception.partition import PARTITIONS, partition_spec
-from runtime.vpp.stage import VppConfig
+from runtime.vpp.config import VppConfig
 from runtime.loop.telemetry import STAGES
 from firmware_bridge.buses import BusConfig
 from runtime.io.ros.settings import RosConfig

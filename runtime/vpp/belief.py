@@ -1,5 +1,5 @@
 """What the controller believes each touchable obstacle is, and how contact changes it (BEACON,
-../shared/seeds/003_*, sections III-B and III-C; the resistance estimate after the NAMO paper, 004_*).
+sections III-B and III-C; the resistance estimate after the NAMO paper).
 
 Per obstacle (an object id of the VPP stage), a categorical belief over the interaction classes
 C = {movable, heavy, fragile}:
@@ -49,7 +49,7 @@ class BeliefConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    #: False: the backend's labels are final (the `fixed-labels` ablation of issue 14).
+    #: False: the backend's labels are final (the `fixed-labels` ablation).
     enabled: bool = True
     #: P(moved | class) for a push outcome, per class in CLASSES order.
     p_moved: tuple[float, float, float] = (0.9, 0.05, 0.6)
@@ -269,7 +269,7 @@ class ContactEvidence:
     """Turns the ticks of a push into evidence for the belief: while the robot drives forward
     against one object (the stage's P_mov in front of it), the resistance fractions of
     PushResistanceEstimator are averaged and the object's displacement is followed (the
-    tracker's anchor, runtime/vpp/tracking.py); every `window_s` of continuous contact gives one
+    tracker's anchor, runtime/vpp/tracking/); every `window_s` of continuous contact gives one
     resistance observation and one push outcome (moved at least `moved_m`, or not), so that the
     belief moves by evidence, not by the tick rate. Contact that ends early gives nothing."""
 

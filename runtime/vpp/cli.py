@@ -1,9 +1,9 @@
 """`dct vpp`: evaluate the VPP stage (movable-point partition, mask warps) against ground truth.
 
-`dct vpp eval --scenario` runs in the simulator, which `runtime` must not import (DESIGN.md,
-section 4): the evaluation is found through the entry point group "dct.vpp_scenario" (name
-"evaluate", in pyproject.toml: hil_sim.eval.vpp:evaluate_scenario) and loaded only when asked
-for. Its contract: `evaluate_scenario(scenario: str, seed: int, oracle: SimOracleConfig,
+`dct vpp eval --scenario` runs in the simulator, which `runtime` must not import
+(docs/architecture.md): the evaluation is found through the entry point group
+"dct.vpp_scenario" (name "evaluate", in pyproject.toml: hil_sim.eval.vpp:evaluate_scenario) and
+loaded only when asked for. Its contract: `evaluate_scenario(scenario: str, seed: int, oracle: SimOracleConfig,
 progress: Callable[[float, float], None], camera_rate_hz: float) -> dict` (JSON-ready:
 `point_precision`, `point_recall`, `iou_after_m`, `stage_ms`, ...); a scenario that cannot run
 raises calibration.errors.ConfigFileError (exit 2).
@@ -73,8 +73,8 @@ def summary_lines(report: dict) -> list[str]:
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="write the figures here (checked before the run, written atomically after it)")
 @click.option("--force", is_flag=True, help="overwrite an existing --json file")
-def eval_command(scenario: str, seed: int, preset: str, oracle_precision: float | None, oracle_recall: float | None,
-                 camera_rate_hz: float, json_path: Path, force: bool) -> None:
+def eval_command(*, scenario: str, seed: int, preset: str, oracle_precision: float | None,
+                 oracle_recall: float | None, camera_rate_hz: float, json_path: Path, force: bool) -> None:
     """The VPP stage of one closed-loop dct episode against the simulator's truth.
 
     Per scan: point partition precision and recall (movable vs fixed). Per mask the memory

@@ -1,7 +1,7 @@
 """Deformable objects (a curtain, a strip door): the region where it hangs, in the odom frame.
 
-Why: a rigid movable object (a box) is followed by the tracker (tracking.py): it moves as one
-body when pushed, and a template registered to each scan finds it again. A curtain does neither.
+Why: a rigid movable object (a box) is followed by the tracker (runtime/vpp/tracking/): it moves
+as one body when pushed, and a template registered to each scan finds it again. A curtain does neither.
 Its slats swing away from the robot and drape over it while the object itself stays where it
 hangs; no rigid template matches it, its mask (captured from a distance) no longer covers the
 slats that swung, and the slats over the robot's front are below the camera's view (the camera
@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from runtime.vpp.partition import FIXED, IGNORED, MOVABLE, PointPartition
+from runtime.vpp.partition.labels import FIXED, IGNORED, MOVABLE, PointPartition
 
 
 class DeformableConfig(BaseModel):
@@ -63,24 +63,24 @@ class DeformableConfig(BaseModel):
     enabled: bool = True
     #: How far (m) the object's parts may swing from where it hangs, each side of its plane. A
     #: slat of length L hanging from height H, lifted onto the robot's top at height h, lies
-    #: sqrt(L^2 - (H - h)^2) out: 0.64 m for a 1 m curtain on the LIMO (lidar top at 0.3 m);
-    #: measured in the curtain scene, slat points at 0.60 m.
+    #: sqrt(L^2 - (H - h)^2) out: 0.64 m for a 1 m curtain on the LIMO (lidar top at 0.3 m)
+    #: (docs/decisions/vpp-deformable-regions.md).
     reach_m: float = Field(0.70, ge=0.0, le=3.0)
     #: Within this distance (m) of its plane (beyond its measured thickness) a point in the region
     #: is the object wherever the robot is: parts swinging on their own after a touch.
     rest_swing_m: float = Field(0.15, ge=0.0, le=3.0)
     #: Farther out (up to reach_m), a point is the object only within this distance (m) of the
     #: robot's footprint: the parts the robot lifts or pushes aside lie on it or against it
-    #: (measured: slat points up to 0.08 m ahead of the LIMO's front). Something standing behind
+    #: (docs/decisions/vpp-deformable-regions.md). Something standing behind
     #: the curtain, away from the robot, stays P_fix (and blocks the way).
     near_robot_m: float = Field(0.15, ge=0.0, le=5.0)
     #: ... ahead of it or behind it; beside it only this far (m): the slats its front pushes span
-    #: a little wider than the robot (measured: 0.09 m past the LIMO's side), and a rigid
+    #: a little wider than the robot, and a rigid
     #: obstacle the robot passes beside must stay P_fix.
     near_robot_side_m: float = Field(0.10, ge=0.0, le=5.0)
     #: A point over the robot's footprint grown by this (m) lies on the robot (slats pressed
-    #: against it). Known cost: a rigid thing touching the robot is taken too (measured with 0:
-    #: more crate contacts in curtain_crate, not fewer; the robot stops short of it further out).
+    #: against it). Known cost: a rigid thing touching the robot is taken too; 0 is worse
+    #: (docs/decisions/vpp-deformable-regions.md).
     on_robot_m: float = Field(0.03, ge=0.0, le=1.0)
     #: The motion test of the points ahead of and behind the robot: a cell (this size, m, in the
     #: region's frame) occupied in every scan (gaps up to rigid_gap_s) while the robot moved
@@ -91,8 +91,8 @@ class DeformableConfig(BaseModel):
     rigid_gap_s: float = Field(0.25, gt=0.0, le=5.0)
     rigid_hold_s: float = Field(1.0, gt=0.0, le=30.0)
     #: ... applied only this far (m) from the object's plane and beyond: nearer, the parts of a
-    #: curtain beside the robot hang from fixed hinges and move little as it passes (measured:
-    #: slats 0.23-0.38 m out found "rigid" and the robot stopped inside the curtain).
+    #: curtain beside the robot hang from fixed hinges and move little as it passes, and would be
+    #: found "rigid" (docs/decisions/vpp-deformable-regions.md).
     rigid_min_depth_m: float = Field(0.45, ge=0.0, le=3.0)
     #: The region stops this far (m) short of the object's ends (what holds it stays P_fix).
     end_margin_m: float = Field(0.03, ge=0.0, le=1.0)
@@ -237,7 +237,7 @@ class DeformableRegions:
         if near:
             # Frozen while the robot is in or near a region: the object swings, and its parts
             # hang in front of the camera, whose masks of them then gate the lidar points seen
-            # past them (measured: the far wall fitted as a second curtain).
+            # past them (docs/decisions/vpp-deformable-regions.md).
             return
         seen = (part.label == MOVABLE) & part.in_view & ~part.from_memory
         for oid, cost in sorted(objects.items()):

@@ -4,7 +4,7 @@ pose) and Phase II (reconcile a fresh answer with the remembered masks by IoU, e
 
 Why a memory: a VLM answers about once a second, the lidar arrives at 10 Hz. Between answers the
 last trusted masks are carried to the current view by the homography their object's plane
-induces (runtime/vpp/homography.py; rotation-only when no lidar point fell in the mask). Each
+induces (runtime/vpp/homography/; rotation-only when no lidar point fell in the mask). Each
 entry is always warped from its own capture image and pose, never from a previous warp, so
 resampling errors do not accumulate.
 
@@ -33,17 +33,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.camera_model import CameraModel
 from models.vlm.interface import MAX_CONTACT_COST, MIN_CONTACT_COST, VlmAnswer
-from runtime.vpp.homography import (
-    HomographyError,
-    MaskWarper,
-    Plane,
-    WarpLookup,
-    WarpSource,
-    check_rigid,
-    estimate_plane,
-    mask_outline,
-    relative_motion,
-)
+from runtime.vpp.homography.image_warp import MaskWarper
+from runtime.vpp.homography.lookup import WarpLookup, WarpSource, mask_outline
+from runtime.vpp.homography.plane import HomographyError, Plane, check_rigid, estimate_plane, relative_motion
 
 
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
@@ -240,7 +232,7 @@ class MaskMemory:
     def lookup(self, now_s: float, camera_pose_odom: np.ndarray,
                select: "Callable[[MaskEntry], bool] | None" = None) -> tuple[list[MaskEntry], WarpLookup]:
         """Phase I for a scan: age out, then every entry set up for per-pixel lookup at the current
-        camera pose (homography.WarpLookup: the same warp as propagate, evaluated only where
+        camera pose (homography.lookup.WarpLookup: the same warp as propagate, evaluated only where
         Phase III asks, exactly rather than on MaskWarper's interpolated grid). No image is
         warped: about 0.1 ms for 8 entries instead of 0.3-0.9 ms per entry. The capture side
         (stacked masks, outlines) is prepared once per set of entries. Returns (entries, lookup),

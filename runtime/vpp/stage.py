@@ -12,19 +12,19 @@ Per tick, in this order:
    camera pose at capture is the caller's `image_pose` (the controller's odometry at the image's
    stamp: OdometryStage.pose_at), else the pose of the tick that received the image (at 20 Hz,
    at most one period late: 5 cm at 1 m/s);
-3. a new scan is partitioned (Phase III, partition.py) against the memory's masks warped to the
-   camera pose now (Phase I, homography.py; per pixel: each point's pixel is looked up through
-   the warp in the capture mask, no warped image is made, see MaskMemory.lookup): only objects
-   the backend called movable with a contact cost below `never_touch_cost` become P_mov;
+3. a new scan is partitioned (Phase III, runtime/vpp/partition/) against the memory's masks
+   warped to the camera pose now (Phase I, runtime/vpp/homography/; per pixel: each point's
+   pixel is looked up through the warp in the capture mask, no warped image is made, see
+   MaskMemory.lookup): only objects the backend called movable with a contact cost below `never_touch_cost` become P_mov;
    everything else, and every point the camera does not see and the label memory does not
    know, stays P_fix.
 
-Cost per scan (issue 13 budget: 3 ms p99 at 20k points and 8 masks, one core): `dct bench vpp`.
+Cost per scan (budget: 3 ms p99 at 20k points and 8 masks, one core): `dct bench vpp`.
 
 The stage never waits: the runner answers beside the tick (lockstep: at a fixed simulated
 latency, `settle` is the simulator's barrier; real time: when the backend answers, or an error
 after its timeout). A backend that is down or slow means no new masks: the memory ages out and
-the points fall back to P_fix (issue 13).
+the points fall back to P_fix.
 
 Frames: poses are 4x4 homogeneous transforms; T_a_b maps b coordinates to a. The camera frame
 is the optical frame (z forward, x right, y down), as the robot description mounts it.
@@ -37,58 +37,21 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
 from calibration.camera_model import CameraModel
 from models.vlm.interface import VlmAnswer, VlmRequest
-from models.vlm.runner import BackendRunner, BackendRunnerConfig
-from runtime.vpp.belief import BeliefConfig, BeliefTable, ContactEvidence, PushResistanceEstimator
-from runtime.vpp.deformable import DeformableConfig, DeformableRegions, RobotBox
+from models.vlm.runner import BackendRunner
 from runtime.common.sensor_data import CameraImage, LidarScan
-from runtime.vpp.homography import lookup_supported, pixel_rays
-from runtime.vpp.mask_memory import (AnswerPreparer, MaskMemory, MaskMemoryConfig, MaskMemoryError,
-                                     PreparedAnswer, ReconcileResult)
-from runtime.vpp.partition import FIXED, MOVABLE, PartitionConfig, PointPartition, PointPartitioner
-from runtime.vpp.tracking import ObjectTracker, TrackingConfig
-
-DEFAULT_PROMPT = (
-    "A small ground robot must drive to its goal through this scene. For each marked object, say "
-    "whether the robot may push it or brush past it, and how costly contact would be."
-)
-
-
-class VppConfig(BaseModel):
-    """The VPP stage's settings (controller config `vpp:`)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    prompt: str = Field(DEFAULT_PROMPT, min_length=1, max_length=2000)
-    #: A movable object with at least this contact cost stays in P_fix (IMPACT: 8+ is fragile).
-    never_touch_cost: float = Field(8.0, ge=0.0, le=10.0)
-    #: A warped mask grown to more than this many times its captured area (the camera came close
-    #: to the object's plane, or the object moved: a pushed box stays in front of the robot while
-    #: the warp assumes it stood still) is not trusted: its points stay P_fix. Without it a mask
-    #: swells over the whole image and gates fixed objects as movable.
-    max_mask_growth: float = Field(2.5, gt=1.0, le=100.0)
-    #: A tracked object that moved more than this since a mask's capture: that mask is not
-    #: trusted (the tracker labels the object instead); one that did not is trusted whatever its growth.
-    moved_tolerance_m: float = Field(0.05, gt=0.0, le=1.0)
-    #: Movable objects followed between masks (a pushed box leaves its mask): tracking.py.
-    tracking: TrackingConfig = TrackingConfig()
-    #: Deformable objects (a curtain): the region where each hangs, not a track (deformable.py).
-    deformable: DeformableConfig = DeformableConfig()
-    #: The per-obstacle belief over movable / heavy / fragile (runtime.vpp.belief; BEACON).
-    belief: BeliefConfig = BeliefConfig()
-    #: Seconds of continuous push that give the belief one observation (ContactEvidence).
-    belief_window_s: float = Field(1.0, gt=0.0, le=30.0)
-    #: The controller waits for the first answer (mode dct); after this long without one it drives
-    #: on what it has (every point P_fix), and says so.
-    first_answer_timeout_s: float = Field(5.0, gt=0.0, le=120.0)
-    memory: MaskMemoryConfig = MaskMemoryConfig()
-    partition: PartitionConfig = PartitionConfig()
-    runner: BackendRunnerConfig = BackendRunnerConfig()
-
+from runtime.vpp.belief import BeliefTable, ContactEvidence, PushResistanceEstimator
+from runtime.vpp.config import VppConfig
+from runtime.vpp.deformable import DeformableRegions, RobotBox
+from runtime.vpp.homography.lookup import lookup_supported, pixel_rays
+from runtime.vpp.in_front import in_front, movable_in_front, object_extent_in_base
+from runtime.vpp.mask_memory import AnswerPreparer, MaskMemory, MaskMemoryError, PreparedAnswer, ReconcileResult
+from runtime.vpp.partition.labels import FIXED, MOVABLE, PointPartition
+from runtime.vpp.partition.partitioner import PointPartitioner
+from runtime.vpp.tracking.tracker import ObjectTracker
 
 def pose_matrix(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
     """T_odom_base (4x4) of a planar pose."""
@@ -193,14 +156,37 @@ class VppStage:
                scan: LidarScan | None, image_pose: tuple[float, float, float] | None = None) -> VppFrame | None:
         """One tick (module docstring); returns the partition of `scan` (None without a scan).
         scan: its points where they are at now_s (deskewed), placed with `pose`. image_pose: the
-        pose at the image's capture (None: `pose`): the camera pose its masks are warped from.
-        (A frame received one tick after its capture, tagged with the pose at receipt, was off
-        by 5 cm at 1 m/s, and the masks' edges with it.)"""
+        pose at the image's capture (None: `pose`): the camera pose its masks are warped from
+        (docs/decisions/vpp-image-pose.md)."""
         self._now_s = float(now_s)
         if scan is not None:
             self._last_scan_lidar = scan.points_m
         T_odom_base = pose_matrix(*pose)
         T_odom_cam = T_odom_base @ self.T_base_cam
+        self._apply_answers(now_s)
+        if image is not None:
+            try:
+                self._check_image(image)
+                T_img = T_odom_cam if image_pose is None else pose_matrix(*image_pose) @ self.T_base_cam
+                self._image = (image, T_img)  # the newest image and the camera pose at its capture
+            except ValueError as exc:  # counted and named; the tick goes on with what it has
+                self.images_refused += 1
+                self.last_rejection = str(exc)
+        if scan is None:
+            self._maybe_ask(now_s)
+            return None
+        part, n_masks = self._partition_scan(now_s, pose, scan, T_odom_base, T_odom_cam)
+        for old, new in self.tracker.handover_pairs:  # one object under a new mask id keeps its belief
+            self.belief.rename(old, new)
+        self.tracker.handover_pairs.clear()
+        self._maybe_ask(now_s)
+        self.frames += 1
+        self.last_frame = VppFrame(float(scan.stamp_s), part, n_masks)
+        return self.last_frame
+
+    def _apply_answers(self, now_s: float) -> None:
+        """Phase II in the tick: the answers the runner delivered by now, applied to the mask
+        memory (prepared beside the tick, or here when they were not)."""
         for answer in self.runner.poll(now_s):
             self.answers += 1
             self.failed_answers += int(answer.error is not None)
@@ -220,17 +206,11 @@ class VppStage:
             except MaskMemoryError as exc:  # the memory stays as it was; the answer is named, not raised
                 self.rejected_answers += 1
                 self.last_rejection = str(exc)
-        if image is not None:
-            try:
-                self._check_image(image)
-                T_img = T_odom_cam if image_pose is None else pose_matrix(*image_pose) @ self.T_base_cam
-                self._image = (image, T_img)  # the newest image and the camera pose at its capture
-            except ValueError as exc:  # counted and named; the tick goes on with what it has
-                self.images_refused += 1
-                self.last_rejection = str(exc)
-        if scan is None:
-            self._maybe_ask(now_s)
-            return None
+
+    def _partition_scan(self, now_s: float, pose, scan: LidarScan, T_odom_base: np.ndarray,
+                        T_odom_cam: np.ndarray) -> tuple[PointPartition, int]:
+        """Phases I and III for a scan, then the tracker and the deformable regions: (the
+        partition, labelled in place by them, the masks it was gated against)."""
         masks, use = self._masks_now(now_s, T_odom_cam)
         part = self.partitioner.partition(
             scan.points_m, self.T_cam_lidar, self.camera, masks, [e.object_id for e in use],
@@ -254,13 +234,7 @@ class VppStage:
             self.partitioner.memory.write(p_odom, write, part.label, part.object_id, part.cost, float(scan.stamp_s))
         self.deformable.update(float(scan.stamp_s), part, p_odom, deformable, (pose[0], pose[1]))
         self.deformable.label(float(scan.stamp_s), part, p_odom, pose, self.robot_box)
-        for old, new in self.tracker.handover_pairs:  # one object under a new mask id keeps its belief
-            self.belief.rename(old, new)
-        self.tracker.handover_pairs.clear()
-        self._maybe_ask(now_s)
-        self.frames += 1
-        self.last_frame = VppFrame(float(scan.stamp_s), part, len(use))
-        return self.last_frame
+        return part, len(use)
 
     def _prepare(self, request: VlmRequest, answer: VlmAnswer) -> None:
         """Phase II's image work for an answer, in the runner's worker (lockstep: in settle, the
@@ -335,14 +309,7 @@ class VppStage:
             return None
         part = self.last_frame.partition
         sel = (part.label == MOVABLE) & (part.object_id == oid)
-        p = self._last_scan_odom[sel]
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        dx, dy = p[:, 0] - pose[0], p[:, 1] - pose[1]
-        x, y = c * dx + s * dy, -s * dx + c * dy
-        # what the bumper pushes: at most a footprint's width either side of the robot
-        ymax = 2.0 * half_width_m + pad_m
-        return (float(x.min()) - pad_m, float(x.max()) + pad_m,
-                max(float(y.min()) - pad_m, -ymax), min(float(y.max()) + pad_m, ymax))
+        return object_extent_in_base(self._last_scan_odom[sel], pose, half_width_m, pad_m)
 
     def movable_in_front(self, pose: tuple[float, float, float], half_length_m: float, half_width_m: float,
                          margin_m: float, forward: bool = True, min_points: int = 3) -> int | None:
@@ -352,20 +319,8 @@ class VppStage:
         frame, p = self.last_frame, self._last_scan_odom
         if frame is None or p is None:
             return None
-        part = frame.partition
-        mov = np.flatnonzero(part.label == MOVABLE)
-        if not mov.size:
-            return None
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        dx, dy = p[mov, 0] - pose[0], p[mov, 1] - pose[1]
-        x, y = c * dx + s * dy, -s * dx + c * dy  # robot frame
-        if not forward:
-            x = -x
-        near = (x >= 0.0) & (x <= half_length_m + margin_m) & (np.abs(y) <= half_width_m + margin_m)
-        ids, counts = np.unique(part.object_id[mov[near]], return_counts=True)
-        if not ids.size or counts.max() < min_points:
-            return None
-        return int(ids[int(np.argmax(counts))])
+        return movable_in_front(frame.partition, p, pose, (half_length_m, half_width_m, margin_m), forward=forward,
+                                min_points=min_points)
 
     def observe_contact(self, now_s: float, pose: tuple[float, float, float], v_mps: float, currents_a,
                         half_length_m: float, half_width_m: float, margin_m: float) -> None:
@@ -402,15 +357,11 @@ class VppStage:
 
     def _anything_in_front(self, pose, half_length_m: float, half_width_m: float, margin_m: float) -> bool:
         """A lidar point of the last scan (not ground) in front of the robot within its footprint
-        plus margin_m."""
+        plus margin_m (unknown without a scan: not free)."""
         frame, p = self.last_frame, self._last_scan_odom
         if frame is None or p is None:
-            return True  # unknown: not free
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        dx, dy = p[:, 0] - pose[0], p[:, 1] - pose[1]
-        x, y = c * dx + s * dy, -s * dx + c * dy
-        near = (x >= 0.0) & (x <= half_length_m + margin_m) & (np.abs(y) <= half_width_m + margin_m)
-        return bool(np.any(near & (frame.partition.label >= 0)))
+            return True
+        return bool(np.any(in_front(p, pose, (half_length_m, half_width_m, margin_m)) & (frame.partition.label >= 0)))
 
     def expected_costs(self, object_id: np.ndarray, cost: np.ndarray) -> np.ndarray:
         """Per point of P_mov: its object's expected contact cost under the belief (the backend's
@@ -474,7 +425,7 @@ class VppStage:
         the partition only at the points' pixels); a camera whose distortion the per-pixel warp
         does not implement (the 14-coefficient tilted model) gets full-image warps (propagate).
         The growth test takes the warped area from the lookup (exact for a warped mask whose
-        bounding box has at most homography.AREA_SAMPLES pixels, else estimated on a grid)."""
+        bounding box has at most homography.lookup.AREA_SAMPLES pixels, else estimated on a grid)."""
         if self._per_pixel:
             entries, lk = self.memory.lookup(now_s, T_odom_cam, select=self._may_gate)
             px = self.memory.mask_px()
@@ -540,4 +491,4 @@ class VppStage:
         }
 
 
-__all__ = ["DEFAULT_PROMPT", "VppConfig", "VppFrame", "VppStage", "pose_matrix"]
+__all__ = ["VppFrame", "VppStage", "pose_matrix"]

@@ -1,5 +1,5 @@
 """`dct vpp eval`: its ground truth (the lidar's per-point geom ids, the camera that sees what
-is close), its figures on a DCT case against the issue's bars, and its command line."""
+is close), its figures on a DCT case against the VPP's quality bars, and its command line."""
 from __future__ import annotations
 
 import json
@@ -89,7 +89,7 @@ def case1_report():
     return evaluate_scenario("case1", seed=0)
 
 
-def test_perfect_oracle_on_case1_meets_the_issue_bars(case1_report):
+def test_perfect_oracle_on_case1_meets_the_quality_bars(case1_report):
     r = case1_report
     assert r["episode"]["success"] and r["episode"]["fixed_contacts"] == 0
     assert r["frames"] >= 40  # scans scored after the first answer (case1 takes ~4.2 s from the goal)

@@ -5,7 +5,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial import cKDTree
 
-from runtime.common.spatial_grid import grid, near_any, nearest
+from runtime.common.spatial_grid import any_within, grid, near_any, nearest
 
 _coords = arrays(np.float64, st.tuples(st.integers(1, 200), st.just(3)),
                  elements=st.floats(-1.0, 1.0, allow_nan=False, width=32))
@@ -17,13 +17,14 @@ def test_grid_nearest_is_the_kd_trees_nearest_within_r(ref, query, r, split):
     """The grid's nearest neighbour within r is cKDTree's (same distance; ties may pick another
     index), also for queries outside the grid's box; none when cKDTree finds none."""
     d_ref, _ = cKDTree(ref).query(query, distance_upper_bound=r)
-    lo, cell, reach, dims, start, order = grid(ref, r, split)
+    g = grid(ref, r, split)
     for i, q in enumerate(query):
-        j, d2 = nearest(ref, lo, cell, reach, dims, start, order, q[0], q[1], q[2], r * r)
+        j, d2 = nearest(ref, g, q[0], q[1], q[2], r * r)
         if np.isfinite(d_ref[i]) and d_ref[i] < r * (1 - 1e-9):
             assert j >= 0 and np.isclose(np.sqrt(d2), d_ref[i], rtol=1e-9, atol=1e-12)
         elif not np.isfinite(d_ref[i]):
             assert j == -1
+        assert any_within(ref, g, q[0], q[1], q[2], r * r) == (j >= 0)
     near = near_any(query, ref, r)
     assert near[d_ref < r * (1 - 1e-9)].all()
     assert not near[~np.isfinite(d_ref)].any()

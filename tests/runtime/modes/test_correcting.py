@@ -13,7 +13,8 @@ from runtime.modes.base import ModeDecision, Situation
 from runtime.modes.correcting import CorrectingConfig, StuckDetector, slip_fraction
 from runtime.modes.selector import ModeSelector, RecoveryConfig
 from runtime.vpp.mask_memory import MaskMemory
-from runtime.vpp.partition import FIXED, MOVABLE, LabelMemory
+from runtime.vpp.partition.label_memory import LabelMemory
+from runtime.vpp.partition.labels import FIXED, MOVABLE
 from tests.runtime.vpp.test_mask_memory import PINHOLE, answer, rect
 
 CONFIG = CorrectingConfig(v_min_mps=0.1, d_stuck_m=0.05, tau_stuck_s=0.8)

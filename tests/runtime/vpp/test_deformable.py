@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from runtime.vpp.deformable import DeformableConfig, DeformableRegions, RobotBox, fit_region
-from runtime.vpp.partition import FIXED, IGNORED, MOVABLE, PointPartition
+from runtime.vpp.partition.labels import FIXED, IGNORED, MOVABLE, PointPartition
 
 CURTAIN = 7
 ROBOT = RobotBox(0.161, 0.11)

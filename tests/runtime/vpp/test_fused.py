@@ -13,8 +13,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration.camera_model import CameraModel
-from runtime.vpp.homography import Plane, mask_crops, warp_lookup
-from runtime.vpp.partition import PointPartitioner, _transform, project_fused, synthetic_frame
+from runtime.vpp.homography.lookup import mask_crops, warp_lookup
+from runtime.vpp.homography.plane import Plane
+from hil_sim.bench.vpp import synthetic_frame
+from runtime.vpp.partition.partitioner import PointPartitioner
+from runtime.vpp.partition.projection import project_fused, transform
 
 W, H = 160, 120
 
@@ -47,7 +50,7 @@ def test_fused_projection_is_project_bit_for_bit(seed, dist, f, skew, rot, dtype
     p[:5] = 0.0
     p = p.astype(dtype)
     uv, valid = project_fused(p, T, cam)
-    p_cam = _transform(np.ascontiguousarray(p), T)
+    p_cam = transform(np.ascontiguousarray(p), T)
     ref_uv, ref_valid = cam.project(p_cam)
     np.testing.assert_array_equal(valid, ref_valid)
     assert valid.any()
@@ -141,8 +144,8 @@ def test_partition_memory_reads_what_label_memory_reads():
     # turn around: what was in view is now behind the camera, and read from the memory
     T_odom2 = np.eye(4)
     T_odom2[:3, :3] = cv2.Rodrigues(np.array([0.0, 0.0, math.pi]))[0]
-    pts2 = _transform(np.ascontiguousarray(pts), np.linalg.inv(T_odom2) @ T_odom).astype(np.float32)
-    expect = part.memory.read(_transform(pts2, T_odom2), np.ones(len(pts2), bool), 0.5)
+    pts2 = transform(np.ascontiguousarray(pts), np.linalg.inv(T_odom2) @ T_odom).astype(np.float32)
+    expect = part.memory.read(transform(pts2, T_odom2), np.ones(len(pts2), bool), 0.5)
     r = part.partition(pts2, T, cam, [], [], [], T_base_lidar=T_base, T_odom_lidar=T_odom2, stamp_s=0.5)
     unseen = ~r.in_view & (r.label != -1)
     assert r.from_memory.sum() > 1000

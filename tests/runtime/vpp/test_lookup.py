@@ -12,9 +12,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration.camera_model import CameraModel
-from runtime.vpp.homography import AREA_SAMPLES, MaskWarper, Plane, relative_motion, warp_lookup
-from runtime.vpp.partition import PointPartitioner, synthetic_frame
-from runtime.vpp.stage import VppConfig, pose_matrix
+from runtime.vpp.homography.image_warp import MaskWarper
+from runtime.vpp.homography.lookup import AREA_SAMPLES, warp_lookup
+from runtime.vpp.homography.plane import Plane, relative_motion
+from hil_sim.bench.vpp import synthetic_frame
+from runtime.vpp.partition.partitioner import PointPartitioner
+from runtime.vpp.config import VppConfig
+from runtime.vpp.stage import pose_matrix
 
 W, H = 320, 240
 K = np.array([[260.0, 0.0, 159.5], [0.0, 260.0, 119.5], [0.0, 0.0, 1.0]])
@@ -126,7 +130,7 @@ def _scene(pose_xyyaw, pts, T_base):
 def test_partition_through_the_lookup_equals_the_partition_of_warped_images():
     pts, T_cam_lidar, cam, masks, ids, costs, T_base = synthetic_frame(6000, 6, seed=3)
     T_base_cam = T_base @ np.linalg.inv(T_cam_lidar)
-    from runtime.vpp.homography import estimate_plane
+    from runtime.vpp.homography.plane import estimate_plane
 
     p_cam0 = pts.astype(np.float64) @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
     planes = [estimate_plane(cam, m, p_cam0) for m in masks]

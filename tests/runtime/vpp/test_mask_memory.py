@@ -17,15 +17,9 @@ from hypothesis import strategies as st
 
 from calibration.camera_model import CameraModel
 from models.vlm.interface import DetectedObject, VlmAnswer
-from runtime.vpp.homography import (
-    HomographyError,
-    MaskWarper,
-    Plane,
-    estimate_plane,
-    plane_homography,
-    relative_motion,
-    rotation_homography,
-)
+from runtime.vpp.homography.image_warp import MaskWarper
+from runtime.vpp.homography.plane import (HomographyError, Plane, estimate_plane, plane_homography, relative_motion,
+                                          rotation_homography)
 from runtime.vpp.mask_memory import MaskMemory, MaskMemoryConfig, MaskMemoryError, iou_matrix, query_due
 
 W, H = 640, 480

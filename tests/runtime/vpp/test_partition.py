@@ -10,8 +10,11 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from calibration.camera_model import CameraModel, transform_points
-from runtime.vpp.partition import (FIXED, IGNORED, MOVABLE, LabelMemory, PartitionConfig, PartitionInputError,
-                                   PointPartitioner, partition_points, synthetic_frame, time_partition)
+from runtime.vpp.partition.config import PartitionConfig
+from runtime.vpp.partition.inputs import PartitionInputError
+from runtime.vpp.partition.label_memory import LabelMemory
+from runtime.vpp.partition.labels import FIXED, IGNORED, MOVABLE
+from runtime.vpp.partition.partitioner import PointPartitioner, partition_points
 
 W, H = 640, 480
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
@@ -315,19 +318,8 @@ def test_movable_only_where_a_mask_is(case, refine):
             assert masks[k[list(np.flatnonzero(mov)).index(i)], max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1].any()
 
 
-# --------------------------------------------------------------------------- timing helper runs
-def test_time_partition_reports_figures():
-    out = time_partition(n_points=2000, n_masks=2, repeats=3)
-    assert out["p50_ms"] > 0 and out["p99_ms"] >= out["p50_ms"] and out["n_movable"] > 0
-
-
-def test_synthetic_frame_shape():
-    pts, T, cam, masks, ids, costs, T_base = synthetic_frame(1000, 3)
-    assert pts.shape == (1000, 3) and masks.shape == (3, 480, 640) and masks.any(axis=(1, 2)).all()
-
-
 # --------------------------------------------------------------------------- real data
-PANDAR = Path(__file__).resolve().parents[1] / "data" / "real" / "pandar64_camera_opencalib"
+PANDAR = Path(__file__).resolve().parents[2] / "data" / "real" / "pandar64_camera_opencalib"
 #: The car ahead in 0.png (about 40 m), outlined by hand in full-resolution pixels (u, v);
 #: 0_car_mask.png is cv2.fillPoly of this polygon.
 CAR_POLYGON = [(962, 603), (1020, 603), (1032, 618), (1040, 632), (1041, 672), (1035, 680), (946, 680),

@@ -8,8 +8,9 @@ from calibration.robot_description import load_robot_description
 from models.vlm.interface import DetectedObject, VlmAnswer, VlmRequest
 from models.vlm.runner import BackendRunner, BackendRunnerConfig
 from runtime.common.sensor_data import CameraImage, LidarScan
-from runtime.vpp.partition import MOVABLE
-from runtime.vpp.stage import VppConfig, VppStage
+from runtime.vpp.partition.labels import MOVABLE
+from runtime.vpp.config import VppConfig
+from runtime.vpp.stage import VppStage
 
 ROBOT = load_robot_description()
 W, H = 640, 480

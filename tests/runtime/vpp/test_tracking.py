@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from runtime.vpp.partition import FIXED, MOVABLE, PointPartition
-from runtime.vpp.tracking import ObjectTracker, TrackingConfig
+from runtime.vpp.partition.labels import FIXED, MOVABLE, PointPartition
+from runtime.vpp.tracking.config import TrackingConfig
+from runtime.vpp.tracking.tracker import ObjectTracker
 
 
 def _box(cx: float, cy: float, size: float = 0.4, step: float = 0.03, yaw: float = 0.0) -> np.ndarray:
@@ -297,7 +298,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra.numpy import arrays  # noqa: E402
 
-from runtime.vpp.tracking import _thin  # noqa: E402
+from runtime.vpp.tracking.geometry import thin  # noqa: E402
 
 _coords = arrays(np.float64, st.tuples(st.integers(1, 200), st.just(3)),
                  elements=st.floats(-1.0, 1.0, allow_nan=False, width=32))
@@ -316,7 +317,7 @@ def _thin_reference(points: np.ndarray, voxel_m: float, max_points: int) -> np.n
 @settings(max_examples=60, deadline=None)
 @given(points=_coords, voxel=st.sampled_from([0.01, 0.03, 0.3]), cap=st.sampled_from([0, 5, 50]))
 def test_thin_keeps_the_first_point_of_each_voxel_in_order(points, voxel, cap):
-    assert np.array_equal(_thin(points, voxel, cap), _thin_reference(points, voxel, cap))
+    assert np.array_equal(thin(points, voxel, cap), _thin_reference(points, voxel, cap))
 
 
 def test_a_fit_that_could_never_pair_enough_points_is_refused_at_start():

@@ -1,0 +1,132 @@
+"""The tracker's geometry of point sets, compiled where the tick calls it: bounding boxes, the
+size of a set in an object's own frame, and voxel thinning (the first point of each voxel,
+through the VPP's voxel hash: runtime/vpp/voxel_hash.py)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from runtime.vpp.voxel_hash import EMPTY, find_slot
+
+
+@njit(cache=True, nogil=True)
+def bounds(points):  # pragma: no cover - compiled
+    """(min (3,), max (3,)) of (N >= 1, 3) points (numpy's min and max: ~10 us each on small arrays)."""
+    lo = points[0].copy()
+    hi = points[0].copy()
+    for i in range(1, points.shape[0]):
+        for a in range(3):
+            x = points[i, a]
+            if x < lo[a]:
+                lo[a] = x
+            if x > hi[a]:
+                hi[a] = x
+    return lo, hi
+
+
+def extent(points: np.ndarray, yaw: float = 0.0) -> float:
+    """The points' size (m): extent_nb."""
+    if len(points) < 2:
+        return 0.0
+    return float(extent_nb(np.ascontiguousarray(points, dtype=np.float64), float(yaw)))
+
+
+def footprint(points: np.ndarray, yaw: float = 0.0) -> float:
+    """The diagonal (m) of the points' bounding box in the plane, in the object's frame (the
+    odom frame turned by yaw, as extent_nb)."""
+    if len(points) < 2:
+        return 0.0
+    c, s = math.cos(yaw), math.sin(yaw)
+    x = c * points[:, 0] + s * points[:, 1]
+    y = -s * points[:, 0] + c * points[:, 1]
+    return float(math.hypot(np.ptp(x), np.ptp(y)))
+
+
+def thin(points: np.ndarray, voxel_m: float, max_points: int = 0) -> np.ndarray:
+    """One point per voxel (the first), in a stable order; then at most max_points (0: no cap) by
+    an even stride (thin_first: compiled, ~20 us for 1000 points)."""
+    if len(points) == 0:
+        return points
+    return thin_nb(np.ascontiguousarray(points, dtype=np.float64), float(voxel_m), int(max_points))
+
+
+@njit(cache=True, nogil=True)
+def thin_nb(points, voxel, max_points):  # pragma: no cover - compiled
+    """thin, compiled: the first point of each voxel in their order, then an even stride of
+    max_points (0: all) of them (numpy's linspace, truncated)."""
+    out = points[thin_first(points, voxel)]
+    n = out.shape[0]
+    if max_points > 0 and n > max_points:
+        pick = np.linspace(0, n - 1, max_points).astype(np.int64)
+        out = out[pick]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def extent_nb(points, yaw):  # pragma: no cover - compiled
+    """The points' size (m): the diagonal of their bounding box in the object's frame, the odom
+    frame turned by `yaw` (what the object turned since the tracker first saw it: the sum of
+    its registrations' yaws). In the odom frame the box of a pushed box that turned would grow
+    (45 degrees: a 0.4 m cube's diagonal from 0.69 to 0.90 m) and the limits on a template's
+    growth would refuse the object's own newly seen faces; in its own frame it stays the box's."""
+    n = points.shape[0]
+    if n < 2:
+        return 0.0
+    c = math.cos(yaw)
+    s = math.sin(yaw)
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for i in range(n):
+        x = c * points[i, 0] + s * points[i, 1]  # R(yaw)^T p: the object's frame
+        y = -s * points[i, 0] + c * points[i, 1]
+        z = points[i, 2]
+        if i == 0:
+            lo[0] = hi[0] = x
+            lo[1] = hi[1] = y
+            lo[2] = hi[2] = z
+            continue
+        lo[0] = min(lo[0], x)
+        hi[0] = max(hi[0], x)
+        lo[1] = min(lo[1], y)
+        hi[1] = max(hi[1], y)
+        lo[2] = min(lo[2], z)
+        hi[2] = max(hi[2], z)
+    return math.sqrt((hi[0] - lo[0]) ** 2 + (hi[1] - lo[1]) ** 2 + (hi[2] - lo[2]) ** 2)
+
+
+@njit(cache=True, nogil=True)
+def thin_first(points, voxel):  # pragma: no cover - compiled
+    """Indices (ascending) of the first point in each voxel: one pass with the voxel hash
+    (runtime/vpp/voxel_hash.py) of the voxel keys (three 21-bit cell indices packed in an int64, from the points'
+    lowest cell: 63 km at 3 cm), so the order of the points is kept without a sort."""
+    n = points.shape[0]
+    kk = np.empty((n, 3), np.int64)
+    kmin = np.empty(3, np.int64)
+    for i in range(n):
+        for a in range(3):
+            k = np.int64(math.floor(points[i, a] / voxel))
+            kk[i, a] = k
+            if i == 0 or k < kmin[a]:
+                kmin[a] = k
+    size = 16
+    bits = 4
+    while size < 2 * n:
+        size *= 2
+        bits += 1
+    table = np.full(size, EMPTY, np.int64)
+    out = np.empty(n, np.int64)
+    u = 0
+    for i in range(n):
+        key = ((kk[i, 0] - kmin[0]) << 42) | ((kk[i, 1] - kmin[1]) << 21) | (kk[i, 2] - kmin[2])
+        h = find_slot(table, key, 64 - bits)
+        if table[h] == EMPTY:  # the voxel's first point
+            table[h] = key
+            out[u] = i
+            u += 1
+    return out[:u]
+
+
+
+__all__ = ["bounds", "extent", "extent_nb", "footprint", "thin", "thin_first", "thin_nb"]
