@@ -4,7 +4,17 @@ The controller runs its ordinary fixed-rate loop; its clock is the simulator's. 
 `sleep_until(t)` of the loop advances physics to t, stepping the emulated base firmware
 (which reads the controller's CAN frames and answers with feedback frames) every physics
 step. The controller and the firmware talk over a python-can `virtual` bus, exactly the
-frames they would exchange on the robot. Deterministic for a given seed.
+frames they would exchange on the robot; the controller is wired as on the robot
+(runtime.controller.builder).
+
+Deterministic: an episode's metrics depend only on the scenario, robot, config, seed and faults.
+What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is returned
+in `telemetry` and `wall_time_s`, never in the metrics.
+
+A patrol scenario (`goals:`): hil_sim.episode.patrol.PatrolSequencer sends the next goal to the
+controller (`request_goal`, between two ticks) when it has finished with the current one; the
+episode ends with the patrol (its loops or duration), and the metrics add `patrol` (goals sent,
+reached, missed, every visit); `goal_reached` is the patrol's verdict.
 """
 from __future__ import annotations
 
@@ -153,6 +163,7 @@ def goal_in_odom_frame(scenario: Scenario) -> Pose2D:
     return start.inverse().compose(goal)
 
 
+# (Long for the documentation of its sixteen keyword options; the body is about 30 lines.)
 def run_episode(
     scenario: Scenario | str,
     *,
@@ -195,16 +206,8 @@ def run_episode(
     stood). False (default): the goal is given at switch-on and the clock starts there.
     oracle: the VPP's sim-oracle settings, used as given (its seed too) instead of the config's
     `vpp.backend` (whose seed is added to the episode seed). With no `oracle` and a backend other
-    than the sim-oracle in the config, the controller builds that backend.
-
-    A patrol scenario (`goals:`): hil_sim.episode.patrol.PatrolSequencer sends the next goal to
-    the controller (`request_goal`, between two ticks) when it has finished with the current one;
-    the episode ends with the patrol (its loops or duration), and the metrics add `patrol` (goals
-    sent, reached, missed, every visit); `goal_reached` is the patrol's verdict.
-
-    Deterministic: the metrics depend only on the scenario, robot, config, seed and faults.
-    What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is
-    returned in `telemetry` and `wall_time_s`, never in the metrics.
+    than the sim-oracle in the config, the controller builds that backend. (Module docstring: patrols,
+    determinism.)
     """
     faults = tuple(faults)
     if isinstance(scenario, str):
@@ -212,13 +215,6 @@ def run_episode(
     robot = robot or load_robot_description()
     config = config or load_controller_config()
     bench = _SimulatedBench.build(scenario, robot, config, seed, faults, sensors, camera_calibration)
-    vlm_backend = None
-    if config.uses_vlm_backend and (oracle is not None or config.vpp.backend.kind == "sim-oracle"):
-        # The sim-oracle needs this world's object table: built here, passed to the controller.
-        # Any other backend the controller builds from the config itself.
-        from hil_sim.vlm.oracle import oracle_backend
-
-        vlm_backend = oracle_backend(bench.world, oracle or config.vpp.backend.oracle_config(episode_seed=seed))
     sim = LockstepSimulation(bench.world, bench.firmware, bench.metrics, bench.devices, controls=[bench.injector])
     clock = LockstepClock(sim)
     bus = recorder.wrap_bus(bench.controller_bus, clock.now) if recorder is not None else bench.controller_bus
@@ -226,7 +222,8 @@ def run_episode(
     try:  # loads the distance net: a bad model file must not leave the buses open
         parts = assemble(RobotSetup(robot, config, wheel_calibration, camera, T_cam_lidar),
                          Wiring(bus, clock, goal_in_odom_frame(scenario), bench.inbox if bench.has_sensors else None,
-                                lockstep=True, vlm_backend=vlm_backend, goal_given=not goal_when_ready))
+                                lockstep=True, vlm_backend=_vlm_backend(bench.world, config, oracle, seed),
+                                goal_given=not goal_when_ready))
     except BaseException:
         bench.close()
         raise
@@ -244,7 +241,17 @@ def run_episode(
         sim.advance_to(sim.time_s + 0.02)  # let the firmware consume the final zero command
         bench.close()
     wall = time.perf_counter() - wall0
-    return _result(bench, sim, parts, operator, config, faults, goal_when_ready, wall)
+    return _result(_Episode(bench, sim, parts, operator, config, faults, goal_when_ready), wall)
+
+
+def _vlm_backend(world, config, oracle, seed):
+    """The sim-oracle, which needs this world's object table: built here, passed to the controller.
+    None for any other backend (the controller builds it from the config) or without the VPP."""
+    if not config.uses_vlm_backend or (oracle is None and config.vpp.backend.kind != "sim-oracle"):
+        return None
+    from hil_sim.vlm.oracle import oracle_backend
+
+    return oracle_backend(world, oracle or config.vpp.backend.oracle_config(episode_seed=seed))
 
 
 @dataclass
@@ -347,7 +354,8 @@ class _Operator:
         return self.patrol.done
 
 
-def _result(bench, sim, parts, operator, config, faults, goal_when_ready, wall) -> EpisodeResult:
+def _result(ep: "_Episode", wall: float) -> EpisodeResult:
+    bench, sim, parts, operator = ep.bench, ep.sim, ep.parts, ep.operator
     controller, telemetry, world, scenario = parts.controller, parts.telemetry, bench.world, operator.scenario
     t_start, patrol = operator.clock_start, operator.patrol
     if patrol is not None:
@@ -367,28 +375,7 @@ def _result(bench, sim, parts, operator, config, faults, goal_when_ready, wall) 
         goal_reached=reached,
         navigation_time_s=nav_time,
         deadline_misses=telemetry.deadline_misses,
-        extra={
-            "controller_state": controller.state.name,
-            "stop_reason": controller.stop_reason,
-            "final_distance_to_goal_m": final_distance,
-            "final_pose_world": [float(v) for v in world.robot_pose()],
-            "sim_time_s": sim.time_s - operator.t_switch_on,
-            # the navigation clock: "switch-on" (the goal given at start) or "goal-when-ready"
-            "navigation_clock": "goal-when-ready" if goal_when_ready else "switch-on",
-            "standby_s": t_start - operator.t_switch_on,
-            "planner": config.preset,
-            "faults": [{**f.to_dict(), "acted_on": bench.injector.applied[f.name]} for f in faults],
-            "events": controller.events.to_list(t0_s=t_start),
-            # DCT correcting mode (runtime.modes.correcting): how often, and each one's start,
-            # duration, object relabelled fixed (None) and reason.
-            "correcting_events": int(report.get("correcting_events", 0)),
-            "correcting": controller.modes.correcting_report(t0_s=t_start),
-            "controller": report,
-            "sensor_errors": dict(sorted(bench.inbox.error_counts.items())),
-            "firmware_frames_rejected": bench.firmware.frames_rejected,
-            "scenario_warnings": list(world.scenario_warnings),
-            **({"patrol": patrol.report(sim.time_s)} if patrol is not None else {}),
-        },
+        extra=_extra_metrics(ep, report, final_distance),
     )
     result_metrics["failure_reason"] = failure_reason(result_metrics, report)
     return EpisodeResult(
@@ -409,6 +396,47 @@ def _result(bench, sim, parts, operator, config, faults, goal_when_ready, wall) 
         },
         tick_records=telemetry.snapshot(),
     )
+
+
+@dataclass
+class _Episode:
+    """An episode that ran: what its result is read from."""
+
+    bench: _SimulatedBench
+    sim: LockstepSimulation
+    parts: object  # runtime.controller.builder.Assembly
+    operator: _Operator
+    config: ControllerConfig
+    faults: tuple
+    goal_when_ready: bool
+
+
+def _extra_metrics(ep: _Episode, report: dict, final_distance: float) -> dict:
+    bench, sim, operator, controller = ep.bench, ep.sim, ep.operator, ep.parts.controller
+    config, faults, goal_when_ready = ep.config, ep.faults, ep.goal_when_ready
+    world, t_start, patrol = bench.world, operator.clock_start, operator.patrol
+    return {
+        "controller_state": controller.state.name,
+        "stop_reason": controller.stop_reason,
+        "final_distance_to_goal_m": final_distance,
+        "final_pose_world": [float(v) for v in world.robot_pose()],
+        "sim_time_s": sim.time_s - operator.t_switch_on,
+        # the navigation clock: "switch-on" (the goal given at start) or "goal-when-ready"
+        "navigation_clock": "goal-when-ready" if goal_when_ready else "switch-on",
+        "standby_s": t_start - operator.t_switch_on,
+        "planner": config.preset,
+        "faults": [{**f.to_dict(), "acted_on": bench.injector.applied[f.name]} for f in faults],
+        "events": controller.events.to_list(t0_s=t_start),
+        # DCT correcting mode (runtime.modes.correcting): how often, and each one's start,
+        # duration, object relabelled fixed (None) and reason.
+        "correcting_events": int(report.get("correcting_events", 0)),
+        "correcting": controller.modes.correcting_report(t0_s=t_start),
+        "controller": report,
+        "sensor_errors": dict(sorted(bench.inbox.error_counts.items())),
+        "firmware_frames_rejected": bench.firmware.frames_rejected,
+        "scenario_warnings": list(world.scenario_warnings),
+        **({"patrol": patrol.report(sim.time_s)} if patrol is not None else {}),
+    }
 
 
 def failure_reason(metrics: dict, controller: dict) -> str | None:

@@ -27,7 +27,7 @@ def _command_entry_points() -> dict:
 
 #: Commands of this package itself: `dct run` (the controller process, runtime.app.run_process) and
 #: `dct config` (runtime.app.config_cli).
-_RUNTIME_COMMANDS = {"run": "runtime.app.run_process:run_command", "config": "runtime.app.config_cli:config_group"}
+_RUNTIME_COMMANDS = {"run": "runtime.app.run_cli:run_command", "config": "runtime.app.config_cli:config_group"}
 
 
 class _DctGroup(LazyGroup):

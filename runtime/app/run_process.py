@@ -42,7 +42,6 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -266,69 +265,4 @@ def summary_line(s: dict) -> str:
             f"p99 {f(lat, 'p99')} max {f(lat, 'max')} ({lat['count']} frames); deadline misses {rt['deadline_misses']}")
 
 
-def _make_command():
-    import click
-
-    from runtime.config import presets
-
-    class InputError(click.ClickException):
-        exit_code = 2
-
-    @click.command("run")
-    @click.option("--robot", "robot_path", type=click.Path(dir_okay=False, path_type=Path),
-                  help="Robot description YAML (default: the shipped LIMO).")
-    @click.option("--calibration", "calibration_path", type=click.Path(dir_okay=False, path_type=Path),
-                  help="The robot's calibration file (camera intrinsics, wheel odometry); default: nominal values.")
-    @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path),
-                  help="Controller config YAML (default: the shipped one); its ros: and can_bus: sections.")
-    @click.option("--goal", nargs=3, type=float, metavar="X Y YAW",
-                  help="Goal in the odometry frame (m, m, rad). Default: the first PoseStamped on the goal topic.")
-    @click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path),
-                  help="Record the run to this MCAP file (`dct report latency` reads it).")
-    @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
-                  help="Write the run's summary here at exit (state, tick and sensor-to-command latency).")
-    @click.option("--force", is_flag=True, help="Overwrite an existing --record or --json file.")
-    @click.option("--domain-id", type=click.IntRange(0, 232), help="Override ros.inputs.domain_id.")
-    @click.option("--can-interface", type=click.Choice(["socketcan", "limo_serial", "udp_multicast", "virtual"]),
-                  help="Override can_bus.interface (the channel then defaults for it).")
-    @click.option("--can-channel", help="Override can_bus.channel.")
-    @click.option("--can-port", type=click.IntRange(1, 65535), help="Override can_bus.udp_port (udp_multicast).")
-    @click.option("--planner", type=click.Choice(list(presets.PRESETS)), default=None,
-                  help="A preset in place of the config's planner and partition (dct: the MPC on the VLM "
-                       "partition; all-fixed: the MPC on every point; grid-astar: the grid baseline; "
-                       "pure-pursuit: blind, only with --allow-pure-pursuit).")
-    @click.option("--allow-pure-pursuit", is_flag=True,
-                  help="Let planner mode pure-pursuit run: no obstacle awareness (tests and benches only).")
-    @click.option("--normal-priority", is_flag=True,
-                  help="Do not ask for SCHED_FIFO / CPU pinning (config realtime:), e.g. beside a simulator.")
-    @click.option("--goal-wait", "goal_wait_s", type=click.FloatRange(0.0, None),
-                  help="Without --goal: give up after this many seconds without a goal (default: wait).")
-    def run_command(*, robot_path, calibration_path, config_path, goal, record_path, json_path, force, domain_id,
-                    can_interface, can_channel, can_port, goal_wait_s, planner, normal_priority,
-                    allow_pure_pursuit) -> None:
-        """The controller process: sensors over ROS 2 DDS, the base over CAN, the fixed-rate loop on the wall
-        clock until SIGINT/SIGTERM (then: zero command, deactivate, flush, exit 0). Exit 2 on bad input."""
-        for what, p in (("--robot", robot_path), ("--calibration", calibration_path), ("--config", config_path)):
-            if p is not None and not p.is_file():
-                raise InputError(f"{what}: {p}: no such file")
-        opts = RunOptions(robot_path=robot_path, calibration_path=calibration_path, config_path=config_path,
-                          goal=tuple(goal) if goal else None, record_path=record_path, json_path=json_path,
-                          force=force, domain_id=domain_id, can_interface=can_interface, can_channel=can_channel,
-                          can_port=can_port, goal_wait_s=goal_wait_s, planner=planner,
-                          normal_priority=normal_priority, allow_pure_pursuit=allow_pure_pursuit)
-        stop = threading.Event()
-        install_stop_signals(stop)
-        try:
-            loaded = load_inputs(opts)
-            summary = run_controller(opts, loaded, stop, echo=lambda s: click.echo(s, err=True))
-        except RunInputError as exc:
-            raise InputError(str(exc)) from None
-        if summary.get("state") != "NOT_STARTED":
-            click.echo(summary_line(summary), err=True)
-
-    return run_command
-
-
-run_command = _make_command()
-
-__all__ = ["run_command", "run_controller", "load_inputs", "RunOptions", "RunInputError"]
+__all__ = ["install_stop_signals", "run_controller", "summary_line", "load_inputs", "RunOptions", "RunInputError"]

@@ -16,14 +16,10 @@ Its lifecycle is a small state machine:
          +----- E-stop / lost command stream --- HOLDING  (a controlled stop, reason named)
     any state --base fault, remote control, deadline misses (real time), no base--> STOPPED
 
-Goals: the first is given at construction; a new one may come at any time from any source
-through `request_goal` (runtime.controller.goals: validated at once, taken by the next tick's
-read stage). While driving the planner starts afresh towards it (the reference path is searched
-again, per-goal recovery counts restart; the command ramps at the robot's limits, it never
-jumps); at the goal (GOAL_REACHED: waiting for the next goal, a normal idle state with a zero
-command) the robot drives again. A goal within GOAL_SAME_TOLERANCE_M of the current one changes
-nothing (a repeated publication). While holding or starting up the goal is replaced and driven
-to on resuming; a latched stop stays.
+Goals (runtime.controller.goals): a new one may come at any time; the next tick's read stage
+takes it. While driving the planner starts afresh towards it (the command ramps, never jumps); at
+the goal (GOAL_REACHED: an idle state with a zero command) the robot drives again; while holding
+or starting up it is driven to on resuming; a latched stop stays.
 
 "No data" is never "free space": every input has a watchdog (runtime.safety.input_monitor); while
 one fails the robot holds still with the failing inputs named in the event log, and resumes by
