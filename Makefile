@@ -16,8 +16,9 @@ demo: install
 	@mkdir -p out
 	$(VENV)/bin/dct hil run case1 --json out/case1.json
 
+# Two workers: the fast suite in about 6 minutes on 2 cores (docs/testing.md).
 test: install
-	$(VENV)/bin/python -m pytest -q
+	$(VENV)/bin/python -m pytest -q -n 2
 
 install: sysdeps $(STAMP)
 

@@ -10,7 +10,7 @@ from hil_sim.episode.lockstep import run_episode
 from runtime.config import load_controller_config
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_the_robot_passes_through_the_curtain(seed):
     result = run_episode("curtain", seed=seed)
     m = result.metrics
@@ -21,6 +21,7 @@ def test_the_robot_passes_through_the_curtain(seed):
     assert m["navigation_time_s"] < 9.0  # 5 m, 1.65 s of it waiting for the first answer
 
 
+@pytest.mark.slow  # the ablation: what the region model is for
 def test_without_the_region_model_the_curtain_stops_the_robot():
     """The ablation: the same scene with the regions switched off (the curtain a movable object
     like a box, its mask and the tracker) fails: the model is what passes it."""
@@ -31,7 +32,7 @@ def test_without_the_region_model_the_curtain_stops_the_robot():
     assert not m["success"]
 
 
-@pytest.mark.parametrize("seed", [0, 4])
+@pytest.mark.parametrize("seed", [0, pytest.param(4, marks=pytest.mark.slow)])
 def test_a_crate_behind_the_curtain_is_driven_round_never_touched(seed):
     result = run_episode("curtain_crate", seed=seed)
     m = result.metrics

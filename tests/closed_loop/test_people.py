@@ -16,7 +16,8 @@ def _without_prediction():
 
 # (approaching seed 6: head-on at 0.65 m/s, the robot already turned to one side; it was sent to
 # the other and walked into before the way out went to the side it heads to)
-@pytest.mark.parametrize("scene, seed", [("person_crossing", 2), ("person_crossing", 7), ("person_approaching", 15),
+@pytest.mark.parametrize("scene, seed", [("person_crossing", 2), pytest.param("person_crossing", 7, marks=pytest.mark.slow),
+                                         pytest.param("person_approaching", 15, marks=pytest.mark.slow),
                                          ("person_approaching", 6)])
 def test_the_robot_yields_to_a_walking_person_and_reaches_the_goal(scene, seed):
     result = run_episode(scene, seed=seed)
@@ -26,6 +27,7 @@ def test_the_robot_yields_to_a_walking_person_and_reaches_the_goal(scene, seed):
     assert m["controller"]["moving_obstacles"]["conflict_scans"] > 0  # it saw the person coming
 
 
+@pytest.mark.slow  # the ablation: what the prediction is for
 def test_without_the_prediction_the_crossing_person_is_walked_into():
     """The ablation on the same seed: the planner and the supervisor see only where the person
     is, and the robot and the person meet."""

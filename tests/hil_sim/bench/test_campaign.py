@@ -51,6 +51,7 @@ def test_rows_average_over_successes_and_total_the_counts():
     assert none_ok["navigation_time_s"] is None and none_ok["success_rate"] == 0.0
 
 
+@pytest.mark.slow  # (the campaign CLI runs fast in the goal-when-ready test below)
 def test_cli_table_and_json_and_the_same_rows_with_one_or_two_workers(tmp_path):
     out = tmp_path / "t1.json"
     args = ["paper", "--table", "1", "--only", "case1", "--methods", "all-fixed,grid-astar", "--seeds", "1",

@@ -223,6 +223,7 @@ def test_lockstep_patrol_visits_the_goals_in_order_round_twice_deterministically
     assert [e["event"] for e in a["events"]].count("new_goal") == 5
 
 
+@pytest.mark.slow  # (the dct patrol round twice is the fast one)
 def test_lockstep_patrol_all_fixed_reaches_every_goal_in_a_walled_room():
     """The MPC mode with lidar and IMU: one loop of three goals (placed as a localizer would), each
     reached in the world, no contact, the odometry's drift reported per visit."""

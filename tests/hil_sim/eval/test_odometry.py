@@ -108,6 +108,7 @@ def _dct(*args, cwd):
                           capture_output=True, text=True, timeout=600)
 
 
+@pytest.mark.slow  # (the wheel CLI's own end-to-end test is fast: tests/calibration/test_wheel_cli.py)
 def test_record_a_run_calibrate_the_wheels_and_drive_with_them(tmp_path):
     """The chain a user runs: dct odom eval --record -> dct calibrate wheels -> dct hil run
     --calibration. The fit finds the skid-steer's wide effective track; the controller uses it."""
