@@ -176,8 +176,9 @@ class RunRecorder:
         """Write the run's description and return the hook to call after each tick (with the
         tick's telemetry row, outside its stage timings): FixedRateLoop(after_tick=...).
 
-        controller: read after each tick for the pose, the lidar frame it used, P_fix and the plan
-        (any of them may be missing: a loop without them records the tick alone).
+        controller: its published `snapshot` (runtime.controller.snapshot) is read after each tick
+        for the pose, the lidar frame it used, P_fix, the plan and the VLM's answers (a controller
+        without one records the tick alone).
         config: the ControllerConfig (its loop section gives the budgets the report compares to).
         """
         loop = config.loop
@@ -198,45 +199,40 @@ class RunRecorder:
 
         def after_tick(row: np.void) -> None:
             self.ticks_seen += 1
-            pose = getattr(controller, "pose", None)
-            xyyaw = (float(pose.x_m), float(pose.y_m), float(pose.yaw_rad)) if pose is not None else None
-            frame_end = None
-            monitor = getattr(controller, "monitor", None)
-            scan = getattr(monitor, "good_scan", None)
+            snap = getattr(controller, "snapshot", None)
+            xyyaw = frame_end = scan = None
+            if snap is not None:
+                pose, scan = snap.pose, snap.scan
+                xyyaw = (float(pose.x_m), float(pose.y_m), float(pose.yaw_rad))
             if scan is not None:
                 offs = scan.point_time_offsets_s
                 frame_end = float(scan.stamp_s) + (float(offs.max()) if len(offs) else float(scan.frame_duration_s))
             put("tick", ("tick", row.copy(), xyyaw, frame_end))
-            vpp = getattr(controller, "vpp", None)
-            memory = getattr(vpp, "memory", None) if vpp is not None else None
-            stamp = getattr(memory, "last_answer_s", None)
+            stamp = snap.vlm_last_answer_s if snap is not None else None
             if stamp is not None and stamp != self._last_answer_s:
                 self._last_answer_s = stamp
                 t = float(row["scheduled_s"])  # references only: entries and their masks are immutable
-                put("answer", ("answer", t, float(stamp), int(getattr(vpp, "answers", 0)), tuple(memory.entries)))
-            if int(row["tick"]) % every == 0:
-                self._sample_points(controller, row, scan)
+                put("answer", ("answer", t, float(stamp), int(snap.vlm_answers), tuple(snap.vlm_masks)))
+            if int(row["tick"]) % every == 0 and snap is not None:
+                self._sample_points(snap, row)
 
         return after_tick
 
-    def _sample_points(self, controller, row: np.void, scan) -> None:
+    def _sample_points(self, snap, row: np.void) -> None:
+        """P_fix, the partition's P_mov count and a new plan or reference path, from the tick's
+        snapshot (runtime.controller.snapshot)."""
         t_s = float(row["scheduled_s"])
-        points = getattr(controller, "points_fix", None)
-        vpp = getattr(controller, "vpp", None)
-        frame = getattr(vpp, "last_frame", None) if vpp is not None else None
+        frame = snap.partition_frame
         p_mov = frame.movable_count if frame is not None else None
-        returns = int(scan.num_points) if scan is not None else 0
-        fix = np.array(points, dtype=np.float32, copy=True) if points is not None else np.zeros((0, 2), np.float32)
+        returns = int(snap.scan.num_points) if snap.scan is not None else 0
+        fix = np.array(snap.points_fix, dtype=np.float32, copy=True)
         self._put("points", ("points", t_s, int(row["tick"]), returns, fix, p_mov))
-        normal = getattr(getattr(controller, "modes", None), "normal", None)
-        plan = getattr(normal, "last_plan", None)
-        ref = getattr(normal, "last_reference", None)
-        if plan is not None and plan is not self._last_plan or ref is not None and ref is not self._last_reference:
+        plan, path = snap.plan, snap.reference_path
+        if plan is not None and plan is not self._last_plan or path is not None and path is not self._last_reference:
             states = np.array(plan.states, copy=True) if plan is not None and plan is not self._last_plan else None
-            path = getattr(ref, "path_world", None)
-            path = np.array(path, copy=True) if path is not None and ref is not self._last_reference else None
-            self._last_plan, self._last_reference = plan, ref
-            self._put("plan", ("plan", t_s, states, path))
+            copied = np.array(path, copy=True) if path is not None and path is not self._last_reference else None
+            self._last_plan, self._last_reference = plan, path
+            self._put("plan", ("plan", t_s, states, copied))
 
     # ---------------------------------------------------------------- the writer thread
     def _register(self) -> None:

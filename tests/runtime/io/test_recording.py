@@ -240,12 +240,21 @@ def test_not_an_mcap_file_is_refused_in_one_line(tmp_path):
 
 
 class _FakeController:
-    """What the tick hook reads from a controller, without a controller."""
+    """What the tick hook reads from a controller (its published snapshot), without a controller:
+    `vpp` holds the VLM's answer count and mask memory the snapshot carries."""
 
     def __init__(self) -> None:
-        self.pose = SimpleNamespace(x_m=1.0, y_m=2.0, yaw_rad=0.5)
-        self.monitor = SimpleNamespace(good_scan=None)
-        self.points_fix = np.zeros((100, 2))
+        self.vpp = None
+
+    @property
+    def snapshot(self):
+        memory = self.vpp.memory if self.vpp is not None else None
+        return SimpleNamespace(
+            pose=SimpleNamespace(x_m=1.0, y_m=2.0, yaw_rad=0.5), scan=None, points_fix=np.zeros((100, 2)),
+            plan=None, reference_path=None, partition_frame=None,
+            vlm_answers=self.vpp.answers if self.vpp is not None else 0,
+            vlm_last_answer_s=memory.last_answer_s if memory is not None else None,
+            vlm_masks=memory.entries if memory is not None else ())
 
 
 def _rows(n: int) -> list[np.void]:
