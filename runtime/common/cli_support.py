@@ -12,27 +12,13 @@ from pathlib import Path
 
 import click
 
-from calibration.cli_support import OneLineCommand, OneLineError
+from calibration.cli_support import OneLineError
 
 
 class InputError(OneLineError):
     """Bad input (file, option): one line on stderr, exit status 2."""
 
     exit_code = 2
-
-
-class OneLineGroup(click.Group):
-    """A click group whose usage errors (unknown sub-command, ...) are one line too."""
-
-    command_class = OneLineCommand
-
-    def resolve_command(self, ctx: click.Context, args: list[str]):
-        try:
-            return super().resolve_command(ctx, args)
-        except click.UsageError as exc:
-            err = OneLineError(f"{ctx.command_path}: {exc.format_message()} (see --help)")
-            err.exit_code = exc.exit_code
-            raise err from None
 
 
 def checked_output(path: Path | None, what: str, inputs, force: bool) -> None:
@@ -90,4 +76,4 @@ def scenario_evaluator(group: str, name: str, command: str):
                            f"loaded: {exc}") from None
 
 
-__all__ = ["InputError", "OneLineGroup", "ProgressBar", "checked_output", "scenario_evaluator"]
+__all__ = ["InputError", "ProgressBar", "checked_output", "scenario_evaluator"]

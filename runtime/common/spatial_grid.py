@@ -76,6 +76,29 @@ def grid(pts, r, split):  # pragma: no cover - compiled
     return lo, cell, reach, dims, start, order
 
 
+@njit(inline="always")
+def _home_cell(lo, cell, dims, x, y, z):  # pragma: no cover - compiled
+    """The query's cell (clamped to the grid: a query outside is answered from the border cells)."""
+    q0 = min(max(int(math.floor((x - lo[0]) / cell)), 0), dims[0] - 1)
+    q1 = min(max(int(math.floor((y - lo[1]) / cell)), 0), dims[1] - 1)
+    q2 = min(max(int(math.floor((z - lo[2]) / cell)), 0), dims[2] - 1)
+    return q0, q1, q2
+
+
+@njit(inline="always")
+def _cell_id(dims, a, b, c):  # pragma: no cover - compiled
+    return (a * dims[1] + b) * dims[2] + c
+
+
+@njit(inline="always")
+def _d2(pts, j, x, y, z):  # pragma: no cover - compiled
+    """Squared distance from point j to (x, y, z)."""
+    dx = pts[j, 0] - x
+    dy = pts[j, 1] - y
+    dz = pts[j, 2] - z
+    return dx * dx + dy * dy + dz * dz
+
+
 @njit(cache=True, nogil=True)
 def gap2(x, lo, cell, k):  # pragma: no cover - compiled
     """Squared distance along one axis from x to cell k's extent."""
@@ -86,57 +109,6 @@ def gap2(x, lo, cell, k):  # pragma: no cover - compiled
     if x > b:
         return (x - b) * (x - b)
     return 0.0
-
-
-@njit(cache=True, nogil=True)
-def nearest(pts, g, x, y, z, r2):  # pragma: no cover - compiled
-    """(index, squared distance) of the grid's point nearest to (x, y, z) at a squared distance
-    below r2; (-1, inf) when there is none (g: the grid of pts, as `grid` returns it). The query's own cell first, then the cells within
-    reach whose box is nearer than the best so far (exact: a cell is skipped only when none of
-    its points can be nearer). A query outside the grid is clamped to its border cells: a
-    point within r is still within reach of them."""
-    lo, cell, reach, dims, start, order = g
-    q0 = min(max(int(math.floor((x - lo[0]) / cell)), 0), dims[0] - 1)
-    q1 = min(max(int(math.floor((y - lo[1]) / cell)), 0), dims[1] - 1)
-    q2 = min(max(int(math.floor((z - lo[2]) / cell)), 0), dims[2] - 1)
-    best = -1
-    bd = r2
-    cc = (q0 * dims[1] + q1) * dims[2] + q2
-    for s in range(start[cc], start[cc + 1]):
-        j = order[s]
-        dx = pts[j, 0] - x
-        dy = pts[j, 1] - y
-        dz = pts[j, 2] - z
-        d = dx * dx + dy * dy + dz * dz
-        if d < bd:
-            bd = d
-            best = j
-    for a in range(max(q0 - reach, 0), min(q0 + reach + 1, dims[0])):
-        ga = gap2(x, lo[0], cell, a)
-        if ga >= bd:
-            continue
-        for b in range(max(q1 - reach, 0), min(q1 + reach + 1, dims[1])):
-            gb = ga + gap2(y, lo[1], cell, b)
-            if gb >= bd:
-                continue
-            for c in range(max(q2 - reach, 0), min(q2 + reach + 1, dims[2])):
-                if a == q0 and b == q1 and c == q2:
-                    continue
-                if gb + gap2(z, lo[2], cell, c) >= bd:
-                    continue
-                cc = (a * dims[1] + b) * dims[2] + c
-                for s in range(start[cc], start[cc + 1]):
-                    j = order[s]
-                    dx = pts[j, 0] - x
-                    dy = pts[j, 1] - y
-                    dz = pts[j, 2] - z
-                    d = dx * dx + dy * dy + dz * dz
-                    if d < bd:
-                        bd = d
-                        best = j
-    if best < 0:
-        return -1, np.inf
-    return best, bd
 
 
 @njit(cache=True, nogil=True)
@@ -151,20 +123,15 @@ def near_any(query, ref, r):  # pragma: no cover - compiled
         x = query[i, 0]
         y = query[i, 1]
         z = query[i, 2]
-        q0 = min(max(int(math.floor((x - lo[0]) / cell)), 0), dims[0] - 1)
-        q1 = min(max(int(math.floor((y - lo[1]) / cell)), 0), dims[1] - 1)
-        q2 = min(max(int(math.floor((z - lo[2]) / cell)), 0), dims[2] - 1)
+        q0, q1, q2 = _home_cell(lo, cell, dims, x, y, z)
         hit = False
         for a in range(max(q0 - reach, 0), min(q0 + reach + 1, dims[0])):
             for b in range(max(q1 - reach, 0), min(q1 + reach + 1, dims[1])):
                 for c in range(max(q2 - reach, 0), min(q2 + reach + 1, dims[2])):
-                    cc = (a * dims[1] + b) * dims[2] + c
+                    cc = _cell_id(dims, a, b, c)
                     for s in range(start[cc], start[cc + 1]):
                         j = order[s]
-                        dx = ref[j, 0] - x
-                        dy = ref[j, 1] - y
-                        dz = ref[j, 2] - z
-                        if dx * dx + dy * dy + dz * dz < r2:
+                        if _d2(ref, j, x, y, z) < r2:
                             hit = True
                             break
                     if hit:
@@ -177,45 +144,69 @@ def near_any(query, ref, r):  # pragma: no cover - compiled
     return out
 
 
-@njit(cache=True, nogil=True)
-def any_within(pts, g, x, y, z, r2):  # pragma: no cover - compiled
-    """Whether a grid point lies at a squared distance below r2 from (x, y, z) (g: the grid of
-    pts): nearest's answer (j >= 0) without the search for the nearest: the query's own cell
-    first (on a template's surface it mostly holds one: a pushed box's points each stop at
-    their first), then the others within reach, stopping at the first. Written out beside
-    nearest, not as nearest with a stop-at-first flag, which is slower
-    (docs/decisions/vpp-compiled-kernels.md)."""
-    lo, cell, reach, dims, start, order = g
-    q0 = min(max(int(math.floor((x - lo[0]) / cell)), 0), dims[0] - 1)
-    q1 = min(max(int(math.floor((y - lo[1]) / cell)), 0), dims[1] - 1)
-    q2 = min(max(int(math.floor((z - lo[2]) / cell)), 0), dims[2] - 1)
-    cc = (q0 * dims[1] + q1) * dims[2] + q2
+@njit(inline="always")
+def _scan_cell(pts, cells, cc, q, found, first):  # pragma: no cover - compiled
+    """The points of cell cc (cells: the grid's (start, order)) nearer to q than the best so far
+    (found: (index, squared distance)); with `first`, the first such point."""
+    start, order = cells
+    best, bd = found
+    x, y, z = q
     for s in range(start[cc], start[cc + 1]):
         j = order[s]
-        dx = pts[j, 0] - x
-        dy = pts[j, 1] - y
-        dz = pts[j, 2] - z
-        if dx * dx + dy * dy + dz * dz < r2:
-            return True
+        d = _d2(pts, j, x, y, z)
+        if d < bd:
+            bd = d
+            best = j
+            if first:
+                return best, bd
+    return best, bd
+
+
+@njit(inline="always")
+def _search(pts, g, x, y, z, r2, first):  # pragma: no cover - compiled
+    """nearest's search; with `first` (a constant where it is inlined: the branch compiles away)
+    it returns at the first point below r2, before which its pruning bound is r2 itself, so that
+    any_within visits the cells nearest would until the first hit."""
+    lo, cell, reach, dims, start, order = g
+    q0, q1, q2 = _home_cell(lo, cell, dims, x, y, z)
+    cells, q = (start, order), (x, y, z)
+    best, bd = _scan_cell(pts, cells, _cell_id(dims, q0, q1, q2), q, (-1, r2), first)
+    if first and best >= 0:
+        return best, bd
     for a in range(max(q0 - reach, 0), min(q0 + reach + 1, dims[0])):
         ga = gap2(x, lo[0], cell, a)
-        if ga >= r2:
+        if ga >= bd:
             continue
         for b in range(max(q1 - reach, 0), min(q1 + reach + 1, dims[1])):
             gb = ga + gap2(y, lo[1], cell, b)
-            if gb >= r2:
+            if gb >= bd:
                 continue
             for c in range(max(q2 - reach, 0), min(q2 + reach + 1, dims[2])):
                 if a == q0 and b == q1 and c == q2:
                     continue
-                if gb + gap2(z, lo[2], cell, c) >= r2:
+                if gb + gap2(z, lo[2], cell, c) >= bd:
                     continue
-                cc = (a * dims[1] + b) * dims[2] + c
-                for s in range(start[cc], start[cc + 1]):
-                    j = order[s]
-                    dx = pts[j, 0] - x
-                    dy = pts[j, 1] - y
-                    dz = pts[j, 2] - z
-                    if dx * dx + dy * dy + dz * dz < r2:
-                        return True
-    return False
+                best, bd = _scan_cell(pts, cells, _cell_id(dims, a, b, c), q, (best, bd), first)
+                if first and best >= 0:
+                    return best, bd
+    if best < 0:
+        return -1, np.inf
+    return best, bd
+
+
+@njit(cache=True, nogil=True)
+def nearest(pts, g, x, y, z, r2):  # pragma: no cover - compiled
+    """(index, squared distance) of the grid's point nearest to (x, y, z) at a squared distance
+    below r2; (-1, inf) when there is none (g: the grid of pts, as `grid` returns it). The query's own cell first, then the cells within
+    reach whose box is nearer than the best so far (exact: a cell is skipped only when none of
+    its points can be nearer). A query outside the grid is clamped to its border cells: a
+    point within r is still within reach of them."""
+    return _search(pts, g, x, y, z, r2, False)
+
+
+@njit(cache=True, nogil=True)
+def any_within(pts, g, x, y, z, r2):  # pragma: no cover - compiled
+    """Whether a grid point lies at a squared distance below r2 from (x, y, z) (g: the grid of
+    pts): nearest's search stopping at the first point found (the query's own cell first: on a
+    template's surface it mostly holds one, so a pushed box's points each stop there)."""
+    return _search(pts, g, x, y, z, r2, True)[0] >= 0

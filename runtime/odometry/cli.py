@@ -19,7 +19,8 @@ from pathlib import Path
 
 import click
 
-from runtime.common.cli_support import InputError, OneLineGroup, scenario_evaluator
+from calibration.cli_support import OneLineGroup
+from runtime.common.cli_support import InputError, scenario_evaluator
 from runtime.common.cli_support import ProgressBar as _Bar
 from runtime.common.cli_support import checked_output as _checked_output
 

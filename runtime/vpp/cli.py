@@ -14,7 +14,8 @@ from pathlib import Path
 
 import click
 
-from runtime.common.cli_support import InputError, OneLineGroup, ProgressBar, checked_output, scenario_evaluator
+from calibration.cli_support import OneLineGroup
+from runtime.common.cli_support import InputError, ProgressBar, checked_output, scenario_evaluator
 
 SCENARIO_EVAL_GROUP = "dct.vpp_scenario"
 SCENARIO_EVAL_NAME = "evaluate"

@@ -46,6 +46,18 @@ def _voxel_keys(pts, inv, sel):  # pragma: no cover - compiled
     return out
 
 
+@njit(inline="always")
+def rigid_point(p, i, T):  # pragma: no cover - compiled
+    """Point i of p (as float64) and T (4x4) applied to it: (x, y, z, X, Y, Z)."""
+    x = np.float64(p[i, 0])
+    y = np.float64(p[i, 1])
+    z = np.float64(p[i, 2])
+    X = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+    Y = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+    Z = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+    return x, y, z, X, Y, Z
+
+
 @njit(cache=True, nogil=True)
 def odom_keys(p, T, inv, ground, out):  # pragma: no cover - compiled
     """out[i] = the voxel key of point i carried to the odom frame by T (as
@@ -54,12 +66,7 @@ def odom_keys(p, T, inv, ground, out):  # pragma: no cover - compiled
         if ground[i]:
             out[i] = EMPTY
             continue
-        x = np.float64(p[i, 0])
-        y = np.float64(p[i, 1])
-        z = np.float64(p[i, 2])
-        X = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
-        Y = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
-        Z = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        _, _, _, X, Y, Z = rigid_point(p, i, T)
         out[i] = memory_voxel_key(X, Y, Z, inv)
 
 

@@ -31,7 +31,7 @@ from numba import njit
 from calibration.camera_model import CameraModel
 from calibration.lens import project_normalized
 from runtime.vpp.partition.inputs import check_points, check_transform, fail
-from runtime.vpp.partition.label_memory import memory_voxel_key
+from runtime.vpp.partition.label_memory import memory_voxel_key, rigid_point
 from runtime.vpp.voxel_hash import EMPTY
 
 EYE4 = np.eye(4)
@@ -83,12 +83,7 @@ def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  #
     rays, rbox, cand, ray = candidates
     k = 0
     for i in range(p.shape[0]):
-        x = np.float64(p[i, 0])
-        y = np.float64(p[i, 1])
-        z = np.float64(p[i, 2])
-        X = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
-        Y = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
-        Z = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        x, y, z, X, Y, Z = rigid_point(p, i, T)
         p_cam[i, 0] = X
         p_cam[i, 1] = Y
         p_cam[i, 2] = Z

@@ -9,7 +9,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration.errors import ConfigFileError
-from calibration.robot_description import load_robot_description
 from hil_sim.world.footprints import obstacle_footprint, robot_footprint_at, signed_gap_m
 from hil_sim.world.scenario import Scenario, list_scenarios, load_scenario
 from hil_sim.world.scenario_checks import (
@@ -19,21 +18,8 @@ from hil_sim.world.scenario_checks import (
     route_clearances,
 )
 from hil_sim.world.scenario_objects import Pose2D
+from tests.hil_sim.world.test_scenario import BOX, MINIMAL, ROBOT
 
-ROBOT = load_robot_description()
-WIDTH = ROBOT.footprint.width_m
-
-MINIMAL = {
-    "name": "mini",
-    "floor": {"size_m": [4.0, 4.0], "friction": 0.8},
-    "robot": {"start": {"x_m": -1.0, "y_m": 0.0}},
-    "goal": {"pose": {"x_m": 1.0, "y_m": 0.0}, "tolerance_m": 0.1},
-    "time_limit_s": 10.0,
-}
-BOX = {
-    "name": "b", "shape": "box", "size": {"xyz_m": [0.4, 0.4, 0.4]},
-    "pose": {"x_m": 0.0, "y_m": 0.0}, "class": "movable", "mass_kg": 1.0, "friction": 0.5,
-}
 
 
 # --- The scenario against the robot: start, goal, visibility ---------------------------------
