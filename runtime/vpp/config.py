@@ -2,7 +2,7 @@
 parts (mask memory, partition, tracking, deformable regions, belief, backend runner)."""
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from models.vlm.runner import BackendRunnerConfig
 from runtime.vpp.belief import BeliefConfig
@@ -47,6 +47,13 @@ class VppConfig(BaseModel):
     memory: MaskMemoryConfig = MaskMemoryConfig()
     partition: PartitionConfig = PartitionConfig()
     runner: BackendRunnerConfig = BackendRunnerConfig()
+
+    @model_validator(mode="after")
+    def _runner_clock_is_the_controllers(self) -> "VppConfig":
+        if "clock" in self.runner.model_fields_set:
+            raise ValueError("vpp.runner.clock is the controller's (lockstep in the simulator, realtime on the "
+                             "robot), not a setting: remove it")
+        return self
 
 
 __all__ = ["DEFAULT_PROMPT", "VppConfig"]

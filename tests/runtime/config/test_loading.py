@@ -43,6 +43,7 @@ def test_the_default_is_the_dct_preset():
     ({"planner": {"mode": "dct", "algorithm": "grid-astar"}}, ("planner.mode", "planner.algorithm")),
     ({"planner": {"mode": "all-fixed"}, "partition": "vpp"}, ("planner.mode", "partition")),
     ({"recovery": {"backoff_speed_mps": 0.5}}, ("recovery.backoff_speed_mps", "planner.mpc.max_reverse_speed_mps")),
+    ({"vpp": {"runner": {"clock": "realtime"}}}, ("vpp.runner.clock",)),  # the controller's, never replaced
 ])
 def test_settings_that_disagree_are_one_line_naming_both(tmp_path, doc, both):
     with pytest.raises(ConfigFileError) as e:
