@@ -101,8 +101,9 @@ def _reference_project(cam: CameraModel, p: np.ndarray) -> tuple[np.ndarray, np.
     uv = np.empty((n, 2))
     z = p[:, 2]
     valid = (z > 1e-9) & (z < np.inf)
-    np.divide(p[:, 0], z, out=x, where=valid)
-    np.divide(p[:, 1], z, out=y, where=valid)
+    with np.errstate(over="ignore"):  # a tiny z may overflow float32 points: those fail r2_max below
+        np.divide(p[:, 0], z, out=x, where=valid)
+        np.divide(p[:, 1], z, out=y, where=valid)
     x[~valid] = 0.0
     y[~valid] = 0.0
     np.multiply(x, x, out=r2)
