@@ -41,11 +41,17 @@ def label(algorithm: str, partition: str) -> str:
 
 
 def resolve(mode: str | None, algorithm: str | None, partition: str | None) -> tuple[str, str]:
-    """(algorithm, partition) from what the config set: a preset fills what is unset; a preset and
-    a setting that disagree are an error naming both fields (ValueError)."""
+    """(algorithm, partition) from what the config set: a preset fills what is unset (no preset:
+    the default's planner, and the partition that goes with the planner); a preset and a setting
+    that disagree are an error naming both fields (ValueError)."""
     if mode is None:
-        default_algorithm, default_partition = PRESETS[DEFAULT_PRESET]
-        return algorithm or default_algorithm, partition or default_partition
+        # Unset: the default preset's planner, and the partition of the first preset with that
+        # planner (grid-astar alone is the grid-astar preset, mpc alone is dct).
+        algorithm = algorithm or PRESETS[DEFAULT_PRESET][0]
+        if partition is None:
+            partition = next((pair[1] for pair in PRESETS.values() if pair[0] == algorithm),
+                             PRESETS[DEFAULT_PRESET][1])
+        return algorithm, partition
     if mode not in PRESETS:
         raise ValueError(f"planner.mode: unknown preset {mode!r}; known: {', '.join(PRESETS)}")
     preset_algorithm, preset_partition = PRESETS[mode]

@@ -214,9 +214,9 @@ class ControllerConfig(_Strict):
                 raise ValueError(f"{name} ({v}) exceeds planner.mpc.max_reverse_speed_mps ({reverse}), the MPC's "
                                  "reverse speed bound: lower it or raise the bound")
         algorithm, partition = presets.resolve(self.planner.mode, self.planner.algorithm, self.partition)
-        if algorithm == "pure-pursuit" and partition != "all-fixed":
-            raise ValueError(f"planner.algorithm pure-pursuit reads no sensors: partition {partition} needs the lidar "
-                             "(use partition all-fixed)")
+        if not planner_spec(algorithm).uses_lidar and partition_spec(partition).uses_camera:
+            raise ValueError(f"planner.algorithm {algorithm} reads no sensors: partition {partition} needs the lidar "
+                             "and the camera (use partition all-fixed)")
         planner = self.planner.model_copy(update={"algorithm": algorithm,
                                                   "mode": presets.preset_of(algorithm, partition)})
         return self.model_copy(update={"planner": planner, "partition": partition,

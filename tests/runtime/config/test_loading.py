@@ -34,6 +34,13 @@ def test_the_two_settings_alone_make_a_pair_no_preset_names(tmp_path):
     assert c.preset == "grid-astar+vpp" and c.uses_camera and not c.uses_distance_net
 
 
+@pytest.mark.parametrize("algorithm, preset", [("grid-astar", "grid-astar"), ("pure-pursuit", "pure-pursuit"),
+                                               ("mpc", "dct")])
+def test_a_planner_alone_takes_the_partition_of_its_preset(tmp_path, algorithm, preset):
+    c = load_controller_config(_write(tmp_path, {"planner": {"algorithm": algorithm}}))
+    assert c.planner.algorithm == algorithm and c.preset == preset
+
+
 def test_the_default_is_the_dct_preset():
     c = load_controller_config()
     assert (c.planner.mode, c.planner.algorithm, c.partition) == ("dct", "mpc", "vpp")
@@ -43,6 +50,7 @@ def test_the_default_is_the_dct_preset():
     ({"planner": {"mode": "dct", "algorithm": "grid-astar"}}, ("planner.mode", "planner.algorithm")),
     ({"planner": {"mode": "all-fixed"}, "partition": "vpp"}, ("planner.mode", "partition")),
     ({"recovery": {"backoff_speed_mps": 0.5}}, ("recovery.backoff_speed_mps", "planner.mpc.max_reverse_speed_mps")),
+    ({"planner": {"algorithm": "pure-pursuit"}, "partition": "vpp"}, ("planner.algorithm", "partition")),
     ({"vpp": {"runner": {"clock": "realtime"}}}, ("vpp.runner.clock",)),  # the controller's, never replaced
 ])
 def test_settings_that_disagree_are_one_line_naming_both(tmp_path, doc, both):
