@@ -130,7 +130,7 @@ def _load_run(*, scenario: str, seed: int, config_path: Path | None, robot_path:
     from hil_sim.episode.patrol import PatrolError, with_duration
     from hil_sim.world.scenario import load_scenario
     from hil_sim.world.scenario_checks import check_scenario_against_robot
-    from runtime.config import load_controller_config
+    from runtime.config import check_against_robot, load_controller_config
 
     try:
         faults = [FaultSpec.parse(t) for t in fault_texts]
@@ -140,6 +140,10 @@ def _load_run(*, scenario: str, seed: int, config_path: Path | None, robot_path:
         config = load_controller_config(config_path)
         if planner is not None:
             config = config.with_planner_mode(planner)
+        try:
+            check_against_robot(config, robot)
+        except ValueError as exc:
+            raise InputError(f"{config_path or 'the shipped controller config'}: {exc}") from None
         wheel_calibration, camera_calibration = _load_calibration(calibration_path, robot)
         warnings = check_scenario_against_robot(
             sc, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m

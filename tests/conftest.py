@@ -13,7 +13,12 @@ def pytest_collection_modifyitems(config, items):
     shard = os.environ.get("DCT_SLOW_SHARD")
     if not shard:
         return
-    i, n = (int(v) for v in shard.split("/"))
+    try:
+        i, n = (int(v) for v in shard.split("/"))
+    except ValueError:
+        raise SystemExit(f"DCT_SLOW_SHARD={shard!r}: expected i/n (two whole numbers)") from None
+    if not 0 <= i < n:
+        raise SystemExit(f"DCT_SLOW_SHARD={shard!r}: the shard i must be in 0..n-1")
     keep, drop = [], []
     for item in items:
         if item.get_closest_marker("slow") is not None and zlib.crc32(item.nodeid.encode()) % n != i:

@@ -163,7 +163,7 @@ def goal_in_odom_frame(scenario: Scenario) -> Pose2D:
     return start.inverse().compose(goal)
 
 
-# (Long for the documentation of its sixteen keyword options; the body is about 30 lines.)
+# (Long for the documentation of its sixteen keyword options; the body is about 40 lines.)
 def run_episode(
     scenario: Scenario | str,
     *,
@@ -230,13 +230,18 @@ def run_episode(
     controller = parts.controller
     clock.barriers.append(controller.odometry)
     clock.barriers.append(controller)  # the VLM answers due (the vpp partition; nothing otherwise)
-    if recorder is not None:
-        parts.loop.after_tick = recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed,
-                                                                      "clock": "lockstep"})
     operator = _Operator(sim, controller, scenario, settle_s, progress, observe)
+
+    def before() -> None:  # inside the run's clean-up: a harness that fails here closes everything
+        if recorder is not None:
+            parts.loop.after_tick = recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed,
+                                                                          "clock": "lockstep"})
+        if on_start is not None:
+            on_start(sim, controller)
+
     wall0 = time.perf_counter()
     try:
-        parts.run(operator.should_stop, before=(lambda: on_start(sim, controller)) if on_start is not None else None)
+        parts.run(operator.should_stop, before=before)
     finally:
         sim.advance_to(sim.time_s + 0.02)  # let the firmware consume the final zero command
         bench.close()
@@ -275,16 +280,22 @@ class _SimulatedBench:
         world.reset(seed)
         metrics = EpisodeMetrics(world, scenario, seed)
         controller_bus, sim_bus = virtual_bus_pair()
-        firmware = EmulatedBaseFirmware(sim_bus, robot)
-        inbox = SensorInbox()
-        injector = FaultInjector(
-            faults, firmware, inbox, start_s=world.time_s,
-            far_m=config.planner.obstacle_points.max_range_m + 4.0,
-        )
-        if sensors is None:
-            sensors = config.uses_lidar
-        has_sensors = sensors is not False
-        devices = [_sensor_rig(world, robot, config, injector, sensors, seed, camera_calibration)] if has_sensors else []
+        try:  # a device that cannot be built must not leave the buses open
+            firmware = EmulatedBaseFirmware(sim_bus, robot)
+            inbox = SensorInbox()
+            injector = FaultInjector(
+                faults, firmware, inbox, start_s=world.time_s,
+                far_m=config.planner.obstacle_points.max_range_m + 4.0,
+            )
+            if sensors is None:
+                sensors = config.uses_lidar
+            has_sensors = sensors is not False
+            devices = ([_sensor_rig(world, robot, config, injector, sensors, seed, camera_calibration)]
+                       if has_sensors else [])
+        except BaseException:
+            controller_bus.shutdown()
+            sim_bus.shutdown()
+            raise
         return cls(world, metrics, controller_bus, sim_bus, firmware, inbox, injector, devices, has_sensors)
 
     def close(self) -> None:

@@ -64,7 +64,9 @@ class BackendRunnerConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    clock: Literal["lockstep", "realtime"] = "lockstep"
+    #: Set by the controller (lockstep in the simulator, realtime on the robot); not in dumps, so
+    #: that a dumped controller config loads again (runtime.vpp.config refuses it from a file).
+    clock: Literal["lockstep", "realtime"] = Field("lockstep", exclude=True)
     #: Seconds from start to delivery (simulated in lockstep; a minimum in real time). None: the
     #: backend's own `latency_s` attribute (the sim-oracle's), else 0.
     latency_s: float | None = Field(None, ge=0.0, le=120.0)

@@ -128,7 +128,9 @@ def _check_planner(config, robot, opts: RunOptions, cfg_name: str) -> None:
                             "the goal through whatever is there): only with --allow-pure-pursuit, never on a robot "
                             "among people")
     if config.uses_vlm_backend and config.vpp.backend.kind == "sim-oracle":
-        raise RunInputError(f"{cfg_name}: planner.mode {config.preset} with vpp.backend.kind sim-oracle: the "
+        choice = (f"planner.mode {config.planner.mode}" if config.planner.mode is not None
+                  else f"partition {config.partition}")
+        raise RunInputError(f"{cfg_name}: {choice} with vpp.backend.kind sim-oracle: the "
                             f"{config.partition} partition's sim-oracle exists only inside the lockstep simulator's "
                             "process; set vpp.backend.kind: openai-compatible (docs/algorithms/vpp.md, backends) or "
                             "run --planner all-fixed")

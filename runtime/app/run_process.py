@@ -50,7 +50,7 @@ from runtime.loop.clocks import EpochMonotonicClock
 
 
 class _StoppedBeforeStart(Exception):
-    """SIGINT/SIGTERM while waiting for the first goal: nothing to stop, exit 0."""
+    """SIGINT/SIGTERM before the base was enabled (waiting for a goal, or during start-up): exit 0."""
 
 
 def _percentiles(values_s: np.ndarray) -> dict:
@@ -125,22 +125,23 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
             recorder.close()
         raise RunInputError(f"{opts.config_path or 'the shipped controller config'}: can_bus: {exc}") from None
     ros = loaded.config.ros
-    participant = DomainParticipant(ros.inputs.domain_id)
     inbox = SensorInbox()
-    receiver = RosSensorReceiver(ros.inputs, inbox, camera_K=loaded.camera_K, camera_distortion=loaded.camera_dist,
-                                 participant=participant)
-    publisher = RosPublisher(participant, ros.outputs)
-    receiver.start()
     # systemd (the deploy bundle's unit: Type=notify, WatchdogSec): ready once inputs are up, a
     # watchdog ping every tick and while waiting for a goal; a no-op outside systemd.
     notifier = SystemdNotifier()
-    notifier.ready()
+    receiver = publisher = None
     summary: dict = {"pid": None}
     try:
+        participant = DomainParticipant(ros.inputs.domain_id)
+        receiver = RosSensorReceiver(ros.inputs, inbox, camera_K=loaded.camera_K,
+                                     camera_distortion=loaded.camera_dist, participant=participant)
+        publisher = RosPublisher(participant, ros.outputs)
+        receiver.start()
+        notifier.ready()
         goal = _wait_for_goal(opts, ros, receiver, notifier, stop, echo)
         summary = _drive(opts, loaded, goal, (bus, inbox, receiver, publisher, recorder, notifier), stop, echo)
     except _StoppedBeforeStart:
-        echo("dct run: stopped before any goal arrived; the base was never enabled")
+        echo("dct run: stopped before the start (waiting for a goal, or during the start-up work); the base was never enabled")
         summary = {"state": "NOT_STARTED"}
     finally:
         _shut_down(summary, receiver, publisher, recorder, bus, notifier)
@@ -169,6 +170,9 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
                    if recorder is not None else None)
     observer = RunObserver(parts, config.ros, publisher, receiver, notifier, echo, record_hook)
     parts.loop.after_tick = observer
+    if stop.is_set():  # SIGINT/SIGTERM during the start-up work: the base is never enabled
+        parts.controller.partition.close()
+        raise _StoppedBeforeStart
     echo(f"dct run: goal {goal[0]:.3f} {goal[1]:.3f} {goal[2]:.3f} (odom frame); bus "
          f"{loaded.bus_config.interface}:{loaded.bus_config.channel}; DDS domain {config.ros.inputs.domain_id}; "
          f"planner {config.preset}")
@@ -223,12 +227,14 @@ def _shut_down(summary: dict, receiver, publisher, recorder, bus, notifier) -> N
     the others (the recording's rename, the bus) nor hide the error that brought us here."""
     notifier.stopping()
     cleanup_errors = []
-    for name, step in (("receiver", receiver.stop), ("publisher", publisher.close)):
+    for name, part, step in (("receiver", receiver, "stop"), ("publisher", publisher, "close")):
+        if part is None:  # (DDS did not come up)
+            continue
         try:
-            step()
+            getattr(part, step)()
         except Exception as exc:  # noqa: BLE001 - recorded in the summary
             cleanup_errors.append(f"{name}: {type(exc).__name__}: {exc}")
-    if summary.get("state") is not None:
+    if summary.get("state") is not None and publisher is not None:
         summary["publisher"] = publisher.stats()
     if recorder is not None:
         try:

@@ -13,7 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-_SOURCE = Path(__file__).resolve().parents[2]  # the checkout this code runs from (if any)
+_SOURCE = Path(__file__).resolve().parents[2]  # the checkout this code runs from, when it is one
 
 
 def provenance(argv: list[str] | None = None) -> dict:
@@ -47,12 +47,15 @@ def machine() -> dict:
 
 def _git_commit() -> str | None:
     """The source checkout's commit (with `-dirty` when it has uncommitted changes); None outside one."""
+    pyproject = _SOURCE / "pyproject.toml"
     try:
+        if not pyproject.is_file() or 'name = "dct-controller"' not in pyproject.read_text(encoding="utf-8"):
+            return None  # an installed copy, not a checkout: no commit to name
         rev = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=_SOURCE, capture_output=True,
                              text=True, timeout=5)
         if rev.returncode != 0:
             return None
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=_SOURCE,
+        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=_SOURCE,
                                capture_output=True, text=True, timeout=5).stdout.strip()
         return rev.stdout.strip() + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):

@@ -27,9 +27,6 @@ from runtime.config.schema import DERIVED, ControllerConfig
 #: Keys that say which kind of thing a mapping describes: a change of kind replaces the mapping.
 KIND_KEYS = ("kind", "interface", "type")
 
-#: Fields the controller sets when it starts, whatever the file says (a file may not set them).
-SET_AT_START = {"vpp.runner.clock": "set at start: lockstep in the simulator, realtime on the robot"}
-
 SHIPPED = "shipped default"
 BUILT_IN = "built-in default"
 PRESET = "preset"
@@ -109,11 +106,9 @@ def config_sources(path: str | Path | None = None,
     for field, value in _leaves(config.model_dump(mode="json")):
         if overrides and field in overrides:
             source = overrides[field]
-        elif field in SET_AT_START:
-            source = SET_AT_START[field]
         elif user is not None and _has(user, field):
             source = str(path)
-        elif _has(shipped, field):
+        elif _has(merged, field):  # (not the shipped one when the user's mapping replaced it)
             source = SHIPPED
         elif field in preset_fields and not _has(merged, field):
             source = f"{PRESET} {config.preset}" if field != "planner.mode" else "the pair's preset name"

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from models.vlm.factory import BackendConfig, SimOracleBackendConfig
 from runtime.safety.input_monitor import InputsConfig
@@ -33,6 +33,7 @@ from runtime.io.ros.settings import RosConfig
 
 #: Fields computed from another when the user leaves them unset: field -> the field it comes from.
 DERIVED = {
+    "planner.mpc.tick_period_s": "loop.period_s",
     "moving_obstacles.range_m": "planner.obstacle_points.max_range_m",
     "moving_obstacles.cruise_speed_mps": "planner.reference_path.target_speed_mps",
 }
@@ -116,6 +117,14 @@ class PlannerConfig(_Strict):
     obstacle_points: ObstaclePointsConfig = ObstaclePointsConfig()
     mpc: MpcConfig = MpcConfig()
     reference_path: ReferencePathConfig = ReferencePathConfig()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _moved_sections(cls, data):
+        if isinstance(data, dict) and "safety_supervisor" in data:
+            raise ValueError("safety_supervisor moved out of planner: set it at the top level (the supervisor is "
+                             "the controller's, whatever the planner)")
+        return data
 
     @field_validator("mode")
     @classmethod
@@ -203,10 +212,16 @@ class ControllerConfig(_Strict):
 
     @model_validator(mode="after")
     def _resolve(self) -> "ControllerConfig":
-        if abs(self.planner.mpc.tick_period_s - self.loop.period_s) > 1e-9:
-            raise ValueError(
-                f"planner.mpc.tick_period_s ({self.planner.mpc.tick_period_s}) must equal loop.period_s ({self.loop.period_s})"
-            )
+        mpc = self.planner.mpc
+        if "tick_period_s" not in mpc.model_fields_set:  # derived: the MPC shifts its plan by one tick
+            try:
+                mpc = MpcConfig.model_validate({**mpc.model_dump(), "tick_period_s": self.loop.period_s})
+            except ValidationError as exc:
+                raise ValueError(f"planner.mpc (tick_period_s derived from loop.period_s {self.loop.period_s}): "
+                                 f"{exc.errors()[0]['msg']}") from None
+        elif abs(mpc.tick_period_s - self.loop.period_s) > 1e-9:
+            raise ValueError(f"planner.mpc.tick_period_s ({mpc.tick_period_s}) must equal loop.period_s "
+                             f"({self.loop.period_s}): leave it unset, it follows loop.period_s")
         reverse = self.planner.mpc.max_reverse_speed_mps
         for name, v in (("recovery.backoff_speed_mps", self.recovery.backoff_speed_mps),
                         ("correcting.v_rev_mps", self.correcting.v_rev_mps)):
@@ -217,7 +232,7 @@ class ControllerConfig(_Strict):
         if not planner_spec(algorithm).uses_lidar and partition_spec(partition).uses_camera:
             raise ValueError(f"planner.algorithm {algorithm} reads no sensors: partition {partition} needs the lidar "
                              "and the camera (use partition all-fixed)")
-        planner = self.planner.model_copy(update={"algorithm": algorithm,
+        planner = self.planner.model_copy(update={"algorithm": algorithm, "mpc": mpc,
                                                   "mode": presets.preset_of(algorithm, partition)})
         return self.model_copy(update={"planner": planner, "partition": partition,
                                        "moving_obstacles": self._derived_moving_obstacles()})
@@ -228,10 +243,21 @@ class ControllerConfig(_Strict):
         mo = self.moving_obstacles
         update = {}
         for field, source in DERIVED.items():
-            section, name = field.split(".")
+            section, _, name = field.partition(".")
             if section == "moving_obstacles" and getattr(mo, name) is None:
                 update[name] = _get(self, source)
-        return mo.model_copy(update=update) if update else mo
+        try:
+            mo = MovingObstaclesConfig.model_validate({**mo.model_dump(), **update}) if update else mo
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            field = f"moving_obstacles.{err['loc'][0]}"
+            raise ValueError(f"{field} (derived from {DERIVED.get(field, 'another field')}, "
+                             f"{err['input']!r}): {err['msg']}") from None
+        op_range = self.planner.obstacle_points.max_range_m
+        if mo.range_m > op_range:
+            raise ValueError(f"moving_obstacles.range_m ({mo.range_m}) exceeds planner.obstacle_points.max_range_m "
+                             f"({op_range}): people are followed within the obstacle points' range, no farther")
+        return mo
 
     @property
     def preset(self) -> str:
@@ -273,11 +299,13 @@ class ControllerConfig(_Strict):
 
 
 def check_against_robot(config: ControllerConfig, robot) -> None:
-    """The settings that must fit the robot description (ValueError naming both fields): the
-    path followers' target speeds within the robot's top speed."""
+    """The settings that must fit the robot description (ValueError, one line naming both
+    fields): the active planner's path follower's target speed within the robot's top speed."""
+    section = planner_spec(config.planner.algorithm).follower_section
+    if section is None:
+        return
     top = robot.limits.max_linear_speed_mps
-    for name, v in (("planner.pure_pursuit.target_speed_mps", config.planner.pure_pursuit.target_speed_mps),
-                    ("planner.grid_astar.target_speed_mps", config.planner.grid_astar.target_speed_mps)):
-        if v > top:
-            raise ValueError(f"{name} ({v}) exceeds the robot's limits.max_linear_speed_mps ({top}) "
-                             f"({robot.name}): lower it")
+    v = getattr(config.planner, section).target_speed_mps
+    if v > top:
+        raise ValueError(f"planner.{section}.target_speed_mps ({v}) exceeds the robot's limits.max_linear_speed_mps "
+                         f"({top}, {robot.name}): lower it")

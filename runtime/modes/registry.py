@@ -23,15 +23,19 @@ class PlannerSpec:
     #: Needs the distance net for the robot's footprint (checked at start-up).
     uses_distance_net: bool
     summary: str
+    #: Its path follower's section of `planner:` (target speed within the robot's), None: none.
+    follower_section: str | None = None
 
 
 PLANNERS = {
     "mpc": PlannerSpec("runtime.modes.mpc", uses_lidar=True, uses_distance_net=True,
                        summary="reference path, then the OSQP MPC with the distance net's collision rows"),
     "grid-astar": PlannerSpec("runtime.modes.grid_astar", uses_lidar=True, uses_distance_net=False,
-                              summary="inflated occupancy grid, A*, pure pursuit (the Ellis22-like baseline)"),
+                              summary="inflated occupancy grid, A*, pure pursuit (the Ellis22-like baseline)",
+                              follower_section="grid_astar"),
     "pure-pursuit": PlannerSpec("runtime.modes.pure_pursuit", uses_lidar=False, uses_distance_net=False,
-                                summary="straight at the goal, blind to obstacles (tests and benches only)"),
+                                summary="straight at the goal, blind to obstacles (tests and benches only)",
+                                follower_section="pure_pursuit"),
 }
 
 

@@ -28,7 +28,7 @@ def results_page(title: str, docs: list[tuple[str, dict]]) -> str:
     out = [f"# {title}", ""]
     for name, doc in docs:
         p = doc["provenance"]
-        m = p.get("machine", {})
+        m = p.get("machine") or {}
         out += [f"## {name}", "",
                 f"- command: `{p.get('command')}`",
                 f"- commit: `{p.get('commit')}`",
@@ -83,4 +83,4 @@ def _table(rows: list[dict]) -> list[str]:
 def _cell(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
-    return "" if v is None else str(v)
+    return "" if v is None else str(v).replace("|", "\\|").replace("\n", " ")

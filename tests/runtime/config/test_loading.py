@@ -68,13 +68,15 @@ def test_an_unknown_planner_or_partition_names_the_known_ones(tmp_path):
 
 
 def test_a_target_speed_above_the_robots_is_refused_not_clamped():
+    """Only the active planner's path follower is checked: an unused section does not stop a
+    slower robot from running the MPC."""
     robot = load_robot_description()
     config = load_controller_config()
-    check_against_robot(config, robot)  # the shipped pair fits
     fast = config.model_copy(update={"planner": config.planner.model_copy(update={
         "grid_astar": config.planner.grid_astar.model_copy(update={"target_speed_mps": 1.5})})})
+    check_against_robot(fast, robot)  # the MPC has no such follower
     with pytest.raises(ValueError, match="planner.grid_astar.target_speed_mps.*limits.max_linear_speed_mps"):
-        check_against_robot(fast, robot)
+        check_against_robot(fast.with_planner_mode("grid-astar"), robot)
 
 
 def test_overlay_merges_mappings_and_replaces_a_mapping_whose_kind_changes():
@@ -119,3 +121,38 @@ def test_a_derived_value_follows_its_source_unless_the_user_set_it(tmp_path):
     _, rows = config_sources(None)
     assert {f: s for f, _, s in rows}["moving_obstacles.cruise_speed_mps"] == \
         "derived from planner.reference_path.target_speed_mps"
+
+
+def test_the_mpcs_tick_follows_the_loops_period_unless_set(tmp_path):
+    c = load_controller_config(_write(tmp_path, {"loop": {"period_s": 0.04, "command_deadline_s": 0.035}}))
+    assert c.planner.mpc.tick_period_s == 0.04  # derived, no error about a field the user never set
+    with pytest.raises(ConfigFileError, match="planner.mpc.tick_period_s .* must equal loop.period_s"):
+        load_controller_config(_write(tmp_path, {"loop": {"period_s": 0.04, "command_deadline_s": 0.035},
+                                                 "planner": {"mpc": {"tick_period_s": 0.05}}}))
+
+
+def test_an_old_planner_safety_supervisor_says_where_it_went(tmp_path):
+    with pytest.raises(ConfigFileError, match="safety_supervisor moved out of planner"):
+        load_controller_config(_write(tmp_path, {"planner": {"safety_supervisor": {}}}))
+
+
+def test_a_people_range_beyond_the_obstacle_points_is_refused_naming_both(tmp_path):
+    with pytest.raises(ConfigFileError, match="moving_obstacles.range_m .* planner.obstacle_points.max_range_m"):
+        load_controller_config(_write(tmp_path, {"moving_obstacles": {"range_m": 20.0}}))
+    with pytest.raises(ConfigFileError, match="moving_obstacles.range_m .derived from planner.obstacle_points"):
+        load_controller_config(_write(tmp_path, {"planner": {"obstacle_points": {"max_range_m": 0.4}}}))
+
+
+def test_a_mapping_whose_kind_changes_says_its_other_fields_are_built_in(tmp_path):
+    path = _write(tmp_path, {"can_bus": {"interface": "socketcan"}})
+    config, rows = config_sources(path)
+    src = {f: s for f, _, s in rows}
+    assert config.can_bus.interface == "socketcan" and src["can_bus.interface"] == str(path)
+    assert src["can_bus.channel"] == "built-in default"  # not the shipped LIMO serial port's
+
+
+def test_a_dumped_config_loads_again(tmp_path):
+    c = load_controller_config()
+    path = tmp_path / "dumped.yaml"
+    path.write_text(yaml.safe_dump(c.model_dump(mode="json")))
+    assert load_controller_config(path) == c
