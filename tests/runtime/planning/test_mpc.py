@@ -27,7 +27,7 @@ def _simulate(pts, start, goal, horizon=10, ticks=160, mpc_kw=None):
     # A generous time cap: the tests check behaviour, not timing, on a shared machine.
     kw = {"qp_time_budget_s": 1.0, **(mpc_kw or {})}
     cfg = MpcConfig(horizon_steps=horizon, tick_period_s=TICK_S, **kw)
-    planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT))
+    planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
     ref_planner = ReferencePathPlanner(ReferencePathConfig(horizon_steps=horizon, step_s=cfg.step_s), ROBOT)
     state = np.array(start, dtype=float)
     u = np.zeros(2)
@@ -95,7 +95,7 @@ def test_respects_input_and_rate_bounds() -> None:
 
 
 def test_speed_bounds_restrict_to_reversing() -> None:
-    planner = MpcPlanner(MpcConfig(), ROBOT, ExactRectangleDual.for_robot(ROBOT))
+    planner = MpcPlanner(MpcConfig(), ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
     ref = np.zeros((11, 3))
     ref[:, 0] = -0.03 * np.arange(11)
     ref[:, 2] = -0.3
@@ -158,7 +158,7 @@ def test_collision_rows_are_the_first_order_expansion_of_the_exact_distance(seed
     """The row coefficients equal finite differences of the exact distance in (x, y, theta)."""
     rng = np.random.default_rng(seed)
     cfg = MpcConfig(horizon_steps=4, linearize_heading=True)
-    planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT))
+    planner = MpcPlanner(cfg, ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
     pts = rng.uniform(-1.0, 1.5, size=(30, 2))
     pts = pts[footprint_distance_to_points(np.zeros((1, 3)), pts, HL, HW)[0] > 0.05]
     nominal = np.array([[0.0, 0.0, 0.0], [0.1, 0.02, 0.1], [0.2, 0.05, 0.3], [0.3, 0.1, 0.4], [0.4, 0.1, 0.6]])
@@ -195,7 +195,7 @@ def test_exact_stand_in_agrees_with_the_models_reference_dual() -> None:
 
 
 def test_bad_inputs_raise_named_errors() -> None:
-    planner = MpcPlanner(MpcConfig(), ROBOT, ExactRectangleDual.for_robot(ROBOT))
+    planner = MpcPlanner(MpcConfig(), ROBOT, ExactRectangleDual.for_robot(ROBOT), wall_clock_caps=False)
     ok_ref = _straight_reference(0.0)
     with pytest.raises(PlannerInputError, match="reference"):
         planner.plan(np.zeros(3), np.zeros(2), ok_ref[:5], np.zeros((0, 2)))
