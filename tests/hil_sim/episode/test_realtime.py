@@ -70,7 +70,7 @@ def _realtime_case3(tmp_path) -> dict:
 def test_case3_realtime_two_processes(tmp_path):
     """The two processes start, find each other over CAN and DDS, the controller drives on the
     wall clock and both exit cleanly. Whether the episode succeeds depends on the machine's load
-    (wall-clock deadlines): a controller that misses its deadlines stops the robot, and says so."""
+    (wall-clock deadlines, a simulator that lags): then the robot stops safely and says why."""
     m = _realtime_case3(tmp_path)
     rt = m["realtime"]
     pids = rt["pids"]
@@ -84,7 +84,10 @@ def test_case3_realtime_two_processes(tmp_path):
     assert m["planner"] == "dct"
     assert m["simulator"]["oracle"]["bad_request"] == 0
     assert m["fixed_contacts"] == 0, m["failure_reason"]
-    assert m["success"] or "deadline missed" in m["failure_reason"], m["failure_reason"]
+    # A loaded machine: the controller misses its deadlines and stops, or the simulator lags and
+    # the controller holds still on stale inputs; either way a safe stop that names its reason.
+    safe_stops = ("safety stop: command deadline missed", "sensor stale:")
+    assert m["success"] or m["failure_reason"].startswith(safe_stops), m["failure_reason"]
 
 
 @pytest.mark.slow
