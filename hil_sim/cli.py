@@ -71,10 +71,12 @@ def list_command() -> None:
 @click.option("--duration", "duration_s", type=click.FloatRange(0.0, 3600.0, min_open=True), metavar="SECONDS",
               help="A patrol scenario (goals:): patrol for this long instead of the file's patrol (loops or "
                    "duration_s); the time limit becomes this duration.")
+@click.option("--middleware", type=click.Choice(["auto", "rclpy", "cyclonedds"]),
+              help="With --realtime: the ROS 2 middleware of both processes (default: the config's ros.middleware).")
 def run_command(*, scenario: str, json_path: Path | None, seed: int, config_path: Path | None,
                 robot_path: Path | None, planner: str | None, fault_texts: tuple[str, ...],
                 calibration_path: Path | None = None, record_path: Path | None = None, force: bool = False,
-                realtime: bool = False, duration_s: float | None = None) -> None:
+                realtime: bool = False, duration_s: float | None = None, middleware: str | None = None) -> None:
     """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path).
 
     The metrics JSON is deterministic (same inputs and seed, same file, under any machine load);
@@ -92,8 +94,11 @@ def run_command(*, scenario: str, json_path: Path | None, seed: int, config_path
     if realtime:
         _run_realtime(run.scenario.name, scenario=scenario, seed=seed, json_path=json_path, config_path=config_path,
                       robot_path=robot_path, calibration_path=calibration_path, planner=planner,
-                      fault_texts=fault_texts, record_path=record_path, force=force, duration_s=duration_s)
+                      fault_texts=fault_texts, record_path=record_path, force=force, duration_s=duration_s,
+                      middleware=middleware)
         return
+    if middleware is not None:
+        raise InputError("--middleware applies to --realtime runs (lockstep has no ROS 2 in between)")
     result = _run_lockstep(run, seed, record_path, force)
     m = result.metrics
     if json_path is not None:
@@ -232,7 +237,7 @@ def _run_lockstep(run: _RunInputs, seed: int, record_path: Path | None, force: b
 def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
                   robot_path: Path | None, calibration_path: Path | None, planner: str | None,
                   fault_texts: tuple[str, ...], record_path: Path | None, force: bool = False,
-                  duration_s: float | None = None) -> None:
+                  duration_s: float | None = None, middleware: str | None = None) -> None:
     """`dct hil run --realtime` of scenario `name`: hil_sim.episode.realtime (two processes); --record: the
     controller's."""
     from calibration.outputs import atomic_write_json
@@ -248,7 +253,7 @@ def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None
         m = run_realtime_episode(scenario, seed, config_path, robot_path, calibration_path,
                                  echo=lambda s: click.echo(s, err=True), planner=planner, duration_s=duration_s,
                                  record_path=record_path.resolve() if record_path is not None else None,
-                                 force=force)
+                                 force=force, middleware=middleware)
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from None
     if json_path is not None:
@@ -267,8 +272,8 @@ def realtime_line(name: str, m: dict) -> str:
 
     line = summary_line(name, m, 1.0).rsplit(" realtime=", 1)[0]
     return (f"{line} realtime: tick_ms(p50/p99/max)={f(rt['tick_ms'])} "
-            f"sensor_to_command_ms={f(rt['sensor_to_command_ms'])} pids={rt['pids']['simulator']},"
-            f"{rt['pids']['controller']}")
+            f"sensor_to_command_ms={f(rt['sensor_to_command_ms'])} middleware={rt.get('middleware')} "
+            f"pids={rt['pids']['simulator']},{rt['pids']['controller']}")
 
 
 @hil_group.command("serve")
@@ -281,6 +286,10 @@ def realtime_line(name: str, m: dict) -> str:
 @click.option("--robot", "robot_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Robot description YAML.")
 @click.option("--domain-id", type=click.IntRange(0, 232), help="DDS domain (default: the config's).")
+@click.option("--middleware", type=click.Choice(["auto", "rclpy", "cyclonedds"]),
+              help="ROS 2 middleware of the simulator (default: the config's ros.middleware).")
+@click.option("--discovery", type=click.Choice(["localhost", "subnet"]), default="localhost", show_default=True,
+              help="Who hears the simulated robot's topics: processes on this machine, or the network.")
 @click.option("--can-channel", help="CAN udp_multicast group (default: python-can's).")
 @click.option("--can-port", type=click.IntRange(1, 65535), help="CAN udp_multicast port.")
 @click.option("--camera-rate", "camera_rate_hz", default=0.0, show_default=True, type=click.FloatRange(0.0, 30.0),
@@ -301,8 +310,8 @@ def realtime_line(name: str, m: dict) -> str:
 @click.option("--oracle-failure-rate", type=click.FloatRange(0.0, 1.0),
               help="Chance an answer fails (HTTP 503) (default: the config's, 0).")
 def serve_command(*, scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
-                  robot_path: Path | None, domain_id: int | None, can_channel: str | None, can_port: int | None,
-                  camera_rate_hz: float, connect_timeout_s: float, force: bool, oracle: bool | None,
+                  robot_path: Path | None, domain_id: int | None, middleware: str | None, discovery: str,
+                  can_channel: str | None, can_port: int | None, camera_rate_hz: float, connect_timeout_s: float, force: bool, oracle: bool | None,
                   oracle_precision: float | None, oracle_recall: float | None, oracle_latency_s: float | None,
                   oracle_failure_rate: float | None, duration_s: float | None = None) -> None:
     """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
@@ -327,7 +336,8 @@ def serve_command(*, scenario: str, seed: int, json_path: Path | None, config_pa
         signal.signal(sig, lambda *_: stop.set())
     try:
         m = serve(ServeOptions(scenario, seed, json_path, robot_path, config_path, domain_id, can_channel, can_port,
-                               camera_rate_hz, connect_timeout_s, oracle=oracle_config, duration_s=duration_s), stop,
+                               camera_rate_hz, connect_timeout_s, oracle=oracle_config, duration_s=duration_s,
+                               middleware=middleware, discovery=discovery), stop,
                   echo=lambda s: click.echo(s, err=True))
     except (ConfigFileError, ValueError) as exc:
         raise InputError(str(exc)) from exc

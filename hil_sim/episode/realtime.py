@@ -133,12 +133,13 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                          robot_path: Path | None = None, calibration_path: Path | None = None,
                          echo=None, keep_dir: Path | None = None, planner: str | None = None, *,
                          duration_s: float | None = None, record_path: Path | None = None,
-                         force: bool = False) -> dict:
+                         force: bool = False, middleware: str | None = None) -> dict:
     """Run one real-time episode with two processes; returns the merged metrics (module docstring).
     planner: overrides the config's planner.mode (dct, all-fixed).
     Raises RuntimeError when a process could not run (the message says which and its last words).
     duration_s: a patrol's duration (`dct hil serve --duration`); record_path: the controller
-    records the run (`dct run --record`, `--force` overwrites)."""
+    records the run (`dct run --record`, `--force` overwrites); middleware: ros.middleware of both
+    processes (None: the config's). Both discover each other on this machine only."""
     from hil_sim.episode.patrol import with_duration
     from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
@@ -158,6 +159,9 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                                    robot_path=robot_path, duration_s=duration_s)
         run_cmd = _run_command(goal, ctl_json, channels, robot_path=robot_path, planner=planner,
                                calibration_path=calibration_path, record_path=record_path, force=force)
+        if middleware is not None:
+            serve_cmd += ["--middleware", middleware]
+            run_cmd += ["--middleware", middleware]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         t0 = time.monotonic()
         # Own sessions: a Ctrl-C in the terminal reaches this process only, which stops both
@@ -212,8 +216,8 @@ def _run_command(goal, ctl_json: Path, channels: tuple[int, str, int], *, robot_
     """`dct run` of one real-time run, without its --config (_controller_config_args)."""
     domain, group, port = channels
     cmd = _dct("run", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json",
-               str(ctl_json), "--domain-id", str(domain), "--can-interface", "udp_multicast", "--can-channel", group,
-               "--can-port", str(port))
+               str(ctl_json), "--domain-id", str(domain), "--discovery", "localhost", "--can-interface", "udp_multicast",
+               "--can-channel", group, "--can-port", str(port))
     if robot_path is not None:
         cmd += ["--robot", str(robot_path)]
     if planner is not None:
@@ -304,6 +308,7 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
         "simulator_lag_ms": m.get("simulator", {}).get("sim_lag_ms"),
         "end_reason": m.get("end_reason"),
         "wall_time_s": wall_s,
+        "middleware": summary.get("ros", {}).get("middleware"),
     }
     if "recording" in summary:  # `--record`: the controller's MCAP file (path, records dropped)
         m["realtime"]["recording"] = summary["recording"]

@@ -67,15 +67,19 @@ class ServeOptions:
     oracle: object = None
     #: A patrol's duration (s), instead of the scenario's `patrol` (hil_sim.episode.patrol.with_duration).
     duration_s: float | None = None
+    #: ros.middleware of the simulator's side (auto | rclpy | cyclonedds; None: the config's).
+    middleware: str | None = None
+    #: Who may hear the simulated robot: localhost (the default for the simulator) or subnet.
+    discovery: str = "localhost"
 
 
 class DdsSensorSink:
     """Stands where the lockstep rig's SensorInbox stands (put_scan / put_imu / put_image) and
     publishes each piece as the robot's drivers would (module docstring)."""
 
-    def __init__(self, participant, inputs, to_wall) -> None:
-        from runtime.io.ros.dds import RosWriter, ros_qos
+    def __init__(self, transport, inputs, to_wall) -> None:
         from runtime.io.ros.messages import CustomMsg, Image, Imu
+        from runtime.io.ros.transport import QosSpec
 
         self.to_wall = to_wall
         self._lidar = self._imu = self._camera = None
@@ -83,13 +87,11 @@ class DdsSensorSink:
             if inputs.lidar.type != "livox_ros_driver2/msg/CustomMsg":
                 raise ValueError("dct hil serve publishes the lidar as livox_ros_driver2/msg/CustomMsg; "
                                  f"ros.inputs.lidar.type is {inputs.lidar.type}")
-            self._lidar = RosWriter(participant, inputs.lidar.topic, CustomMsg,
-                                    ros_qos(inputs.lidar.qos.reliability, inputs.lidar.qos.depth))
+            self._lidar = transport.writer(inputs.lidar.topic, CustomMsg, inputs.lidar.qos.spec())
         if inputs.imu is not None:
-            self._imu = RosWriter(participant, inputs.imu.topic, Imu, ros_qos(inputs.imu.qos.reliability,
-                                                                             inputs.imu.qos.depth))
+            self._imu = transport.writer(inputs.imu.topic, Imu, inputs.imu.qos.spec())
         if inputs.camera is not None and inputs.camera.type == "sensor_msgs/msg/Image":
-            self._camera = RosWriter(participant, inputs.camera.topic, Image, ros_qos(inputs.camera.qos.reliability, 1))
+            self._camera = transport.writer(inputs.camera.topic, Image, QosSpec(inputs.camera.qos.reliability, 1))
         self.published = {"lidar": 0, "imu": 0, "camera": 0}
         self.skipped_empty_scans = 0
         self.publish_s = {"lidar": 0.0, "imu": 0.0, "camera": 0.0}
@@ -178,16 +180,14 @@ class _PatrolOperator:
     """A patrol's operator in real time: hil_sim.episode.patrol.PatrolSequencer fed from the controller's
     diagnostics, its goals published on the goal topic (module docstring)."""
 
-    def __init__(self, scenario, participant, inputs, odom_frame: str, reader, t0_s: float, to_wall, echo) -> None:
+    def __init__(self, scenario, transport, inputs, odom_frame: str, reader, t0_s: float, to_wall, echo) -> None:
         from hil_sim.episode.patrol import PatrolSequencer
-        from runtime.io.ros.dds import RosWriter, ros_qos
         from runtime.io.ros.messages import PoseStamped
 
         self.echo = echo
         self.sequencer = PatrolSequencer(scenario, t0_s)
         self.reader = reader
-        self.writer = RosWriter(participant, inputs.goal.topic, PoseStamped,
-                                ros_qos(inputs.goal.qos.reliability, inputs.goal.qos.depth))
+        self.writer = transport.writer(inputs.goal.topic, PoseStamped, inputs.goal.qos.spec())
         self.frame = odom_frame
         self.to_wall = to_wall
         self.status: dict = {}
@@ -254,6 +254,14 @@ def _load(opts: ServeOptions):
     return scenario, robot, config, inputs
 
 
+def _open_transport(ros, domain_id: int, opts: ServeOptions):
+    """The simulator's ROS 2 node: the config's middleware unless --middleware says otherwise."""
+    from runtime.io.ros.transport import TransportOptions, open_transport
+
+    return open_transport(TransportOptions(middleware=opts.middleware or ros.middleware, domain_id=domain_id,
+                                           discovery=opts.discovery, node_name="dct_hil_sim"))
+
+
 @dataclass
 class _EpisodeState:
     """What the paced loop learns about the episode (module docstring)."""
@@ -270,8 +278,6 @@ class _Server:
     loop that paces physics to the wall clock (module docstring)."""
 
     def __init__(self, opts: ServeOptions, echo) -> None:
-        from cyclonedds.domain import DomainParticipant
-
         from firmware_bridge import protocol
         from firmware_bridge.buses import DEFAULT_UDP_GROUP, DEFAULT_UDP_PORT, BusConfig, open_bus
         from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
@@ -295,10 +301,10 @@ class _Server:
             raise ValueError(f"scenario {scenario.name} is a patrol: it needs ros.inputs.goal (where its goals are "
                              "published) and ros.outputs.diagnostics (where it watches the controller) in the config")
         self.bus = open_bus(self.bus_config)
-        self.participant = DomainParticipant(inputs.domain_id)
+        self.transport = _open_transport(config.ros, inputs.domain_id, opts)
         self.sim_t0 = world.time_s
         self.wall_t0 = self.clock.now()
-        self.sink = DdsSensorSink(self.participant, inputs, self.to_wall)
+        self.sink = DdsSensorSink(self.transport, inputs, self.to_wall)
         self.oracle_service = None
         camera_rate_hz, segmentation = opts.camera_rate_hz, False
         if opts.oracle is not None:
@@ -335,10 +341,10 @@ class _Server:
         topic = self.config.ros.outputs.diagnostics
         if not topic:
             return None
-        from runtime.io.ros.dds import raw_reader, ros_qos
         from runtime.io.ros.messages import DiagnosticArray
+        from runtime.io.ros.transport import QosSpec
 
-        return raw_reader(self.participant, topic, DiagnosticArray, ros_qos("best_effort", 4))
+        return self.transport.reader(topic, DiagnosticArray, QosSpec("reliable", 4))
 
     def run(self, stop: threading.Event) -> tuple[float, dict]:
         """Step physics up to the wall clock, sleep, repeat until the episode ends or `stop` is set;
@@ -347,8 +353,8 @@ class _Server:
         dt = world.timestep_s
         half = 0.5 * dt
         self.echo(f"dct hil serve: {self.scenario.name} seed {self.opts.seed} serving: CAN udp_multicast "
-                  f"{self.bus_config.channel}:{self.bus_config.udp_port}, DDS domain {self.inputs.domain_id}, "
-                  f"pid {os.getpid()}")
+                  f"{self.bus_config.channel}:{self.bus_config.udp_port}, DDS domain {self.inputs.domain_id} "
+                  f"({self.transport.name}, discovery {self.opts.discovery}), pid {os.getpid()}")
         self.wall_t0 = self.clock.now()
         wall_start = time.monotonic()
         try:
@@ -372,6 +378,7 @@ class _Server:
             sensor_stats = self.rig.stats()  # before close: it lets the renderer go
             self.rig.close()
             self.bus.shutdown()
+            self.transport.close()
             if self.oracle_service is not None:
                 self.oracle_service.close()
         return wall, sensor_stats
@@ -384,7 +391,7 @@ class _Server:
                 st.t_start = t
                 self.echo(f"dct hil serve: controller connected at t={t - self.sim_t0:.2f} s; episode starts")
                 if self.scenario.is_patrol:
-                    st.patrol = _PatrolOperator(self.scenario, self.participant, self.inputs,
+                    st.patrol = _PatrolOperator(self.scenario, self.transport, self.inputs,
                                                 self.config.ros.outputs.odom_frame, self.diagnostics, t, self.to_wall,
                                                 self.echo)
             elif t - self.sim_t0 > self.opts.connect_timeout_s:

@@ -32,6 +32,10 @@ _FILE = click.Path(dir_okay=False, path_type=Path)
               help="Write the run's summary here at exit (state, tick and sensor-to-command latency).")
 @click.option("--force", is_flag=True, help="Overwrite an existing --record or --json file.")
 @click.option("--domain-id", type=click.IntRange(0, 232), help="Override ros.inputs.domain_id.")
+@click.option("--middleware", type=click.Choice(["auto", "rclpy", "cyclonedds"]),
+              help="Override ros.middleware (auto: rclpy when it imports, else cyclonedds).")
+@click.option("--discovery", type=click.Choice(["subnet", "localhost"]),
+              help="Override ros.discovery (localhost: only processes on this machine see the topics).")
 @click.option("--can-interface", type=click.Choice(["socketcan", "limo_serial", "udp_multicast", "virtual"]),
               help="Override can_bus.interface (the channel then defaults for it).")
 @click.option("--can-channel", help="Override can_bus.channel.")

@@ -26,6 +26,9 @@ class RunOptions:
     force: bool = False
     #: Overrides of the config (`dct hil run --realtime` gives each run its own domain and group).
     domain_id: int | None = None
+    #: ros.middleware (auto | rclpy | cyclonedds) and ros.discovery (subnet | localhost).
+    middleware: str | None = None
+    discovery: str | None = None
     can_interface: str | None = None
     can_channel: str | None = None
     can_port: int | None = None
@@ -83,9 +86,7 @@ def load_inputs(opts: RunOptions) -> Loaded:
         except (GoalError, TypeError) as exc:
             raise RunInputError(f"--goal: {opts.goal}: {exc}") from None
     bus_config = _bus_config(config, opts, cfg_name)
-    if opts.domain_id is not None:
-        inputs = config.ros.inputs.model_copy(update={"domain_id": opts.domain_id})
-        config = config.model_copy(update={"ros": config.ros.model_copy(update={"inputs": inputs})})
+    config = _ros_overrides(config, opts)
     if config.ros.inputs.lidar is None and config.uses_lidar:
         raise RunInputError(f"{cfg_name}: ros.inputs.lidar: planner {config.planner.algorithm} needs a lidar topic")
     if config.uses_distance_net:  # the distance net must fit this robot
@@ -97,6 +98,18 @@ def load_inputs(opts: RunOptions) -> Loaded:
         except DistanceNetError as exc:
             raise RunInputError(f"{cfg_name}: planner.distance_net_path: {exc}") from None
     return Loaded(robot, config, wheel_calibration, K, dist, bus_config, camera=camera, T_cam_lidar=T_cam_lidar)
+
+
+def _ros_overrides(config, opts: RunOptions):
+    """The config with the command line's DDS domain, middleware and discovery range."""
+    ros = config.ros
+    if opts.domain_id is not None:
+        ros = ros.model_copy(update={"inputs": ros.inputs.model_copy(update={"domain_id": opts.domain_id})})
+    if opts.middleware is not None:
+        ros = ros.model_copy(update={"middleware": opts.middleware})
+    if opts.discovery is not None:
+        ros = ros.model_copy(update={"discovery": opts.discovery})
+    return config if ros is config.ros else config.model_copy(update={"ros": ros})
 
 
 def _load_files(opts: RunOptions):

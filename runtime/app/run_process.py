@@ -107,8 +107,6 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
                    echo=lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
     """Run the controller process until `stop` is set (SIGINT/SIGTERM set it); returns the summary
     (also written to opts.json_path). Raises RunInputError before anything moves."""
-    from cyclonedds.domain import DomainParticipant
-
     from firmware_bridge.buses import BusOpenError, open_bus
     from runtime.app.deploy.sd_notify import SystemdNotifier
     from runtime.io.ros.publisher import RosPublisher
@@ -129,13 +127,14 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
     # systemd (the deploy bundle's unit: Type=notify, WatchdogSec): ready once inputs are up, a
     # watchdog ping every tick and while waiting for a goal; a no-op outside systemd.
     notifier = SystemdNotifier()
-    receiver = publisher = None
+    receiver = publisher = transport = None
     summary: dict = {"pid": None}
     try:
-        participant = DomainParticipant(ros.inputs.domain_id)
-        receiver = RosSensorReceiver(ros.inputs, inbox, camera_K=loaded.camera_K,
-                                     camera_distortion=loaded.camera_dist, participant=participant)
-        publisher = RosPublisher(participant, ros.outputs)
+        transport = _open_transport(ros, echo)
+        receiver = RosSensorReceiver(ros.inputs, inbox, transport, camera_K=loaded.camera_K,
+                                     camera_distortion=loaded.camera_dist)
+        publisher = RosPublisher(transport, ros.outputs)
+        _say_routes(transport, echo)
         receiver.start()
         notifier.ready()
         goal = _wait_for_goal(opts, ros, receiver, notifier, stop, echo)
@@ -144,13 +143,35 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
         echo("dct run: stopped before the start (waiting for a goal, or during the start-up work); the base was never enabled")
         summary = {"state": "NOT_STARTED"}
     finally:
-        _shut_down(summary, receiver, publisher, recorder, bus, notifier)
+        _shut_down(summary, (receiver, publisher, transport), recorder, bus, notifier)
     summary["pid"] = os.getpid()
     if opts.json_path is not None:
         from calibration.outputs import atomic_write_json
 
         atomic_write_json(opts.json_path, summary)
     return summary
+
+
+def _open_transport(ros, echo):
+    """The ROS 2 middleware's node (runtime.io.ros.transport); RunInputError when it cannot run."""
+    from runtime.io.ros.transport import MiddlewareError, effective_discovery, open_transport
+
+    try:
+        transport = open_transport(ros.transport_options())
+    except MiddlewareError as exc:
+        raise RunInputError(f"ros.middleware: {exc}") from None
+    reach, why = effective_discovery(ros.discovery)
+    echo(f"dct run: ROS 2 via {transport.name}, DDS domain {transport.domain_id}, discovery "
+         f"{'this machine only' if reach == 'localhost' else 'the network: any host there can send goals'} ({why})")
+    return transport
+
+
+def _say_routes(transport, echo) -> None:
+    """One line per topic carried by a path other than the chosen middleware (which reads the lidar)."""
+    for r in transport.routes():
+        if r.via != transport.name:
+            echo(f"dct run: {r.topic} ({r.type_name}) {'read' if r.direction == 'in' else 'published'} through "
+                 f"{r.via}: {r.note}")
 
 
 def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, echo) -> dict:
@@ -217,17 +238,23 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float) -> dict:
         "sensor_errors": {**dict(sorted(inbox.error_counts.items())),
                           **{f"ros.{k}": v for k, v in receiver.error_counts.items()}},
         "ros_received": dict(receiver.received),
+        "ros": {"middleware": receiver.transport.name, "domain_id": receiver.transport.domain_id,
+                "discovery": receiver.transport.discovery,
+                "routes": [{"direction": r.direction, "topic": r.topic, "type": r.type_name, "via": r.via,
+                            "qos": r.qos.describe()} for r in receiver.transport.routes()]},
         "goals_ignored": observer.goals_ignored,
         "keepalives_sent": loop.keepalives_sent,
     }
 
 
-def _shut_down(summary: dict, receiver, publisher, recorder, bus, notifier) -> None:
+def _shut_down(summary: dict, ros_parts, recorder, bus, notifier) -> None:
     """Each step on its own: one that fails (a receiver thread that will not stop) must not skip
     the others (the recording's rename, the bus) nor hide the error that brought us here."""
     notifier.stopping()
     cleanup_errors = []
-    for name, part, step in (("receiver", receiver, "stop"), ("publisher", publisher, "close")):
+    receiver, publisher, transport = ros_parts
+    for name, part, step in (("receiver", receiver, "stop"), ("publisher", publisher, "close"),
+                             ("ros", transport, "close")):
         if part is None:  # (DDS did not come up)
             continue
         try:

@@ -1,4 +1,4 @@
-"""DDS plumbing for ROS 2 topics with cyclonedds: topic names, QoS, a writer and a raw reader.
+"""The cyclonedds transport: ROS 2 topics over Cyclone DDS, with a writer and a raw reader.
 
 Why a writer and a reader of our own around cyclonedds' DataWriter / DataReader:
 - Bytes, not Python objects, cross the wire in both directions. Writing goes through
@@ -17,8 +17,8 @@ from __future__ import annotations
 import dataclasses
 import threading
 
-from cyclonedds.core import InstanceState, SampleState, ViewState
-from cyclonedds.domain import DomainParticipant
+from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl.types import sequence, uint8
 from cyclonedds.pub import DataWriter
@@ -30,7 +30,10 @@ from cyclonedds.util import duration
 # cyclonedds' own take primitive, what DataReader.take calls before decoding (version pinned).
 from cyclonedds._clayer import ddspy_take  # noqa: I001
 
-from runtime.io.ros.messages import CustomMsg, CustomMsgArrays, PreSerialized, encode_custom_msg, to_cdr
+from runtime.io.ros.messages import PreSerialized
+from runtime.io.ros.transport import (
+    Discovery, QosSpec, TopicReader, TopicWriter, Transport, cyclonedds_config_xml,
+)
 
 
 def dds_topic_name(ros_topic: str) -> str:
@@ -38,15 +41,18 @@ def dds_topic_name(ros_topic: str) -> str:
     return "rt/" + ros_topic.lstrip("/")
 
 
-def ros_qos(reliability: str = "best_effort", depth: int = 1) -> Qos:
-    """DDS QoS of a ROS 2 topic: best effort (sensor data) or reliable, keep last `depth`, volatile,
-    and CDR v0 / XCDR1 data representation (what ROS 2 speaks)."""
-    if reliability not in ("best_effort", "reliable"):
-        raise ValueError(f"reliability must be best_effort or reliable, got {reliability!r}")
-    rel = (Policy.Reliability.BestEffort if reliability == "best_effort"
+def ros_qos(reliability: str = "best_effort", depth: int = 1, durability: str = "volatile") -> Qos:
+    """DDS QoS of a ROS 2 topic: best effort (sensor data) or reliable, keep last `depth`, volatile
+    or transient local, and CDR v0 / XCDR1 data representation (what ROS 2 speaks)."""
+    spec = QosSpec(reliability, int(depth), durability)  # type: ignore[arg-type]  # validates
+    rel = (Policy.Reliability.BestEffort if spec.reliability == "best_effort"
            else Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)))
-    return Qos(rel, Policy.History.KeepLast(int(depth)), Policy.Durability.Volatile,
-               Policy.DataRepresentation(use_cdrv0_representation=True))
+    dur = Policy.Durability.Volatile if spec.durability == "volatile" else Policy.Durability.TransientLocal
+    return Qos(rel, Policy.History.KeepLast(spec.depth), dur, Policy.DataRepresentation(use_cdrv0_representation=True))
+
+
+def _qos(spec: QosSpec) -> Qos:
+    return ros_qos(spec.reliability, spec.depth, spec.durability)
 
 
 _WIRE_TYPES: dict[type, type] = {}
@@ -69,7 +75,7 @@ def wire_type(cls: type[IdlStruct]) -> type[IdlStruct]:
         return twin
 
 
-class RosWriter:
+class RosWriter(TopicWriter):
     """Publishes messages of one ROS 2 type on one topic, as ROS 2 CDR."""
 
     def __init__(self, participant: DomainParticipant, ros_topic: str, cls: type[IdlStruct],
@@ -80,18 +86,6 @@ class RosWriter:
         self.topic = Topic(participant, dds_topic_name(ros_topic), self._wire, qos=q)
         self.writer = DataWriter(participant, self.topic, qos=q)
 
-    def write(self, msg: IdlStruct | CustomMsgArrays) -> None:
-        if isinstance(msg, CustomMsgArrays):
-            if self.cls is not CustomMsg:
-                raise TypeError(f"CustomMsgArrays written on a {self.cls.__name__} topic")
-            cdr = encode_custom_msg(msg.header, msg.timebase, msg.points, lidar_id=msg.lidar_id, rsvd=msg.rsvd,
-                                    point_num=msg.point_num)
-        elif isinstance(msg, self.cls):
-            cdr = to_cdr(msg)
-        else:
-            raise TypeError(f"{type(msg).__name__} written on a {self.cls.__name__} topic")
-        self.write_cdr(cdr)
-
     def write_cdr(self, cdr: bytes) -> None:
         """Publish CDR bytes already made (e.g. by encode_custom_msg)."""
         self.writer.write(PreSerialized.of(self._wire, cdr))
@@ -100,7 +94,7 @@ class RosWriter:
 _ANY = SampleState.Any | ViewState.Any | InstanceState.Any
 
 
-class RawDataReader(DataReader):
+class RawDataReader(DataReader, TopicReader):
     """A DataReader that hands out each sample's CDR bytes undecoded."""
 
     def take_raw(self, n: int = 64) -> list[bytes]:
@@ -114,3 +108,45 @@ def raw_reader(participant: DomainParticipant, ros_topic: str, cls: type[IdlStru
                qos: Qos | None = None) -> RawDataReader:
     q = qos or ros_qos()
     return RawDataReader(participant, Topic(participant, dds_topic_name(ros_topic), wire_type(cls), qos=q), qos=q)
+
+
+class CycloneTransport(Transport):
+    """ROS 2 topics through one cyclonedds DomainParticipant (runtime.io.ros.transport)."""
+
+    name = "cyclonedds"
+
+    def __init__(self, domain_id: int, discovery: Discovery = "subnet",
+                 participant: DomainParticipant | None = None) -> None:
+        super().__init__()
+        self.domain_id, self.discovery = int(domain_id), discovery
+        xml = cyclonedds_config_xml(discovery)
+        # A Domain with our XML must exist before the participant joins it (cyclonedds keeps it).
+        self._domain = Domain(self.domain_id, config=xml) if xml is not None and participant is None else None
+        self.participant = participant or DomainParticipant(self.domain_id)
+        self._waitset = WaitSet(self.participant)
+        self._guard = GuardCondition(self.participant)
+        self._waitset.attach(self._guard)
+        self._conditions: list[ReadCondition] = []
+
+    def reader(self, topic: str, cls: type, qos: QosSpec) -> RawDataReader:
+        r = raw_reader(self.participant, topic, cls, _qos(qos))
+        cond = ReadCondition(r, _ANY)
+        self._waitset.attach(cond)
+        self._conditions.append(cond)
+        self._route("in", topic, cls, qos, self.name)
+        return r
+
+    def writer(self, topic: str, cls: type, qos: QosSpec) -> RosWriter:
+        self._route("out", topic, cls, qos, self.name)
+        return RosWriter(self.participant, topic, cls, _qos(qos))
+
+    def wait(self, timeout_s: float) -> None:
+        if timeout_s > 0:
+            self._waitset.wait(duration(seconds=timeout_s))
+        self._guard.set(False)
+
+    def wake(self) -> None:
+        self._guard.set(True)
+
+    def close(self) -> None:
+        self.wake()

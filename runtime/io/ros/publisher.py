@@ -21,13 +21,12 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from cyclonedds.domain import DomainParticipant
 
 from runtime.common.geometry import Pose2D
 from runtime.io.ros import convert
-from runtime.io.ros.dds import RosWriter, ros_qos
 from runtime.io.ros.messages import DIAG_ERROR, DIAG_OK, DIAG_WARN, DiagnosticArray, Odometry, Path, PointCloud2
 from runtime.io.ros.settings import RosOutputConfig
+from runtime.io.ros.transport import QosSpec, Transport
 
 log = logging.getLogger(__name__)
 
@@ -49,19 +48,25 @@ class TickView:
     points_mov: np.ndarray | None = None  # (M, 3) lidar frame
 
 
+#: Reliable for what an operator's tools subscribe to reliably by default (RViz, Nav2's
+#: conventions; a reliable writer also serves best-effort readers), best effort for the clouds
+#: (sensor data: a lost cloud is replaced by the next).
+STATE_QOS = QosSpec("reliable", 10)
+CLOUD_QOS = QosSpec("best_effort", 1)
+
+
 class RosPublisher:
-    def __init__(self, participant: DomainParticipant, config: RosOutputConfig) -> None:
+    def __init__(self, transport: Transport, config: RosOutputConfig) -> None:
         self.config = config
-        qos = ros_qos("best_effort", 1)
 
-        def writer(topic: str | None, cls):
-            return RosWriter(participant, topic, cls, qos) if topic else None
+        def writer(topic: str | None, cls, qos: QosSpec):
+            return transport.writer(topic, cls, qos) if topic else None
 
-        self._odom = writer(config.odometry, Odometry)
-        self._diag = writer(config.diagnostics, DiagnosticArray)
-        self._plan = writer(config.plan, Path)
-        self._fix = writer(config.p_fix, PointCloud2)
-        self._mov = writer(config.p_mov, PointCloud2)
+        self._odom = writer(config.odometry, Odometry, STATE_QOS)
+        self._diag = writer(config.diagnostics, DiagnosticArray, STATE_QOS)
+        self._plan = writer(config.plan, Path, STATE_QOS)
+        self._fix = writer(config.p_fix, PointCloud2, CLOUD_QOS)
+        self._mov = writer(config.p_mov, PointCloud2, CLOUD_QOS)
         self._queue: deque[TickView] = deque()
         self._cond = threading.Condition()
         self._stop = False

@@ -1,14 +1,15 @@
 """Sensor topics over DDS -> SensorInbox, decoded and validated off the tick.
 
-`RosSensorReceiver` owns DDS readers for the configured lidar, camera, IMU and goal topics and
-one thread that waits on them, takes each sample's raw CDR bytes, decodes and converts it
+`RosSensorReceiver` owns readers for the configured lidar, camera, IMU and goal topics (on the
+middleware's transport: rclpy or cyclonedds, runtime.io.ros.transport) and one thread that
+waits on them, takes each sample's raw CDR bytes, decodes and converts it
 (convert.py) and puts the result into a SensorInbox. The tick only calls `inbox.take()`: it
 never decodes, and a slow or malformed sample costs the receiver thread, not the tick.
 
-Raw bytes, not cyclonedds' decoded objects: cyclonedds' generic decoder builds a Python object
-per Livox point (0.13 s for a 20k-point frame here, longer than the frame period) and raises
-whatever its parser hits on malformed bytes. Taking the bytes (`RawDataReader.take_raw`) lets the
-Livox frame use the numpy decoder and turns every undecodable sample into a named rejection.
+Raw bytes, not the middleware's decoded objects: a generic decoder builds a Python object per
+Livox point (0.13 s for a 20k-point frame with cyclonedds', longer than the frame period) and
+raises whatever its parser hits on malformed bytes. Taking the bytes (`take_raw`) lets the Livox
+frame use the numpy decoder and turns every undecodable sample into a named rejection.
 
 A sample that fails is counted by `<stream>.<reason>` in `error_counts`, remembered in
 `last_error`, and handed to the tick through the inbox's rejections, as SensorInbox does for the
@@ -26,14 +27,11 @@ from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
-from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
-from cyclonedds.domain import DomainParticipant
-from cyclonedds.util import duration
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from runtime.io.ros import convert
-from runtime.io.ros.dds import RawDataReader, dds_topic_name, raw_reader, ros_qos
 from runtime.io.ros.messages import ROS_TYPES, RosMessageError, decode_custom_msg, from_cdr
+from runtime.io.ros.transport import QosSpec, TopicReader, Transport
 from runtime.common.sensor_data import SensorDataError
 from runtime.io.sensor_inbox import SensorInbox
 
@@ -52,6 +50,9 @@ class _Strict(BaseModel):
 class TopicQos(_Strict):
     reliability: Literal["best_effort", "reliable"] = "best_effort"
     depth: int = Field(default=1, ge=1, le=1000)
+
+    def spec(self) -> QosSpec:
+        return QosSpec(self.reliability, self.depth)
 
 
 class _Topic(_Strict):
@@ -136,36 +137,29 @@ class RosSensorReceiver:
 
     camera_K / camera_distortion: the camera's intrinsics from the calibration (ROS images
     carry none); required when a camera topic is configured.
-    participant: an existing DomainParticipant on config.domain_id (one is created otherwise).
+    transport: the middleware's node on config.domain_id (runtime.io.ros.transport), which the
+    caller opens and closes.
     """
 
-    def __init__(self, config: RosInputConfig, inbox: SensorInbox, *, camera_K: np.ndarray | None = None,
-                 camera_distortion: np.ndarray | None = None, participant: DomainParticipant | None = None) -> None:
+    def __init__(self, config: RosInputConfig, inbox: SensorInbox, transport: Transport, *,
+                 camera_K: np.ndarray | None = None, camera_distortion: np.ndarray | None = None) -> None:
         if config.camera is not None and camera_K is None:
             raise ValueError("RosSensorReceiver: a camera topic is configured but no camera_K was given")
         self.config = config
         self.inbox = inbox
+        self.transport = transport
         self._K, self._dist = camera_K, camera_distortion
-        self.participant = participant or DomainParticipant(config.domain_id)
         self._lock = threading.Lock()
         self._goal: convert.GoalPose | None = None
         self.received: dict[str, int] = {}
         self.error_counts: dict[str, int] = {}
         self.last_error: str | None = None
-        self._readers: list[tuple[str, str, RawDataReader, Callable[[object], None]]] = []
-        self._waitset = WaitSet(self.participant)
-        self._wake = GuardCondition(self.participant)
-        self._waitset.attach(self._wake)
-        self._conditions = []
+        self._readers: list[tuple[str, str, TopicReader, Callable[[object], None]]] = []
         for stream, topic in (("lidar", config.lidar), ("camera", config.camera), ("imu", config.imu),
                               ("goal", config.goal)):
             if topic is None:
                 continue
-            reader = raw_reader(self.participant, topic.topic, ROS_TYPES[topic.type],
-                                ros_qos(topic.qos.reliability, topic.qos.depth))
-            cond = ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any)
-            self._waitset.attach(cond)
-            self._conditions.append(cond)
+            reader = transport.reader(topic.topic, ROS_TYPES[topic.type], topic.qos.spec())
             self._readers.append((stream, topic.type, reader, self._handler(stream, topic)))
             self.received[stream] = 0
         self._stop = threading.Event()
@@ -230,8 +224,7 @@ class RosSensorReceiver:
 
     def poll(self, timeout_s: float = 0.0) -> int:
         """Wait up to timeout_s for samples, then process everything pending; returns how many."""
-        if timeout_s > 0:
-            self._waitset.wait(duration(seconds=timeout_s))
+        self.transport.wait(timeout_s)
         n = 0
         for stream, type_name, reader, handle in self._readers:
             for data in reader.take_raw():
@@ -259,7 +252,7 @@ class RosSensorReceiver:
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
-        self._wake.set(True)
+        self.transport.wake()
         if self._thread is not None:
             self._thread.join(timeout_s)
             if self._thread.is_alive():
@@ -281,4 +274,4 @@ class RosSensorReceiver:
 
 
 __all__ = ["RosInputConfig", "LidarTopic", "CameraTopic", "ImuTopic", "GoalTopic", "TopicQos", "RosSensorReceiver",
-           "decode_cdr", "dds_topic_name"]
+           "decode_cdr"]

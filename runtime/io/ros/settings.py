@@ -8,11 +8,14 @@ convention.
 """
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from runtime.io.ros.receiver import (
     _ROS_NAME, CameraTopic, GoalTopic, ImuTopic, LidarTopic, RosInputConfig, TopicQos,
 )
+from runtime.io.ros.transport import TransportOptions
 
 
 class _Strict(BaseModel):
@@ -52,9 +55,29 @@ DEFAULT_INPUTS = RosInputConfig(
 )
 
 
+class RosSecurity(_Strict):
+    """SROS2: the node runs with this keystore's enclave (rclpy and a ROS 2 built with DDS Security)."""
+
+    keystore: str
+    enclave: str = "/dct_controller"
+
+
 class RosConfig(_Strict):
+    #: auto: rclpy when it imports (a robot with ROS 2 installed), else cyclonedds
+    #: (runtime.io.ros.transport).
+    middleware: Literal["auto", "rclpy", "cyclonedds"] = "auto"
+    #: subnet: ROS 2's default, every host on the network; localhost: this machine only.
+    discovery: Literal["subnet", "localhost"] = "subnet"
+    security: RosSecurity | None = None
     inputs: RosInputConfig = DEFAULT_INPUTS
     outputs: RosOutputConfig = RosOutputConfig()
 
+    def transport_options(self, node_name: str = "dct_controller") -> TransportOptions:
+        sec = self.security
+        return TransportOptions(middleware=self.middleware, domain_id=self.inputs.domain_id,
+                                discovery=self.discovery, node_name=node_name,
+                                security_keystore=sec.keystore if sec else None,
+                                security_enclave=sec.enclave if sec else None)
 
-__all__ = ["RosConfig", "RosOutputConfig", "DEFAULT_INPUTS"]
+
+__all__ = ["RosConfig", "RosOutputConfig", "RosSecurity", "DEFAULT_INPUTS"]

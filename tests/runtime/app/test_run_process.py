@@ -118,19 +118,18 @@ def test_controller_process_drives_and_stops_on_sigterm(tmp_path):
     domain, group, port = unique_channels()
     base = _Base(group, port)
     listener = open_bus(BusConfig(interface="udp_multicast", channel=group, udp_port=port))
-    from cyclonedds.domain import DomainParticipant
-
-    from runtime.io.ros.dds import RosWriter, raw_reader, ros_qos
+    from runtime.io.ros.dds import CycloneTransport
     from runtime.io.ros.messages import Header, Odometry, Point, Pose, PoseStamped, Quaternion, stamp_to_time
+    from runtime.io.ros.transport import QosSpec
 
-    participant = DomainParticipant(domain)
-    odom_reader = raw_reader(participant, "/dct/odom", Odometry)
-    goal_writer = RosWriter(participant, "/goal_pose", PoseStamped, ros_qos("reliable", 1))
+    dds = CycloneTransport(domain, "localhost")
+    odom_reader = dds.reader("/dct/odom", Odometry, QosSpec("reliable", 10))
+    goal_writer = dds.writer("/goal_pose", PoseStamped, QosSpec("reliable", 1))
     goal = PoseStamped(Header(stamp_to_time(time.time()), "odom"), Pose(Point(5.0, 0.0, 0.0), Quaternion(0, 0, 0, 1)))
     base.start()
     summary = tmp_path / "summary.json"
     ctl = subprocess.Popen(
-        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--allow-pure-pursuit", "--normal-priority", "--json", str(summary), "--domain-id", str(domain), "--can-interface", "udp_multicast",
+        _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--allow-pure-pursuit", "--normal-priority", "--json", str(summary), "--domain-id", str(domain), "--discovery", "localhost", "--can-interface", "udp_multicast",
              "--can-channel", group, "--can-port", str(port)),
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
@@ -193,11 +192,14 @@ def test_sigterm_while_waiting_for_a_goal_exits_0(tmp_path):
     domain, group, port = unique_channels()
     ctl = subprocess.Popen(
         _dct("run", "--config", str(_config(tmp_path, mode="pure-pursuit")), "--allow-pure-pursuit", "--normal-priority", "--domain-id", str(domain),
-             "--can-interface", "udp_multicast", "--can-channel", group, "--can-port", str(port)),
+             "--discovery", "localhost", "--can-interface", "udp_multicast", "--can-channel", group, "--can-port",
+             str(port)),
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        line = ctl.stderr.readline()
-        assert "waiting for a goal" in line, line
+        lines = [ctl.stderr.readline()]  # which middleware (and which path reads what), then the wait
+        while "waiting for a goal" not in lines[-1] and len(lines) < 10 and lines[-1]:
+            lines.append(ctl.stderr.readline())
+        assert lines[0].startswith("dct run: ROS 2 via ") and "waiting for a goal" in lines[-1], lines
         ctl.send_signal(signal.SIGTERM)
         _, err = ctl.communicate(timeout=30)
     finally:

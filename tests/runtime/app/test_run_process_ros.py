@@ -46,12 +46,11 @@ def test_default_config_has_the_ros_and_can_sections():
 
 
 def test_publisher_never_blocks_and_drops_the_oldest():
-    from cyclonedds.domain import DomainParticipant
-
+    from runtime.io.ros.dds import CycloneTransport
     from runtime.io.ros.publisher import RosPublisher, TickView
     from runtime.io.ros.settings import RosOutputConfig
 
-    pub = RosPublisher(DomainParticipant(231), RosOutputConfig(queue_depth=2))
+    pub = RosPublisher(CycloneTransport(231), RosOutputConfig(queue_depth=2))
     view = TickView(stamp_s=1.0, pose=Pose2D(0.0, 0.0, 0.0), v_mps=0.1, omega_radps=0.0, state="ACTIVE",
                     stage_ms={"read": 0.1}, tick_ms=1.0, extra={}, points_fix=np.zeros((100, 2)),
                     plan_states=np.zeros((11, 3)), points_mov=np.zeros((5, 3), np.float32))

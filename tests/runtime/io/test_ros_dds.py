@@ -1,5 +1,6 @@
 """A real DDS round trip in one process: cyclonedds writers publish ROS 2 messages on `rt/...`
-topics, the RosSensorReceiver thread reads them, converts and validates them into a SensorInbox.
+topics, the RosSensorReceiver thread reads them, converts and validates them into a SensorInbox,
+through either middleware (rclpy, where installed, and cyclonedds).
 
 The domain id comes from the pid (never 0, where a real robot's ROS 2 graph would be), so that
 parallel test runs on one machine do not hear each other. Discovery and data stay on this
@@ -16,7 +17,7 @@ from pydantic import ValidationError
 
 from runtime.io.ros import convert as C
 from runtime.io.ros import messages as M
-from runtime.io.ros.dds import RosWriter, dds_topic_name, ros_qos
+from runtime.io.ros.dds import CycloneTransport, RosWriter, dds_topic_name, ros_qos
 from runtime.io.ros.receiver import (
     CameraTopic, GoalTopic, ImuTopic, LidarTopic, RosInputConfig, RosSensorReceiver, decode_cdr,
 )
@@ -28,6 +29,19 @@ K = np.array([[300.0, 0.0, 20.0], [0.0, 300.0, 15.0], [0.0, 0.0, 1.0]])
 @pytest.fixture(scope="module")
 def domain_id() -> int:
     return 1 + os.getpid() % 200
+
+
+@pytest.fixture(params=["cyclonedds", "rclpy"])
+def middleware(request) -> str:
+    if request.param == "rclpy":
+        pytest.importorskip("rclpy", reason="the ROS 2 wheels are not installed")
+    return request.param
+
+
+def transport(middleware: str, domain_id: int):
+    from runtime.io.ros.transport import TransportOptions, open_transport
+
+    return open_transport(TransportOptions(middleware=middleware, domain_id=domain_id))
 
 
 def writer(dp, ros_topic, cls, reliability="best_effort", depth=1):
@@ -67,7 +81,8 @@ def test_config_validation():
         with pytest.raises(ValidationError):
             RosInputConfig.model_validate(bad)
     with pytest.raises(ValueError, match="camera_K"):
-        RosSensorReceiver(RosInputConfig(camera=CameraTopic(topic="/c", type="sensor_msgs/msg/Image")), SensorInbox())
+        RosSensorReceiver(RosInputConfig(camera=CameraTopic(topic="/c", type="sensor_msgs/msg/Image")), SensorInbox(),
+                          None)
 
 
 def test_decode_cdr_garbage_is_a_named_rejection():
@@ -87,7 +102,7 @@ def livox_frame(k, n=2000):
     return pts, timebase
 
 
-def test_round_trip_custom_msg_image_imu_goal(domain_id):
+def test_round_trip_custom_msg_image_imu_goal(domain_id, middleware):
     cfg = RosInputConfig(
         domain_id=domain_id,
         lidar=LidarTopic(topic="/livox/lidar", type="livox_ros_driver2/msg/CustomMsg"),
@@ -128,7 +143,7 @@ def test_round_trip_custom_msg_image_imu_goal(domain_id):
         imus.extend(snap.imu)
         return len(scans) >= 2 and images and imus
 
-    with RosSensorReceiver(cfg, inbox, camera_K=K) as rx:
+    with transport(middleware, domain_id) as tr, RosSensorReceiver(cfg, inbox, tr, camera_K=K) as rx:
         wait_for(collect, every=publish)
         goal = wait_for(rx.take_goal)
     assert rx.error_counts == {}, rx.last_error
@@ -147,7 +162,7 @@ def test_round_trip_custom_msg_image_imu_goal(domain_id):
     assert rx.received["lidar"] >= 2 and rx.received["camera"] >= 1
 
 
-def test_bad_samples_are_counted_named_and_reach_the_tick(domain_id):
+def test_bad_samples_are_counted_named_and_reach_the_tick(domain_id, middleware):
     cfg = RosInputConfig(domain_id=domain_id,
                          lidar=LidarTopic(topic="/points", type="sensor_msgs/msg/PointCloud2"),
                          camera=CameraTopic(topic="/image/compressed", type="sensor_msgs/msg/CompressedImage"))
@@ -167,7 +182,7 @@ def test_bad_samples_are_counted_named_and_reach_the_tick(domain_id):
         rejected.extend(inbox.take().rejected)
         return {r.stream for r in rejected} >= {"lidar", "camera"}
 
-    with RosSensorReceiver(cfg, inbox, camera_K=K) as rx:
+    with transport(middleware, domain_id) as tr, RosSensorReceiver(cfg, inbox, tr, camera_K=K) as rx:
         wait_for(collect, every=publish)
     assert rx.error_counts.get("lidar.missing_field", 0) >= 1
     assert rx.error_counts.get("camera.undecodable", 0) >= 1
@@ -182,7 +197,7 @@ def test_bad_samples_are_counted_named_and_reach_the_tick(domain_id):
 def test_a_converter_crash_is_counted_not_fatal(domain_id):
     cfg = RosInputConfig(domain_id=domain_id, imu=ImuTopic(topic="/imu_crash"))
     inbox = SensorInbox()
-    rx = RosSensorReceiver(cfg, inbox)
+    rx = RosSensorReceiver(cfg, inbox, CycloneTransport(domain_id))
 
     def boom(msg):
         raise ZeroDivisionError("a bug")
