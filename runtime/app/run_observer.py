@@ -48,6 +48,8 @@ class RunObserver:
         self.notifier, self.echo, self.record_hook = notifier, echo, record_hook
         self.latency = LatencyTracker()
         self.goals_ignored = 0
+        self._said: tuple[str, str] | None = None
+        self._said_at_s = -1e9
 
     def __call__(self, row: np.void) -> None:
         from runtime.io.ros.publisher import TickView
@@ -65,6 +67,7 @@ class RunObserver:
             stage_ms={s: float(row["stage_s"][i]) * 1e3 for i, s in enumerate(telemetry.stages)},
             tick_ms=float(row["tick_s"]) * 1e3,
             extra={"deadline_misses": telemetry.deadline_misses, "hold_reason": snap.hold_reason or "",
+                   "stop_reason": snap.stop_reason or "", "safety": snap.safety or "",
                    "active_mode": snap.active_mode, "finished": snap.finished,
                    "goal_x": snap.goal.x_m, "goal_y": snap.goal.y_m, "pose_x": snap.pose.x_m,
                    "pose_y": snap.pose.y_m, "pose_yaw": snap.pose.yaw_rad},
@@ -74,7 +77,22 @@ class RunObserver:
             points_mov=snap.p_mov_lidar() if clouds and snap.partition_frame is not None else None,
         ))
         self._take_goal()
+        self._say_state(snap)
         self.notifier.watchdog()
+
+    #: At most one console line about holds per this many seconds (a flapping input would flood it).
+    SAY_EVERY_S = 1.0
+
+    def _say_state(self, snap) -> None:
+        """Say on the console when the controller starts or stops holding or stops, and why."""
+        why = (snap.stop_reason if snap.state.name == "STOPPED" else
+               snap.hold_reason if snap.state.name == "HOLDING" else "") or ""
+        now = (snap.state.name, why)
+        if now == self._said or (snap.t_s - self._said_at_s < self.SAY_EVERY_S and now[0] == "HOLDING"):
+            return
+        if self._said is not None or why:
+            self.echo(f"dct run: {now[0]}" + (f": {why}" if why else ""))
+        self._said, self._said_at_s = now, snap.t_s
 
     def _take_goal(self) -> None:
         """A new goal from the goal topic: validated now, taken by the next tick."""

@@ -236,7 +236,14 @@ class NavigationController:
             vlm_answers=vpp.answers if vpp is not None else 0,
             vlm_last_answer_s=memory.last_answer_s if memory is not None else None,
             vlm_masks=memory.entries if memory is not None else (),
+            stop_reason=self.stop_reason, safety=self._safety_verdict(),
         )
+
+    def _safety_verdict(self) -> str | None:
+        last = self.gate.last if self.gate is not None else None
+        if last is None:
+            return None
+        return "stop" if last.stopped else "slow" if last.slowed else "clear"
 
     # -- goals -------------------------------------------------------------------------------
     def request_goal(self, goal: Pose2D, source: str) -> None:

@@ -46,3 +46,8 @@ class ControllerSnapshot:
     vlm_answers: int
     vlm_last_answer_s: float | None
     vlm_masks: Any
+    #: Why the controller stopped (the safety stop's reason), None when it did not.
+    stop_reason: str | None = None
+    #: The safety supervisor's verdict on this tick's command: "clear", "slow" or "stop" (None:
+    #: no supervisor ran, e.g. before the first command).
+    safety: str | None = None

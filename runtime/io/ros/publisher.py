@@ -112,7 +112,11 @@ class RosPublisher:
         if self._diag is not None:
             level = {"STOPPED": DIAG_ERROR, "HOLDING": DIAG_WARN}.get(v.state, DIAG_OK)
             timings = {**v.stage_ms, "tick": v.tick_ms}
-            self._diag.write(convert.diagnostics_msg(v.stamp_s, v.state, timings, level=level, extra=v.extra))
+            # The status line an operator reads first: the state, and why when it is not driving.
+            why = v.extra.get("stop_reason") if v.state == "STOPPED" else v.extra.get("hold_reason")
+            message = f"{v.state}: {why}" if why and v.state in ("STOPPED", "HOLDING") else v.state
+            self._diag.write(convert.diagnostics_msg(v.stamp_s, v.state, timings, level=level, message=message,
+                                                     extra=v.extra))
         if self._plan is not None and v.plan_states is not None and len(v.plan_states):
             self._plan.write(convert.path_msg(v.stamp_s, np.asarray(v.plan_states)[:, :3], frame_id=c.odom_frame))
         if self._fix is not None and v.points_fix is not None:

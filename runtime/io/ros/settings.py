@@ -8,6 +8,7 @@ convention.
 """
 from __future__ import annotations
 
+import re
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -18,32 +19,51 @@ from runtime.io.ros.receiver import (
 from runtime.io.ros.transport import TransportOptions
 
 
+_FRAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_/]*$")
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 class RosOutputConfig(_Strict):
-    """Topics the controller publishes (all best effort, keep last 1: an operator's view, not data
-    anything depends on). A topic set to null is not published."""
+    """Topics and frames the controller publishes (runtime.io.ros.publisher). A topic set to null
+    is not published. Names and QoS follow REP-105 and Nav2's conventions (docs/ros.md)."""
 
     odometry: str | None = "/dct/odom"
     plan: str | None = "/dct/plan"
     p_fix: str | None = "/dct/p_fix"
     p_mov: str | None = "/dct/p_mov"
     diagnostics: str | None = "/diagnostics"
+    #: The safety supervisor's footprint, stop and slow zones (visualization_msgs/MarkerArray).
+    safety_markers: str | None = "/dct/safety_markers"
+    #: odom -> base_link on /tf every tick, and base_link -> lidar / camera once on /tf_static.
+    publish_tf: bool = True
     odom_frame: str = "odom"
     base_frame: str = "base_link"
-    #: Odometry and diagnostics go out every tick; the point clouds and the plan every this many.
+    #: The sensors' frames as their drivers stamp them (livox_ros_driver2's default; a ROS camera
+    #: driver's optical frame): the children of base_link on /tf_static.
+    lidar_frame: str = "livox_frame"
+    camera_frame: str = "camera_color_optical_frame"
+    #: Odometry, /tf and diagnostics go out every tick; the point clouds, the plan and the
+    #: markers every this many.
     clouds_every_ticks: int = Field(default=2, ge=1, le=1000)
     #: Ticks queued for the publisher thread; when it is behind, the newest waits and older ones
     #: are dropped (counted), the tick never blocks.
     queue_depth: int = Field(default=4, ge=1, le=256)
 
-    @field_validator("odometry", "plan", "p_fix", "p_mov", "diagnostics")
+    @field_validator("odometry", "plan", "p_fix", "p_mov", "diagnostics", "safety_markers")
     @classmethod
     def _ros_name(cls, v: str | None) -> str | None:
         if v is not None and (not _ROS_NAME.match(v) or "//" in v or v.endswith("/")):
             raise ValueError(f"{v!r} is not a ROS 2 topic name (e.g. /dct/odom)")
+        return v
+
+    @field_validator("odom_frame", "base_frame", "lidar_frame", "camera_frame")
+    @classmethod
+    def _frame_name(cls, v: str) -> str:
+        if not _FRAME.match(v):
+            raise ValueError(f"{v!r} is not a tf2 frame name (letters, digits, _ and /, no leading /)")
         return v
 
 
