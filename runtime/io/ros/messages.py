@@ -9,7 +9,11 @@ same bytes as ROS 2; tests/runtime/io/test_ros_messages.py checks every type aga
 ROS 2 CDR serializer.
 
 Field names and order follow the ROS 2 Jazzy `.msg` definitions (and, for the Livox types,
-livox_ros_driver2's, see docs/ros.md). `uint8[]` payloads (image
+livox_ros_driver2's, see docs/ros.md). The stock types are declared in messages_common.py
+(builtin_interfaces, std_msgs, geometry_msgs, sensor_msgs, nav_msgs, diagnostic_msgs) and
+messages_viz.py (tf2_msgs, visualization_msgs); this module re-exports them and holds the Livox
+types, the registry `ROS_TYPES`, `to_cdr` / `from_cdr` and the CustomMsg fast path: import
+messages from here. `uint8[]` payloads (image
 bytes, point cloud bytes) are typed `bytes`: cyclonedds writes `bytes` as a uint32 length and
 the raw octets, exactly the CDR of `sequence<uint8>`, but as one memory copy instead of a
 Python int per byte (a `sequence[uint8]` of a 1920x1200 RGB image is 6.9 M Python ints).
@@ -27,188 +31,26 @@ from typing import TypeVar
 
 import numpy as np
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, byte, float32, float64, int32, sequence, uint8, uint32, uint64
+from cyclonedds.idl.types import array, float32, sequence, uint8, uint32, uint64
 
 from runtime.common.sensor_data import SensorDataError
+from runtime.io.ros.messages_common import (  # re-exported (__all__)
+    DIAG_ERROR, DIAG_OK, DIAG_STALE, DIAG_WARN, FLOAT32, FLOAT64, INT8, INT16, INT32, UINT8, UINT16, UINT32, ColorRGBA,
+    CompressedImage, DiagnosticArray, DiagnosticStatus, Duration, Header, Image, Imu, KeyValue, Odometry, Path, Point,
+    PointCloud2, PointField, Pose, PoseStamped, PoseWithCovariance, Quaternion, Time, Transform, TransformStamped,
+    Twist, TwistWithCovariance, Vector3,
+)
+from runtime.io.ros.messages_viz import (  # re-exported (__all__)
+    ARROW, ARROW_STRIP, CUBE, CUBE_LIST, CYLINDER, LINE_LIST, LINE_STRIP, MARKER_ADD, MARKER_DELETE, MARKER_DELETEALL,
+    MESH_RESOURCE, POINTS, SPHERE, SPHERE_LIST, TEXT_VIEW_FACING, TRIANGLE_LIST, Marker, MarkerArray, MeshFile,
+    TFMessage, UVCoordinate,
+)
 
 
 class RosMessageError(SensorDataError):
     """A ROS 2 message that cannot be used: `.field_name` is `pkg/msg/Type.field`, `.name` the reason."""
 
     default_name = "bad_message"
-
-# ----------------------------------------------------------------------------- builtin_interfaces / std_msgs
-
-
-@dataclass
-class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
-    sec: int32 = 0
-    nanosec: uint32 = 0
-
-
-@dataclass
-class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
-    stamp: Time = field(default_factory=Time)
-    frame_id: str = ""
-
-
-# ----------------------------------------------------------------------------- geometry_msgs
-
-
-@dataclass
-class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
-    x: float64 = 0.0
-    y: float64 = 0.0
-    z: float64 = 0.0
-
-
-@dataclass
-class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
-    x: float64 = 0.0
-    y: float64 = 0.0
-    z: float64 = 0.0
-
-
-@dataclass
-class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
-    x: float64 = 0.0
-    y: float64 = 0.0
-    z: float64 = 0.0
-    w: float64 = 1.0
-
-
-@dataclass
-class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
-    position: Point = field(default_factory=Point)
-    orientation: Quaternion = field(default_factory=Quaternion)
-
-
-@dataclass
-class PoseStamped(IdlStruct, typename="geometry_msgs::msg::dds_::PoseStamped_"):
-    header: Header = field(default_factory=Header)
-    pose: Pose = field(default_factory=Pose)
-
-
-@dataclass
-class PoseWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::PoseWithCovariance_"):
-    pose: Pose = field(default_factory=Pose)
-    covariance: array[float64, 36] = field(default_factory=lambda: [0.0] * 36)
-
-
-@dataclass
-class Twist(IdlStruct, typename="geometry_msgs::msg::dds_::Twist_"):
-    linear: Vector3 = field(default_factory=Vector3)
-    angular: Vector3 = field(default_factory=Vector3)
-
-
-@dataclass
-class TwistWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::TwistWithCovariance_"):
-    twist: Twist = field(default_factory=Twist)
-    covariance: array[float64, 36] = field(default_factory=lambda: [0.0] * 36)
-
-
-# ----------------------------------------------------------------------------- sensor_msgs
-
-
-@dataclass
-class PointField(IdlStruct, typename="sensor_msgs::msg::dds_::PointField_"):
-    """One field of a PointCloud2 point: `datatype` is one of the constants below."""
-
-    name: str = ""
-    offset: uint32 = 0
-    datatype: uint8 = 0
-    count: uint32 = 1
-
-
-# PointField.datatype constants (sensor_msgs/msg/PointField.msg)
-INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
-
-
-@dataclass
-class PointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
-    header: Header = field(default_factory=Header)
-    height: uint32 = 0
-    width: uint32 = 0
-    fields: sequence[PointField] = field(default_factory=list)
-    is_bigendian: bool = False
-    point_step: uint32 = 0
-    row_step: uint32 = 0
-    data: bytes = b""               # uint8[]
-    is_dense: bool = False
-
-
-@dataclass
-class Image(IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
-    header: Header = field(default_factory=Header)
-    height: uint32 = 0
-    width: uint32 = 0
-    encoding: str = ""
-    is_bigendian: uint8 = 0
-    step: uint32 = 0
-    data: bytes = b""               # uint8[]
-
-
-@dataclass
-class CompressedImage(IdlStruct, typename="sensor_msgs::msg::dds_::CompressedImage_"):
-    header: Header = field(default_factory=Header)
-    format: str = ""
-    data: bytes = b""               # uint8[]
-
-
-@dataclass
-class Imu(IdlStruct, typename="sensor_msgs::msg::dds_::Imu_"):
-    header: Header = field(default_factory=Header)
-    orientation: Quaternion = field(default_factory=Quaternion)
-    orientation_covariance: array[float64, 9] = field(default_factory=lambda: [0.0] * 9)
-    angular_velocity: Vector3 = field(default_factory=Vector3)
-    angular_velocity_covariance: array[float64, 9] = field(default_factory=lambda: [0.0] * 9)
-    linear_acceleration: Vector3 = field(default_factory=Vector3)
-    linear_acceleration_covariance: array[float64, 9] = field(default_factory=lambda: [0.0] * 9)
-
-
-# ----------------------------------------------------------------------------- nav_msgs
-
-
-@dataclass
-class Odometry(IdlStruct, typename="nav_msgs::msg::dds_::Odometry_"):
-    header: Header = field(default_factory=Header)
-    child_frame_id: str = ""
-    pose: PoseWithCovariance = field(default_factory=PoseWithCovariance)
-    twist: TwistWithCovariance = field(default_factory=TwistWithCovariance)
-
-
-@dataclass
-class Path(IdlStruct, typename="nav_msgs::msg::dds_::Path_"):
-    header: Header = field(default_factory=Header)
-    poses: sequence[PoseStamped] = field(default_factory=list)
-
-
-# ----------------------------------------------------------------------------- diagnostic_msgs
-
-
-@dataclass
-class KeyValue(IdlStruct, typename="diagnostic_msgs::msg::dds_::KeyValue_"):
-    key: str = ""
-    value: str = ""
-
-
-# DiagnosticStatus.level constants (ROS `byte`, an IDL octet)
-DIAG_OK, DIAG_WARN, DIAG_ERROR, DIAG_STALE = 0, 1, 2, 3
-
-
-@dataclass
-class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticStatus_"):
-    level: byte = DIAG_OK           # ROS `byte`: an IDL octet
-    name: str = ""
-    message: str = ""
-    hardware_id: str = ""
-    values: sequence[KeyValue] = field(default_factory=list)
-
-
-@dataclass
-class DiagnosticArray(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticArray_"):
-    header: Header = field(default_factory=Header)
-    status: sequence[DiagnosticStatus] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- livox_ros_driver2
@@ -239,7 +81,9 @@ class CustomMsg(IdlStruct, typename="livox_ros_driver2::msg::dds_::CustomMsg_"):
 
 ROS_TYPES: dict[str, type[IdlStruct]] = {
     "builtin_interfaces/msg/Time": Time,
+    "builtin_interfaces/msg/Duration": Duration,
     "std_msgs/msg/Header": Header,
+    "std_msgs/msg/ColorRGBA": ColorRGBA,
     "geometry_msgs/msg/Vector3": Vector3,
     "geometry_msgs/msg/Point": Point,
     "geometry_msgs/msg/Quaternion": Quaternion,
@@ -248,6 +92,8 @@ ROS_TYPES: dict[str, type[IdlStruct]] = {
     "geometry_msgs/msg/PoseWithCovariance": PoseWithCovariance,
     "geometry_msgs/msg/Twist": Twist,
     "geometry_msgs/msg/TwistWithCovariance": TwistWithCovariance,
+    "geometry_msgs/msg/Transform": Transform,
+    "geometry_msgs/msg/TransformStamped": TransformStamped,
     "sensor_msgs/msg/PointField": PointField,
     "sensor_msgs/msg/PointCloud2": PointCloud2,
     "sensor_msgs/msg/Image": Image,
@@ -258,6 +104,11 @@ ROS_TYPES: dict[str, type[IdlStruct]] = {
     "diagnostic_msgs/msg/KeyValue": KeyValue,
     "diagnostic_msgs/msg/DiagnosticStatus": DiagnosticStatus,
     "diagnostic_msgs/msg/DiagnosticArray": DiagnosticArray,
+    "tf2_msgs/msg/TFMessage": TFMessage,
+    "visualization_msgs/msg/UVCoordinate": UVCoordinate,
+    "visualization_msgs/msg/MeshFile": MeshFile,
+    "visualization_msgs/msg/Marker": Marker,
+    "visualization_msgs/msg/MarkerArray": MarkerArray,
     "livox_ros_driver2/msg/CustomPoint": CustomPoint,
     "livox_ros_driver2/msg/CustomMsg": CustomMsg,
 }
@@ -429,6 +280,17 @@ class PreSerialized:
         return sample
 
 
-__all__ = [name for name in list(globals()) if not name.startswith("_") and name not in (
-    "dataclass", "field", "TypeVar", "struct", "np", "SensorDataError", "IdlStruct", "array", "byte", "float32", "float64", "int32", "sequence", "uint8",
-    "uint32", "uint64")]
+#: Everything declared here and in messages_common / messages_viz (re-exported: import messages from here).
+__all__ = [
+    "DIAG_ERROR", "DIAG_OK", "DIAG_STALE", "DIAG_WARN", "FLOAT32", "FLOAT64", "INT8", "INT16", "INT32", "UINT8",
+    "UINT16", "UINT32", "ColorRGBA", "CompressedImage", "DiagnosticArray", "DiagnosticStatus", "Duration", "Header",
+    "Image", "Imu", "KeyValue", "Odometry", "Path", "Point", "PointCloud2", "PointField", "Pose", "PoseStamped",
+    "PoseWithCovariance", "Quaternion", "Time", "Transform", "TransformStamped", "Twist", "TwistWithCovariance",
+    "Vector3",
+    "ARROW", "ARROW_STRIP", "CUBE", "CUBE_LIST", "CYLINDER", "LINE_LIST", "LINE_STRIP", "MARKER_ADD", "MARKER_DELETE",
+    "MARKER_DELETEALL", "MESH_RESOURCE", "POINTS", "SPHERE", "SPHERE_LIST", "TEXT_VIEW_FACING", "TRIANGLE_LIST",
+    "Marker", "MarkerArray", "MeshFile", "TFMessage", "UVCoordinate",
+]
+__all__ += [name for name in list(globals()) if not name.startswith("_") and name not in __all__ and name not in (
+    "dataclass", "field", "TypeVar", "struct", "np", "SensorDataError", "IdlStruct", "array", "float32", "sequence",
+    "uint8", "uint32", "uint64")]
