@@ -10,9 +10,14 @@ which its command was written minus the end of that frame (its last point's time
 """
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from runtime.controller.goals import GoalError
+
+
+_NUMBER = re.compile(r"\d+(\.\d+)?")
 
 
 class LatencyTracker:
@@ -87,11 +92,11 @@ class RunObserver:
         """Say on the console when the controller starts or stops holding or stops, and why."""
         why = (snap.stop_reason if snap.state.name == "STOPPED" else
                snap.hold_reason if snap.state.name == "HOLDING" else "") or ""
-        now = (snap.state.name, why)
+        now = (snap.state.name, _NUMBER.sub("#", why))  # the same hold with older ages is no news
         if now == self._said or (snap.t_s - self._said_at_s < self.SAY_EVERY_S and now[0] == "HOLDING"):
             return
         if self._said is not None or why:
-            self.echo(f"dct run: {now[0]}" + (f": {why}" if why else ""))
+            self.echo(f"dct run: {snap.state.name}" + (f": {why}" if why else ""))
         self._said, self._said_at_s = now, snap.t_s
 
     def _take_goal(self) -> None:
