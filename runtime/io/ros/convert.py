@@ -9,7 +9,9 @@ Inbound (what drivers publish -> what the controller uses):
   sensor_msgs/Imu             -> ImuSample    (`imu_to_sample`)
   geometry_msgs/PoseStamped   -> GoalPose     (`pose_stamped_to_goal`)
 Outbound (what the controller publishes for RViz / Foxglove):
-  `odometry_msg`, `path_msg`, `pointcloud2_msg`, `diagnostics_msg`.
+  `odometry_msg`, `path_msg`, `pointcloud2_msg`, `diagnostics_msg`;
+and what the real-time simulator publishes as the Livox driver would: `livox_pointcloud2_msg`
+(pointcloud.py), `goal_pose_msg`.
 
 Every inbound rejection raises RosMessageError (a SensorDataError, so SensorInbox-style
 counting by `.name` works; validation.py) with a one-line message naming the ROS type and field:
@@ -37,9 +39,9 @@ from runtime.io.ros.messages import (
     Imu, KeyValue, Odometry, Path, Point, PointCloud2, PointField, Pose, PoseStamped, PoseWithCovariance, Quaternion,
     Twist, TwistWithCovariance, Vector3, stamp_to_time,
 )
-from runtime.io.ros.pointcloud import (  # PointCloud2 in: re-exported
-    POINTCLOUD2, TIME_FIELD_AUTO, TIME_FIELD_NONE, PointTime, no_point_time_notice, pointcloud2_decode,
-    pointcloud2_to_scan,
+from runtime.io.ros.pointcloud import (  # PointCloud2 in (and the Livox layout out): re-exported
+    POINTCLOUD2, TIME_FIELD_AUTO, TIME_FIELD_NONE, PointTime, livox_pointcloud2_msg, no_point_time_notice,
+    pointcloud2_decode, pointcloud2_to_scan,
 )
 from runtime.io.ros.validation import (
     DEFAULT_FRAME_DURATION_S, fail as _fail, frame_id_of as _frame_id, rewrap as _rewrap, stamp_of as _stamp_of,
@@ -314,5 +316,5 @@ __all__ = [
     "MAX_COMPRESSED_PIXELS", "TIME_FIELD_AUTO", "TIME_FIELD_NONE", "GoalPose", "PointTime",
     "custom_msg_to_scan", "pointcloud2_to_scan", "pointcloud2_decode", "no_point_time_notice", "image_to_camera",
     "compressed_image_to_camera", "imu_to_sample", "yaw_of", "pose_stamped_to_goal",
-    "odometry_msg", "goal_pose_msg", "path_msg", "pointcloud2_msg", "diagnostics_msg",
+    "odometry_msg", "goal_pose_msg", "path_msg", "pointcloud2_msg", "livox_pointcloud2_msg", "diagnostics_msg",
 ]

@@ -1,4 +1,4 @@
-"""sensor_msgs/PointCloud2 -> LidarScan: any driver's layout, with per-point times by its conventions.
+"""sensor_msgs/PointCloud2 <-> LidarScan: any driver's layout in, the Livox driver's layout out.
 
 Inbound (`pointcloud2_to_scan`; `pointcloud2_decode` also says where the point times came from):
 fields x, y, z (float32 or float64) at any offsets, any point_step, row padding (row_step) and
@@ -30,6 +30,11 @@ frame's end gives negative relative times).
 Non-finite points: an `is_dense=False` cloud declares that some points are invalid (no return);
 those rows are dropped, and a cloud of only such points is `nothing_seen`. In an
 `is_dense=True` cloud a NaN is a driver fault and LidarScan's `non_finite` rejection applies.
+
+Outbound (`livox_pointcloud2_msg`): the livox_ros_driver2 xfer_format 0 layout (packed 26-byte
+points: x, y, z, intensity float32, tag, line uint8, timestamp float64 absolute ns; the header
+stamp is the first point's time), what `dct hil serve` publishes when the controller reads a
+PointCloud2 lidar.
 """
 from __future__ import annotations
 
@@ -39,7 +44,8 @@ import numpy as np
 
 from runtime.common.sensor_data import MAX_LIDAR_POINTS, LidarScan, SensorDataError
 from runtime.io.ros.messages import (
-    FLOAT32, FLOAT64, INT8, INT16, INT32, UINT8, UINT16, UINT32, PointCloud2, PointField, RosMessageError,
+    FLOAT32, FLOAT64, INT8, INT16, INT32, UINT8, UINT16, UINT32, Header, PointCloud2, PointField, RosMessageError,
+    Time,
 )
 from runtime.io.ros.validation import DEFAULT_FRAME_DURATION_S, fail, frame_id_of, rewrap, stamp_of
 
@@ -259,3 +265,40 @@ def no_point_time_notice(topic: str, msg: PointCloud2) -> str:
     names = ", ".join(f.name for f in msg.fields) or "none"
     return (f"[no_point_time] PointCloud2 on {topic} has no per-point time field (fields: {names}): deskewing is "
             "off (name the field in ros.inputs.lidar.time_field, or set it to none to say so)")
+
+
+# ----------------------------------------------------------------------------- outbound
+
+#: One point of livox_ros_driver2's PointCloud2 (xfer_format 0): packed, 26 bytes.
+LIVOX_POINT_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "tag", "line", "timestamp"],
+                              "formats": ["<f4", "<f4", "<f4", "<f4", "u1", "u1", "<f8"],
+                              "offsets": [0, 4, 8, 12, 16, 17, 18], "itemsize": 26})
+LIVOX_POINT_FIELDS = (PointField("x", 0, FLOAT32, 1), PointField("y", 4, FLOAT32, 1), PointField("z", 8, FLOAT32, 1),
+                      PointField("intensity", 12, FLOAT32, 1), PointField("tag", 16, UINT8, 1),
+                      PointField("line", 17, UINT8, 1), PointField("timestamp", 18, FLOAT64, 1))
+
+
+def livox_pointcloud2_msg(timebase_ns: int, frame_id: str, points_m: np.ndarray, offsets_s: np.ndarray, *,
+                          intensity: float = 100.0) -> PointCloud2:
+    """A frame as livox_ros_driver2 publishes it in a PointCloud2 (xfer_format 0).
+
+    timebase_ns: the first point's time (the header stamp, exactly); point i's `timestamp` is
+    timebase_ns + offsets_s[i] in ns, as a float64 (as the driver writes it: 256 ns steps in 2023).
+    """
+    pts = np.asarray(points_m)
+    offs = np.asarray(offsets_s, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or offs.shape != (len(pts),):
+        raise ValueError(f"livox_pointcloud2_msg: points must be (N, 3) and offsets (N,), got {pts.shape} and "
+                         f"{offs.shape}")
+    timebase_ns = int(timebase_ns)
+    if timebase_ns < 0:
+        raise ValueError(f"livox_pointcloud2_msg: timebase_ns {timebase_ns} is negative")
+    rec = np.zeros(len(pts), dtype=LIVOX_POINT_DTYPE)
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rec["intensity"] = intensity
+    rec["timestamp"] = (np.int64(timebase_ns) + np.round(offs * 1e9).astype(np.int64)).astype(np.float64)
+    n = len(rec)
+    return PointCloud2(
+        header=Header(Time(timebase_ns // 1_000_000_000, timebase_ns % 1_000_000_000), frame_id), height=1, width=n,
+        fields=list(LIVOX_POINT_FIELDS), is_bigendian=False, point_step=LIVOX_POINT_DTYPE.itemsize,
+        row_step=LIVOX_POINT_DTYPE.itemsize * n, data=rec.tobytes(), is_dense=True)

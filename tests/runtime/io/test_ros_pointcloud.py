@@ -1,5 +1,5 @@
-"""PointCloud2 -> LidarScan with per-point times found from the driver's fields:
-runtime/io/ros/pointcloud.py (through convert.py), and the receiver's lidar config and notice."""
+"""PointCloud2 -> LidarScan with per-point times found from the driver's fields, and the Livox
+driver's PointCloud2 layout out: runtime/io/ros/pointcloud.py (through convert.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -150,6 +150,12 @@ def test_livox_ros_driver2_xfer_format_0():
     assert source == C.PointTime("timestamp", 1e-9, True, auto=True)
     assert scan.stamp_s == pytest.approx(STAMP_NS * 1e-9, abs=1e-6)
     np.testing.assert_allclose(scan.point_time_offsets_s, rel, atol=1e-6)
+    # the encoder the simulator publishes with writes exactly this layout
+    enc = C.livox_pointcloud2_msg(STAMP_NS, "livox_frame", xyz, rel)
+    assert [(f.name, f.offset, f.datatype, f.count) for f in enc.fields] == \
+        [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
+    assert (enc.point_step, enc.row_step, enc.height, enc.is_bigendian, enc.is_dense) == (26, 26 * 400, 1, False, True)
+    assert (enc.header.stamp.sec, enc.header.stamp.nanosec) == (STAMP_NS // 10**9, STAMP_NS % 10**9)
 
 
 def test_ouster_t_uint32_ns_relative():
@@ -282,6 +288,33 @@ def test_garbage_clouds_give_a_scan_or_a_named_rejection(fields, width, height, 
         C.pointcloud2_to_scan(msg, time_field=time_field)
     except M.RosMessageError as exc:
         assert "\n" not in str(exc)
+
+
+# ----------------------------------------------------------------------------- the simulator's encoder
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 300), stamp_ns=st.integers(10**9, 2_100_000_000 * 10**9), seed=st.integers(0, 2**31))
+def test_livox_encoder_round_trip(n, stamp_ns, seed):
+    """What `dct hil serve` publishes decodes, off the wire, to the same points and point times."""
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform(-30, 30, (n, 3)).astype(np.float32)
+    offs = np.sort(rng.uniform(0, 0.1, n)).astype(np.float32)
+    msg = M.from_cdr(M.PointCloud2, M.to_cdr(C.livox_pointcloud2_msg(stamp_ns, "livox_frame", xyz, offs)))
+    scan, source = C.pointcloud2_decode(msg)
+    assert source == C.PointTime("timestamp", 1e-9, True, auto=True) and scan.frame_id == "livox_frame"
+    np.testing.assert_array_equal(scan.points_m, xyz)
+    # float64 ns of a 2036 time: 256 ns steps; float64 s of it: 240 ns
+    want = offs.astype(np.float64) - offs.min()
+    np.testing.assert_allclose(scan.point_time_offsets_s, want, atol=2e-6)
+    assert scan.stamp_s == pytest.approx(stamp_ns * 1e-9 + float(offs.min()), abs=2e-6)
+
+
+def test_livox_encoder_refuses_bad_shapes():
+    with pytest.raises(ValueError, match="livox_pointcloud2_msg"):
+        C.livox_pointcloud2_msg(STAMP_NS, "f", np.zeros((3, 2)), np.zeros(3))
+    with pytest.raises(ValueError, match="livox_pointcloud2_msg"):
+        C.livox_pointcloud2_msg(STAMP_NS, "f", np.zeros((3, 3)), np.zeros(4))
 
 
 # ----------------------------------------------------------------------------- the config and the receiver
