@@ -82,6 +82,7 @@ def load_inputs(opts: RunOptions) -> Loaded:
             check_goal(Pose2D(*opts.goal), "--goal")
         except (GoalError, TypeError) as exc:
             raise RunInputError(f"--goal: {opts.goal}: {exc}") from None
+        _check_goal_workspace(config, opts.goal, cfg_name)
     bus_config = _bus_config(config, opts, cfg_name)
     if opts.domain_id is not None:
         inputs = config.ros.inputs.model_copy(update={"domain_id": opts.domain_id})
@@ -97,6 +98,17 @@ def load_inputs(opts: RunOptions) -> Loaded:
         except DistanceNetError as exc:
             raise RunInputError(f"{cfg_name}: planner.distance_net_path: {exc}") from None
     return Loaded(robot, config, wheel_calibration, K, dist, bus_config, camera=camera, T_cam_lidar=T_cam_lidar)
+
+
+def _check_goal_workspace(config, goal: tuple[float, float, float], cfg_name: str) -> None:
+    """--goal (odometry frame) inside ros.inputs.goal.workspace, when one is configured."""
+    ws = config.ros.inputs.goal.workspace if config.ros.inputs.goal is not None else None
+    if ws is None:
+        return
+    refused = ws.refusal(float(goal[0]), float(goal[1]), config.ros.outputs.odom_frame)
+    if refused is not None:
+        reason, _, text = refused
+        raise RunInputError(f"[{reason}] --goal: {text} ({cfg_name}: ros.inputs.goal.workspace)")
 
 
 def _load_files(opts: RunOptions):

@@ -34,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from runtime.io.ros import convert
 from runtime.io.ros.dds import RawDataReader, dds_topic_name, raw_reader, ros_qos
 from runtime.io.ros.messages import ROS_TYPES, RosMessageError, decode_custom_msg, from_cdr
+from runtime.io.ros.workspace import GoalWorkspace
 from runtime.common.sensor_data import SensorDataError
 from runtime.io.sensor_inbox import SensorInbox
 
@@ -114,6 +115,8 @@ class GoalTopic(_Topic):
     topic: str = "/goal_pose"               # the Nav2 / RViz "2D Goal Pose" convention
     type: Literal["geometry_msgs/msg/PoseStamped"] = "geometry_msgs/msg/PoseStamped"
     qos: TopicQos = TopicQos(reliability="reliable", depth=1)
+    #: Where goals may be: a goal outside (or in another frame) is refused (workspace.py).
+    workspace: GoalWorkspace | None = None
 
 
 class RosInputConfig(_Strict):
@@ -163,6 +166,8 @@ class RosSensorReceiver:
     """
 
     lidar_time_notice: str | None = None
+    GOAL_REJECTIONS_KEPT = 16
+    _goal_rejections: tuple[str, ...] = ()
 
     def __init__(self, config: RosInputConfig, inbox: SensorInbox, *, camera_K: np.ndarray | None = None,
                  camera_distortion: np.ndarray | None = None, participant: DomainParticipant | None = None) -> None:
@@ -228,8 +233,12 @@ class RosSensorReceiver:
         if stream == "imu":
             return lambda msg: inbox.put_imu(convert.imu_to_sample(msg))
 
+        workspace = topic.workspace
+
         def goal(msg):
             g = convert.pose_stamped_to_goal(msg)
+            if workspace is not None:  # refused here: a goal outside never reaches the controller
+                workspace.check_goal(g)
             with self._lock:
                 self._goal = g
         return goal
@@ -239,6 +248,8 @@ class RosSensorReceiver:
         with self._lock:
             self.error_counts[key] = self.error_counts.get(key, 0) + 1
             self.last_error = f"{stream}: {exc}"
+            if stream == "goal":  # for the operator's console (take_goal_rejections); the newest few
+                self._goal_rejections = (*self._goal_rejections, str(exc))[-self.GOAL_REJECTIONS_KEPT:]
         if stream != "goal":
             # Hand the rejection to the tick with the inbox's own (SensorInbox has no public
             # method for data refused before it became a LidarScan / CameraImage / ImuSample).
@@ -309,6 +320,13 @@ class RosSensorReceiver:
         with self._lock:
             g, self._goal = self._goal, None
         return g
+
+    def take_goal_rejections(self) -> tuple[str, ...]:
+        """The goals refused since the last call (each its one-line error; the newest
+        GOAL_REJECTIONS_KEPT), for the operator's console; every one is counted in error_counts."""
+        with self._lock:
+            r, self._goal_rejections = self._goal_rejections, ()
+        return r
 
 
 __all__ = ["RosInputConfig", "LidarTopic", "CameraTopic", "ImuTopic", "GoalTopic", "TopicQos", "RosSensorReceiver",

@@ -8,7 +8,7 @@ convention.
 """
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from runtime.io.ros.receiver import (
     _ROS_NAME, CameraTopic, GoalTopic, ImuTopic, LidarTopic, RosInputConfig, TopicQos,
@@ -55,6 +55,14 @@ DEFAULT_INPUTS = RosInputConfig(
 class RosConfig(_Strict):
     inputs: RosInputConfig = DEFAULT_INPUTS
     outputs: RosOutputConfig = RosOutputConfig()
+
+    @model_validator(mode="after")
+    def _workspace_frame(self) -> "RosConfig":
+        ws = self.inputs.goal.workspace if self.inputs.goal is not None else None
+        if ws is not None and ws.frame == "odom" and self.outputs.odom_frame != "odom":
+            raise ValueError(f"inputs.goal.workspace.frame odom is not the odometry frame "
+                             f"(outputs.odom_frame {self.outputs.odom_frame!r})")
+        return self
 
 
 __all__ = ["RosConfig", "RosOutputConfig", "DEFAULT_INPUTS"]
