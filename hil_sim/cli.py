@@ -315,8 +315,8 @@ def serve_command(*, scenario: str, seed: int, json_path: Path | None, config_pa
                   oracle_precision: float | None, oracle_recall: float | None, oracle_latency_s: float | None,
                   oracle_failure_rate: float | None, duration_s: float | None = None) -> None:
     """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
-    the sensors as ROS 2 DDS topics (Livox CustomMsg, Imu, Image); for planner mode dct also the sim-oracle as a VLM
-    over HTTP on 127.0.0.1 (hil_sim/vlm/service.py). The episode starts when a controller enables
+    the sensors as ROS 2 DDS topics (Livox CustomMsg or PointCloud2, Imu, Image); for planner mode dct also the
+    sim-oracle as a VLM over HTTP on 127.0.0.1 (hil_sim/vlm/service.py). The episode starts when a controller enables
     the base; the metrics are written when it ends. Exit 0 when it ran (whatever the outcome), 2 on bad input."""
     import signal
     import threading

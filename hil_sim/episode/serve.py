@@ -3,8 +3,10 @@
 To a controller process (`dct run`) it is indistinguishable from the LIMO: the emulated base
 firmware (firmware_bridge.firmware_emulator) answers on a CAN bus (udp_multicast: python-can's
 bus between processes), and the sensors are ROS 2 topics over DDS with the types the real
-drivers publish: livox_ros_driver2/CustomMsg (per-point offset_time, ros_io's numpy encoder),
-sensor_msgs/Imu, sensor_msgs/Image (only when a camera rate is asked for: rendering is costly).
+drivers publish: livox_ros_driver2/CustomMsg (per-point offset_time, ros_io's numpy encoder), or,
+when the controller's config reads a sensor_msgs/PointCloud2 lidar, the PointCloud2 the same
+driver publishes with xfer_format 0 (per-point absolute `timestamp` in ns), sensor_msgs/Imu,
+sensor_msgs/Image (only when a camera rate is asked for: rendering is costly).
 For planner mode dct it also serves the sim-oracle as a remote VLM (the OpenAI chat-completions
 API and the grounding detector API over HTTP on 127.0.0.1: hil_sim.vlm.service), answering
 from the ground truth of the frames it rendered.
@@ -78,16 +80,15 @@ class DdsSensorSink:
     publishes each piece as the robot's drivers would (module docstring)."""
 
     def __init__(self, transport, inputs, to_wall) -> None:
-        from runtime.io.ros.messages import CustomMsg, Image, Imu
+        from runtime.io.ros.messages import ROS_TYPES, Image, Imu
         from runtime.io.ros.transport import QosSpec
 
         self.to_wall = to_wall
         self._lidar = self._imu = self._camera = None
+        #: CustomMsg, or PointCloud2 in livox_ros_driver2's xfer_format 0 layout (put_scan)
+        self._lidar_type = inputs.lidar.type if inputs.lidar is not None else None
         if inputs.lidar is not None:
-            if inputs.lidar.type != "livox_ros_driver2/msg/CustomMsg":
-                raise ValueError("dct hil serve publishes the lidar as livox_ros_driver2/msg/CustomMsg; "
-                                 f"ros.inputs.lidar.type is {inputs.lidar.type}")
-            self._lidar = transport.writer(inputs.lidar.topic, CustomMsg, inputs.lidar.qos.spec())
+            self._lidar = transport.writer(inputs.lidar.topic, ROS_TYPES[inputs.lidar.type], inputs.lidar.qos.spec())
         if inputs.imu is not None:
             self._imu = transport.writer(inputs.imu.topic, Imu, inputs.imu.qos.spec())
         if inputs.camera is not None and inputs.camera.type == "sensor_msgs/msg/Image":
@@ -107,12 +108,16 @@ class DdsSensorSink:
         t0 = time.perf_counter()
         stamp = self.to_wall(scan.stamp_s)
         timebase = int(round(stamp * 1e9))
-        pts = np.zeros(scan.num_points, dtype=CUSTOM_POINT_DTYPE)
-        pts["offset_time"] = np.round(scan.point_time_offsets_s.astype(np.float64) * 1e9).astype(np.uint32)
-        pts["x"], pts["y"], pts["z"] = scan.points_m[:, 0], scan.points_m[:, 1], scan.points_m[:, 2]
-        pts["reflectivity"] = 100
-        header = Header(stamp_to_time(timebase * 1e-9), scan.frame_id or "livox_frame")
-        self._lidar.write_cdr(encode_custom_msg(header, timebase, pts))
+        if self._lidar_type == "sensor_msgs/msg/PointCloud2":
+            cdr = lidar_pointcloud2_cdr(scan, timebase)
+        else:
+            pts = np.zeros(scan.num_points, dtype=CUSTOM_POINT_DTYPE)
+            pts["offset_time"] = np.round(scan.point_time_offsets_s.astype(np.float64) * 1e9).astype(np.uint32)
+            pts["x"], pts["y"], pts["z"] = scan.points_m[:, 0], scan.points_m[:, 1], scan.points_m[:, 2]
+            pts["reflectivity"] = 100
+            header = Header(stamp_to_time(timebase * 1e-9), scan.frame_id or "livox_frame")
+            cdr = encode_custom_msg(header, timebase, pts)
+        self._lidar.write_cdr(cdr)
         self.published["lidar"] += 1
         self.publish_s["lidar"] += time.perf_counter() - t0
         return True
@@ -142,6 +147,16 @@ class DdsSensorSink:
         self.published["camera"] += 1
         self.publish_s["camera"] += time.perf_counter() - t0
         return True
+
+
+def lidar_pointcloud2_cdr(scan, timebase_ns: int) -> bytes:
+    """A LidarScan as the CDR of the PointCloud2 livox_ros_driver2 publishes (xfer_format 0): the
+    header stamp is timebase_ns, each point's `timestamp` its absolute time in ns."""
+    from runtime.io.ros.convert import livox_pointcloud2_msg
+    from runtime.io.ros.messages import to_cdr
+
+    return to_cdr(livox_pointcloud2_msg(timebase_ns, scan.frame_id or "livox_frame", scan.points_m,
+                                        scan.point_time_offsets_s))
 
 
 def _controller_finished(reader) -> bool:

@@ -85,6 +85,7 @@ def load_inputs(opts: RunOptions) -> Loaded:
             check_goal(Pose2D(*opts.goal), "--goal")
         except (GoalError, TypeError) as exc:
             raise RunInputError(f"--goal: {opts.goal}: {exc}") from None
+        _check_goal_workspace(config, opts.goal, cfg_name)
     bus_config = _bus_config(config, opts, cfg_name)
     config = _ros_overrides(config, opts)
     if config.ros.inputs.lidar is None and config.uses_lidar:
@@ -110,6 +111,17 @@ def _ros_overrides(config, opts: RunOptions):
     if opts.discovery is not None:
         ros = ros.model_copy(update={"discovery": opts.discovery})
     return config if ros is config.ros else config.model_copy(update={"ros": ros})
+
+
+def _check_goal_workspace(config, goal: tuple[float, float, float], cfg_name: str) -> None:
+    """--goal (odometry frame) inside ros.inputs.goal.workspace, when one is configured."""
+    ws = config.ros.inputs.goal.workspace if config.ros.inputs.goal is not None else None
+    if ws is None:
+        return
+    refused = ws.refusal(float(goal[0]), float(goal[1]), config.ros.outputs.odom_frame)
+    if refused is not None:
+        reason, _, text = refused
+        raise RunInputError(f"[{reason}] --goal: {text} ({cfg_name}: ros.inputs.goal.workspace)")
 
 
 def _load_files(opts: RunOptions):

@@ -100,7 +100,11 @@ class RunObserver:
         self._said, self._said_at_s = now, snap.t_s
 
     def _take_goal(self) -> None:
-        """A new goal from the goal topic: validated now, taken by the next tick."""
+        """A new goal from the goal topic: validated now, taken by the next tick. Goals the
+        receiver refused (malformed, outside the goal workspace) are said and counted here."""
+        for refused in self.receiver.take_goal_rejections():
+            self.goals_ignored += 1
+            self.echo(f"dct run: goal refused: {refused}")
         g = self.receiver.take_goal()
         if g is None:
             return

@@ -23,10 +23,11 @@ Goals: `--goal X Y YAW` in the odometry frame (the robot's pose at start), or th
 geometry_msgs/PoseStamped on the goal topic (Nav2's /goal_pose) when none is given. Every later
 /goal_pose replaces the goal, while driving or waiting at the last one
 (`NavigationController.request_goal`, applied at the next tick's read stage); one in another
-frame than the odometry's, or one the controller refuses (not finite, out of range), is counted
-in `goals_ignored` and said on stderr. The diagnostics carry the current goal (`goal_x`,
-`goal_y`), `finished` (at it with a zero command) and the pose (`pose_x`, `pose_y`, `pose_yaw`),
-so that an operator (the simulator's patrol, hil_sim.episode.patrol) knows when to send the next.
+frame than the odometry's, one outside the configured goal workspace (ros.inputs.goal.workspace;
+`--goal` outside it is refused before the base is enabled), or one the controller refuses (not
+finite, out of range), is counted in `goals_ignored` and said on stderr. The diagnostics carry
+the current goal (`goal_x`, `goal_y`), `finished` (at it with a zero command) and the pose
+(`pose_x`, `pose_y`, `pose_yaw`), so that an operator (the simulator's patrol, hil_sim.episode.patrol) knows when to send the next.
 
 The vpp partition needs a contact-tolerance backend it can build outside the simulator
 (vpp.backend kind openai-compatible); the sim-oracle backend exists only inside the lockstep
@@ -88,6 +89,8 @@ def _wait_for_goal(opts: RunOptions, ros, receiver, notifier, stop, echo) -> tup
     echo(f"dct run: waiting for a goal on {topic or '(no goal topic)'}")
     t_end = None if opts.goal_wait_s is None else time.monotonic() + opts.goal_wait_s
     while not stop.is_set() and (t_end is None or time.monotonic() < t_end):
+        for refused in receiver.take_goal_rejections():  # malformed, or outside the goal workspace
+            echo(f"dct run: goal refused: {refused}")
         g = receiver.take_goal()
         if g is not None and g.frame_id not in ("", ros.outputs.odom_frame):
             echo(f"dct run: goal in frame {g.frame_id!r} ignored: goals are taken in the odometry frame "

@@ -2,16 +2,19 @@
 
 Inbound (what drivers publish -> what the controller uses):
   livox_ros_driver2/CustomMsg -> LidarScan    (`custom_msg_to_scan`)
-  sensor_msgs/PointCloud2     -> LidarScan    (`pointcloud2_to_scan`)
+  sensor_msgs/PointCloud2     -> LidarScan    (`pointcloud2_to_scan`, pointcloud.py: per-point
+                                               times found from the driver's fields)
   sensor_msgs/Image           -> CameraImage  (`image_to_camera`)
   sensor_msgs/CompressedImage -> CameraImage  (`compressed_image_to_camera`)
   sensor_msgs/Imu             -> ImuSample    (`imu_to_sample`)
   geometry_msgs/PoseStamped   -> GoalPose     (`pose_stamped_to_goal`)
 Outbound (what the controller publishes for RViz / Foxglove):
-  `odometry_msg`, `path_msg`, `pointcloud2_msg`, `diagnostics_msg`.
+  `odometry_msg`, `path_msg`, `pointcloud2_msg`, `diagnostics_msg`;
+and what the real-time simulator publishes as the Livox driver would: `livox_pointcloud2_msg`
+(pointcloud.py), `goal_pose_msg`.
 
 Every inbound rejection raises RosMessageError (a SensorDataError, so SensorInbox-style
-counting by `.name` works) with a one-line message naming the ROS type and field:
+counting by `.name` works; validation.py) with a one-line message naming the ROS type and field:
 `[bad_size] sensor_msgs/msg/Image.data: 100 bytes, expected step 30 x height 4 = 120`.
 The controller's own checks (LidarScan, CameraImage, ImuSample) run inside and their errors are
 re-raised the same way, with the ROS field they came from.
@@ -32,53 +35,24 @@ import PIL.Image
 
 from runtime.common.geometry import Pose2D
 from runtime.io.ros.messages import (
-    DIAG_OK, FLOAT32, FLOAT64, INT8, INT16, INT32, UINT8, UINT16, UINT32, CompressedImage, CustomMsg,
-    CustomMsgArrays, DiagnosticArray, DiagnosticStatus, Header, Image, Imu, KeyValue, Odometry, Path, Point,
-    PointCloud2, PointField, Pose, PoseStamped, PoseWithCovariance, Quaternion, RosMessageError, Twist,
-    TwistWithCovariance, Vector3, stamp_to_time, time_to_s,
+    DIAG_OK, FLOAT32, CompressedImage, CustomMsg, CustomMsgArrays, DiagnosticArray, DiagnosticStatus, Header, Image,
+    Imu, KeyValue, Odometry, Path, Point, PointCloud2, PointField, Pose, PoseStamped, PoseWithCovariance, Quaternion,
+    Twist, TwistWithCovariance, Vector3, stamp_to_time,
+)
+from runtime.io.ros.pointcloud import (  # PointCloud2 in (and the Livox layout out): re-exported
+    POINTCLOUD2, TIME_FIELD_AUTO, TIME_FIELD_NONE, PointTime, livox_pointcloud2_msg, no_point_time_notice,
+    pointcloud2_decode, pointcloud2_to_scan,
+)
+from runtime.io.ros.validation import (
+    DEFAULT_FRAME_DURATION_S, fail as _fail, frame_id_of as _frame_id, rewrap as _rewrap, stamp_of as _stamp_of,
 )
 from runtime.common.sensor_data import MAX_IMAGE_SIDE_PX, MAX_LIDAR_POINTS, CameraImage, ImuSample, LidarScan, SensorDataError
 
 CUSTOM_MSG = "livox_ros_driver2/msg/CustomMsg"
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMU = "sensor_msgs/msg/Imu"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
-
-DEFAULT_FRAME_DURATION_S = 0.1      # a 10 Hz lidar (Livox Mid-360's default publish rate)
-
-# PointField.datatype -> numpy scalar type (little endian; swapped for is_bigendian)
-_POINTFIELD_DTYPES = {INT8: "i1", UINT8: "u1", INT16: "i2", UINT16: "u2", INT32: "i4", UINT32: "u4",
-                      FLOAT32: "f4", FLOAT64: "f8"}
-
-
-def _fail(type_name: str, field_name: str, what: str, name: str = "bad_message"):
-    raise RosMessageError(what, name=name, field_name=f"{type_name}.{field_name}")
-
-
-def _rewrap(type_name: str, field_name: str, exc: SensorDataError):
-    """A check of the controller's own type failed: name the ROS field the value came from."""
-    inner = f"{exc.field_name}: " if exc.field_name else ""
-    msg = str(exc).split("] ", 1)[-1]
-    if inner and msg.startswith(inner):
-        msg = msg[len(inner):]
-    raise RosMessageError(f"{msg} ({exc.field_name or 'value'})", name=exc.name,
-                          field_name=f"{type_name}.{field_name}") from exc
-
-
-def _stamp_of(type_name: str, header: Header) -> float:
-    t = header.stamp
-    if not 0 <= t.nanosec < 1_000_000_000:
-        _fail(type_name, "header.stamp.nanosec", f"{t.nanosec} not in [0, 1e9)", "bad_stamp")
-    if t.sec < 0:
-        _fail(type_name, "header.stamp.sec", f"negative stamp {t.sec} s", "bad_stamp")
-    return time_to_s(t)
-
-
-def _frame_id(type_name: str, header: Header, default: str) -> str:
-    return header.frame_id.strip() or default
-
 
 # ----------------------------------------------------------------------------- lidar
 
@@ -118,118 +92,6 @@ def custom_msg_to_scan(msg: CustomMsg | CustomMsgArrays, *, nominal_frame_durati
                          frame_duration_s=duration, frame_id=_frame_id(t, header, default_frame_id))
     except SensorDataError as exc:
         _rewrap(t, "points", exc)
-
-
-def _field_dtype(msg: PointCloud2) -> tuple[np.dtype, dict[str, PointField]]:
-    """The numpy record type of one point (point_step bytes, fields at their offsets)."""
-    t = POINTCLOUD2
-    order = ">" if msg.is_bigendian else "<"
-    names, formats, offsets, by_name = [], [], [], {}
-    for f in msg.fields:
-        if f.datatype not in _POINTFIELD_DTYPES:
-            _fail(t, f"fields[{f.name!r}].datatype", f"unknown datatype {f.datatype}", "bad_field")
-        if f.name in by_name:
-            _fail(t, f"fields[{f.name!r}]", "field named twice", "bad_field")
-        base = np.dtype(order + _POINTFIELD_DTYPES[f.datatype])
-        count = max(int(f.count), 1)
-        if f.offset + base.itemsize * count > msg.point_step:
-            _fail(t, f"fields[{f.name!r}].offset",
-                  f"offset {f.offset} + {base.itemsize * count} bytes beyond point_step {msg.point_step}", "bad_field")
-        by_name[f.name] = f
-        names.append(f.name or f"_unnamed{len(names)}")
-        formats.append(base if count == 1 else (base, (count,)))
-        offsets.append(f.offset)
-    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": msg.point_step}), by_name
-
-
-def _cloud_size(msg: PointCloud2) -> int:
-    """The number of points of a cloud whose sizes (width, height, steps, data) agree."""
-    t = POINTCLOUD2
-    n = int(msg.width) * int(msg.height)
-    if n == 0:
-        _fail(t, "width", f"empty cloud ({msg.width} x {msg.height})", "empty_scan")
-    if n > MAX_LIDAR_POINTS:
-        _fail(t, "width", f"{n} points, more than {MAX_LIDAR_POINTS}", "too_many_points")
-    if msg.point_step == 0:
-        _fail(t, "point_step", "0", "bad_size")
-    if msg.row_step < msg.width * msg.point_step:
-        _fail(t, "row_step", f"{msg.row_step} < width {msg.width} x point_step {msg.point_step}", "bad_size")
-    if len(msg.data) != msg.row_step * msg.height:
-        _fail(t, "data", f"{len(msg.data)} bytes, expected row_step {msg.row_step} x height {msg.height} "
-              f"= {msg.row_step * msg.height}", "bad_size")
-    return n
-
-
-def _cloud_layout(msg: PointCloud2, time_field: str | None) -> np.dtype:
-    """The record type of one point, with float x, y, z and (when asked for) a scalar time field."""
-    t = POINTCLOUD2
-    try:
-        dtype, fields = _field_dtype(msg)
-    except RosMessageError:
-        raise
-    except (ValueError, TypeError) as exc:    # numpy refuses the layout (a name it cannot take, ...)
-        _fail(t, "fields", f"no point layout: {exc}".splitlines()[0], "bad_field")
-    for axis in ("x", "y", "z"):
-        f = fields.get(axis)
-        if f is None:
-            _fail(t, "fields", f"no {axis!r} field (has {sorted(fields)})", "missing_field")
-        if f.datatype not in (FLOAT32, FLOAT64) or f.count != 1:
-            _fail(t, f"fields[{axis!r}]", f"datatype {f.datatype} count {f.count}, expected one FLOAT32/FLOAT64",
-                  "bad_field")
-    if time_field is not None:
-        f = fields.get(time_field)
-        if f is None:
-            _fail(t, "fields", f"no time field {time_field!r} (has {sorted(fields)})", "missing_field")
-        if f.count != 1:
-            _fail(t, f"fields[{time_field!r}]", f"count {f.count}, expected 1", "bad_field")
-    return dtype
-
-
-def pointcloud2_to_scan(msg: PointCloud2, *, time_field: str | None = None, time_unit_s: float = 1.0,
-                        time_is_absolute: bool = False,
-                        nominal_frame_duration_s: float = DEFAULT_FRAME_DURATION_S,
-                        default_frame_id: str = "lidar") -> LidarScan:
-    """A PointCloud2 as a LidarScan: fields x, y, z (float32 or float64) and an optional per-point time.
-
-    Any point_step, field offsets, endianness and row padding (row_step) the message declares
-    are honoured. time_field: the per-point time field (Ouster `t` in ns: time_unit_s=1e-9;
-    Velodyne `time` in s relative to the header; Hesai `timestamp`, absolute s:
-    time_is_absolute=True); when None every point gets the header stamp. The scan starts at the
-    earliest point (a driver that stamps the frame's end gives negative relative times).
-
-    Non-finite points: an `is_dense=False` cloud declares that some points are invalid (no
-    return); those rows are dropped, and a cloud of only such points is `nothing_seen`. In an
-    `is_dense=True` cloud a NaN is a driver fault and LidarScan's `non_finite` rejection applies.
-    """
-    t = POINTCLOUD2
-    stamp = _stamp_of(t, msg.header)
-    n = _cloud_size(msg)
-    dtype = _cloud_layout(msg, time_field)
-    buf = np.frombuffer(msg.data, dtype=np.uint8).reshape(msg.height, msg.row_step)[:, :msg.width * msg.point_step]
-    rec = np.ascontiguousarray(buf).view(dtype).reshape(-1)
-    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
-    if time_field is not None:
-        tt = rec[time_field].astype(np.float64) * float(time_unit_s)
-        rel = tt - stamp if time_is_absolute else tt
-    else:
-        rel = np.zeros(n)
-    if not msg.is_dense:
-        keep = np.isfinite(xyz).all(axis=1)
-        xyz, rel = xyz[keep], rel[keep]
-    nothing_seen = len(xyz) == 0
-    if not np.isfinite(rel).all():
-        _fail(t, f"fields[{time_field!r}]", "non-finite point time", "non_finite")
-    t0 = float(rel.min()) if len(rel) else 0.0
-    rel = rel - t0
-    span = float(rel.max()) if len(rel) else 0.0
-    with np.errstate(over="ignore", invalid="ignore"):
-        pts32 = xyz.astype(np.float32)
-    try:
-        return LidarScan(stamp_s=stamp + t0, points_m=pts32.reshape(-1, 3), point_time_offsets_s=rel.astype(np.float32),
-                         frame_duration_s=max(float(nominal_frame_duration_s), span),
-                         frame_id=_frame_id(t, msg.header, default_frame_id), nothing_seen=nothing_seen)
-    except SensorDataError as exc:
-        _rewrap(t, "data", exc)
 
 
 # ----------------------------------------------------------------------------- camera
@@ -447,3 +309,12 @@ def diagnostics_msg(stamp_s: float, state: str, stage_timings_ms: Mapping[str, f
     return DiagnosticArray(header=_header(stamp_s, ""), status=[
         DiagnosticStatus(level=int(level), name=name, message=message or str(state), hardware_id=hardware_id,
                          values=values)])
+
+
+__all__ = [
+    "CUSTOM_MSG", "IMAGE", "COMPRESSED_IMAGE", "IMU", "POSE_STAMPED", "POINTCLOUD2", "DEFAULT_FRAME_DURATION_S",
+    "MAX_COMPRESSED_PIXELS", "TIME_FIELD_AUTO", "TIME_FIELD_NONE", "GoalPose", "PointTime",
+    "custom_msg_to_scan", "pointcloud2_to_scan", "pointcloud2_decode", "no_point_time_notice", "image_to_camera",
+    "compressed_image_to_camera", "imu_to_sample", "yaw_of", "pose_stamped_to_goal",
+    "odometry_msg", "goal_pose_msg", "path_msg", "pointcloud2_msg", "livox_pointcloud2_msg", "diagnostics_msg",
+]

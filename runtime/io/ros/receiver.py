@@ -32,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from runtime.io.ros import convert
 from runtime.io.ros.messages import ROS_TYPES, RosMessageError, decode_custom_msg, from_cdr
 from runtime.io.ros.transport import QosSpec, TopicReader, Transport
+from runtime.io.ros.workspace import GoalWorkspace
 from runtime.common.sensor_data import SensorDataError
 from runtime.io.sensor_inbox import SensorInbox
 
@@ -69,16 +70,36 @@ class _Topic(_Strict):
 
 class LidarTopic(_Topic):
     type: Literal["livox_ros_driver2/msg/CustomMsg", "sensor_msgs/msg/PointCloud2"]
-    #: PointCloud2 only: the per-point time field and its unit (see convert.pointcloud2_to_scan).
-    time_field: str | None = None
+    #: PointCloud2 only: where each point's time comes from (runtime.io.ros.pointcloud): "auto" (found
+    #: from the message's fields by the drivers' conventions), "none" (every point at the header
+    #: stamp: deskewing off), or a field name, in units of time_unit_s, absolute when
+    #: time_is_absolute. null is "none" (what it meant before "auto" existed).
+    time_field: str = convert.TIME_FIELD_AUTO
     time_unit_s: float = Field(default=1.0, gt=0.0)
     time_is_absolute: bool = False
     nominal_frame_duration_s: float = Field(default=convert.DEFAULT_FRAME_DURATION_S, gt=0.0, le=1.0)
 
+    @field_validator("time_field", mode="before")
+    @classmethod
+    def _null_is_none(cls, v):
+        return convert.TIME_FIELD_NONE if v is None else v
+
+    @field_validator("time_field")
+    @classmethod
+    def _field_name(cls, v: str) -> str:
+        if not v or v != v.strip() or any(c.isspace() for c in v):
+            raise ValueError(f"{v!r} is not a field name (or auto, none)")
+        return v
+
     @model_validator(mode="after")
-    def _time_field_only_for_pointcloud2(self) -> "LidarTopic":
-        if self.type != "sensor_msgs/msg/PointCloud2" and (self.time_field is not None or self.time_is_absolute):
-            raise ValueError("time_field / time_is_absolute apply to PointCloud2 only (CustomMsg has offset_time)")
+    def _time_settings(self) -> "LidarTopic":
+        given = sorted({"time_field", "time_unit_s", "time_is_absolute"} & self.model_fields_set)
+        if self.type != "sensor_msgs/msg/PointCloud2" and given:
+            raise ValueError(f"{', '.join(given)}: PointCloud2 only (CustomMsg has offset_time)")
+        named = self.time_field not in (convert.TIME_FIELD_AUTO, convert.TIME_FIELD_NONE)
+        if not named and (self.time_unit_s != 1.0 or self.time_is_absolute):
+            raise ValueError(f"time_unit_s / time_is_absolute go with a named time_field, not {self.time_field!r} "
+                             "(auto finds the unit from the field)")
         return self
 
 
@@ -95,6 +116,8 @@ class GoalTopic(_Topic):
     topic: str = "/goal_pose"               # the Nav2 / RViz "2D Goal Pose" convention
     type: Literal["geometry_msgs/msg/PoseStamped"] = "geometry_msgs/msg/PoseStamped"
     qos: TopicQos = TopicQos(reliability="reliable", depth=1)
+    #: Where goals may be: a goal outside (or in another frame) is refused (workspace.py).
+    workspace: GoalWorkspace | None = None
 
 
 class RosInputConfig(_Strict):
@@ -139,7 +162,14 @@ class RosSensorReceiver:
     carry none); required when a camera topic is configured.
     transport: the middleware's node on config.domain_id (runtime.io.ros.transport), which the
     caller opens and closes.
+
+    lidar_time_notice: set once, and logged as a warning, when a PointCloud2 lidar with time_field
+    auto has no per-point time field (deskewing is off; convert.no_point_time_notice).
     """
+
+    lidar_time_notice: str | None = None
+    GOAL_REJECTIONS_KEPT = 16
+    _goal_rejections: tuple[str, ...] = ()
 
     def __init__(self, config: RosInputConfig, inbox: SensorInbox, transport: Transport, *,
                  camera_K: np.ndarray | None = None, camera_distortion: np.ndarray | None = None) -> None:
@@ -179,10 +209,16 @@ class RosSensorReceiver:
                         msg, nominal_frame_duration_s=topic.nominal_frame_duration_s))
             else:
                 def lidar(msg):
-                    inbox.put_scan(convert.pointcloud2_to_scan(
+                    scan, source = convert.pointcloud2_decode(
                         msg, time_field=topic.time_field, time_unit_s=topic.time_unit_s,
                         time_is_absolute=topic.time_is_absolute,
-                        nominal_frame_duration_s=topic.nominal_frame_duration_s))
+                        nominal_frame_duration_s=topic.nominal_frame_duration_s)
+                    said = self.lidar_time_notice is not None
+                    if source is None and topic.time_field == convert.TIME_FIELD_AUTO and not said:
+                        # said once (the first such frame), not per frame; the scans are still used
+                        self.lidar_time_notice = convert.no_point_time_notice(topic.topic, msg)
+                        log.warning("%s", self.lidar_time_notice)
+                    inbox.put_scan(scan)
             return lidar
         if stream == "camera":
             to_camera = (convert.image_to_camera if topic.type == "sensor_msgs/msg/Image"
@@ -191,8 +227,12 @@ class RosSensorReceiver:
         if stream == "imu":
             return lambda msg: inbox.put_imu(convert.imu_to_sample(msg))
 
+        workspace = topic.workspace
+
         def goal(msg):
             g = convert.pose_stamped_to_goal(msg)
+            if workspace is not None:  # refused here: a goal outside never reaches the controller
+                workspace.check_goal(g)
             with self._lock:
                 self._goal = g
         return goal
@@ -202,6 +242,8 @@ class RosSensorReceiver:
         with self._lock:
             self.error_counts[key] = self.error_counts.get(key, 0) + 1
             self.last_error = f"{stream}: {exc}"
+            if stream == "goal":  # for the operator's console (take_goal_rejections); the newest few
+                self._goal_rejections = (*self._goal_rejections, str(exc))[-self.GOAL_REJECTIONS_KEPT:]
         if stream != "goal":
             # Hand the rejection to the tick with the inbox's own (SensorInbox has no public
             # method for data refused before it became a LidarScan / CameraImage / ImuSample).
@@ -271,6 +313,13 @@ class RosSensorReceiver:
         with self._lock:
             g, self._goal = self._goal, None
         return g
+
+    def take_goal_rejections(self) -> tuple[str, ...]:
+        """The goals refused since the last call (each its one-line error; the newest
+        GOAL_REJECTIONS_KEPT), for the operator's console; every one is counted in error_counts."""
+        with self._lock:
+            r, self._goal_rejections = self._goal_rejections, ()
+        return r
 
 
 __all__ = ["RosInputConfig", "LidarTopic", "CameraTopic", "ImuTopic", "GoalTopic", "TopicQos", "RosSensorReceiver",

@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from runtime.io.ros.receiver import (
     _ROS_NAME, CameraTopic, GoalTopic, ImuTopic, LidarTopic, RosInputConfig, TopicQos,
@@ -98,6 +98,14 @@ class RosConfig(_Strict):
                                 discovery=self.discovery, node_name=node_name,
                                 security_keystore=sec.keystore if sec else None,
                                 security_enclave=sec.enclave if sec else None)
+
+    @model_validator(mode="after")
+    def _workspace_frame(self) -> "RosConfig":
+        ws = self.inputs.goal.workspace if self.inputs.goal is not None else None
+        if ws is not None and ws.frame == "odom" and self.outputs.odom_frame != "odom":
+            raise ValueError(f"inputs.goal.workspace.frame odom is not the odometry frame "
+                             f"(outputs.odom_frame {self.outputs.odom_frame!r})")
+        return self
 
 
 __all__ = ["RosConfig", "RosOutputConfig", "RosSecurity", "DEFAULT_INPUTS"]

@@ -136,11 +136,13 @@ def test_pointcloud2_any_layout_decodes(n, height, xyz_type, order, gap, big_end
     times = np.arange(n, dtype=np.uint32) * 1000
     msg = make_cloud(xyz_in_order, xyz_type=xyz_type, extra=extra, order=order, gap=gap, big_endian=big_endian,
                      row_pad=row_pad, height=height, times=times)
-    scan = C.pointcloud2_to_scan(msg)
+    scan = C.pointcloud2_to_scan(msg, time_field="none")
     np.testing.assert_array_equal(scan.points_m, xyz)
     assert not scan.point_time_offsets_s.any() and scan.stamp_s == 100.0
     timed = C.pointcloud2_to_scan(msg, time_field="t", time_unit_s=1e-9)
     np.testing.assert_allclose(timed.point_time_offsets_s, times * 1e-9, rtol=1e-6, atol=1e-12)
+    auto = C.pointcloud2_to_scan(msg)     # `t` UINT32: Ouster's ns after the header stamp
+    np.testing.assert_array_equal(auto.point_time_offsets_s, timed.point_time_offsets_s)
 
 
 def test_pointcloud2_absolute_times_and_frame_end_stamps():
