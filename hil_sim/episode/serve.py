@@ -79,11 +79,15 @@ class DdsSensorSink:
     """Stands where the lockstep rig's SensorInbox stands (put_scan / put_imu / put_image) and
     publishes each piece as the robot's drivers would (module docstring)."""
 
-    def __init__(self, transport, inputs, to_wall) -> None:
+    def __init__(self, transport, inputs, to_wall, frames: tuple[str, str] = ("livox_frame", "camera")) -> None:
+        """frames: the lidar's and the camera's frame ids, as the robot's drivers stamp them (the
+        controller config's ros.outputs lidar_frame and camera_frame, the children of base_link in
+        its /tf_static)."""
         from runtime.io.ros.messages import ROS_TYPES, Image, Imu
         from runtime.io.ros.transport import QosSpec
 
         self.to_wall = to_wall
+        self.lidar_frame, self.camera_frame = frames
         self._lidar = self._imu = self._camera = None
         #: CustomMsg, or PointCloud2 in livox_ros_driver2's xfer_format 0 layout (put_scan)
         self._lidar_type = inputs.lidar.type if inputs.lidar is not None else None
@@ -109,13 +113,13 @@ class DdsSensorSink:
         stamp = self.to_wall(scan.stamp_s)
         timebase = int(round(stamp * 1e9))
         if self._lidar_type == "sensor_msgs/msg/PointCloud2":
-            cdr = lidar_pointcloud2_cdr(scan, timebase)
+            cdr = lidar_pointcloud2_cdr(scan, timebase, self.lidar_frame)
         else:
             pts = np.zeros(scan.num_points, dtype=CUSTOM_POINT_DTYPE)
             pts["offset_time"] = np.round(scan.point_time_offsets_s.astype(np.float64) * 1e9).astype(np.uint32)
             pts["x"], pts["y"], pts["z"] = scan.points_m[:, 0], scan.points_m[:, 1], scan.points_m[:, 2]
             pts["reflectivity"] = 100
-            header = Header(stamp_to_time(timebase * 1e-9), scan.frame_id or "livox_frame")
+            header = Header(stamp_to_time(timebase * 1e-9), self.lidar_frame)
             cdr = encode_custom_msg(header, timebase, pts)
         self._lidar.write_cdr(cdr)
         self.published["lidar"] += 1
@@ -141,7 +145,7 @@ class DdsSensorSink:
             return True
         t0 = time.perf_counter()
         h, w = image.pixels.shape[:2]
-        self._camera.write(Image(header=Header(stamp_to_time(self.to_wall(image.stamp_s)), image.frame_id),
+        self._camera.write(Image(header=Header(stamp_to_time(self.to_wall(image.stamp_s)), self.camera_frame),
                                  height=h, width=w, encoding="rgb8", is_bigendian=0, step=3 * w,
                                  data=np.ascontiguousarray(image.pixels).tobytes()))
         self.published["camera"] += 1
@@ -149,13 +153,13 @@ class DdsSensorSink:
         return True
 
 
-def lidar_pointcloud2_cdr(scan, timebase_ns: int) -> bytes:
+def lidar_pointcloud2_cdr(scan, timebase_ns: int, frame_id: str = "livox_frame") -> bytes:
     """A LidarScan as the CDR of the PointCloud2 livox_ros_driver2 publishes (xfer_format 0): the
     header stamp is timebase_ns, each point's `timestamp` its absolute time in ns."""
     from runtime.io.ros.convert import livox_pointcloud2_msg
     from runtime.io.ros.messages import to_cdr
 
-    return to_cdr(livox_pointcloud2_msg(timebase_ns, scan.frame_id or "livox_frame", scan.points_m,
+    return to_cdr(livox_pointcloud2_msg(timebase_ns, frame_id, scan.points_m,
                                         scan.point_time_offsets_s))
 
 
@@ -319,7 +323,8 @@ class _Server:
         self.transport = _open_transport(config.ros, inputs.domain_id, opts)
         self.sim_t0 = world.time_s
         self.wall_t0 = self.clock.now()
-        self.sink = DdsSensorSink(self.transport, inputs, self.to_wall)
+        out = config.ros.outputs
+        self.sink = DdsSensorSink(self.transport, inputs, self.to_wall, (out.lidar_frame, out.camera_frame))
         self.oracle_service = None
         camera_rate_hz, segmentation = opts.camera_rate_hz, False
         if opts.oracle is not None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 
-from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+from cyclonedds.core import DDSException, GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl.types import sequence, uint8
@@ -110,6 +110,26 @@ def raw_reader(participant: DomainParticipant, ros_topic: str, cls: type[IdlStru
     return RawDataReader(participant, Topic(participant, dds_topic_name(ros_topic), wire_type(cls), qos=q), qos=q)
 
 
+_DOMAINS: dict[int, Domain] = {}
+_DOMAINS_LOCK = threading.Lock()
+
+
+def _configure_domain(domain_id: int, xml: str | None) -> None:
+    """Give domain `domain_id` our XML before a participant joins it (None: cyclonedds' defaults).
+    A domain is configured once per process (cyclonedds refuses a second Domain of one id): every
+    transport of this process on that domain then shares the first one's discovery range."""
+    if xml is None:
+        return
+    with _DOMAINS_LOCK:
+        if domain_id in _DOMAINS:
+            return
+        try:
+            _DOMAINS[domain_id] = Domain(domain_id, config=xml)
+        except DDSException as exc:  # a participant of this process already made it with the defaults
+            raise RuntimeError(f"DDS domain {domain_id} is already in use in this process with cyclonedds' default "
+                               "discovery; cannot limit it to this host now") from exc
+
+
 class CycloneTransport(Transport):
     """ROS 2 topics through one cyclonedds DomainParticipant (runtime.io.ros.transport)."""
 
@@ -119,9 +139,8 @@ class CycloneTransport(Transport):
                  participant: DomainParticipant | None = None) -> None:
         super().__init__()
         self.domain_id, self.discovery = int(domain_id), discovery
-        xml = cyclonedds_config_xml(discovery)
-        # A Domain with our XML must exist before the participant joins it (cyclonedds keeps it).
-        self._domain = Domain(self.domain_id, config=xml) if xml is not None and participant is None else None
+        if participant is None:
+            _configure_domain(self.domain_id, cyclonedds_config_xml(discovery))
         self.participant = participant or DomainParticipant(self.domain_id)
         self._waitset = WaitSet(self.participant)
         self._guard = GuardCondition(self.participant)

@@ -19,6 +19,7 @@ without DDS Security then fails to start, which is what Enforce means.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import threading
@@ -85,16 +86,19 @@ class RclpyTransport(Transport):
         from rclpy.executors import SingleThreadedExecutor
 
         self.domain_id, self.discovery = int(options.domain_id), options.discovery
-        _apply_environment(options)
         self.context = rclpy.Context()
         args = ["--ros-args", "--enclave", options.security_enclave] if options.security_keystore else None
         try:
-            rclpy.init(args=args, context=self.context, domain_id=self.domain_id)
-            self.node = rclpy.create_node(options.node_name, context=self.context)
+            with _environment(options):
+                rclpy.init(args=args, context=self.context, domain_id=self.domain_id)
+                self.node = rclpy.create_node(options.node_name, context=self.context)
+        except MiddlewareError:
+            raise
         except Exception as exc:  # noqa: BLE001 - rcl's errors (security files, rmw) as one line
             self.context.try_shutdown()
+            why = str(exc).split("[INFO]")[0].splitlines()[0][:300]  # (rcl appends its log lines)
             raise MiddlewareError(f"rclpy could not start node {options.node_name!r} on domain {self.domain_id}: "
-                                  f"{exc}".splitlines()[0][:300]) from exc
+                                  f"{why}") from exc
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._guard = self.node.create_guard_condition(lambda: None)  # ends a spin_once at once
@@ -192,8 +196,11 @@ class RclpyTransport(Transport):
                 self.context = None
 
 
-def _apply_environment(options: TransportOptions) -> None:
-    """rcl reads the discovery range and SROS2 settings from the environment at init."""
+@contextlib.contextmanager
+def _environment(options: TransportOptions):
+    """rcl reads the discovery range and the SROS2 settings from the environment when the
+    context and the node are made; they are set for that moment only, so that another node in
+    this process (a test's) is not changed by them."""
     env = dict(discovery_env(options.discovery))
     env.pop("CYCLONEDDS_URI", None)   # ours is passed to cyclonedds directly (dds.CycloneTransport)
     if options.security_keystore:
@@ -204,7 +211,16 @@ def _apply_environment(options: TransportOptions) -> None:
         env.update({"ROS_SECURITY_KEYSTORE": options.security_keystore, "ROS_SECURITY_ENABLE": "true",
                     "ROS_SECURITY_STRATEGY": "Enforce"})
     env.update(options.extra_env)
+    saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 __all__ = ["RclpyTransport", "ros_message_class"]
