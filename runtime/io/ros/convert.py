@@ -37,8 +37,8 @@ from runtime.io.ros.messages import (
     Image, Imu, PointCloud2, PointField, PoseStamped, Quaternion, RosMessageError, time_to_s,
 )
 from runtime.io.ros.outbound import (  # re-exported: the outbound builders live in outbound.py
-    diagnostics_msg, footprint_markers, goal_pose_msg, odometry_msg, path_msg, pointcloud2_msg, sensor_mounts,
-    static_transforms, tf_message,
+    diagnostics_msg, footprint_markers, goal_pose_msg, odometry_msg, path_msg, pointcloud2_msg, robot_sensor_mounts,
+    sensor_mounts, static_transforms, tf_message,
 )
 from runtime.common.sensor_data import MAX_IMAGE_SIDE_PX, MAX_LIDAR_POINTS, CameraImage, ImuSample, LidarScan, SensorDataError
 
@@ -379,5 +379,5 @@ __all__ = [
     "MAX_COMPRESSED_PIXELS", "GoalPose", "custom_msg_to_scan", "pointcloud2_to_scan", "image_to_camera",
     "compressed_image_to_camera", "imu_to_sample", "yaw_of", "pose_stamped_to_goal",
     "diagnostics_msg", "footprint_markers", "goal_pose_msg", "odometry_msg", "path_msg", "pointcloud2_msg",
-    "sensor_mounts", "static_transforms", "tf_message",
+    "robot_sensor_mounts", "sensor_mounts", "static_transforms", "tf_message",
 ]

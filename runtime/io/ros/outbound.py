@@ -6,7 +6,7 @@ problem, `[reason] fn.argument: what`.
   tf_message           tf2_msgs/TFMessage from (parent, child, x, y, z, qx, qy, qz, qw) tuples
                        or (parent, child, Pose2D) (the planar odom -> base_link)
   static_transforms    tf2_msgs/TFMessage of fixed mounts given as 4x4 homogeneous matrices
-                       (`sensor_mounts`: base_link -> lidar and base_link -> camera)
+                       (`sensor_mounts`, `robot_sensor_mounts`: base_link -> lidar and -> camera)
   footprint_markers    visualization_msgs/MarkerArray: the robot's footprint and its stop zone as
                        closed LINE_STRIPs, the stop zone red while the controller stands still
                        (STOPPED, HOLDING), amber otherwise
@@ -208,6 +208,17 @@ def sensor_mounts(T_base_lidar: np.ndarray, T_base_camera: np.ndarray | None = N
     if T_base_camera is not None:
         mounts.append((base_frame, camera_frame, np.asarray(T_base_camera, dtype=np.float64)))
     return mounts
+
+
+def robot_sensor_mounts(robot, T_cam_lidar: np.ndarray | None = None, *,
+                        base_frame: str = "base_link") -> list[Mount]:
+    """base_frame -> lidar and -> camera of a robot description (calibration.robot_description):
+    the lidar's mount, and the camera's as the perception stage places it (the lidar mount composed
+    with the calibration's T_cam_lidar when there is one, else the description's camera mount)."""
+    T_base_lidar = np.asarray(robot.sensors.lidar.mount.transform(), dtype=np.float64)
+    T_base_camera = (robot.sensors.camera.mount.transform() if T_cam_lidar is None
+                     else T_base_lidar @ np.linalg.inv(np.asarray(T_cam_lidar, dtype=np.float64)))
+    return sensor_mounts(T_base_lidar, T_base_camera, base_frame=base_frame)
 
 
 def static_transforms(stamp_s: float, mounts: Iterable[Mount]) -> TFMessage:

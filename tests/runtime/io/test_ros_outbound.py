@@ -153,7 +153,8 @@ def test_footprint_markers_are_two_closed_line_strips_coloured_by_state(state):
     ({"footprint_polygon_xy": SQUARE[:2]}, r"\[too_few_vertices\] footprint_markers.footprint_polygon_xy: 2 vertices"),
     ({"stop_zone_polygon_xy": [(0, 0), (1, 0), (1, float("nan"))]},
      r"\[non_finite\] footprint_markers.stop_zone_polygon_xy"),
-    ({"footprint_polygon_xy": [(0, 0, 0)] * 4}, r"\[bad_shape\] footprint_markers.footprint_polygon_xy: must be \(N, 2\)"),
+    ({"footprint_polygon_xy": [(0, 0, 0)] * 4},
+     r"\[bad_shape\] footprint_markers.footprint_polygon_xy: must be \(N, 2\)"),
     ({"footprint_polygon_xy": [("a", "b")] * 3}, r"\[not_a_number\] footprint_markers.footprint_polygon_xy"),
     ({"state": "DRIVING"}, r"\[bad_state\] footprint_markers.state: 'DRIVING' is not a controller state"),
     ({"frame_id": ""}, r"\[bad_frame_id\] footprint_markers.frame_id"),
@@ -176,3 +177,19 @@ def test_footprint_markers_fuzz_raises_only_value_error(polygon):
         assert str(exc).startswith("[") and "\n" not in str(exc)
     else:
         assert len(arr.markers[0].points) == len(polygon) + 1
+
+
+def test_robot_sensor_mounts_of_the_shipped_description():
+    from calibration.robot_description import load_robot_description
+
+    robot = load_robot_description()
+    T_lidar, T_camera = robot.sensors.lidar.mount.transform(), robot.sensors.camera.mount.transform()
+    mounts = C.robot_sensor_mounts(robot, base_frame="base_footprint")
+    assert [(p, c) for p, c, _ in mounts] == [("base_footprint", "lidar"), ("base_footprint", "camera")]
+    np.testing.assert_array_equal(mounts[0][2], T_lidar)
+    np.testing.assert_array_equal(mounts[1][2], T_camera)
+    assert len(C.static_transforms(0.0, mounts).transforms) == 2
+    # with a calibrated lidar -> camera extrinsic, the camera is placed through the lidar mount
+    T_cam_lidar = np.linalg.inv(T_camera) @ T_lidar @ _rigid(0.01, 0.0, 0.0, [0.0, 0.005, 0.0])
+    _, (_, _, T_cal) = C.robot_sensor_mounts(robot, T_cam_lidar)
+    np.testing.assert_allclose(T_cal @ T_cam_lidar, T_lidar, atol=1e-12)
