@@ -234,8 +234,11 @@ def run_episode(
 
     def before() -> None:  # inside the run's clean-up: a harness that fails here closes everything
         if recorder is not None:
+            from runtime.io.ros.outbound import robot_sensor_mounts
+
+            mounts = robot_sensor_mounts(robot, T_cam_lidar, base_frame=config.ros.outputs.base_frame)
             parts.loop.after_tick = recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed,
-                                                                          "clock": "lockstep"})
+                                                                          "clock": "lockstep"}, static_transforms=mounts)
         if on_start is not None:
             on_start(sim, controller)
 

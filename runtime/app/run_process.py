@@ -190,8 +190,13 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
     driver_bus = recorder.wrap_bus(bus, clock.now) if recorder is not None else bus
     parts = assemble(RobotSetup(loaded.robot, config, loaded.wheel_calibration, loaded.camera, loaded.T_cam_lidar),
                      Wiring(driver_bus, clock, Pose2D(*goal), inbox if config.uses_lidar else None, lockstep=False))
-    record_hook = (recorder.attach(parts.controller, config, {"clock": "wall", "goal": json.dumps(list(goal))})
-                   if recorder is not None else None)
+    record_hook = None
+    if recorder is not None:
+        from runtime.io.ros.outbound import robot_sensor_mounts
+
+        mounts = robot_sensor_mounts(loaded.robot, loaded.T_cam_lidar, base_frame=config.ros.outputs.base_frame)
+        record_hook = recorder.attach(parts.controller, config, {"clock": "wall", "goal": json.dumps(list(goal))},
+                                      static_transforms=mounts)
     observer = RunObserver(parts, config.ros, publisher, receiver, notifier, echo, record_hook)
     parts.loop.after_tick = observer
     if stop.is_set():  # SIGINT/SIGTERM during the start-up work: the base is never enabled

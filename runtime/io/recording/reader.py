@@ -6,13 +6,16 @@ StreamReader instead, checking each chunk's CRC, and stops at the first record t
 everything in the complete chunks before it is returned, and `complete` / `stopped_by` say how
 the file ended. (A chunk's messages are only handed out after the whole chunk was read and its
 CRC matched, so a half-written chunk yields nothing, never half of its messages.)
+
+JSON channels decode to dicts; ROS 2 channels (message encoding `cdr`, e.g. /tf) to the
+runtime.io.ros.messages struct their schema names (raw bytes for a type we do not declare).
 """
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Callable, Iterable
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -25,8 +28,9 @@ class RecordingReadError(ValueError):
 class Recording:
     path: Path
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    #: topic -> [(log_time_ns, decoded JSON message)], in file order.
-    messages: dict[str, list[tuple[int, dict]]] = field(default_factory=dict)
+    #: topic -> [(log_time_ns, decoded message)], in file order: a dict (JSON channels) or, for a
+    #: ROS 2 (cdr) channel, the runtime.io.ros.messages struct (bytes for a type not declared there).
+    messages: dict[str, list[tuple[int, Any]]] = field(default_factory=dict)
     topics: dict[str, str] = field(default_factory=dict)  # every channel: topic -> schema name
     complete: bool = False  # the footer was reached
     stopped_by: str | None = None  # why reading stopped before the footer (cut off, corrupt)
@@ -64,20 +68,21 @@ def read_recording(path: str | Path, topics: Iterable[str] | None = None) -> Rec
             raise RecordingReadError(f"{p} is not an MCAP file (it does not start with the MCAP magic bytes)")
         f.seek(0)
         schemas: dict[int, str] = {}
-        channels: dict[int, str] = {}
+        channels: dict[int, tuple[str, Callable[[bytes], Any]]] = {}
         reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 30)
         try:
             for record in reader.records:
                 if isinstance(record, Schema):
                     schemas[record.id] = record.name
                 elif isinstance(record, Channel):
-                    channels[record.id] = record.topic
-                    rec.topics[record.topic] = schemas.get(record.schema_id, "")
+                    schema = schemas.get(record.schema_id, "")
+                    channels[record.id] = (record.topic, _decoder(record.message_encoding, schema))
+                    rec.topics[record.topic] = schema
                 elif isinstance(record, Message):
-                    topic = channels.get(record.channel_id)
+                    topic, decode = channels.get(record.channel_id, (None, None))
                     if topic is None or (wanted is not None and topic not in wanted):
                         continue
-                    rec.messages.setdefault(topic, []).append((record.log_time, json.loads(record.data)))
+                    rec.messages.setdefault(topic, []).append((record.log_time, decode(record.data)))
                 elif isinstance(record, Metadata):
                     rec.metadata[record.name] = dict(record.metadata)
                 elif isinstance(record, Footer):
@@ -85,3 +90,15 @@ def read_recording(path: str | Path, topics: Iterable[str] | None = None) -> Rec
         except Exception as exc:  # noqa: BLE001 - a cut-off or corrupt tail: keep what was whole
             rec.stopped_by = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
     return rec
+
+
+def _decoder(message_encoding: str, schema_name: str) -> Callable[[bytes], Any]:
+    """json.loads, or for a ROS 2 channel (`cdr`) from_cdr as the struct its schema names."""
+    if message_encoding != "cdr":
+        return json.loads
+    from runtime.io.ros.messages import ROS_TYPES, from_cdr
+
+    cls = ROS_TYPES.get(schema_name)
+    if cls is None:
+        return bytes
+    return lambda data: from_cdr(cls, data)

@@ -20,6 +20,11 @@ CPU time about once a second of wall time (`/dct/threads`, from /proc/self/task;
 there is no /proc), with a first sample at start and a last at close, so the report can say what
 each thread spent over the run.
 
+ROS 2 channels: /tf (odom -> base_link every tick, from the pose the tick record carries) and
+/tf_static (the sensor mounts given to `attach()`, once, queued at the first tick) are
+tf2_msgs/msg/TFMessage in ROS 2 CDR (runtime.io.recording.ros_channels), serialised on the writer
+thread like the JSON.
+
 Used by any loop: `attach()` returns the per-tick hook (FixedRateLoop's `after_tick`), and
 `wrap_bus()` puts a recording proxy between a driver and its CAN bus.
 The messages each record becomes are built in runtime.io.recording.messages.
@@ -35,11 +40,12 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from runtime.io.recording import messages as M
+from runtime.io.recording import ros_channels as R
 from runtime.io.recording import schemas as S
 from runtime.loop.telemetry import STAGES
 
@@ -140,6 +146,7 @@ class RunRecorder:
         self.thread_samples = 0
         self._threads_supported = True
         self._last_t_s = 0.0  # loop-clock time of the newest tick written: the threads' log time
+        self._tf_frames = ("odom", "base_link")  # /tf parent and child: config.ros.outputs' frames
         self._wall0 = time.monotonic()
         self._thread = threading.Thread(target=self._writer_main, name="dct-mcap-writer", daemon=True)
         self._thread.start()
@@ -172,15 +179,27 @@ class RunRecorder:
         """A proxy for `bus` that records every frame the driver sends and receives."""
         return RecordingBus(bus, self, clock)
 
-    def attach(self, controller, config, run_info: dict | None = None) -> Callable[[np.void], None]:
+    def attach(self, controller, config, run_info: dict | None = None,
+               static_transforms: Sequence[tuple[str, str, np.ndarray]] | None = None) -> Callable[[np.void], None]:
         """Write the run's description and return the hook to call after each tick (with the
         tick's telemetry row, outside its stage timings): FixedRateLoop(after_tick=...).
 
         controller: its published `snapshot` (runtime.controller.snapshot) is read after each tick
         for the pose, the lidar frame it used, P_fix, the plan and the VLM's answers (a controller
         without one records the tick alone).
-        config: the ControllerConfig (its loop section gives the budgets the report compares to).
+        config: the ControllerConfig (its loop section gives the budgets the report compares to,
+        its `ros.outputs` the odom and base frame names of /tf).
+        static_transforms: the fixed mounts for /tf_static, (parent, child, 4x4 homogeneous matrix)
+        each (runtime.io.ros.outbound.robot_sensor_mounts gives base_link -> lidar and -> camera);
+        checked here (RecordingError), written once at the first tick. None: no /tf_static.
         """
+        try:
+            mounts = R.checked_mounts(static_transforms) if static_transforms is not None else None
+        except ValueError as exc:
+            raise RecordingError(f"--record: the static transforms: {exc}") from None
+        outputs = getattr(getattr(config, "ros", None), "outputs", None)
+        if outputs is not None:
+            self._tf_frames = (str(outputs.odom_frame), str(outputs.base_frame))
         loop = config.loop
         budgets = {s: float(loop.stage_budgets_s.get(s, loop.period_s)) for s in self.stages}
         info = {
@@ -199,6 +218,8 @@ class RunRecorder:
 
         def after_tick(row: np.void) -> None:
             self.ticks_seen += 1
+            if mounts is not None and self.ticks_seen == 1:  # never dropped, as the run's description
+                self._queue.append(("tf_static", float(row["scheduled_s"]), mounts))
             snap = getattr(controller, "snapshot", None)
             xyyaw = frame_end = scan = None
             if snap is not None:
@@ -241,10 +262,15 @@ class RunRecorder:
         for topic, (name, schema) in S.channel_schemas(self.stages).items():
             sid = w.register_schema(name=name, encoding="jsonschema", data=S.schema_bytes(schema))
             self._channels[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+        for topic, (name, text) in R.channel_schemas().items():
+            sid = w.register_schema(name=name, encoding=R.SCHEMA_ENCODING, data=text)
+            self._channels[topic] = w.register_channel(topic=topic, message_encoding=R.MESSAGE_ENCODING, schema_id=sid)
         self._started = True
 
     def _emit(self, topic: str, t_s: float, msg: dict) -> None:
-        data = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode()
+        self._add(topic, t_s, json.dumps(msg, separators=(",", ":"), allow_nan=False).encode())
+
+    def _add(self, topic: str, t_s: float, data: bytes) -> None:
         ns = _ns(t_s)
         self._writer.add_message(self._channels[topic], log_time=ns, publish_time=ns, data=data)
 
@@ -253,10 +279,15 @@ class RunRecorder:
         if kind == "meta":
             self._writer.add_metadata(item[1], item[2])
             return
+        if kind == "tf_static":
+            self._add(R.TOPIC_TF_STATIC, item[1], R.tf_static_cdr(item[1], item[2]))
+            return
         if kind == "tick":
             self._last_t_s = float(item[1]["scheduled_s"])
         for topic, t, msg in M.messages_of(item, self.stages):
             self._emit(topic, t, msg)
+        if kind == "tick" and item[2] is not None:
+            self._add(R.TOPIC_TF, self._last_t_s, R.tf_cdr(self._last_t_s, item[2], self._tf_frames))
         self.written[kind] += 1
 
     def _sample_threads(self) -> None:

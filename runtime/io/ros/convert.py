@@ -8,10 +8,11 @@ Inbound (what drivers publish -> what the controller uses):
   sensor_msgs/CompressedImage -> CameraImage  (`compressed_image_to_camera`)
   sensor_msgs/Imu             -> ImuSample    (`imu_to_sample`)
   geometry_msgs/PoseStamped   -> GoalPose     (`pose_stamped_to_goal`)
-Outbound (what the controller publishes for RViz / Foxglove):
-  `odometry_msg`, `path_msg`, `pointcloud2_msg`, `diagnostics_msg`;
-and what the real-time simulator publishes as the Livox driver would: `livox_pointcloud2_msg`
-(pointcloud.py), `goal_pose_msg`.
+Outbound (what the controller publishes for RViz / Foxglove, and records): built in
+runtime.io.ros.outbound and re-exported here: `odometry_msg`, `goal_pose_msg`, `path_msg`,
+`pointcloud2_msg`, `diagnostics_msg`, `tf_message`, `static_transforms` (with `sensor_mounts`),
+`footprint_markers`; and what the real-time simulator publishes as the Livox driver would:
+`livox_pointcloud2_msg` (pointcloud.py).
 
 Every inbound rejection raises RosMessageError (a SensorDataError, so SensorInbox-style
 counting by `.name` works; validation.py) with a one-line message naming the ROS type and field:
@@ -26,7 +27,6 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -34,10 +34,10 @@ import numpy as np
 import PIL.Image
 
 from runtime.common.geometry import Pose2D
-from runtime.io.ros.messages import (
-    DIAG_OK, FLOAT32, CompressedImage, CustomMsg, CustomMsgArrays, DiagnosticArray, DiagnosticStatus, Header, Image,
-    Imu, KeyValue, Odometry, Path, Point, PointCloud2, PointField, Pose, PoseStamped, PoseWithCovariance, Quaternion,
-    Twist, TwistWithCovariance, Vector3, stamp_to_time,
+from runtime.io.ros.messages import CompressedImage, CustomMsg, CustomMsgArrays, Image, Imu, PoseStamped, Quaternion
+from runtime.io.ros.outbound import (  # re-exported: the outbound builders live in outbound.py
+    diagnostics_msg, footprint_markers, goal_pose_msg, odometry_msg, path_msg, pointcloud2_msg, robot_sensor_mounts,
+    sensor_mounts, static_transforms, tf_message,
 )
 from runtime.io.ros.pointcloud import (  # PointCloud2 in (and the Livox layout out): re-exported
     POINTCLOUD2, TIME_FIELD_AUTO, TIME_FIELD_NONE, PointTime, livox_pointcloud2_msg, no_point_time_notice,
@@ -233,88 +233,11 @@ def pose_stamped_to_goal(msg: PoseStamped, *, max_tilt_rad: float = 0.35, max_ab
     return GoalPose(Pose2D(p.x, p.y, yaw_of(Quaternion(x, y, z, w))), frame, stamp)
 
 
-# ----------------------------------------------------------------------------- outbound
-
-
-def _yaw_quaternion(yaw: float) -> Quaternion:
-    return Quaternion(0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
-
-
-def _header(stamp_s: float, frame_id: str) -> Header:
-    return Header(stamp_to_time(stamp_s), frame_id)
-
-
-def odometry_msg(stamp_s: float, pose: Pose2D, v_mps: float, w_radps: float, *, frame_id: str = "odom",
-                 child_frame_id: str = "base_link", pose_covariance: np.ndarray | None = None,
-                 twist_covariance: np.ndarray | None = None) -> Odometry:
-    """nav_msgs/Odometry from a planar pose (in frame_id) and body twist (in child_frame_id)."""
-    def cov(c):
-        return [0.0] * 36 if c is None else [float(v) for v in np.asarray(c, dtype=np.float64).reshape(36)]
-
-    return Odometry(
-        header=_header(stamp_s, frame_id), child_frame_id=child_frame_id,
-        pose=PoseWithCovariance(Pose(Point(pose.x_m, pose.y_m, 0.0), _yaw_quaternion(pose.yaw_rad)),
-                                cov(pose_covariance)),
-        twist=TwistWithCovariance(Twist(Vector3(float(v_mps), 0.0, 0.0), Vector3(0.0, 0.0, float(w_radps))),
-                                  cov(twist_covariance)),
-    )
-
-
-def goal_pose_msg(stamp_s: float, pose: Pose2D, *, frame_id: str = "odom") -> PoseStamped:
-    """geometry_msgs/PoseStamped of a planar goal, as RViz's "2D Goal Pose" sends it on /goal_pose
-    (the inverse of pose_stamped_to_goal)."""
-    return PoseStamped(_header(stamp_s, frame_id), Pose(Point(float(pose.x_m), float(pose.y_m), 0.0),
-                                                        _yaw_quaternion(float(pose.yaw_rad))))
-
-
-def path_msg(stamp_s: float, poses: np.ndarray, *, frame_id: str = "odom") -> Path:
-    """nav_msgs/Path from an (N, 2) array of x, y (yaw along the path) or (N, 3) x, y, yaw."""
-    arr = np.asarray(poses, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] not in (2, 3):
-        raise ValueError(f"path_msg: poses must be (N, 2) or (N, 3), got {arr.shape}")
-    if arr.shape[1] == 2:          # heading of each segment; the last pose keeps the last heading
-        d = np.diff(arr, axis=0)
-        yaw = np.arctan2(d[:, 1], d[:, 0])
-        yaw = np.append(yaw, yaw[-1] if len(yaw) else 0.0)[:len(arr)]
-        arr = np.column_stack([arr, yaw])
-    header = _header(stamp_s, frame_id)
-    return Path(header=header, poses=[
-        PoseStamped(header, Pose(Point(float(x), float(y), 0.0), _yaw_quaternion(float(yaw)))) for x, y, yaw in arr])
-
-
-def pointcloud2_msg(stamp_s: float, points: np.ndarray, *, frame_id: str = "odom") -> PointCloud2:
-    """sensor_msgs/PointCloud2 (unorganized, float32 x y z, 12-byte points) from an (N, 3) array."""
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"pointcloud2_msg: points must be (N, 3), got {pts.shape}")
-    data = np.ascontiguousarray(pts, dtype="<f4")
-    n = len(data)
-    return PointCloud2(
-        header=_header(stamp_s, frame_id), height=1, width=n,
-        fields=[PointField("x", 0, FLOAT32, 1), PointField("y", 4, FLOAT32, 1), PointField("z", 8, FLOAT32, 1)],
-        is_bigendian=False, point_step=12, row_step=12 * n, data=data.tobytes(),
-        is_dense=bool(np.isfinite(data).all()))
-
-
-def diagnostics_msg(stamp_s: float, state: str, stage_timings_ms: Mapping[str, float], *, level: int = DIAG_OK,
-                    message: str = "", name: str = "dct: controller", hardware_id: str = "dct",
-                    extra: Mapping[str, object] | None = None) -> DiagnosticArray:
-    """diagnostic_msgs/DiagnosticArray with one status: the controller state and each stage's time.
-
-    Values are strings (as the message requires): timings as `<stage>_ms` with 3 decimals.
-    """
-    values = [KeyValue("state", str(state))]
-    values += [KeyValue(f"{k}_ms", f"{float(v):.3f}") for k, v in stage_timings_ms.items()]
-    values += [KeyValue(str(k), str(v)) for k, v in (extra or {}).items()]
-    return DiagnosticArray(header=_header(stamp_s, ""), status=[
-        DiagnosticStatus(level=int(level), name=name, message=message or str(state), hardware_id=hardware_id,
-                         values=values)])
-
-
 __all__ = [
     "CUSTOM_MSG", "IMAGE", "COMPRESSED_IMAGE", "IMU", "POSE_STAMPED", "POINTCLOUD2", "DEFAULT_FRAME_DURATION_S",
     "MAX_COMPRESSED_PIXELS", "TIME_FIELD_AUTO", "TIME_FIELD_NONE", "GoalPose", "PointTime",
     "custom_msg_to_scan", "pointcloud2_to_scan", "pointcloud2_decode", "no_point_time_notice", "image_to_camera",
     "compressed_image_to_camera", "imu_to_sample", "yaw_of", "pose_stamped_to_goal",
     "odometry_msg", "goal_pose_msg", "path_msg", "pointcloud2_msg", "livox_pointcloud2_msg", "diagnostics_msg",
+    "footprint_markers", "robot_sensor_mounts", "sensor_mounts", "static_transforms", "tf_message",
 ]
