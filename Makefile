@@ -29,6 +29,8 @@ $(STAMP): pyproject.toml
 	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
 	$(VENV)/bin/python -m pip install --quiet torch==2.13.0
 	$(VENV)/bin/python -m pip install --quiet -e '.[test,bench]'
+	# Foxglove's JS readers for the recording interop test (skipped without them).
+	if command -v npm >/dev/null 2>&1; then npm ci --prefix tests/interop/js --no-audit --no-fund || echo "npm ci failed: the JS interop test will skip"; fi
 	touch $@
 
 # The APT_PACKAGES above, and venv support; installed only when missing.
