@@ -5,8 +5,9 @@ PY ?= python3
 VENV := .venv
 STAMP := $(VENV)/.stamp-install
 # Mesa for MuJoCo's offscreen rendering; chromium (and a font for it) for the test that opens
-# `dct report latency`'s HTML in a real headless browser.
-APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 chromium fonts-dejavu-core
+# `dct report latency`'s HTML in a real headless browser; node and npm for the test that reads a
+# recording with Foxglove's own JavaScript MCAP and ROS 2 readers.
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 chromium fonts-dejavu-core nodejs
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
@@ -22,20 +23,24 @@ test: install
 
 install: sysdeps $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml tests/interop/js/package-lock.json
 	@$(PY) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python 3.11+ is required")'
 	test -x $(VENV)/bin/python || $(PY) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --upgrade pip
 	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
 	$(VENV)/bin/python -m pip install --quiet torch==2.13.0
 	$(VENV)/bin/python -m pip install --quiet -e '.[test,bench,ros]'
+	# Foxglove's JS readers (pinned in tests/interop/js/package-lock.json) for the recording interop test.
+	npm ci --prefix tests/interop/js --no-audit --no-fund --silent
 	touch $@
 
-# The APT_PACKAGES above, and venv support; installed only when missing.
+# The APT_PACKAGES above, venv support and npm (Debian's package, unless a node install already has it);
+# installed only when missing.
 sysdeps:
 	@missing=""; \
 	for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	$(PY) -c 'import ensurepip, venv' >/dev/null 2>&1 || missing="$$missing python3-venv"; \
+	command -v npm >/dev/null 2>&1 || missing="$$missing npm"; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
 	  SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO=sudo; \

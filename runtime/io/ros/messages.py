@@ -6,7 +6,7 @@ read, on a computer without ROS installed. ROS 2's rmw_cyclonedds_cpp puts a mes
 4-byte encapsulation header 00 01 00 00 for little endian) on the topic `rt/<topic>`. These
 structs reproduce each message's field order and types, so cyclonedds' serializer writes the
 same bytes as ROS 2; tests/runtime/io/test_ros_messages.py checks every type against rosbags'
-ROS 2 CDR serializer.
+ROS 2 CDR serializer, tests/runtime/io/test_wire_vs_rclpy.py against ROS 2's own (rclpy).
 
 Field names and order follow the ROS 2 Jazzy `.msg` definitions (and, for the Livox types,
 livox_ros_driver2's, see docs/ros.md). The stock types are declared in messages_common.py

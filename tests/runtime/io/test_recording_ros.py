@@ -164,3 +164,99 @@ def test_the_mounts_are_copied_when_attached(tmp_path):
     rec.close()
     ((_, static),) = read_recording(out).messages[R.TOPIC_TF_STATIC]
     assert static.transforms[0].transform.translation.x == 0.1
+
+
+# ----------------------------------------------------------------------------- readers we did not write
+
+JS_DIR = Path(__file__).resolve().parents[2] / "interop" / "js"
+
+
+@pytest.fixture(scope="module")
+def lockstep_recording(tmp_path_factory):
+    """A short lockstep episode recorded as `dct hil run --record` records it."""
+    from hil_sim.episode.lockstep import run_episode
+    from tests.runtime.io.test_recording import _short
+
+    out = tmp_path_factory.mktemp("rec_ros") / "run.mcap"
+    config = load_controller_config().with_planner_mode("all-fixed")
+    with RunRecorder(out) as rec:
+        run_episode(_short().model_copy(update={"time_limit_s": 0.8}), seed=0, recorder=rec, config=config)
+    assert rec.summary()["bad_records"] == 0
+    return out, read_recording(out)
+
+
+def _xyz(v) -> tuple[float, float, float]:
+    return (v.x, v.y, v.z)
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning:mcap_ros2.reader")  # read_ros2_messages: still shipped
+def test_mcap_ros2_reads_every_tf_message(lockstep_recording):
+    """mcap_ros2 (the mcap project's ROS 2 reader, decoding from the file's ros2msg schemas) reads
+    every /tf and /tf_static message; frames and translations are the controller's poses (the
+    JSON /dct/pose beside them) and the robot description's sensor mounts."""
+    from mcap_ros2.reader import read_ros2_messages
+
+    from calibration.robot_description import load_robot_description
+
+    path, ours = lockstep_recording
+    theirs: dict[str, list] = {}
+    for m in read_ros2_messages(str(path), topics=[R.TOPIC_TF, R.TOPIC_TF_STATIC]):
+        assert m.schema.name == "tf2_msgs/msg/TFMessage" and m.channel.message_encoding == "cdr"
+        theirs.setdefault(m.channel.topic, []).append((m.log_time_ns, m.ros_msg))
+    poses = {t: p["pose"]["position"] for t, p in ours.messages["/dct/pose"]}
+    assert len(theirs[R.TOPIC_TF]) == len(poses) == len(ours.messages["/dct/tick"]) >= 10
+    for t_ns, msg in theirs[R.TOPIC_TF]:
+        (tf,) = msg.transforms
+        assert (tf.header.frame_id, tf.child_frame_id) == ("odom", "base_link")
+        assert tf.header.stamp.sec * 10**9 + tf.header.stamp.nanosec == t_ns
+        p = poses[t_ns]
+        assert _xyz(tf.transform.translation) == (p["x"], p["y"], 0.0)
+    ((t_static, static),) = theirs[R.TOPIC_TF_STATIC]
+    assert t_static == min(poses)
+    robot = load_robot_description()
+    expected = {"lidar": robot.sensors.lidar.mount.transform(), "camera": robot.sensors.camera.mount.transform()}
+    assert [(s.header.frame_id, s.child_frame_id) for s in static.transforms] == [("base_link", "lidar"),
+                                                                                  ("base_link", "camera")]
+    for s in static.transforms:
+        np.testing.assert_allclose(_xyz(s.transform.translation), expected[s.child_frame_id][:3, 3], atol=1e-12)
+    # our reader reads the same
+    assert [(t, m.transforms[0].transform.translation.x) for t, m in ours.messages[R.TOPIC_TF]] == [
+        (t, m.transforms[0].transform.translation.x) for t, m in theirs[R.TOPIC_TF]]
+
+
+def test_foxglove_js_readers_decode_every_cdr_channel(lockstep_recording):
+    """Foxglove's @mcap/core, @foxglove/rosmsg and @foxglove/rosmsg2-serialization under node
+    (tests/interop/js/decode_mcap.mjs) decode every cdr channel: counts, schemas and values."""
+    import json
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    if not (JS_DIR / "node_modules" / "@mcap" / "core").is_dir():
+        pytest.skip(f"{JS_DIR}/node_modules is missing: run `npm ci --prefix {JS_DIR}` (make install does)")
+    path, ours = lockstep_recording
+    run = subprocess.run([node, str(JS_DIR / "decode_mcap.mjs"), str(path)], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    got = json.loads(run.stdout)
+    assert got["errors"] == []
+    assert set(got["topics"]) == set(R.CHANNELS)  # every cdr channel, and only those
+    for topic, type_name in R.CHANNELS.items():
+        entry = got["topics"][topic]
+        assert (entry["schema"], entry["schema_encoding"], entry["message_encoding"]) == (type_name, "ros2msg", "cdr")
+        assert entry["count"] == entry["decoded"] == len(ours.messages[topic]) and entry["trailing"] == 0
+    for key, index in (("first", 0), ("last", -1)):
+        (tf,) = got["topics"][R.TOPIC_TF][key]["transforms"]
+        (mine,) = ours.messages[R.TOPIC_TF][index][1].transforms
+        assert (tf["header"]["frame_id"], tf["child_frame_id"]) == ("odom", "base_link")
+        assert tf["header"]["stamp"] == {"sec": mine.header.stamp.sec, "nanosec": mine.header.stamp.nanosec}
+        t = tf["transform"]["translation"]
+        assert (t["x"], t["y"], t["z"]) == _xyz(mine.transform.translation)
+        r = tf["transform"]["rotation"]
+        assert (r["z"], r["w"]) == (mine.transform.rotation.z, mine.transform.rotation.w)
+    static = got["topics"][R.TOPIC_TF_STATIC]["first"]["transforms"]
+    (_, mine_static), = ours.messages[R.TOPIC_TF_STATIC]
+    assert [(s["child_frame_id"], s["transform"]["translation"]["z"]) for s in static] == [
+        (s.child_frame_id, s.transform.translation.z) for s in mine_static.transforms]
