@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import typing
 
 from cyclonedds.core import DDSException, GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
@@ -61,18 +62,36 @@ _WIRE_LOCK = threading.Lock()
 
 def wire_type(cls: type[IdlStruct]) -> type[IdlStruct]:
     """The struct to register a topic of `cls` with: `cls` itself, or for a message with `bytes`
-    fields, a twin (same DDS type name, same field order) with those fields as sequence<uint8>."""
+    fields at any depth (a Marker's texture.data), a twin (same DDS type name, same field order)
+    with those fields as sequence<uint8> and its nested structs replaced by their twins."""
     with _WIRE_LOCK:
-        if cls in _WIRE_TYPES:
-            return _WIRE_TYPES[cls]
-        fields = {f.name: f.type for f in dataclasses.fields(cls)}
-        if bytes not in fields.values():
-            twin = cls
-        else:
-            twin = make_idl_struct(f"{cls.__name__}Wire", cls.__idl_typename__,
-                                   {k: (sequence[uint8] if v is bytes else v) for k, v in fields.items()})
-        _WIRE_TYPES[cls] = twin
-        return twin
+        return _wire_type(cls)
+
+
+def _wire_type(cls: type[IdlStruct]) -> type[IdlStruct]:
+    if cls in _WIRE_TYPES:
+        return _WIRE_TYPES[cls]
+    hints = typing.get_type_hints(cls, include_extras=True)
+    fields = {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+    wired = {k: _wire_field(v) for k, v in fields.items()}
+    same = all(wired[k] is fields[k] for k in fields)
+    twin = cls if same else make_idl_struct(f"{cls.__name__}Wire", cls.__idl_typename__, wired)
+    _WIRE_TYPES[cls] = twin
+    return twin
+
+
+def _wire_field(t):
+    """One field's wire type: bytes -> sequence<uint8>; a struct or a sequence of structs -> its twin."""
+    if t is bytes:
+        return sequence[uint8]
+    if isinstance(t, type) and issubclass(t, IdlStruct):
+        return _wire_type(t)
+    args = typing.get_args(t)
+    seq = args[1] if len(args) == 2 and isinstance(args[1], sequence) else None
+    if seq is not None and isinstance(seq.subtype, type) and issubclass(seq.subtype, IdlStruct):
+        sub = _wire_type(seq.subtype)
+        return t if sub is seq.subtype else sequence[sub]
+    return t
 
 
 class RosWriter(TopicWriter):
