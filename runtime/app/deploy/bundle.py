@@ -12,7 +12,14 @@ The archive unpacks into ONE folder, `dct-bundle-<version>/`, holding:
   preflight's file checks before anything is built (a model for another footprint is refused).
   Without --calibration, a nominal calibration is made from the robot description (its
   provenance says so, and `dct preflight` WARNs until the robot is calibrated);
-- `systemd/dct-controller.service`, `README.txt`, `MANIFEST.json` (sha256 and size per file).
+- `systemd/dct-controller.service`, `README.txt`, `MANIFEST.json` (sha256 and size per file, the
+  target, the robot, and how ROS 2 comes: `ros`);
+- ROS 2 (`ros`, MANIFEST.json's `ros.mode`): `wheels` (the default) puts the project's `ros` extra
+  (ROS 2 Jazzy's rclpy with Fast DDS and the message packages, from pip) into the wheelhouse and
+  install.sh installs `dct-controller[ros]`: the robot needs no ROS 2 of its own; `system` uses
+  the robot's ROS 2 Jazzy: nothing of ROS 2 is installed, the venv is CPython 3.12 (what Jazzy's
+  rclpy is built for) and the unit runs dct through `bin/dct-env`, which sources
+  /opt/ros/jazzy/setup.bash; `none`: cyclonedds alone (always in the wheelhouse), no rclpy.
 
 Output: the path is checked before the long work (folder exists and is writable, not an
 existing file unless --force, ends in .tar.gz), and the archive is written to a temporary file
@@ -47,6 +54,12 @@ MACHINE = "x86_64"
 #: Wheels that mean a CUDA torch came in: refused (several GB, no GPU on the NUC).
 CUDA_WHEEL_PREFIXES = ("nvidia_", "nvidia-", "triton-", "triton_")
 ARCHIVE_SUFFIX = ".tar.gz"
+#: How the bundle brings ROS 2 (see the module docstring), and the ROS 2 it is for.
+ROS_MODES = ("wheels", "system", "none")
+DEFAULT_ROS = "wheels"
+ROS_DISTRO = "jazzy"
+#: The CPython a distribution's own rclpy is built for (its Ubuntu's python3): `system` needs it.
+ROS_DISTRO_PYTHON = {"jazzy": "3.12"}
 
 
 class BundleError(RuntimeError):
@@ -167,21 +180,47 @@ def copy_source(root: Path, dest: Path) -> Path:
 
 
 def build_wheelhouse(source: Path, wheelhouse: Path, *, python_version: str = DEFAULT_PYTHON,
-                     glibc: str = DEFAULT_GLIBC) -> None:
-    """The project's wheel and every dependency for the target, into `wheelhouse`."""
+                     glibc: str = DEFAULT_GLIBC, extras: tuple[str, ...] = ()) -> None:
+    """The project's wheel and every dependency for the target (with `extras`), into `wheelhouse`."""
     with tempfile.TemporaryDirectory(prefix="dct-src-") as tmp:
         src = copy_source(source, Path(tmp) / "src")
         _pip(["wheel", "--no-deps", "--quiet", "-w", str(wheelhouse), str(src)], "pip wheel (the project)")
     (project_wheel,) = wheelhouse.glob("dct_controller-*.whl")
     plat = [a for p in manylinux_platforms(glibc) for a in ("--platform", p)]
     abi = "cp" + python_version.replace(".", "")
+    wanted = str(project_wheel) + (f"[{','.join(extras)}]" if extras else "")
     _pip(["download", "--quiet", "--only-binary=:all:", *plat, "--python-version", python_version,
-          "--implementation", "cp", "--abi", abi, "-d", str(wheelhouse), str(project_wheel)],
+          "--implementation", "cp", "--abi", abi, "-d", str(wheelhouse), wanted],
          f"pip download (dependencies for CPython {python_version}, {MACHINE}, glibc {glibc})")
 
 
-def check_wheelhouse(wheelhouse: Path) -> list[str]:
-    """Refuse a CUDA torch; returns the wheel names."""
+def ros_extra_requirements(root: Path | None = None) -> list[tuple[str, str]]:
+    """(name, pinned version) of each package of the project's `ros` extra (pyproject.toml)."""
+    import tomllib
+
+    try:
+        with open((root or project_root()) / "pyproject.toml", "rb") as f:
+            extra = tomllib.load(f)["project"]["optional-dependencies"]["ros"]
+    except (OSError, KeyError, BundleError, tomllib.TOMLDecodeError) as exc:
+        raise BundleError(f"cannot read the project's ros extra from pyproject.toml ({exc})") from None
+    out = []
+    for req in extra:
+        name, sep, version = req.partition("==")
+        if not sep:
+            raise BundleError(f"pyproject.toml: the ros extra's {req!r} is not pinned (name==version)")
+        out.append((name.strip(), version.strip()))
+    return out
+
+
+def _wheel_name(name: str, version: str) -> str:
+    """The start of a wheel file's name for a distribution (PEP 427: runs of -_. become _)."""
+    import re
+
+    return re.sub(r"[-_.]+", "_", name).lower() + f"-{version}-"
+
+
+def check_wheelhouse(wheelhouse: Path, ros_required: list[tuple[str, str]] = ()) -> list[str]:
+    """Refuse a CUDA torch, and a wheelhouse without the `ros_required` wheels; returns the wheel names."""
     names = sorted(p.name for p in wheelhouse.iterdir())
     not_wheels = [n for n in names if not n.endswith(".whl")]
     if not_wheels:
@@ -194,6 +233,11 @@ def check_wheelhouse(wheelhouse: Path) -> list[str]:
         raise BundleError(f"the wheelhouse got a CUDA torch ({torch}, {len(cuda)} nvidia/triton wheels): "
                           "pip must find torch==2.13.0+cpu (docs/deploy.md: pip's find-links holds it; or "
                           "PIP_FIND_LINKS=<folder with the CPU wheel>)")
+    lower = [n.lower() for n in names]
+    missing = [f"{n}=={v}" for n, v in ros_required if not any(w.startswith(_wheel_name(n, v)) for w in lower)]
+    if missing:
+        raise BundleError(f"--ros wheels: the wheelhouse lacks {', '.join(missing)} (the project's ros extra): "
+                          "pip found no such wheel for the target; build with --ros system or --ros none")
     return names
 
 
@@ -243,11 +287,12 @@ def _config_text(config_path: Path | None, model_name: str, custom_model: bool) 
 def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, force: bool = False,
                  source: Path | None = None, python_version: str = DEFAULT_PYTHON, glibc: str = DEFAULT_GLIBC,
                  can_interface: str = "socketcan", can_channel: str = "can0", service_cpus: str | None = None,
-                 watchdog_s: float = 2.0, compresslevel: int = 1,
+                 watchdog_s: float = 2.0, compresslevel: int = 1, ros: str = DEFAULT_ROS,
                  wheelhouse_builder: Callable[[Path, Path], None] | None = None,
                  echo: Callable[[str], None] = lambda s: None) -> BundleResult:
     """Build the bundle at `out` (see the module docstring). `wheelhouse_builder(source, wheelhouse)`
-    replaces the pip steps (tests use a tiny fake wheelhouse)."""
+    replaces the pip steps (tests use a tiny fake wheelhouse); with ros="wheels" it must put the
+    project's ros extra there too."""
     times: dict[str, float] = {}
     t = time.perf_counter()
     out = check_out_path(Path(out), force)
@@ -255,6 +300,8 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
     source = project_root() if source is None and wheelhouse_builder is None else source
     files = validate_inputs(inputs)
     robot, config = files.robot, files.config
+    _check_ros(ros, config, python_version)
+    ros_required = ros_extra_requirements(source) if ros == "wheels" else []
     rt = config.realtime
     cpus = _service_cpus(rt, service_cpus)
     times["validate_s"] = time.perf_counter() - t
@@ -267,7 +314,7 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
         wheelhouse = folder / "wheelhouse"
         wheelhouse.mkdir(parents=True)
         t = time.perf_counter()
-        wheels = _fill_wheelhouse(wheelhouse, source, wheelhouse_builder, python_version, glibc, echo)
+        wheels = _fill_wheelhouse(wheelhouse, source, wheelhouse_builder, python_version, glibc, echo, ros_required)
         times["wheelhouse_s"] = time.perf_counter() - t
         echo(f"wheelhouse: {len(wheels)} wheels, {sum(p.stat().st_size for p in wheelhouse.iterdir()) / 1e6:.0f} MB "
              f"in {times['wheelhouse_s']:.1f} s")
@@ -277,16 +324,16 @@ def build_bundle(out: str | Path, inputs: BundleInputs = BundleInputs(), *, forc
         values = dict(MACHINE=MACHINE, PYTHON=python_version, GLIBC=glibc, PROJECT=PROJECT, VERSION=version,
                       ROBOT=robot.name, UNIT=templates.UNIT_NAME, PRIORITY=rt.fifo_priority, CPUS=cpus,
                       WATCHDOG_S=f"{watchdog_s:g}", CAN_INTERFACE=can_interface, CAN_CHANNEL=can_channel,
-                      ARCHIVE=out.name, FOLDER=folder_name,
+                      ARCHIVE=out.name, FOLDER=folder_name, **templates.ros_values(ros, ROS_DISTRO),
                       NOTES="".join(f"\nNote: {n}\n" for n in notes))
-        _write_scripts(folder, values)
+        _write_scripts(folder, values, ros)
         manifest = write_manifest(folder, {
-            "format": 1, "robot": robot.name,
+            "format": 2, "robot": robot.name,
             "project": {"name": PROJECT, "version": version},
             "target": {"machine": MACHINE, "python": python_version, "glibc": glibc},
             "built": {"utc": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
                       "host": platform.node(), "python": platform.python_version()},
-            "wheels": wheels, "notes": notes})
+            "ros": _ros_manifest(ros, ros_required), "wheels": wheels, "notes": notes})
         times["files_s"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -308,15 +355,45 @@ def _check_options(compresslevel: int, watchdog_s: float, glibc: str) -> None:
     manylinux_platforms(glibc)  # a bad --glibc fails here, before the long work
 
 
+def _check_ros(ros: str, config, python_version: str) -> None:
+    """The ROS 2 mode against the config and the target's CPython, before the long work."""
+    if ros not in ROS_MODES:
+        raise BundleError(f"--ros {ros!r}: give one of {', '.join(ROS_MODES)}")
+    want_py = ROS_DISTRO_PYTHON[ROS_DISTRO]
+    if ros == "system" and python_version != want_py:
+        raise BundleError(f"--ros system: ROS 2 {ROS_DISTRO}'s rclpy is built for CPython {want_py}, and the venv "
+                          f"must run the same to import it; pass --python-version {want_py} (got {python_version})")
+    if ros == "none" and config.ros.middleware == "rclpy":
+        raise BundleError("--ros none carries no rclpy, but the config asks for ros.middleware: rclpy; use "
+                          "--ros wheels or --ros system, or set ros.middleware: auto or cyclonedds")
+    if config.ros.security is not None and ros != "system":
+        raise BundleError(f"the config sets ros.security (SROS2), which needs a ROS 2 built with DDS Security: "
+                          f"--ros {ros} has none (the ROS 2 wheels have no DDS Security); use --ros system")
+
+
+def _ros_manifest(ros: str, ros_required: list[tuple[str, str]]) -> dict:
+    """MANIFEST.json's `ros`: what dct preflight checks (ros:install)."""
+    out: dict = {"mode": ros, "distro": ROS_DISTRO}
+    if ros == "wheels":
+        out["wheels"] = [f"{n}=={v}" for n, v in ros_required]
+    elif ros == "system":
+        out["setup"] = f"/opt/ros/{ROS_DISTRO}/setup.bash"
+    return out
+
+
 def _fill_wheelhouse(wheelhouse: Path, source: Path | None, builder: Callable[[Path, Path], None] | None,
-                     python_version: str, glibc: str, echo: Callable[[str], None]) -> list[str]:
-    """The wheels, by `builder` when given (tests), else by pip; checked (no CUDA torch)."""
-    echo(f"wheelhouse: building ({'custom' if builder else f'pip, CPython {python_version} {MACHINE}'})")
+                     python_version: str, glibc: str, echo: Callable[[str], None],
+                     ros_required: list[tuple[str, str]]) -> list[str]:
+    """The wheels, by `builder` when given (tests), else by pip; checked (no CUDA torch; the ROS 2
+    wheels when they are to be carried)."""
+    echo(f"wheelhouse: building ({'custom' if builder else f'pip, CPython {python_version} {MACHINE}'}"
+         f"{', with the ROS 2 wheels' if ros_required else ''})")
     if builder is not None:
         builder(source, wheelhouse)
     else:
-        build_wheelhouse(source, wheelhouse, python_version=python_version, glibc=glibc)
-    return check_wheelhouse(wheelhouse)
+        build_wheelhouse(source, wheelhouse, python_version=python_version, glibc=glibc,
+                         extras=("ros",) if ros_required else ())
+    return check_wheelhouse(wheelhouse, ros_required)
 
 
 def _service_cpus(rt, service_cpus: str | None) -> str:
@@ -357,8 +434,13 @@ def _write_robot_files(rdir: Path, inputs: BundleInputs, robot, config) -> list[
     return notes
 
 
-def _write_scripts(folder: Path, values: dict) -> None:
-    """The systemd unit, install.sh and README.txt, rendered with `values`."""
+def _write_scripts(folder: Path, values: dict, ros: str) -> None:
+    """The systemd unit, install.sh and README.txt, rendered with `values`; bin/dct-env for --ros system."""
+    if ros == "system":
+        (folder / "bin").mkdir()
+        env = folder / "bin" / "dct-env"
+        env.write_text(templates.render(templates.ENV_SH, **values), encoding="utf-8")
+        env.chmod(0o755)
     (folder / "systemd").mkdir()
     (folder / "systemd" / templates.UNIT_NAME).write_text(templates.render(templates.UNIT, **values), encoding="utf-8")
     install = folder / "install.sh"
@@ -368,4 +450,5 @@ def _write_scripts(folder: Path, values: dict) -> None:
 
 
 __all__ = ["BundleError", "BundleInputs", "BundleResult", "build_bundle", "build_wheelhouse", "check_wheelhouse",
-           "manylinux_platforms", "nominal_calibration_yaml", "project_root", "write_manifest"]
+           "manylinux_platforms", "nominal_calibration_yaml", "project_root", "ros_extra_requirements",
+           "write_manifest", "ROS_MODES", "DEFAULT_ROS"]

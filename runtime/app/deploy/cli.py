@@ -18,7 +18,11 @@ def deploy_group() -> None:
               help="controller config YAML (default: the shipped one)")
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="the archive to write, *.tar.gz")
 @click.option("--force", is_flag=True, help="replace an existing --out")
-@click.option("--python-version", default="3.11", show_default=True, help="the robot's CPython (X.Y)")
+@click.option("--ros", "ros", type=click.Choice(["wheels", "system", "none"]), default="wheels", show_default=True,
+              help="ROS 2 for the controller: wheels (rclpy and the message packages in the bundle), system (the "
+                   "robot's ROS 2 Jazzy, sourced from /opt/ros/jazzy), none (cyclonedds only)")
+@click.option("--python-version", default=None,
+              help="the robot's CPython (X.Y); default 3.11, or 3.12 with --ros system (what Jazzy's rclpy is for)")
 @click.option("--glibc", default="2.35", show_default=True, help="the robot's glibc (oldest manylinux accepted)")
 @click.option("--can-interface", default="socketcan", show_default=True, help="for the unit's preflight")
 @click.option("--can-channel", default="can0", show_default=True, help="for the unit's preflight")
@@ -27,19 +31,25 @@ def deploy_group() -> None:
               help="the unit's WatchdogSec")
 @click.option("--compress", "compresslevel", type=click.IntRange(0, 9), default=1, show_default=True,
               help="gzip level (the wheels inside are already compressed)")
-def bundle_command(*, robot, calibration, config, out, force, python_version, glibc, can_interface, can_channel,
+def bundle_command(*, robot, calibration, config, out, force, ros, python_version, glibc, can_interface, can_channel,
                    service_cpus, watchdog_s, compresslevel) -> None:
     """Build the offline install bundle: wheelhouse, robot files, systemd unit, install.sh, manifest.
 
     Unpacks into one folder; `FOLDER/install.sh TARGET` installs offline and leaves
     TARGET/venv/bin/dct. Needs this machine to reach the package index (pip download).
+    --ros wheels (the default) carries ROS 2 Jazzy's rclpy, so the robot needs no ROS 2 of its
+    own; --ros system uses the robot's; the choice is recorded in MANIFEST.json for dct preflight.
     """
     import re
     import time
     from pathlib import Path
 
-    from runtime.app.deploy.bundle import BundleError, BundleInputs, build_bundle
+    from runtime.app.deploy.bundle import (
+        DEFAULT_PYTHON, ROS_DISTRO, ROS_DISTRO_PYTHON, BundleError, BundleInputs, build_bundle,
+    )
 
+    if python_version is None:
+        python_version = ROS_DISTRO_PYTHON[ROS_DISTRO] if ros == "system" else DEFAULT_PYTHON
     if not re.fullmatch(r"3\.\d{1,2}", python_version):
         raise click.ClickException(f"--python-version {python_version!r}: give X.Y, e.g. 3.11")
     if not re.fullmatch(r"2\.\d{1,2}", glibc):
@@ -49,7 +59,7 @@ def bundle_command(*, robot, calibration, config, out, force, python_version, gl
     try:
         res = build_bundle(out, inputs, force=force, python_version=python_version, glibc=glibc,
                            can_interface=can_interface, can_channel=can_channel, service_cpus=service_cpus,
-                           watchdog_s=watchdog_s, compresslevel=compresslevel, echo=click.echo)
+                           watchdog_s=watchdog_s, compresslevel=compresslevel, ros=ros, echo=click.echo)
     except BundleError as exc:
         raise click.ClickException(str(exc)) from None
     for note in res.notes:

@@ -1,9 +1,12 @@
 """The bundle's install script, systemd unit and README, as text templates.
 
-Two kinds of placeholder:
-- `@@NAME@@` is filled when the bundle is built (`render`): version, Python, robot name, CPUs;
-- `@TARGET@` is left in the unit (and in a config that names a bundled distance net) and filled
-  by install.sh with the install folder, which is only known on the robot.
+Three kinds of placeholder:
+- `@@NAME@@` is filled when the bundle is built (`render`): version, Python, robot name, CPUs,
+  how ROS 2 comes (`ros_values`);
+- `@TARGET@` is left in the unit (and in a config that names a bundled distance net, and in
+  bin/dct-env) and filled by install.sh with the install folder, which is only known on the robot;
+- `@ROS_SETUP@` (bin/dct-env, --ros system only): the robot's ROS 2 setup script, filled by
+  install.sh (ROS_SETUP=, else /opt/ros/<distro>/setup.bash).
 """
 from __future__ import annotations
 
@@ -22,8 +25,9 @@ INSTALL_SH = r"""#!/usr/bin/env bash
 #    downloaded, pip's own configuration is ignored (PIP_CONFIG_FILE=/dev/null, --isolated);
 # 3. copies the robot's files to TARGET/robot and the systemd unit to TARGET/systemd (with
 #    TARGET filled in), makes TARGET/logs, and runs TARGET/venv/bin/dct --help.
-# --force replaces an existing TARGET/venv and TARGET/robot. PYTHON=/path/to/python3.11 picks
+# --force replaces an existing TARGET/venv and TARGET/robot. PYTHON=/path/to/python@@PYTHON@@ picks
 # the interpreter (default: python3).
+# ROS 2 (--ros @@ROS_MODE@@): @@ROS_NOTE@@
 set -euo pipefail
 
 usage() { echo "usage: $0 TARGET [--force]   (install the DCT controller into the folder TARGET)" >&2; exit 2; }
@@ -89,6 +93,15 @@ if bad:
 print(f"install.sh: {len(files)} files match MANIFEST.json ({m['project']['name']} {m['project']['version']}, "
       f"robot '{m['robot']}')")
 PYEOF
+ROS_MODE="@@ROS_MODE@@"
+ROS_SETUP="${ROS_SETUP:-/opt/ros/@@ROS_DISTRO@@/setup.bash}"
+if [ "$ROS_MODE" = system ]; then
+  [ -f "$ROS_SETUP" ] || { echo "install.sh: this bundle uses the robot's ROS 2 @@ROS_DISTRO@@ (built with --ros system), but $ROS_SETUP does not exist: install ROS 2 @@ROS_DISTRO@@ (apt install ros-@@ROS_DISTRO@@-ros-base), set ROS_SETUP=/path/to/its/setup.bash, or use a bundle built with --ros wheels" >&2; exit 1; }
+  case "$ROS_SETUP" in
+    *[!A-Za-z0-9_./+-]*) echo "install.sh: ROS_SETUP '$ROS_SETUP': give a plain path (letters, digits, _ . / + -)" >&2; exit 2 ;;
+  esac
+  ROS_SETUP="$(cd "$(dirname "$ROS_SETUP")" && pwd)/$(basename "$ROS_SETUP")"
+fi
 
 # -- 2. the target folder and the venv
 mkdir -p "$TARGET"
@@ -104,30 +117,39 @@ for sub in venv robot; do
 done
 echo "install.sh: creating $TARGET/venv"
 "$PY" -m venv "$TARGET/venv" || { echo "install.sh: python3 -m venv failed (Debian/Ubuntu: apt install python3-venv)" >&2; exit 1; }
-echo "install.sh: installing @@PROJECT@@ @@VERSION@@ from the wheelhouse (offline)"
+echo "install.sh: installing @@PROJECT@@@@EXTRAS@@ @@VERSION@@ from the wheelhouse (offline)"
 PIP_CONFIG_FILE=/dev/null "$TARGET/venv/bin/python" -m pip --isolated --disable-pip-version-check install \
-  --no-index --find-links "$HERE/wheelhouse" --no-cache-dir --quiet "@@PROJECT@@==@@VERSION@@"
+  --no-index --find-links "$HERE/wheelhouse" --no-cache-dir --quiet "@@PROJECT@@@@EXTRAS@@==@@VERSION@@"
 
 # -- 3. the robot's files, the unit, the log folder
 cp -R "$HERE/robot" "$TARGET/robot"
 mkdir -p "$TARGET/systemd" "$TARGET/logs"
 cp "$HERE/systemd/@@UNIT@@" "$TARGET/systemd/@@UNIT@@"
-"$PY" - "$TARGET" "$TARGET/systemd/@@UNIT@@" "$TARGET/robot/config.yaml" <<'PYEOF'
+FILL=("$TARGET/systemd/@@UNIT@@" "$TARGET/robot/config.yaml")
+DCT="$TARGET/venv/bin/dct"
+if [ "$ROS_MODE" = system ]; then
+  mkdir -p "$TARGET/bin"
+  cp "$HERE/bin/dct-env" "$TARGET/bin/dct-env"
+  FILL+=("$TARGET/bin/dct-env")
+  DCT="$TARGET/bin/dct-env $TARGET/venv/bin/dct"
+fi
+"$PY" - "$TARGET" "$ROS_SETUP" "${FILL[@]}" <<'PYEOF'
 import sys
-target = sys.argv[1]
-for path in sys.argv[2:]:
+target, ros_setup = sys.argv[1], sys.argv[2]
+for path in sys.argv[3:]:
     with open(path, encoding="utf-8") as f:
         text = f.read()
     with open(path, "w", encoding="utf-8") as f:
-        f.write(text.replace("@TARGET@", target))
+        f.write(text.replace("@TARGET@", target).replace("@ROS_SETUP@", ros_setup))
 PYEOF
 "$TARGET/venv/bin/dct" --help >/dev/null
 cp "$HERE/MANIFEST.json" "$TARGET/MANIFEST.json"
 cat <<EOF
 install.sh: installed into $TARGET
-  controller:   $TARGET/venv/bin/dct
+  controller:   $DCT
+  ROS 2:        --ros @@ROS_MODE@@
   robot files:  $TARGET/robot/ (robot.yaml, calibration.yaml, config.yaml, models/)
-  check:        $TARGET/venv/bin/dct preflight --robot $TARGET/robot/robot.yaml --calibration $TARGET/robot/calibration.yaml --config $TARGET/robot/config.yaml --log-dir $TARGET/logs
+  check:        $DCT preflight --robot $TARGET/robot/robot.yaml --calibration $TARGET/robot/calibration.yaml --config $TARGET/robot/config.yaml --log-dir $TARGET/logs --manifest $TARGET/MANIFEST.json
   service:      sudo cp $TARGET/systemd/@@UNIT@@ /etc/systemd/system/ && sudo systemctl daemon-reload && sudo systemctl enable --now @@UNIT@@
 EOF
 """
@@ -155,9 +177,10 @@ Restart=on-failure
 RestartSec=2
 WorkingDirectory=@TARGET@
 Environment=PYTHONUNBUFFERED=1
+# ROS 2 (--ros @@ROS_MODE@@): @@ROS_NOTE@@
 # Every check that driving needs must pass before the controller starts (dct preflight).
-ExecStartPre=@TARGET@/venv/bin/dct preflight --robot @TARGET@/robot/robot.yaml --calibration @TARGET@/robot/calibration.yaml --config @TARGET@/robot/config.yaml --can-interface @@CAN_INTERFACE@@ --can-channel @@CAN_CHANNEL@@ --log-dir @TARGET@/logs --json @TARGET@/logs/preflight.json
-ExecStart=@TARGET@/venv/bin/dct run --robot @TARGET@/robot/robot.yaml --calibration @TARGET@/robot/calibration.yaml --config @TARGET@/robot/config.yaml
+ExecStartPre=@@EXEC_PREFIX@@@TARGET@/venv/bin/dct preflight --robot @TARGET@/robot/robot.yaml --calibration @TARGET@/robot/calibration.yaml --config @TARGET@/robot/config.yaml --can-interface @@CAN_INTERFACE@@ --can-channel @@CAN_CHANNEL@@ --log-dir @TARGET@/logs --manifest @TARGET@/MANIFEST.json --json @TARGET@/logs/preflight.json
+ExecStart=@@EXEC_PREFIX@@@TARGET@/venv/bin/dct run --robot @TARGET@/robot/robot.yaml --calibration @TARGET@/robot/calibration.yaml --config @TARGET@/robot/config.yaml
 # The controller stops cleanly (zero commands to the base) on SIGINT, as on Ctrl-C.
 KillSignal=SIGINT
 TimeoutStopSec=5
@@ -174,6 +197,7 @@ WantedBy=multi-user.target
 
 README = """DCT controller bundle: @@PROJECT@@ @@VERSION@@ for robot '@@ROBOT@@'
 Target: @@MACHINE@@ Linux, CPython @@PYTHON@@ (glibc @@GLIBC@@ or newer).
+ROS 2 (--ros @@ROS_MODE@@): @@ROS_NOTE@@
 
   tar xzf @@ARCHIVE@@ && ./@@FOLDER@@/install.sh /opt/dct
 
@@ -183,8 +207,39 @@ installs offline into /opt/dct (venv/, robot/, systemd/, logs/). Contents:
   wheelhouse/           the project's wheel and every dependency (torch is the CPU build)
   robot/                robot.yaml, calibration.yaml, config.yaml, models/ (the distance net)
   systemd/@@UNIT@@  the service (Type=notify, WatchdogSec, Restart=on-failure,
-                        LimitRTPRIO, CPUAffinity; runs dct preflight before the controller)
+                        LimitRTPRIO, CPUAffinity; runs dct preflight before the controller)@@ENV_LINE@@
 @@NOTES@@"""
+
+ENV_SH = r"""#!/usr/bin/env bash
+# The DCT controller's environment on a robot with its own ROS 2 @@ROS_DISTRO@@ (a bundle built with
+# --ros system): sources ROS 2's setup script, then runs the command it is given, e.g.
+#   @TARGET@/bin/dct-env @TARGET@/venv/bin/dct preflight ...
+# The systemd unit runs dct through it. install.sh wrote the setup script's path below.
+if [ "$#" -eq 0 ]; then echo "usage: $0 COMMAND [ARGS...]   (run COMMAND with ROS 2 @@ROS_DISTRO@@ sourced)" >&2; exit 2; fi
+export DCT_ROS_SETUP="@ROS_SETUP@"
+if [ ! -f "$DCT_ROS_SETUP" ]; then
+  echo "dct-env: $DCT_ROS_SETUP does not exist: ROS 2 @@ROS_DISTRO@@ is not installed here" >&2; exit 1
+fi
+# ROS 2's setup scripts read unset variables: no `set -u` here.
+source "$DCT_ROS_SETUP" || { echo "dct-env: sourcing $DCT_ROS_SETUP failed" >&2; exit 1; }
+exec "$@"
+"""
+
+
+def ros_values(mode: str, distro: str) -> dict[str, str]:
+    """The placeholders that depend on how the bundle brings ROS 2 (runtime.app.deploy.bundle)."""
+    notes = {
+        "wheels": f"the ROS 2 {distro} wheels (rclpy with Fast DDS and the message packages) go into the venv: "
+                  "the robot needs no ROS 2 install",
+        "system": f"the robot's ROS 2 {distro}: dct runs through TARGET/bin/dct-env, which sources "
+                  f"/opt/ros/{distro}/setup.bash (or install.sh's ROS_SETUP=)",
+        "none": "no rclpy: ROS 2 topics through cyclonedds (ros.middleware auto or cyclonedds)",
+    }
+    return {"ROS_MODE": mode, "ROS_DISTRO": distro, "ROS_NOTE": notes[mode],
+            "EXTRAS": "[ros]" if mode == "wheels" else "",
+            "EXEC_PREFIX": "@TARGET@/bin/dct-env " if mode == "system" else "",
+            "ENV_LINE": "\n  bin/dct-env           sources the robot's ROS 2, then runs dct (the unit uses it)"
+                        if mode == "system" else ""}
 
 
 def render(template: str, **values: object) -> str:

@@ -15,14 +15,23 @@ Checks, in order (names as in the JSON):
   `ip -details -json link show` equal to the robot description's; udp_multicast / virtual /
   limo_serial: the bus opens), `base` (0x221 within 100 ms of the enable frame 0x421 that the
   controller sends at start, then 0x211: not in E-stop, no error that stops the controller);
+- ROS 2 set-up: `ros:install` (with a bundle's MANIFEST.json: its ROS 2 wheels import from the
+  venv, or the robot's ROS 2 imports after sourcing its setup script, or cyclonedds alone),
+  `ros:middleware` (what `dct run` will use; rclpy's version or why it does not import),
+  `ros:discovery` (open to the network: any host there can publish a goal), `ros:security`
+  (SROS2's keystore and enclave files, or goals are unauthenticated);
 - sensors: `topic:<stream>` for the lidar, IMU and camera topics of the config's `ros:` section
-  (runtime.io.ros RosInputConfig; without one, `topics.default_topics`), heard for `listen_s` and
-  judged against their nominal rates; the last sample of each must decode;
+  (runtime.io.ros RosInputConfig; without one, `topics.default_topics`), heard for `listen_s`
+  through the configured middleware and judged against their nominal rates; the last sample of
+  each must decode; `match:<stream>` for every input topic (the goal's too): the graph's
+  publishers have the configured type and QoS DDS will match; `ros:clock`: the sensors' stamps
+  are within 50 ms of this computer's clock;
 - host: `clock_sync`, `cpus`, `cpu_governor`, `sched_fifo`, `cpu_affinity`, `disk`.
 
-Modules: `check` (the result of one check), `files`, `can_bus` (link and base), `topics` (sensor
-topics), `computer` (clock, CPUs, real-time scheduling, disk), `run` (every check in order, the
-summary), `cli` (the `dct preflight` command).
+Modules: `check` (the result of one check), `files`, `can_bus` (link and base), `ros_setup` (the
+ROS 2 set-up), `topics` (sensor topics), `ros_graph` (publishers' types and QoS, the stamps),
+`computer` (clock, CPUs, real-time scheduling, disk), `run` (every check in order, the summary),
+`cli` (the `dct preflight` command).
 
 Everything that touches the machine takes its source as an argument (the /sys root, the `ip`
 and clock commands, the bus), so that tests can fake a robot computer.

@@ -27,12 +27,15 @@ from runtime.app.preflight.run import SKIPPABLE, PreflightOptions, checks_json, 
 @click.option("--min-free-gb", type=click.FloatRange(0.0), default=DEFAULT_MIN_FREE_GB, show_default=True)
 @click.option("--skip", type=click.Choice(SKIPPABLE), multiple=True,
               help="leave a check out (reported as WARN: not checked)")
+@click.option("--manifest", type=click.Path(dir_okay=False), default=None,
+              help="the installed bundle's MANIFEST.json: which ROS 2 it carries, checked as ros:install "
+                   "(default: the one beside this venv, when there is one)")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None,
               help='write {"checks": [{"name", "ok", "message"}, ...]} here')
 @click.option("--sys-root", default="/", hidden=True, help="root of /sys (tests)")
 @click.pass_context
 def preflight_command(ctx, *, robot, calibration, config, can_interface, can_channel, can_udp_port, ros_domain,
-                      listen_s, log_dir, min_free_gb, skip, json_path, sys_root) -> None:
+                      listen_s, log_dir, min_free_gb, skip, manifest, json_path, sys_root) -> None:
     """Check this computer, the robot's files, CAN, the base and the sensors before driving.
 
     One line per check (PASS / WARN / FAIL, and how to fix it). Exit code 0 only when no
@@ -48,7 +51,7 @@ def preflight_command(ctx, *, robot, calibration, config, can_interface, can_cha
     opts = PreflightOptions(robot=robot, calibration=calibration, config=config, can_interface=can_interface,
                             can_channel=can_channel, can_udp_port=can_udp_port, ros_domain=ros_domain,
                             listen_s=listen_s, log_dir=log_dir, min_free_gb=min_free_gb, sys_root=sys_root,
-                            skip=tuple(skip))
+                            skip=tuple(skip), manifest=manifest)
     checks = run_preflight(opts, echo=click.echo)
     click.echo(summary_line(checks))
     if json_path is not None:

@@ -9,6 +9,10 @@ from runtime.app.preflight.can_bus import check_can
 from runtime.app.preflight.check import Check
 from runtime.app.preflight.computer import DEFAULT_MIN_FREE_GB, check_clock_sync, check_cpus, check_disk, check_realtime
 from runtime.app.preflight.files import check_files
+from runtime.app.preflight.ros_setup import (
+    ManifestError, check_discovery, check_middleware, check_ros_install, check_security, default_manifest,
+    discovery_reach, read_ros_install, resolve,
+)
 from runtime.app.preflight.topics import check_topics, expected_rates_hz, topics_from_config
 
 SKIPPABLE = ("can", "base", "sensors", "clock", "model")
@@ -28,6 +32,8 @@ class PreflightOptions:
     min_free_gb: float = DEFAULT_MIN_FREE_GB
     sys_root: str = "/"
     skip: tuple[str, ...] = ()
+    #: the bundle's MANIFEST.json (how ROS 2 was installed); None: beside this venv, when there is one
+    manifest: str | None = None
 
 
 def can_settings(opts: PreflightOptions, config: Any) -> tuple[dict[str, Any], str]:
@@ -83,18 +89,51 @@ def run_preflight(opts: PreflightOptions, echo: Callable[[str], None] | None = N
         add([replace(c, message=f"{c.message} ({source})") if c.name == "can_link" else c for c in can_checks])
         if "base" in opts.skip:
             add(skipped("base", "base"))
+    ros = ros_config(files.config, opts.ros_domain)
+    add(ros_setup_checks(ros, opts.manifest))
     if "sensors" in opts.skip:
         add(skipped("topics", "sensors"))
     else:
         required = ["lidar", "imu"] + (["camera"] if files.config is not None and files.config.uses_camera
                                        else [])
         add(check_topics(topics_from_config(files.config, opts.ros_domain), expected_rates_hz(files.config),
-                         listen_s=opts.listen_s, required=required))
+                         listen_s=opts.listen_s, required=required,
+                         options=ros.transport_options("dct_preflight")))
     add(skipped("clock_sync", "clock") if "clock" in opts.skip else check_clock_sync())
     realtime = getattr(files.config, "realtime", None)
     add(check_cpus(realtime, sys_root=opts.sys_root))
     add(check_realtime(realtime))
     add(check_disk(opts.log_dir, opts.min_free_gb))
+    return checks
+
+
+def ros_config(config: Any, domain_id: int | None = None):
+    """The config's `ros:` section (the defaults when the config did not load), on `domain_id`."""
+    from runtime.io.ros.settings import RosConfig
+
+    ros = getattr(config, "ros", None)
+    ros = ros if isinstance(ros, RosConfig) else RosConfig()
+    if domain_id is not None:
+        ros = ros.model_copy(update={"inputs": ros.inputs.model_copy(update={"domain_id": int(domain_id)})})
+    return ros
+
+
+def ros_setup_checks(ros: Any, manifest: str | None) -> list[Check]:
+    """`ros:install` (when there is a bundle's manifest), `ros:middleware`, `ros:discovery`, `ros:security`."""
+    from runtime.io.ros.transport import rclpy_available
+
+    checks = []
+    path = manifest if manifest is not None else (default_manifest() if default_manifest().is_file() else None)
+    if path is not None:
+        try:
+            checks.append(check_ros_install(read_ros_install(path), ros))
+        except ManifestError as exc:
+            checks.append(Check("ros:install", "FAIL", str(exc), "pass the installed bundle's --manifest "
+                                "(TARGET/MANIFEST.json)"))
+    middleware = resolve(ros, rclpy_available)[0]
+    checks.append(check_middleware(ros))
+    checks.append(check_discovery(ros, middleware))
+    checks.append(check_security(ros, middleware, discovery_reach(ros, middleware)[0]))
     return checks
 
 

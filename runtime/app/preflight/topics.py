@@ -1,13 +1,17 @@
 """Preflight's sensor topic checks: `topic:<stream>` for the lidar, IMU and camera topics of the
-config's `ros:` section (or the default topics), heard for a while and judged against their
-nominal rates; the last sample of each must decode."""
+config's `ros:` section (or the default topics), heard for a while through the middleware `dct run`
+will use and judged against their nominal rates, the last sample of each must decode; then the
+publishers the graph shows on every input topic (`match:<stream>`) and the sensors' stamps
+against this computer's clock (`ros:clock`), both judged in ros_graph."""
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from runtime.app.preflight.check import Check, one_line
+from runtime.app.preflight.ros_graph import judge_clock, judge_publishers, sample_time_s
 
 #: Nominal sensor rates (Hz) of the LIMO-class robot where the config has
 #: none: camera 15-30 Hz, IMU 200 Hz; the lidar's comes from inputs.lidar.frame_period_s.
@@ -19,13 +23,11 @@ WARN_RATE_SHARE = 0.8
 
 def default_topics(domain_id: int = 0):
     """The topics a LIMO with a Livox Mid-360 and a ROS 2 camera driver publishes, for configs
-    without a `ros:` section (livox_ros_driver2 CustomMsg, the driver's IMU, an image_raw camera)."""
-    from runtime.io.ros.receiver import CameraTopic, ImuTopic, LidarTopic, RosInputConfig
+    without a `ros:` section (runtime.io.ros.settings.DEFAULT_INPUTS: livox_ros_driver2
+    CustomMsg, the driver's IMU, an image_raw camera, goals on /goal_pose)."""
+    from runtime.io.ros.settings import DEFAULT_INPUTS
 
-    return RosInputConfig(domain_id=domain_id,
-                          lidar=LidarTopic(topic="/livox/lidar", type="livox_ros_driver2/msg/CustomMsg"),
-                          imu=ImuTopic(topic="/livox/imu"),
-                          camera=CameraTopic(topic="/camera/color/image_raw", type="sensor_msgs/msg/Image"))
+    return DEFAULT_INPUTS.model_copy(update={"domain_id": int(domain_id)})
 
 
 def topics_from_config(config: Any, domain_id: int | None = None):
@@ -45,47 +47,84 @@ def expected_rates_hz(config: Any) -> dict[str, float]:
 
 
 def check_topics(ros_config: Any, rates_hz: dict[str, float], *, listen_s: float = 2.0,
-                 required: Sequence[str] = ("lidar", "imu")) -> list[Check]:
-    """Listen to each configured sensor topic for `listen_s`; one check per topic.
+                 required: Sequence[str] = ("lidar", "imu"), options: Any = None) -> list[Check]:
+    """Listen to each configured sensor topic for `listen_s` through the middleware `dct run`
+    will use (`options`: runtime.io.ros.transport.TransportOptions, the config's `ros:`
+    settings; None: cyclonedds on the inputs' domain); one check per topic, one `match:<stream>`
+    per input topic (the goal's among them), and `ros:clock`.
 
-    A topic in `required` that is silent or too slow FAILs; others (the camera when the planner
-    does not use it) only WARN.
+    A topic in `required` that is silent, too slow or mismatched FAILs; others (the camera when
+    the planner does not use it) only WARN. The goal topic's mismatches FAIL.
     """
+    from runtime.io.ros.transport import MiddlewareError, TransportOptions, open_transport
+
     streams = [(s, t) for s in ("lidar", "imu", "camera") if (t := getattr(ros_config, s)) is not None]
     if not streams:
         return [Check("topics", "FAIL", "the config names no sensor topics", "add lidar and imu topics to ros:")]
-    arrivals, last = _listen(ros_config.domain_id, streams, listen_s)
-    where = {s: f"{t.topic} ({t.type}, domain {ros_config.domain_id})" for s, t in streams}
-    return [_judge_topic(s, t, where[s], arrivals[s], last.get(s), rates_hz.get(s, 1.0),
-                         "FAIL" if s in required else "WARN", listen_s)
-            for s, t in streams]
+    if options is None:
+        options = TransportOptions(middleware="cyclonedds", domain_id=ros_config.domain_id)
+    options = replace(options, domain_id=ros_config.domain_id)
+    try:
+        transport = open_transport(options)
+    except (MiddlewareError, OSError, RuntimeError) as exc:
+        return [Check("topics", "FAIL", f"cannot open the {options.middleware} middleware on domain "
+                      f"{options.domain_id}: {one_line(exc)[:300]}", "see ros:middleware and ros:security")]
+    try:
+        heard = _listen(transport, streams, listen_s)
+        pubs = {s: transport.publishers(t.topic) for s, t in _inputs(ros_config)}
+    finally:
+        transport.close()
+    via = {r.topic: r.via for r in transport.routes()}
+    where = {s: f"{t.topic} ({t.type}, domain {ros_config.domain_id}, {via.get(t.topic, transport.name)})"
+             for s, t in streams}
+    bad = {s: "FAIL" if s in required or s == "goal" else "WARN" for s, _ in _inputs(ros_config)}
+    checks = [_judge_topic(s, t, where[s], heard.arrivals[s], heard.last.get(s), rates_hz.get(s, 1.0), bad[s],
+                           listen_s) for s, t in streams]
+    checks += [judge_publishers(s, t, pubs[s], bad[s], ros_config.domain_id) for s, t in _inputs(ros_config)]
+    checks.append(judge_clock(heard.offsets))
+    return checks
 
 
-def _listen(domain_id: int, streams: list, listen_s: float) -> tuple[dict[str, list[float]], dict[str, bytes]]:
-    """For each stream, the (monotonic) arrival time of every sample heard in `listen_s`, and
-    the last sample's bytes."""
-    from cyclonedds.domain import DomainParticipant
+def _inputs(ros_config: Any) -> list[tuple[str, Any]]:
+    return [(s, t) for s in ("lidar", "imu", "camera", "goal") if (t := getattr(ros_config, s)) is not None]
 
-    from runtime.io.ros.dds import raw_reader, ros_qos
+
+@dataclass
+class Heard:
+    """What `_listen` heard per stream: each sample's arrival (monotonic), the last sample's
+    bytes, and (arrival on the system clock - the sample's stamp) for each stamped sample."""
+
+    arrivals: dict[str, list[float]]
+    last: dict[str, bytes] = field(default_factory=dict)
+    offsets: dict[str, list[float]] = field(default_factory=dict)
+
+
+def _listen(transport: Any, streams: list, listen_s: float) -> Heard:
     from runtime.io.ros.messages import ROS_TYPES
+    from runtime.io.ros.transport import QosSpec
 
-    dp = DomainParticipant(domain_id)
-    readers = [(s, t, raw_reader(dp, t.topic, ROS_TYPES[t.type], ros_qos(t.qos.reliability, max(t.qos.depth, 50))))
+    # keep up to 50 samples between two takes: a 200 Hz IMU must not lose any to the rate count
+    readers = [(s, t, transport.reader(t.topic, ROS_TYPES[t.type], QosSpec(t.qos.reliability, max(t.qos.depth, 50))))
                for s, t in streams]
-    arrivals: dict[str, list[float]] = {s: [] for s, _ in streams}
-    last: dict[str, bytes] = {}
+    heard = Heard({s: [] for s, _ in streams}, offsets={s: [] for s, _ in streams})
     end = time.monotonic() + listen_s
     while True:
         now = time.monotonic()
-        for s, _t, r in readers:
+        for s, t, r in readers:
             got = r.take_raw(256)
-            if got:
-                arrivals[s].extend([now] * len(got))
-                last[s] = got[-1]
+            if not got:
+                continue
+            wall = time.time()
+            heard.arrivals[s].extend([now] * len(got))
+            heard.last[s] = got[-1]
+            for cdr in got:
+                stamp = sample_time_s(s, t, cdr)
+                if stamp is not None:
+                    heard.offsets[s].append(wall - stamp)
         if now >= end:
             break
-        time.sleep(0.005)
-    return arrivals, last
+        transport.wait(min(0.05, max(0.0, end - now)))
+    return heard
 
 
 def _judge_topic(s: str, t: Any, where: str, ts: list[float], last: bytes | None, expected: float, bad: str,

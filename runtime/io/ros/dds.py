@@ -33,13 +33,21 @@ from cyclonedds._clayer import ddspy_take  # noqa: I001
 
 from runtime.io.ros.messages import PreSerialized
 from runtime.io.ros.transport import (
-    Discovery, QosSpec, TopicReader, TopicWriter, Transport, cyclonedds_config_xml,
+    Discovery, PublisherInfo, QosSpec, TopicReader, TopicWriter, Transport, cyclonedds_config_xml,
 )
 
 
 def dds_topic_name(ros_topic: str) -> str:
     """ROS 2 topic `/a/b` (or `a/b`) -> its DDS topic `rt/a/b`."""
     return "rt/" + ros_topic.lstrip("/")
+
+
+def ros_type_from_dds(dds_type: str) -> str:
+    """DDS type `pkg::msg::dds_::Name_` -> ROS 2's `pkg/msg/Name`; any other name as it is."""
+    parts = dds_type.split("::")
+    if len(parts) == 4 and parts[2] == "dds_" and parts[3].endswith("_") and all(parts):
+        return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+    return dds_type
 
 
 def ros_qos(reliability: str = "best_effort", depth: int = 1, durability: str = "volatile") -> Qos:
@@ -165,6 +173,7 @@ class CycloneTransport(Transport):
         self._guard = GuardCondition(self.participant)
         self._waitset.attach(self._guard)
         self._conditions: list[ReadCondition] = []
+        self._graph = None
 
     def reader(self, topic: str, cls: type, qos: QosSpec) -> RawDataReader:
         r = raw_reader(self.participant, topic, cls, _qos(qos))
@@ -186,5 +195,33 @@ class CycloneTransport(Transport):
     def wake(self) -> None:
         self._guard.set(True)
 
+    def publishers(self, topic: str) -> list[PublisherInfo]:
+        """The remote writers on `topic` from DDS's builtin DCPSPublication topic (alive ones)."""
+        from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
+
+        if self._graph is None:  # made when first asked: it lists the writers already discovered too
+            reader = BuiltinDataReader(self.participant, BuiltinTopicDcpsPublication)
+            self._graph = (reader, ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Alive))
+        reader, alive = self._graph
+        want = dds_topic_name(topic)
+        return [PublisherInfo(topic, ros_type_from_dds(s.type_name), _policy(s.qos, Policy.Reliability, _RELIABILITY),
+                              _policy(s.qos, Policy.Durability, _DURABILITY), f"participant {s.participant_key}")
+                for s in reader.read(N=4096, condition=alive) if s.topic_name == want]
+
     def close(self) -> None:
         self.wake()
+
+
+#: DDS policy kinds -> the controller's names. Transient and persistent writers offer at least
+#: what a transient_local reader asks for.
+_RELIABILITY = {"BestEffort": "best_effort", "Reliable": "reliable"}
+_DURABILITY = {"Volatile": "volatile", "TransientLocal": "transient_local", "Transient": "transient_local",
+               "Persistent": "transient_local"}
+
+
+def _policy(qos, kind, names: dict[str, str]) -> str | None:
+    try:
+        p = qos[kind]
+    except (KeyError, TypeError):
+        return None
+    return None if p is None else names.get(type(p).__name__.rsplit(".", 1)[-1])

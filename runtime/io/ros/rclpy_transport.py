@@ -27,8 +27,9 @@ from collections import deque
 
 from runtime.io.ros.messages import ros_type_name
 from runtime.io.ros.transport import (
-    MiddlewareError, QosSpec, TopicReader, TopicWriter, Transport, TransportOptions, discovery_env,
+    MiddlewareError, PublisherInfo, QosSpec, TopicReader, TopicWriter, Transport, TransportOptions, discovery_env,
 )
+
 
 def ros_message_class(type_name: str):
     """`sensor_msgs/msg/Imu` -> the rclpy message class, or None when its package is missing."""
@@ -178,6 +179,20 @@ class RclpyTransport(Transport):
 
     def wake(self) -> None:
         self._notify()
+
+    def publishers(self, topic: str) -> list[PublisherInfo]:
+        """The writers rclpy's graph knows on `topic` (stock nodes and bare DDS apps alike)."""
+        from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+        rel = {ReliabilityPolicy.RELIABLE: "reliable", ReliabilityPolicy.BEST_EFFORT: "best_effort"}
+        dur = {DurabilityPolicy.VOLATILE: "volatile", DurabilityPolicy.TRANSIENT_LOCAL: "transient_local"}
+        out = []
+        for info in self.node.get_publishers_info_by_topic(topic):
+            node = info.node_name if info.node_name != "_CREATED_BY_BARE_DDS_APP_" else ""
+            who = f"node {info.node_namespace.rstrip('/')}/{node}" if node else "a bare DDS participant"
+            out.append(PublisherInfo(topic, info.topic_type, rel.get(info.qos_profile.reliability),
+                                     dur.get(info.qos_profile.durability), who))
+        return out
 
     def close(self) -> None:
         with self._lock:

@@ -56,6 +56,37 @@ class QosSpec:
         return f"{self.reliability.replace('_', ' ')}, keep last {self.depth}, {self.durability.replace('_', ' ')}"
 
 
+@dataclass(frozen=True)
+class PublisherInfo:
+    """One writer on a topic as the DDS graph shows it: another node's publisher or a bare DDS app's."""
+
+    topic: str
+    #: `pkg/msg/Name` for a ROS 2 type; a DDS type name that is not a ROS 2 one, as it is.
+    type_name: str
+    #: None where the graph does not say (the rules then do not judge that policy).
+    reliability: Reliability | None
+    durability: Durability | None
+    #: the node (rclpy) or participant (cyclonedds) it belongs to, for the messages.
+    who: str = ""
+
+
+def qos_incompatibilities(reader: QosSpec, writer) -> tuple[str, ...]:
+    """The policies on which a writer's offered QoS fails `reader`'s request (ROS 2's rules).
+
+    A reliable reader needs a reliable writer; a transient_local reader needs a transient_local
+    writer. Everything else matches: a best-effort reader takes any writer, a volatile reader any
+    durability, and keep-last depths never keep two endpoints apart. DDS says nothing when a
+    pair does not match: the reader simply never receives. `writer` has `reliability` and
+    `durability` (a QosSpec or a PublisherInfo); a policy it does not state (None) is not judged.
+    """
+    bad = []
+    if reader.reliability == "reliable" and writer.reliability == "best_effort":
+        bad.append("reliability")
+    if reader.durability == "transient_local" and writer.durability == "volatile":
+        bad.append("durability")
+    return tuple(bad)
+
+
 #: The profiles of REP-2003 / Nav2: sensor data, and what tf2's broadcasters use.
 SENSOR_DATA = QosSpec("best_effort", 5)
 TF = QosSpec("reliable", 100)
@@ -134,6 +165,11 @@ class Transport(abc.ABC):
 
     @abc.abstractmethod
     def close(self) -> None: ...
+
+    def publishers(self, topic: str) -> list[PublisherInfo] | None:
+        """The writers on ROS topic `topic` that this node has discovered (types and QoS), or
+        None where the middleware cannot tell. Discovery takes a moment after start."""
+        return None
 
     def routes(self) -> list[Route]:
         return list(self._routes)
@@ -246,6 +282,6 @@ def effective_discovery(discovery: Discovery, environ=os.environ) -> tuple[str, 
     return "network", "ROS 2's default (subnet)"
 
 
-__all__ = ["QosSpec", "SENSOR_DATA", "TF", "TF_STATIC", "TopicReader", "TopicWriter", "Transport",
+__all__ = ["QosSpec", "PublisherInfo", "qos_incompatibilities", "SENSOR_DATA", "TF", "TF_STATIC", "TopicReader", "TopicWriter", "Transport",
            "TransportOptions", "Route", "MiddlewareError", "open_transport", "resolve_middleware",
            "rclpy_available", "cyclonedds_config_xml", "discovery_env", "effective_discovery"]

@@ -1,8 +1,10 @@
 """dct deploy bundle and its install.sh.
 
 Fast tests build the bundle with a tiny fake wheelhouse (one pure-Python wheel named
-dct-controller that provides a `dct` script) and run the real install.sh into a fresh venv:
-manifest, offline install, refusal of a changed file, output-path rules, the unit's contents.
+dct-controller that provides a `dct` script and a `ros` extra, and a stand-in wheel for each
+package of that extra) and run the real install.sh into a fresh venv: manifest, offline install,
+refusal of a changed file, output-path rules, the unit's contents, the three ways ROS 2 comes
+(--ros wheels, system with a stand-in setup script, none).
 The slow test builds the real bundle (every pinned wheel, about 450 MB), installs it offline
 into a fresh venv and runs the installed `dct preflight` against the emulated base on a
 udp_multicast bus and sensor topics published by this process (`-m slow`)."""
@@ -34,21 +36,27 @@ LIMO = Path(str(resources.files("calibration") / "robots" / "limo.yaml"))
 VERSION = metadata.version("dct-controller")
 
 
-def fake_wheel(folder: Path) -> Path:
-    """A valid pure-Python wheel dct_controller-VERSION whose `dct` prints its arguments."""
-    dist = f"dct_controller-{VERSION}.dist-info"
-    files = {
-        "dct_fake/__init__.py": "import sys\ndef main():\n    print('fake dct', *sys.argv[1:])\n",
-        f"{dist}/METADATA": f"Metadata-Version: 2.1\nName: dct-controller\nVersion: {VERSION}\n",
-        f"{dist}/WHEEL": "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n",
-        f"{dist}/entry_points.txt": "[console_scripts]\ndct = dct_fake:main\n",
-    }
+ROS_EXTRA = B.ros_extra_requirements()
+
+
+def fake_wheel(folder: Path, name: str = "dct-controller", version: str = VERSION, ros_extra=ROS_EXTRA) -> Path:
+    """A valid pure-Python wheel `name`-`version`; the project's (dct-controller) has a `dct` that
+    prints its arguments and a `ros` extra naming `ros_extra` (name, version) as the real one does."""
+    stem = name.replace("-", "_")
+    dist = f"{stem}-{version}.dist-info"
+    meta = f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n"
+    files = {f"{stem}_fake/__init__.py": "import sys\ndef main():\n    print('fake dct', *sys.argv[1:])\n"}
+    if name == "dct-controller":
+        meta += "Provides-Extra: ros\n" + "".join(f'Requires-Dist: {n}=={v}; extra == "ros"\n' for n, v in ros_extra)
+        files[f"{dist}/entry_points.txt"] = "[console_scripts]\ndct = dct_controller_fake:main\n"
+    files[f"{dist}/METADATA"] = meta
+    files[f"{dist}/WHEEL"] = "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n"
     record = []
     for name, text in files.items():
         digest = base64.urlsafe_b64encode(hashlib.sha256(text.encode()).digest()).rstrip(b"=").decode()
         record.append(f"{name},sha256={digest},{len(text.encode())}")
     record.append(f"{dist}/RECORD,,")
-    path = folder / f"dct_controller-{VERSION}-py3-none-any.whl"
+    path = folder / f"{stem}-{version}-py3-none-any.whl"
     with zipfile.ZipFile(path, "w") as z:
         for name, text in files.items():
             z.writestr(name, text)
@@ -56,11 +64,15 @@ def fake_wheel(folder: Path) -> Path:
     return path
 
 
-def fake_builder(calls=None):
+def fake_builder(calls=None, ros_wheels=True):
+    """The wheelhouse: the project's fake wheel and, unless told not to, a fake wheel for each
+    package of the ros extra (what pip download brings for --ros wheels)."""
     def build(source, wheelhouse):
         if calls is not None:
             calls.append(wheelhouse)
         fake_wheel(wheelhouse)
+        for name, version in ROS_EXTRA if ros_wheels else ():
+            fake_wheel(wheelhouse, name, version)
     return build
 
 
@@ -101,7 +113,7 @@ def test_unit_has_restart_watchdog_rtprio_affinity_and_preflight(fake_bundle):
     unit = (fake_bundle[1] / "systemd" / "dct-controller.service").read_text()
     for line in ("Type=notify", "WatchdogSec=2", "Restart=on-failure", "LimitRTPRIO=50", "CPUAffinity=0 1",
                  "ExecStartPre=@TARGET@/venv/bin/dct preflight", "ExecStart=@TARGET@/venv/bin/dct run",
-                 "KillSignal=SIGINT"):
+                 "KillSignal=SIGINT", "--manifest @TARGET@/MANIFEST.json"):
         assert line in unit
     assert "@@" not in unit
 
@@ -265,5 +277,125 @@ def test_real_bundle_installs_offline_and_preflight_passes(tmp_path):
     assert pre.returncode == 0, pre.stdout + pre.stderr
     doc = json.loads((target / "logs" / "preflight.json").read_text())
     names = {c["name"]: c for c in doc["checks"]}
-    assert all(names[n]["ok"] for n in ("base", "can_link", "topic:lidar", "topic:imu", "distance_net"))
+    assert all(names[n]["ok"] for n in ("base", "can_link", "topic:lidar", "topic:imu", "distance_net", "ros:install",
+                                        "ros:middleware", "match:lidar", "match:imu"))
+    assert "from the bundle's venv" in names["ros:install"]["message"]      # --ros wheels, the default
     assert "site-packages/models/artifacts" in names["distance_net"]["message"]
+
+
+# ----------------------------------------------------------------------------- ROS 2 in the bundle
+
+
+def python_312() -> str | None:
+    """A CPython 3.12 to install a --ros system bundle with (Jazzy's rclpy is built for it)."""
+    import glob
+    import shutil
+
+    root = os.environ.get("PYENV_ROOT", os.path.expanduser("~/.pyenv"))
+    for cand in [shutil.which("python3.12"), *sorted(glob.glob(f"{root}/versions/3.12*/bin/python3.12"))]:
+        if cand and subprocess.run([cand, "-c", "import venv"], capture_output=True).returncode == 0:
+            return cand
+    return None
+
+
+def test_ros_wheels_are_carried_recorded_and_installed(fake_bundle, tmp_path):
+    """The default: the ros extra's wheels go into the wheelhouse, the manifest says so, and
+    install.sh installs dct-controller[ros], so rclpy lands in the venv."""
+    folder = fake_bundle[1]
+    manifest = json.loads((folder / "MANIFEST.json").read_text())
+    assert manifest["format"] == 2
+    assert manifest["ros"] == {"mode": "wheels", "distro": "jazzy", "wheels": [f"{n}=={v}" for n, v in ROS_EXTRA]}
+    assert any(n == "ros-jazzy-rclpy" for n, _ in ROS_EXTRA)
+    assert '"dct-controller[ros]==' in (folder / "install.sh").read_text()
+    target = tmp_path / "dct"
+    done = run_install(folder, target)
+    assert done.returncode == 0, done.stderr
+    got = subprocess.run([str(target / "venv" / "bin" / "python"), "-c",
+                          "import importlib.metadata as m; print(m.version('ros-jazzy-rclpy'))"],
+                         capture_output=True, text=True)
+    assert got.stdout.strip() == dict(ROS_EXTRA)["ros-jazzy-rclpy"]
+    assert "--manifest " + str(target / "MANIFEST.json") in done.stdout and not (target / "bin").exists()
+
+
+def test_ros_wheels_missing_from_the_wheelhouse_are_refused(tmp_path):
+    with pytest.raises(B.BundleError, match=r"--ros wheels: the wheelhouse lacks ros-jazzy-rclpy==[\d.]+"):
+        B.build_bundle(tmp_path / "b.tar.gz", wheelhouse_builder=fake_builder(ros_wheels=False))
+    assert list(tmp_path.iterdir()) == []
+    # --ros none does not want them
+    res = B.build_bundle(tmp_path / "b.tar.gz", ros="none", wheelhouse_builder=fake_builder(ros_wheels=False))
+    with tarfile.open(res.path) as tar:
+        manifest = json.load(tar.extractfile(f"{res.folder}/MANIFEST.json"))
+        install = tar.extractfile(f"{res.folder}/install.sh").read().decode()
+    assert manifest["ros"] == {"mode": "none", "distro": "jazzy"}
+    assert '"dct-controller==' in install and "[ros]" not in install
+
+
+def test_ros_modes_that_cannot_work_are_refused_before_the_long_work(tmp_path):
+    calls = []
+    shipped = yaml.safe_load(Path(str(resources.files("runtime") / "config" / "default.yaml")).read_text())
+    rclpy_cfg = tmp_path / "rclpy.yaml"
+    rclpy_cfg.write_text(yaml.safe_dump({**shipped, "ros": {**shipped["ros"], "middleware": "rclpy"}}))
+    with pytest.raises(B.BundleError, match="--ros none carries no rclpy, but the config asks for ros.middleware: rclpy"):
+        B.build_bundle(tmp_path / "b.tar.gz", B.BundleInputs(config=rclpy_cfg), ros="none",
+                       wheelhouse_builder=fake_builder(calls))
+    sec_cfg = tmp_path / "sec.yaml"
+    sec_cfg.write_text(yaml.safe_dump({**shipped, "ros": {**shipped["ros"], "security": {"keystore": "/k"}}}))
+    with pytest.raises(B.BundleError, match="ros.security .* --ros wheels has none .* use --ros system"):
+        B.build_bundle(tmp_path / "b.tar.gz", B.BundleInputs(config=sec_cfg), wheelhouse_builder=fake_builder(calls))
+    with pytest.raises(B.BundleError, match=r"built for CPython 3\.12.*--python-version 3\.12 \(got 3\.11\)"):
+        B.build_bundle(tmp_path / "b.tar.gz", ros="system", wheelhouse_builder=fake_builder(calls))
+    with pytest.raises(B.BundleError, match="--ros 'apt'"):
+        B.build_bundle(tmp_path / "b.tar.gz", ros="apt", wheelhouse_builder=fake_builder(calls))
+    assert calls == [] and set(tmp_path.iterdir()) == {rclpy_cfg, sec_cfg}      # no archive, nothing built
+
+
+@pytest.fixture(scope="module")
+def system_bundle(tmp_path_factory):
+    d = tmp_path_factory.mktemp("system")
+    res = B.build_bundle(d / "dct-bundle.tar.gz", ros="system", python_version="3.12",
+                         wheelhouse_builder=fake_builder(ros_wheels=False))
+    with tarfile.open(res.path) as tar:
+        tar.extractall(d / "x", filter="data")
+    return d / "x" / res.folder
+
+
+def test_ros_system_unit_runs_dct_through_the_env_script(system_bundle):
+    folder = system_bundle
+    manifest = json.loads((folder / "MANIFEST.json").read_text())
+    assert manifest["ros"] == {"mode": "system", "distro": "jazzy", "setup": "/opt/ros/jazzy/setup.bash"}
+    assert manifest["target"]["python"] == "3.12" and not any("ros_jazzy" in w for w in manifest["wheels"])
+    unit = (folder / "systemd" / "dct-controller.service").read_text()
+    assert "ExecStartPre=@TARGET@/bin/dct-env @TARGET@/venv/bin/dct preflight" in unit
+    assert "ExecStart=@TARGET@/bin/dct-env @TARGET@/venv/bin/dct run" in unit
+    assert "--manifest @TARGET@/MANIFEST.json" in unit and "/opt/ros/jazzy/setup.bash" in unit
+    env = folder / "bin" / "dct-env"
+    assert os.access(env, os.X_OK) and 'source "$DCT_ROS_SETUP"' in env.read_text() and "@@" not in env.read_text()
+    install = (folder / "install.sh").read_text()
+    assert '"dct-controller==' in install and "[ros]" not in install
+
+
+def test_ros_system_install_needs_the_robots_ros_and_sources_it(system_bundle, tmp_path):
+    py = python_312()
+    if py is None:
+        pytest.skip("no CPython 3.12 here to install a --ros system bundle with")
+    env = {**os.environ, "PYTHON": py, "ROS_SETUP": str(tmp_path / "no_ros" / "setup.bash")}
+    done = subprocess.run(["bash", str(system_bundle / "install.sh"), str(tmp_path / "t")], capture_output=True,
+                          text=True, env=env, timeout=600)
+    assert done.returncode == 1 and "does not exist: install ROS 2 jazzy" in done.stderr
+    assert not (tmp_path / "t" / "venv").exists()
+    setup = tmp_path / "ros" / "setup.bash"          # a stand-in for /opt/ros/jazzy/setup.bash
+    setup.parent.mkdir()
+    setup.write_text("export ROS_DISTRO=jazzy\nexport AMENT_PREFIX_PATH=/opt/ros/jazzy\n")
+    target = tmp_path / "t"
+    done = subprocess.run(["bash", str(system_bundle / "install.sh"), str(target)], capture_output=True, text=True,
+                          env={**env, "ROS_SETUP": str(setup)}, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert f"controller:   {target}/bin/dct-env {target}/venv/bin/dct" in done.stdout
+    ran = subprocess.run([str(target / "bin" / "dct-env"), "bash", "-c", 'echo "$ROS_DISTRO $DCT_ROS_SETUP"'],
+                         capture_output=True, text=True)
+    assert ran.stdout.strip() == f"jazzy {setup}"
+    ran = subprocess.run([str(target / "bin" / "dct-env"), str(target / "venv" / "bin" / "dct"), "hello"],
+                         capture_output=True, text=True)
+    assert ran.stdout.strip() == "fake dct hello"
+    unit = (target / "systemd" / "dct-controller.service").read_text()
+    assert f"ExecStart={target}/bin/dct-env {target}/venv/bin/dct run" in unit and "@TARGET@" not in unit

@@ -1,6 +1,7 @@
 """Stand-ins for the robot that `dct preflight` talks to, for the preflight and deploy tests:
 the emulated base firmware on a CAN bus (stepped by a thread at wall-clock time, wheels still),
-and a publisher of the sensor topics (Livox CustomMsg, IMU, camera image) over DDS."""
+a publisher of the sensor topics (Livox CustomMsg, IMU, camera image) over DDS, and a stock
+rclpy node's publisher (the graph shows its type and QoS as ROS 2 reports them)."""
 from __future__ import annotations
 
 import os
@@ -54,9 +55,10 @@ class EmulatedBase:
 
 
 class SensorPublisher:
-    """Publishes the shipped controller config's sensor topics (ros.inputs) at `rates_hz` (stream -> Hz) on `domain_id`."""
+    """Publishes the shipped controller config's sensor topics (ros.inputs) at `rates_hz` (stream -> Hz) on
+    `domain_id`, stamped with this computer's clock plus `clock_offset_s` (a driver on another clock)."""
 
-    def __init__(self, domain_id: int, rates_hz: dict[str, float]) -> None:
+    def __init__(self, domain_id: int, rates_hz: dict[str, float], *, clock_offset_s: float = 0.0) -> None:
         from cyclonedds.domain import DomainParticipant
 
         from runtime.io.ros import messages as M
@@ -75,18 +77,20 @@ class SensorPublisher:
         if "camera" in rates_hz:
             self.writers["camera"] = RosWriter(dp, topics.camera.topic, M.Image, ros_qos())
         self.rates_hz = rates_hz
+        self.clock_offset_s = clock_offset_s
         self.sent = {s: 0 for s in rates_hz}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="sensor-publisher", daemon=True)
 
     def _message(self, stream: str, k: int):
         M = self.M
-        stamp = M.Time(1000 + k // 1000, (k % 1000) * 1000)
-        if stream == "lidar":
+        now = time.time() + self.clock_offset_s
+        stamp = M.stamp_to_time(now)
+        if stream == "lidar":  # a frame whose sweep (90 ms) has just ended, as a Livox driver sends it
             pts = np.zeros(100, M.CUSTOM_POINT_DTYPE)
             pts["offset_time"] = np.arange(100) * 900_000
             pts["x"] = 2.0
-            timebase = 1_000_000_000_000 + k * 100_000_000
+            timebase = int((now - 0.0891) * 1e9)
             return M.encode_custom_msg(M.Header(M.Time(timebase // 10**9, timebase % 10**9), "livox"), timebase, pts)
         if stream == "imu":
             return M.Imu(header=M.Header(stamp, "imu"), linear_acceleration=M.Vector3(0.0, 0.0, 9.81))
@@ -117,3 +121,27 @@ class SensorPublisher:
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join(2.0)
+
+
+class RclpyPublisher:
+    """A stock rclpy node publishing `msg_cls` (an rclpy message class) on `topic` with a QoS."""
+
+    def __init__(self, domain_id: int, topic: str, msg_cls, *, reliability: str = "reliable",
+                 durability: str = "volatile") -> None:
+        import rclpy
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node("stock_publisher", context=self.context)
+        qos = QoSProfile(depth=1, reliability=getattr(ReliabilityPolicy, reliability.upper()),
+                         durability=getattr(DurabilityPolicy, durability.upper()))
+        self.publisher = self.node.create_publisher(msg_cls, topic, qos)
+        self.msg_cls = msg_cls
+
+    def __enter__(self) -> "RclpyPublisher":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.node.destroy_node()
+        self.context.try_shutdown()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import yaml
 from click.testing import CliRunner
@@ -58,3 +59,23 @@ def test_the_configs_can_bus_is_checked_when_no_can_option_is_given(tmp_path, no
     bus, source = can_settings(PreflightOptions(config=str(cfg_file), can_interface="udp_multicast"),
                                load_controller_config(cfg_file))
     assert bus == {"interface": "udp_multicast", "channel": None, "udp_port": None, "serial_baud": None}
+
+
+def test_ros_lines_and_the_bundles_manifest(tmp_path, nominal_cal):
+    """The ROS 2 set-up lines come after CAN, before the topics; --manifest says which ROS 2 the
+    bundle carries (here: the robot's own, whose setup script is missing: ros:install FAILs)."""
+    manifest = tmp_path / "MANIFEST.json"
+    manifest.write_text(json.dumps({"format": 2, "files": [], "ros": {"mode": "system", "distro": "jazzy"}}))
+    args = ["--calibration", str(nominal_cal), "--skip", "can", "--skip", "sensors", "--skip", "clock",
+            "--log-dir", str(tmp_path), "--min-free-gb", "0", "--manifest", str(manifest)]
+    res = CliRunner().invoke(preflight_command, args, env={"DCT_ROS_SETUP": str(tmp_path / "nope" / "setup.bash")})
+    names = [line[6:].split()[0] for line in res.output.splitlines() if line[:4] in ("PASS", "WARN", "FAIL")]
+    assert names.index("base") < names.index("ros:install") < names.index("ros:middleware") < \
+        names.index("ros:discovery") < names.index("ros:security") < names.index("topics")
+    assert res.exit_code == 1 and "FAIL  ros:install" in res.output and "setup.bash does not exist" in res.output
+    # the shipped config: discovery open to the network and no SROS2: WARNs, not failures
+    assert "WARN  ros:discovery" in res.output and "WARN  ros:security" in res.output
+    manifest.write_text(json.dumps({"format": 2, "files": [], "ros": {"mode": "none"}}))
+    res = CliRunner().invoke(preflight_command, args)
+    assert res.exit_code == 0, res.output
+    assert re.search(r"PASS  ros:install +cyclonedds", res.output), res.output
