@@ -236,7 +236,9 @@ def run_episode(
         if recorder is not None:
             from runtime.io.ros.outbound import robot_sensor_mounts
 
-            mounts = robot_sensor_mounts(robot, T_cam_lidar, base_frame=config.ros.outputs.base_frame)
+            out = config.ros.outputs
+            mounts = robot_sensor_mounts(robot, T_cam_lidar, base_frame=out.base_frame, lidar_frame=out.lidar_frame,
+                                         camera_frame=out.camera_frame)
             parts.loop.after_tick = recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed,
                                                                           "clock": "lockstep"}, static_transforms=mounts)
         if on_start is not None:

@@ -80,6 +80,7 @@ class RunObserver:
             plan_states=snap.plan.states if clouds and snap.plan is not None else None,
             # P_mov as the partition labelled it: the scan deskewed to the tick
             points_mov=snap.p_mov_lidar() if clouds and snap.partition_frame is not None else None,
+            clouds=clouds,
         ))
         self._take_goal()
         self._say_state(snap)

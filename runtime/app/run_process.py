@@ -136,7 +136,8 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
         transport = _open_transport(ros, echo)
         receiver = RosSensorReceiver(ros.inputs, inbox, transport, camera_K=loaded.camera_K,
                                      camera_distortion=loaded.camera_dist)
-        publisher = RosPublisher(transport, ros.outputs)
+        publisher = RosPublisher(transport, ros.outputs, static_transforms=sensor_mounts(loaded),
+                                 zones=safety_zones(loaded.robot, loaded.config.safety_supervisor))
         _say_routes(transport, echo)
         receiver.start()
         notifier.ready()
@@ -153,6 +154,25 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
 
         atomic_write_json(opts.json_path, summary)
     return summary
+
+
+def sensor_mounts(loaded: Loaded) -> list:
+    """base_link -> lidar and -> camera (the calibration's when it has them), named as the
+    config's ros.outputs frames: /tf_static and the recording's."""
+    from runtime.io.ros.outbound import robot_sensor_mounts
+
+    out = loaded.config.ros.outputs
+    return robot_sensor_mounts(loaded.robot, loaded.T_cam_lidar, base_frame=out.base_frame,
+                               lidar_frame=out.lidar_frame, camera_frame=out.camera_frame)
+
+
+def safety_zones(robot, supervisor) -> tuple:
+    """(footprint, stop zone) polygons in base_link for the safety markers: the footprint, and the
+    footprint grown by the supervisor's stop distance (a point inside it stops the robot)."""
+    import numpy as np
+
+    footprint = np.asarray(robot.footprint.vertices(), dtype=float)
+    return footprint, footprint + np.sign(footprint) * float(supervisor.stop_distance_m)
 
 
 def _open_transport(ros, echo):
@@ -192,11 +212,8 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
                      Wiring(driver_bus, clock, Pose2D(*goal), inbox if config.uses_lidar else None, lockstep=False))
     record_hook = None
     if recorder is not None:
-        from runtime.io.ros.outbound import robot_sensor_mounts
-
-        mounts = robot_sensor_mounts(loaded.robot, loaded.T_cam_lidar, base_frame=config.ros.outputs.base_frame)
         record_hook = recorder.attach(parts.controller, config, {"clock": "wall", "goal": json.dumps(list(goal))},
-                                      static_transforms=mounts)
+                                      static_transforms=sensor_mounts(loaded))
     observer = RunObserver(parts, config.ros, publisher, receiver, notifier, echo, record_hook)
     parts.loop.after_tick = observer
     if stop.is_set():  # SIGINT/SIGTERM during the start-up work: the base is never enabled

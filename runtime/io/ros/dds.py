@@ -33,7 +33,7 @@ from cyclonedds._clayer import ddspy_take  # noqa: I001
 
 from runtime.io.ros.messages import PreSerialized
 from runtime.io.ros.transport import (
-    Discovery, PublisherInfo, QosSpec, TopicReader, TopicWriter, Transport, cyclonedds_config_xml,
+    Discovery, PublisherInfo, QosSpec, TopicReader, TopicWriter, Transport, cyclonedds_config_xml, effective_discovery,
 )
 
 
@@ -166,8 +166,9 @@ class CycloneTransport(Transport):
                  participant: DomainParticipant | None = None) -> None:
         super().__init__()
         self.domain_id, self.discovery = int(domain_id), discovery
-        if participant is None:
-            _configure_domain(self.domain_id, cyclonedds_config_xml(discovery))
+        if participant is None:  # ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST limits cyclonedds too
+            reach, _ = effective_discovery(discovery)
+            _configure_domain(self.domain_id, cyclonedds_config_xml("localhost" if reach == "localhost" else "subnet"))
         self.participant = participant or DomainParticipant(self.domain_id)
         self._waitset = WaitSet(self.participant)
         self._guard = GuardCondition(self.participant)

@@ -9,14 +9,19 @@ loop may not wait for it.
 References, not copies: P_fix, the plan's states and the lidar scan are arrays the controller
 replaces (never mutates in place) from one tick to the next, so handing them over is safe.
 
-Published (RosOutputConfig): nav_msgs/Odometry and diagnostic_msgs/DiagnosticArray (state and
-stage timings) every tick; nav_msgs/Path (the MPC's predicted states), P_fix (odom frame) and
-P_mov (lidar frame, planner mode dct) as PointCloud2 every `clouds_every_ticks` ticks.
+Published (RosOutputConfig): /tf (odom -> base_link), nav_msgs/Odometry and
+diagnostic_msgs/DiagnosticArray (state, hold or stop reason, stage timings) every tick;
+nav_msgs/Path (the MPC's predicted states), P_fix (odom frame) and P_mov (lidar frame, the vpp
+partition) as PointCloud2 and the safety supervisor's footprint and stop zone as a
+visualization_msgs/MarkerArray every `clouds_every_ticks` ticks; /tf_static (base_link -> lidar
+and camera) once, at start. QoS: reliable for what tools subscribe to reliably by default,
+best effort for the clouds, tf2's profiles for /tf and /tf_static (docs/ros.md).
 """
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -24,9 +29,12 @@ import numpy as np
 
 from runtime.common.geometry import Pose2D
 from runtime.io.ros import convert
-from runtime.io.ros.messages import DIAG_ERROR, DIAG_OK, DIAG_WARN, DiagnosticArray, Odometry, Path, PointCloud2
+from runtime.io.ros.messages import (
+    DIAG_ERROR, DIAG_OK, DIAG_WARN, DiagnosticArray, MarkerArray, Odometry, Path, PointCloud2, TFMessage,
+    stamp_to_time,
+)
 from runtime.io.ros.settings import RosOutputConfig
-from runtime.io.ros.transport import QosSpec, Transport
+from runtime.io.ros.transport import TF, TF_STATIC, QosSpec, Transport
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +54,8 @@ class TickView:
     points_fix: np.ndarray | None = None  # (N, 2) odom frame
     plan_states: np.ndarray | None = None  # (H+1, 3) odom frame
     points_mov: np.ndarray | None = None  # (M, 3) lidar frame
+    #: This tick also publishes the plan, the clouds and the markers (every clouds_every_ticks).
+    clouds: bool = True
 
 
 #: Reliable for what an operator's tools subscribe to reliably by default (RViz, Nav2's
@@ -56,11 +66,26 @@ CLOUD_QOS = QosSpec("best_effort", 1)
 
 
 class RosPublisher:
-    def __init__(self, transport: Transport, config: RosOutputConfig) -> None:
+    """static_transforms: (parent, child, 4x4) mounts for /tf_static, published once at start
+    (transient local: a viewer that starts later gets them); zones: (footprint, stop zone)
+    polygons in the base frame for the safety markers (None: no markers)."""
+
+    def __init__(self, transport: Transport, config: RosOutputConfig, *, static_transforms=None,
+                 zones: tuple | None = None) -> None:
         self.config = config
 
         def writer(topic: str | None, cls, qos: QosSpec):
             return transport.writer(topic, cls, qos) if topic else None
+
+        self._tf = writer("/tf" if config.publish_tf else None, TFMessage, TF)
+        if config.publish_tf and static_transforms:
+            # Built now (a bad mount is an error at start-up), written by the thread's first turn.
+            self._static = convert.static_transforms(0.0, static_transforms)
+            self._tf_static = writer("/tf_static", TFMessage, TF_STATIC)
+        else:
+            self._static = self._tf_static = None
+        self._zones = zones
+        self._markers = writer(config.safety_markers if zones is not None else None, MarkerArray, STATE_QOS)
 
         self._odom = writer(config.odometry, Odometry, STATE_QOS)
         self._diag = writer(config.diagnostics, DiagnosticArray, STATE_QOS)
@@ -89,6 +114,15 @@ class RosPublisher:
             self._cond.notify()
 
     def _run(self) -> None:
+        if self._tf_static is not None:
+            try:
+                stamp = time.time()
+                for t in self._static.transforms:
+                    t.header.stamp = stamp_to_time(stamp)
+                self._tf_static.write(self._static)
+            except Exception as exc:  # noqa: BLE001 - counted and said like any other failed write
+                self.errors += 1
+                self.last_error = f"/tf_static: {type(exc).__name__}: {exc}".splitlines()[0][:200]
         while True:
             with self._cond:
                 while not self._queue and not self._stop:
@@ -106,6 +140,8 @@ class RosPublisher:
 
     def _publish(self, v: TickView) -> None:
         c = self.config
+        if self._tf is not None:
+            self._tf.write(convert.tf_message(v.stamp_s, [(c.odom_frame, c.base_frame, v.pose)]))
         if self._odom is not None:
             self._odom.write(convert.odometry_msg(v.stamp_s, v.pose, v.v_mps, v.omega_radps, frame_id=c.odom_frame,
                                                   child_frame_id=c.base_frame))
@@ -125,7 +161,9 @@ class RosPublisher:
             xyz[:, :2] = p[:, :2]
             self._fix.write(convert.pointcloud2_msg(v.stamp_s, xyz, frame_id=c.odom_frame))
         if self._mov is not None and v.points_mov is not None:
-            self._mov.write(convert.pointcloud2_msg(v.stamp_s, v.points_mov, frame_id="lidar"))
+            self._mov.write(convert.pointcloud2_msg(v.stamp_s, v.points_mov, frame_id=c.lidar_frame))
+        if self._markers is not None and v.clouds:
+            self._markers.write(convert.footprint_markers(v.stamp_s, c.base_frame, *self._zones, v.state))
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Publish what is queued (flush), then end the thread."""
