@@ -10,6 +10,7 @@ from __future__ import annotations
 import pytest
 
 from calibration.robot_description import load_robot_description
+from runtime.config import load_controller_config
 from hil_sim.episode.realtime import unique_channels
 from tests.interop.harness import dct, domain_id, read_json, require_rclpy, stock_node, wait_all
 
@@ -52,7 +53,8 @@ def test_a_stock_node_hears_the_simulators_imu_camera_and_lidar(middleware, tmp_
     spec = load_robot_description().sensors.camera
     width, height = spec.width_px, spec.height_px
     assert cam["count"] >= 5 and cam["stamps_increasing"] and cam["size_ok"], cam
-    assert cam["shapes"] == [[width, height, "rgb8", 3 * width]] and cam["frames"] == ["camera"], cam
+    camera_frame = load_controller_config().ros.outputs.camera_frame  # how the robot's driver stamps it
+    assert cam["shapes"] == [[width, height, "rgb8", 3 * width]] and cam["frames"] == [camera_frame], cam
     assert max(cam["mean_pixel"]) > 5, cam  # a rendered room, not a black frame
     # The simulator renders at 5 Hz: every gap between two stamps is a whole number of periods.
     # Best-effort images of 0.9 MB cross as UDP fragments; Fast DDS's default socket buffer loses
