@@ -256,3 +256,29 @@ def check_ros_install(install: RosInstall, ros: Any, *, available: Callable[[], 
     except Exception as exc:  # noqa: BLE001 - PackageNotFoundError, a broken install
         return Check(name, "FAIL", f"cyclonedds is not installed ({one_line(exc)}) {where}",
                      "reinstall the bundle (install.sh TARGET --force)")
+
+
+#: What the rclpy node's Fast DDS profile asks for (runtime/io/ros/fastdds_profile.xml); the kernel
+#: caps a socket's buffer at these limits without an error.
+SOCKET_BUFFER_BYTES = 4 * 1024 * 1024
+
+
+def check_socket_buffers(middleware: str | None, sys_root: str | Path = "/") -> Check:
+    """`ros:buffers`: the kernel's UDP buffer limits, which decide whether camera-sized best-effort
+    samples from another host arrive (below them DDS drops fragments of a 0.9 MB image)."""
+    limits = {}
+    for name in ("rmem_max", "wmem_max"):
+        try:
+            limits[name] = int((Path(sys_root) / "proc/sys/net/core" / name).read_text().split()[0])
+        except (OSError, ValueError, IndexError):
+            return Check("ros:buffers", "WARN", f"net.core.{name} could not be read",
+                         "check that /proc/sys/net/core is readable")
+    low = [f"net.core.{k} {v // 1024} kB" for k, v in limits.items() if v < SOCKET_BUFFER_BYTES]
+    if not low:
+        return Check("ros:buffers", "PASS", "net.core.rmem_max / wmem_max "
+                     f"{limits['rmem_max'] // 1024} / {limits['wmem_max'] // 1024} kB: camera images over UDP fit")
+    return Check("ros:buffers", "WARN",
+                 f"{', '.join(low)} (< {SOCKET_BUFFER_BYTES // 1024} kB): best-effort images from other hosts lose "
+                 f"fragments ({middleware or 'DDS'} asks for {SOCKET_BUFFER_BYTES // 1024} kB)",
+                 f"sysctl -w net.core.rmem_max={SOCKET_BUFFER_BYTES} net.core.wmem_max={SOCKET_BUFFER_BYTES} "
+                 "(and in /etc/sysctl.d/ to keep it)")

@@ -10,7 +10,8 @@ from runtime.app.preflight.check import Check
 from runtime.app.preflight.computer import DEFAULT_MIN_FREE_GB, check_clock_sync, check_cpus, check_disk, check_realtime
 from runtime.app.preflight.files import check_files
 from runtime.app.preflight.ros_setup import (
-    ManifestError, check_discovery, check_middleware, check_ros_install, check_security, default_manifest,
+    ManifestError, check_discovery, check_middleware, check_ros_install, check_security, check_socket_buffers,
+    default_manifest,
     discovery_reach, read_ros_install, resolve,
 )
 from runtime.app.preflight.topics import check_topics, expected_rates_hz, topics_from_config
@@ -90,7 +91,7 @@ def run_preflight(opts: PreflightOptions, echo: Callable[[str], None] | None = N
         if "base" in opts.skip:
             add(skipped("base", "base"))
     ros = ros_config(files.config, opts.ros_domain)
-    add(ros_setup_checks(ros, opts.manifest))
+    add(ros_setup_checks(ros, opts.manifest, opts.sys_root))
     if "sensors" in opts.skip:
         add(skipped("topics", "sensors"))
     else:
@@ -118,8 +119,9 @@ def ros_config(config: Any, domain_id: int | None = None):
     return ros
 
 
-def ros_setup_checks(ros: Any, manifest: str | None) -> list[Check]:
-    """`ros:install` (when there is a bundle's manifest), `ros:middleware`, `ros:discovery`, `ros:security`."""
+def ros_setup_checks(ros: Any, manifest: str | None, sys_root: str = "/") -> list[Check]:
+    """`ros:install` (when there is a bundle's manifest), `ros:middleware`, `ros:discovery`, `ros:security`,
+    `ros:buffers`."""
     from runtime.io.ros.transport import rclpy_available
 
     checks = []
@@ -134,6 +136,7 @@ def ros_setup_checks(ros: Any, manifest: str | None) -> list[Check]:
     checks.append(check_middleware(ros))
     checks.append(check_discovery(ros, middleware))
     checks.append(check_security(ros, middleware, discovery_reach(ros, middleware)[0]))
+    checks.append(check_socket_buffers(middleware, sys_root))
     return checks
 
 

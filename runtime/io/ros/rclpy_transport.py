@@ -24,11 +24,19 @@ import importlib
 import os
 import threading
 from collections import deque
+from pathlib import Path
 
 from runtime.io.ros.messages import ros_type_name
 from runtime.io.ros.transport import (
     MiddlewareError, PublisherInfo, QosSpec, TopicReader, TopicWriter, Transport, TransportOptions, discovery_env,
 )
+
+
+#: Fast DDS's participant profile for our node: shared memory and socket buffers that carry a
+#: camera image best effort (Fast DDS's defaults drop most samples above ~200 kB; the file says
+#: why). Used unless the environment names a profile of its own.
+FASTDDS_PROFILE = str(Path(__file__).with_name("fastdds_profile.xml"))
+_FASTDDS_PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 
 
 def ros_message_class(type_name: str):
@@ -218,6 +226,8 @@ def _environment(options: TransportOptions):
     this process (a test's) is not changed by them."""
     env = dict(discovery_env(options.discovery))
     env.pop("CYCLONEDDS_URI", None)   # ours is passed to cyclonedds directly (dds.CycloneTransport)
+    if not any(os.environ.get(k) for k in _FASTDDS_PROFILE_VARS):  # a user's own profile wins
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = FASTDDS_PROFILE
     if options.security_keystore:
         if not os.path.isdir(options.security_keystore):
             raise MiddlewareError(f"ros.security.keystore: {options.security_keystore} is not a folder (create it "

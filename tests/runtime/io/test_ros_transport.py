@@ -117,3 +117,23 @@ def test_sros2_without_dds_security_is_refused_with_the_reason(domain_id, rclpy_
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def test_rclpy_reads_camera_sized_images_best_effort_without_losing_most(domain_id, rclpy_ok):
+    """Fast DDS's default socket buffers drop most best-effort samples of a 640x480 rgb8 image
+    (0.9 MB); the node's own profile (fastdds_profile.xml) must carry nearly all of them."""
+    image = M.to_cdr(M.Image(M.Header(M.Time(1, 0), "camera"), 480, 640, "rgb8", 0, 1920, bytes(640 * 480 * 3)))
+    with (open_transport(TransportOptions(middleware="rclpy", domain_id=domain_id + 4, discovery="localhost")) as r,
+          CycloneTransport(domain_id + 4, "localhost") as c):
+        reader = r.reader("/t/image", M.Image, QosSpec("best_effort", 5))
+        writer = c.writer("/t/image", M.Image, QosSpec("best_effort", 1))
+        assert _exchange(writer, reader, image), "never matched"
+        time.sleep(0.3)
+        reader.take_raw()
+        received = 0
+        for _ in range(40):  # 10 Hz, as a camera driver
+            writer.write_cdr(image)
+            time.sleep(0.1)
+            received += len(reader.take_raw())
+        received += len(reader.take_raw())
+    assert received >= 32, f"{received} of 40 images"

@@ -166,3 +166,19 @@ def test_install_none_is_cyclonedds_and_refuses_a_config_that_asks_for_rclpy():
     assert c.status == "PASS" and c.message.startswith("cyclonedds ")
     c = check_ros_install(none, ros(middleware="rclpy"))
     assert c.status == "FAIL" and "the bundle carries no ROS 2" in c.message and "--ros wheels" in c.text()
+
+
+def test_socket_buffer_limits_below_what_images_need_warn_with_the_sysctl(tmp_path):
+    from runtime.app.preflight.ros_setup import SOCKET_BUFFER_BYTES, check_socket_buffers
+
+    core = tmp_path / "proc/sys/net/core"
+    core.mkdir(parents=True)
+    (core / "rmem_max").write_text("212992\n")
+    (core / "wmem_max").write_text(f"{SOCKET_BUFFER_BYTES}\n")
+    c = check_socket_buffers("rclpy", tmp_path)
+    assert c.status == "WARN" and "net.core.rmem_max 208 kB" in c.message and "wmem" not in c.message
+    assert f"sysctl -w net.core.rmem_max={SOCKET_BUFFER_BYTES}" in c.fix
+    (core / "rmem_max").write_text(f"{8 * SOCKET_BUFFER_BYTES}\n")
+    assert check_socket_buffers("rclpy", tmp_path).status == "PASS"
+    (core / "wmem_max").unlink()
+    assert check_socket_buffers("rclpy", tmp_path).status == "WARN"
