@@ -266,7 +266,8 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float) -> dict:
         "ros": {"middleware": receiver.transport.name, "domain_id": receiver.transport.domain_id,
                 "discovery": receiver.transport.discovery,
                 "routes": [{"direction": r.direction, "topic": r.topic, "type": r.type_name, "via": r.via,
-                            "qos": r.qos.describe()} for r in receiver.transport.routes()]},
+                            "qos": r.qos.describe()} for r in receiver.transport.routes()],
+                "qos_mismatches": dict(receiver.transport.qos_mismatches)},
         "goals_ignored": observer.goals_ignored,
         "keepalives_sent": loop.keepalives_sent,
     }

@@ -18,7 +18,7 @@ import dataclasses
 import threading
 import typing
 
-from cyclonedds.core import DDSException, GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+from cyclonedds.core import DDSException, GuardCondition, Listener, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl.types import sequence, uint8
@@ -106,12 +106,12 @@ class RosWriter(TopicWriter):
     """Publishes messages of one ROS 2 type on one topic, as ROS 2 CDR."""
 
     def __init__(self, participant: DomainParticipant, ros_topic: str, cls: type[IdlStruct],
-                 qos: Qos | None = None) -> None:
+                 qos: Qos | None = None, listener: Listener | None = None) -> None:
         self.cls = cls
         self._wire = wire_type(cls)
         q = qos or ros_qos()
         self.topic = Topic(participant, dds_topic_name(ros_topic), self._wire, qos=q)
-        self.writer = DataWriter(participant, self.topic, qos=q)
+        self.writer = DataWriter(participant, self.topic, qos=q, listener=listener)
 
     def write_cdr(self, cdr: bytes) -> None:
         """Publish CDR bytes already made (e.g. by encode_custom_msg)."""
@@ -132,9 +132,15 @@ class RawDataReader(DataReader, TopicReader):
 
 
 def raw_reader(participant: DomainParticipant, ros_topic: str, cls: type[IdlStruct],
-               qos: Qos | None = None) -> RawDataReader:
+               qos: Qos | None = None, listener: Listener | None = None) -> RawDataReader:
     q = qos or ros_qos()
-    return RawDataReader(participant, Topic(participant, dds_topic_name(ros_topic), wire_type(cls), qos=q), qos=q)
+    return RawDataReader(participant, Topic(participant, dds_topic_name(ros_topic), wire_type(cls), qos=q), qos=q,
+                         listener=listener)
+
+
+#: DDS QoS policy ids (the DDS specification's numbering) named as rclpy names them.
+_POLICY_NAMES = {2: "DURABILITY", 4: "DEADLINE", 8: "LIVELINESS", 11: "RELIABILITY", 12: "DESTINATION_ORDER",
+                 13: "HISTORY", 23: "DATA_REPRESENTATION"}
 
 
 _DOMAINS: dict[int, Domain] = {}
@@ -176,8 +182,18 @@ class CycloneTransport(Transport):
         self._conditions: list[ReadCondition] = []
         self._graph = None
 
-    def reader(self, topic: str, cls: type, qos: QosSpec) -> RawDataReader:
-        r = raw_reader(self.participant, topic, cls, _qos(qos))
+    def listener(self, direction: str, topic: str, on_data=None) -> Listener:
+        """A listener that says an incompatible QoS on `topic` (and calls on_data(reader) on data)."""
+        def said(_entity, status) -> None:
+            self.incompatible_qos(direction, topic, _POLICY_NAMES.get(status.last_policy_id,
+                                                                      f"policy {status.last_policy_id}"))
+        kwargs = {"on_requested_incompatible_qos" if direction == "in" else "on_offered_incompatible_qos": said}
+        if on_data is not None:
+            kwargs["on_data_available"] = on_data
+        return Listener(**kwargs)
+
+    def reader(self, topic: str, cls: type, qos: QosSpec, on_data=None) -> RawDataReader:
+        r = raw_reader(self.participant, topic, cls, _qos(qos), self.listener("in", topic, on_data))
         cond = ReadCondition(r, _ANY)
         self._waitset.attach(cond)
         self._conditions.append(cond)
@@ -186,7 +202,7 @@ class CycloneTransport(Transport):
 
     def writer(self, topic: str, cls: type, qos: QosSpec) -> RosWriter:
         self._route("out", topic, cls, qos, self.name)
-        return RosWriter(self.participant, topic, cls, _qos(qos))
+        return RosWriter(self.participant, topic, cls, _qos(qos), self.listener("out", topic))
 
     def wait(self, timeout_s: float) -> None:
         if timeout_s > 0:

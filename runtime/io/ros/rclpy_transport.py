@@ -48,6 +48,11 @@ def ros_message_class(type_name: str):
         return None
 
 
+def _policy(kind) -> str:
+    """rclpy's QoSPolicyKind as DDS names it (RELIABILITY, DURABILITY, ...)."""
+    return getattr(kind, "name", str(kind)).removeprefix("RMW_QOS_POLICY_")
+
+
 def _rclpy_qos(spec: QosSpec):
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -143,6 +148,8 @@ class RclpyTransport(Transport):
         return self._cyclone
 
     def reader(self, topic: str, cls: type, qos: QosSpec) -> TopicReader:
+        from rclpy.event_handler import SubscriptionEventCallbacks
+
         type_name = ros_type_name(cls)
         msg_cls = ros_message_class(type_name)
         if msg_cls is None:
@@ -153,30 +160,39 @@ class RclpyTransport(Transport):
             sub.on_sample(data)
             self._notify()
 
-        sub.subscription = self.node.create_subscription(msg_cls, topic, on_sample, _rclpy_qos(qos), raw=True)
+        events = SubscriptionEventCallbacks(
+            incompatible_qos=lambda info: self.incompatible_qos("in", topic, _policy(info.last_policy_kind)))
+        sub.subscription = self.node.create_subscription(msg_cls, topic, on_sample, _rclpy_qos(qos), raw=True,
+                                                         event_callbacks=events)
         self._route("in", topic, cls, qos, self.name)
         return sub
 
     def _fallback_reader(self, topic: str, cls: type, qos: QosSpec, type_name: str) -> TopicReader:
-        from cyclonedds.core import Listener
-
-        reader = self._fallback().reader(topic, cls, qos)
+        fallback = self._fallback()
+        fallback.incompatible_qos = self.incompatible_qos  # said (and counted) as this transport's
         # End `wait` when a sample arrives on the cyclonedds side too.
-        reader.set_listener(Listener(on_data_available=lambda _r: self._notify()))
+        reader = fallback.reader(topic, cls, qos, on_data=lambda _r: self._notify())
         self._fallback_readers.append(reader)
         self._route("in", topic, cls, qos, "cyclonedds",
                     f"rclpy has no {type_name} here (its Python package is not installed)")
         return reader
 
     def writer(self, topic: str, cls: type, qos: QosSpec) -> TopicWriter:
+        from rclpy.event_handler import PublisherEventCallbacks
+
         type_name = ros_type_name(cls)
         msg_cls = ros_message_class(type_name)
         if msg_cls is None:
             self._route("out", topic, cls, qos, "cyclonedds",
                         f"rclpy has no {type_name} here (its Python package is not installed)")
-            return self._fallback().writer(topic, cls, qos)
+            fallback = self._fallback()
+            fallback.incompatible_qos = self.incompatible_qos
+            return fallback.writer(topic, cls, qos)
         self._route("out", topic, cls, qos, self.name)
-        return _RawPublisher(self.node.create_publisher(msg_cls, topic, _rclpy_qos(qos)), topic, cls)
+        events = PublisherEventCallbacks(
+            incompatible_qos=lambda info: self.incompatible_qos("out", topic, _policy(info.last_policy_kind)))
+        return _RawPublisher(self.node.create_publisher(msg_cls, topic, _rclpy_qos(qos), event_callbacks=events),
+                             topic, cls)
 
     def wait(self, timeout_s: float) -> None:
         """Until a sample arrived since the last wait (or `wake`), at most timeout_s."""

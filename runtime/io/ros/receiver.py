@@ -93,7 +93,9 @@ class LidarTopic(_Topic):
 
     @model_validator(mode="after")
     def _time_settings(self) -> "LidarTopic":
-        given = sorted({"time_field", "time_unit_s", "time_is_absolute"} & self.model_fields_set)
+        # A setting given at its default (a dumped config writes every field) says nothing.
+        defaults = {"time_field": convert.TIME_FIELD_AUTO, "time_unit_s": 1.0, "time_is_absolute": False}
+        given = sorted(k for k in defaults if k in self.model_fields_set and getattr(self, k) != defaults[k])
         if self.type != "sensor_msgs/msg/PointCloud2" and given:
             raise ValueError(f"{', '.join(given)}: PointCloud2 only (CustomMsg has offset_time)")
         named = self.time_field not in (convert.TIME_FIELD_AUTO, convert.TIME_FIELD_NONE)

@@ -26,9 +26,12 @@ here so that the two agree (unicast to 127.0.0.1, which Fast DDS's localhost mod
 from __future__ import annotations
 
 import abc
+import logging
 import os
 from dataclasses import dataclass, field
 from typing import Literal
+
+log = logging.getLogger(__name__)
 
 Reliability = Literal["best_effort", "reliable"]
 Durability = Literal["volatile", "transient_local"]
@@ -149,6 +152,8 @@ class Transport(abc.ABC):
 
     def __init__(self) -> None:
         self._routes: list[Route] = []
+        #: "<in|out> <topic> <POLICY>" -> how many times DDS refused a match for it (never silent).
+        self.qos_mismatches: dict[str, int] = {}
 
     @abc.abstractmethod
     def reader(self, topic: str, cls: type, qos: QosSpec) -> TopicReader: ...
@@ -173,6 +178,17 @@ class Transport(abc.ABC):
 
     def routes(self) -> list[Route]:
         return list(self._routes)
+
+    def incompatible_qos(self, direction: str, topic: str, policy: str) -> None:
+        """DDS refused to match one of our endpoints with a peer's (the middleware's thread calls
+        this): counted, and said once per topic and policy, since nothing would arrive otherwise."""
+        key = f"{direction} {topic} {policy}"
+        first = key not in self.qos_mismatches
+        self.qos_mismatches[key] = self.qos_mismatches.get(key, 0) + 1
+        if first:
+            peer = "a subscriber asks for" if direction == "out" else "a publisher offers"
+            log.warning("ros: %s: %s %s QoS that does not match ours (%s): DDS does not connect them, nothing "
+                        "flows between them; run `dct preflight`", topic, peer, policy, self.name)
 
     def _route(self, direction, topic: str, cls: type, qos: QosSpec, via: str, note: str = "") -> None:
         from runtime.io.ros.messages import ros_type_name
@@ -259,7 +275,7 @@ def cyclonedds_config_xml(discovery: Discovery) -> str | None:
         return None
     return ("<CycloneDDS><Domain><General><Interfaces><NetworkInterface address=\"127.0.0.1\"/></Interfaces>"
             "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
-            "<MaxAutoParticipantIndex>64</MaxAutoParticipantIndex><Peers><Peer address=\"127.0.0.1\"/></Peers>"
+            "<MaxAutoParticipantIndex>32</MaxAutoParticipantIndex><Peers><Peer address=\"127.0.0.1\"/></Peers>"
             "</Discovery></Domain></CycloneDDS>")
 
 

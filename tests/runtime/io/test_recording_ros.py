@@ -214,9 +214,11 @@ def test_mcap_ros2_reads_every_tf_message(lockstep_recording):
     ((t_static, static),) = theirs[R.TOPIC_TF_STATIC]
     assert t_static == min(poses)
     robot = load_robot_description()
-    expected = {"lidar": robot.sensors.lidar.mount.transform(), "camera": robot.sensors.camera.mount.transform()}
-    assert [(s.header.frame_id, s.child_frame_id) for s in static.transforms] == [("base_link", "lidar"),
-                                                                                  ("base_link", "camera")]
+    out = load_controller_config().ros.outputs  # the sensors' frames as their drivers stamp them
+    expected = {out.lidar_frame: robot.sensors.lidar.mount.transform(),
+                out.camera_frame: robot.sensors.camera.mount.transform()}
+    assert [(s.header.frame_id, s.child_frame_id) for s in static.transforms] == [
+        ("base_link", out.lidar_frame), ("base_link", out.camera_frame)]
     for s in static.transforms:
         np.testing.assert_allclose(_xyz(s.transform.translation), expected[s.child_frame_id][:3, 3], atol=1e-12)
     # our reader reads the same

@@ -335,10 +335,15 @@ def test_lidar_config_time_field():
     for bad, says in [({**pc, "time_unit_s": 1e-9}, "named time_field"),
                       ({**pc, "time_field": "none", "time_is_absolute": True}, "named time_field"),
                       ({**pc, "time_field": ""}, "not a field name"), ({**pc, "time_field": "t x"}, "not a field name"),
-                      ({"topic": "/l", "type": "livox_ros_driver2/msg/CustomMsg", "time_field": "auto"},
+                      ({"topic": "/l", "type": "livox_ros_driver2/msg/CustomMsg", "time_field": "t"},
+                       "PointCloud2 only"),
+                      ({"topic": "/l", "type": "livox_ros_driver2/msg/CustomMsg", "time_unit_s": 1e-9},
                        "PointCloud2 only")]:
         with pytest.raises(ValidationError, match=says):
             LidarTopic.model_validate(bad)
+    # the defaults written out (a dumped config) say nothing and load
+    LidarTopic.model_validate({"topic": "/l", "type": "livox_ros_driver2/msg/CustomMsg", "time_field": "auto",
+                               "time_unit_s": 1.0, "time_is_absolute": False})
 
 
 def test_controller_config_with_a_pointcloud2_lidar(tmp_path):

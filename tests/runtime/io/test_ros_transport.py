@@ -137,3 +137,27 @@ def test_rclpy_reads_camera_sized_images_best_effort_without_losing_most(domain_
             received += len(reader.take_raw())
         received += len(reader.take_raw())
     assert received >= 32, f"{received} of 40 images"
+
+
+@pytest.mark.parametrize("ours", ["cyclonedds", "rclpy"])
+def test_a_qos_mismatch_is_counted_and_said_not_silent(domain_id, ours, rclpy_ok, caplog):
+    """A best-effort publisher and our reliable reader (the goal topic), and a reliable viewer of a
+    best-effort output of ours: DDS connects neither; each side of ours says so. The peer is the
+    other middleware (two cyclonedds participants of one process do not report the writer's side)."""
+    d = domain_id + 5 + (ours == "rclpy")
+    peer_mw = "rclpy" if ours == "cyclonedds" else "cyclonedds"
+    with (open_transport(TransportOptions(middleware=ours, domain_id=d, discovery="localhost")) as t,
+          open_transport(TransportOptions(middleware=peer_mw, domain_id=d, discovery="localhost")) as peer):
+        t.reader("/t/goal", M.PoseStamped, QosSpec("reliable", 1))
+        ours_w = t.writer("/t/cloud", M.PointCloud2, QosSpec("best_effort", 1))
+        w = peer.writer("/t/goal", M.PoseStamped, QosSpec("best_effort", 1))
+        peer.reader("/t/cloud", M.PointCloud2, QosSpec("reliable", 1))
+        end = time.monotonic() + 15
+        while len(t.qos_mismatches) < 2 and time.monotonic() < end:
+            w.write(M.PoseStamped())
+            ours_w.write(M.PointCloud2())
+            time.sleep(0.1)
+    assert set(t.qos_mismatches) == {"in /t/goal RELIABILITY", "out /t/cloud RELIABILITY"}, t.qos_mismatches
+    said = [r.getMessage() for r in caplog.records
+            if "does not match ours" in r.getMessage() and f"({ours})" in r.getMessage()]
+    assert len(said) == 2 and any("/t/goal: a publisher offers RELIABILITY" in m for m in said), said
