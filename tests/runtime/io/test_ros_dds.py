@@ -28,7 +28,7 @@ K = np.array([[300.0, 0.0, 20.0], [0.0, 300.0, 15.0], [0.0, 0.0, 1.0]])
 
 @pytest.fixture(scope="module")
 def domain_id() -> int:
-    return 1 + os.getpid() % 200
+    return 1 + os.getpid() % 140
 
 
 @pytest.fixture(params=["cyclonedds", "rclpy"])

@@ -20,7 +20,7 @@ from runtime.io.ros.transport import (
 
 @pytest.fixture(scope="module")
 def domain_id() -> int:
-    return 201 + os.getpid() % 30
+    return 205 + os.getpid() % 10  # + up to 6 per test: 205-220
 
 
 def _exchange(writer, reader, data: bytes, timeout_s: float = 15.0) -> list[bytes]:
