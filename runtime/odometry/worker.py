@@ -277,6 +277,10 @@ __all__ = ["IcpWorker", "InlineIcpWorker", "ProcessIcpWorker"]
 
 
 if __name__ == "__main__":  # the worker process (started by ProcessIcpWorker)
+    import signal
     from multiprocessing.connection import Connection as _Connection
 
+    # Ctrl-C in a terminal reaches the whole process group: the controller stops this worker
+    # itself (closing the pipe) after its own orderly stop, so the worker ignores the signal.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _serve(_Connection(int(sys.argv[1])))
