@@ -186,12 +186,29 @@ def build_wheelhouse(source: Path, wheelhouse: Path, *, python_version: str = DE
         src = copy_source(source, Path(tmp) / "src")
         _pip(["wheel", "--no-deps", "--quiet", "-w", str(wheelhouse), str(src)], "pip wheel (the project)")
     (project_wheel,) = wheelhouse.glob("dct_controller-*.whl")
+    if "ros" in extras:
+        build_source_only_wheels(wheelhouse)
     plat = [a for p in manylinux_platforms(glibc) for a in ("--platform", p)]
     abi = "cp" + python_version.replace(".", "")
     wanted = str(project_wheel) + (f"[{','.join(extras)}]" if extras else "")
     _pip(["download", "--quiet", "--only-binary=:all:", *plat, "--python-version", python_version,
-          "--implementation", "cp", "--abi", abi, "-d", str(wheelhouse), wanted],
+          "--implementation", "cp", "--abi", abi, "--find-links", str(wheelhouse), "-d", str(wheelhouse), wanted],
          f"pip download (dependencies for CPython {python_version}, {MACHINE}, glibc {glibc})")
+
+
+#: Dependencies of the ROS 2 wheels published only as source, pure Python: rosidl-adapter needs
+#: empy. `pip download --platform` takes wheels only, and without one pip backtracks until it gives
+#: up ("resolution exceeded maximum depth"); their wheels are built here, for any target.
+ROS_SOURCE_ONLY = ("empy==4.2.1",)
+
+
+def build_source_only_wheels(wheelhouse: Path) -> None:
+    """Pure-Python wheels of ROS_SOURCE_ONLY into `wheelhouse` (found there by --find-links)."""
+    with tempfile.TemporaryDirectory(prefix="dct-sdist-") as tmp:
+        _pip(["download", "--quiet", "--no-deps", "--no-binary=:all:", "-d", tmp, *ROS_SOURCE_ONLY],
+             "pip download (the ROS 2 wheels' source-only dependencies)")
+        _pip(["wheel", "--quiet", "--no-deps", "-w", str(wheelhouse), *map(str, sorted(Path(tmp).iterdir()))],
+             "pip wheel (the ROS 2 wheels' source-only dependencies)")
 
 
 def ros_extra_requirements(root: Path | None = None) -> list[tuple[str, str]]:

@@ -99,6 +99,24 @@ class Heard:
     offsets: dict[str, list[float]] = field(default_factory=dict)
 
 
+#: At most this long for every topic's first sample before the listening window starts: DDS
+#: discovery between a participant limited to this host and one open to the network takes about
+#: 2 s (Fast DDS), which a 2 s window would count as a silent topic.
+DISCOVERY_S = 6.0
+
+
+def _await_discovery(transport: Any, readers: list, timeout_s: float = DISCOVERY_S) -> None:
+    """Until every reader has had a sample or timeout_s; what came is dropped (the window counts
+    afresh)."""
+    waiting = set(range(len(readers)))
+    end = time.monotonic() + timeout_s
+    while waiting and time.monotonic() < end:
+        transport.wait(0.05)
+        waiting -= {i for i, r in enumerate(readers) if r.take_raw(256)}
+    for r in readers:
+        r.take_raw(256)
+
+
 def _listen(transport: Any, streams: list, listen_s: float) -> Heard:
     from runtime.io.ros.messages import ROS_TYPES
     from runtime.io.ros.transport import QosSpec
@@ -107,6 +125,7 @@ def _listen(transport: Any, streams: list, listen_s: float) -> Heard:
     readers = [(s, t, transport.reader(t.topic, ROS_TYPES[t.type], QosSpec(t.qos.reliability, max(t.qos.depth, 50))))
                for s, t in streams]
     heard = Heard({s: [] for s, _ in streams}, offsets={s: [] for s, _ in streams})
+    _await_discovery(transport, [r for _s, _t, r in readers])
     end = time.monotonic() + listen_s
     while True:
         now = time.monotonic()

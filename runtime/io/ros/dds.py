@@ -15,6 +15,7 @@ Why a writer and a reader of our own around cyclonedds' DataWriter / DataReader:
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import typing
 
@@ -147,7 +148,7 @@ _DOMAINS: dict[int, Domain] = {}
 _DOMAINS_LOCK = threading.Lock()
 
 
-def _configure_domain(domain_id: int, xml: str | None) -> None:
+def _configure_domain(domain_id: int, xml: str | None, localhost: bool = False) -> None:
     """Give domain `domain_id` our XML before a participant joins it (None: cyclonedds' defaults).
     A domain is configured once per process (cyclonedds refuses a second Domain of one id): every
     transport of this process on that domain then shares the first one's discovery range."""
@@ -159,6 +160,8 @@ def _configure_domain(domain_id: int, xml: str | None) -> None:
         try:
             _DOMAINS[domain_id] = Domain(domain_id, config=xml)
         except DDSException as exc:  # a participant of this process already made it with the defaults
+            if not localhost:  # the defaults are open to the network too; only the 127.0.0.1 peer is missing
+                return
             raise RuntimeError(f"DDS domain {domain_id} is already in use in this process with cyclonedds' default "
                                "discovery; cannot limit it to this host now") from exc
 
@@ -172,9 +175,13 @@ class CycloneTransport(Transport):
                  participant: DomainParticipant | None = None) -> None:
         super().__init__()
         self.domain_id, self.discovery = int(domain_id), discovery
-        if participant is None:  # ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST limits cyclonedds too
+        if participant is None:
+            # ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST limits cyclonedds too; open to the network,
+            # a user's own CYCLONEDDS_URI (the robot's interfaces) is cyclonedds' to read.
             reach, _ = effective_discovery(discovery)
-            _configure_domain(self.domain_id, cyclonedds_config_xml("localhost" if reach == "localhost" else "subnet"))
+            user_xml = bool(os.environ.get("CYCLONEDDS_URI"))
+            _configure_domain(self.domain_id, cyclonedds_config_xml("localhost") if reach == "localhost"
+                              else None if user_xml else cyclonedds_config_xml("subnet"), localhost=reach == "localhost")
         self.participant = participant or DomainParticipant(self.domain_id)
         self._waitset = WaitSet(self.participant)
         self._guard = GuardCondition(self.participant)

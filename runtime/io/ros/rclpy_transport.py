@@ -205,8 +205,12 @@ class RclpyTransport(Transport):
         self._notify()
 
     def publishers(self, topic: str) -> list[PublisherInfo]:
-        """The writers rclpy's graph knows on `topic` (stock nodes and bare DDS apps alike)."""
+        """The writers rclpy's graph knows on `topic` (stock nodes and bare DDS apps alike); for a
+        topic this transport carries through cyclonedds, the writers that participant sees."""
         from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+        if self._cyclone is not None and any(r.topic == topic and r.via == "cyclonedds" for r in self._routes):
+            return self._cyclone.publishers(topic)
 
         rel = {ReliabilityPolicy.RELIABLE: "reliable", ReliabilityPolicy.BEST_EFFORT: "best_effort"}
         dur = {DurabilityPolicy.VOLATILE: "volatile", DurabilityPolicy.TRANSIENT_LOCAL: "transient_local"}

@@ -266,13 +266,14 @@ def open_transport(options: TransportOptions) -> Transport:
 
 
 def cyclonedds_config_xml(discovery: Discovery) -> str | None:
-    """Cyclone DDS's XML for the discovery range; None keeps its defaults (the network).
-
-    A user's own CYCLONEDDS_URI wins over `subnet` (it is how a robot's interfaces are chosen),
-    never over `localhost`.
-    """
+    """Cyclone DDS's XML for the discovery range (see dds.CycloneTransport for how a user's own
+    CYCLONEDDS_URI is honoured)."""
     if discovery == "subnet":
-        return None
+        # Well-known unicast discovery ports (as Fast DDS and ROS 2 use): a participant limited to
+        # this host, which sends discovery only to 127.0.0.1, finds this one too.
+        return ("<CycloneDDS><Domain><Discovery><ParticipantIndex>auto</ParticipantIndex>"
+                "<MaxAutoParticipantIndex>32</MaxAutoParticipantIndex><Peers><Peer address=\"127.0.0.1\"/></Peers>"
+                "</Discovery></Domain></CycloneDDS>")
     return ("<CycloneDDS><Domain><General><Interfaces><NetworkInterface address=\"127.0.0.1\"/></Interfaces>"
             "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
             "<MaxAutoParticipantIndex>32</MaxAutoParticipantIndex><Peers><Peer address=\"127.0.0.1\"/></Peers>"
