@@ -105,7 +105,10 @@ class RclpyTransport(Transport):
         try:
             with _environment(options):
                 rclpy.init(args=args, context=self.context, domain_id=self.domain_id)
-                self.node = rclpy.create_node(options.node_name, context=self.context)
+                # No parameter services: the node has no ROS parameters (the config file is its
+                # settings), and each service is one more entity the executor waits on per spin.
+                self.node = rclpy.create_node(options.node_name, context=self.context,
+                                              start_parameter_services=False)
         except MiddlewareError:
             raise
         except Exception as exc:  # noqa: BLE001 - rcl's errors (security files, rmw) as one line
