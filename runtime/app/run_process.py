@@ -267,7 +267,8 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float) -> dict:
                 "discovery": receiver.transport.discovery,
                 "routes": [{"direction": r.direction, "topic": r.topic, "type": r.type_name, "via": r.via,
                             "qos": r.qos.describe()} for r in receiver.transport.routes()],
-                "qos_mismatches": dict(receiver.transport.qos_mismatches)},
+                "qos_mismatches": dict(receiver.transport.qos_mismatches),
+                "executor_errors": getattr(receiver.transport, "spin_errors", 0)},
         "goals_ignored": observer.goals_ignored,
         "keepalives_sent": loop.keepalives_sent,
     }

@@ -125,6 +125,8 @@ class RclpyTransport(Transport):
         self._arrived = threading.Condition()
         self._seq = self._seen = 0
         self._stopping = threading.Event()
+        self.spin_errors = 0
+        self.last_spin_error: str | None = None
         self._thread = threading.Thread(target=self._spin, name="ros_io-rclpy", daemon=True)
         self._thread.start()
 
@@ -133,9 +135,12 @@ class RclpyTransport(Transport):
         while not self._stopping.is_set():
             try:
                 self.executor.spin_once(timeout_sec=0.1)
-            except Exception:  # noqa: BLE001 - shutdown while spinning; anything else: spin again
+            except Exception as exc:  # noqa: BLE001 - shutdown while spinning; anything else: counted, spin again
                 if self._stopping.is_set():
                     return
+                self.spin_errors += 1
+                self.last_spin_error = f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
+                self._stopping.wait(0.1)  # the inputs go stale meanwhile and the monitor holds the robot
 
     def _notify(self) -> None:
         with self._arrived:
@@ -240,6 +245,8 @@ class RclpyTransport(Transport):
             finally:
                 self.context.try_shutdown()
                 self.context = None
+                if self._cyclone is not None:
+                    self._cyclone.close()
 
 
 @contextlib.contextmanager
