@@ -27,7 +27,6 @@ import threading
 import time
 
 import numpy as np
-import rclpy
 from rclpy.duration import Duration
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -36,7 +35,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, Imu, PointCloud2, PointField
 from visualization_msgs.msg import MarkerArray
 
-from stock_common import endpoints, finite, public, qos, stamp_s, write_report
+from stock_common import endpoints, finite, public, qos, run_node, stamp_s
 
 ROOM = (-2.0, 3.5, -2.5, 2.5)         # x min, x max, y min, y max in the odometry frame (m)
 WALL_HEIGHTS_M = (0.1, 0.2, 0.3, 0.4, 0.5)
@@ -240,6 +239,13 @@ class Peer:
                                                                                 for c in (p.x, p.y, p.z)])}
                                      for mk in m.markers])
 
+    def report(self) -> dict:
+        """Stop the IMU thread; what was published and seen, and the graph as this node saw it."""
+        self.stop.set()
+        self.imu_thread.join(1.0)
+        return {"published": self.published, "imu_max_gap_s": self.imu_max_gap_s, "seen": self.seen,
+                "graph": self.graph(), "done": self.done(), "goal": list(self.args.goal)}
+
     def done(self) -> bool:
         s = self.seen
         return (self.first_odom_at is not None and time.monotonic() - self.first_odom_at > self.args.collect_s
@@ -270,23 +276,7 @@ def main() -> int:
     ap.add_argument("--collect-s", type=float, default=3.0)
     ap.add_argument("--timeout-s", type=float, default=90.0)
     args = ap.parse_args()
-    rclpy.init()
-    node = rclpy.create_node("stock_peer")
-    peer = Peer(node, args)
-    t_end = time.monotonic() + args.timeout_s
-    try:
-        while time.monotonic() < t_end and not peer.done():
-            rclpy.spin_once(node, timeout_sec=0.05)
-        peer.stop.set()
-        peer.imu_thread.join(1.0)
-        report = {"published": peer.published, "imu_max_gap_s": peer.imu_max_gap_s, "seen": peer.seen,
-                  "graph": peer.graph(),
-                  "done": peer.done(), "goal": list(args.goal)}
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    write_report(args.out, report)
-    return 0
+    return run_node("stock_peer", lambda node: Peer(node, args), args.out, args.timeout_s)
 
 
 if __name__ == "__main__":

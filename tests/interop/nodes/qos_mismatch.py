@@ -20,13 +20,12 @@ import argparse
 import sys
 import time
 
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import qos_check_compatible
 from sensor_msgs.msg import PointCloud2
 
-from stock_common import endpoints, public, qos, write_report
+from stock_common import endpoints, public, qos, run_node
 
 
 def compatibility(pub_profile, sub_profile) -> dict:
@@ -103,19 +102,7 @@ def main() -> int:
     ap.add_argument("--collect-s", type=float, default=3.0)
     ap.add_argument("--timeout-s", type=float, default=90.0)
     args = ap.parse_args()
-    rclpy.init()
-    node = rclpy.create_node("stock_qos_mismatch")
-    m = Mismatch(node, args)
-    t_end = time.monotonic() + args.timeout_s
-    try:
-        while time.monotonic() < t_end and not m.done():
-            rclpy.spin_once(node, timeout_sec=0.05)
-        report = m.report()
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    write_report(args.out, report)
-    return 0
+    return run_node("stock_qos_mismatch", lambda node: Mismatch(node, args), args.out, args.timeout_s)
 
 
 if __name__ == "__main__":

@@ -18,11 +18,10 @@ import statistics
 import sys
 import time
 
-import rclpy
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, Imu
 
-from stock_common import endpoints, finite, public, stamp_s, write_report
+from stock_common import endpoints, finite, public, stamp_s, run_node
 
 
 def rates(arrivals: list[float], stamps: list[float], gaps: bool = True) -> dict:
@@ -109,19 +108,7 @@ def main() -> int:
     ap.add_argument("--min-images", type=int, default=5)
     ap.add_argument("--timeout-s", type=float, default=90.0)
     args = ap.parse_args()
-    rclpy.init()
-    node = rclpy.create_node("stock_sensor_listener")
-    listener = Listener(node, args)
-    t_end = time.monotonic() + args.timeout_s
-    try:
-        while time.monotonic() < t_end and not listener.done():
-            rclpy.spin_once(node, timeout_sec=0.05)
-        report = listener.report()
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    write_report(args.out, report)
-    return 0
+    return run_node("stock_sensor_listener", lambda node: Listener(node, args), args.out, args.timeout_s)
 
 
 if __name__ == "__main__":

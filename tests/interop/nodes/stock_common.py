@@ -75,3 +75,23 @@ def write_report(path: str, report: dict) -> None:
     with open(tmp, "w") as f:
         json.dump(report, f, indent=1, sort_keys=True)
     os.replace(tmp, path)
+
+
+def run_node(name: str, make, out: str, timeout_s: float) -> int:
+    """A stock node's life: init rclpy, make the node's object (`make(node)`, with `done()` and
+    `report()`), spin until it is done or timeout_s, write its report to `out`."""
+    import rclpy
+
+    rclpy.init()
+    node = rclpy.create_node(name)
+    try:
+        obj = make(node)
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end and not obj.done():
+            rclpy.spin_once(node, timeout_sec=0.05)
+        report = obj.report()
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    write_report(out, report)
+    return 0
