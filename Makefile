@@ -29,7 +29,7 @@ $(STAMP): pyproject.toml tests/interop/js/package-lock.json
 	$(VENV)/bin/python -m pip install --quiet --upgrade pip
 	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
 	$(VENV)/bin/python -m pip install --quiet torch==2.13.0
-	$(VENV)/bin/python -m pip install --quiet -e '.[test,bench,ros]'
+	$(VENV)/bin/python -m pip install --quiet -e '.[test,bench,ros,eval]'
 	# Foxglove's JS readers (pinned in tests/interop/js/package-lock.json) for the recording interop test.
 	npm ci --prefix tests/interop/js --no-audit --no-fund --silent
 	touch $@
