@@ -14,6 +14,9 @@ Example::
     lidar_to_camera:            # T_camera<-lidar: p_cam = R p_lidar + t; optional until calibrated
       xyz_m: [0.0, 0.05, -0.08]
       rpy_deg: [-90.0, 0.0, -90.0]   # or quaternion_xyzw: [...] or rotation_matrix: 3x3
+    lidar_mount:                # T_base_link<-lidar: p_base = R p_lidar + t; optional (else the
+      xyz_m: [0.1, 0.0, 0.15]   # robot description's lidar mount)
+      rpy_deg: [0.0, 0.0, 0.0]
     provenance:
       date: 2025-01-01T12:00:00
       method: "checkerboard 9x6, 25 mm; calibrateCamera"
@@ -214,6 +217,9 @@ class CalibrationFile(_Strict):
     robot: str = Field(min_length=1)
     camera: CameraIntrinsics
     lidar_to_camera: Optional[RigidTransform] = None
+    #: T_base_link<-lidar, the lidar's mount as calibrated; None: the robot description's mount.
+    #: The camera's pose on the base is then this composed with lidar_to_camera's inverse.
+    lidar_mount: Optional[RigidTransform] = None
     provenance: Provenance
     wheel_odometry: Optional[WheelOdometryCalibration] = None
 
@@ -225,6 +231,10 @@ class CalibrationFile(_Strict):
         if self.lidar_to_camera is None:
             raise ConfigFileError(f"calibration for robot '{self.robot}' has no lidar_to_camera extrinsic yet")
         return self.lidar_to_camera.matrix()
+
+    def T_base_lidar(self, robot) -> np.ndarray:
+        """4x4 T_base_link<-lidar: the calibrated mount, else `robot`'s (a RobotDescription) nominal one."""
+        return self.lidar_mount.matrix() if self.lidar_mount is not None else robot.sensors.lidar.mount.transform()
 
 
 def camera_for_robot(cal: CalibrationFile, robot, path: str | Path) -> tuple[CameraModel, np.ndarray | None]:
