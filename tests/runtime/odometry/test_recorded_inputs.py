@@ -232,3 +232,28 @@ def test_the_plot_is_written_atomically_and_checked_first(pair, tmp_path):
     r = invoke(*args, "--force")
     assert r.exit_code == 0, r.output
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"-> {out}, {png}" in r.stdout
+
+
+def test_a_damaged_bag_or_undecodable_message_is_one_line(pair, tmp_path):
+    from mcap.writer import Writer
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    poses = pair["root"] / "poses.txt"
+    good = _write_bag(tmp_path / "g.mcap", STAMPS)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(good.read_bytes()[:-40])
+    err = one_line_error(invoke("--scans", cut, "--lidar-topic", "/points", "--poses", poses, "--json", tmp_path / "o"))
+    assert f"bag {cut}: cannot be read (ReaderError: " in err
+    raw = tmp_path / "raw.mcap"          # message 1 is not a PointCloud2 at all
+    msgdef = F.typestore().generate_msgdef(F.POINTCLOUD2, ros_version=2)[0]
+    encode = serialize_dynamic(F.POINTCLOUD2, msgdef)[F.POINTCLOUD2]
+    frame = {k: v[:500] for k, v in pair["frames"][0].items()}
+    with open(raw, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2")
+        channel = w.register_channel("/points", "cdr", w.register_schema(F.POINTCLOUD2, "ros2msg", msgdef.encode()))
+        w.add_message(channel, STAMPS[0], encode(F.pointcloud2_dict(frame, STAMPS[0])), STAMPS[0])
+        w.add_message(channel, STAMPS[1], b"\x00\x01\x00\x00\xff\xff", STAMPS[1])
+        w.finish()
+    err = one_line_error(invoke("--scans", raw, "--lidar-topic", "/points", "--poses", poses, "--json", tmp_path / "o"))
+    assert f"bag {raw} topic /points message 1: rejected: [undecodable] sensor_msgs/msg/PointCloud2" in err
