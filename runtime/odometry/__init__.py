@@ -5,9 +5,12 @@
 - `degeneracy`: does a scan constrain the planar motion, and along which direction not.
 - `fusion`: one pose stream with a covariance from ICP, wheels and gyro.
 - `metrics`: drift and relative pose error against a reference trajectory.
-- `sequence`: KISS-ICP over a recorded sequence (scans, KITTI poses, times) against its poses.
+- `sequence`: KISS-ICP over a recorded sequence (scans, reference poses, times) against its poses;
+  its inputs: `scan_files` (PCD/PLY/KITTI .bin folders), `bag_scans` (ROS 2 bags), `pose_files`
+  (KITTI/TUM poses, times, --frames); its figures beside ours: `evo_eval` (evo's APE/RPE, plot)
+  and `reference_check` (does the reference move like the scans).
 - `pair`: one scan registered onto another (the real HDL-32 pair check).
-- `cli`: `dct odom eval` and `dct odom register`.
+- `cli`, `cli_scans`: `dct odom eval` and `dct odom register`.
 """
 from runtime.odometry.wheels import WheelGyroOdometry, WheelOdometry
 

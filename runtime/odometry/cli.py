@@ -70,41 +70,70 @@ def summary_lines(name: str, e: dict) -> str:
             f"(segments {segs} m)")
 
 
-EVAL_HELP = """Drift and relative pose error of the lidar odometry against a reference.
+EVAL_HELP = """Drift, APE and RPE of the lidar odometry against a reference.
 
 Two modes, exactly one of them:
 
 \b
---scans DIR --poses FILE [--times FILE]
-    a recorded sequence: DIR holds one .pcd/.ply scan per sweep (natural name order:
-    scan_2 before scan_10), FILE the reference poses in KITTI format (one line of 12
-    numbers per scan: the top 3 rows of the 4x4 scanner pose, row-major, z up), the
-    optional times file one time (s) per scan. Points at exactly (0,0,0) and non-finite
-    ones are dropped. Scans with a per-point time field (t, time, timestamp,
-    timestamps, offset_time) are deskewed; without one they are registered as they are
-    (the output says which). Outdoor sequences need a larger --voxel-size and
-    --max-range than the indoor defaults (e.g. 0.5 and 60 for an HDL-32).
+--scans PATH --poses FILE [--times FILE] [--frames A:B]
+    a recorded sequence. PATH is a folder of scans (.pcd/.ply, or KITTI velodyne .bin:
+    float32 x y z intensity; natural name order: scan_2 before scan_10), or a ROS 2 bag
+    (a rosbag2 folder with metadata.yaml, .db3 or .mcap storage, or one .mcap file) with
+    --lidar-topic (sensor_msgs/msg/PointCloud2 or livox_ros_driver2/msg/CustomMsg,
+    decoded and checked as the controller does; a scan's time is its header stamp) and
+    optionally --imu-topic (sensor_msgs/msg/Imu: checked, counted and reported; KISS-ICP
+    uses no IMU). FILE: reference poses, KITTI (12 numbers a line, one line per scan) or
+    TUM (t x y z qx qy qz qw, matched to the scan times within --max-time-diff),
+    detected unless --poses-format says. --times: one time (s) per scan. --frames A:B
+    (Python slice) takes part of the sequence: pass the whole files, scans, poses and
+    times are sliced together. Counts, times (strictly increasing, and the scans' own
+    times against --times) are checked first. Points at exactly (0,0,0) and non-finite
+    ones are dropped. Scans with per-point times are deskewed. Outdoor sequences need a
+    larger --voxel-size and --max-range than the indoor defaults (e.g. 0.5 and 60 for an
+    HDL-32). If the reference does not move like the registered scans (another stretch
+    of the recording?), a warning says so and the exit status is 1, the JSON written.
 --scenario NAME_OR_PATH [--seed N]
     a simulated scenario: ICP alone, wheels+IMU alone and the fused stream.
 
 The JSON has the figures of each stream (`icp`, ...: length_m, drift_percent,
-rpe_percent, rpe_deg_per_m, yaw_drift_deg, end_error_m, ...) and `stage_ms` (p50, p99
-of the registration time per frame); a short summary goes to stdout.
+rpe_percent, rpe_deg_per_m, yaw_drift_deg, end_error_m, ...), with --scans also `evo`
+(APE with and without SE(3) alignment, RPE per frame, 1 m and 10 m, as evo computes them;
+needs `pip install dct-controller[eval]`) and `reference_consistency`, and `stage_ms`
+(p50, p99 of the registration time per frame); a short summary goes to stdout.
 """
+
+#: The --scans options that --scenario refuses: (option, parameter name).
+SCANS_ONLY = (("--poses", "poses_file"), ("--times", "times_file"), ("--voxel-size", "voxel_size"),
+              ("--max-range", "max_range"), ("--min-range", "min_range"), ("--trajectory", "trajectory_path"),
+              ("--frames", "frames"), ("--lidar-topic", "lidar_topic"), ("--imu-topic", "imu_topic"),
+              ("--max-time-diff", "max_time_diff"), ("--plot", "plot_path"))
+
+
+def _positive(ctx, param, value):
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise click.BadParameter(f"must be a time > 0 in seconds, got {value}")
+    return value
 
 
 @odom_group.command("eval", help=EVAL_HELP)
-@click.option("--scans", "scans_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="folder of .pcd/.ply scans (a recorded sequence)")
+@click.option("--scans", type=click.Path(path_type=Path), default=None, metavar="PATH",
+              help="folder of .pcd/.ply/.bin scans, rosbag2 folder or .mcap file (a recorded sequence)")
 @click.option("--poses", "poses_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="reference poses, KITTI format (with --scans)")
+              help="reference poses, KITTI or TUM (with --scans)")
+@click.option("--poses-format", type=click.Choice(["auto", "kitti", "tum"]), default="auto", show_default=True,
+              help="the format of --poses (auto: 12 numbers a line is KITTI, 8 is TUM)")
 @click.option("--times", "times_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="scan times, one per line in seconds (with --scans; optional)")
+@click.option("--frames", default=None, metavar="A:B", help="use scans A..B-1 (Python slice of the whole sequence)")
+@click.option("--lidar-topic", default=None, metavar="TOPIC", help="the bag's lidar topic (PointCloud2 or CustomMsg)")
+@click.option("--imu-topic", default=None, metavar="TOPIC", help="the bag's IMU topic (checked and reported)")
+@click.option("--max-time-diff", type=float, default=None, callback=_positive,
+              help="TUM poses: largest scan-to-pose time difference (s) [default: 0.01, evo's]")
 @click.option("--scenario", default=None, metavar="NAME_OR_PATH", help="a scenario of the library, or a YAML file")
 @click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=None, help="scenario seed [default: 0]")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="write the figures here (checked before the run, written atomically after it)")
-@click.option("--force", is_flag=True, help="overwrite an existing --json file")
+@click.option("--force", is_flag=True, help="overwrite existing output files")
 @click.option("--voxel-size", type=float, default=None, callback=_length,
               help="KISS-ICP voxel (m) [default: the controller's, 0.3]")
 @click.option("--max-range", type=float, default=None, callback=_length, help="farthest point used (m) [default: 12]")
@@ -116,60 +145,45 @@ of the registration time per frame); a short summary goes to stdout.
                    "`dct calibrate wheels`")
 @click.option("--trajectory", "trajectory_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="also write the estimated poses here (KITTI format; with --scans)")
-def eval_command(*, scans_dir: Path | None, poses_file: Path | None, times_file: Path | None, scenario: str | None,
-                 seed: int | None, json_path: Path, force: bool, voxel_size: float | None, max_range: float | None,
-                 min_range: float | None, deskew: str, trajectory_path: Path | None, record_path: Path | None = None) -> None:
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="FILE.png",
+              help="also draw the reference and the estimate, top view (with --scans)")
+def eval_command(**opts) -> None:
     """See EVAL_HELP."""
-    if (scans_dir is None) == (scenario is None):
-        raise InputError("dct odom eval: give exactly one of --scans DIR or --scenario NAME_OR_PATH (see --help)")
+    scans, scenario = opts["scans"], opts["scenario"]
+    if (scans is None) == (scenario is None):
+        raise InputError("dct odom eval: give exactly one of --scans PATH or --scenario NAME_OR_PATH (see --help)")
     if scenario is not None:
-        given = [name for name, v in (("--poses", poses_file), ("--times", times_file), ("--voxel-size", voxel_size),
-                                      ("--max-range", max_range), ("--min-range", min_range),
-                                      ("--trajectory", trajectory_path)) if v is not None]
-        if deskew != "auto":
-            given.append("--deskew")
+        given = [name for name, key in SCANS_ONLY if opts[key] is not None]
+        given += [name for name, key, default in (("--deskew", "deskew", "auto"), ("--poses-format", "poses_format",
+                                                                                    "auto")) if opts[key] != default]
         if given:
             raise InputError(f"dct odom eval: {', '.join(given)} go with --scans, not --scenario "
                              f"(the scenario's controller config sets the odometry)")
-        _eval_scenario(scenario, 0 if seed is None else seed, json_path, force, record_path)
+        seed = opts["seed"]
+        _eval_scenario(scenario, 0 if seed is None else seed, opts["json_path"], opts["force"], opts["record_path"])
         return
-    if seed is not None:
+    _scans_mode(opts)
+
+
+def _scans_mode(opts: dict) -> None:
+    from runtime.odometry.cli_scans import ScansRequest, eval_scans
+    from runtime.odometry.evo_eval import DEFAULT_MAX_TIME_DIFF_S
+
+    if opts["seed"] is not None:
         raise InputError("dct odom eval: --seed goes with --scenario (a recorded sequence has no seed)")
-    if record_path is not None:
+    if opts["record_path"] is not None:
         raise InputError("dct odom eval: --record goes with --scenario (it records the simulated run's wheels, "
                          "gyro and ground truth)")
-    if poses_file is None:
-        raise InputError("dct odom eval: --scans needs --poses FILE (the reference poses, KITTI format)")
-    _eval_scans(scans_dir, poses_file, times_file, json_path, force, _icp_config(voxel_size, max_range, min_range),
-                {"auto": None, "on": True, "off": False}[deskew], trajectory_path)
-
-
-def _eval_scans(scans_dir: Path, poses_file: Path, times_file: Path | None, json_path: Path, force: bool, config,
-                deskew: bool | None, trajectory_path: Path | None) -> None:
-    from calibration.outputs import atomic_write_json, atomic_write_text
-    from runtime.odometry.sequence import SequenceInputError, evaluate_sequence, format_kitti_poses, load_sequence
-
-    try:
-        seq = load_sequence(scans_dir, poses_file, times_file)
-    except SequenceInputError as exc:
-        raise InputError(str(exc)) from None
-    inputs = [poses_file, times_file, *seq.scans]
-    _checked_output(json_path, "--json", inputs, force)
-    _checked_output(trajectory_path, "--trajectory", inputs + [json_path], force)
-    bar = _Bar(f"registering {len(seq.scans)} scans")
-    try:
-        report, run = evaluate_sequence(seq, config, deskew=deskew, progress=bar)
-    except SequenceInputError as exc:
-        raise InputError(str(exc)) from None
-    finally:
-        bar.close()
-    atomic_write_json(json_path, report)
-    if trajectory_path is not None:
-        atomic_write_text(trajectory_path, format_kitti_poses(run.poses))
-    click.echo(summary_lines("icp", report["icp"]))
-    click.echo(f"{report['frames']} frames, {report['points_per_scan']:.0f} points per scan, registration "
-               f"p50 {report['stage_ms']['p50']:.1f} ms p99 {report['stage_ms']['p99']:.1f} ms; {report['deskew_note']}")
-    click.echo(f"-> {json_path}" + (f", {trajectory_path}" if trajectory_path is not None else ""))
+    if opts["poses_file"] is None:
+        raise InputError("dct odom eval: --scans needs --poses FILE (the reference poses, KITTI or TUM)")
+    req = ScansRequest(scans=opts["scans"], poses_file=opts["poses_file"], times_file=opts["times_file"],
+                       poses_format=opts["poses_format"], frames=opts["frames"], lidar_topic=opts["lidar_topic"],
+                       imu_topic=opts["imu_topic"],
+                       max_time_diff_s=opts["max_time_diff"] or DEFAULT_MAX_TIME_DIFF_S,
+                       json_path=opts["json_path"], trajectory_path=opts["trajectory_path"],
+                       plot_path=opts["plot_path"], force=opts["force"])
+    config = _icp_config(opts["voxel_size"], opts["max_range"], opts["min_range"])
+    eval_scans(req, config, {"auto": None, "on": True, "off": False}[opts["deskew"]])
 
 
 def _scenario_evaluator():

@@ -1,47 +1,43 @@
 """Lidar odometry on a recorded sequence, measured against its reference poses.
 
-A sequence is what users have from their own robots, in the simplest form every tool exports:
+A sequence is what users have from their own robots or public datasets:
 
-* a folder of scans, one `.pcd` or `.ply` file per sweep (`calibration.pointcloud_io` reads
-  them), taken in natural name order: `scan_2` before `scan_10`, `000009` before `000010`;
-* a poses file in KITTI format: one line per scan, 12 numbers, the top three rows of the 4x4
-  pose of the scanner in a world frame with z up, row-major (`r11 r12 r13 tx r21 r22 r23 ty r31
-  r32 r33 tz`), so that `p_world = T p_scan`. Blank lines and lines starting with `#` are
-  skipped; anything else must be 12 finite numbers whose rotation is orthonormal (within
-  `metrics.ROTATION_TOLERANCE`) with determinant +1;
-* optionally a times file: one time per line (seconds), strictly increasing, one per scan. It is
-  checked and reported (duration, mean speed); the registration itself does not need it.
+* scans: a folder of `.pcd` / `.ply` / KITTI `.bin` files, one per sweep, in natural name order
+  (scan_files.py), or the lidar topic of a ROS 2 bag, PointCloud2 or Livox CustomMsg, decoded
+  and validated by the controller's own decoders (bag_scans.py);
+* reference poses, KITTI (one line per scan) or TUM (stamped, matched to the scans by time) in
+  the scanner's world frame with z up (pose_files.py);
+* optionally a times file, one time (s) per scan.
 
-Points: non-finite ones and those exactly at (0, 0, 0) are dropped; most drivers write an
-invalid return (no echo) as a zero point, e.g. about 5k of the 70k points of each HDL-32 scan in
-tests/data/real/hdl32_pair_small_gicp.
+`load_sequence` checks everything it can before any scan is registered, each failure one line:
 
-Per-point times (deskew): a scan's per-point time field is the first of POINT_TIME_FIELDS it
-has. KISS-ICP normalises the times of a frame over their [min, max] and deskews every point to
-the time of the frame's last point, with the constant-velocity motion of the previous step,
-so only the order of the times within the sweep matters, not their unit or origin:
+* the counts: a KITTI poses file and a times file have as many lines as there are scans (the
+  whole files: `frames` then slices scans, poses and times together);
+* the times: a times file strictly increases (pose_files.py names the first line that does not);
+  so do a bag's header stamps;
+* the scans' own times (a bag's header stamps, absolute per-point times) agree with a times file
+  (scan_files.check_scan_time; a folder's per-point times are checked as each scan is read);
+* a TUM reference is associated with the scan times (times file, else the bag's stamps) by
+  evo's nearest-time matching within `max_time_diff_s`; the unmatched scans are named in
+  `association` and left out of the figures (they are still registered: odometry cannot skip a
+  scan), and at least 2 scans must match.
 
-  `t`            Ouster (uint32 ns since the start of the sweep), also KISS-ICP's own choice
-  `time`         Velodyne drivers (float32 s relative to the sweep start or end)
-  `timestamp`    Hesai / many exporters (float64 s, absolute)
-  `timestamps`   KISS-ICP's generic reader's alternative name
-  `offset_time`  Livox CustomMsg converted to PCD (uint32 ns since the packet's timebase)
-
-The field must span the sweep: a field whose values are all equal carries no time, and a
-sequence whose first scan has no usable time field is registered WITHOUT deskew (the result
-says so, `deskew: false` with the reason) rather than with invented times, which make drift
-worse (docs/decisions/odometry-deskew-times.md). Every later scan must then agree with the first.
+Per-point times (deskew): see scan_files.py. A sequence whose first scan has no usable time
+field is registered WITHOUT deskew (the result says so, `deskew: false` with the reason) rather
+than with invented times (docs/decisions/odometry-deskew-times.md); every later scan must then
+agree with the first.
 
 Which time the poses are compared at: the estimate of scan i is KISS-ICP's `last_pose` after
 registering it, the pose at the time of its last point when deskewed. Reference poses are
-taken as given, one per scan; a reference stamped at the start of the sweep differs from
-that by one sweep's motion, which both trajectories share after they are expressed relative
-to their first pose, so the metrics barely see it.
+taken as given; a reference stamped at the start of the sweep differs from that by one sweep's
+motion, which both trajectories share after they are expressed relative to their first pose, so
+the metrics barely see it.
+
+`evaluate_sequence` reports the project's metrics (metrics.trajectory_errors), evo's APE and RPE
+(evo_eval.py) and whether the reference moves like the scans (reference_check.py).
 """
 from __future__ import annotations
 
-import math
-import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,204 +45,145 @@ from typing import Callable
 
 import numpy as np
 
+from runtime.odometry.bag_scans import BagScans, is_bag
 from runtime.odometry.icp_config import IcpConfig, new_kiss_icp
-from runtime.odometry.metrics import rotation_problem, trajectory_errors
-
-#: Per-point time fields, in the order they are looked for (see the module doc).
-POINT_TIME_FIELDS = ("t", "time", "timestamp", "timestamps", "offset_time")
-SCAN_SUFFIXES = (".pcd", ".ply")
+from runtime.odometry.metrics import trajectory_errors
+from runtime.odometry.pose_files import (
+    SequenceInputError, detect_poses_format, format_kitti_poses, frame_indices, read_kitti_poses, read_times,
+    read_transform, read_tum_poses,
+)
+from runtime.odometry.scan_files import (
+    POINT_TIME_FIELDS, FolderScans, Scan, check_scan_time, list_scans, load_scan, natural_key,
+)
 
 #: progress(done, total): called after each registered frame.
 Progress = Callable[[int, int], None]
 
 
-class SequenceInputError(ValueError):
-    """A sequence's folder, scan, poses or times file is missing or malformed; the message is
-    one line naming the file (and line) and what is wrong."""
-
-
-# ---------------------------------------------------------------------------- files
-def natural_key(name: str) -> tuple:
-    """Sort key reading runs of digits as numbers: scan_2 < scan_10, case-insensitive."""
-    return tuple((0, int(part), part) if part.isdigit() else (1, 0, part.lower())
-                 for part in re.split(r"(\d+)", name) if part)
-
-
-def list_scans(folder: str | Path) -> list[Path]:
-    """The `.pcd` / `.ply` files of `folder` in natural name order (see natural_key)."""
-    d = Path(folder)
-    if not d.exists():
-        raise SequenceInputError(f"scan folder {d} does not exist")
-    if not d.is_dir():
-        raise SequenceInputError(f"scan folder {d} is not a folder")
-    scans = [p for p in d.iterdir() if p.suffix.lower() in SCAN_SUFFIXES and p.is_file()]
-    if not scans:
-        raise SequenceInputError(f"scan folder {d} has no .pcd or .ply file")
-    return sorted(scans, key=lambda p: natural_key(p.name))
-
-
-def _text_lines(path: Path, what: str) -> list[tuple[int, str]]:
-    """(line number, stripped text) of the lines that are not blank or comments."""
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise SequenceInputError(f"{what} {path}: cannot read file: {exc.strerror or exc}") from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise SequenceInputError(f"{what} {path}: not UTF-8 text (byte offset {exc.start})") from None
-    lines = [(i, ln.strip()) for i, ln in enumerate(text.splitlines(), start=1)]
-    return [(i, ln) for i, ln in lines if ln and not ln.startswith("#")]
-
-
-def _numbers(path: Path, what: str, lineno: int, text: str, count: int) -> list[float]:
-    parts = text.split()
-    if len(parts) != count:
-        raise SequenceInputError(f"{what} {path} line {lineno}: expected {count} number{'s' * (count > 1)}, "
-                                 f"got {len(parts)}")
-    values = []
-    for p in parts:
-        try:
-            v = float(p)
-        except ValueError:
-            raise SequenceInputError(f"{what} {path} line {lineno}: {p[:40]!r} is not a number") from None
-        if not math.isfinite(v):
-            raise SequenceInputError(f"{what} {path} line {lineno}: {p!r} is not a finite number")
-        values.append(v)
-    return values
-
-
-def read_kitti_poses(path: str | Path) -> np.ndarray:
-    """Poses from a KITTI-format file (module doc) as (N,4,4); SequenceInputError naming the
-    file and line on any problem."""
-    path = Path(path)
-    lines = _text_lines(path, "poses file")
-    if not lines:
-        raise SequenceInputError(f"poses file {path}: no poses (the file is empty)")
-    poses = np.zeros((len(lines), 4, 4))
-    poses[:, 3, 3] = 1.0
-    for k, (lineno, text) in enumerate(lines):
-        poses[k, :3, :] = np.array(_numbers(path, "poses file", lineno, text, 12)).reshape(3, 4)
-        problem = rotation_problem(poses[k, :3, :3])
-        if problem:
-            raise SequenceInputError(f"poses file {path} line {lineno}: the {problem}")
-    return poses
-
-
-def read_transform(path: str | Path, what: str = "transform file") -> np.ndarray:
-    """A 4x4 rigid transform from a text file: 4 numbers on each of 4 lines (or the top 3)."""
-    path = Path(path)
-    lines = _text_lines(path, what)
-    if len(lines) not in (3, 4):
-        raise SequenceInputError(f"{what} {path}: expected a 4x4 matrix (4 numbers on each of 4 lines, or the top 3), "
-                                 f"got {len(lines)} lines")
-    T = np.eye(4)
-    T[:len(lines)] = [_numbers(path, what, n, text, 4) for n, text in lines]
-    if np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
-        raise SequenceInputError(f"{what} {path} line {lines[3][0]}: the last row must be 0 0 0 1")
-    problem = rotation_problem(T[:3, :3])
-    if problem:
-        raise SequenceInputError(f"{what} {path}: the top-left 3x3 is not a rotation: {problem}")
-    return T
-
-
-def format_kitti_poses(poses: np.ndarray) -> str:
-    """(N,4,4) poses as KITTI lines (12 numbers, %.9e: orthonormal to 1e-9 when read back)."""
-    return "".join(" ".join(f"{v:.9e}" for v in T[:3, :].ravel()) + "\n" for T in np.asarray(poses))
-
-
-def read_times(path: str | Path) -> np.ndarray:
-    """Scan times (s) from a file with one number per line, strictly increasing."""
-    path = Path(path)
-    lines = _text_lines(path, "times file")
-    if not lines:
-        raise SequenceInputError(f"times file {path}: no times (the file is empty)")
-    times = np.array([_numbers(path, "times file", n, text, 1)[0] for n, text in lines])
-    for k in range(1, len(times)):
-        if not times[k] > times[k - 1]:
-            raise SequenceInputError(f"times file {path} line {lines[k][0]}: {float(times[k])!r} is not after the "
-                                     f"previous time {float(times[k - 1])!r} (times must be strictly increasing)")
-    return times
-
-
-# ---------------------------------------------------------------------------- scans
-@dataclass(frozen=True)
-class Scan:
-    """One sweep's valid points, (M,3) float64, and their per-point times (M,) or None."""
-
-    points: np.ndarray
-    times: np.ndarray | None
-    time_field: str | None
-    #: How many points were dropped (non-finite, exactly zero, non-finite time).
-    dropped: int
-    #: Why `times` is None although the file has a time field (e.g. constant values).
-    times_note: str | None = None
-
-
-def load_scan(path: str | Path) -> Scan:
-    """Read one scan (module doc: which points are kept, which time field is used)."""
-    from calibration.pointcloud_io import PointCloudFormatError, finite_xyz, load_point_cloud
-
-    where = str(path)
-    try:
-        cloud = load_point_cloud(path)
-        finite_xyz(cloud, where)  # its one-line errors for an empty or all-NaN cloud
-    except PointCloudFormatError as exc:
-        raise SequenceInputError(str(exc)) from None
-    xyz = cloud.xyz
-    keep = np.isfinite(xyz).all(axis=1) & (xyz != 0.0).any(axis=1)
-    time_field = next((f for f in POINT_TIME_FIELDS if f in cloud.fields), None)
-    times, note = None, None
-    if time_field is not None:
-        t = np.asarray(cloud.fields[time_field])
-        if t.ndim != 1:
-            raise SequenceInputError(f"{where}: time field {time_field!r} has {t.shape[1]} values per point, expected 1")
-        t = t.astype(np.float64)
-        keep &= np.isfinite(t)
-        if keep.any() and np.ptp(t[keep]) > 0:
-            times = t[keep]
-        else:
-            note = f"time field {time_field!r} has the same value for every point (no time span)"
-    if not keep.any():
-        raise SequenceInputError(f"{where}: none of its {len(xyz)} points is valid (all are NaN/inf or exactly 0,0,0)")
-    return Scan(points=np.ascontiguousarray(xyz[keep]), times=times, time_field=time_field if times is not None else None,
-                dropped=int(len(xyz) - keep.sum()), times_note=note)
-
-
 # ---------------------------------------------------------------------------- the sequence
 @dataclass(frozen=True)
 class Sequence:
-    """A validated sequence: scan files (read when registered), reference poses, optional times."""
+    """A validated sequence: where the scans are (read when registered), which of them are used,
+    and the reference pose of each scan that has one."""
 
-    scans: list[Path]
+    source: FolderScans | BagScans
+    #: The scans registered (after --frames), indices into the source.
+    indices: np.ndarray
+    #: Reference poses (M,4,4), one per matched scan.
     poses: np.ndarray
+    #: Positions in `indices` of the scans with a reference pose (all of them for KITTI).
+    matched: np.ndarray
+    #: Scan times (s) of `indices`: the times file, else the scans' own (bag stamps), else None.
     times: np.ndarray | None = None
+    #: Where `times` came from: "times file", "header stamps" or None.
+    times_source: str | None = None
+    association: dict | None = None
     sources: dict = field(default_factory=dict)
+    imu: dict | None = None
 
 
-def load_sequence(scans_dir: str | Path, poses_file: str | Path, times_file: str | Path | None = None) -> Sequence:
-    """List the scans and read the poses (and times); every count and value is checked here,
-    before any scan is registered. The scans themselves are read one at a time later."""
-    scans = list_scans(scans_dir)
-    poses = read_kitti_poses(poses_file)
-    if len(poses) != len(scans):
-        raise SequenceInputError(f"poses file {poses_file} has {len(poses)} poses, scan folder {scans_dir} has "
-                                 f"{len(scans)} scans (one pose line per scan)")
-    if len(scans) < 2:
-        raise SequenceInputError(f"scan folder {scans_dir}: 1 scan; odometry needs at least 2")
-    times = None
+def open_scans(scans: str | Path, lidar_topic: str | None = None, imu_topic: str | None = None):
+    """A FolderScans or, for a rosbag2 folder or .mcap file, a BagScans of `lidar_topic`."""
+    p = Path(scans)
+    if is_bag(p):
+        return BagScans.open(p, lidar_topic)
+    given = [o for o, v in (("--lidar-topic", lidar_topic), ("--imu-topic", imu_topic)) if v is not None]
+    if given:
+        raise SequenceInputError(f"{' and '.join(given)} go with a ROS 2 bag (a rosbag2 folder with metadata.yaml or "
+                                 f"a .mcap file); {p} is not one")
+    if p.is_file():
+        raise SequenceInputError(f"scans {p}: a file that is not a .mcap bag; --scans takes a folder of "
+                                 f".pcd/.ply/.bin scans, a rosbag2 folder or a .mcap file")
+    return FolderScans.open(p)
+
+
+def _reference(poses_file: Path, poses_format: str) -> tuple[str, np.ndarray | None, np.ndarray]:
+    """(format, times or None, poses) of the poses file."""
+    fmt = detect_poses_format(poses_file) if poses_format == "auto" else poses_format
+    if fmt == "tum":
+        times, poses = read_tum_poses(poses_file)
+        return fmt, times, poses
+    if fmt != "kitti":
+        raise SequenceInputError(f"--poses-format {poses_format!r}: expected auto, kitti or tum")
+    return fmt, None, read_kitti_poses(poses_file)
+
+
+def _same_count(what: str, count: int, source, unit: str) -> None:
+    if count != len(source):
+        raise SequenceInputError(f"{what} has {count} {unit}, {source.what} has {len(source)} scans (one per scan; "
+                                 f"--frames A:B slices both)")
+
+
+def _scan_times(source, idx: np.ndarray, file_times: np.ndarray | None, times_file) -> tuple[np.ndarray | None, str | None]:
+    """The scan times of `idx` and where they came from; a bag's stamps checked against a times file."""
+    own = source.own_times(idx)
+    if own is not None and file_times is not None:
+        stamps, spans = own
+        for n, i in enumerate(idx):
+            check_scan_time(int(i), source.name(int(i)), float(file_times[i]), tuple(spans[n]),
+                            "header stamp and point times", str(times_file))
+    if file_times is not None:
+        return file_times[idx], "times file"
+    return (own[0], "header stamps") if own is not None else (None, None)
+
+
+def _associate(poses_file: Path, ref_times: np.ndarray, ref_poses: np.ndarray, idx: np.ndarray,
+               scan_times: np.ndarray | None, max_diff_s: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(matched positions in idx, their reference poses, the association's account)."""
+    from runtime.odometry.evo_eval import associate
+
+    if scan_times is None:
+        raise SequenceInputError(f"poses file {poses_file} is TUM (stamped poses, matched to the scans by time): a "
+                                 f"scan folder needs --times FILE")
+    mine, theirs = associate(scan_times, ref_times, max_diff_s)
+    unmatched = np.setdiff1d(np.arange(len(idx)), mine)
+    if len(mine) < 2:
+        raise SequenceInputError(f"poses file {poses_file}: {len(mine)} of {len(idx)} scans have a reference pose within "
+                                 f"{max_diff_s:g} s (scan times {scan_times[0]:.6f}..{scan_times[-1]:.6f} s, poses "
+                                 f"{ref_times[0]:.6f}..{ref_times[-1]:.6f} s); at least 2 must match")
+    account = {"method": "evo.core.sync.matching_time_indices (nearest time)", "max_diff_s": max_diff_s,
+               "matched": int(len(mine)), "scans": int(len(idx)),
+               "unmatched_scans": [int(idx[k]) for k in unmatched],
+               "max_abs_diff_s": float(np.max(np.abs(scan_times[mine] - ref_times[theirs])))}
+    return mine, ref_poses[theirs], account
+
+
+def load_sequence(scans: str | Path, poses_file: str | Path, times_file: str | Path | None = None, *,
+                  poses_format: str = "auto", frames: slice = slice(None), lidar_topic: str | None = None,
+                  imu_topic: str | None = None, max_time_diff_s: float = 0.01) -> Sequence:
+    """Open the scans, read the poses (and times) and check them (module doc), before any scan is
+    registered; a bag's chosen messages are decoded and validated here."""
+    source = open_scans(scans, lidar_topic, imu_topic)
+    poses_file = Path(poses_file)
+    fmt, ref_times, ref_poses = _reference(poses_file, poses_format)
+    if fmt == "kitti":
+        _same_count(f"poses file {poses_file}", len(ref_poses), source, "poses")
+    file_times = None
     if times_file is not None:
-        times = read_times(times_file)
-        if len(times) != len(scans):
-            raise SequenceInputError(f"times file {times_file} has {len(times)} times, scan folder {scans_dir} has "
-                                     f"{len(scans)} scans (one time per scan)")
-    sources = {"scans": str(scans_dir), "poses": str(poses_file), "times": None if times_file is None else str(times_file)}
-    return Sequence(scans=scans, poses=poses, times=times, sources=sources)
+        file_times = read_times(times_file)
+        _same_count(f"times file {times_file}", len(file_times), source, "times")
+    idx = frame_indices(frames, len(source), source.what)
+    times, times_source = _scan_times(source, idx, file_times, times_file)
+    association = None
+    if fmt == "kitti":
+        matched, poses = np.arange(len(idx)), ref_poses[idx]
+    else:
+        matched, poses, association = _associate(poses_file, ref_times, ref_poses, idx, times, max_time_diff_s)
+    imu = None
+    if imu_topic is not None:
+        span = (float(times[0]), float(times[-1]))
+        imu = source.imu_summary(imu_topic, span)
+    sources = {**source.describe(), "poses": str(poses_file), "poses_format": fmt,
+               "times": None if times_file is None else str(times_file),
+               "frames": {"start": int(idx[0]), "stop": int(idx[-1]) + 1, "of": len(source)}}
+    return Sequence(source=source, indices=idx, poses=poses, matched=matched, times=times, times_source=times_source,
+                    association=association, sources=sources, imu=imu)
 
 
+# ---------------------------------------------------------------------------- the run
 @dataclass(frozen=True)
 class SequenceRun:
-    """KISS-ICP's trajectory over a sequence: pose i after registering scan i."""
+    """KISS-ICP's trajectory over a sequence: pose k after registering scan indices[k]."""
 
     poses: np.ndarray
     #: Wall-clock time of each register_frame call (ms).
@@ -258,47 +195,59 @@ class SequenceRun:
     points_per_scan: float
 
 
-def run_sequence(sequence: Sequence, config: IcpConfig, deskew: bool | None = None,
-                 progress: Progress | None = None) -> SequenceRun:
-    """Register every scan with one KISS-ICP pipeline (`new_kiss_icp(config, deskew=...)`).
-
-    deskew: None decides from the first scan (deskew when it has a usable time field, module
-    doc); True requires per-point times in every scan; False registers without them.
-    """
-    first = load_scan(sequence.scans[0])
+def _deskew_choice(first: Scan, name: str, deskew: bool | None) -> tuple[bool, str]:
+    """(deskew, why) from the first scan (module doc)."""
     if deskew is None:
         deskew = first.times is not None
     if deskew and first.times is None:
         why = first.times_note or f"it has none of the per-point time fields {', '.join(POINT_TIME_FIELDS)}"
-        raise SequenceInputError(f"{sequence.scans[0]}: deskew was asked for but {why}")
+        raise SequenceInputError(f"{name}: deskew was asked for but {why}")
     if deskew:
-        note = f"deskewed with the per-point field {first.time_field!r}"
-    elif first.times is not None:
-        note = f"deskew turned off (the scans have the per-point field {first.time_field!r})"
-    else:
-        note = ("no deskew: " + (first.times_note or "the scans have no per-point time field "
-                                 f"({', '.join(POINT_TIME_FIELDS)})"))
-    icp = new_kiss_icp(config.model_copy(update={"deskew": "kiss" if deskew else "off"}), deskew=deskew)
-    n = len(sequence.scans)
-    poses = np.zeros((n, 4, 4))
-    frame_ms = np.zeros(n)
-    points = 0
+        return True, f"deskewed with the per-point field {first.time_field!r}"
+    if first.times is not None:
+        return False, f"deskew turned off (the scans have the per-point field {first.time_field!r})"
+    return False, "no deskew: " + (first.times_note or f"the scans have no per-point time field "
+                                   f"({', '.join(POINT_TIME_FIELDS)})")
+
+
+def _checked(sequence: Sequence, k: int, i: int, scan: Scan, first: Scan | None, deskew: bool) -> None:
+    """A scan's per-point times agree with the first scan's and its own time with the times file."""
+    name = sequence.source.name(i)
+    if first is not None and deskew and scan.time_field != first.time_field:
+        have = scan.time_field or scan.times_note or "no per-point time field"
+        raise SequenceInputError(f"{name}: per-point times differ from the first scan's ({first.time_field!r}): "
+                                 f"{have}; a sequence must be consistent (or register with deskew off)")
+    if sequence.times_source == "times file" and isinstance(sequence.source, FolderScans):
+        check_scan_time(i, name, float(sequence.times[k]), scan.own_span_s, scan.own_time_source,
+                        sequence.sources.get("times"))
+
+
+def run_sequence(sequence: Sequence, config: IcpConfig, deskew: bool | None = None,
+                 progress: Progress | None = None) -> SequenceRun:
+    """Register every chosen scan with one KISS-ICP pipeline (`new_kiss_icp(config, deskew=...)`).
+
+    deskew: None decides from the first scan (deskew when it has a usable time field, module
+    doc); True requires per-point times in every scan; False registers without them.
+    """
+    n = len(sequence.indices)
+    poses, frame_ms = np.zeros((n, 4, 4)), np.zeros(n)
+    points, first, icp, note = 0, None, None, ""
     no_times = np.zeros(0)
-    for i, path in enumerate(sequence.scans):
-        scan = first if i == 0 else load_scan(path)
-        if deskew and scan.time_field != first.time_field:
-            have = scan.time_field or scan.times_note or "no per-point time field"
-            raise SequenceInputError(f"{path}: per-point times differ from the first scan's ({first.time_field!r}): "
-                                     f"{have}; a sequence must be consistent (or register with deskew off)")
+    for k, (i, scan) in enumerate(sequence.source.iter_scans(sequence.indices)):
+        if first is None:
+            deskew, note = _deskew_choice(scan, sequence.source.name(i), deskew)
+            icp = new_kiss_icp(config.model_copy(update={"deskew": "kiss" if deskew else "off"}), deskew=deskew)
+        _checked(sequence, k, i, scan, first, deskew)
+        first = first or scan
         points += len(scan.points)
         t0 = time.perf_counter()
         icp.register_frame(scan.points, scan.times if deskew else no_times)
-        frame_ms[i] = (time.perf_counter() - t0) * 1e3
-        poses[i] = icp.last_pose
+        frame_ms[k] = (time.perf_counter() - t0) * 1e3
+        poses[k] = icp.last_pose
         if progress is not None:
-            progress(i + 1, n)
-    return SequenceRun(poses=poses, frame_ms=frame_ms, deskew=bool(deskew), time_field=first.time_field if deskew else None,
-                       deskew_note=note, points_per_scan=points / n)
+            progress(k + 1, n)
+    return SequenceRun(poses=poses, frame_ms=frame_ms, deskew=bool(deskew),
+                       time_field=first.time_field if deskew else None, deskew_note=note, points_per_scan=points / n)
 
 
 def stage_ms(frame_ms: np.ndarray) -> dict:
@@ -308,24 +257,37 @@ def stage_ms(frame_ms: np.ndarray) -> dict:
 
 
 def evaluate_sequence(sequence: Sequence, config: IcpConfig, deskew: bool | None = None,
-                      progress: Progress | None = None) -> tuple[dict, SequenceRun]:
+                      progress: Progress | None = None, with_evo: bool = True) -> tuple[dict, SequenceRun]:
     """Run KISS-ICP over the sequence and measure it against the reference poses.
 
-    Returns the JSON-ready report ({"icp": trajectory_errors(...), "stage_ms": {p50, p99, max},
-    "frames", "deskew", "deskew_note", "config", "inputs", ...}) and the run (the estimated poses).
+    Returns the JSON-ready report ({"icp": trajectory_errors(...), "evo": evo_eval.evo_figures(...),
+    "reference_consistency": reference_check.reference_consistency(...), "stage_ms", "frames",
+    "deskew", "deskew_note", "config", "inputs", ...}) and the run (the estimated poses).
     """
+    from runtime.odometry.reference_check import reference_consistency
+
     run = run_sequence(sequence, config, deskew=deskew, progress=progress)
+    est = run.poses[sequence.matched]
+    labels = sequence.indices[sequence.matched]
     report = {
-        "icp": trajectory_errors(run.poses, sequence.poses),
+        "icp": trajectory_errors(est, sequence.poses),
+        "reference_consistency": reference_consistency(est, sequence.poses, scan_labels=labels),
         "stage_ms": stage_ms(run.frame_ms),
-        "frames": len(sequence.scans),
+        "frames": len(sequence.indices),
         "points_per_scan": run.points_per_scan,
         "deskew": run.deskew,
         "time_field": run.time_field,
         "deskew_note": run.deskew_note,
         "config": config.model_copy(update={"deskew": "kiss" if run.deskew else "off"}).model_dump(),
         "inputs": dict(sequence.sources),
+        "scan_times": sequence.times_source,
+        "association": sequence.association,
+        "imu": sequence.imu,
     }
+    if with_evo:
+        from runtime.odometry.evo_eval import evo_figures, require_evo
+
+        report["evo"] = {"version": require_evo(), **evo_figures(est, sequence.poses)}
     if sequence.times is not None:
         duration = float(sequence.times[-1] - sequence.times[0])
         report["duration_s"] = duration
@@ -335,6 +297,6 @@ def evaluate_sequence(sequence: Sequence, config: IcpConfig, deskew: bool | None
 
 __all__ = [
     "POINT_TIME_FIELDS", "Progress", "Scan", "Sequence", "SequenceInputError", "SequenceRun", "evaluate_sequence",
-    "format_kitti_poses", "list_scans", "load_scan", "load_sequence", "natural_key", "read_kitti_poses", "read_times", "read_transform",
-    "run_sequence", "stage_ms",
+    "format_kitti_poses", "list_scans", "load_scan", "load_sequence", "natural_key", "open_scans", "read_kitti_poses",
+    "read_times", "read_transform", "run_sequence", "stage_ms",
 ]

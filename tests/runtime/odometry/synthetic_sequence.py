@@ -21,6 +21,14 @@ from runtime.odometry.sequence import format_kitti_poses
 SWEEP_S = 0.1
 
 
+def write_kitti_bin(path: Path, xyz: np.ndarray, intensity: np.ndarray | None = None) -> None:
+    """A KITTI velodyne .bin: float32 x, y, z, intensity per point."""
+    rec = np.zeros((len(xyz), 4), dtype="<f4")
+    rec[:, :3] = xyz
+    rec[:, 3] = 0.0 if intensity is None else intensity
+    path.write_bytes(rec.tobytes())
+
+
 def _rect(rng, n, origin, u, v):
     a, b = rng.random((2, n))
     return origin + a[:, None] * u + b[:, None] * v
@@ -54,27 +62,30 @@ def scene_points(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.concatenate([s(k) for (_, s), k in zip(surfaces, counts) if k > 0])
 
 
-def trajectory(n_scans: int, step_m: float = 0.1, yaw_per_scan_rad: float = 0.02, still_scans: int = 0) -> np.ndarray:
+def trajectory(n_scans: int, step_m=0.1, yaw_per_scan_rad=0.02, still_scans: int = 0) -> np.ndarray:
     """(n_scans + 1, 4, 4) sensor poses at the sweep boundaries: an arc from the origin, 0.3 m up,
-    after standing still for the first `still_scans` sweeps."""
-    k = np.maximum(np.arange(n_scans + 1) - still_scans, 0)
-    yaw = yaw_per_scan_rad * k
-    moving = np.diff(k) > 0
-    x = np.concatenate([[0.0], np.cumsum(moving * step_m * np.cos(yaw[:-1] + yaw_per_scan_rad / 2))])
-    y = np.concatenate([[0.0], np.cumsum(moving * step_m * np.sin(yaw[:-1] + yaw_per_scan_rad / 2))])
+    after standing still for the first `still_scans` sweeps. step_m and yaw_per_scan_rad are the
+    motion of each sweep: one value for all, or one per sweep (n_scans values)."""
+    moving = np.arange(n_scans) >= still_scans
+    ds = np.broadcast_to(np.asarray(step_m, dtype=float), (n_scans,)) * moving
+    dyaw = np.broadcast_to(np.asarray(yaw_per_scan_rad, dtype=float), (n_scans,)) * moving
+    yaw = np.concatenate([[0.0], np.cumsum(dyaw)])
+    x = np.concatenate([[0.0], np.cumsum(ds * np.cos(yaw[:-1] + dyaw / 2))])
+    y = np.concatenate([[0.0], np.cumsum(ds * np.sin(yaw[:-1] + dyaw / 2))])
     poses = planar_to_se3(np.stack([x, y, yaw], axis=1))
     poses[:, 2, 3] = 0.3
     return poses
 
 
 def make_sequence(folder: Path, n_scans: int = 20, points: int = 4000, sweep: bool = False, seed: int = 0,
-                  noise_m: float = 0.01, fmt: str = "mixed", step_m: float = 0.1,
-                  yaw_per_scan_rad: float = 0.02, still_scans: int = 0) -> tuple[Path, Path, Path]:
+                  noise_m: float = 0.01, fmt: str = "mixed", step_m=0.1,
+                  yaw_per_scan_rad=0.02, still_scans: int = 0) -> tuple[Path, Path, Path]:
     """Write scans `scan_0 .. scan_{n-1}` (natural order matters: scan_10 after scan_9), a KITTI
     poses file and a times file under `folder`; returns (scans dir, poses file, times file).
 
-    fmt: "pcd", "ply" or "mixed" (alternating). Scans carry a float32 `t` field (seconds in the
-    sweep) when sweep=True.
+    fmt: "pcd", "ply", "bin" (KITTI velodyne) or "mixed" (PCD and PLY alternating). Scans carry a
+    float32 `t` field (seconds in the sweep) when sweep=True (not in .bin). step_m, yaw_per_scan_rad:
+    see trajectory().
     """
     rng = np.random.default_rng(seed)
     scans = folder / "scans"
@@ -103,6 +114,9 @@ def make_sequence(folder: Path, n_scans: int = 20, points: int = 4000, sweep: bo
         fields.update(x=local[:, 0].astype(np.float32), y=local[:, 1].astype(np.float32), z=local[:, 2].astype(np.float32))
         if sweep:
             fields["t"] = t.astype(np.float32)
+        if fmt == "bin":
+            write_kitti_bin(scans / f"{i:06d}.bin", local)
+            continue
         use_ply = fmt == "ply" or (fmt == "mixed" and i % 2 == 1)
         (write_ply if use_ply else write_pcd)(scans / f"scan_{i}.{'ply' if use_ply else 'pcd'}", fields)
     poses_file = folder / "poses.txt"

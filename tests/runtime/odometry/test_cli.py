@@ -68,6 +68,16 @@ def test_eval_on_a_recorded_sequence(sequence, tmp_path):
     assert trajectory_errors(est, read_kitti_poses(poses))["end_error_m"] == pytest.approx(icp["end_error_m"], abs=1e-6)
     assert r.stdout.startswith("icp: length 1.90 m, drift ")
     assert "no deskew" in r.stdout
+    # evo's figures beside ours: APE with and without alignment, RPE per frame and per metre.
+    evo = report["evo"]
+    assert evo["version"] == "1.38.1" and evo["pose_relation"] == "translation_part"
+    assert evo["ape"]["aligned"]["rmse"] <= evo["ape"]["unaligned"]["rmse"]
+    assert evo["ape"]["unaligned"]["max"] == pytest.approx(
+        max(trajectory_errors(est[:k], read_kitti_poses(poses)[:k])["end_error_m"] for k in range(2, 21)), abs=1e-6)
+    assert evo["rpe"]["1_frame"]["pairs"] == 19 and evo["rpe"]["1_m"]["pairs"] >= 1
+    assert "shorter than 10 m" in evo["rpe"]["10_m"]["skipped"]
+    assert report["reference_consistency"]["consistent"] and report["scan_times"] == "times file"
+    assert "evo APE aligned (SE(3)): rmse " in r.stdout and "evo RPE 1 frame: rmse " in r.stdout
 
 
 def test_eval_overrides_the_icp_settings(sequence, tmp_path):
@@ -111,7 +121,7 @@ def test_bad_sequences_are_one_line_errors_naming_the_file(tmp_path, case):
     elif case == "empty":
         scans = tmp_path / "empty"
         scans.mkdir()
-        expected = f"scan folder {scans} has no .pcd or .ply file"
+        expected = f"scan folder {scans} has no .pcd, .ply or .bin file"
     elif case == "not-a-scan":
         (scans / "scan_1.ply").write_bytes(b"ply\nformat ascii 1.0\n")
         expected = f"{scans / 'scan_1.ply'}: header ends before"
@@ -122,8 +132,8 @@ def test_bad_sequences_are_one_line_errors_naming_the_file(tmp_path, case):
 
 
 @pytest.mark.parametrize("args, expected", [
-    ([], "give exactly one of --scans DIR or --scenario"),
-    (["--scans", ".", "--scenario", "case1"], "give exactly one of --scans DIR or --scenario"),
+    ([], "give exactly one of --scans PATH or --scenario"),
+    (["--scans", ".", "--scenario", "case1"], "give exactly one of --scans PATH or --scenario"),
     (["--scans", "."], "--scans needs --poses FILE"),
     (["--scans", ".", "--poses", "p.txt", "--seed", "3"], "--seed goes with --scenario"),
     (["--scenario", "case1", "--voxel-size", "0.5"], "--voxel-size go with --scans, not --scenario"),

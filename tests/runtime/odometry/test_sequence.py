@@ -31,7 +31,7 @@ def test_scan_folder_errors(tmp_path):
     with pytest.raises(SequenceInputError, match=f"scan folder {tmp_path / 'nope'} does not exist"):
         list_scans(tmp_path / "nope")
     (tmp_path / "readme.txt").write_text("x")
-    with pytest.raises(SequenceInputError, match=f"scan folder {tmp_path} has no .pcd or .ply file"):
+    with pytest.raises(SequenceInputError, match=f"scan folder {tmp_path} has no .pcd, .ply or .bin file"):
         list_scans(tmp_path)
     with pytest.raises(SequenceInputError, match="is not a folder"):
         list_scans(tmp_path / "readme.txt")
@@ -100,7 +100,7 @@ def test_the_poses_and_times_readers_fail_only_with_their_own_one_line_error(tmp
 def test_times_must_increase(tmp_path):
     f = tmp_path / "times.txt"
     f.write_text("0.0\n0.1\n0.1\n")
-    with pytest.raises(SequenceInputError, match=f"times file {f} line 3: 0.1 is not after the previous time"):
+    with pytest.raises(SequenceInputError, match=f"times file {f} line 3 \\(index 2\\): 0.1 is not after the previous time"):
         read_times(f)
     f.write_text("0.0\n0.1 0.2\n")
     with pytest.raises(SequenceInputError, match="line 2: expected 1 number, got 2"):
@@ -199,3 +199,35 @@ def test_deskew_on_demand_needs_times_in_every_scan(tmp_path):
     (scans2 / "scan_1.ply").unlink()
     with pytest.raises(SequenceInputError, match="scan_1.pcd: per-point times differ from the first scan's"):
         run_sequence(load_sequence(scans2, poses2), IcpConfig())
+
+
+# ---------------------------------------------------------------------------- KITTI .bin, absolute times
+def test_kitti_bin_scans_are_float32_xyz_intensity(tmp_path):
+    rec = np.array([[1, 2, 3, 0.5], [0, 0, 0, 0], [4, 5, 6, 0.25]], dtype="<f4")
+    (tmp_path / "000000.bin").write_bytes(rec.tobytes())
+    scan = load_scan(tmp_path / "000000.bin")
+    assert scan.points.tolist() == [[1, 2, 3], [4, 5, 6]] and scan.dropped == 1 and scan.times is None
+    (tmp_path / "000001.bin").write_bytes(rec.tobytes()[:-3])
+    with pytest.raises(SequenceInputError, match="000001.bin: 45 bytes is not a whole number of KITTI .bin points"):
+        load_scan(tmp_path / "000001.bin")
+    (tmp_path / "000002.bin").write_bytes(b"")
+    with pytest.raises(SequenceInputError, match=r"000002.bin: 0 bytes .* \(the file is empty\)"):
+        load_scan(tmp_path / "000002.bin")
+    assert [p.name for p in list_scans(tmp_path)] == ["000000.bin", "000001.bin", "000002.bin"]
+
+
+@pytest.mark.parametrize("values, span", [
+    (1.7e9 + np.array([0.0, 0.05, 0.099]), (1.7e9, 1.7e9 + 0.099)),             # absolute s (Hesai)
+    (1.7e18 + np.array([0.0, 5e7, 9.9e7]), (1.7e9, 1.7e9 + 0.099)),             # absolute ns (Livox PointCloud2)
+    (np.array([0.0, 5e7, 9.9e7]), None),                                          # ns in the sweep (Ouster)
+    (np.array([-0.1, -0.05, 0.0]), None),                                         # s before the sweep's end
+])
+def test_absolute_point_times_give_the_scan_its_own_time(tmp_path, values, span):
+    xyz = np.array([[1, 2, 3], [4, 5, 6], [7, 8, 9]], dtype=np.float64)
+    write_pcd(tmp_path / "a.pcd", _fields(xyz, timestamp=values.astype(np.float64)))
+    scan = load_scan(tmp_path / "a.pcd")
+    if span is None:
+        assert scan.own_span_s is None and scan.own_time_source is None
+    else:
+        assert scan.own_span_s == pytest.approx(span, abs=1e-6)
+        assert scan.own_time_source == "absolute per-point field 'timestamp'"
