@@ -72,12 +72,18 @@ def replay_command(**o) -> None:
         src = open_source(rec_path, topics_for)
         if src.kind == "bag" and src.first_s is None:
             raise InputError(f"{rec_path}: the bag has no messages")
-        loaded = dataclasses.replace(loaded, config=_with_streams(configs["config"], src.streams))
+        config = _with_streams(configs["config"], src.streams)
+        if src.kind == "bag" and o["config_path"] is None:
+            config = without_base(config)
+        loaded = dataclasses.replace(loaded, config=config)
     except (OutputPathError, ReplaySourceError, ConfigFileError) as exc:
         raise InputError(str(exc)) from None
     say = lambda s: click.echo(s, err=True)  # noqa: E731
     say(_describe(src, loaded.config))
-    goal = None if src.kind == "bag" and not o["goal"] else (tuple(o["goal"]) if o["goal"] else src.ticks[0].goal)
+    if src.kind == "bag":
+        goal = tuple(o["goal"]) if o["goal"] else None
+    else:  # its own goals (a replay that stood by, standing by again)
+        goal = None if src.run_info.get("standby") is True else src.ticks[0].goal
     summary = _run(src, loaded, goal, paths, o["rate"] == "recorded", say)
     say(_result_line(summary, paths["summary"].parent))
 
@@ -145,17 +151,32 @@ def _with_streams(config, streams: dict):
     return config.model_copy(update={"ros": ros})
 
 
+def without_base(config):
+    """The odometry settings for a recording without the base's feedback (a drivers' bag): no wheel
+    odometry comes, so the fusion is told the wheels know nothing (their noise floor at its
+    largest, the plausibility gate wide open) and ICP predicts with its own constant-velocity model:
+    the pose follows the lidar alone. (The IMU only calibrates the gyro bias: without a base the
+    controller never leaves its start-up, where the IMU is used for that.)"""
+    odo = config.odometry
+    fusion = odo.fusion.model_copy(update={"wheel_floor_m": 1.0, "wheel_floor_rad": 1.0, "gate_m": 10.0,
+                                           "gate_rad": 3.2})
+    odo = odo.model_copy(update={"fusion": fusion, "icp_prior": "constant_velocity"})
+    return config.model_copy(update={"odometry": odo})
+
+
 def _describe(src, config) -> str:
     streams = "; ".join(f"{s} {t} ({ty.split('/')[-1]})" for s, (t, ty) in src.streams.items())
-    if src.kind == "dct":
+    if src.kind == "dct" and src.can_rx:
         acc = src.recorder_account or {}
         drops = acc.get("dropped_total")
         return (f"dct replay: {src.path} (a dct run recording: {len(src.ticks)} ticks, {src.duration_s:.1f} s"
                 + ("" if src.complete else f", cut off: {src.stopped_by}")
                 + (f", {drops} records dropped by the recorder" if drops else "")
                 + f"): {streams}; the base: {len(src.can_rx)} CAN frames; planner {config.preset}")
-    return (f"dct replay: {src.path} (a bag: {src.duration_s:.1f} s): {streams}; no base feedback (the controller's "
-            f"watchdogs will say so); planner {config.preset}")
+    return (f"dct replay: {src.path} ({'a replay' if src.kind == 'dct' else 'a bag'}: {src.duration_s:.1f} s): "
+            f"{streams}; no base feedback: the controller waits for the base (its watchdogs say so) and the "
+            f"odometry follows the lidar alone (odometry.fusion {config.odometry.fusion.wheel_floor_m:g} m wheel "
+            f"noise floor, icp_prior {config.odometry.icp_prior}); planner {config.preset}")
 
 
 def _run(src, loaded, goal, paths: dict, pace: bool, say) -> dict:

@@ -20,8 +20,6 @@ import numpy as np
 
 FILES = {"recording": "replay.mcap", "trajectory": "odometry.tum", "report": "latency.html",
          "summary": "replay.json"}
-#: Poses of the live run and the replay are at the same tick when their times agree to this.
-SAME_STAMP_S = 1e-6
 
 
 def output_paths(out_dir: Path, force: bool, inputs=()) -> dict[str, Path]:
@@ -51,13 +49,19 @@ def tum_text(poses) -> str:
     return "\n".join(lines) + ("\n" if lines else "")
 
 
+def _ns(t_s: float) -> int:
+    """A time as the recorder writes log times (runtime.io.recording): the same float gives the same ns."""
+    return max(0, int(round(t_s * 1e9)))
+
+
 def compare_odometry(live, replay) -> dict:
-    """The position and heading difference between two trajectories (t, x, y, yaw) at the stamps
-    both have: max and mean in metres, max heading difference in radians."""
-    ours = {round(t / SAME_STAMP_S): (x, y, yaw) for t, x, y, yaw in replay}
+    """The position and heading difference between two trajectories at the ticks both have
+    (live: (log time ns, x, y, yaw) from /dct/pose; replay: (scheduled time s, x, y, yaw)): max and
+    mean in metres, max heading difference in radians."""
+    ours = {_ns(t): (x, y, yaw) for t, x, y, yaw in replay}
     d, dyaw = [], []
-    for t, x, y, yaw in live:
-        other = ours.get(round(t / SAME_STAMP_S))
+    for t_ns, x, y, yaw in live:
+        other = ours.get(t_ns)
         if other is None:
             continue
         d.append(math.hypot(other[0] - x, other[1] - y))

@@ -94,9 +94,6 @@ def run_replay(setup: ReplaySetup, echo) -> ReplayResult:
     src, ld = setup.source, setup.loaded
     config = ld.config
     inbox, transport, bus = SensorInbox(), ReplayTransport(), ReplayCanBus()
-    receiver = RosSensorReceiver(config.ros.inputs, inbox, transport, camera_K=ld.camera_K,
-                                 camera_distortion=ld.camera_dist)
-    feeder = _Feeder(src.samples(), transport, receiver)
     result = ReplayResult()
     holder: dict = {}
 
@@ -120,6 +117,11 @@ def run_replay(setup: ReplaySetup, echo) -> ReplayResult:
         plans = grid_plans(src.first_s, period, src.last_s + 1.0)
     clock = ReplayClock(plans, before_tick, period, pace=setup.pace)
     recorder = RunRecorder(setup.recording_path, force=True)
+    # The replay's recording carries the inputs as the controller took them, as `dct run --record`
+    # does: it can itself be replayed (with other settings, or to check that it replays the same).
+    receiver = RosSensorReceiver(config.ros.inputs, inbox, transport, camera_K=ld.camera_K,
+                                 camera_distortion=ld.camera_dist, tap=recorder.sensor_tap(clock.now))
+    feeder = _Feeder(src.samples(), transport, receiver)
     with recorder:
         goal = setup.goal if setup.goal is not None else (0.0, 0.0, 0.0)
         parts = assemble(RobotSetup(ld.robot, config, ld.wheel_calibration, ld.camera, ld.T_cam_lidar),
@@ -129,8 +131,8 @@ def run_replay(setup: ReplaySetup, echo) -> ReplayResult:
                                 goal_given=setup.goal is not None))
         controller = holder["controller"] = parts.controller
         scripted = _script_icp(controller.odometry, src)
-        hook = recorder.attach(controller, config, {"clock": "replay", "replay_of": str(src.path),
-                                                    "goal": list(goal)}, static_transforms=sensor_mounts(ld))
+        info = {"clock": "replay", "replay_of": str(src.path), "goal": list(goal), "standby": setup.goal is None}
+        hook = recorder.attach(controller, config, info, static_transforms=sensor_mounts(ld))
 
         def after_tick(row) -> None:
             hook(row)

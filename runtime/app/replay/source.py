@@ -67,7 +67,7 @@ class ReplaySource:
     ticks: list[TickInputs] = field(default_factory=list)
     #: CAN frames received from the base: (loop-clock time s, id, data).
     can_rx: list[tuple[float, int, bytes]] = field(default_factory=list)
-    #: The live odometry: (scheduled tick time s, x, y, yaw).
+    #: The live odometry: (the tick's scheduled time as the recorder's log time, ns; x, y, yaw).
     live_poses: list[tuple[float, float, float, float]] = field(default_factory=list)
     recorder_account: dict | None = None
     complete: bool = True
@@ -157,7 +157,7 @@ def _dct_source(p: Path, rec, topics: dict[str, str | None]) -> ReplaySource:
     for log_ns, m in rec.messages.get(TOPIC_POSE, []):
         q, pos = m["pose"]["orientation"], m["pose"]["position"]
         yaw = 2.0 * math.atan2(float(q["z"]), float(q["w"]))
-        src.live_poses.append((log_ns * 1e-9, float(pos["x"]), float(pos["y"]), math.atan2(math.sin(yaw), math.cos(yaw))))
+        src.live_poses.append((int(log_ns), float(pos["x"]), float(pos["y"]), math.atan2(math.sin(yaw), math.cos(yaw))))
     if not src.ticks:
         raise ReplaySourceError(f"{p} is a dct recording without /dct/inputs (recorded before `dct replay` "
                                 "existed, or cut off before its first tick): nothing says what each tick took in")
