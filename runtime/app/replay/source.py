@@ -14,7 +14,6 @@ one replays up to its last complete chunk.
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -115,6 +114,10 @@ def open_source(path: Path, topics_for: Callable[[dict], dict[str, str | None]])
             src = _dct_source(p, rec, topics)
         else:
             src = _mcap_bag_source(p, topics)
+    if not src.streams and src.run_info.get("clock") == "lockstep":
+        raise ReplaySourceError(f"{p} is a lockstep simulation's recording (`dct hil run` without --realtime): it "
+                                "carries no sensor messages; record with `dct run --record` or `dct hil run --realtime "
+                                "--record`")
     if not src.streams:
         wanted = ", ".join(f"{s} {t}" for s, t in topics.items() if t) or "none"
         raise ReplaySourceError(f"{p} has none of the sensor topics to replay ({wanted}); name them with "
@@ -246,9 +249,3 @@ def _rosbag_samples(src: ReplaySource) -> Iterator[Sample]:
         for n, (conn, t_ns, raw) in enumerate(reader.messages(connections=conns), start=1):
             stream, type_name = by_topic[conn.topic]
             yield Sample(n, t_ns * 1e-9, stream, conn.topic, type_name, bytes(raw))
-
-
-def recorded_config_json(src: ReplaySource) -> str | None:
-    """The controller config the recording was made with (JSON), None for a bag."""
-    cfg = src.run_info.get("controller_config")
-    return None if cfg is None else json.dumps(cfg)

@@ -168,6 +168,18 @@ def test_bad_inputs_exit_2_with_one_line_before_any_work(tmp_path):
     rec.close()
     r = _invoke(old, "--out", tmp_path / "o")
     assert r.exit_code == 2 and "without /dct/inputs" in r.output
+    lockstep = tmp_path / "lockstep.mcap"  # ticks, but the simulator handed the sensors over in its process
+    rec = RunRecorder(lockstep)
+    snap = SimpleNamespace(t_s=0.0, pose=SimpleNamespace(x_m=0.0, y_m=0.0, yaw_rad=0.0), scan=None,
+                           goal=SimpleNamespace(x_m=1.0, y_m=0.0, yaw_rad=0.0), points_fix=np.zeros((0, 2)), plan=None,
+                           reference_path=None, partition_frame=None, vlm_answers=0, vlm_last_answer_s=None,
+                           vlm_masks=(), inputs_delivered=3, icp_delivered=())
+    hook = rec.attach(SimpleNamespace(snapshot=snap), load_controller_config(), {"clock": "lockstep"})
+    for row in _rows(3):
+        hook(row)
+    rec.close()
+    r = _invoke(lockstep, "--out", tmp_path / "o")
+    assert r.exit_code == 2 and "lockstep simulation's recording" in r.output and "--realtime" in r.output
     bag = write_mcap_bag(tmp_path / "bag.mcap", duration_s=0.3)
     r = _invoke(bag, "--out", tmp_path / "o", "--lidar-topic", "/nothing", "--imu-topic", "/nothing")
     assert r.exit_code == 2 and "none of the sensor topics" in r.output
