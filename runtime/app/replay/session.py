@@ -83,73 +83,36 @@ class _Feeder:
 def run_replay(setup: ReplaySetup, echo) -> ReplayResult:
     """Run the controller over the whole recording; the replay's recording is closed at the end."""
     from runtime.app.replay.clock import ReplayClock, grid_plans, recorded_plans
-    from runtime.app.replay.inject import ReplayCanBus, ReplayTransport, ReplayVlm
-    from runtime.app.run_process import sensor_mounts
-    from runtime.common.geometry import Pose2D
-    from runtime.controller.builder import RobotSetup, Wiring, assemble
+    from runtime.app.replay.inject import ReplayCanBus, ReplayTransport
     from runtime.io.recording import RunRecorder
     from runtime.io.ros.receiver import RosSensorReceiver
     from runtime.io.sensor_inbox import SensorInbox
 
     src, ld = setup.source, setup.loaded
-    config = ld.config
     inbox, transport, bus = SensorInbox(), ReplayTransport(), ReplayCanBus()
     result = ReplayResult()
     holder: dict = {}
-
-    def before_tick(plan, after) -> None:
-        controller = holder["controller"]
-        if plan.live is not None:
-            feeder.through(plan.live.sensor_samples)
-            result.can_frames_fed += _queue_can(src, bus, holder, after.now_s if after is not None else math.inf)
-            g = plan.live.goal
-            if (g[0], g[1], g[2]) != (controller.goal.x_m, controller.goal.y_m, controller.goal.yaw_rad):
-                controller.request_goal(Pose2D(*g), "the recording")
-        else:
-            feeder.until(plan.now_s)
-        controller.odometry.settle(plan.now_s)
-        controller.settle(plan.now_s)
-
-    period = config.loop.period_s
-    if src.ticks:
-        plans = recorded_plans(src.ticks)
-    else:
-        plans = grid_plans(src.first_s, period, src.last_s + 1.0)
-    clock = ReplayClock(plans, before_tick, period, pace=setup.pace)
+    period = ld.config.loop.period_s
+    plans = recorded_plans(src.ticks) if src.ticks else grid_plans(src.first_s, period, src.last_s + 1.0)
+    clock = ReplayClock(plans, lambda plan, after: _before_tick(plan, after, holder, result), period, pace=setup.pace)
     recorder = RunRecorder(setup.recording_path, force=True)
     # The replay's recording carries the inputs as the controller took them, as `dct run --record`
     # does: it can itself be replayed (with other settings, or to check that it replays the same).
-    receiver = RosSensorReceiver(config.ros.inputs, inbox, transport, camera_K=ld.camera_K,
+    receiver = RosSensorReceiver(ld.config.ros.inputs, inbox, transport, camera_K=ld.camera_K,
                                  camera_distortion=ld.camera_dist, tap=recorder.sensor_tap(clock.now))
-    feeder = _Feeder(src.samples(), transport, receiver)
+    holder.update(src=src, bus=bus, feeder=_Feeder(src.samples(), transport, receiver))
     with recorder:
-        goal = setup.goal if setup.goal is not None else (0.0, 0.0, 0.0)
-        parts = assemble(RobotSetup(ld.robot, config, ld.wheel_calibration, ld.camera, ld.T_cam_lidar),
-                         Wiring(recorder.wrap_bus(bus, clock.now), clock, Pose2D(*goal),
-                                inbox if config.uses_lidar else None, lockstep=True,
-                                vlm_backend=ReplayVlm() if config.uses_vlm_backend else None,
-                                goal_given=setup.goal is not None))
+        parts, scripted = _assemble(setup, clock, recorder, (bus, inbox), result.poses)
         controller = holder["controller"] = parts.controller
-        scripted = _script_icp(controller.odometry, src)
-        info = {"clock": "replay", "replay_of": str(src.path), "goal": list(goal), "standby": setup.goal is None}
-        hook = recorder.attach(controller, config, info, static_transforms=sensor_mounts(ld))
-
-        def after_tick(row) -> None:
-            hook(row)
-            p = controller.snapshot.pose
-            result.poses.append((float(row["scheduled_s"]), p.x_m, p.y_m, p.yaw_rad))
-            clock.after_tick()
-
-        parts.loop.after_tick = after_tick
         if src.ticks:  # what the live driver drained before its first tick (discarded at start-up)
-            holder["can_i"] = 0
-            result.can_frames_fed += _queue_can(src, bus, holder, src.ticks[0].now_s)
+            result.can_frames_fed += _queue_can(holder, src.ticks[0].now_s)
         wall0 = time.perf_counter()
         try:
             parts.run(lambda: clock.done)
         finally:
             bus.shutdown()
         result.wall_s = time.perf_counter() - wall0
+    feeder = holder["feeder"]
     result.ticks = clock.ticks
     result.samples_fed, result.samples_missing = feeder.fed, feeder.missing
     result.frames_sent = len(bus.sent)
@@ -161,11 +124,61 @@ def run_replay(setup: ReplaySetup, echo) -> ReplayResult:
     return result
 
 
-def _queue_can(src: ReplaySource, bus, holder: dict, before_s: float) -> int:
+def _before_tick(plan, after, holder: dict, result: ReplayResult) -> None:
+    """What the tick must find (samples, CAN frames, a new goal), and the work beside the tick
+    due by its time (runtime.app.replay.clock)."""
+    from runtime.common.geometry import Pose2D
+
+    controller, feeder = holder["controller"], holder["feeder"]
+    if plan.live is not None:
+        feeder.through(plan.live.sensor_samples)
+        result.can_frames_fed += _queue_can(holder, after.now_s if after is not None else math.inf)
+        g = plan.live.goal
+        if (g[0], g[1], g[2]) != (controller.goal.x_m, controller.goal.y_m, controller.goal.yaw_rad):
+            controller.request_goal(Pose2D(*g), "the recording")
+    else:
+        feeder.until(plan.now_s)
+    controller.odometry.settle(plan.now_s)
+    controller.settle(plan.now_s)
+
+
+def _assemble(setup: ReplaySetup, clock, recorder, io: tuple, poses: list):
+    """The controller as `dct run` assembles it (lockstep timing) on io = (the CAN bus, the sensor
+    inbox), its ICP scripted, the recorder and the trajectory (each tick's pose appended to `poses`)
+    on the loop's after_tick hook. Returns (the assembly, the scripted ICP worker or None)."""
+    from runtime.app.replay.inject import ReplayVlm
+    from runtime.app.run_process import sensor_mounts
+    from runtime.common.geometry import Pose2D
+    from runtime.controller.builder import RobotSetup, Wiring, assemble
+
+    ld, config = setup.loaded, setup.loaded.config
+    bus, inbox = io
+    goal = setup.goal if setup.goal is not None else (0.0, 0.0, 0.0)
+    parts = assemble(RobotSetup(ld.robot, config, ld.wheel_calibration, ld.camera, ld.T_cam_lidar),
+                     Wiring(recorder.wrap_bus(bus, clock.now), clock, Pose2D(*goal),
+                            inbox if config.uses_lidar else None, lockstep=True,
+                            vlm_backend=ReplayVlm() if config.uses_vlm_backend else None,
+                            goal_given=setup.goal is not None))
+    controller = parts.controller
+    scripted = _script_icp(controller.odometry, setup.source)
+    info = {"clock": "replay", "replay_of": str(setup.source.path), "goal": list(goal), "standby": setup.goal is None}
+    hook = recorder.attach(controller, config, info, static_transforms=sensor_mounts(ld))
+
+    def after_tick(row) -> None:
+        hook(row)
+        p = controller.snapshot.pose
+        poses.append((float(row["scheduled_s"]), p.x_m, p.y_m, p.yaw_rad))
+        clock.after_tick()
+
+    parts.loop.after_tick = after_tick
+    return parts, scripted
+
+
+def _queue_can(holder: dict, before_s: float) -> int:
     """Queue the received CAN frames stamped before `before_s` (the next tick's clock)."""
     i = holder.get("can_i", 0)
     n = 0
-    rx = src.can_rx
+    rx, bus = holder["src"].can_rx, holder["bus"]
     while i < len(rx) and rx[i][0] < before_s:
         bus.queue(*rx[i])
         i += 1

@@ -96,6 +96,16 @@ def thread_cpu_seconds(proc_root: str = "/proc") -> list[dict] | None:
     return out
 
 
+def _tick_inputs(snap) -> tuple | None:
+    """What the tick took in, for /dct/inputs: (the controller's clock, the sensor samples its inbox
+    had counted, the ICP results it received, its goal); None without a ControllerSnapshot."""
+    if getattr(snap, "inputs_delivered", None) is None:
+        return None
+    g = snap.goal
+    return (float(snap.t_s), int(snap.inputs_delivered), tuple(snap.icp_delivered),
+            (float(g.x_m), float(g.y_m), float(g.yaw_rad)))
+
+
 class RunRecorder:
     """One MCAP recording. Use as a context manager (or call `close()`): the file is finished
     and renamed onto `path` even when the run raised (the log of a failed run is the one wanted).
@@ -261,12 +271,7 @@ class RunRecorder:
             if scan is not None:
                 offs = scan.point_time_offsets_s
                 frame_end = float(scan.stamp_s) + (float(offs.max()) if len(offs) else float(scan.frame_duration_s))
-            inputs = None
-            if getattr(snap, "inputs_delivered", None) is not None:  # a ControllerSnapshot
-                g = snap.goal
-                inputs = (float(snap.t_s), int(snap.inputs_delivered), tuple(snap.icp_delivered),
-                          (float(g.x_m), float(g.y_m), float(g.yaw_rad)))
-            put("tick", ("tick", row.copy(), xyyaw, frame_end, inputs))
+            put("tick", ("tick", row.copy(), xyyaw, frame_end, _tick_inputs(snap)))
             stamp = snap.vlm_last_answer_s if snap is not None else None
             if stamp is not None and stamp != self._last_answer_s:
                 self._last_answer_s = stamp
