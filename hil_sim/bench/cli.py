@@ -299,3 +299,30 @@ def beacon_command(**options) -> None:
     """BEACON's four families (sparse, cluttered, collision-required, collision-shortcut), drawn per seed: the
     same figures per family and overall, next to BEACON's published success and path length."""
     _run_campaign_command("beacon", **options)
+
+
+@bench_group.command("replay")
+@click.option("--scenario", default="case3", show_default=True)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--planner", type=click.Choice(["dct", "all-fixed", "grid-astar"]), default=None,
+              help="A preset in place of the config's.")
+@click.option("--domain-id", type=click.IntRange(1, 232), help="The live run's DDS domain (default: a random one).")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Folder for live.mcap, replay/ and latency.png.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the figures as JSON.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def replay_bench_command(*, scenario: str, seed: int, planner: str | None, domain_id: int | None, out_dir: Path,
+                         json_path: Path | None, force: bool) -> None:
+    """`dct replay`'s acceptance: a real-time episode recorded by the controller, then replayed; the replay's
+    odometry against the live run's (max, mean), the replay's time against the recording's length, the
+    recording's size per minute, the replay's latency report (and a screenshot of it with chromium)."""
+    from calibration.outputs import atomic_write_json
+    from hil_sim.bench.replay import replay_bench, summary_lines
+
+    check_scenario_and_output(scenario, seed, json_path, force)
+    result = replay_bench(scenario, out_dir, seed=seed, planner=planner, domain_id=domain_id,
+                          echo=lambda s: click.echo(s, err=True))
+    for line in summary_lines(result):
+        click.echo(line)
+    if json_path is not None:
+        atomic_write_json(json_path, with_provenance(result))

@@ -133,13 +133,14 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                          robot_path: Path | None = None, calibration_path: Path | None = None,
                          echo=None, keep_dir: Path | None = None, planner: str | None = None, *,
                          duration_s: float | None = None, record_path: Path | None = None,
-                         force: bool = False, middleware: str | None = None) -> dict:
+                         force: bool = False, middleware: str | None = None, domain_id: int | None = None) -> dict:
     """Run one real-time episode with two processes; returns the merged metrics (module docstring).
     planner: overrides the config's planner.mode (dct, all-fixed).
     Raises RuntimeError when a process could not run (the message says which and its last words).
     duration_s: a patrol's duration (`dct hil serve --duration`); record_path: the controller
     records the run (`dct run --record`, `--force` overwrites); middleware: ros.middleware of both
-    processes (None: the config's). Both discover each other on this machine only."""
+    processes (None: the config's). Both discover each other on this machine only. domain_id: the
+    run's DDS domain (None: a random one, unique_channels)."""
     from hil_sim.episode.patrol import with_duration
     from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
@@ -152,6 +153,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
     _sigterm_raises()
     goal = goal_in_odom_frame(sc)
     channels = unique_channels()
+    if domain_id is not None:
+        channels = (int(domain_id), *channels[1:])
     with tempfile.TemporaryDirectory(prefix="dct-rt-") as tmp:
         work = Path(keep_dir) if keep_dir is not None else Path(tmp)
         sim_json, ctl_json = work / "simulator.json", work / "controller.json"

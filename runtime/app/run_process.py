@@ -2,6 +2,7 @@
 
     sensors (ROS 2 over DDS) -> RosSensorReceiver thread -> SensorInbox -> the tick
     the tick -> AgileXBaseHardware -> CAN bus (socketcan, limo_serial or udp_multicast)
+    (--record: the receiver thread also queues each sample's raw bytes for the recorder)
     the tick -> after_tick -> bounded queue -> RosPublisher thread -> odometry, plan, P_fix/P_mov,
                                                                        diagnostics (DDS)
 
@@ -132,17 +133,21 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
     notifier = SystemdNotifier()
     receiver = publisher = transport = None
     summary: dict = {"pid": None}
+    # One loop clock for the whole process: the recorder stamps the raw sensor samples with it as
+    # the loop stamps its ticks (a replay compares the two).
+    clock = EpochMonotonicClock()
     try:
         transport = _open_transport(ros, echo)
         receiver = RosSensorReceiver(ros.inputs, inbox, transport, camera_K=loaded.camera_K,
-                                     camera_distortion=loaded.camera_dist)
+                                     camera_distortion=loaded.camera_dist,
+                                     tap=recorder.sensor_tap(clock.now) if recorder is not None else None)
         publisher = RosPublisher(transport, ros.outputs, static_transforms=sensor_mounts(loaded),
                                  zones=safety_zones(loaded.robot, loaded.config.safety_supervisor))
         _say_routes(transport, echo)
         receiver.start()
         notifier.ready()
         goal = _wait_for_goal(opts, ros, receiver, notifier, stop, echo)
-        summary = _drive(opts, loaded, goal, (bus, inbox, receiver, publisher, recorder, notifier), stop, echo)
+        summary = _drive(opts, loaded, goal, (bus, inbox, receiver, publisher, recorder, notifier, clock), stop, echo)
     except _StoppedBeforeStart:
         echo("dct run: stopped before the start (waiting for a goal, or during the start-up work); the base was never enabled")
         summary = {"state": "NOT_STARTED"}
@@ -204,9 +209,8 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
     from runtime.controller.builder import RobotSetup, Wiring, assemble
     from runtime.loop.realtime_setup import request_realtime_from_config
 
-    bus, inbox, receiver, publisher, recorder, notifier = io
+    bus, inbox, receiver, publisher, recorder, notifier, clock = io
     config = loaded.config
-    clock = EpochMonotonicClock()
     driver_bus = recorder.wrap_bus(bus, clock.now) if recorder is not None else bus
     parts = assemble(RobotSetup(loaded.robot, config, loaded.wheel_calibration, loaded.camera, loaded.T_cam_lidar),
                      Wiring(driver_bus, clock, Pose2D(*goal), inbox if config.uses_lidar else None, lockstep=False))

@@ -113,6 +113,7 @@ class NavigationController:
         self.last_decision = ModeDecision()
         self.blocked_since_s: float | None = None
         self.snapshot: ControllerSnapshot | None = None
+        self.inputs_delivered = 0  # the sensor inbox's count at this tick's read (SensorSnapshot.delivered)
         # Counters (never reset).
         self.hold_ticks = 0
         self.blocked_ticks = 0
@@ -214,6 +215,7 @@ class NavigationController:
         """The base's feedback and the newest sensor frames, the watchdogs, a new goal, the state."""
         inputs = self.hardware.read(now)
         sensors = self.sensors.take() if self.sensors is not None else _NO_SENSORS
+        self.inputs_delivered = sensors.delivered
         self.faults = self.monitor.check(inputs, sensors, now)
         if self.goals.pending:
             self._apply_goal(now)
@@ -237,6 +239,7 @@ class NavigationController:
             vlm_last_answer_s=memory.last_answer_s if memory is not None else None,
             vlm_masks=memory.entries if memory is not None else (),
             stop_reason=self.stop_reason, safety=self._safety_verdict(),
+            inputs_delivered=self.inputs_delivered, icp_delivered=self.odometry.delivered,
         )
 
     def _safety_verdict(self) -> str | None:

@@ -51,3 +51,7 @@ class ControllerSnapshot:
     #: The safety supervisor's verdict on this tick's command: "clear", "slow" or "stop" (None:
     #: no supervisor ran, e.g. before the first command).
     safety: str | None = None
+    #: What this tick took in, for a replay (runtime.app.replay): the sensor data that had reached
+    #: the inbox (SensorSnapshot.delivered), and the ICP results it received, (seq, frame stamp) each.
+    inputs_delivered: int = 0
+    icp_delivered: tuple = ()

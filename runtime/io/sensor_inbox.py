@@ -16,6 +16,11 @@ every point; a repeated buffer is a driver or network fault.
 Bounded: one pending scan, one pending image, at most `max_imu_samples` IMU samples (the
 oldest are dropped and counted when the tick falls behind), at most `max_rejections` pending
 rejections (the rest only counted).
+
+`delivered` counts every piece of data that reached the inbox (accepted or refused), in the same
+critical section as its effect, and `take()` hands the count over with the snapshot: a recording
+(runtime.io.recording) notes it per tick, so that a replay hands the tick exactly the data the
+live tick had (docs/decisions/replay.md).
 """
 from __future__ import annotations
 
@@ -44,6 +49,8 @@ class SensorSnapshot:
     image: CameraImage | None  # newest image since the last take(), if any
     imu: tuple[ImuSample, ...]  # all samples since the last take(), oldest first
     rejected: tuple[Rejection, ...] = ()  # data refused since the last take(), oldest first
+    #: How many pieces of data had reached the inbox (accepted or refused) when this was taken.
+    delivered: int = 0
 
 
 class FrozenFrameError(SensorDataError):
@@ -63,6 +70,7 @@ class SensorInbox:
         self.last_error: str | None = None
         self.accepted = {"lidar": 0, "camera": 0, "imu": 0}
         self.overwritten = {"lidar": 0, "camera": 0, "imu": 0}
+        self.delivered = 0  # put_* and refusals so far (module docstring)
 
     def _reject(self, stream: str, exc: SensorDataError, stamp_s: float | None) -> None:
         key = f"{stream}.{exc.name}"
@@ -70,6 +78,7 @@ class SensorInbox:
             self.error_counts[key] = self.error_counts.get(key, 0) + 1
             self.last_error = f"{stream}: {exc}"
             self._rejections.append(Rejection(stream, exc.name, str(exc), stamp_s))
+            self.delivered += 1
 
     @staticmethod
     def _stamp_of(item) -> float | None:
@@ -104,6 +113,7 @@ class SensorInbox:
             self._scan = scan
             self._last_scan = scan
             self.accepted["lidar"] += 1
+            self.delivered += 1
         return True
 
     def put_image(self, image: CameraImage) -> bool:
@@ -118,6 +128,7 @@ class SensorInbox:
                 self.overwritten["camera"] += 1
             self._image = image
             self.accepted["camera"] += 1
+            self.delivered += 1
         return True
 
     def put_imu(self, sample: ImuSample) -> bool:
@@ -132,11 +143,12 @@ class SensorInbox:
                 self.overwritten["imu"] += 1
             self._imu.append(sample)
             self.accepted["imu"] += 1
+            self.delivered += 1
         return True
 
     def take(self) -> SensorSnapshot:
         with self._lock:
-            snap = SensorSnapshot(self._scan, self._image, tuple(self._imu), tuple(self._rejections))
+            snap = SensorSnapshot(self._scan, self._image, tuple(self._imu), tuple(self._rejections), self.delivered)
             self._scan = None
             self._image = None
             self._imu.clear()

@@ -93,6 +93,9 @@ class OdometryStage:
         #: apply it to anything placed in the odom frame with the pose before it.
         self.correction: np.ndarray | None = None
         self.frames_submitted = 0
+        #: The ICP results this tick fused or refused, (job seq, frame stamp) each: a recording notes
+        #: them per tick, so that a replay delivers each at the tick it came live (runtime.app.replay).
+        self.delivered: tuple[tuple[int, float], ...] = ()
         self.compute_ms: deque[float] = deque(maxlen=4000)  # wall clock: measurements only
         self.latency_ms: deque[float] = deque(maxlen=4000)
         #: The worker's counters, kept when it is closed (reports are taken after the run).
@@ -155,10 +158,12 @@ class OdometryStage:
         fusion = self.fusion
         fusion.add_dead_reckoning(now_s, d_now)
         self.correction = None
+        self.delivered = ()
         if self.worker is not None:
             if good_scan is not None:
                 self._submit(good_scan)
             results = self.worker.poll(now_s)
+            self.delivered = tuple((r.seq, r.stamp_s) for r in results)
             if results:
                 before, _ = fusion.pose_now(d_now, now_s)
                 for result in results:

@@ -75,8 +75,9 @@ def png_bytes(rgb: np.ndarray) -> bytes:
 
 
 def tick_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
-    """/dct/tick from a tick's telemetry row, and the pose when the controller had one."""
-    _, r, xyyaw, frame_end = item
+    """/dct/tick from a tick's telemetry row, the pose when the controller had one, and what the
+    tick took in (/dct/inputs) when the controller published a snapshot."""
+    _, r, xyyaw, frame_end, inputs = item
     t = float(r["scheduled_s"])
     mask = int(r["overrun_mask"])
     cmd_t = t + float(r["command_latency_s"])
@@ -102,6 +103,13 @@ def tick_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
     yield S.TOPIC_TICK, t, msg
     if xyyaw is not None:
         yield S.TOPIC_POSE, t, {"timestamp": stamp(t), "frame_id": "odom", "pose": _pose(*xyyaw)}
+    if inputs is not None:
+        now_s, samples, icp, goal = inputs
+        yield S.TOPIC_INPUTS, t, {
+            "timestamp": stamp(t), "tick": int(r["tick"]), "scheduled_s": t, "now_s": now_s,
+            "sensor_samples": samples, "icp_results": [{"seq": int(q), "stamp_s": float(s)} for q, s in icp],
+            "goal": {"x": goal[0], "y": goal[1], "yaw": goal[2]},
+        }
 
 
 def can_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:

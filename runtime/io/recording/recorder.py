@@ -25,6 +25,11 @@ ROS 2 channels: /tf (odom -> base_link every tick, from the pose the tick record
 tf2_msgs/msg/TFMessage in ROS 2 CDR (runtime.io.recording.ros_channels), serialised on the writer
 thread like the JSON.
 
+The sensor messages as received (`sensor_tap()`, called on the ROS receiver's thread): their raw
+CDR bytes on their own topics, as ROS 2 channels (runtime.io.recording.raw_inputs), and per tick
+on `/dct/inputs` what the tick took in (the sensor samples counted so far, the ICP results, the
+goal): together what `dct replay` needs to hand a controller the same inputs at the same ticks.
+
 Used by any loop: `attach()` returns the per-tick hook (FixedRateLoop's `after_tick`), and
 `wrap_bus()` puts a recording proxy between a driver and its CAN bus.
 The messages each record becomes are built in runtime.io.recording.messages.
@@ -45,12 +50,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from runtime.io.recording import messages as M
+from runtime.io.recording import raw_inputs as RAW
 from runtime.io.recording import ros_channels as R
 from runtime.io.recording import schemas as S
 from runtime.loop.telemetry import STAGES
 
 #: Channel message kinds, and how each is counted when dropped.
-KINDS = ("tick", "can", "points", "plan", "answer")
+KINDS = ("tick", "can", "points", "plan", "answer", *RAW.KINDS)
 #: Wall-clock seconds between two samples of the threads' CPU time.
 THREAD_SAMPLE_EVERY_S = 1.0
 
@@ -90,12 +96,23 @@ def thread_cpu_seconds(proc_root: str = "/proc") -> list[dict] | None:
     return out
 
 
+def _tick_inputs(snap) -> tuple | None:
+    """What the tick took in, for /dct/inputs: (the controller's clock, the sensor samples its inbox
+    had counted, the ICP results it received, its goal); None without a ControllerSnapshot."""
+    if getattr(snap, "inputs_delivered", None) is None:
+        return None
+    g = snap.goal
+    return (float(snap.t_s), int(snap.inputs_delivered), tuple(snap.icp_delivered),
+            (float(g.x_m), float(g.y_m), float(g.yaw_rad)))
+
+
 class RunRecorder:
     """One MCAP recording. Use as a context manager (or call `close()`): the file is finished
     and renamed onto `path` even when the run raised (the log of a failed run is the one wanted).
 
     queue_capacity: records waiting for the writer; beyond it records are dropped and counted.
     points_every_ticks: P_fix / partition counts / plan every this many ticks (the lower rate).
+    max_raw_pending_bytes: raw sensor bytes waiting for the writer beyond which a sample is dropped.
     """
 
     def __init__(
@@ -110,6 +127,7 @@ class RunRecorder:
         points_every_ticks: int = 10,
         compression: str = "zstd",
         opener: Callable[[str], Any] | None = None,
+        max_raw_pending_bytes: int = 64 << 20,
     ) -> None:
         from calibration.outputs import OutputPathError, check_output_path
 
@@ -126,6 +144,12 @@ class RunRecorder:
         self.queue_capacity = int(queue_capacity)
         self.points_every_ticks = int(points_every_ticks)
         self.flush_interval_s = float(flush_interval_s)
+        self.max_raw_pending_bytes = int(max_raw_pending_bytes)
+        # Raw bytes queued (only the receiver's thread adds) and written (only the writer's): the
+        # difference is what waits, with no counter two threads write.
+        self._raw_queued_bytes = 0
+        self._raw_written_bytes = 0
+        self._raw: RAW.RawInputWriter | None = None
         self._open(opener, chunk_size, compression)
         self._queue: deque = deque()
         self.dropped = dict.fromkeys(KINDS, 0)  # queue full (counted on the tick's side)
@@ -174,6 +198,25 @@ class RunRecorder:
             self.dropped[kind] += 1
         else:
             self._queue.append(item)
+
+    def sensor_tap(self, clock: Callable[[], float]) -> Callable[[str, str, str, bytes, int | None], None]:
+        """The ROS receiver's `tap` (runtime.io.ros.receiver): each sample's raw bytes with the
+        loop clock's time, queued for the writer (raw_inputs.py); O(1), never blocks."""
+        put, cap = self._put, self.max_raw_pending_bytes
+        kinds = RAW.KIND_OF_STREAM
+
+        def tap(stream: str, topic: str, type_name: str, data: bytes, seq: int | None) -> None:
+            t = clock()
+            kind = kinds[stream]
+            if not isinstance(data, bytes):
+                data = bytes(data)
+            if self._raw_queued_bytes - self._raw_written_bytes + len(data) > cap:
+                self.dropped[kind] += 1
+                return
+            self._raw_queued_bytes += len(data)
+            put(kind, ("raw", t, stream, topic, type_name, data, seq))
+
+        return tap
 
     def wrap_bus(self, bus, clock: Callable[[], float]) -> "RecordingBus":
         """A proxy for `bus` that records every frame the driver sends and receives."""
@@ -228,7 +271,7 @@ class RunRecorder:
             if scan is not None:
                 offs = scan.point_time_offsets_s
                 frame_end = float(scan.stamp_s) + (float(offs.max()) if len(offs) else float(scan.frame_duration_s))
-            put("tick", ("tick", row.copy(), xyyaw, frame_end))
+            put("tick", ("tick", row.copy(), xyyaw, frame_end, _tick_inputs(snap)))
             stamp = snap.vlm_last_answer_s if snap is not None else None
             if stamp is not None and stamp != self._last_answer_s:
                 self._last_answer_s = stamp
@@ -265,6 +308,7 @@ class RunRecorder:
         for topic, (name, text) in R.channel_schemas().items():
             sid = w.register_schema(name=name, encoding=R.SCHEMA_ENCODING, data=text)
             self._channels[topic] = w.register_channel(topic=topic, message_encoding=R.MESSAGE_ENCODING, schema_id=sid)
+        self._raw = RAW.RawInputWriter(w)
         self._started = True
 
     def _emit(self, topic: str, t_s: float, msg: dict) -> None:
@@ -281,6 +325,13 @@ class RunRecorder:
             return
         if kind == "tf_static":
             self._add(R.TOPIC_TF_STATIC, item[1], R.tf_static_cdr(item[1], item[2]))
+            return
+        if kind == "raw":
+            try:
+                self._raw.write(item)
+            finally:
+                self._raw_written_bytes += len(item[5])
+            self.written[RAW.KIND_OF_STREAM[item[2]]] += 1
             return
         if kind == "tick":
             self._last_t_s = float(item[1]["scheduled_s"])
@@ -330,6 +381,8 @@ class RunRecorder:
                 continue
             item = q.popleft()
             if self.write_error is not None:
+                if item[0] == "raw":
+                    self._raw_written_bytes += len(item[5])  # no longer waiting
                 if item[0] != "meta":
                     self.dropped_write_error += 1
                 continue

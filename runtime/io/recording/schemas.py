@@ -19,6 +19,7 @@ TOPIC_REFERENCE = "/dct/reference_path"
 TOPIC_VPP_ANSWER = "/dct/vpp/answer"
 TOPIC_VPP_MASKS = "/dct/vpp/masks"
 TOPIC_THREADS = "/dct/threads"
+TOPIC_INPUTS = "/dct/inputs"
 
 #: Metadata record names: the run (written first, so a cut-off file keeps it) and the recorder's
 #: own account (written at the end: records written and dropped).
@@ -188,6 +189,29 @@ THREADS = {
     },
 }
 
+TICK_INPUTS = {
+    "title": "dct.TickInputs",
+    "description": "What one tick took in, for `dct replay`: the controller's clock at the tick, how many sensor "
+                   "samples had reached it (the raw channels' sequence numbers up to this one), the ICP results "
+                   "it received, and its goal.",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "tick": {"type": "integer"},
+        "scheduled_s": _NUM,
+        "now_s": {**_NUM, "description": "the controller's clock when the tick started (its `now`)"},
+        "sensor_samples": {"type": "integer", "minimum": 0,
+                           "description": "sensor samples (lidar, camera, IMU) that had reached the controller"},
+        "icp_results": {
+            "type": "array",
+            "description": "the ICP results this tick received: the job's number and its frame's stamp",
+            "items": {"type": "object", "properties": {"seq": {"type": "integer"}, "stamp_s": _NUM}},
+        },
+        "goal": {"type": "object", "properties": {"x": _NUM, "y": _NUM, "yaw": _NUM},
+                 "description": "the controller's goal in the odometry frame"},
+    },
+}
+
 #: topic -> (schema name, schema); the tick schema depends on the stage names.
 def channel_schemas(stages: tuple[str, ...]) -> dict[str, tuple[str, dict]]:
     return {
@@ -201,6 +225,7 @@ def channel_schemas(stages: tuple[str, ...]) -> dict[str, tuple[str, dict]]:
         TOPIC_VPP_ANSWER: ("dct.VppAnswer", VPP_ANSWER),
         TOPIC_VPP_MASKS: ("foxglove.CompressedImage", COMPRESSED_IMAGE),
         TOPIC_THREADS: ("dct.Threads", THREADS),
+        TOPIC_INPUTS: ("dct.TickInputs", TICK_INPUTS),
     }
 
 

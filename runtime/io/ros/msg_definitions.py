@@ -11,12 +11,14 @@ delimiter.
 
 The texts are ROS 2 Jazzy's `share/<pkg>/msg/<Type>.msg` files, copied verbatim (a trailing
 space is written as the escape `\\x20`); tf2_msgs is not installed here, so its one-line
-TFMessage.msg is written out. To record another type, add its text and those of the types it uses
+TFMessage.msg is written out. The sensor messages' texts are in msg_definitions_sensors.py. To record another type, add its text and those of the types it uses
 (tests compare them with the installed files).
 """
 from __future__ import annotations
 
 import re
+
+from runtime.io.ros.msg_definitions_sensors import SENSOR_DEFINITIONS
 
 SEPARATOR = "=" * 80
 
@@ -95,6 +97,7 @@ Transform transform
     "tf2_msgs/TFMessage": """\
 geometry_msgs/TransformStamped[] transforms
 """,
+    **SENSOR_DEFINITIONS,  # the sensor messages recorded as received (msg_definitions_sensors.py)
 }
 
 _PRIMITIVES = frozenset({"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",

@@ -15,6 +15,11 @@ A sample that fails is counted by `<stream>.<reason>` in `error_counts`, remembe
 `last_error`, and handed to the tick through the inbox's rejections, as SensorInbox does for the
 data it refuses itself (non-monotonic stamps, frozen frames).
 
+A recording taps the samples here (`tap`, on this thread, never the tick's): each one's raw bytes
+as received, numbered in the order they are processed (sensor samples only: the n-th one is the
+n-th piece of data the inbox counts, SensorInbox.delivered), so that a replay can hand the
+controller the same data at the same tick (runtime.app.replay).
+
 Topic names are ROS names (`/livox/lidar`); on the DDS wire they are `rt/livox/lidar`. QoS:
 sensor data best effort, keep last (the ROS 2 sensor-data profile), the goal reliable.
 """
@@ -164,6 +169,9 @@ class RosSensorReceiver:
     carry none); required when a camera topic is configured.
     transport: the middleware's node on config.domain_id (runtime.io.ros.transport), which the
     caller opens and closes.
+    tap: called on the receiver's thread with (stream, topic, ROS type, raw CDR bytes, sample
+    number) for every sample before it is decoded; the number counts the sensor samples (lidar,
+    camera, IMU) from 1 and is None for a goal (module docstring). It must be O(1) and never block.
 
     lidar_time_notice: set once, and logged as a warning, when a PointCloud2 lidar with time_field
     auto has no per-point time field (deskewing is off; convert.no_point_time_notice).
@@ -174,7 +182,8 @@ class RosSensorReceiver:
     _goal_rejections: tuple[str, ...] = ()
 
     def __init__(self, config: RosInputConfig, inbox: SensorInbox, transport: Transport, *,
-                 camera_K: np.ndarray | None = None, camera_distortion: np.ndarray | None = None) -> None:
+                 camera_K: np.ndarray | None = None, camera_distortion: np.ndarray | None = None,
+                 tap: Callable[[str, str, str, bytes, int | None], None] | None = None) -> None:
         if config.camera is not None and camera_K is None:
             raise ValueError("RosSensorReceiver: a camera topic is configured but no camera_K was given")
         self.config = config
@@ -184,15 +193,19 @@ class RosSensorReceiver:
         self._lock = threading.Lock()
         self._goal: convert.GoalPose | None = None
         self.received: dict[str, int] = {}
+        self.tap = tap
+        self.samples = 0  # sensor samples taken so far (the tap's numbering)
         self.error_counts: dict[str, int] = {}
         self.last_error: str | None = None
         self._readers: list[tuple[str, str, TopicReader, Callable[[object], None]]] = []
+        self._topics: dict[str, str] = {}  # stream -> topic name
         for stream, topic in (("lidar", config.lidar), ("camera", config.camera), ("imu", config.imu),
                               ("goal", config.goal)):
             if topic is None:
                 continue
             reader = transport.reader(topic.topic, ROS_TYPES[topic.type], topic.qos.spec())
             self._readers.append((stream, topic.type, reader, self._handler(stream, topic)))
+            self._topics[stream] = topic.topic
             self.received[stream] = 0
         self._stop = threading.Event()
         self.thread_errors = 0  # exceptions the receiver thread survived (last_thread_error names the last)
@@ -270,8 +283,15 @@ class RosSensorReceiver:
         """Wait up to timeout_s for samples, then process everything pending; returns how many."""
         self.transport.wait(timeout_s)
         n = 0
+        tap = self.tap
         for stream, type_name, reader, handle in self._readers:
             for data in reader.take_raw():
+                seq = None
+                if stream != "goal":
+                    self.samples += 1
+                    seq = self.samples
+                if tap is not None:
+                    tap(stream, self._topics[stream], type_name, data, seq)
                 self.process(stream, type_name, data, handle)
                 n += 1
         return n

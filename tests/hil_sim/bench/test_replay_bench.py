@@ -1,0 +1,26 @@
+"""`dct replay`'s acceptance figure: case3 in real time (`dct hil run case3 --realtime --record`,
+the controller recording its inputs as received), then `dct replay` of that recording: the replay's
+odometry is the live run's within 1 cm at every tick, and its latency report renders.
+
+Slow (a real-time episode, then a replay): `pytest -m slow tests/hil_sim/bench/test_replay_bench.py`."""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+
+@pytest.mark.slow
+def test_the_replay_of_a_realtime_case3_gives_its_odometry_back_within_1_cm(tmp_path):
+    from hil_sim.bench.replay import ACCEPT_M, replay_bench
+
+    # A DDS domain of this test's own (231-232: `dct run --domain-id` takes up to 232).
+    r = replay_bench("case3", tmp_path, domain_id=231 + os.getpid() % 2)
+    assert r["live"]["recording"]["dropped"] == 0, r["live"]
+    assert r["live"]["icp_frames_submitted"] > 0, r["live"]  # the controller ran: its odometry used ICP
+    c = r["odometry_vs_live"]
+    assert c["matched"] == r["replay"]["ticks"] > 100, c
+    assert c["max_m"] <= ACCEPT_M, c
+    assert r["replay"]["icp"]["out_of_step"] == 0 and r["replay"]["inputs"]["sensor_samples_missing"] == 0
+    assert r["report"]["html_bytes"] > 10_000
+    assert r["size"]["file_mb_per_min"] > 0
