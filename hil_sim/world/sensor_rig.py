@@ -228,7 +228,8 @@ class SensorRig:
 
         world, c = self.world, self.config
         cam = self.robot.sensors.camera
-        args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups)
+        args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups,
+                world.camera_lens)
         if c.camera_async:
             return CameraThread(world.model, args, c.camera_segmentation, self._deliver_image)
         return SimCamera(world.model, world.data, *args)
