@@ -185,7 +185,7 @@ class SimCamera:
         is_geom = seg[:, :, 1] == int(mujoco.mjtObj.mjOBJ_GEOM)
         ids = np.where(is_geom, seg[:, :, 0], -1).astype(np.int32)
         if self._lens is not None:
-            ids = np.ascontiguousarray(self._lens.apply_nearest(ids))
+            ids = self._lens.apply_nearest(ids)
         if kind == "body":
             ids = np.where(ids >= 0, self._geom_body[np.maximum(ids, 0)], -1).astype(np.int32)
         return ids

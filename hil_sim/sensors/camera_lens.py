@@ -51,7 +51,9 @@ class CameraLens:
     height_px: int
     #: Canvas margins (left, top, right, bottom) in pixels; zeros without distortion.
     margins_px: tuple[int, int, int, int] = (0, 0, 0, 0)
-    _map: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
+    #: (map_x, map_y) of cv2.remap (float32, canvas pixels), and each output pixel's nearest canvas
+    #: pixel as a flat index (segmentation); None without distortion.
+    _map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def build(cls, K: np.ndarray, dist: np.ndarray, width_px: int, height_px: int) -> "CameraLens":
@@ -70,7 +72,9 @@ class CameraLens:
         margins = _margins(pinhole, int(width_px), int(height_px))
         map_x = (pinhole[..., 0] + margins[0]).astype(np.float32)
         map_y = (pinhole[..., 1] + margins[1]).astype(np.float32)
-        return cls(K, dist, int(width_px), int(height_px), margins, (map_x, map_y))
+        canvas_w = int(width_px) + margins[0] + margins[2]
+        nearest = np.rint(map_y).astype(np.intp) * canvas_w + np.rint(map_x).astype(np.intp)
+        return cls(K, dist, int(width_px), int(height_px), margins, (map_x, map_y, nearest))
 
     @property
     def distorted(self) -> bool:
@@ -102,10 +106,9 @@ class CameraLens:
         """Per-pixel labels (segmentation ids) through the lens: the nearest canvas pixel's."""
         if self._map is None:
             return labels
-        h, w = labels.shape[:2]
-        ix = np.clip(np.rint(self._map[0]).astype(np.intp), 0, w - 1)
-        iy = np.clip(np.rint(self._map[1]).astype(np.intp), 0, h - 1)
-        return labels[iy, ix]
+        if labels.shape[:2] != self.canvas_size[::-1]:
+            raise ValueError(f"labels of shape {labels.shape[:2]} are not the canvas's {self.canvas_size[::-1]}")
+        return np.ascontiguousarray(labels).reshape(-1, *labels.shape[2:])[self._map[2]]
 
 
 def check_lens(K: np.ndarray, dist: np.ndarray, width_px: int, height_px: int) -> None:

@@ -43,7 +43,7 @@ def test_lens_map_is_the_inverse_of_opencv_projection():
     import cv2
 
     lens = CameraLens.build(K, BARREL, 640, 480)
-    map_x, map_y = lens._map
+    map_x, map_y, _ = lens._map
     rng = np.random.default_rng(1)
     v, u = rng.integers(0, 480, 200), rng.integers(0, 640, 200)
     canvas_K = lens.canvas_K
