@@ -44,8 +44,8 @@ class World:
                  ground_clearance_m: float = DEFAULT_GROUND_CLEARANCE_M, variant: RobotVariant | None = None) -> None:
         if variant is not None:
             if variant.nominal_robot != robot:
-                raise WorldError(f"the robot variant {variant.label} is of robot '{variant.nominal_robot.name}' as "
-                                 f"described elsewhere, not of the robot '{robot.name}' given")
+                raise WorldError(f"the robot variant {variant.label} was made from another description of robot "
+                                 f"'{variant.nominal_robot.name}' than the one given ('{robot.name}')")
             robot = variant.robot
         #: The robot variant the world is built as (None: the robot description as it is).
         self.robot_variant = variant

@@ -23,6 +23,10 @@ camera image; see hil_sim.sensors.imu and hil_sim.sensors.lidar); only a bad cal
 
 The robot's own geoms (groups World.ROBOT_OWN_GEOM_GROUPS) are invisible to the lidar rays
 and hidden from the camera: both mounts lie inside the coarse chassis boxes.
+
+A world built as a robot variant (hil_sim.world.robot_variant) has its lidar and camera at the
+variant's mounts, and the camera renders through the variant's lens (`World.camera_lens`): its
+images carry the true K and distortion, as a camera driver reports its factory calibration.
 """
 from __future__ import annotations
 

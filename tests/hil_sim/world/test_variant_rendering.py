@@ -127,3 +127,13 @@ def test_an_episode_reports_the_variant_it_ran(tmp_path):
     assert "robot_variant" not in run_episode(sc.model_copy(update={"robot_variant": None}), robot=ROBOT,
                                               config=load_controller_config().with_planner_mode("pure-pursuit"),
                                               seed=0).metrics
+
+
+def test_a_variant_of_another_description_is_refused():
+    from hil_sim.world.model_spec import WorldError
+    from hil_sim.world.mujoco_world import World
+    from hil_sim.world.scenario import load_scenario
+
+    heavier = ROBOT.model_copy(update={"mass_kg": ROBOT.mass_kg + 1.0})
+    with pytest.raises(WorldError, match="another description"):
+        World(load_scenario("case1"), heavier, variant=resolve_variant(7, ROBOT))
