@@ -73,10 +73,15 @@ def list_command() -> None:
                    "duration_s); the time limit becomes this duration.")
 @click.option("--middleware", type=click.Choice(["auto", "rclpy", "cyclonedds"]),
               help="With --realtime: the ROS 2 middleware of both processes (default: the config's ros.middleware).")
+@click.option("--robot-variant", "robot_variant", metavar="SPEC",
+              help="Simulate the robot as built, not as described: nominal, a seed (departures drawn within "
+                   "build tolerances), or a variant YAML file (docs/simulator.md#robot-variants); overrides the "
+                   "scenario's robot_variant. The controller is not told (give it --calibration).")
 def run_command(*, scenario: str, json_path: Path | None, seed: int, config_path: Path | None,
                 robot_path: Path | None, planner: str | None, fault_texts: tuple[str, ...],
                 calibration_path: Path | None = None, record_path: Path | None = None, force: bool = False,
-                realtime: bool = False, duration_s: float | None = None, middleware: str | None = None) -> None:
+                realtime: bool = False, duration_s: float | None = None, middleware: str | None = None,
+                robot_variant: str | None = None) -> None:
     """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path).
 
     The metrics JSON is deterministic (same inputs and seed, same file, under any machine load);
@@ -88,14 +93,15 @@ def run_command(*, scenario: str, json_path: Path | None, seed: int, config_path
 
     run = _load_run(scenario=scenario, seed=seed, config_path=config_path, robot_path=robot_path,
                     calibration_path=calibration_path, planner=planner, fault_texts=fault_texts,
-                    duration_s=duration_s, json_path=json_path, record_path=record_path, force=force)
+                    duration_s=duration_s, json_path=json_path, record_path=record_path, force=force,
+                    robot_variant=robot_variant)
     for w in run.warnings:
         click.echo(f"warning: {w}", err=True)
     if realtime:
         _run_realtime(run.scenario.name, scenario=scenario, seed=seed, json_path=json_path, config_path=config_path,
                       robot_path=robot_path, calibration_path=calibration_path, planner=planner,
                       fault_texts=fault_texts, record_path=record_path, force=force, duration_s=duration_s,
-                      middleware=middleware)
+                      middleware=middleware, robot_variant=robot_variant)
         return
     if middleware is not None:
         raise InputError("--middleware applies to --realtime runs (lockstep has no ROS 2 in between)")
@@ -121,12 +127,14 @@ class _RunInputs:
     wheel_calibration: tuple[float, float] | None
     camera_calibration: Any
     warnings: list[str]
+    #: The simulated robot as built (hil_sim.world.robot_variant.RobotVariant), or None.
+    variant: Any = None
 
 
 def _load_run(*, scenario: str, seed: int, config_path: Path | None, robot_path: Path | None,
               calibration_path: Path | None, planner: str | None, fault_texts: tuple[str, ...],
               duration_s: float | None, json_path: Path | None, record_path: Path | None,
-              force: bool) -> _RunInputs:
+              force: bool, robot_variant: str | None = None) -> _RunInputs:
     """Load and check every input of `dct hil run`: InputError (one line, exit 2) on the first problem."""
     from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError
@@ -150,6 +158,7 @@ def _load_run(*, scenario: str, seed: int, config_path: Path | None, robot_path:
         except ValueError as exc:
             raise InputError(f"{config_path or 'the shipped controller config'}: {exc}") from None
         wheel_calibration, camera_calibration = _load_calibration(calibration_path, robot)
+        variant = _load_variant(robot_variant, sc, robot)
         warnings = check_scenario_against_robot(
             sc, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m
         )
@@ -162,7 +171,32 @@ def _load_run(*, scenario: str, seed: int, config_path: Path | None, robot_path:
         raise InputError(str(exc)) from exc
     warnings += [f"--fault {f}: starts at or after the time limit ({sc.time_limit_s:g} s); it will never act"
                  for f in faults if f.start_s >= sc.time_limit_s]
-    return _RunInputs(sc, robot, config, faults, wheel_calibration, camera_calibration, warnings)
+    return _RunInputs(sc, robot, config, faults, wheel_calibration, camera_calibration, warnings, variant)
+
+
+def _load_variant(spec: str | None, scenario, robot):
+    """--robot-variant (else the scenario's robot_variant) resolved for the robot, said on stderr; None
+    without either. A bad SPEC is a ConfigFileError (hil_sim.world.robot_variant.VariantError)."""
+    from hil_sim.world.robot_variant import resolve_variant
+
+    spec = spec if spec is not None else scenario.robot_variant
+    if spec is None:
+        return None
+    variant = resolve_variant(spec, robot)
+    click.echo(variant_line(variant), err=True)
+    return variant
+
+
+def variant_line(variant) -> str:
+    """One line about a robot variant: its camera and mount departures."""
+    if variant.is_nominal:
+        return f"robot variant {variant.label}: the robot as described"
+    cam, d = variant.true_camera(), variant.departures
+    return (f"robot variant {variant.label}: camera fx {cam.fx:.2f} fy {cam.fy:.2f} cx {cam.cx:.2f} cy {cam.cy:.2f} "
+            f"distortion [{', '.join(f'{k:.4g}' for k in cam.dist)}]; lidar mount moved "
+            f"{[round(x * 1000, 1) for x in d.lidar_mount.dxyz_m]} mm, {[round(a, 2) for a in d.lidar_mount.drpy_deg]} "
+            f"deg; camera mount moved {[round(x * 1000, 1) for x in d.camera_mount.dxyz_m]} mm, "
+            f"{[round(a, 2) for a in d.camera_mount.drpy_deg]} deg")
 
 
 def _load_calibration(calibration_path: Path | None, robot) -> tuple[tuple[float, float] | None, Any]:
@@ -221,7 +255,7 @@ def _run_lockstep(run: _RunInputs, seed: int, record_path: Path | None, force: b
         try:
             result = run_episode(run.scenario, robot=run.robot, config=run.config, seed=seed, faults=run.faults,
                                  wheel_calibration=run.wheel_calibration, recorder=recorder,
-                                 camera_calibration=run.camera_calibration)
+                                 camera_calibration=run.camera_calibration, robot_variant=run.variant)
         except BaseException as exc:  # the log of a failed run is kept (it says how it ended)
             if recorder is not None:
                 recorder.note_run_end(exc)
@@ -237,7 +271,8 @@ def _run_lockstep(run: _RunInputs, seed: int, record_path: Path | None, force: b
 def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
                   robot_path: Path | None, calibration_path: Path | None, planner: str | None,
                   fault_texts: tuple[str, ...], record_path: Path | None, force: bool = False,
-                  duration_s: float | None = None, middleware: str | None = None) -> None:
+                  duration_s: float | None = None, middleware: str | None = None,
+                  robot_variant: str | None = None) -> None:
     """`dct hil run --realtime` of scenario `name`: hil_sim.episode.realtime (two processes); --record: the
     controller's."""
     from calibration.outputs import atomic_write_json
@@ -253,7 +288,7 @@ def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None
         m = run_realtime_episode(scenario, seed, config_path, robot_path, calibration_path,
                                  echo=lambda s: click.echo(s, err=True), planner=planner, duration_s=duration_s,
                                  record_path=record_path.resolve() if record_path is not None else None,
-                                 force=force, middleware=middleware)
+                                 force=force, middleware=middleware, robot_variant=robot_variant)
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from None
     if json_path is not None:
@@ -309,11 +344,16 @@ def realtime_line(name: str, m: dict) -> str:
               help="Seconds before each answer (default: the config's, 1.5).")
 @click.option("--oracle-failure-rate", type=click.FloatRange(0.0, 1.0),
               help="Chance an answer fails (HTTP 503) (default: the config's, 0).")
+@click.option("--robot-variant", "robot_variant", metavar="SPEC",
+              help="Simulate the robot as built, not as described: nominal, a seed (departures drawn within "
+                   "build tolerances), or a variant YAML file (docs/simulator.md#robot-variants); overrides the "
+                   "scenario's robot_variant. The controller is not told (give it --calibration).")
 def serve_command(*, scenario: str, seed: int, json_path: Path | None, config_path: Path | None,
                   robot_path: Path | None, domain_id: int | None, middleware: str | None, discovery: str,
                   can_channel: str | None, can_port: int | None, camera_rate_hz: float, connect_timeout_s: float, force: bool, oracle: bool | None,
                   oracle_precision: float | None, oracle_recall: float | None, oracle_latency_s: float | None,
-                  oracle_failure_rate: float | None, duration_s: float | None = None) -> None:
+                  oracle_failure_rate: float | None, duration_s: float | None = None,
+                  robot_variant: str | None = None) -> None:
     """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
     the sensors as ROS 2 DDS topics (Livox CustomMsg or PointCloud2, Imu, Image); for planner mode dct also the
     sim-oracle as a VLM over HTTP on 127.0.0.1 (hil_sim/vlm/service.py). The episode starts when a controller enables
@@ -337,7 +377,7 @@ def serve_command(*, scenario: str, seed: int, json_path: Path | None, config_pa
     try:
         m = serve(ServeOptions(scenario, seed, json_path, robot_path, config_path, domain_id, can_channel, can_port,
                                camera_rate_hz, connect_timeout_s, oracle=oracle_config, duration_s=duration_s,
-                               middleware=middleware, discovery=discovery), stop,
+                               middleware=middleware, discovery=discovery, robot_variant=robot_variant), stop,
                   echo=lambda s: click.echo(s, err=True))
     except (ConfigFileError, ValueError) as exc:
         raise InputError(str(exc)) from exc

@@ -31,6 +31,7 @@ from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
 from hil_sim.episode.faults import FaultInjector, FaultSpec
 from hil_sim.episode.metrics import EpisodeMetrics
 from hil_sim.episode.patrol import PatrolSequencer, patrol_failure_reason
+from hil_sim.world.robot_variant import RobotVariant, resolve_variant
 from hil_sim.world.scenario import Scenario, load_scenario
 from hil_sim.world.mujoco_world import World
 from runtime.config import ControllerConfig, load_controller_config
@@ -181,6 +182,7 @@ def run_episode(
     recorder: "RunRecorder | None" = None,
     camera_calibration: "tuple[CameraModel, np.ndarray | None] | None" = None,
     goal_when_ready: bool = False,
+    robot_variant: "RobotVariant | None" = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -204,6 +206,10 @@ def run_episode(
     ready (the vpp partition: the VLM answered once; otherwise the start-up sequence done).
     Navigation time, the time limit and the events count from then (`standby_s` says how long it
     stood). False (default): the goal is given at switch-on and the clock starts there.
+    robot_variant: the simulated robot as built (hil_sim.world.robot_variant: its camera's
+    intrinsics and lens, its lidar and camera mounts); None: the scenario's `robot_variant:`, else
+    the robot as described. The controller is not told: it reads `robot` (and its calibration).
+    The metrics add `robot_variant` (the departures and the truth) when there is one.
     oracle: the VPP's sim-oracle settings, used as given (its seed too) instead of the config's
     `vpp.backend` (whose seed is added to the episode seed). With no `oracle` and a backend other
     than the sim-oracle in the config, the controller builds that backend. (Module docstring: patrols,
@@ -214,7 +220,9 @@ def run_episode(
         scenario = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
     robot = robot or load_robot_description()
     config = config or load_controller_config()
-    bench = _SimulatedBench.build(scenario, robot, config, seed, faults, sensors, camera_calibration)
+    if robot_variant is None and scenario.robot_variant is not None:
+        robot_variant = resolve_variant(scenario.robot_variant, robot)
+    bench = _SimulatedBench.build(scenario, robot, config, seed, faults, sensors, camera_calibration, robot_variant)
     sim = LockstepSimulation(bench.world, bench.firmware, bench.metrics, bench.devices, controls=[bench.injector])
     clock = LockstepClock(sim)
     bus = recorder.wrap_bus(bench.controller_bus, clock.now) if recorder is not None else bench.controller_bus
@@ -280,8 +288,10 @@ class _SimulatedBench:
     has_sensors: bool
 
     @classmethod
-    def build(cls, scenario, robot, config, seed, faults, sensors, camera_calibration) -> "_SimulatedBench":
-        world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
+    def build(cls, scenario, robot, config, seed, faults, sensors, camera_calibration,
+              robot_variant=None) -> "_SimulatedBench":
+        world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m,
+                      variant=robot_variant)
         world.reset(seed)
         metrics = EpisodeMetrics(world, scenario, seed)
         controller_bus, sim_bus = virtual_bus_pair()
@@ -452,6 +462,7 @@ def _extra_metrics(ep: _Episode, report: dict, final_distance: float) -> dict:
         "firmware_frames_rejected": bench.firmware.frames_rejected,
         "scenario_warnings": list(world.scenario_warnings),
         **({"patrol": patrol.report(sim.time_s)} if patrol is not None else {}),
+        **({"robot_variant": world.robot_variant.to_dict()} if world.robot_variant is not None else {}),
     }
 
 

@@ -133,14 +133,16 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                          robot_path: Path | None = None, calibration_path: Path | None = None,
                          echo=None, keep_dir: Path | None = None, planner: str | None = None, *,
                          duration_s: float | None = None, record_path: Path | None = None,
-                         force: bool = False, middleware: str | None = None, domain_id: int | None = None) -> dict:
+                         force: bool = False, middleware: str | None = None, domain_id: int | None = None,
+                         robot_variant: str | None = None) -> dict:
     """Run one real-time episode with two processes; returns the merged metrics (module docstring).
     planner: overrides the config's planner.mode (dct, all-fixed).
     Raises RuntimeError when a process could not run (the message says which and its last words).
     duration_s: a patrol's duration (`dct hil serve --duration`); record_path: the controller
     records the run (`dct run --record`, `--force` overwrites); middleware: ros.middleware of both
     processes (None: the config's). Both discover each other on this machine only. domain_id: the
-    run's DDS domain (None: a random one, unique_channels)."""
+    run's DDS domain (None: a random one, unique_channels). robot_variant: the simulated robot as
+    built (`dct hil serve --robot-variant`; the controller is not told)."""
     from hil_sim.episode.patrol import with_duration
     from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
@@ -165,6 +167,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         if middleware is not None:
             serve_cmd += ["--middleware", middleware]
             run_cmd += ["--middleware", middleware]
+        if robot_variant is not None:
+            serve_cmd += ["--robot-variant", str(robot_variant)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         t0 = time.monotonic()
         # Own sessions: a Ctrl-C in the terminal reaches this process only, which stops both

@@ -73,6 +73,8 @@ class ServeOptions:
     middleware: str | None = None
     #: Who may hear the simulated robot: localhost (the default for the simulator) or subnet.
     discovery: str = "localhost"
+    #: The robot as built (a SPEC of hil_sim.world.robot_variant); None: the scenario's, else nominal.
+    robot_variant: str | None = None
 
 
 class DdsSensorSink:
@@ -257,9 +259,11 @@ def serve(opts: ServeOptions, stop: threading.Event | None = None, echo=print) -
 
 
 def _load(opts: ServeOptions):
-    """(scenario, robot, controller config, its ros.inputs with --domain-id) of `dct hil serve`."""
+    """(scenario, robot, controller config, its ros.inputs with --domain-id, the robot variant or
+    None) of `dct hil serve`."""
     from calibration.robot_description import load_robot_description
     from hil_sim.episode.patrol import with_duration
+    from hil_sim.world.robot_variant import resolve_variant
     from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
 
@@ -270,7 +274,9 @@ def _load(opts: ServeOptions):
     inputs = config.ros.inputs
     if opts.domain_id is not None:
         inputs = inputs.model_copy(update={"domain_id": opts.domain_id})
-    return scenario, robot, config, inputs
+    spec = opts.robot_variant if opts.robot_variant is not None else scenario.robot_variant
+    variant = resolve_variant(spec, robot) if spec is not None else None
+    return scenario, robot, config, inputs, variant
 
 
 def _open_transport(ros, domain_id: int, opts: ServeOptions):
@@ -307,11 +313,11 @@ class _Server:
         from runtime.app.run_process import EpochMonotonicClock
 
         self.opts, self.echo = opts, echo
-        scenario, robot, config, inputs = _load(opts)
+        scenario, robot, config, inputs, variant = _load(opts)
         self.scenario, self.config, self.inputs = scenario, config, inputs
         self.bus_config = BusConfig(interface="udp_multicast", channel=opts.can_channel or DEFAULT_UDP_GROUP,
                                     udp_port=opts.can_port or DEFAULT_UDP_PORT)
-        self.world = world = World(scenario, robot,
+        self.world = world = World(scenario, robot, variant=variant,
                                    ground_clearance_m=config.planner.obstacle_points.ground_clearance_m)
         world.reset(opts.seed)
         self.metrics = EpisodeMetrics(world, scenario, opts.seed)
@@ -464,6 +470,7 @@ class _Server:
                 "scenario_warnings": list(world.scenario_warnings),
                 "firmware_frames_rejected": self.firmware.frames_rejected,
                 "simulator": self._simulator_report(wall, sensor_stats, t_end),
+                **({"robot_variant": world.robot_variant.to_dict()} if world.robot_variant is not None else {}),
             },
         )
 

@@ -14,8 +14,9 @@ known 3-D points and comparing their rendered centroids with the true-K projecti
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
@@ -30,15 +31,14 @@ BOARD_BORDER_M = 0.04
 BOARD_THICKNESS_M = 0.005
 RANGE_NOISE_STD_M = 0.02
 
+if TYPE_CHECKING:
+    from hil_sim.sensors.camera_lens import CameraLens
+    from hil_sim.world.robot_variant import RobotVariant
+
 
 def _quat_wxyz(R: np.ndarray) -> np.ndarray:
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     return np.array([w, x, y, z])
-
-
-# Rotation from the optical frame (x right, y down, z forward) to MuJoCo's camera frame
-# (x right, y up, looking along -z): a half turn about x.
-R_OPTICAL_TO_MJCAM = np.diag([1.0, -1.0, -1.0])
 
 
 @dataclass
@@ -54,13 +54,28 @@ class CalibrationScene:
     width_px: int
     height_px: int
     fovy_deg: float
+    #: The true distortion (OpenCV order, 5 coefficients; zeros for the description's pinhole).
+    dist_true: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    #: The camera as built (a robot variant); None: the description's pinhole.
+    lens: CameraLens | None = None
+
+    def camera_model(self):
+        """The true camera (calibration.camera_model.CameraModel)."""
+        from calibration.camera_model import CameraModel
+
+        return CameraModel(self.K_true, self.dist_true, self.width_px, self.height_px)
 
 
-def build_scene(desc: RobotDescription) -> CalibrationScene:
-    """MjSpec scene: camera + lidar site at the description's mounts, a checkerboard and a probe sphere."""
+def build_scene(desc: RobotDescription, variant: RobotVariant | None = None) -> CalibrationScene:
+    """MjSpec scene: camera + lidar site at the description's mounts (or the variant's, with its
+    camera's intrinsics and lens), a checkerboard and a probe sphere."""
     import mujoco
 
-    cam_desc = desc.sensors.camera
+    from hil_sim.sensors.camera import add_camera_to_spec, ensure_offscreen_buffer
+
+    lens = variant.lens if variant is not None else None
+    built = variant.robot if variant is not None else desc
+    cam_desc = built.sensors.camera
     w, h = cam_desc.width_px, cam_desc.height_px
     fx = cam_desc.nominal_intrinsics()[0, 0]
     fovy_deg = float(np.degrees(2 * np.arctan((h / 2) / fx)))
@@ -69,6 +84,7 @@ def build_scene(desc: RobotDescription) -> CalibrationScene:
     spec.modelname = "calibration_check"
     spec.visual.global_.offwidth = max(w, 640)
     spec.visual.global_.offheight = max(h, 480)
+    ensure_offscreen_buffer(spec, *(lens.canvas_size if lens is not None else (w, h)))
     # Flat, shadow-free lighting: the board's colours come out as their rgba.
     spec.visual.headlight.ambient = [1.0, 1.0, 1.0]
     spec.visual.headlight.diffuse = [0.0, 0.0, 0.0]
@@ -76,10 +92,8 @@ def build_scene(desc: RobotDescription) -> CalibrationScene:
     spec.stat.extent = 3.0  # sets the clip planes for a scene a few metres across
 
     T_base_cam = cam_desc.mount.transform()
-    T_base_lidar = desc.sensors.lidar.mount.transform()
-    spec.worldbody.add_camera(
-        name="camera", pos=T_base_cam[:3, 3], quat=_quat_wxyz(T_base_cam[:3, :3] @ R_OPTICAL_TO_MJCAM), fovy=fovy_deg
-    )
+    T_base_lidar = built.sensors.lidar.mount.transform()
+    add_camera_to_spec(spec.worldbody, T_base_cam, cam_desc, name="camera", lens=lens)
     spec.worldbody.add_site(name="lidar", pos=T_base_lidar[:3, 3], quat=_quat_wxyz(T_base_lidar[:3, :3]))
 
     # Board frame = OpenCV corner frame: origin at the first inner corner, z into the board,
@@ -109,14 +123,19 @@ def build_scene(desc: RobotDescription) -> CalibrationScene:
     model = spec.compile()
     data = mujoco.MjData(model)
     K_true = np.array([[fx, 0.0, (w - 1) / 2], [0.0, fx, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    dist_true = np.zeros(5)
+    if lens is not None:
+        K_true = lens.K.copy()
+        dist_true[: len(lens.dist)] = lens.dist
     T_cam_lidar = np.linalg.inv(T_base_cam) @ T_base_lidar
-    return CalibrationScene(model, data, K_true, T_cam_lidar, T_base_cam, T_base_lidar, w, h, fovy_deg)
+    return CalibrationScene(model, data, K_true, T_cam_lidar, T_base_cam, T_base_lidar, w, h, fovy_deg, dist_true, lens)
 
 
 def _make_renderer(scene: CalibrationScene):
     import mujoco
 
-    r = mujoco.Renderer(scene.model, height=scene.height_px, width=scene.width_px)
+    rw, rh = scene.lens.canvas_size if scene.lens is not None else (scene.width_px, scene.height_px)
+    r = mujoco.Renderer(scene.model, height=rh, width=rw)
     for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX):
         r.scene.flags[flag] = 0
     return r
@@ -137,15 +156,35 @@ def _render(scene: CalibrationScene, renderer) -> np.ndarray:
     opt = mujoco.MjvOption()
     opt.geomgroup[:] = 1
     renderer.update_scene(scene.data, camera="camera", scene_option=opt)
-    return renderer.render()
+    img = renderer.render()
+    return scene.lens.apply(img) if scene.lens is not None else img
+
+
+PROBE_POINTS_CAM = ([0.0, 0.0, 1.0], [0.25, -0.15, 1.2], [-0.3, 0.2, 1.0], [0.4, 0.3, 1.5])
 
 
 def measure_pixel_offset(scene: CalibrationScene, renderer=None) -> np.ndarray:
-    """Mean (du, dv) of rendered probe-sphere centroids minus their true-K projections (pixels)."""
+    """Mean (du, dv) of rendered probe-sphere centroids minus their true projections (pixels)."""
+    return np.mean(probe_offsets(scene, renderer), axis=0)
+
+
+def probe_offsets(scene: CalibrationScene, renderer=None, points_cam=PROBE_POINTS_CAM) -> np.ndarray:
+    """(N, 2): rendered probe-sphere centroids minus where the true K and distortion project the
+    sphere's centre (points in the optical frame, metres)."""
+    own = renderer is None
     renderer = renderer or _make_renderer(scene)
+    try:
+        return _probe_offsets(scene, renderer, points_cam)
+    finally:
+        if own:
+            renderer.close()
+
+
+def _probe_offsets(scene: CalibrationScene, renderer, points_cam) -> np.ndarray:
+    camera = scene.camera_model()
     _set_mocap(scene, "board", _far())
     offsets = []
-    for p_cam in ([0.0, 0.0, 1.0], [0.25, -0.15, 1.2], [-0.3, 0.2, 1.0], [0.4, 0.3, 1.5]):
+    for p_cam in points_cam:
         T = np.eye(4)
         T[:3, 3] = scene.T_base_cam[:3, :3] @ p_cam + scene.T_base_cam[:3, 3]
         _set_mocap(scene, "probe", T)
@@ -153,10 +192,10 @@ def measure_pixel_offset(scene: CalibrationScene, renderer=None) -> np.ndarray:
         vv, uu = np.mgrid[0: img.shape[0], 0: img.shape[1]]
         wgt = img / img.sum()
         centroid = np.array([(wgt * uu).sum(), (wgt * vv).sum()])
-        proj = scene.K_true @ np.asarray(p_cam)
-        offsets.append(centroid - proj[:2] / proj[2])
+        uv, _ = camera.project(np.asarray([p_cam], dtype=float))
+        offsets.append(centroid - uv[0])
     _set_mocap(scene, "probe", _far())
-    return np.mean(offsets, axis=0)
+    return np.array(offsets)
 
 
 def _far() -> np.ndarray:
@@ -167,9 +206,9 @@ def _far() -> np.ndarray:
 
 def sample_board_poses(scene: CalibrationScene, n: int, rng: np.random.Generator) -> list[np.ndarray]:
     """T_camera<-board poses with the whole board in view, tilted in varied directions."""
-    from calibration.camera_model import CameraModel, transform_points
+    from calibration.camera_model import transform_points
 
-    cam = CameraModel(scene.K_true, np.zeros(5), scene.width_px, scene.height_px)
+    cam = scene.camera_model()
     cols, rows = BOARD_PATTERN
     sq, b = BOARD_SQUARE_M, BOARD_BORDER_M
     outline = np.array([[-sq - b, -sq - b, 0], [cols * sq + b, -sq - b, 0], [cols * sq + b, rows * sq + b, 0],

@@ -28,6 +28,7 @@ import numpy as np  # noqa: E402
 
 from calibration.robot_description import RobotDescription  # noqa: E402
 from hil_sim.sensors.camera import add_camera_to_spec, ensure_offscreen_buffer  # noqa: E402
+from hil_sim.sensors.camera_lens import CameraLens  # noqa: E402
 from hil_sim.sensors.imu import add_imu_to_spec  # noqa: E402
 from hil_sim.world.scenario import Scenario  # noqa: E402
 from hil_sim.world.scenario_objects import BoxObstacle, CylinderObstacle  # noqa: E402
@@ -105,8 +106,9 @@ def yaw_quat(yaw_rad: float) -> list[float]:
     return [math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)]
 
 
-def build_spec(scenario: Scenario, robot: RobotDescription) -> mujoco.MjSpec:
-    """The MjSpec of a scenario with the robot at its start pose (uncompiled)."""
+def build_spec(scenario: Scenario, robot: RobotDescription, lens: CameraLens | None = None) -> mujoco.MjSpec:
+    """The MjSpec of a scenario with the robot at its start pose (uncompiled). lens: the camera as
+    built (a robot variant: hil_sim.world.robot_variant); None: the description's pinhole."""
     spec = mujoco.MjSpec()
     spec.modelname = f"{scenario.name}_{robot.name}"
     opt = spec.option
@@ -123,7 +125,7 @@ def build_spec(scenario: Scenario, robot: RobotDescription) -> mujoco.MjSpec:
     _add_floor_and_walls(world, scenario)
     for ob in scenario.obstacles:
         _add_obstacle(world, ob)
-    _add_robot(spec, scenario, robot)
+    _add_robot(spec, scenario, robot, lens)
     return spec
 
 
@@ -226,7 +228,7 @@ def _add_curtain(world: mujoco.MjsBody, ob: BoxObstacle) -> None:
         )
 
 
-def _add_robot(spec: mujoco.MjSpec, scenario: Scenario, robot: RobotDescription) -> None:
+def _add_robot(spec: mujoco.MjSpec, scenario: Scenario, robot: RobotDescription, lens: CameraLens | None) -> None:
     """The LIMO-class base: two chassis boxes, four wheels, four motor actuators, the sensors."""
     chassis_mass = robot.mass_kg - 4 * WHEEL_MASS_KG
     if chassis_mass <= 0:
@@ -242,8 +244,8 @@ def _add_robot(spec: mujoco.MjSpec, scenario: Scenario, robot: RobotDescription)
 
     # Sensors: the camera (optical-frame mount) and the IMU site with gyro + accelerometer.
     cam = robot.sensors.camera
-    add_camera_to_spec(base, cam.mount, cam, name=CAMERA_NAME)
-    ensure_offscreen_buffer(spec, cam.width_px, cam.height_px)
+    add_camera_to_spec(base, cam.mount, cam, name=CAMERA_NAME, lens=lens)
+    ensure_offscreen_buffer(spec, *(lens.canvas_size if lens is not None else (cam.width_px, cam.height_px)))
     add_imu_to_spec(base, robot.sensors.imu.mount, spec=spec, name=IMU_NAME)
 
 

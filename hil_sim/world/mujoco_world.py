@@ -15,6 +15,7 @@ import numpy as np  # noqa: E402
 from calibration.robot_description import RobotDescription  # noqa: E402
 from hil_sim.world.model_spec import (CAMERA_NAME, IMU_NAME, LIDAR_GEOMGROUP, ROBOT_OWN_GEOM_GROUPS,  # noqa: E402
                                       WHEEL_NAMES, WorldError, build_spec, yaw_quat)
+from hil_sim.world.robot_variant import RobotVariant  # noqa: E402
 from hil_sim.world.scenario import Scenario  # noqa: E402
 from hil_sim.world.scenario_checks import DEFAULT_GROUND_CLEARANCE_M, check_scenario_against_robot  # noqa: E402
 from hil_sim.world.scenario_objects import CylinderObstacle  # noqa: E402
@@ -33,10 +34,23 @@ class World:
     accelerometer `imu_sensor_names`. The lidar is cast by hil_sim.sensors.lidar.SimLidar from
     `lidar_mount` on base_link with `lidar_geomgroup` (robot groups excluded).
     hil_sim.world.sensor_rig.SensorRig wires all three.
+
+    variant: the robot as built (hil_sim.world.robot_variant.RobotVariant of `robot`): its lidar
+    and camera at their true mounts, its camera's true intrinsics and distortion (`camera_lens`);
+    None: the robot as described. `robot` is then the variant's built robot.
     """
 
     def __init__(self, scenario: Scenario, robot: RobotDescription, seed: int = 0, *,
-                 ground_clearance_m: float = DEFAULT_GROUND_CLEARANCE_M) -> None:
+                 ground_clearance_m: float = DEFAULT_GROUND_CLEARANCE_M, variant: RobotVariant | None = None) -> None:
+        if variant is not None:
+            if variant.nominal_robot != robot:
+                raise WorldError(f"the robot variant {variant.label} was made from another description of robot "
+                                 f"'{variant.nominal_robot.name}' than the one given ('{robot.name}')")
+            robot = variant.robot
+        #: The robot variant the world is built as (None: the robot description as it is).
+        self.robot_variant = variant
+        #: The camera as built (None: the description's pinhole).
+        self.camera_lens = variant.lens if variant is not None else None
         # First: a scenario this robot cannot start in (inside a wall, an invisible obstacle,
         # an unreachable goal) is a ScenarioError naming the field, before any physics runs.
         #: Warnings of hil_sim.world.scenario_checks.check_scenario_against_robot (each names its field).
@@ -44,7 +58,7 @@ class World:
             scenario, robot, ground_clearance_m=ground_clearance_m)
         self.scenario = scenario
         self.robot = robot
-        self.spec = build_spec(scenario, robot)
+        self.spec = build_spec(scenario, robot, self.camera_lens)
         self.model: mujoco.MjModel = self.spec.compile()
         self.data = mujoco.MjData(self.model)
         m = self.model

@@ -10,6 +10,8 @@ footprints on the floor in hil_sim.world.footprints; whether a scenario can run 
 path an odometry evaluation drives with a scripted operator (`dct odom eval --scenario`);
 check_scenario_against_robot checks that the robot's footprint swept along it clears everything.
 
+The robot may be one as built rather than as described (`robot_variant:`: hil_sim.world.robot_variant).
+
 A patrol: `goals:` (two or more) instead of `goal:`, visited in order, and `patrol:` (`loops`
 times round, or for `duration_s`; `goal_timeout_s` per goal): hil_sim.episode.patrol sends the next goal
 when the controller has reached the current one. `goal` is then the first of them.
@@ -19,12 +21,13 @@ from __future__ import annotations
 import math
 from importlib import resources
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Discriminator, Field, Tag, model_validator
 
 from calibration.errors import ConfigFileError, load_yaml_model
+from hil_sim.world.robot_variant import VariantDepartures
 from hil_sim.world.scenario_objects import (CLASS_DEFAULT_COST, NAME_PATTERN, BoxObstacle, CylinderObstacle,
                                             FiniteFloat, Obstacle, Pose2D, StrictModel)
 
@@ -132,6 +135,23 @@ class Randomization(StrictModel):
     free_body_yaw_noise_deg: float = Field(default=0.0, ge=0.0, le=180.0)
 
 
+def _variant_kind(value) -> str:
+    """Which form a `robot_variant:` value has (so that an error names that form's problem only)."""
+    if isinstance(value, bool):
+        return "name"  # true is not a seed
+    if isinstance(value, int):
+        return "seed"
+    return "departures" if isinstance(value, (dict, VariantDepartures)) else "name"
+
+
+#: A scenario's `robot_variant:`: `nominal`, a seed (an integer >= 0) or the departures themselves.
+RobotVariantSpec = Annotated[
+    Union[Annotated[Literal["nominal"], Tag("name")], Annotated[int, Field(ge=0, lt=2 ** 32), Tag("seed")],
+          Annotated[VariantDepartures, Tag("departures")]],
+    Discriminator(_variant_kind, custom_error_type="robot_variant",
+                  custom_error_message="must be nominal, a seed (an integer >= 0) or a mapping of departures"),
+]
+
 #: Consecutive route points closer than this make a segment without a direction.
 MIN_ROUTE_SEGMENT_M = 0.01
 
@@ -187,6 +207,9 @@ class Scenario(StrictModel):
     time_limit_s: float = Field(gt=0.0, le=3600.0)
     randomization: Randomization = Field(default_factory=Randomization)
     route: Route | None = None
+    #: The robot as built (hil_sim.world.robot_variant): `nominal`, a seed, or the departures
+    #: themselves; None: the robot description as it is. `--robot-variant` overrides it.
+    robot_variant: RobotVariantSpec | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> "Scenario":

@@ -23,6 +23,10 @@ camera image; see hil_sim.sensors.imu and hil_sim.sensors.lidar); only a bad cal
 
 The robot's own geoms (groups World.ROBOT_OWN_GEOM_GROUPS) are invisible to the lidar rays
 and hidden from the camera: both mounts lie inside the coarse chassis boxes.
+
+A world built as a robot variant (hil_sim.world.robot_variant) has its lidar and camera at the
+variant's mounts, and the camera renders through the variant's lens (`World.camera_lens`): its
+images carry the true K and distortion, as a camera driver reports its factory calibration.
 """
 from __future__ import annotations
 
@@ -228,7 +232,8 @@ class SensorRig:
 
         world, c = self.world, self.config
         cam = self.robot.sensors.camera
-        args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups)
+        args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups,
+                world.camera_lens)
         if c.camera_async:
             return CameraThread(world.model, args, c.camera_segmentation, self._deliver_image)
         return SimCamera(world.model, world.data, *args)
