@@ -30,6 +30,7 @@ start-up sequence. After each tick the controller publishes a `ControllerSnapsho
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable
 
@@ -72,7 +73,7 @@ class NavigationController:
         odometry, the VLM partition sees the scene) but the planner does not drive until
         `give_goal(now)`, as on a robot switched on before it is sent.
         options: the rest of runtime.controller.parts.PartsOptions (wheel_calibration,
-        vlm_backend, camera, T_cam_lidar)."""
+        vlm_backend, sensor_calibration: the calibrated camera and mounts)."""
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
@@ -97,6 +98,7 @@ class NavigationController:
         self.gate = SafetyGate(parts.supervisor, parts.events) if parts.supervisor is not None else None
         self.limiter = parts.limiter
         self.safety_stop = parts.safety_stop
+        self.calibration = parts.calibration
         self.period_s = config.loop.period_s
         self.command = (0.0, 0.0)  # (v_mps, omega_radps) last written
         self.pose = Pose2D(0.0, 0.0, 0.0)
@@ -215,6 +217,7 @@ class NavigationController:
         inputs = self.hardware.read(now)
         sensors = self.sensors.take() if self.sensors is not None else _NO_SENSORS
         self.faults = self.monitor.check(inputs, sensors, now)
+        self.calibration.observe(sensors.camera_info, self.monitor.good_scan)  # checked in the slack
         if self.goals.pending:
             self._apply_goal(now)
         self._update_state(inputs, now)
@@ -237,6 +240,7 @@ class NavigationController:
             vlm_last_answer_s=memory.last_answer_s if memory is not None else None,
             vlm_masks=memory.entries if memory is not None else (),
             stop_reason=self.stop_reason, safety=self._safety_verdict(),
+            partition_fallback=self.partition.fallback, calibration_mismatch=self.calibration.mismatch,
         )
 
     def _safety_verdict(self) -> str | None:
@@ -443,9 +447,26 @@ class NavigationController:
 
     # -- between ticks -----------------------------------------------------------------------
     def slack_work(self) -> bool:
-        """After the tick's command is written: the mode's deferred work (a reference search);
-        returns whether there was any."""
-        return self.state is ControllerState.ACTIVE and self.modes.slack_work()
+        """After the tick's command is written: the mode's deferred work (a reference search), then
+        the calibration check; returns whether there was any."""
+        planned = self.state is ControllerState.ACTIVE and self.modes.slack_work()
+        return self._check_calibration() or planned
+
+    def _check_calibration(self) -> bool:
+        """The calibration check's due work; a mismatch it finds is said, and the partition falls
+        back to all-fixed for the rest of the run (every point an obstacle: the safe side)."""
+        now = self.clock()
+        mismatch, worked = self.calibration.slack(now)
+        if mismatch is not None:
+            self.events.add(now, "calibration_mismatch", mismatch)
+            configured = self.partition.name
+            if self.partition.fall_back(mismatch, now):
+                self.events.add(now, "partition_fallback", f"partition all-fixed instead of {configured}: every "
+                                                           "lidar point an obstacle from now on")
+            if self.snapshot is not None:  # observers see it before the next tick
+                self.snapshot = dataclasses.replace(self.snapshot, partition_fallback=self.partition.fallback,
+                                                    calibration_mismatch=mismatch)
+        return worked
 
     def keepalive(self, now_s: float) -> None:
         """Re-send the current command between ticks (0x111 at the CAN command rate)."""
@@ -506,6 +527,7 @@ class NavigationController:
             "moving_obstacles": self.perception.moving.describe(),
         }
         out.update(self.partition.describe())
+        out["calibration"] = self.calibration.describe()
         out.update(self.modes.counters())
         if self.gate is not None:
             supervisor = self.gate.supervisor

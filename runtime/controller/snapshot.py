@@ -51,3 +51,7 @@ class ControllerSnapshot:
     #: The safety supervisor's verdict on this tick's command: "clear", "slow" or "stop" (None:
     #: no supervisor ran, e.g. before the first command).
     safety: str | None = None
+    #: (reason, since_s) once the partition fell back to all-fixed (a calibration mismatch); None before.
+    partition_fallback: tuple[str, float] | None = None
+    #: The calibration check's first mismatch (runtime.perception.calibration_monitor), None while none.
+    calibration_mismatch: str | None = None
