@@ -54,7 +54,7 @@ class Loaded:
     #: The camera and mounts as calibrated (calibration.sensor_calibration.SensorCalibration: the
     #: calibration file's where it has them, else the robot description's nominal ones), for every
     #: stage, /tf_static and the recording.
-    sensors: object = None
+    sensor_calibration: object = None
     notes: list[str] = field(default_factory=list)
 
 
@@ -95,7 +95,7 @@ def load_inputs(opts: RunOptions) -> Loaded:
             DistanceNet.load(config.planner.distance_net_path, robot=robot)
         except DistanceNetError as exc:
             raise RunInputError(f"{cfg_name}: planner.distance_net_path: {exc}") from None
-    return Loaded(robot, config, wheel_calibration, K, dist, bus_config, sensors=sensors)
+    return Loaded(robot, config, wheel_calibration, K, dist, bus_config, sensor_calibration=sensors)
 
 
 def _ros_overrides(config, opts: RunOptions):

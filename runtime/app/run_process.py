@@ -162,7 +162,7 @@ def sensor_mounts(loaded: Loaded) -> list:
     from runtime.io.ros.outbound import robot_sensor_mounts
 
     out = loaded.config.ros.outputs
-    return robot_sensor_mounts(loaded.sensors, base_frame=out.base_frame, lidar_frame=out.lidar_frame,
+    return robot_sensor_mounts(loaded.sensor_calibration, base_frame=out.base_frame, lidar_frame=out.lidar_frame,
                                camera_frame=out.camera_frame)
 
 
@@ -208,7 +208,7 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
     config = loaded.config
     clock = EpochMonotonicClock()
     driver_bus = recorder.wrap_bus(bus, clock.now) if recorder is not None else bus
-    parts = assemble(RobotSetup(loaded.robot, config, loaded.wheel_calibration, loaded.sensors),
+    parts = assemble(RobotSetup(loaded.robot, config, loaded.wheel_calibration, loaded.sensor_calibration),
                      Wiring(driver_bus, clock, Pose2D(*goal), inbox if config.uses_lidar else None, lockstep=False))
     record_hook = None
     if recorder is not None:
