@@ -48,6 +48,7 @@ from runtime.io.sensor_inbox import SensorInbox, SensorSnapshot
 from runtime.loop.fixed_rate import StageClock
 from runtime.loop.telemetry import STAGES
 from runtime.modes.base import ModeDecision, Situation
+from runtime.perception.calibration_monitor import check_calibration
 from runtime.safety.gate import SafetyGate
 from runtime.safety.input_monitor import InputFault
 
@@ -450,22 +451,14 @@ class NavigationController:
         """After the tick's command is written: the mode's deferred work (a reference search), then
         the calibration check; returns whether there was any."""
         planned = self.state is ControllerState.ACTIVE and self.modes.slack_work()
-        return self._check_calibration() or planned
+        return self._check_calibration(busy=planned) or planned
 
-    def _check_calibration(self) -> bool:
-        """The calibration check's due work; a mismatch it finds is said, and the partition falls
-        back to all-fixed for the rest of the run (every point an obstacle: the safe side)."""
-        now = self.clock()
-        mismatch, worked = self.calibration.slack(now)
-        if mismatch is not None:
-            self.events.add(now, "calibration_mismatch", mismatch)
-            configured = self.partition.name
-            if self.partition.fall_back(mismatch, now):
-                self.events.add(now, "partition_fallback", f"partition all-fixed instead of {configured}: every "
-                                                           "lidar point an obstacle from now on")
-            if self.snapshot is not None:  # observers see it before the next tick
-                self.snapshot = dataclasses.replace(self.snapshot, partition_fallback=self.partition.fallback,
-                                                    calibration_mismatch=mismatch)
+    def _check_calibration(self, busy: bool) -> bool:
+        """The calibration check's due work (a mismatch falls back to all-fixed: check_calibration)."""
+        mismatch, worked = check_calibration(self.calibration, self.partition, self.events, self.clock(), busy)
+        if mismatch is not None and self.snapshot is not None:  # observers see it before the next tick
+            self.snapshot = dataclasses.replace(self.snapshot, partition_fallback=self.partition.fallback,
+                                                calibration_mismatch=mismatch)
         return worked
 
     def keepalive(self, now_s: float) -> None:

@@ -81,12 +81,17 @@ class CalibrationMonitor:
             self._scan = good_scan
 
     # -- the slack ---------------------------------------------------------------------------------
-    def slack(self, now_s: float) -> tuple[str | None, bool]:
-        """Run what is due; (a mismatch found now, said once: None otherwise; whether any work ran)."""
+    def slack(self, now_s: float, busy: bool = False) -> tuple[str | None, bool]:
+        """Run what is due; (a mismatch found now, said once: None otherwise; whether any work ran).
+        busy: the slack had other work already (a reference search): the floor fit (a few ms)
+        waits for a later slack, unless it is a whole period overdue."""
         if not self.config.enabled:
             return None, False
         worked = self._check_intrinsics(now_s)
-        if self._scan is not None and (self._next_floor_s is None or now_s >= self._next_floor_s):
+        due = self._next_floor_s is None or now_s >= self._next_floor_s
+        if busy and self._next_floor_s is not None:
+            due = now_s >= self._next_floor_s + self.config.floor_check_period_s
+        if self._scan is not None and due:
             self._check_floor(now_s)
             self._next_floor_s = now_s + self.config.floor_check_period_s
             worked = True
@@ -158,4 +163,19 @@ class CalibrationMonitor:
         }
 
 
-__all__ = ["CalibrationCheckConfig", "CalibrationMonitor"]
+def check_calibration(monitor: CalibrationMonitor, partition, events, now_s: float,
+                      busy: bool = False) -> tuple[str | None, bool]:
+    """The monitor's due work in the slack; a mismatch it finds is said in the event log and the
+    partition (runtime.perception.partition.FallbackPartition) falls back to all-fixed for the rest
+    of the run: every point an obstacle, the safe side. (The mismatch found now, whether any work ran.)"""
+    mismatch, worked = monitor.slack(now_s, busy)
+    if mismatch is not None:
+        events.add(now_s, "calibration_mismatch", mismatch)
+        configured = partition.name
+        if partition.fall_back(mismatch, now_s):
+            events.add(now_s, "partition_fallback", f"partition all-fixed instead of {configured}: every lidar "
+                                                    "point an obstacle from now on")
+    return mismatch, worked
+
+
+__all__ = ["CalibrationCheckConfig", "CalibrationMonitor", "check_calibration"]

@@ -50,3 +50,20 @@ def test_a_mount_off_the_robot_stops_the_start_naming_the_file_and_field(tmp_pat
     path = _file(tmp_path, lidar_mount={"xyz_m": [0.04, 0.01, -0.05], "rpy_deg": [0.0, 0.0, 0.0]})
     with pytest.raises(RunInputError, match=r"my_robot\.yaml: lidar_mount\.xyz_m \[0\.04, 0\.01, -0\.05\] is below the floor"):
         load_inputs(RunOptions(calibration_path=path, planner="all-fixed"))
+
+
+def test_the_console_says_the_mismatch_and_the_fallback_once():
+    from types import SimpleNamespace
+
+    from runtime.app.run_observer import RunObserver
+    from runtime.controller.state import ControllerState
+
+    said = []
+    observer = RunObserver(None, None, None, None, None, said.append)
+    reason = "lidar mount: my_robot.yaml lidar_mount: the floor seen through it is tilted 2.0 deg"
+    quiet = SimpleNamespace(state=ControllerState.ACTIVE, calibration_mismatch=None, partition_fallback=None)
+    fell = SimpleNamespace(state=ControllerState.ACTIVE, calibration_mismatch=reason, partition_fallback=(reason, 2.2))
+    for snap in (quiet, fell, fell):
+        observer._say_fallback(snap)
+    assert said == [f"dct run: ACTIVE: partition all-fixed (every lidar point an obstacle) from t=2.20 s: "
+                    f"calibration mismatch: {reason}"]
