@@ -167,8 +167,8 @@ class RobotDescription(_Strict):
     @model_validator(mode="after")
     def _sensors_on_the_body(self) -> "RobotDescription":
         """Every sensor mount lies on or near the body (see MOUNT_MAX_* above)."""
-        problems = [p for name in ("lidar", "camera", "imu")
-                    if (p := self.mount_problem(f"sensors.{name}.mount.xyz_m", getattr(self.sensors, name).mount.xyz_m))]
+        mounts = {name: getattr(self.sensors, name).mount.xyz_m for name in ("lidar", "camera", "imu")}
+        problems = [p for name, xyz in mounts.items() if (p := self.mount_problem(f"sensors.{name}.mount.xyz_m", xyz))]
         if problems:
             raise ValueError("; ".join(problems))
         return self

@@ -16,8 +16,8 @@ Per call:
   even created): rendering costs tens of ms, never do it every physics step. Each image goes
   to `inbox.put_image`, and beside it the intrinsics it was rendered with go to
   `inbox.put_camera_info`, as a camera driver publishes its CameraInfo (what the controller's
-  calibration check holds its calibration against). If steps are so coarse that several frame instants passed, one frame is
-  rendered and the others are counted in `camera_frames_missed`.
+  calibration check holds its calibration against). If steps are so coarse that several frame
+  instants passed, one frame is rendered and the others are counted in `camera_frames_missed`.
 
 Robustness: no physics state makes `step` raise (a crash into a wall saturates the IMU, whose
 samples are then clipped and flagged; NaN readings give no IMU sample, lidar no-returns and no

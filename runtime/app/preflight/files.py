@@ -105,9 +105,9 @@ def _calibration_matches_robot(cal: Any, robot: Any, path: Any, needs_camera: bo
                      "run `dct calibrate extrinsics`")
     import numpy as np
 
-    T_base_cam = robot.sensors.camera.mount.transform()
-    T_base_lidar = robot.sensors.lidar.mount.transform()
-    expected = np.linalg.inv(T_base_cam) @ T_base_lidar
+    from calibration.sensor_calibration import nominal_sensors
+
+    expected = nominal_sensors(robot).T_cam_lidar  # the description's mounts
     T = cal.T_cam_lidar()
     dt = float(np.linalg.norm(T[:3, 3] - expected[:3, 3]))
     cos = (np.trace(expected[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0
