@@ -400,6 +400,9 @@ def _result(ep: "_Episode", wall: float) -> EpisodeResult:
         extra=_extra_metrics(ep, report, final_distance),
     )
     result_metrics["failure_reason"] = failure_reason(result_metrics, report)
+    mismatch = report.get("calibration", {}).get("mismatch")
+    if result_metrics["failure_reason"] is not None and mismatch is not None:  # the likely cause, said with it
+        result_metrics["failure_reason"] += f" (after a calibration mismatch: {mismatch})"
     return EpisodeResult(
         metrics=result_metrics,
         telemetry=telemetry.summary(),
