@@ -10,7 +10,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from calibration.calibration_file import RigidTransform, load_calibration
+from calibration.calibration_file import load_calibration
 from calibration.robot_description import load_robot_description
 from calibration.sensor_calibration import sensor_calibration
 from runtime.common.geometry import Pose2D
