@@ -167,18 +167,20 @@ class RobotDescription(_Strict):
     @model_validator(mode="after")
     def _sensors_on_the_body(self) -> "RobotDescription":
         """Every sensor mount lies on or near the body (see MOUNT_MAX_* above)."""
-        problems = [p for name in ("lidar", "camera", "imu")
-                    if (p := self._mount_problem(f"sensors.{name}.mount.xyz_m", getattr(self.sensors, name).mount))]
+        mounts = {name: getattr(self.sensors, name).mount.xyz_m for name in ("lidar", "camera", "imu")}
+        problems = [p for name, xyz in mounts.items() if (p := self.mount_problem(f"sensors.{name}.mount.xyz_m", xyz))]
         if problems:
             raise ValueError("; ".join(problems))
         return self
 
-    def _mount_problem(self, field: str, mount: Mount) -> str | None:
-        x, y, z = mount.xyz_m
+    def mount_problem(self, field: str, xyz_m: tuple[float, float, float]) -> str | None:
+        """Why a sensor at xyz_m (base_link) cannot be on this robot (MOUNT_MAX_* above), None when
+        it can: the description's own mounts and a calibration file's are judged alike."""
+        x, y, z = xyz_m
         half_x = self.footprint.length_m / 2 + MOUNT_MAX_OUTSIDE_FOOTPRINT_M
         half_y = self.footprint.width_m / 2 + MOUNT_MAX_OUTSIDE_FOOTPRINT_M
         top = self.body_height_m + MOUNT_MAX_ABOVE_BODY_M
-        where = f"{field} {list(mount.xyz_m)}"
+        where = f"{field} {[round(float(v), 4) for v in xyz_m]}"
         if abs(x) > half_x or abs(y) > half_y:
             return (f"{where} is more than {MOUNT_MAX_OUTSIDE_FOOTPRINT_M} m outside the footprint "
                     f"(|x| <= {half_x:g} m, |y| <= {half_y:g} m)")

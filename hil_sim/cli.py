@@ -125,7 +125,7 @@ class _RunInputs:
     config: Any
     faults: list
     wheel_calibration: tuple[float, float] | None
-    camera_calibration: Any
+    sensor_calibration: Any  # calibration.sensor_calibration.SensorCalibration
     warnings: list[str]
     #: The simulated robot as built (hil_sim.world.robot_variant.RobotVariant), or None.
     variant: Any = None
@@ -157,7 +157,7 @@ def _load_run(*, scenario: str, seed: int, config_path: Path | None, robot_path:
             check_against_robot(config, robot)
         except ValueError as exc:
             raise InputError(f"{config_path or 'the shipped controller config'}: {exc}") from None
-        wheel_calibration, camera_calibration = _load_calibration(calibration_path, robot)
+        wheel_calibration, sensor_calibration = _load_calibration(calibration_path, robot, robot_path)
         variant = _load_variant(robot_variant, sc, robot)
         warnings = check_scenario_against_robot(
             sc, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m
@@ -171,7 +171,7 @@ def _load_run(*, scenario: str, seed: int, config_path: Path | None, robot_path:
         raise InputError(str(exc)) from exc
     warnings += [f"--fault {f}: starts at or after the time limit ({sc.time_limit_s:g} s); it will never act"
                  for f in faults if f.start_s >= sc.time_limit_s]
-    return _RunInputs(sc, robot, config, faults, wheel_calibration, camera_calibration, warnings, variant)
+    return _RunInputs(sc, robot, config, faults, wheel_calibration, sensor_calibration, warnings, variant)
 
 
 def _load_variant(spec: str | None, scenario, robot):
@@ -199,20 +199,27 @@ def variant_line(variant) -> str:
             f"{[round(a, 2) for a in d.camera_mount.drpy_deg]} deg")
 
 
-def _load_calibration(calibration_path: Path | None, robot) -> tuple[tuple[float, float] | None, Any]:
-    """--calibration: (effective track, wheel scale) of its wheel odometry and the camera calibration for
-    the robot, said on stderr; (None, None) without the option."""
+def _load_calibration(calibration_path: Path | None, robot, robot_path: Path | None = None
+                      ) -> tuple[tuple[float, float] | None, Any]:
+    """--calibration: (effective track, wheel scale) of its wheel odometry and the sensors as it
+    calibrates them (calibration.sensor_calibration), said on stderr; (None, the description's
+    nominal sensors) without the option."""
+    from calibration.sensor_calibration import sensor_calibration
+
+    source = f"robot description {robot_path}" if robot_path is not None else None
     if calibration_path is None:
-        return None, None
-    from calibration.calibration_file import camera_for_robot, load_calibration
+        return None, sensor_calibration(robot, robot_source=source)
+    from calibration.calibration_file import load_calibration
     from calibration.wheel_odometry import wheel_params
 
     cal = load_calibration(calibration_path)
-    camera_calibration = camera_for_robot(cal, robot, calibration_path)
+    sensors = sensor_calibration(robot, cal, calibration_path, robot_source=source)
     params = wheel_params(robot, cal)
     click.echo(f"wheel odometry: effective track {params.effective_track_m:.4f} m, scale "
                f"{params.wheel_scale:.4f} ({params.source})", err=True)
-    return (params.effective_track_m, params.wheel_scale), camera_calibration
+    click.echo(f"sensors: camera from {sensors.sources['camera']}; lidar mount from {sensors.sources['lidar_mount']}; "
+               f"camera mount from {sensors.sources['camera_mount']}", err=True)
+    return (params.effective_track_m, params.wheel_scale), sensors
 
 
 def _check_outputs(json_path: Path | None, record_path: Path | None, force: bool, inputs: list) -> None:
@@ -255,7 +262,7 @@ def _run_lockstep(run: _RunInputs, seed: int, record_path: Path | None, force: b
         try:
             result = run_episode(run.scenario, robot=run.robot, config=run.config, seed=seed, faults=run.faults,
                                  wheel_calibration=run.wheel_calibration, recorder=recorder,
-                                 camera_calibration=run.camera_calibration, robot_variant=run.variant)
+                                 sensor_calibration=run.sensor_calibration, robot_variant=run.variant)
         except BaseException as exc:  # the log of a failed run is kept (it says how it ended)
             if recorder is not None:
                 recorder.note_run_end(exc)

@@ -155,6 +155,9 @@ class FaultInjector:
     def put_image(self, image: CameraImage) -> bool:
         return self.inbox.put_image(image)
 
+    def put_camera_info(self, info) -> bool:
+        return self.inbox.put_camera_info(info)
+
 
 def _blind(scan: LidarScan) -> LidarScan:
     """The same frame with every ray out of range (the sensor reports an empty field of view)."""

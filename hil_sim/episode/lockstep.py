@@ -41,7 +41,7 @@ from runtime.common.geometry import Pose2D
 from runtime.io.sensor_inbox import SensorInbox
 
 if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
-    from calibration.camera_model import CameraModel
+    from calibration.sensor_calibration import SensorCalibration
     from hil_sim.world.sensor_rig import SensorRigConfig
     from models.vlm.sim_oracle import SimOracleConfig
     from runtime.io.recording import RunRecorder
@@ -180,7 +180,7 @@ def run_episode(
     oracle: "SimOracleConfig | None" = None,
     on_start: "Callable[[LockstepSimulation, NavigationController], None] | None" = None,
     recorder: "RunRecorder | None" = None,
-    camera_calibration: "tuple[CameraModel, np.ndarray | None] | None" = None,
+    sensor_calibration: "SensorCalibration | None" = None,
     goal_when_ready: bool = False,
     robot_variant: "RobotVariant | None" = None,
 ) -> EpisodeResult:
@@ -190,9 +190,12 @@ def run_episode(
     controller needs (lidar + IMU for the MPC and grid-astar, nothing for pure pursuit).
     faults: injected faults (hil_sim.episode.faults), times from the start of the episode.
     wheel_calibration: (effective track m, wheel scale) for the odometry (calibration file).
-    camera_calibration: (camera model, T_cam_lidar or None) from the calibration file: the
-    controller's VPP partition projects with them, and the images reach it carrying them (the
-    simulated camera renders with its true intrinsics: a calibration's error is real here).
+    sensor_calibration: the camera and mounts the controller believes
+    (calibration.sensor_calibration: a calibration file's, else the description's nominal ones):
+    every stage places and projects with them, and the images reach it carrying its intrinsics.
+    The world builds the robot as `robot_variant` says (else as described) and the simulated camera
+    renders with its true intrinsics (reported to the controller as the camera driver's
+    CameraInfo): a calibration's error is real here, and the calibration check sees it.
     observe: called with the controller once after every tick, outside the tick and its timing:
     evaluation harnesses that inspect the stages they measure (`dct bench tick` reads the frame's
     point counts and the planner's counters with it); other observers read `controller.snapshot`.
@@ -222,13 +225,16 @@ def run_episode(
     config = config or load_controller_config()
     if robot_variant is None and scenario.robot_variant is not None:
         robot_variant = resolve_variant(scenario.robot_variant, robot)
-    bench = _SimulatedBench.build(scenario, robot, config, seed, faults, sensors, camera_calibration, robot_variant)
+    bench = _SimulatedBench.build(scenario, robot, config, seed, faults, sensors, sensor_calibration, robot_variant)
     sim = LockstepSimulation(bench.world, bench.firmware, bench.metrics, bench.devices, controls=[bench.injector])
     clock = LockstepClock(sim)
     bus = recorder.wrap_bus(bench.controller_bus, clock.now) if recorder is not None else bench.controller_bus
-    camera, T_cam_lidar = camera_calibration if camera_calibration is not None else (None, None)
+    if sensor_calibration is None:
+        from calibration.sensor_calibration import nominal_sensors
+
+        sensor_calibration = nominal_sensors(robot)
     try:  # loads the distance net: a bad model file must not leave the buses open
-        parts = assemble(RobotSetup(robot, config, wheel_calibration, camera, T_cam_lidar),
+        parts = assemble(RobotSetup(robot, config, wheel_calibration, sensor_calibration),
                          Wiring(bus, clock, goal_in_odom_frame(scenario), bench.inbox if bench.has_sensors else None,
                                 lockstep=True, vlm_backend=_vlm_backend(bench.world, config, oracle, seed),
                                 goal_given=not goal_when_ready))
@@ -245,8 +251,8 @@ def run_episode(
             from runtime.io.ros.outbound import robot_sensor_mounts
 
             out = config.ros.outputs
-            mounts = robot_sensor_mounts(robot, T_cam_lidar, base_frame=out.base_frame, lidar_frame=out.lidar_frame,
-                                         camera_frame=out.camera_frame)
+            mounts = robot_sensor_mounts(sensor_calibration, base_frame=out.base_frame,
+                                         lidar_frame=out.lidar_frame, camera_frame=out.camera_frame)
             parts.loop.after_tick = recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed,
                                                                           "clock": "lockstep"}, static_transforms=mounts)
         if on_start is not None:
@@ -288,7 +294,7 @@ class _SimulatedBench:
     has_sensors: bool
 
     @classmethod
-    def build(cls, scenario, robot, config, seed, faults, sensors, camera_calibration,
+    def build(cls, scenario, robot, config, seed, faults, sensors, sensor_calibration,
               robot_variant=None) -> "_SimulatedBench":
         world = World(scenario, robot, ground_clearance_m=config.planner.obstacle_points.ground_clearance_m,
                       variant=robot_variant)
@@ -305,7 +311,7 @@ class _SimulatedBench:
             if sensors is None:
                 sensors = config.uses_lidar
             has_sensors = sensors is not False
-            devices = ([_sensor_rig(world, robot, config, injector, sensors, seed, camera_calibration)]
+            devices = ([_sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibration)]
                        if has_sensors else [])
         except BaseException:
             controller_bus.shutdown()
@@ -318,7 +324,7 @@ class _SimulatedBench:
         self.sim_bus.shutdown()
 
 
-def _sensor_rig(world, robot, config, injector, sensors, seed, camera_calibration):
+def _sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibration):
     from hil_sim.world.sensor_rig import SensorRig, SensorRigConfig
 
     rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
@@ -328,8 +334,8 @@ def _sensor_rig(world, robot, config, injector, sensors, seed, camera_calibratio
         rate = rig_config.camera_rate_hz or DCT_CAMERA_RATE_HZ
         rig_config = rig_config.model_copy(update={"camera_rate_hz": rate, "camera_segmentation": True})
     intrinsics = None
-    if camera_calibration is not None:
-        intrinsics = (camera_calibration[0].K, camera_calibration[0].dist)
+    if sensor_calibration is not None:  # the images carry what the controller believes, as on the robot
+        intrinsics = (sensor_calibration.camera.K, sensor_calibration.camera.dist)
     return SensorRig(world, robot, injector, rig_config, intrinsics=intrinsics)
 
 
@@ -404,6 +410,9 @@ def _result(ep: "_Episode", wall: float) -> EpisodeResult:
         extra=_extra_metrics(ep, report, final_distance),
     )
     result_metrics["failure_reason"] = failure_reason(result_metrics, report)
+    mismatch = report.get("calibration", {}).get("mismatch")
+    if result_metrics["failure_reason"] is not None and mismatch is not None:  # the likely cause, said with it
+        result_metrics["failure_reason"] += f" (after a calibration mismatch: {mismatch})"
     return EpisodeResult(
         metrics=result_metrics,
         telemetry=telemetry.summary(),
@@ -443,6 +452,8 @@ def _extra_metrics(ep: _Episode, report: dict, final_distance: float) -> dict:
     world, t_start, patrol = bench.world, operator.clock_start, operator.patrol
     return {
         "controller_state": controller.state.name,
+        # {reason, since_s, configured} once a calibration mismatch made the partition all-fixed
+        "partition_fallback": report.get("partition_fallback"),
         "stop_reason": controller.stop_reason,
         "final_distance_to_goal_m": final_distance,
         "final_pose_world": [float(v) for v in world.robot_pose()],

@@ -6,7 +6,8 @@ bus between processes), and the sensors are ROS 2 topics over DDS with the types
 drivers publish: livox_ros_driver2/CustomMsg (per-point offset_time, ros_io's numpy encoder), or,
 when the controller's config reads a sensor_msgs/PointCloud2 lidar, the PointCloud2 the same
 driver publishes with xfer_format 0 (per-point absolute `timestamp` in ns), sensor_msgs/Imu,
-sensor_msgs/Image (only when a camera rate is asked for: rendering is costly).
+sensor_msgs/Image (only when a camera rate is asked for: rendering is costly) with its
+sensor_msgs/CameraInfo (the rendering camera's true intrinsics, as a driver reports them).
 For planner mode dct it also serves the sim-oracle as a remote VLM (the OpenAI chat-completions
 API and the grounding detector API over HTTP on 127.0.0.1: hil_sim.vlm.service), answering
 from the ground truth of the frames it rendered.
@@ -99,6 +100,10 @@ class DdsSensorSink:
             self._imu = transport.writer(inputs.imu.topic, Imu, inputs.imu.qos.spec())
         if inputs.camera is not None and inputs.camera.type == "sensor_msgs/msg/Image":
             self._camera = transport.writer(inputs.camera.topic, Image, QosSpec(inputs.camera.qos.reliability, 1))
+        self._camera_info = None  # the rendering camera's true intrinsics, as a driver's CameraInfo
+        if self._camera is not None and getattr(inputs, "camera_info", None) is not None:
+            self._camera_info = transport.writer(inputs.camera_info.topic, ROS_TYPES[inputs.camera_info.type],
+                                                 inputs.camera_info.qos.spec())
         self.published = {"lidar": 0, "imu": 0, "camera": 0}
         self.skipped_empty_scans = 0
         self.publish_s = {"lidar": 0.0, "imu": 0.0, "camera": 0.0}
@@ -152,6 +157,21 @@ class DdsSensorSink:
                                  data=np.ascontiguousarray(image.pixels).tobytes()))
         self.published["camera"] += 1
         self.publish_s["camera"] += time.perf_counter() - t0
+        return True
+
+
+    def put_camera_info(self, info) -> bool:
+        """The simulated camera's CameraInfo (runtime.common.sensor_data.CameraInfo) on its topic."""
+        from runtime.io.ros.messages import CameraInfo, Header, stamp_to_time
+
+        if self._camera_info is None:
+            return True
+        K = [float(v) for v in np.ravel(info.K)]
+        P = [K[0], K[1], K[2], 0.0, K[3], K[4], K[5], 0.0, K[6], K[7], K[8], 0.0]
+        self._camera_info.write(CameraInfo(
+            header=Header(stamp_to_time(self.to_wall(info.stamp_s)), self.camera_frame), height=info.height_px,
+            width=info.width_px, distortion_model=info.distortion_model, d=[float(v) for v in info.distortion], k=K,
+            r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], p=P))
         return True
 
 

@@ -14,8 +14,10 @@ Per call:
 - the IMU samples when a sample is due at `imu.rate_hz` and each goes to `inbox.put_imu`;
 - the camera renders only when a frame is due at `camera_rate_hz` (0 = off, no renderer is
   even created): rendering costs tens of ms, never do it every physics step. Each image goes
-  to `inbox.put_image`. If steps are so coarse that several frame instants passed, one frame is
-  rendered and the others are counted in `camera_frames_missed`.
+  to `inbox.put_image`, and beside it the intrinsics it was rendered with go to
+  `inbox.put_camera_info`, as a camera driver publishes its CameraInfo (what the controller's
+  calibration check holds its calibration against). If steps are so coarse that several frame
+  instants passed, one frame is rendered and the others are counted in `camera_frames_missed`.
 
 Robustness: no physics state makes `step` raise (a crash into a wall saturates the IMU, whose
 samples are then clipped and flagged; NaN readings give no IMU sample, lidar no-returns and no
@@ -45,7 +47,7 @@ from hil_sim.sensors.imu import ImuConfig, SimImu
 from hil_sim.sensors.lidar import LidarConfig, SimLidar
 from hil_sim.world.model_spec import ROBOT_OWN_GEOM_GROUPS
 from hil_sim.world.mujoco_world import World
-from runtime.common.sensor_data import CameraImage, LidarScan
+from runtime.common.sensor_data import CameraImage, CameraInfo, LidarScan
 from runtime.io.sensor_inbox import SensorInbox
 
 _EPS_S = 1e-9
@@ -296,6 +298,11 @@ class SensorRig:
         self.images_produced += 1
         for listener in self.listeners:
             listener(image)
+        put_info = getattr(self.inbox, "put_camera_info", None)
+        if put_info is not None:  # the true intrinsics, as the camera's driver reports them
+            dist = image.distortion
+            put_info(CameraInfo(image.stamp_s, image.width, image.height, image.K, dist if len(dist) else np.zeros(5),
+                                "plumb_bob" if len(dist) <= 5 else "rational_polynomial", image.frame_id))
         if self._intrinsics is not None:
             image = dataclasses.replace(image, K=self._intrinsics[0], distortion=self._intrinsics[1])
         if not self.inbox.put_image(image):

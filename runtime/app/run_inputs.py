@@ -51,10 +51,10 @@ class Loaded:
     camera_K: np.ndarray
     camera_dist: np.ndarray
     bus_config: object
-    #: The calibration file's camera (CameraModel) and lidar-to-camera extrinsic (4x4) for the
-    #: VPP partition; None: the robot description's nominal camera and mounts.
-    camera: object = None
-    T_cam_lidar: np.ndarray | None = None
+    #: The camera and mounts as calibrated (calibration.sensor_calibration.SensorCalibration: the
+    #: calibration file's where it has them, else the robot description's nominal ones), for every
+    #: stage, /tf_static and the recording.
+    sensor_calibration: object = None
     notes: list[str] = field(default_factory=list)
 
 
@@ -62,18 +62,15 @@ def load_inputs(opts: RunOptions) -> Loaded:
     """Load and validate every file and option; RunInputError (one line) on the first problem."""
     robot, config, cal, wheel_calibration = _load_files(opts)
     cfg_name = str(opts.config_path or "the shipped controller config")
-    camera = T_cam_lidar = None
-    if cal is not None:
-        from calibration.calibration_file import camera_for_robot
-        from calibration.errors import ConfigFileError
+    from calibration.errors import ConfigFileError
+    from calibration.sensor_calibration import sensor_calibration
 
-        try:
-            camera, T_cam_lidar = camera_for_robot(cal, robot, opts.calibration_path)
-        except ConfigFileError as exc:
-            raise RunInputError(str(exc)) from None
-        K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
-    else:
-        K, dist = robot.sensors.camera.nominal_intrinsics(), np.zeros(5)
+    try:
+        sensors = sensor_calibration(robot, cal, opts.calibration_path,
+                                     robot_source=f"robot description {opts.robot_path}" if opts.robot_path else None)
+    except ConfigFileError as exc:
+        raise RunInputError(str(exc)) from None
+    K, dist = np.asarray(sensors.camera.K, float), np.asarray(sensors.camera.dist, float)
     if opts.planner is not None:
         config = config.with_planner_mode(opts.planner)
     _check_planner(config, robot, opts, cfg_name)
@@ -98,7 +95,7 @@ def load_inputs(opts: RunOptions) -> Loaded:
             DistanceNet.load(config.planner.distance_net_path, robot=robot)
         except DistanceNetError as exc:
             raise RunInputError(f"{cfg_name}: planner.distance_net_path: {exc}") from None
-    return Loaded(robot, config, wheel_calibration, K, dist, bus_config, camera=camera, T_cam_lidar=T_cam_lidar)
+    return Loaded(robot, config, wheel_calibration, K, dist, bus_config, sensor_calibration=sensors)
 
 
 def _ros_overrides(config, opts: RunOptions):

@@ -1,5 +1,6 @@
 """What `dct run` does after each tick, outside the tick's timings (the loop's after_tick hook):
-the sensor-to-command latency, the recorder, the ROS publisher, new goals, the systemd watchdog.
+the sensor-to-command latency, the recorder, the ROS publisher, new goals, the systemd watchdog,
+the console's state lines (holds, stops, a calibration mismatch and the partition's fall-back).
 
 It reads the controller's published snapshot (runtime.controller.snapshot), never its internals,
 and everything it does is O(1) and non-blocking: the publisher and the recorder have their own
@@ -54,6 +55,7 @@ class RunObserver:
         self.latency = LatencyTracker()
         self.goals_ignored = 0
         self._said: tuple[str, str] | None = None
+        self._said_mismatch = False
         self._said_at_s = -1e9
 
     def __call__(self, row: np.void) -> None:
@@ -75,7 +77,9 @@ class RunObserver:
                    "stop_reason": snap.stop_reason or "", "safety": snap.safety or "",
                    "active_mode": snap.active_mode, "finished": snap.finished,
                    "goal_x": snap.goal.x_m, "goal_y": snap.goal.y_m, "pose_x": snap.pose.x_m,
-                   "pose_y": snap.pose.y_m, "pose_yaw": snap.pose.yaw_rad},
+                   "pose_y": snap.pose.y_m, "pose_yaw": snap.pose.yaw_rad,
+                   "partition_fallback": snap.partition_fallback[0] if snap.partition_fallback else "",
+                   "calibration_mismatch": snap.calibration_mismatch or ""},
             points_fix=snap.points_fix if clouds else None,
             plan_states=snap.plan.states if clouds and snap.plan is not None else None,
             # P_mov as the partition labelled it: the scan deskewed to the tick
@@ -84,6 +88,7 @@ class RunObserver:
         ))
         self._take_goal()
         self._say_state(snap)
+        self._say_fallback(snap)
         self.notifier.watchdog()
 
     #: At most one console line about holds per this many seconds (a flapping input would flood it).
@@ -99,6 +104,18 @@ class RunObserver:
         if self._said is not None or why:
             self.echo(f"dct run: {snap.state.name}" + (f": {why}" if why else ""))
         self._said, self._said_at_s = now, snap.t_s
+
+    def _say_fallback(self, snap) -> None:
+        """Say once on the console that the calibration was found wrong, and what the partition does."""
+        mismatch = snap.calibration_mismatch
+        if mismatch is None or self._said_mismatch:
+            return
+        self._said_mismatch = True
+        if snap.partition_fallback is not None:
+            self.echo(f"dct run: {snap.state.name}: partition all-fixed (every lidar point an obstacle) from "
+                      f"t={snap.partition_fallback[1]:.2f} s: calibration mismatch: {mismatch}")
+        else:
+            self.echo(f"dct run: {snap.state.name}: calibration mismatch: {mismatch}")
 
     def _take_goal(self) -> None:
         """A new goal from the goal topic: validated now, taken by the next tick. Goals the

@@ -162,13 +162,13 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
 
 
 def sensor_mounts(loaded: Loaded) -> list:
-    """base_link -> lidar and -> camera (the calibration's when it has them), named as the
-    config's ros.outputs frames: /tf_static and the recording's."""
+    """base_link -> lidar and -> camera as the stages place them (the calibration's mounts where it
+    has them), named as the config's ros.outputs frames: /tf_static and the recording's."""
     from runtime.io.ros.outbound import robot_sensor_mounts
 
     out = loaded.config.ros.outputs
-    return robot_sensor_mounts(loaded.robot, loaded.T_cam_lidar, base_frame=out.base_frame,
-                               lidar_frame=out.lidar_frame, camera_frame=out.camera_frame)
+    return robot_sensor_mounts(loaded.sensor_calibration, base_frame=out.base_frame, lidar_frame=out.lidar_frame,
+                               camera_frame=out.camera_frame)
 
 
 def safety_zones(robot, supervisor) -> tuple:
@@ -212,7 +212,7 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
     bus, inbox, receiver, publisher, recorder, notifier, clock = io
     config = loaded.config
     driver_bus = recorder.wrap_bus(bus, clock.now) if recorder is not None else bus
-    parts = assemble(RobotSetup(loaded.robot, config, loaded.wheel_calibration, loaded.camera, loaded.T_cam_lidar),
+    parts = assemble(RobotSetup(loaded.robot, config, loaded.wheel_calibration, loaded.sensor_calibration),
                      Wiring(driver_bus, clock, Pose2D(*goal), inbox if config.uses_lidar else None, lockstep=False))
     record_hook = None
     if recorder is not None:
@@ -240,6 +240,7 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float) -> dict:
     controller, telemetry, loop = parts.controller, parts.telemetry, parts.loop
     records = telemetry.snapshot()
     latency = observer.latency.values()
+    report = controller.describe()
     return {
         "pid": None,
         "state": controller.state.name,
@@ -248,7 +249,9 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float) -> dict:
         "activated_at_s": controller._activated_at_s,
         "wall_time_s": wall,
         "cpu_time_s": time.process_time(),  # this process (the ICP worker's is its own)
-        "controller": controller.describe(),
+        "controller": report,
+        # {reason, since_s, configured} once a calibration mismatch made the partition all-fixed
+        "partition_fallback": report.get("partition_fallback"),
         "events": controller.events.to_list(t0_s=controller._activated_at_s),
         "stop_reason": controller.stop_reason,
         "telemetry": telemetry.summary(),

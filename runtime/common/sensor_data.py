@@ -286,6 +286,57 @@ class CameraImage:
                 raise RangeError(f"ids must be >= -1, got {int(seg.min())}", field_name="segmentation")
 
 
+# ----------------------------------------------------------------------------- camera info
+
+
+#: Distortion models a CameraInfo may name (sensor_msgs/distortion_models.hpp); "" when the
+#: driver gives none. Only plumb_bob and rational_polynomial are OpenCV's pinhole model.
+CAMERA_INFO_MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "")
+
+
+@dataclass(frozen=True, eq=False)
+class CameraInfo:
+    """The intrinsics the camera's driver reports (sensor_msgs/CameraInfo): what the camera says
+    it is, to hold against the calibration the controller projects with. K and the image size
+    as in CameraImage; distortion in the order of `distortion_model`."""
+
+    stamp_s: float
+    width_px: int
+    height_px: int
+    K: np.ndarray
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    distortion_model: str = "plumb_bob"
+    frame_id: str = "camera"
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        set_(self, "stamp_s", _check_stamp(self.stamp_s))
+        set_(self, "frame_id", _check_frame_id(self.frame_id))
+        set_(self, "K", _owned_array(self.K, np.float64, "K", accept_kinds="fiu"))
+        set_(self, "distortion", _owned_array(self.distortion, np.float64, "distortion", accept_kinds="fiu"))
+        self.validate()
+
+    def validate(self) -> None:
+        w, h = self.width_px, self.height_px
+        if not all(isinstance(v, (int, np.integer)) and 0 < v <= MAX_IMAGE_SIDE_PX for v in (w, h)):
+            raise RangeError(f"image size {w}x{h} outside 1..{MAX_IMAGE_SIDE_PX}", field_name="width_px")
+        K = self.K
+        if K.shape != (3, 3):
+            raise ShapeError(f"expected (3, 3), got {K.shape}", field_name="K")
+        _check_finite(K, "K")
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise RangeError(f"focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}", field_name="K")
+        if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+            raise RangeError("K must be upper triangular with K[2,2] = 1", field_name="K")
+        dist = self.distortion
+        if dist.ndim != 1 or dist.shape[0] > 14:
+            raise ShapeError(f"expected at most 14 coefficients, got shape {dist.shape}", field_name="distortion")
+        _check_finite(dist, "distortion")
+        if self.distortion_model not in CAMERA_INFO_MODELS:
+            raise SensorDataError(f"{self.distortion_model!r} is not one of {CAMERA_INFO_MODELS}",
+                                  name="bad_distortion_model", field_name="distortion_model")
+
+
 # ----------------------------------------------------------------------------- IMU
 
 
@@ -392,6 +443,6 @@ class SensorStampChecker:
 
 __all__ = [
     "SensorDataError", "NonFiniteError", "ShapeError", "DtypeError", "RangeError", "EmptyScanError", "StampError",
-    "LidarScan", "CameraImage", "ImuSample", "SensorStampChecker",
+    "LidarScan", "CameraImage", "CameraInfo", "ImuSample", "SensorStampChecker", "CAMERA_INFO_MODELS",
     "MAX_LIDAR_POINTS", "MAX_LIDAR_COORD_M", "MAX_GYRO_RADPS", "MAX_ACCEL_MPS2",
 ]

@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from models.vlm.factory import BackendConfig, SimOracleBackendConfig
 from runtime.safety.input_monitor import InputsConfig
+from runtime.perception.calibration_monitor import CalibrationCheckConfig
 from runtime.perception.moving_obstacles import MovingObstaclesConfig
 from runtime.modes.correcting import CorrectingConfig
 from runtime.modes.selector import RecoveryConfig
@@ -195,6 +196,10 @@ class ControllerConfig(_Strict):
     #: P_fix clusters that walk (people): followed, and where they go next added to what the
     #: planner and the supervisor keep clear of (runtime.perception.moving_obstacles).
     moving_obstacles: MovingObstaclesConfig = MovingObstaclesConfig()
+    #: Whether the calibration in use is this robot's: the camera driver's intrinsics and the floor
+    #: the lidar sees against it; a mismatch falls back to the all-fixed partition
+    #: (runtime.perception.calibration_monitor).
+    calibration_check: CalibrationCheckConfig = CalibrationCheckConfig()
     #: SCHED_FIFO and CPU pinning of the loop thread, asked for when allowed (runtime.loop.realtime_setup).
     realtime: RealtimeConfig = RealtimeConfig()
     #: The controller process (`dct run`): the ROS 2 topics it reads and publishes over DDS

@@ -11,8 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
-
 from calibration.robot_description import RobotDescription
 from firmware_bridge.base_driver import AgileXBaseDriver
 from runtime.common.geometry import Pose2D
@@ -32,9 +30,9 @@ class RobotSetup:
     config: ControllerConfig
     #: (effective track m, wheel scale) (`dct calibrate wheels`); None: the description's nominal values.
     wheel_calibration: tuple[float, float] | None = None
-    #: The calibration file's camera (CameraModel) and lidar-to-camera extrinsic (4x4); None: nominal.
-    camera: object = None
-    T_cam_lidar: np.ndarray | None = None
+    #: The camera and mounts as calibrated (calibration.sensor_calibration.SensorCalibration);
+    #: None: the robot description's nominal ones.
+    sensor_calibration: object = None
 
 
 @dataclass(frozen=True)
@@ -82,7 +80,7 @@ def assemble(setup: RobotSetup, wiring: Wiring) -> Assembly:
     controller = NavigationController(
         robot, config, hardware, wiring.goal, wiring.clock.now, sensors=wiring.sensors, lockstep=wiring.lockstep,
         goal_given=wiring.goal_given, wheel_calibration=setup.wheel_calibration, vlm_backend=wiring.vlm_backend,
-        camera=setup.camera, T_cam_lidar=setup.T_cam_lidar,
+        sensor_calibration=setup.sensor_calibration,
     )
     telemetry = TickTelemetry()
     loop = FixedRateLoop(

@@ -30,6 +30,7 @@ start-up sequence. After each tick the controller publishes a `ControllerSnapsho
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable
 
@@ -47,6 +48,7 @@ from runtime.io.sensor_inbox import SensorInbox, SensorSnapshot
 from runtime.loop.fixed_rate import StageClock
 from runtime.loop.telemetry import STAGES
 from runtime.modes.base import ModeDecision, Situation
+from runtime.perception.calibration_monitor import check_calibration
 from runtime.safety.gate import SafetyGate
 from runtime.safety.input_monitor import InputFault
 
@@ -72,7 +74,7 @@ class NavigationController:
         odometry, the VLM partition sees the scene) but the planner does not drive until
         `give_goal(now)`, as on a robot switched on before it is sent.
         options: the rest of runtime.controller.parts.PartsOptions (wheel_calibration,
-        vlm_backend, camera, T_cam_lidar)."""
+        vlm_backend, sensor_calibration: the calibrated camera and mounts)."""
         self.wall_clock_caps = not lockstep
         self.robot = robot
         self.config = config
@@ -97,6 +99,7 @@ class NavigationController:
         self.gate = SafetyGate(parts.supervisor, parts.events) if parts.supervisor is not None else None
         self.limiter = parts.limiter
         self.safety_stop = parts.safety_stop
+        self.calibration = parts.calibration
         self.period_s = config.loop.period_s
         self.command = (0.0, 0.0)  # (v_mps, omega_radps) last written
         self.pose = Pose2D(0.0, 0.0, 0.0)
@@ -217,6 +220,7 @@ class NavigationController:
         sensors = self.sensors.take() if self.sensors is not None else _NO_SENSORS
         self.inputs_delivered = sensors.delivered
         self.faults = self.monitor.check(inputs, sensors, now)
+        self.calibration.observe(sensors.camera_info, self.monitor.good_scan)  # checked in the slack
         if self.goals.pending:
             self._apply_goal(now)
         self._update_state(inputs, now)
@@ -240,6 +244,7 @@ class NavigationController:
             vlm_masks=memory.entries if memory is not None else (),
             stop_reason=self.stop_reason, safety=self._safety_verdict(),
             inputs_delivered=self.inputs_delivered, icp_delivered=self.odometry.delivered,
+            partition_fallback=self.partition.fallback, calibration_mismatch=self.calibration.mismatch,
         )
 
     def _safety_verdict(self) -> str | None:
@@ -446,9 +451,18 @@ class NavigationController:
 
     # -- between ticks -----------------------------------------------------------------------
     def slack_work(self) -> bool:
-        """After the tick's command is written: the mode's deferred work (a reference search);
-        returns whether there was any."""
-        return self.state is ControllerState.ACTIVE and self.modes.slack_work()
+        """After the tick's command is written: the mode's deferred work (a reference search), then
+        the calibration check; returns whether there was any."""
+        planned = self.state is ControllerState.ACTIVE and self.modes.slack_work()
+        return self._check_calibration(busy=planned) or planned
+
+    def _check_calibration(self, busy: bool) -> bool:
+        """The calibration check's due work (a mismatch falls back to all-fixed: check_calibration)."""
+        mismatch, worked = check_calibration(self.calibration, self.partition, self.events, self.clock(), busy)
+        if mismatch is not None and self.snapshot is not None:  # observers see it before the next tick
+            self.snapshot = dataclasses.replace(self.snapshot, partition_fallback=self.partition.fallback,
+                                                calibration_mismatch=mismatch)
+        return worked
 
     def keepalive(self, now_s: float) -> None:
         """Re-send the current command between ticks (0x111 at the CAN command rate)."""
@@ -509,6 +523,7 @@ class NavigationController:
             "moving_obstacles": self.perception.moving.describe(),
         }
         out.update(self.partition.describe())
+        out["calibration"] = self.calibration.describe()
         out.update(self.modes.counters())
         if self.gate is not None:
             supervisor = self.gate.supervisor

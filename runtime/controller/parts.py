@@ -2,7 +2,9 @@
 
 The partition (which points are P_fix) and the planner (what drives) are the config's two
 settings (runtime.perception.partition, runtime.modes.registry); the safety supervisor and the
-watchdogs are built here for every planner, never by one: a planner cannot leave them out.
+watchdogs are built here for every planner, never by one: a planner cannot leave them out. The
+calibrated sensors (one SensorCalibration) reach every stage that needs a mount or the camera:
+the odometry (deskew, ICP), the obstacle points, the VPP, and the calibration check.
 """
 from __future__ import annotations
 
@@ -15,7 +17,8 @@ from runtime.modes.base import ModeContext
 from runtime.modes.registry import build_planner
 from runtime.modes.selector import ModeSelector
 from runtime.odometry.stage import OdometryStage
-from runtime.perception.partition import PartitionContext, build_partition
+from runtime.perception.calibration_monitor import CalibrationMonitor
+from runtime.perception.partition import FallbackPartition, PartitionContext, build_partition
 from runtime.perception.stage import PerceptionStage
 from runtime.safety.command_limits import CommandLimiter
 from runtime.safety.input_monitor import InputMonitor
@@ -33,6 +36,8 @@ class ControllerParts:
     supervisor: SafetySupervisor | None  # None only without a lidar (nothing to check against)
     limiter: CommandLimiter
     safety_stop: SafetyStop
+    #: Whether the calibration in use is this robot's (checked in the slack).
+    calibration: CalibrationMonitor
 
 
 @dataclass(frozen=True)
@@ -48,28 +53,33 @@ class PartsOptions:
     wheel_calibration: tuple[float, float] | None = None
     #: The VPP's backend (the simulator's sim-oracle); None: the one `vpp.backend` names.
     vlm_backend: object = None
-    #: The calibration file's camera (CameraModel) and lidar-to-camera extrinsic (4x4); None: nominal.
-    camera: object = None
-    T_cam_lidar: object = None
+    #: The camera and mounts as calibrated (calibration.sensor_calibration.SensorCalibration), read
+    #: by every stage that places a point or projects one; None: the robot description's nominal ones.
+    sensor_calibration: object = None
 
 
 def build_parts(robot: RobotDescription, config: ControllerConfig, goal, options: PartsOptions) -> ControllerParts:
     check_against_robot(config, robot)
+    sensors = options.sensor_calibration
+    if sensors is None:
+        from calibration.sensor_calibration import nominal_sensors
+
+        sensors = nominal_sensors(robot)
     events = EventLog()
     track_factor, wheel_scale = robot.drive.skid_steer_yaw_factor, 1.0
     if options.wheel_calibration is not None:
         track_factor = options.wheel_calibration[0] / robot.drive.track_m
         wheel_scale = options.wheel_calibration[1]
     odometry = OdometryStage(
-        config.odometry, robot.drive.track_m, track_factor, robot.sensors.lidar.mount.transform(),
+        config.odometry, robot.drive.track_m, track_factor, sensors.T_base_lidar,
         lockstep=options.lockstep, events=events, wheel_scale=wheel_scale, uses_lidar=options.uses_sensors,
     )
     op = config.planner.obstacle_points
     monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=options.uses_sensors,
                            uses_imu=options.uses_sensors)
-    partition = build_partition(config.partition, PartitionContext(
-        config, robot, options.lockstep, options.vlm_backend, options.camera, options.T_cam_lidar))
-    perception = PerceptionStage(robot, config, partition)
+    partition = FallbackPartition(build_partition(config.partition, PartitionContext(
+        config, robot, options.lockstep, options.vlm_backend, sensors)))
+    perception = PerceptionStage(robot, config, partition, sensors)
     stack = build_planner(config.planner.algorithm, ModeContext(robot, config, goal, not options.lockstep, partition))
     modes = ModeSelector(stack.normal, stack.recovery, config.recovery, events, stack.correcting,
                          label=config.preset)
@@ -81,4 +91,6 @@ def build_parts(robot: RobotDescription, config: ControllerConfig, goal, options
         robot.body_max_angular_accel_radps2,
     )
     safety_stop = SafetyStop(config.safety_stop.max_consecutive_deadline_misses, config.safety_stop.startup_timeout_s)
-    return ControllerParts(events, odometry, monitor, perception, modes, supervisor, limiter, safety_stop)
+    calibration = CalibrationMonitor(config.calibration_check, sensors)
+    return ControllerParts(events, odometry, monitor, perception, modes, supervisor, limiter, safety_stop,
+                           calibration)

@@ -55,3 +55,7 @@ class ControllerSnapshot:
     #: the inbox (SensorSnapshot.delivered), and the ICP results it received, (seq, frame stamp) each.
     inputs_delivered: int = 0
     icp_delivered: tuple = ()
+    #: (reason, since_s) once the partition fell back to all-fixed (a calibration mismatch); None before.
+    partition_fallback: tuple[str, float] | None = None
+    #: The calibration check's first mismatch (runtime.perception.calibration_monitor), None while none.
+    calibration_mismatch: str | None = None

@@ -13,7 +13,11 @@ A frozen lidar: a frame whose points are identical to the previous frame's (with
 or a new one) is rejected as `frozen_frame`. Real range noise makes two live frames differ in
 every point; a repeated buffer is a driver or network fault.
 
-Bounded: one pending scan, one pending image, at most `max_imu_samples` IMU samples (the
+The camera driver's intrinsics (`put_camera_info`, sensor_msgs/CameraInfo) are kept newest-only
+beside the image: what the camera says it is, for the calibration check
+(runtime.perception.calibration_monitor); they never reach the projection.
+
+Bounded: one pending scan, one pending image, one pending camera info, at most `max_imu_samples` IMU samples (the
 oldest are dropped and counted when the tick falls behind), at most `max_rejections` pending
 rejections (the rest only counted).
 
@@ -30,7 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.common.sensor_data import CameraImage, ImuSample, LidarScan, SensorDataError, SensorStampChecker
+from runtime.common.sensor_data import (
+    CameraImage, CameraInfo, ImuSample, LidarScan, SensorDataError, SensorStampChecker,
+)
 
 
 @dataclass(frozen=True)
@@ -51,6 +57,8 @@ class SensorSnapshot:
     rejected: tuple[Rejection, ...] = ()  # data refused since the last take(), oldest first
     #: How many pieces of data had reached the inbox (accepted or refused) when this was taken.
     delivered: int = 0
+    #: The newest intrinsics the camera's driver reported since the last take(), if any.
+    camera_info: CameraInfo | None = None
 
 
 class FrozenFrameError(SensorDataError):
@@ -62,6 +70,8 @@ class SensorInbox:
         self._lock = threading.Lock()
         self._scan: LidarScan | None = None
         self._image: CameraImage | None = None
+        self._camera_info: CameraInfo | None = None
+        self.camera_info_accepted = 0
         self._imu: deque[ImuSample] = deque(maxlen=max_imu_samples)
         self._rejections: deque[Rejection] = deque(maxlen=max_rejections)
         self._stamps = SensorStampChecker()
@@ -131,6 +141,18 @@ class SensorInbox:
             self.delivered += 1
         return True
 
+    def put_camera_info(self, info: CameraInfo) -> bool:
+        """The camera driver's intrinsics (newest kept; no stamp order: it repeats what it says)."""
+        try:
+            info.validate()
+        except SensorDataError as exc:
+            self._reject("camera_info", exc, self._stamp_of(info))
+            return False
+        with self._lock:
+            self._camera_info = info
+            self.camera_info_accepted += 1
+        return True
+
     def put_imu(self, sample: ImuSample) -> bool:
         try:
             sample.validate()
@@ -148,9 +170,11 @@ class SensorInbox:
 
     def take(self) -> SensorSnapshot:
         with self._lock:
-            snap = SensorSnapshot(self._scan, self._image, tuple(self._imu), tuple(self._rejections), self.delivered)
+            snap = SensorSnapshot(self._scan, self._image, tuple(self._imu), tuple(self._rejections),
+                                  delivered=self.delivered, camera_info=self._camera_info)
             self._scan = None
             self._image = None
+            self._camera_info = None
             self._imu.clear()
             self._rejections.clear()
         return snap

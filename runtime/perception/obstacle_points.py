@@ -1,6 +1,7 @@
 """From a lidar scan to obstacle points in the odom frame (the input of the partition).
 
-Each point is taken from the lidar frame to base_link (mount from the robot description),
+Each point is taken from the lidar frame to base_link (the calibrated lidar mount,
+calibration.sensor_calibration.SensorCalibration.T_base_lidar),
 deskewed with the robot's current twist and its own time stamp (the scan is cast over
 100 ms while the robot moves), cut to the robot's height band (ground removed, overhead
 ignored), cropped to a range, reduced to one mean point per 2-D voxel (sparse noise cells
@@ -74,8 +75,13 @@ class ObstaclePointExtractor:
         max_range_m: float = 6.0,
         voxel_m: float = 0.04,
         min_support_ratio: float = 0.25,
+        *,
+        T_base_lidar: np.ndarray,
     ) -> None:
-        t = robot.sensors.lidar.mount.transform()
+        """T_base_lidar: the lidar's mount as calibrated (4x4, p_base = T p_lidar)."""
+        t = np.asarray(T_base_lidar, dtype=np.float64)
+        if t.shape != (4, 4) or not np.isfinite(t).all():
+            raise ValueError(f"ObstaclePointExtractor.T_base_lidar: must be a finite 4x4 transform, got shape {t.shape}")
         self.R_base_lidar = t[:3, :3].astype(np.float64)
         self.t_base_lidar = t[:3, 3].astype(np.float64)
         self.min_z_m = ground_clearance_m

@@ -16,6 +16,14 @@ for "every point"; then `ready(now)` says whether the planner may drive yet. `se
 simulator's lockstep barrier, `close()` ends work beside the tick, `describe()` adds the stage's
 counters to the episode report; `relabel_fixed_in_front(...)` is correcting mode's eq. 14 (the
 object a failed push was on becomes fixed).
+
+The controller holds its strategy inside a `FallbackPartition`: `fall_back(reason, now_s)`
+switches it to all-fixed for the rest of the run (the safe side: every point an obstacle, the
+planner never waits), when the calibration the VPP projects with is found wrong
+(runtime.perception.calibration_monitor). The reason and the time stay in `fallback` and in
+`describe()` (`partition_fallback: {reason, since_s}`): the diagnostics, the console and the
+run's summary say it. The modes and the controller keep the one object; what it delegates to
+changes.
 """
 from __future__ import annotations
 
@@ -179,30 +187,95 @@ class VppPartition:
         return oid
 
 
-def build_vpp_partition(config, robot, backend, lockstep: bool, camera=None, T_cam_lidar=None) -> VppPartition:
+class FallbackPartition:
+    """A partition strategy that can fall back to all-fixed for good (module docstring)."""
+
+    def __init__(self, inner: PartitionStage) -> None:
+        self.inner = inner
+        self._active: PartitionStage = inner
+        #: (reason, since_s) once fallen back; None while the configured strategy runs.
+        self.fallback: tuple[str, float] | None = None
+
+    @property
+    def name(self) -> str:
+        return self._active.name
+
+    @property
+    def configured(self) -> str:
+        return self.inner.name
+
+    @property
+    def deskews_scan(self) -> bool:
+        return self._active.deskews_scan
+
+    @property
+    def vpp(self):
+        """The VPP stage while it partitions; None after the fall-back (nothing reads a stale frame)."""
+        return self._active.vpp
+
+    def fall_back(self, reason: str, now_s: float) -> bool:
+        """Every point P_fix from now on; False (nothing changes) when the strategy is all-fixed
+        already or has fallen back before."""
+        if self.fallback is not None or self.inner.name == AllFixedPartition.name:
+            return False
+        self.fallback = (str(reason), float(now_s))
+        self._active = AllFixedPartition()
+        return True
+
+    def update(self, now_s, pose, image, scan, image_pose=None):
+        return self._active.update(now_s, pose, image, scan, image_pose)
+
+    def movable(self):
+        return self._active.movable()
+
+    def carried_region(self):
+        return self._active.carried_region()
+
+    def ready(self, now_s: float) -> bool:
+        return self._active.ready(now_s)
+
+    def settle(self, t_s: float) -> None:
+        self.inner.settle(t_s)  # a request in flight still ends on the simulator's barrier
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def describe(self) -> dict:
+        out = dict(self.inner.describe())
+        if self.fallback is not None:
+            reason, since = self.fallback
+            out["partition_fallback"] = {"reason": reason, "since_s": since, "configured": self.inner.name}
+        return out
+
+    def movable_points_lidar(self):
+        return self._active.movable_points_lidar()
+
+    def observe_contact(self, now_s, pose, v_mps, currents_a) -> None:
+        self._active.observe_contact(now_s, pose, v_mps, currents_a)
+
+    def relabel_fixed_in_front(self, pose, half_length_m, half_width_m, margin_m, forward):
+        return self._active.relabel_fixed_in_front(pose, half_length_m, half_width_m, margin_m, forward)
+
+
+def build_vpp_partition(config, robot, backend, lockstep: bool, sensors) -> VppPartition:
     """The VPP stage: the robot's camera, the backend in a runner on the controller's clock
     (simulated time in lockstep, the wall clock otherwise).
 
     config: runtime.config.ControllerConfig; robot: calibration.robot_description.RobotDescription;
-    backend: a models.vlm backend (VlmBackend). camera: the calibration file's CameraModel (its
-    intrinsics and distortion: Phase III projects with them, and the stage takes only images
-    that carry them); None: the robot description's nominal intrinsics, no distortion.
-    T_cam_lidar: the calibration's lidar-to-camera extrinsic (4x4); the camera's pose on the
-    base is then the lidar mount's composed with it. None: the description's camera mount."""
-    from calibration.camera_model import CameraModel
+    backend: a models.vlm backend (VlmBackend). sensors: the calibrated camera and mounts
+    (calibration.sensor_calibration.SensorCalibration): Phase III projects with its camera model
+    (intrinsics and distortion; the stage takes only images that carry them) and places the
+    camera and the lidar on the base with its two mounts."""
     from models.vlm.runner import BackendRunner
     from runtime.vpp.belief import PushResistanceEstimator
     from runtime.vpp.deformable import RobotBox
     from runtime.vpp.stage import VppStage
 
-    cam = robot.sensors.camera
-    if camera is None:
-        camera = CameraModel(cam.nominal_intrinsics(), np.zeros(5), cam.width_px, cam.height_px)
-    elif (camera.width_px, camera.height_px) != (cam.width_px, cam.height_px):
+    cam, camera = robot.sensors.camera, sensors.camera
+    if (camera.width_px, camera.height_px) != (cam.width_px, cam.height_px):
         raise ValueError(f"calibration camera: {camera.width_px}x{camera.height_px} px, the robot's camera "
                          f"({robot.name}) is {cam.width_px}x{cam.height_px} px: a calibration of another camera")
-    T_base_lidar = robot.sensors.lidar.mount.transform()
-    T_base_cam = cam.mount.transform() if T_cam_lidar is None else T_base_lidar @ np.linalg.inv(T_cam_lidar)
+    T_base_lidar, T_base_cam = sensors.T_base_lidar, sensors.T_base_camera
     runner_config = config.vpp.runner.model_copy(update={"clock": "lockstep" if lockstep else "realtime"})
     footprint = (robot.footprint.length_m / 2.0, robot.footprint.width_m / 2.0)
     stage = VppStage(config.vpp, camera, T_base_cam, T_base_lidar, BackendRunner(backend, runner_config),
@@ -222,10 +295,9 @@ class PartitionContext:
     #: The contact-tolerance backend (models.vlm): the simulator passes its sim-oracle; None: the
     #: one the config names (`vpp.backend`, models.vlm.factory).
     vlm_backend: object = None
-    #: The calibration file's camera (CameraModel) and lidar-to-camera extrinsic (4x4); None:
-    #: the robot description's nominal camera and mounts.
-    camera: object = None
-    T_cam_lidar: np.ndarray | None = None
+    #: The calibrated camera and mounts (calibration.sensor_calibration.SensorCalibration); None:
+    #: the robot description's nominal ones.
+    sensors: object = None
 
 
 def _build_vpp(ctx: PartitionContext) -> VppPartition:
@@ -234,8 +306,12 @@ def _build_vpp(ctx: PartitionContext) -> VppPartition:
         from models.vlm.factory import build_backend
 
         backend = build_backend(ctx.config.vpp.backend)
-    return build_vpp_partition(ctx.config, ctx.robot, backend, lockstep=ctx.lockstep, camera=ctx.camera,
-                               T_cam_lidar=ctx.T_cam_lidar)
+    sensors = ctx.sensors
+    if sensors is None:
+        from calibration.sensor_calibration import nominal_sensors
+
+        sensors = nominal_sensors(ctx.robot)
+    return build_vpp_partition(ctx.config, ctx.robot, backend, lockstep=ctx.lockstep, sensors=sensors)
 
 
 @dataclass(frozen=True)
@@ -268,5 +344,5 @@ def build_partition(name: str, context: PartitionContext) -> PartitionStage:
     return partition_spec(name).build(context)
 
 
-__all__ = ["AllFixedPartition", "PARTITIONS", "PartitionContext", "PartitionSpec", "PartitionStage",
+__all__ = ["AllFixedPartition", "FallbackPartition", "PARTITIONS", "PartitionContext", "PartitionSpec", "PartitionStage",
            "VppPartition", "build_partition", "build_vpp_partition", "partition_spec"]

@@ -27,13 +27,15 @@ _NO_POINTS = np.zeros((0, 2))
 
 
 class PerceptionStage:
-    def __init__(self, robot, config, partition: PartitionStage) -> None:
+    def __init__(self, robot, config, partition: PartitionStage, sensors) -> None:
         """robot: calibration.robot_description.RobotDescription; config: runtime.config.ControllerConfig;
-        partition: which points are P_fix (runtime.perception.partition)."""
+        partition: which points are P_fix (runtime.perception.partition); sensors: the calibrated
+        mounts (calibration.sensor_calibration.SensorCalibration): the lidar's places the points."""
         op = config.planner.obstacle_points
         self.partition = partition
         self.obstacles = ObstaclePointExtractor(
-            robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio
+            robot, op.ground_clearance_m, op.overhead_margin_m, op.max_range_m, op.voxel_m, op.min_support_ratio,
+            T_base_lidar=sensors.T_base_lidar,
         )
         # People walking: P_fix clusters followed scan to scan; where they go next joins P_fix for
         # the planner and the supervisor (points_plan), not for the odometry checks.

@@ -124,15 +124,15 @@ def validate_inputs(inputs: BundleInputs):
 
 
 def nominal_calibration_yaml(robot) -> str:
-    """A calibration from the robot description alone (nominal K, no distortion, T_cam<-lidar
-    from the mounts); its provenance says it is nominal, so preflight WARNs until measured."""
-    import numpy as np
-
+    """A calibration from the robot description alone (the nominal sensors: K from the field of
+    view, no distortion, T_cam<-lidar from the mounts); its provenance says it is nominal, so
+    preflight WARNs until measured."""
     from calibration.calibration_file import calibration_yaml, make_calibration
+    from calibration.sensor_calibration import nominal_sensors
 
-    cam = robot.sensors.camera
-    T = np.linalg.inv(cam.mount.transform()) @ robot.sensors.lidar.mount.transform()
-    cal = make_calibration(robot.name, cam.nominal_intrinsics(), np.zeros(5), cam.width_px, cam.height_px, T,
+    s = nominal_sensors(robot)
+    cal = make_calibration(robot.name, s.camera.K, s.camera.dist, s.camera.width_px, s.camera.height_px,
+                           s.T_cam_lidar,
                            method="nominal: from the robot description by dct deploy bundle (not calibrated)")
     return calibration_yaml(cal)
 

@@ -9,8 +9,9 @@ counts its lateness as always). The exit code is 0 only when no check FAILs.
 
 Checks, in order (names as in the JSON):
 - files: `robot`, `config`, `calibration` (for this robot's camera: robot name, image size,
-  lidar->camera extrinsic close to the robot description's mounts), `distance_net` (loads and
-  its footprint is the robot's, models.distance_net.DistanceNet.load);
+  lidar->camera extrinsic close to the robot description's mounts), `calibration:mounts` (the
+  calibrated sensors lie on the robot's body), `distance_net` (loads and its footprint is the
+  robot's, models.distance_net.DistanceNet.load);
 - CAN: `can_link` (SocketCAN: /sys/class/net/<if>/operstate up and the bit rate from
   `ip -details -json link show` equal to the robot description's; udp_multicast / virtual /
   limo_serial: the bus opens), `base` (0x221 within 100 ms of the enable frame 0x421 that the
@@ -25,12 +26,15 @@ Checks, in order (names as in the JSON):
   through the configured middleware and judged against their nominal rates; the last sample of
   each must decode; `match:<stream>` for every input topic (the goal's too): the graph's
   publishers have the configured type and QoS DDS will match; `ros:clock`: the sensors' stamps
-  are within 50 ms of this computer's clock;
+  are within 50 ms of this computer's clock; `calibration:intrinsics` and `calibration:floor`:
+  the calibration `dct run` would use against the last CameraInfo and lidar frame heard, as the
+  controller checks it while driving (`calibration_live`);
 - host: `clock_sync`, `cpus`, `cpu_governor`, `sched_fifo`, `cpu_affinity`, `disk`.
 
 Modules: `check` (the result of one check), `files`, `can_bus` (link and base), `ros_setup` (the
 ROS 2 set-up), `topics` (sensor topics), `ros_graph` (publishers' types and QoS, the stamps),
-`computer` (clock, CPUs, real-time scheduling, disk), `run` (every check in order, the summary),
+`calibration_live` (the calibration against live data), `computer` (clock, CPUs, real-time
+scheduling, disk), `run` (every check in order, the summary),
 `cli` (the `dct preflight` command).
 
 Everything that touches the machine takes its source as an argument (the /sys root, the `ip`

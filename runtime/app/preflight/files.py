@@ -1,6 +1,8 @@
 """Preflight's file checks: `robot`, `config`, `calibration` (for this robot's camera: robot name,
-image size, lidar->camera extrinsic close to the robot description's mounts) and `distance_net`
-(loads, and its footprint is the robot's)."""
+image size, lidar->camera extrinsic close to the robot description's mounts), `calibration:mounts`
+(the calibrated lidar and camera on the robot's body) and `distance_net` (loads, and its footprint
+is the robot's). The sensors as calibrated (`LoadedFiles.sensors`) go on to the live checks
+(runtime.app.preflight.calibration_live)."""
 from __future__ import annotations
 
 import math
@@ -21,6 +23,9 @@ class LoadedFiles:
     robot: Any = None
     config: Any = None
     calibration: Any = None
+    #: The sensors as calibrated (calibration.sensor_calibration.SensorCalibration: the file's,
+    #: else the description's nominal ones), for the live checks; None when they cannot be built.
+    sensors: Any = None
     checks: list[Check] = field(default_factory=list)
 
 
@@ -57,9 +62,27 @@ def check_files(robot_path: str | Path | None, calibration_path: str | Path | No
             out.checks.append(_calibration_matches_robot(cal, out.robot, calibration_path, needs_camera))
         except ConfigFileError as exc:
             out.checks.append(Check("calibration", "FAIL", one_line(exc), "recalibrate with `dct calibrate`"))
+    _sensors(out, calibration_path)
     out.checks.append(_check_distance_net(out.robot, out.config) if load_net else
                       Check("distance_net", "WARN", "not checked", "run without skipping the model check"))
     return out
+
+
+def _sensors(out: LoadedFiles, calibration_path: Any) -> None:
+    """out.sensors from the robot and the calibration (when each loaded); a calibrated mount off
+    the robot's body is a FAIL naming the file's field."""
+    from calibration.errors import ConfigFileError
+    from calibration.sensor_calibration import sensor_calibration
+
+    if out.robot is None or (calibration_path is not None and out.calibration is None):
+        return
+    if any(c.name == "calibration" and c.status == "FAIL" for c in out.checks):
+        return  # another robot's or another camera's file: said already
+    try:
+        out.sensors = sensor_calibration(out.robot, out.calibration, calibration_path)
+    except ConfigFileError as exc:
+        out.checks.append(Check("calibration:mounts", "FAIL", one_line(exc), "correct the calibration file's "
+                                "lidar_mount or lidar_to_camera (dct calibrate), or use this robot's file"))
 
 
 def _calibration_matches_robot(cal: Any, robot: Any, path: Any, needs_camera: bool) -> Check:
@@ -82,9 +105,9 @@ def _calibration_matches_robot(cal: Any, robot: Any, path: Any, needs_camera: bo
                      "run `dct calibrate extrinsics`")
     import numpy as np
 
-    T_base_cam = robot.sensors.camera.mount.transform()
-    T_base_lidar = robot.sensors.lidar.mount.transform()
-    expected = np.linalg.inv(T_base_cam) @ T_base_lidar
+    from calibration.sensor_calibration import nominal_sensors
+
+    expected = nominal_sensors(robot).T_cam_lidar  # the description's mounts
     T = cal.T_cam_lidar()
     dt = float(np.linalg.norm(T[:3, 3] - expected[:3, 3]))
     cos = (np.trace(expected[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0

@@ -97,15 +97,26 @@ def run_preflight(opts: PreflightOptions, echo: Callable[[str], None] | None = N
     else:
         required = ["lidar", "imu"] + (["camera"] if files.config is not None and files.config.uses_camera
                                        else [])
-        add(check_topics(topics_from_config(files.config, opts.ros_domain), expected_rates_hz(files.config),
-                         listen_s=opts.listen_s, required=required,
-                         options=ros.transport_options("dct_preflight")))
+        topics = topics_from_config(files.config, opts.ros_domain)
+        add(check_topics(topics, expected_rates_hz(files.config), listen_s=opts.listen_s, required=required,
+                         options=ros.transport_options("dct_preflight"),
+                         after_listen=_live_calibration(files, topics)))
     add(skipped("clock_sync", "clock") if "clock" in opts.skip else check_clock_sync())
     realtime = getattr(files.config, "realtime", None)
     add(check_cpus(realtime, sys_root=opts.sys_root))
     add(check_realtime(realtime))
     add(check_disk(opts.log_dir, opts.min_free_gb))
     return checks
+
+
+def _live_calibration(files: Any, topics: Any):
+    """The calibration checks on the last samples heard (runtime.app.preflight.calibration_live);
+    None when there is no calibration to check (no robot description, a file that does not fit)."""
+    if files.sensors is None:
+        return None
+    from runtime.app.preflight.calibration_live import check_calibration_live
+
+    return lambda last: check_calibration_live(last, topics, files.sensors, files.config)
 
 
 def ros_config(config: Any, domain_id: int | None = None):

@@ -6,7 +6,7 @@ against this computer's clock (`ros:clock`), both judged in ros_graph."""
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -47,7 +47,8 @@ def expected_rates_hz(config: Any) -> dict[str, float]:
 
 
 def check_topics(ros_config: Any, rates_hz: dict[str, float], *, listen_s: float = 2.0,
-                 required: Sequence[str] = ("lidar", "imu"), options: Any = None) -> list[Check]:
+                 required: Sequence[str] = ("lidar", "imu"), options: Any = None,
+                 after_listen: Callable[[dict[str, bytes]], list[Check]] | None = None) -> list[Check]:
     """Listen to each configured sensor topic for `listen_s` through the middleware `dct run`
     will use (`options`: runtime.io.ros.transport.TransportOptions, the config's `ros:`
     settings; None: cyclonedds on the inputs' domain); one check per topic, one `match:<stream>`
@@ -55,6 +56,10 @@ def check_topics(ros_config: Any, rates_hz: dict[str, float], *, listen_s: float
 
     A topic in `required` that is silent, too slow or mismatched FAILs; others (the camera when
     the planner does not use it) only WARN. The goal topic's mismatches FAIL.
+
+    after_listen: given the last sample of each stream heard (the camera's CameraInfo among them,
+    heard but not judged here), returns more checks (the calibration against live data:
+    runtime.app.preflight.calibration_live).
     """
     from runtime.io.ros.transport import MiddlewareError, TransportOptions, open_transport
 
@@ -69,8 +74,9 @@ def check_topics(ros_config: Any, rates_hz: dict[str, float], *, listen_s: float
     except (MiddlewareError, OSError, RuntimeError) as exc:
         return [Check("topics", "FAIL", f"cannot open the {options.middleware} middleware on domain "
                       f"{options.domain_id}: {one_line(exc)[:300]}", "see ros:middleware and ros:security")]
+    info = [("camera_info", ros_config.camera_info)] if getattr(ros_config, "camera_info", None) else []
     try:
-        heard = _listen(transport, streams, listen_s)
+        heard = _listen(transport, streams + info, listen_s)
         pubs = {s: transport.publishers(t.topic) for s, t in _inputs(ros_config)}
     finally:
         transport.close()
@@ -81,7 +87,9 @@ def check_topics(ros_config: Any, rates_hz: dict[str, float], *, listen_s: float
     checks = [_judge_topic(s, t, where[s], heard.arrivals[s], heard.last.get(s), rates_hz.get(s, 1.0), bad[s],
                            listen_s) for s, t in streams]
     checks += [judge_publishers(s, t, pubs[s], bad[s], ros_config.domain_id) for s, t in _inputs(ros_config)]
-    checks.append(judge_clock(heard.offsets))
+    checks.append(judge_clock({s: v for s, v in heard.offsets.items() if s != "camera_info"}))
+    if after_listen is not None:
+        checks += after_listen(heard.last)
     return checks
 
 

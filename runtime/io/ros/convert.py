@@ -6,6 +6,8 @@ Inbound (what drivers publish -> what the controller uses):
                                                times found from the driver's fields)
   sensor_msgs/Image           -> CameraImage  (`image_to_camera`)
   sensor_msgs/CompressedImage -> CameraImage  (`compressed_image_to_camera`)
+  sensor_msgs/CameraInfo      -> CameraInfo   (`camera_info_to_intrinsics`: what the camera says it
+                                               is, for the calibration check)
   sensor_msgs/Imu             -> ImuSample    (`imu_to_sample`)
   geometry_msgs/PoseStamped   -> GoalPose     (`pose_stamped_to_goal`)
 Outbound (what the controller publishes for RViz / Foxglove, and records): built in
@@ -21,7 +23,8 @@ The controller's own checks (LidarScan, CameraImage, ImuSample) run inside and t
 re-raised the same way, with the ROS field they came from.
 
 Images carry no intrinsics in ROS (CameraInfo does): the caller passes K and distortion from
-its calibration, as the simulator's camera does today.
+its calibration, as the simulator's camera does; the driver's CameraInfo is only held against
+that calibration (runtime.perception.calibration_monitor), never projected with.
 """
 from __future__ import annotations
 
@@ -34,7 +37,9 @@ import numpy as np
 import PIL.Image
 
 from runtime.common.geometry import Pose2D
-from runtime.io.ros.messages import CompressedImage, CustomMsg, CustomMsgArrays, Image, Imu, PoseStamped, Quaternion
+from runtime.io.ros.messages import (
+    CameraInfo as CameraInfoMsg, CompressedImage, CustomMsg, CustomMsgArrays, Image, Imu, PoseStamped, Quaternion,
+)
 from runtime.io.ros.outbound import (  # re-exported: the outbound builders live in outbound.py
     diagnostics_msg, footprint_markers, goal_pose_msg, odometry_msg, path_msg, pointcloud2_msg, robot_sensor_mounts,
     sensor_mounts, static_transforms, tf_message,
@@ -46,11 +51,14 @@ from runtime.io.ros.pointcloud import (  # PointCloud2 in (and the Livox layout 
 from runtime.io.ros.validation import (
     DEFAULT_FRAME_DURATION_S, fail as _fail, frame_id_of as _frame_id, rewrap as _rewrap, stamp_of as _stamp_of,
 )
-from runtime.common.sensor_data import MAX_IMAGE_SIDE_PX, MAX_LIDAR_POINTS, CameraImage, ImuSample, LidarScan, SensorDataError
+from runtime.common.sensor_data import (
+    MAX_IMAGE_SIDE_PX, MAX_LIDAR_POINTS, CameraImage, CameraInfo, ImuSample, LidarScan, SensorDataError,
+)
 
 CUSTOM_MSG = "livox_ros_driver2/msg/CustomMsg"
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 IMU = "sensor_msgs/msg/Imu"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 
@@ -166,6 +174,35 @@ def _camera(t: str, field_name: str, stamp: float, px: np.ndarray, K, distortion
         _rewrap(t, field_name, exc)
 
 
+def camera_info_to_intrinsics(msg: CameraInfoMsg, *, default_frame_id: str = "camera") -> CameraInfo:
+    """A sensor_msgs/CameraInfo as the intrinsics of the images it goes with: K and the size
+    scaled by the binning and shifted by the region of interest, as image_geometry does.
+
+    A K of zeros is a camera without a calibration (`uncalibrated`): there is nothing to check."""
+    t = CAMERA_INFO
+    stamp = _stamp_of(t, msg.header)
+    k = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
+    if not np.isfinite(k).all():
+        _fail(t, "k", f"non-finite values {k.ravel().tolist()}", "non_finite")
+    if not k.any():
+        _fail(t, "k", "all zero: the camera's driver has no calibration", "uncalibrated")
+    bx, by = max(1, int(msg.binning_x)), max(1, int(msg.binning_y))
+    roi = msg.roi
+    w = int(roi.width) if roi.width else int(msg.width)
+    h = int(roi.height) if roi.height else int(msg.height)
+    k = k.copy()
+    k[0, 2] -= float(roi.x_offset)
+    k[1, 2] -= float(roi.y_offset)
+    k[0] /= bx
+    k[1] /= by
+    try:
+        return CameraInfo(stamp_s=stamp, width_px=w // bx, height_px=h // by, K=k,
+                          distortion=np.asarray(msg.d, dtype=np.float64), distortion_model=msg.distortion_model,
+                          frame_id=_frame_id(t, msg.header, default_frame_id))
+    except SensorDataError as exc:
+        _rewrap(t, {"width_px": "width", "K": "k", "distortion": "d"}.get(exc.field_name, exc.field_name or "k"), exc)
+
+
 # ----------------------------------------------------------------------------- IMU
 
 
@@ -234,10 +271,10 @@ def pose_stamped_to_goal(msg: PoseStamped, *, max_tilt_rad: float = 0.35, max_ab
 
 
 __all__ = [
-    "CUSTOM_MSG", "IMAGE", "COMPRESSED_IMAGE", "IMU", "POSE_STAMPED", "POINTCLOUD2", "DEFAULT_FRAME_DURATION_S",
+    "CUSTOM_MSG", "IMAGE", "COMPRESSED_IMAGE", "CAMERA_INFO", "IMU", "POSE_STAMPED", "POINTCLOUD2", "DEFAULT_FRAME_DURATION_S",
     "MAX_COMPRESSED_PIXELS", "TIME_FIELD_AUTO", "TIME_FIELD_NONE", "GoalPose", "PointTime",
     "custom_msg_to_scan", "pointcloud2_to_scan", "pointcloud2_decode", "no_point_time_notice", "image_to_camera",
-    "compressed_image_to_camera", "imu_to_sample", "yaw_of", "pose_stamped_to_goal",
+    "compressed_image_to_camera", "camera_info_to_intrinsics", "imu_to_sample", "yaw_of", "pose_stamped_to_goal",
     "odometry_msg", "goal_pose_msg", "path_msg", "pointcloud2_msg", "livox_pointcloud2_msg", "diagnostics_msg",
     "footprint_markers", "robot_sensor_mounts", "sensor_mounts", "static_transforms", "tf_message",
 ]

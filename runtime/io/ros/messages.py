@@ -35,10 +35,10 @@ from cyclonedds.idl.types import array, float32, sequence, uint8, uint32, uint64
 
 from runtime.common.sensor_data import SensorDataError
 from runtime.io.ros.messages_common import (  # re-exported (__all__)
-    DIAG_ERROR, DIAG_OK, DIAG_STALE, DIAG_WARN, FLOAT32, FLOAT64, INT8, INT16, INT32, UINT8, UINT16, UINT32, ColorRGBA,
-    CompressedImage, DiagnosticArray, DiagnosticStatus, Duration, Header, Image, Imu, KeyValue, Odometry, Path, Point,
-    PointCloud2, PointField, Pose, PoseStamped, PoseWithCovariance, Quaternion, Time, Transform, TransformStamped,
-    Twist, TwistWithCovariance, Vector3,
+    DIAG_ERROR, DIAG_OK, DIAG_STALE, DIAG_WARN, FLOAT32, FLOAT64, INT8, INT16, INT32, UINT8, UINT16, UINT32, CameraInfo,
+    ColorRGBA, CompressedImage, DiagnosticArray, DiagnosticStatus, Duration, Header, Image, Imu, KeyValue, Odometry,
+    Path, Point, PointCloud2, PointField, Pose, PoseStamped, PoseWithCovariance, Quaternion, RegionOfInterest, Time,
+    Transform, TransformStamped, Twist, TwistWithCovariance, Vector3,
 )
 from runtime.io.ros.messages_viz import (  # re-exported (__all__)
     ARROW, ARROW_STRIP, CUBE, CUBE_LIST, CYLINDER, LINE_LIST, LINE_STRIP, MARKER_ADD, MARKER_DELETE, MARKER_DELETEALL,
@@ -98,6 +98,7 @@ ROS_TYPES: dict[str, type[IdlStruct]] = {
     "sensor_msgs/msg/PointCloud2": PointCloud2,
     "sensor_msgs/msg/Image": Image,
     "sensor_msgs/msg/CompressedImage": CompressedImage,
+    "sensor_msgs/msg/CameraInfo": CameraInfo,
     "sensor_msgs/msg/Imu": Imu,
     "nav_msgs/msg/Odometry": Odometry,
     "nav_msgs/msg/Path": Path,
@@ -283,8 +284,8 @@ class PreSerialized:
 #: Everything declared here and in messages_common / messages_viz (re-exported: import messages from here).
 __all__ = [
     "DIAG_ERROR", "DIAG_OK", "DIAG_STALE", "DIAG_WARN", "FLOAT32", "FLOAT64", "INT8", "INT16", "INT32", "UINT8",
-    "UINT16", "UINT32", "ColorRGBA", "CompressedImage", "DiagnosticArray", "DiagnosticStatus", "Duration", "Header",
-    "Image", "Imu", "KeyValue", "Odometry", "Path", "Point", "PointCloud2", "PointField", "Pose", "PoseStamped",
+    "UINT16", "UINT32", "CameraInfo", "ColorRGBA", "CompressedImage", "RegionOfInterest", "DiagnosticArray",
+    "DiagnosticStatus", "Duration", "Header", "Image", "Imu", "KeyValue", "Odometry", "Path", "Point", "PointCloud2", "PointField", "Pose", "PoseStamped",
     "PoseWithCovariance", "Quaternion", "Time", "Transform", "TransformStamped", "Twist", "TwistWithCovariance",
     "Vector3",
     "ARROW", "ARROW_STRIP", "CUBE", "CUBE_LIST", "CYLINDER", "LINE_LIST", "LINE_STRIP", "MARKER_ADD", "MARKER_DELETE",

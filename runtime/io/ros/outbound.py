@@ -210,16 +210,14 @@ def sensor_mounts(T_base_lidar: np.ndarray, T_base_camera: np.ndarray | None = N
     return mounts
 
 
-def robot_sensor_mounts(robot, T_cam_lidar: np.ndarray | None = None, *, base_frame: str = "base_link",
-                        lidar_frame: str = "lidar", camera_frame: str = "camera") -> list[Mount]:
-    """base_frame -> lidar and -> camera of a robot description (calibration.robot_description):
-    the lidar's mount, and the camera's as the perception stage places it (the lidar mount composed
-    with the calibration's T_cam_lidar when there is one, else the description's camera mount)."""
-    T_base_lidar = np.asarray(robot.sensors.lidar.mount.transform(), dtype=np.float64)
-    T_base_camera = (robot.sensors.camera.mount.transform() if T_cam_lidar is None
-                     else T_base_lidar @ np.linalg.inv(np.asarray(T_cam_lidar, dtype=np.float64)))
-    return sensor_mounts(T_base_lidar, T_base_camera, base_frame=base_frame, lidar_frame=lidar_frame,
-                         camera_frame=camera_frame)
+def robot_sensor_mounts(sensors, *, base_frame: str = "base_link", lidar_frame: str = "lidar",
+                        camera_frame: str = "camera") -> list[Mount]:
+    """base_frame -> lidar and -> camera as the controller's stages place them: the calibrated
+    mounts of `sensors` (calibration.sensor_calibration.SensorCalibration: a calibration file's
+    lidar_mount and lidar_to_camera where it has them, else the robot description's)."""
+    return sensor_mounts(np.asarray(sensors.T_base_lidar, dtype=np.float64),
+                         np.asarray(sensors.T_base_camera, dtype=np.float64), base_frame=base_frame,
+                         lidar_frame=lidar_frame, camera_frame=camera_frame)
 
 
 def static_transforms(stamp_s: float, mounts: Iterable[Mount]) -> TFMessage:

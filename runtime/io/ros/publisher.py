@@ -10,7 +10,8 @@ References, not copies: P_fix, the plan's states and the lidar scan are arrays t
 replaces (never mutates in place) from one tick to the next, so handing them over is safe.
 
 Published (RosOutputConfig): /tf (odom -> base_link), nav_msgs/Odometry and
-diagnostic_msgs/DiagnosticArray (state, hold or stop reason, stage timings) every tick;
+diagnostic_msgs/DiagnosticArray (state, hold or stop reason, the partition's fall-back to all-fixed
+and why, stage timings) every tick;
 nav_msgs/Path (the MPC's predicted states), P_fix (odom frame) and P_mov (lidar frame, the vpp
 partition) as PointCloud2 and the safety supervisor's footprint and stop zone as a
 visualization_msgs/MarkerArray every `clouds_every_ticks` ticks; /tf_static (base_link -> lidar
@@ -148,9 +149,16 @@ class RosPublisher:
         if self._diag is not None:
             level = {"STOPPED": DIAG_ERROR, "HOLDING": DIAG_WARN}.get(v.state, DIAG_OK)
             timings = {**v.stage_ms, "tick": v.tick_ms}
-            # The status line an operator reads first: the state, and why when it is not driving.
+            # The status line an operator reads first: the state, and why when it is not driving;
+            # while driving on the all-fixed fallback, why it fell back (a warning).
             why = v.extra.get("stop_reason") if v.state == "STOPPED" else v.extra.get("hold_reason")
-            message = f"{v.state}: {why}" if why and v.state in ("STOPPED", "HOLDING") else v.state
+            fallback = v.extra.get("partition_fallback")
+            if why and v.state in ("STOPPED", "HOLDING"):
+                message = f"{v.state}: {why}"
+            elif fallback:
+                message, level = f"{v.state}: partition all-fixed: {fallback}", max(level, DIAG_WARN)
+            else:
+                message = v.state
             self._diag.write(convert.diagnostics_msg(v.stamp_s, v.state, timings, level=level, message=message,
                                                      extra=v.extra))
         if self._plan is not None and v.plan_states is not None and len(v.plan_states):

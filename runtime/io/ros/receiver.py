@@ -1,6 +1,7 @@
 """Sensor topics over DDS -> SensorInbox, decoded and validated off the tick.
 
-`RosSensorReceiver` owns readers for the configured lidar, camera, IMU and goal topics (on the
+`RosSensorReceiver` owns readers for the configured lidar, camera (and its CameraInfo), IMU and
+goal topics (on the
 middleware's transport: rclpy or cyclonedds, runtime.io.ros.transport) and one thread that
 waits on them, takes each sample's raw CDR bytes, decodes and converts it
 (convert.py) and puts the result into a SensorInbox. The tick only calls `inbox.take()`: it
@@ -114,6 +115,12 @@ class CameraTopic(_Topic):
     type: Literal["sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"]
 
 
+class CameraInfoTopic(_Topic):
+    """The camera driver's intrinsics (beside its image topic): held against the calibration."""
+
+    type: Literal["sensor_msgs/msg/CameraInfo"] = "sensor_msgs/msg/CameraInfo"
+
+
 class ImuTopic(_Topic):
     type: Literal["sensor_msgs/msg/Imu"] = "sensor_msgs/msg/Imu"
     qos: TopicQos = TopicQos(depth=50)     # 200 Hz and more: keep what arrives between two wake-ups
@@ -133,6 +140,8 @@ class RosInputConfig(_Strict):
     domain_id: int = Field(default=0, ge=0, le=232)
     lidar: LidarTopic | None = None
     camera: CameraTopic | None = None
+    #: What the camera's driver says its intrinsics are (calibration check; never projected with).
+    camera_info: CameraInfoTopic | None = None
     imu: ImuTopic | None = None
     goal: GoalTopic | None = None
 
@@ -199,8 +208,8 @@ class RosSensorReceiver:
         self.last_error: str | None = None
         self._readers: list[tuple[str, str, TopicReader, Callable[[object], None]]] = []
         self._topics: dict[str, str] = {}  # stream -> topic name
-        for stream, topic in (("lidar", config.lidar), ("camera", config.camera), ("imu", config.imu),
-                              ("goal", config.goal)):
+        for stream, topic in (("lidar", config.lidar), ("camera", config.camera),
+                              ("camera_info", config.camera_info), ("imu", config.imu), ("goal", config.goal)):
             if topic is None:
                 continue
             reader = transport.reader(topic.topic, ROS_TYPES[topic.type], topic.qos.spec())
@@ -239,6 +248,8 @@ class RosSensorReceiver:
             to_camera = (convert.image_to_camera if topic.type == "sensor_msgs/msg/Image"
                          else convert.compressed_image_to_camera)
             return lambda msg: inbox.put_image(to_camera(msg, self._K, self._dist))
+        if stream == "camera_info":
+            return lambda msg: inbox.put_camera_info(convert.camera_info_to_intrinsics(msg))
         if stream == "imu":
             return lambda msg: inbox.put_imu(convert.imu_to_sample(msg))
 
@@ -344,5 +355,5 @@ class RosSensorReceiver:
         return r
 
 
-__all__ = ["RosInputConfig", "LidarTopic", "CameraTopic", "ImuTopic", "GoalTopic", "TopicQos", "RosSensorReceiver",
+__all__ = ["RosInputConfig", "LidarTopic", "CameraTopic", "CameraInfoTopic", "ImuTopic", "GoalTopic", "TopicQos", "RosSensorReceiver",
            "decode_cdr"]

@@ -14,7 +14,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from runtime.io.ros.receiver import (
-    _ROS_NAME, CameraTopic, GoalTopic, ImuTopic, LidarTopic, RosInputConfig, TopicQos,
+    _ROS_NAME, CameraInfoTopic, CameraTopic, GoalTopic, ImuTopic, LidarTopic, RosInputConfig, TopicQos,
 )
 from runtime.io.ros.transport import TransportOptions
 
@@ -70,6 +70,7 @@ class RosOutputConfig(_Strict):
 DEFAULT_INPUTS = RosInputConfig(
     lidar=LidarTopic(topic="/livox/lidar", type="livox_ros_driver2/msg/CustomMsg"),
     camera=CameraTopic(topic="/camera/color/image_raw", type="sensor_msgs/msg/Image", qos=TopicQos(depth=1)),
+    camera_info=CameraInfoTopic(topic="/camera/color/camera_info"),
     imu=ImuTopic(topic="/livox/imu"),
     goal=GoalTopic(),
 )

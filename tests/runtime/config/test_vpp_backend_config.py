@@ -117,12 +117,12 @@ def test_the_partition_stage_is_chosen_by_the_mode():
     cfg = load_controller_config().model_copy(update={"vpp": load_controller_config().vpp.model_copy(
         update={"backend": backend})})
     dct = NavigationController(robot, cfg, hardware=None, goal=goal, clock=lambda: 0.0, lockstep=True)
-    assert isinstance(dct.partition, VppPartition) and dct.vpp is dct.partition.vpp
+    assert isinstance(dct.partition.inner, VppPartition) and dct.vpp is dct.partition.inner.vpp
     assert isinstance(dct.vpp.runner.backend, ProposingBackend)  # built from the config
     dct.partition.close()
     for mode in ("all-fixed", "pure-pursuit"):
         ctl = NavigationController(robot, cfg.with_planner_mode(mode), hardware=None, goal=goal, clock=lambda: 0.0)
-        assert isinstance(ctl.partition, AllFixedPartition) and ctl.vpp is None
+        assert isinstance(ctl.partition.inner, AllFixedPartition) and ctl.vpp is None
         assert ctl.partition.update(0.0, (0.0, 0.0, 0.0), None, None) is None and ctl.partition.ready(0.0)
 
 

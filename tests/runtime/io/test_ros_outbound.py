@@ -181,15 +181,41 @@ def test_footprint_markers_fuzz_raises_only_value_error(polygon):
 
 def test_robot_sensor_mounts_of_the_shipped_description():
     from calibration.robot_description import load_robot_description
+    from calibration.sensor_calibration import nominal_sensors
 
     robot = load_robot_description()
     T_lidar, T_camera = robot.sensors.lidar.mount.transform(), robot.sensors.camera.mount.transform()
-    mounts = C.robot_sensor_mounts(robot, base_frame="base_footprint")
+    mounts = C.robot_sensor_mounts(nominal_sensors(robot), base_frame="base_footprint")
     assert [(p, c) for p, c, _ in mounts] == [("base_footprint", "lidar"), ("base_footprint", "camera")]
     np.testing.assert_array_equal(mounts[0][2], T_lidar)
     np.testing.assert_array_equal(mounts[1][2], T_camera)
     assert len(C.static_transforms(0.0, mounts).transforms) == 2
-    # with a calibrated lidar -> camera extrinsic, the camera is placed through the lidar mount
-    T_cam_lidar = np.linalg.inv(T_camera) @ T_lidar @ _rigid(0.01, 0.0, 0.0, [0.0, 0.005, 0.0])
-    _, (_, _, T_cal) = C.robot_sensor_mounts(robot, T_cam_lidar)
-    np.testing.assert_allclose(T_cal @ T_cam_lidar, T_lidar, atol=1e-12)
+
+
+def test_tf_static_carries_the_calibration_files_mounts():
+    """A calibration file's lidar_mount is base_link -> lidar on /tf_static, and the camera is
+    placed through it with the file's lidar_to_camera (as the perception stage places them)."""
+    from calibration.calibration_file import CalibrationFile, RigidTransform
+    from calibration.robot_description import load_robot_description
+    from calibration.sensor_calibration import sensor_calibration
+
+    robot = load_robot_description()
+    cam = robot.sensors.camera
+    T_lidar = _rigid(0.01, -0.02, 0.005, [0.06, -0.01, 0.21])
+    T_cam_lidar = np.linalg.inv(cam.mount.transform()) @ robot.sensors.lidar.mount.transform()
+    cal = CalibrationFile.model_validate({
+        "robot": "limo", "provenance": {"date": "2025-01-01T00:00:00", "method": "test"},
+        "camera": {"width_px": 640, "height_px": 480, "fx": 337.0, "fy": 337.0, "cx": 319.5, "cy": 239.5},
+        "lidar_to_camera": RigidTransform.fields_from_matrix(T_cam_lidar),
+        "lidar_mount": RigidTransform.fields_from_matrix(T_lidar)})
+    sensors = sensor_calibration(robot, cal, "my_robot.yaml")
+    msg = C.static_transforms(0.0, C.robot_sensor_mounts(sensors, lidar_frame="livox_frame"))
+    lidar = next(t for t in msg.transforms if t.child_frame_id == "livox_frame")
+    tr = lidar.transform.translation
+    np.testing.assert_allclose([tr.x, tr.y, tr.z], [0.06, -0.01, 0.21], atol=1e-9)
+    q = lidar.transform.rotation
+    from scipy.spatial.transform import Rotation
+
+    np.testing.assert_allclose(Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix(), T_lidar[:3, :3], atol=1e-9)
+    _, (_, _, T_cal) = C.robot_sensor_mounts(sensors)
+    np.testing.assert_allclose(T_cal @ T_cam_lidar, T_lidar, atol=1e-9)

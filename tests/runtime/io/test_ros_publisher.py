@@ -68,3 +68,39 @@ def test_tf_static_markers_and_diagnostics_on_the_wire():
         finally:
             pub.close()
     assert pub.stats()["errors"] == 0, pub.stats()
+
+
+class _Writer:
+    def __init__(self, topic):
+        self.topic, self.sent = topic, []
+
+    def write(self, msg):
+        self.sent.append(msg)
+
+
+class _Transport:
+    """Keeps what each writer was given (no DDS)."""
+
+    def __init__(self):
+        self.writers = {}
+
+    def writer(self, topic, cls, qos):
+        return self.writers.setdefault(topic, _Writer(topic))
+
+
+def test_the_status_line_says_the_partition_fell_back_and_why():
+    transport = _Transport()
+    pub = RosPublisher(transport, RosOutputConfig())
+    reason = "camera intrinsics: my_robot.yaml camera.fx: 336.0, the camera reports 346.1 (+3.0%, tolerance 1%)"
+    view = TickView(stamp_s=time.time(), pose=Pose2D(0.0, 0.0, 0.0), v_mps=0.3, omega_radps=0.0, state="ACTIVE",
+                    stage_ms={"read": 0.1}, tick_ms=1.0,
+                    extra={"hold_reason": "", "stop_reason": "", "partition_fallback": reason,
+                           "calibration_mismatch": reason})
+    pub.offer(view)
+    pub.offer(TickView(**{**view.__dict__, "extra": {**view.extra, "partition_fallback": "",
+                                                     "calibration_mismatch": ""}}))
+    pub.close()
+    fell_back, normal = (a.status[0] for a in transport.writers["/diagnostics"].sent)
+    assert fell_back.message == f"ACTIVE: partition all-fixed: {reason}" and fell_back.level == M.DIAG_WARN
+    assert {kv.key: kv.value for kv in fell_back.values}["partition_fallback"] == reason
+    assert normal.message == "ACTIVE" and normal.level == M.DIAG_OK

@@ -12,6 +12,7 @@ from runtime.perception.obstacle_points import ObstaclePointExtractor, voxel_fil
 from runtime.common.sensor_data import LidarScan
 
 ROBOT = load_robot_description()
+MOUNT = ROBOT.sensors.lidar.mount.transform()  # the nominal mount (no calibration file)
 
 
 def _noisy_wall(rng: np.random.Generator, n: int, sigma_m: float, y_m: float = 0.16) -> np.ndarray:
@@ -62,7 +63,7 @@ def _scan(points_lidar: np.ndarray, offsets_s: np.ndarray, stamp_s: float = 10.0
 
 
 def test_height_band_and_range_crop() -> None:
-    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0)
+    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0, T_base_lidar=MOUNT)
     lz = ROBOT.sensors.lidar.mount.xyz_m[2]
     pts = np.array([
         [1.0, 0.0, -lz + 0.01],  # ground: below the clearance
@@ -80,7 +81,7 @@ def test_deskew_puts_points_of_a_moving_scan_where_the_wall_is() -> None:
     (odom) is cast; each point in the lidar frame of its own time. Deskewed to the end of the
     scan and placed with the pose then, all points land on the wall."""
     v, w, t0 = 1.0, 1.0, 10.0
-    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0)
+    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0, T_base_lidar=MOUNT)
     lx, _, lz = ROBOT.sensors.lidar.mount.xyz_m
     n = 200
     offsets = np.linspace(0.0, 0.1, n)
@@ -125,7 +126,7 @@ def test_deskew_gives_the_scan_at_one_instant_as_extract_places_it() -> None:
     same points from either scan (the VPP partition and the obstacle points agree)."""
     v, w, t0 = 1.0, 1.0, 10.0
     scan, pose_at, ys = _turning_scan(v, w, t0)
-    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0)
+    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0, T_base_lidar=MOUNT)
     now = t0 + 0.14  # the tick after the frame's end
     d = ext.deskew(scan, now, v, w)
     assert d.stamp_s == now and not d.point_time_offsets_s.any() and d.num_points == scan.num_points
@@ -143,10 +144,31 @@ def test_deskew_leaves_a_carried_object_where_the_robot_saw_it() -> None:
     lx, _, lz = ROBOT.sensors.lidar.mount.xyz_m
     pts = np.array([[0.25 - lx, 0.0, 0.1 - lz], [1.5 - lx, 0.0, 0.1 - lz]])  # a box at the bumper, a wall
     scan = _scan(pts, np.array([0.0, 0.0]), 10.0)  # cast 0.1 s before now
-    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0)
+    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0, T_base_lidar=MOUNT)
     carried = ext.deskew(scan, 10.1, 1.0, 0.0, carried=(0.18, 0.65, -0.2, 0.2))
     world = ext.deskew(scan, 10.1, 1.0, 0.0)
     base = lambda s: s.points_m[:, 0] + lx  # noqa: E731
     assert base(carried)[0] == pytest.approx(0.25, abs=1e-6)  # still at the bumper
     assert base(world)[0] == pytest.approx(0.15, abs=1e-6)  # as if it stood still: 10 cm nearer
     assert base(carried)[1] == pytest.approx(1.4, abs=1e-6) == base(world)[1]
+
+
+def test_points_land_where_the_calibrated_mount_says() -> None:
+    """A calibration file's lidar mount (here 6 cm higher, yawed 90 deg, 10 cm further back than
+    the description's) places the points: a return 1 m ahead of the lidar lands 1 m along the
+    calibrated yaw from the calibrated position, and its height is judged with it."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    T[:3, 3] = [-0.05, 0.0, 0.26]
+    ext = ObstaclePointExtractor(ROBOT, voxel_m=0.0, T_base_lidar=T)
+    # 0.20 m below the lidar: 6 cm above the floor for the calibrated mount (in the band: kept);
+    # the description's 0.20 m mount would put it on the floor (dropped)
+    pts = np.array([[1.0, 0.0, -0.20]])
+    out = ext.extract(_scan(pts, np.zeros(1)), Pose2D(0.0, 0.0, 0.0), 10.0, 0.0, 0.0)
+    np.testing.assert_allclose(out, [[-0.05, 1.0]], atol=1e-6)
+    nominal = ObstaclePointExtractor(ROBOT, voxel_m=0.0, T_base_lidar=MOUNT)
+    assert nominal.extract(_scan(pts, np.zeros(1)), Pose2D(0.0, 0.0, 0.0), 10.0, 0.0, 0.0).shape == (0, 2)
+    with pytest.raises(ValueError, match="T_base_lidar"):
+        ObstaclePointExtractor(ROBOT, T_base_lidar=np.eye(3))
