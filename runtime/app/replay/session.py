@@ -154,7 +154,7 @@ def _assemble(setup: ReplaySetup, clock, recorder, io: tuple, poses: list):
     ld, config = setup.loaded, setup.loaded.config
     bus, inbox = io
     goal = setup.goal if setup.goal is not None else (0.0, 0.0, 0.0)
-    parts = assemble(RobotSetup(ld.robot, config, ld.wheel_calibration, ld.camera, ld.T_cam_lidar),
+    parts = assemble(RobotSetup(ld.robot, config, ld.wheel_calibration, ld.sensor_calibration),
                      Wiring(recorder.wrap_bus(bus, clock.now), clock, Pose2D(*goal),
                             inbox if config.uses_lidar else None, lockstep=True,
                             vlm_backend=ReplayVlm() if config.uses_vlm_backend else None,
