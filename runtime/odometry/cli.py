@@ -41,7 +41,8 @@ def _length(ctx, param, value):
     return value
 
 
-def _icp_config(voxel_size: float | None, max_range: float | None, min_range: float | None, base=None):
+def _icp_config(voxel_size: float | None, max_range: float | None, min_range: float | None, base=None,
+                max_iterations: int | None = None):
     """IcpConfig (base: its defaults) with the command line's overrides; one-line error if invalid."""
     from pydantic import ValidationError
 
@@ -50,7 +51,7 @@ def _icp_config(voxel_size: float | None, max_range: float | None, min_range: fl
 
     base = base if base is not None else IcpConfig()
     overrides = {k: v for k, v in (("voxel_size_m", voxel_size), ("max_range_m", max_range),
-                                   ("min_range_m", min_range)) if v is not None}
+                                   ("min_range_m", min_range), ("max_iterations", max_iterations)) if v is not None}
     try:
         return IcpConfig.model_validate({**base.model_dump(), **overrides})
     except ValidationError as exc:
@@ -82,8 +83,9 @@ Two modes, exactly one of them:
     optional times file one time (s) per scan. Points at exactly (0,0,0) and non-finite
     ones are dropped. Scans with a per-point time field (t, time, timestamp,
     timestamps, offset_time) are deskewed; without one they are registered as they are
-    (the output says which). Outdoor sequences need a larger --voxel-size and
-    --max-range than the indoor defaults (e.g. 0.5 and 60 for an HDL-32).
+    (the output says which). The voxel, range gate and iteration cap are derived from
+    the first scan's ranges unless given (the output says what was chosen, and what
+    share of the points the range gate dropped).
 --scenario NAME_OR_PATH [--seed N]
     a simulated scenario: ICP alone, wheels+IMU alone and the fused stream.
 
@@ -106,9 +108,11 @@ of the registration time per frame); a short summary goes to stdout.
               help="write the figures here (checked before the run, written atomically after it)")
 @click.option("--force", is_flag=True, help="overwrite an existing --json file")
 @click.option("--voxel-size", type=float, default=None, callback=_length,
-              help="KISS-ICP voxel (m) [default: the controller's, 0.3]")
-@click.option("--max-range", type=float, default=None, callback=_length, help="farthest point used (m) [default: 12]")
-@click.option("--min-range", type=float, default=None, callback=_length, help="nearest point used (m) [default: 0.3]")
+              help="KISS-ICP voxel (m) [default: auto, from the first scan's ranges]")
+@click.option("--max-range", type=float, default=None, callback=_length, help="farthest point used (m) [default: auto]")
+@click.option("--min-range", type=float, default=None, callback=_length, help="nearest point used (m) [default: auto]")
+@click.option("--max-iterations", type=click.IntRange(1, 500), default=None,
+              help="ICP iteration cap per scan [default: auto, what the iteration budget pays for]")
 @click.option("--deskew", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
               help="auto: deskew when the scans have per-point times; on: require them")
 @click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -118,14 +122,16 @@ of the registration time per frame); a short summary goes to stdout.
               help="also write the estimated poses here (KITTI format; with --scans)")
 def eval_command(*, scans_dir: Path | None, poses_file: Path | None, times_file: Path | None, scenario: str | None,
                  seed: int | None, json_path: Path, force: bool, voxel_size: float | None, max_range: float | None,
-                 min_range: float | None, deskew: str, trajectory_path: Path | None, record_path: Path | None = None) -> None:
+                 min_range: float | None, deskew: str, trajectory_path: Path | None, record_path: Path | None = None,
+                 max_iterations: int | None = None) -> None:
     """See EVAL_HELP."""
     if (scans_dir is None) == (scenario is None):
         raise InputError("dct odom eval: give exactly one of --scans DIR or --scenario NAME_OR_PATH (see --help)")
     if scenario is not None:
         given = [name for name, v in (("--poses", poses_file), ("--times", times_file), ("--voxel-size", voxel_size),
                                       ("--max-range", max_range), ("--min-range", min_range),
-                                      ("--trajectory", trajectory_path)) if v is not None]
+                                      ("--max-iterations", max_iterations), ("--trajectory", trajectory_path))
+                 if v is not None]
         if deskew != "auto":
             given.append("--deskew")
         if given:
@@ -140,7 +146,8 @@ def eval_command(*, scans_dir: Path | None, poses_file: Path | None, times_file:
                          "gyro and ground truth)")
     if poses_file is None:
         raise InputError("dct odom eval: --scans needs --poses FILE (the reference poses, KITTI format)")
-    _eval_scans(scans_dir, poses_file, times_file, json_path, force, _icp_config(voxel_size, max_range, min_range),
+    _eval_scans(scans_dir, poses_file, times_file, json_path, force,
+                _icp_config(voxel_size, max_range, min_range, max_iterations=max_iterations),
                 {"auto": None, "on": True, "off": False}[deskew], trajectory_path)
 
 
@@ -169,6 +176,7 @@ def _eval_scans(scans_dir: Path, poses_file: Path, times_file: Path | None, json
     click.echo(summary_lines("icp", report["icp"]))
     click.echo(f"{report['frames']} frames, {report['points_per_scan']:.0f} points per scan, registration "
                f"p50 {report['stage_ms']['p50']:.1f} ms p99 {report['stage_ms']['p99']:.1f} ms; {report['deskew_note']}")
+    _settings_lines(report.get("config"), report.get("range_gate"), report.get("iteration_caps"))
     click.echo(f"-> {json_path}" + (f", {trajectory_path}" if trajectory_path is not None else ""))
 
 
@@ -208,7 +216,24 @@ def _eval_scenario(scenario: str, seed: int, json_path: Path, force: bool, recor
     if isinstance(report.get("stage_ms"), dict):
         click.echo(f"odometry stage p50 {report['stage_ms'].get('p50', float('nan')):.1f} ms "
                    f"p99 {report['stage_ms'].get('p99', float('nan')):.1f} ms")
+    odo = report.get("odometry") if isinstance(report.get("odometry"), dict) else {}
+    _settings_lines((odo.get("icp_settings") or {}).get("icp"), odo.get("icp_range_gate"), odo.get("icp_iteration_cap"))
     click.echo(f"-> {json_path}")
+
+
+def _settings_lines(icp: dict | None, gate: dict | None, caps: list | None = None) -> None:
+    """The ICP settings used (auto ones resolved), the iteration caps, and what the range gate
+    dropped (a warning line on stderr above a quarter)."""
+    from runtime.odometry.icp_settings import gate_lines
+
+    if icp:
+        cap = icp["max_iterations"]
+        if cap == "auto" and caps:
+            cap = f"auto ({caps[0]}-{caps[1]} per scan)" if caps[0] != caps[1] else f"auto ({caps[0]})"
+        click.echo(f"ICP settings: voxel {icp['voxel_size_m']:g} m, range {icp['min_range_m']:g}-{icp['max_range_m']:g} m, "
+                   f"iteration cap {cap}, initial threshold {icp['initial_threshold_m']:g} m")
+    for k, line in enumerate(gate_lines(gate)):
+        click.echo(line, err=k > 0)
 
 
 # ---------------------------------------------------------------------------- register
