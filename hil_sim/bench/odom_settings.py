@@ -135,14 +135,14 @@ def _errors(row: dict) -> str:
 
 def format_table(results: list[dict]) -> list[str]:
     """The summary: per input, the defaults beside the best grid setting."""
-    head = (f"{'input':<28} {'auto settings':<34} {'end err m':>9} {'RPE %':>6} {'ms p50/p99':>12}  "
-            f"{'best grid setting':<34} {'end err m':>9} {'RPE %':>6} {'ms p50/p99':>12}")
+    head = (f"{'input':<28} {'auto settings':<40} {'end err m':>9} {'RPE %':>6} {'ms p50/p99':>12}  "
+            f"{'best grid setting':<40} {'end err m':>9} {'RPE %':>6} {'ms p50/p99':>12}")
     lines = [head, "-" * len(head)]
     for res in results:
         d, b = res["default"], res["best"]
-        left = (f"{res['input'][:28]:<28} {_settings(d):<34} {d['end_error_m']:>9.3f} {_pct(d['rpe_percent']):>6} "
+        left = (f"{res['input'][:28]:<28} {_settings(d):<40} {d['end_error_m']:>9.3f} {_pct(d['rpe_percent']):>6} "
                 f"{d['frame_ms_p50']:>5.1f}/{d['frame_ms_p99']:<6.1f}")
-        right = "" if b is None else (f"  {_settings(b):<34} {b['end_error_m']:>9.3f} {_pct(b['rpe_percent']):>6} "
+        right = "" if b is None else (f"  {_settings(b):<40} {b['end_error_m']:>9.3f} {_pct(b['rpe_percent']):>6} "
                                       f"{b['frame_ms_p50']:>5.1f}/{b['frame_ms_p99']:<6.1f}")
         lines.append(left + right)
     return lines

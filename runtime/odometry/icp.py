@@ -2,8 +2,9 @@
 
 `IcpEngine.process(job)` runs where the ICP worker runs (runtime.odometry.worker: a process on
 the robot, because KISS-ICP's registration holds Python's GIL for its whole duration and would
-stall the tick if it ran in a thread). It uses the kiss-icp package's own pipeline
-(`KissICP.register_frame`); what we add around it:
+stall the tick if it ran in a thread). It runs KISS-ICP's own pipeline steps
+(runtime.odometry.kiss_pipeline: auto settings from the first frame, the range gate counted, the
+iteration cap per frame from the time budget); what we add around it:
 
 - The initial guess. Before each frame, KISS-ICP's `last_delta` (its constant-velocity
   prediction, used for the initial guess and for its deskew) is replaced by the motion the wheels
