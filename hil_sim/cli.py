@@ -112,6 +112,10 @@ def run_command(*, scenario: str, json_path: Path | None, seed: int, config_path
         payload["wall_clock"] = wall_clock_report(result)
         atomic_write_json(json_path, payload)
     click.echo(summary_line(run.scenario.name, m, result.realtime_factor))
+    from runtime.odometry.icp_settings import gate_lines
+
+    for line in gate_lines(m.get("icp_range_gate")):
+        click.echo(line, err=True)
     if not m["success"]:
         sys.exit(1)
 

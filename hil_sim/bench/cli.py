@@ -93,6 +93,60 @@ def odometry_bench_command(*, scenario: str, seconds: float, hogs: tuple[int, ..
         atomic_write_json(json_path, with_provenance(out))
 
 
+@bench_group.command("odom")
+@click.option("--sequence", "sequences", multiple=True, type=click.Path(file_okay=False, path_type=Path),
+              metavar="DIR", help="A recorded sequence's scan folder (repeatable; each with a --poses, in order).")
+@click.option("--poses", "poses", multiple=True, type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
+              help="The KITTI poses of the --sequence at the same position.")
+@click.option("--scenario", "scenarios", multiple=True, metavar="NAME",
+              help="A scenario with a route, recorded in lockstep first (repeatable; e.g. odom_loop, odom_corridor).")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1), help="Seed of the scenarios.")
+@click.option("--voxel", "voxels", multiple=True, type=click.FloatRange(0.05, 5.0), metavar="M",
+              help="Grid voxels (repeatable).  [default: 0.3, 0.5, 1.0]")
+@click.option("--max-range", "ranges", multiple=True, type=click.FloatRange(1.0, 500.0), metavar="M",
+              help="Grid max ranges (repeatable).  [default: 12, 60, 100]")
+@click.option("--iterations", "iterations", multiple=True, type=click.IntRange(1, 500), metavar="N",
+              help="Grid iteration caps (repeatable).  [default: 50, 500]")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the figures as JSON (checked before the run, written atomically after it).")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def odom_settings_bench_command(*, sequences: tuple[Path, ...], poses: tuple[Path, ...], scenarios: tuple[str, ...],
+                                seed: int, voxels: tuple[float, ...], ranges: tuple[float, ...],
+                                iterations: tuple[int, ...], json_path: Path | None, force: bool) -> None:
+    """KISS-ICP alone with the default (auto) settings beside the best of a grid (voxel x max range x
+    iteration cap) on each recorded sequence and scenario: end error, relative pose error, the settings
+    auto chose, and the time per frame (p50/p99)."""
+    from calibration.errors import ConfigFileError
+    from calibration.outputs import atomic_write_json
+    from hil_sim.bench.odom_settings import (GRID_ITERATIONS, GRID_MAX_RANGES_M, GRID_VOXELS_M, BenchInput,
+                                             grid_configs, run_odom_settings_bench)
+    from hil_sim.world.scenario import load_scenario
+    from runtime.common.cli_support import checked_output
+    from runtime.odometry.sequence import SequenceInputError, load_sequence
+
+    if len(sequences) != len(poses):
+        raise InputError(f"dct bench odom: {len(sequences)} --sequence and {len(poses)} --poses: give one --poses "
+                         f"per --sequence, in the same order")
+    if not sequences and not scenarios:
+        raise InputError("dct bench odom: nothing to run: give --sequence DIR --poses FILE and/or --scenario NAME")
+    items = []
+    try:
+        for scans, pose_file in zip(sequences, poses):
+            load_sequence(scans, pose_file)  # checks every count and pose before anything runs
+            items.append(BenchInput(scans.name if scans.name != "scans" else scans.parent.name, scans, pose_file))
+        for name in scenarios:
+            if load_scenario(name).route is None:
+                raise InputError(f"dct bench odom: scenario {name} has no route to drive (odom_loop has one)")
+    except (SequenceInputError, ConfigFileError) as exc:
+        raise InputError(str(exc)) from None
+    checked_output(json_path, "--json", [*poses], force)
+    configs = grid_configs(tuple(sorted(set(voxels))) or GRID_VOXELS_M, tuple(sorted(set(ranges))) or GRID_MAX_RANGES_M,
+                           tuple(sorted(set(iterations))) or GRID_ITERATIONS)
+    out = run_odom_settings_bench(items, list(scenarios), seed, configs, echo=click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, with_provenance(out))
+
+
 @bench_group.command("tick")
 @click.option("--scenario", "scenarios", multiple=True, metavar="NAME",
               help="Scene to run (repeatable): a library name, a scenario .yaml, or odom_loop_far (odom_loop with "

@@ -322,7 +322,9 @@ def odometry_scaling(rays: tuple[int, ...], seconds: float, seed: int, echo: Cal
     odo = STAGES.index("odometry")
     rows = []
     echo(f"\nodometry scaling: {scene.name}, seed {seed}, {scene.time_limit_s:g} s per density; ICP timed again "
-         f"in this process (IcpEngine, voxel {base.odometry.icp.voxel_size_m} m, {base.odometry.icp.threads} thread)")
+         f"in this process (IcpEngine, voxel {base.odometry.icp.voxel_size_m}"
+         f"{' m' if base.odometry.icp.voxel_size_m != 'auto' else ' (from the first frame)'}, "
+         f"{base.odometry.icp.threads} thread)")
     echo(f"{'rays':>7s} {'returns':>8s} {'frames':>6s} | {'ICP ms/frame p50':>16s} {'p99':>6s} {'max':>6s} | "
          f"{'worker p50':>10s} {'p99':>6s} | {'in-tick stage p50':>17s} {'p99':>6s} {'max':>6s}")
     for n in rays:

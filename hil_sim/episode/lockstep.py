@@ -469,6 +469,8 @@ def _extra_metrics(ep: _Episode, report: dict, final_distance: float) -> dict:
         "correcting_events": int(report.get("correcting_events", 0)),
         "correcting": controller.modes.correcting_report(t0_s=t_start),
         "controller": report,
+        # What ICP's range gate dropped (counts, fractions, the warning above a quarter).
+        "icp_range_gate": report.get("odometry", {}).get("icp_range_gate"),
         "sensor_errors": dict(sorted(bench.inbox.error_counts.items())),
         "firmware_frames_rejected": bench.firmware.frames_rejected,
         "scenario_warnings": list(world.scenario_warnings),

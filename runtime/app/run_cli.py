@@ -66,3 +66,7 @@ def run_command(**options) -> None:
         raise InputError(str(exc)) from None
     if summary.get("state") != "NOT_STARTED":
         click.echo(summary_line(summary), err=True)
+        from runtime.odometry.icp_settings import gate_lines
+
+        for line in gate_lines(summary.get("controller", {}).get("odometry", {}).get("icp_range_gate")):
+            click.echo(f"dct run: {line}", err=True)

@@ -2,6 +2,8 @@
 
 - `wheels`: dead reckoning from the base's wheel distances (0x311) and the IMU gyro.
 - `icp`: KISS-ICP lidar odometry on deskewed scans (runs beside the tick).
+- `icp_config`, `icp_settings`, `kiss_pipeline`: KISS-ICP's settings, the auto ones derived from
+  the first frame, the iteration cap from the time budget, the range gate's count; its steps.
 - `degeneracy`: does a scan constrain the planar motion, and along which direction not.
 - `fusion`: one pose stream with a covariance from ICP, wheels and gyro.
 - `metrics`: drift and relative pose error against a reference trajectory.

@@ -41,7 +41,8 @@ def _length(ctx, param, value):
     return value
 
 
-def _icp_config(voxel_size: float | None, max_range: float | None, min_range: float | None, base=None):
+def _icp_config(voxel_size: float | None, max_range: float | None, min_range: float | None, base=None,
+                max_iterations: int | None = None):
     """IcpConfig (base: its defaults) with the command line's overrides; one-line error if invalid."""
     from pydantic import ValidationError
 
@@ -50,7 +51,7 @@ def _icp_config(voxel_size: float | None, max_range: float | None, min_range: fl
 
     base = base if base is not None else IcpConfig()
     overrides = {k: v for k, v in (("voxel_size_m", voxel_size), ("max_range_m", max_range),
-                                   ("min_range_m", min_range)) if v is not None}
+                                   ("min_range_m", min_range), ("max_iterations", max_iterations)) if v is not None}
     try:
         return IcpConfig.model_validate({**base.model_dump(), **overrides})
     except ValidationError as exc:
@@ -88,9 +89,9 @@ Two modes, exactly one of them:
     (Python slice) takes part of the sequence: pass the whole files, scans, poses and
     times are sliced together. Counts, times (strictly increasing, and the scans' own
     times against --times) are checked first. Points at exactly (0,0,0) and non-finite
-    ones are dropped. Scans with per-point times are deskewed. Outdoor sequences need a
-    larger --voxel-size and --max-range than the indoor defaults (e.g. 0.5 and 60 for an
-    HDL-32). If the reference does not move like the registered scans (another stretch
+    ones are dropped. Scans with per-point times are deskewed. The voxel, range gate and
+    iteration cap are derived from the first scan's ranges unless given (the output says
+    what was chosen, and what share of the points the range gate dropped). If the reference does not move like the registered scans (another stretch
     of the recording?), a warning says so and the exit status is 1, the JSON written.
 --scenario NAME_OR_PATH [--seed N]
     a simulated scenario: ICP alone, wheels+IMU alone and the fused stream.
@@ -106,7 +107,7 @@ needs `pip install dct-controller[eval]`) and `reference_consistency`, and `stag
 SCANS_ONLY = (("--poses", "poses_file"), ("--times", "times_file"), ("--voxel-size", "voxel_size"),
               ("--max-range", "max_range"), ("--min-range", "min_range"), ("--trajectory", "trajectory_path"),
               ("--frames", "frames"), ("--lidar-topic", "lidar_topic"), ("--imu-topic", "imu_topic"),
-              ("--max-time-diff", "max_time_diff"), ("--plot", "plot_path"))
+              ("--max-time-diff", "max_time_diff"), ("--plot", "plot_path"), ("--max-iterations", "max_iterations"))
 
 
 def _positive(ctx, param, value):
@@ -135,9 +136,11 @@ def _positive(ctx, param, value):
               help="write the figures here (checked before the run, written atomically after it)")
 @click.option("--force", is_flag=True, help="overwrite existing output files")
 @click.option("--voxel-size", type=float, default=None, callback=_length,
-              help="KISS-ICP voxel (m) [default: the controller's, 0.3]")
-@click.option("--max-range", type=float, default=None, callback=_length, help="farthest point used (m) [default: 12]")
-@click.option("--min-range", type=float, default=None, callback=_length, help="nearest point used (m) [default: 0.3]")
+              help="KISS-ICP voxel (m) [default: auto, from the first scan's ranges]")
+@click.option("--max-range", type=float, default=None, callback=_length, help="farthest point used (m) [default: auto]")
+@click.option("--min-range", type=float, default=None, callback=_length, help="nearest point used (m) [default: auto]")
+@click.option("--max-iterations", type=click.IntRange(1, 500), default=None,
+              help="ICP iteration cap per scan [default: auto, what the iteration budget pays for]")
 @click.option("--deskew", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
               help="auto: deskew when the scans have per-point times; on: require them")
 @click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -182,7 +185,8 @@ def _scans_mode(opts: dict) -> None:
                        max_time_diff_s=opts["max_time_diff"] or DEFAULT_MAX_TIME_DIFF_S,
                        json_path=opts["json_path"], trajectory_path=opts["trajectory_path"],
                        plot_path=opts["plot_path"], force=opts["force"])
-    config = _icp_config(opts["voxel_size"], opts["max_range"], opts["min_range"])
+    config = _icp_config(opts["voxel_size"], opts["max_range"], opts["min_range"],
+                          max_iterations=opts["max_iterations"])
     eval_scans(req, config, {"auto": None, "on": True, "off": False}[opts["deskew"]])
 
 
@@ -222,7 +226,24 @@ def _eval_scenario(scenario: str, seed: int, json_path: Path, force: bool, recor
     if isinstance(report.get("stage_ms"), dict):
         click.echo(f"odometry stage p50 {report['stage_ms'].get('p50', float('nan')):.1f} ms "
                    f"p99 {report['stage_ms'].get('p99', float('nan')):.1f} ms")
+    odo = report.get("odometry") if isinstance(report.get("odometry"), dict) else {}
+    settings_lines((odo.get("icp_settings") or {}).get("icp"), odo.get("icp_range_gate"), odo.get("icp_iteration_cap"))
     click.echo(f"-> {json_path}")
+
+
+def settings_lines(icp: dict | None, gate: dict | None, caps: list | None = None) -> None:
+    """The ICP settings used (auto ones resolved), the iteration caps, and what the range gate
+    dropped (a warning line on stderr above a quarter)."""
+    from runtime.odometry.icp_settings import gate_lines
+
+    if icp:
+        cap = icp["max_iterations"]
+        if cap == "auto" and caps:
+            cap = f"auto ({caps[0]}-{caps[1]} per scan)" if caps[0] != caps[1] else f"auto ({caps[0]})"
+        click.echo(f"ICP settings: voxel {icp['voxel_size_m']:g} m, range {icp['min_range_m']:g}-{icp['max_range_m']:g} m, "
+                   f"iteration cap {cap}, initial threshold {icp['initial_threshold_m']:g} m")
+    for k, line in enumerate(gate_lines(gate)):
+        click.echo(line, err=k > 0)
 
 
 # ---------------------------------------------------------------------------- register

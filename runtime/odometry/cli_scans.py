@@ -96,7 +96,7 @@ def _stats_text(figure: dict) -> str:
 
 
 def _print_summary(report: dict, req: ScansRequest) -> None:
-    from runtime.odometry.cli import summary_lines
+    from runtime.odometry.cli import settings_lines, summary_lines
 
     click.echo(summary_lines("icp", report["icp"]))
     ape, rpe = report["evo"]["ape"], report["evo"]["rpe"]
@@ -114,6 +114,7 @@ def _print_summary(report: dict, req: ScansRequest) -> None:
                    f"{imu['used']}")
     click.echo(f"{report['frames']} frames, {report['points_per_scan']:.0f} points per scan, registration "
                f"p50 {report['stage_ms']['p50']:.1f} ms p99 {report['stage_ms']['p99']:.1f} ms; {report['deskew_note']}")
+    settings_lines(report.get("config"), report.get("range_gate"), report.get("iteration_caps"))
     outs = [p for p in (req.json_path, req.trajectory_path, req.plot_path) if p is not None]
     click.echo("-> " + ", ".join(map(str, outs)))
 

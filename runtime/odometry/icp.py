@@ -2,8 +2,9 @@
 
 `IcpEngine.process(job)` runs where the ICP worker runs (runtime.odometry.worker: a process on
 the robot, because KISS-ICP's registration holds Python's GIL for its whole duration and would
-stall the tick if it ran in a thread). It uses the kiss-icp package's own pipeline
-(`KissICP.register_frame`); what we add around it:
+stall the tick if it ran in a thread). It runs KISS-ICP's own pipeline steps
+(runtime.odometry.kiss_pipeline: auto settings from the first frame, the range gate counted, the
+iteration cap per frame from the time budget); what we add around it:
 
 - The initial guess. Before each frame, KISS-ICP's `last_delta` (its constant-velocity
   prediction, used for the initial guess and for its deskew) is replaced by the motion the wheels
@@ -30,6 +31,7 @@ import numpy as np
 
 from runtime.odometry.degeneracy import DegeneracyConfig, PlanarConstraint, planar_constraint
 from runtime.odometry.icp_config import IcpConfig, new_kiss_icp
+from runtime.odometry.icp_settings import RangeGate
 from runtime.odometry.se2 import se2_between, se2_matrix, se2_of_matrix
 
 
@@ -70,6 +72,12 @@ class IcpResult:
     compute_s: float  # wall-clock seconds in the worker (a measurement, never used for behaviour)
     error: str | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
+    #: What the range gate dropped of this frame (None: not registered).
+    gate: RangeGate | None = None
+    #: The iteration cap this frame was registered with.
+    iteration_cap: int | None = None
+    #: The first result only: the settings in use (auto ones resolved) and their derivation.
+    settings: dict | None = None
 
 
 def _lidar_delta(prior_base: np.ndarray, mount: np.ndarray, mount_inv: np.ndarray) -> np.ndarray:
@@ -109,14 +117,10 @@ class IcpEngine:
         self.mount = np.asarray(mount, dtype=np.float64)
         self.mount_inv = np.linalg.inv(self.mount)
         self.use_prior = use_prior
+        #: KISS-ICP's steps (runtime.odometry.kiss_pipeline): auto settings resolved on the
+        #: first frame, the range gate counted on every frame.
         self.kiss = new_kiss_icp(icp, deskew=icp.deskew == "kiss")
-        # KISS-ICP's own preprocessor objects, with and without its deskew: a frame that cannot
-        # be deskewed (its times do not span the sweep) goes through the one without.
-        from kiss_icp.preprocess import get_preprocessor
-        from runtime.odometry.icp_config import make_kiss_config
-
-        self._pre_deskew = self.kiss.preprocessor
-        self._pre_plain = get_preprocessor(make_kiss_config(icp, deskew=False))
+        self._settings_sent = False
         self._prev_pose: np.ndarray | None = None
         self._prev_end: float | None = None
         self._prev_dead_reckoning: np.ndarray | None = None
@@ -152,8 +156,7 @@ class IcpEngine:
                 deskew = False
                 notes.append("no wheel/gyro motion over the sweep: no deskew")
         kiss_deskews = deskew and mode == "kiss"
-        self.kiss.preprocessor = self._pre_deskew if kiss_deskews else self._pre_plain
-        frame, source = self.kiss.register_frame(pts, offs)
+        frame, source = self.kiss.register_frame(pts, offs, deskew=kiss_deskews)
         pose_base = se2_of_matrix(self.mount @ self.kiss.last_pose @ self.mount_inv)
         delta = None if self._prev_pose is None else se2_between(self._prev_pose, pose_base)
         prev_end = self._prev_end
@@ -167,8 +170,16 @@ class IcpEngine:
             seq=job.seq, stamp_s=job.stamp_s, end_s=job.end_s, ready_at_s=job.ready_at_s,
             pose_base=pose_base, delta_base=delta, prev_end_s=prev_end, constraint=constraint,
             points_in=len(pts), points_registered=len(source), deskewed=deskew,
-            compute_s=time.perf_counter() - t0, notes=tuple(notes),
+            compute_s=time.perf_counter() - t0, notes=tuple(notes), gate=self.kiss.gate,
+            iteration_cap=self.kiss.last_cap, settings=self._settings_once(),
         )
+
+    def _settings_once(self) -> dict | None:
+        """The settings in use and how the auto ones were derived: on the first result only."""
+        if self._settings_sent or self.kiss.settings is None:
+            return None
+        self._settings_sent = True
+        return {"icp": self.kiss.settings.model_dump(), "derivation": self.kiss.derivation}
 
 
 __all__ = ["IcpEngine", "IcpJob", "IcpResult", "deskew_with_motion"]

@@ -47,6 +47,7 @@ import numpy as np
 
 from runtime.odometry.bag_scans import BagScans, is_bag
 from runtime.odometry.icp_config import IcpConfig, new_kiss_icp
+from runtime.odometry.icp_settings import RangeGate
 from runtime.odometry.metrics import trajectory_errors
 from runtime.odometry.pose_files import (
     SequenceInputError, detect_poses_format, format_kitti_poses, frame_indices, read_kitti_poses, read_times,
@@ -193,6 +194,11 @@ class SequenceRun:
     #: Why deskew is off, or which field it used.
     deskew_note: str
     points_per_scan: float
+    #: The settings used (auto ones resolved from the first scan) and what the range gate dropped.
+    settings: IcpConfig | None = None
+    derivation: dict | None = None
+    gate: RangeGate | None = None
+    iteration_caps: tuple[int, int] | None = None  # (min, max) of the per-scan iteration caps
 
 
 def _deskew_choice(first: Scan, name: str, deskew: bool | None) -> tuple[bool, str]:
@@ -246,8 +252,9 @@ def run_sequence(sequence: Sequence, config: IcpConfig, deskew: bool | None = No
         poses[k] = icp.last_pose
         if progress is not None:
             progress(k + 1, n)
-    return SequenceRun(poses=poses, frame_ms=frame_ms, deskew=bool(deskew),
-                       time_field=first.time_field if deskew else None, deskew_note=note, points_per_scan=points / n)
+    return SequenceRun(poses=poses, frame_ms=frame_ms, deskew=bool(deskew), time_field=first.time_field if deskew else None,
+                       deskew_note=note, points_per_scan=points / n, settings=icp.settings, derivation=icp.derivation,
+                       gate=icp.gate_total, iteration_caps=icp.cap_range)
 
 
 def stage_ms(frame_ms: np.ndarray) -> dict:
@@ -278,7 +285,11 @@ def evaluate_sequence(sequence: Sequence, config: IcpConfig, deskew: bool | None
         "deskew": run.deskew,
         "time_field": run.time_field,
         "deskew_note": run.deskew_note,
-        "config": config.model_copy(update={"deskew": "kiss" if run.deskew else "off"}).model_dump(),
+        "config": (run.settings or config).model_copy(update={"deskew": "kiss" if run.deskew else "off"}).model_dump(),
+        "config_given": config.model_dump(),
+        "settings_derivation": run.derivation,
+        "range_gate": run.gate.to_dict() if run.gate is not None else None,
+        "iteration_caps": None if run.iteration_caps is None else list(run.iteration_caps),
         "inputs": dict(sequence.sources),
         "scan_times": sequence.times_source,
         "association": sequence.association,

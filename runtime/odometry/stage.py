@@ -27,6 +27,7 @@ from runtime.odometry.degeneracy import DegeneracyConfig
 from runtime.odometry.fusion import FusionConfig, PoseFusion
 from runtime.odometry.icp import IcpEngine, IcpJob
 from runtime.odometry.icp_config import IcpConfig
+from runtime.odometry.icp_settings import RangeGate
 from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse
 from runtime.odometry.wheels import WheelGyroOdometry
 from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
@@ -105,6 +106,12 @@ class OdometryStage:
         self._degenerate = False
         self.last_degeneracy: str | None = None
         self.last_refusal: str | None = None
+        #: What ICP's range gate dropped, summed over the results (runtime.odometry.icp_settings).
+        self.gate = RangeGate.empty()
+        self._gate_warned = False
+        #: The settings the worker uses (auto ones resolved on its first frame), from its first result.
+        self.icp_settings: dict | None = None
+        self.iteration_caps: tuple[int, int] = (10**9, 0)  # (min, max) over the results
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
@@ -284,6 +291,24 @@ class OdometryStage:
             else:
                 self.events.add(now_s, "icp_constrained", "the scan constrains the planar motion again")
         self._degenerate = degenerate
+        self._count_gate(result, now_s)
+
+    def _count_gate(self, result, now_s: float) -> None:
+        """Sum the range gate's counts (a few integers per result); the settings the worker
+        resolved; one `icp_range_gate` event when the gate has dropped more than a quarter."""
+        if result.settings is not None:
+            self.icp_settings = result.settings
+        if result.iteration_cap is not None:
+            self.iteration_caps = (min(self.iteration_caps[0], result.iteration_cap),
+                                   max(self.iteration_caps[1], result.iteration_cap))
+        if result.gate is None:
+            return
+        self.gate = self.gate + result.gate
+        warning = None if self._gate_warned else self.gate.warning()
+        if warning is not None:
+            self._gate_warned = True
+            if self.events is not None:
+                self.events.add(now_s, "icp_range_gate", warning)
 
     def _watch_age(self, now_s: float) -> None:
         if self.worker is None:
@@ -324,6 +349,9 @@ class OdometryStage:
             "pose_sigma": [float(np.sqrt(max(self.covariance[i, i], 0.0))) for i in range(3)],
             "wheel_scale": self.wheels.wheel_scale,
             "effective_track_m": self.wheels.effective_track_m,
+            "icp_range_gate": self.gate.to_dict(),
+            "icp_iteration_cap": None if not self.iteration_caps[1] else list(self.iteration_caps),
+            "icp_settings": self.icp_settings,
         }
         return out
 

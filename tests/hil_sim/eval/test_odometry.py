@@ -35,6 +35,11 @@ def test_the_controller_drives_on_the_fused_pose_by_default():
     odo = result.controller["odometry"]
     assert result.metrics["success"], result.metrics["failure_reason"]
     assert odo["source"] == "fused" and odo["icp_fused"] > 30 and odo["icp_refused"] == 0
+    # The metrics record what ICP's range gate dropped (auto settings: almost nothing indoors).
+    gate = result.metrics["icp_range_gate"]
+    assert gate == odo["icp_range_gate"] and odo["icp_results"] >= gate["frames"] > 30
+    assert gate["dropped_fraction"] < 0.05 and gate["warning"] is None
+    assert odo["icp_settings"]["icp"]["voxel_size_m"] == 0.3 and odo["icp_settings"]["icp"]["max_range_m"] == 12.0
     # The controller's final pose (odom frame = the start) is the world's within centimetres.
     sc = load_scenario("case1")
     start = Pose2D(sc.robot_start.x_m, sc.robot_start.y_m, sc.robot_start.yaw_rad)
