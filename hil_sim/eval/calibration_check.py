@@ -224,7 +224,12 @@ def sample_board_poses(scene: CalibrationScene, n: int, rng: np.random.Generator
         elif k % 4 == 1:
             tilt[1] = np.radians(rng.choice([-1, 1]) * rng.uniform(20, 35))
         R = Rotation.from_euler("xyz", tilt).as_matrix()
-        pos = np.array([rng.uniform(-0.35, 0.35), rng.uniform(-0.25, 0.25), rng.uniform(0.8, 1.7)])
+        z = rng.uniform(0.8, 1.7)
+        if k % 2 == 0:  # near the optical axis
+            pos = np.array([rng.uniform(-0.35, 0.35), rng.uniform(-0.25, 0.25), z])
+        else:  # towards the image's edges and corners, where the lens distorts most: a fit without
+            # views there extrapolates its distortion into them (tens of pixels in a corner)
+            pos = np.array([rng.uniform(-0.75, 0.75) * z, rng.uniform(-0.55, 0.55) * z, z])
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = pos - R @ centre
