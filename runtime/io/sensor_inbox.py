@@ -151,6 +151,7 @@ class SensorInbox:
         with self._lock:
             self._camera_info = info
             self.camera_info_accepted += 1
+            self.delivered += 1
         return True
 
     def put_imu(self, sample: ImuSample) -> bool:

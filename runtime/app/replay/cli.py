@@ -6,7 +6,9 @@ through the code the robot runs (runtime.app.replay.session), and writes the rep
 odometry trajectory, latency report and summary into --out (runtime.app.replay.outputs).
 
 The config: --config, else the one the recording was made with, else the shipped one; the sensor
-topics: --lidar-topic / --imu-topic / --image-topic, else the config's `ros.inputs`. Exit status 2 on
+topics: --lidar-topic / --imu-topic / --image-topic / --camera-info-topic, else the config's `ros.inputs`
+(a dct recording's own config by default: the topics it recorded). The camera driver's CameraInfo is
+replayed like the other samples, so the calibration check runs as it did live. Exit status 2 on
 bad input (one line naming the file and the field), before any work.
 """
 from __future__ import annotations
@@ -21,7 +23,8 @@ import click
 from runtime.app.replay.source import ReplaySourceError
 
 _FILE = click.Path(dir_okay=False, path_type=Path)
-_STREAM_OF_OPTION = {"lidar_topic": "lidar", "imu_topic": "imu", "image_topic": "camera"}
+_STREAM_OF_OPTION = {"lidar_topic": "lidar", "imu_topic": "imu", "image_topic": "camera",
+                     "camera_info_topic": "camera_info"}
 
 
 class InputError(click.ClickException):
@@ -44,6 +47,9 @@ class InputError(click.ClickException):
 @click.option("--lidar-topic", help="The lidar topic to replay (default: the config's ros.inputs.lidar).")
 @click.option("--imu-topic", help="The IMU topic (default: the config's ros.inputs.imu).")
 @click.option("--image-topic", help="The camera topic (default: the config's ros.inputs.camera).")
+@click.option("--camera-info-topic",
+              help="The camera driver's CameraInfo topic, held against the calibration as live (default: the "
+                   "config's ros.inputs.camera_info).")
 @click.option("--goal", nargs=3, type=float, metavar="X Y YAW",
               help="A bag only: a goal in the odometry frame (default: none, the controller stands by). A dct "
                    "recording replays its own goals.")
@@ -134,11 +140,12 @@ def _topic(config, stream: str) -> str | None:
 def _with_streams(config, streams: dict):
     """The config's ros.inputs reading the topics found, as the types found (a bag's PointCloud2
     lidar where the config says CustomMsg is read as PointCloud2)."""
-    from runtime.io.ros.receiver import CameraTopic, ImuTopic, LidarTopic
+    from runtime.io.ros.receiver import CameraInfoTopic, CameraTopic, ImuTopic, LidarTopic
 
     inputs = config.ros.inputs
     update = {}
-    for stream, cls in (("lidar", LidarTopic), ("imu", ImuTopic), ("camera", CameraTopic)):
+    for stream, cls in (("lidar", LidarTopic), ("imu", ImuTopic), ("camera", CameraTopic),
+                        ("camera_info", CameraInfoTopic)):
         if stream not in streams:
             continue
         topic, type_name = streams[stream]
@@ -200,6 +207,7 @@ def _run(src, loaded, goal, paths: dict, pace: bool, say) -> dict:
         "inputs": {"sensor_samples": res.samples_fed, "sensor_samples_missing": res.samples_missing,
                    "can_frames": res.can_frames_fed, "frames_sent": res.frames_sent},
         "icp": res.icp, "sensor_errors": res.sensor_errors, "controller_state": res.controller.get("state"),
+        "calibration_check": _calibration_check(res.controller.get("calibration")),
         "odometry_vs_live": compare_odometry(src.live_poses, res.poses) if src.live_poses else None,
         "latency": {"tick": rep["tick"], "deadline_misses": rep["deadline_misses"]["count"]},
         "outputs": {k: str(p) for k, p in paths.items()},
@@ -208,11 +216,22 @@ def _run(src, loaded, goal, paths: dict, pace: bool, say) -> dict:
     return summary
 
 
+def _calibration_check(d: dict | None) -> dict | None:
+    """What the calibration check saw in the replay (runtime.perception.calibration_monitor)."""
+    if d is None:
+        return None
+    keys = ("mismatch", "mismatch_at_s", "intrinsics", "camera_infos_compared", "floor_fits", "floor_last_problem")
+    return {k: d.get(k) for k in keys}
+
+
 def _result_line(s: dict, out: Path) -> str:
     line = (f"dct replay: {s['ticks']} ticks in {s['replay_wall_s']:.1f} s (the recording: {s['recording_s']:.1f} s); "
             f"{s['inputs']['sensor_samples']} sensor samples, {s['inputs']['can_frames']} CAN frames")
     if s["inputs"]["sensor_samples_missing"]:
         line += f" ({s['inputs']['sensor_samples_missing']} missing from the recording: not exact)"
+    check = s.get("calibration_check") or {}
+    if check.get("mismatch"):
+        line += f"; the calibration check found a mismatch at {check['mismatch_at_s']:.2f} s (see calibration_check)"
     if s["icp"].get("out_of_step"):
         line += f"; {s['icp']['out_of_step']} ICP frames out of step with the live run"
     cmp = s["odometry_vs_live"]

@@ -24,6 +24,7 @@ STREAM_TYPES = {
     "lidar": ("livox_ros_driver2/msg/CustomMsg", "sensor_msgs/msg/PointCloud2"),
     "imu": ("sensor_msgs/msg/Imu",),
     "camera": ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"),
+    "camera_info": ("sensor_msgs/msg/CameraInfo",),
 }
 
 
@@ -121,7 +122,7 @@ def open_source(path: Path, topics_for: Callable[[dict], dict[str, str | None]])
     if not src.streams:
         wanted = ", ".join(f"{s} {t}" for s, t in topics.items() if t) or "none"
         raise ReplaySourceError(f"{p} has none of the sensor topics to replay ({wanted}); name them with "
-                                "--lidar-topic / --imu-topic / --image-topic")
+                                "--lidar-topic / --imu-topic / --image-topic / --camera-info-topic")
     return src
 
 

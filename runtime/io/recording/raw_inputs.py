@@ -11,9 +11,9 @@ and `ros2 bag` read them), on the topic they came on:
   sequence      the sample's number: the n-th sensor sample is the n-th piece of data the
                 controller's inbox counted (goals have their own numbering)
 
-and the channel's metadata names the stream (`dct_stream`: lidar, camera, imu, goal). With the
-per-tick `/dct/inputs` channel (how many samples each tick had taken in) a replay hands the
-controller exactly what it had at each tick (runtime.app.replay).
+and the channel's metadata names the stream (`dct_stream`: lidar, camera, camera_info, imu, goal).
+With the per-tick `/dct/inputs` channel (how many samples each tick had taken in) a replay hands
+the controller exactly what it had at each tick (runtime.app.replay).
 
 Bounded twice: by the queue's record count, and by the bytes of raw samples waiting for the
 writer (`max_pending_bytes`: a lidar frame is hundreds of kB); beyond either the sample is dropped
@@ -24,7 +24,8 @@ from __future__ import annotations
 import struct
 
 #: Recorder record kinds of the raw samples, by stream.
-KIND_OF_STREAM = {"lidar": "raw_lidar", "camera": "raw_camera", "imu": "raw_imu", "goal": "raw_goal"}
+KIND_OF_STREAM = {"lidar": "raw_lidar", "camera": "raw_camera", "camera_info": "raw_camera_info", "imu": "raw_imu",
+                  "goal": "raw_goal"}
 KINDS = tuple(KIND_OF_STREAM.values())
 #: Channel metadata key that names the stream a raw channel carries.
 STREAM_KEY = "dct_stream"

@@ -17,9 +17,10 @@ A sample that fails is counted by `<stream>.<reason>` in `error_counts`, remembe
 data it refuses itself (non-monotonic stamps, frozen frames).
 
 A recording taps the samples here (`tap`, on this thread, never the tick's): each one's raw bytes
-as received, numbered in the order they are processed (sensor samples only: the n-th one is the
-n-th piece of data the inbox counts, SensorInbox.delivered), so that a replay can hand the
-controller the same data at the same tick (runtime.app.replay).
+as received, numbered in the order they are processed (sensor samples only: lidar, camera,
+camera info, IMU; the n-th one is the n-th piece of data the inbox counts, SensorInbox.delivered,
+so each one, accepted or refused here or by the inbox, is counted there exactly once), so that a
+replay can hand the controller the same data at the same tick (runtime.app.replay).
 
 Topic names are ROS names (`/livox/lidar`); on the DDS wire they are `rt/livox/lidar`. QoS:
 sensor data best effort, keep last (the ROS 2 sensor-data profile), the goal reliable.
@@ -180,7 +181,8 @@ class RosSensorReceiver:
     caller opens and closes.
     tap: called on the receiver's thread with (stream, topic, ROS type, raw CDR bytes, sample
     number) for every sample before it is decoded; the number counts the sensor samples (lidar,
-    camera, IMU) from 1 and is None for a goal (module docstring). It must be O(1) and never block.
+    camera, camera info, IMU) from 1 and is None for a goal (module docstring). It must be O(1) and
+    never block; one that raises is counted (`<stream>.tap_failed` in error_counts), not propagated.
 
     lidar_time_notice: set once, and logged as a warning, when a PointCloud2 lidar with time_field
     auto has no per-point time field (deskewing is off; convert.no_point_time_notice).
@@ -290,6 +292,20 @@ class RosSensorReceiver:
                                                  name="internal_error", field_name=type_name))
         return False
 
+    def _tap(self, tap, stream: str, type_name: str, data: bytes, seq: int | None) -> None:
+        """Hand the sample to the recording; a tap that raises costs the recording the sample (counted
+        as `<stream>.tap_failed`), never the controller: the sample is still processed and counted."""
+        try:
+            tap(stream, self._topics[stream], type_name, data, seq)
+        except Exception as exc:  # noqa: BLE001 - a recording's fault must not stop the sensor data
+            key = f"{stream}.tap_failed"
+            with self._lock:
+                first = key not in self.error_counts
+                self.error_counts[key] = self.error_counts.get(key, 0) + 1
+            if first:
+                log.warning("ros_io: the recording's tap failed on a %s sample (%s: %s); counted as %s from now on",
+                            stream, type(exc).__name__, exc, key)
+
     def poll(self, timeout_s: float = 0.0) -> int:
         """Wait up to timeout_s for samples, then process everything pending; returns how many."""
         self.transport.wait(timeout_s)
@@ -302,7 +318,7 @@ class RosSensorReceiver:
                     self.samples += 1
                     seq = self.samples
                 if tap is not None:
-                    tap(stream, self._topics[stream], type_name, data, seq)
+                    self._tap(tap, stream, type_name, data, seq)
                 self.process(stream, type_name, data, handle)
                 n += 1
         return n

@@ -1,6 +1,7 @@
 """Synthetic drivers' bags for the `dct replay` tests: a lidar (sensor_msgs/PointCloud2 with Ouster's
-per-point `t`) standing in a walled room with a box in one corner, and an IMU at rest, written as a
-rosbag2 folder (rosbags' writer) or a single MCAP file (mcap's writer, as `ros2 bag` records)."""
+per-point `t`) standing in a walled room with a box in one corner, an IMU at rest and, on request, a
+camera driver's CameraInfo, written as a rosbag2 folder (rosbags' writer) or a single MCAP file
+(mcap's writer, as `ros2 bag` records)."""
 from __future__ import annotations
 
 import math
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 T0_S = 1_760_000_000.0
-LIDAR_HZ, IMU_HZ = 10.0, 200.0
+LIDAR_HZ, IMU_HZ, CAMERA_INFO_HZ = 10.0, 200.0, 5.0
 LIDAR_TOPIC, IMU_TOPIC = "/livox/lidar", "/livox/imu"
 
 
@@ -57,11 +58,25 @@ def imu_cdr(j: int) -> tuple[float, bytes]:
     return stamp, encode_imu(stamp, "livox_frame", [0.0, 0.0, 0.0], [0.0, 0.0, 9.81])
 
 
-def messages(duration_s: float, seed: int = 0) -> list[tuple[float, str, str, bytes]]:
+def camera_info_cdr(i: int, fx: float) -> tuple[float, bytes]:
+    """The i-th CameraInfo of a 640 x 480 camera with focal length fx (px), no distortion."""
+    from runtime.io.ros.messages import CameraInfo, Header, stamp_to_time, to_cdr
+
+    stamp = T0_S + i / CAMERA_INFO_HZ
+    return stamp, to_cdr(CameraInfo(Header(stamp_to_time(stamp), "camera_color_optical_frame"), 480, 640, "plumb_bob",
+                                    [0.0] * 5, [fx, 0.0, 319.5, 0.0, fx, 239.5, 0.0, 0.0, 1.0]))
+
+
+def messages(duration_s: float, seed: int = 0, camera_info: tuple[str, float] | None = None,
+             ) -> list[tuple[float, str, str, bytes]]:
     """(receive time, topic, type, CDR) in time order; each message received 2 ms after its stamp
-    (a lidar frame after its sweep)."""
+    (a lidar frame after its sweep). camera_info: (topic, fx) of a CameraInfo at CAMERA_INFO_HZ."""
     rng = np.random.default_rng(seed)
     out = []
+    if camera_info is not None:
+        for i in range(int(duration_s * CAMERA_INFO_HZ)):
+            stamp, data = camera_info_cdr(i, camera_info[1])
+            out.append((stamp + 0.003, camera_info[0], "sensor_msgs/msg/CameraInfo", data))
     for k in range(int(duration_s * LIDAR_HZ)):
         stamp, data = lidar_cdr(k, rng)
         out.append((stamp + 0.102, LIDAR_TOPIC, "sensor_msgs/msg/PointCloud2", data))
@@ -72,21 +87,21 @@ def messages(duration_s: float, seed: int = 0) -> list[tuple[float, str, str, by
     return out
 
 
-def write_rosbag2(path: Path, duration_s: float = 3.0) -> Path:
+def write_rosbag2(path: Path, duration_s: float = 3.0, camera_info: tuple[str, float] | None = None) -> Path:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
     with Writer(path, version=8) as w:
         conns = {}
-        for t, topic, type_name, data in messages(duration_s):
+        for t, topic, type_name, data in messages(duration_s, camera_info=camera_info):
             if topic not in conns:
                 conns[topic] = w.add_connection(topic, type_name, typestore=store)
             w.write(conns[topic], int(round(t * 1e9)), data)
     return path
 
 
-def write_mcap_bag(path: Path, duration_s: float = 3.0) -> Path:
+def write_mcap_bag(path: Path, duration_s: float = 3.0, camera_info: tuple[str, float] | None = None) -> Path:
     from mcap.writer import Writer
 
     from runtime.io.ros.msg_definitions import schema_text
@@ -95,7 +110,7 @@ def write_mcap_bag(path: Path, duration_s: float = 3.0) -> Path:
         w = Writer(f)
         w.start(profile="ros2", library="test")
         channels = {}
-        for t, topic, type_name, data in messages(duration_s):
+        for t, topic, type_name, data in messages(duration_s, camera_info=camera_info):
             if topic not in channels:
                 sid = w.register_schema(type_name, "ros2msg", schema_text(type_name).encode())
                 channels[topic] = w.register_channel(topic, "cdr", sid)

@@ -225,3 +225,33 @@ def test_a_drivers_bag_replays_deterministically_and_its_replay_replays_the_same
     assert (tmp_path / "r3" / "odometry.tum").read_text() == "\n".join(traj) + "\n"
     r4 = _invoke(tmp_path / "r1" / "replay.mcap", "--out", tmp_path / "r3")
     assert r4.exit_code == 2 and "already exists" in r4.output
+
+
+def test_a_bags_camera_info_is_replayed_and_checked_and_its_replay_replays_it_in_step(tmp_path):
+    """The camera driver's CameraInfo (here on a topic of its own, named with --camera-info-topic)
+    reaches the calibration check as live; the replay's recording carries it, numbered as the inbox
+    counted it, so replaying that recording feeds every tick the same samples."""
+    fx = 337.20964009 * 1.05  # the nominal camera's focal length, 5% off: beyond the 1% tolerance
+    bag = write_mcap_bag(tmp_path / "bag.mcap", duration_s=1.0, camera_info=("/cam/info", fx))
+    r1 = _invoke(bag, "--out", tmp_path / "r1", "--camera-info-topic", "/cam/info")
+    assert r1.exit_code == 0, r1.output
+    s1 = json.loads((tmp_path / "r1" / "replay.json").read_text())
+    assert s1["streams"]["camera_info"] == ["/cam/info", "sensor_msgs/msg/CameraInfo"]
+    assert s1["inputs"]["sensor_samples"] == 10 + 200 + 5 and s1["sensor_errors"] == {}
+    check = s1["calibration_check"]
+    assert check["camera_infos_compared"] == 1 and "the camera reports 354.1 (+5.0%, tolerance 1%)" in check["intrinsics"]
+    assert check["mismatch"].startswith("camera intrinsics:")
+    from runtime.io.recording import read_recording
+
+    rec = read_recording(tmp_path / "r1" / "replay.mcap", topics=["/cam/info", "/dct/inputs"])
+    assert rec.topics["/cam/info"] == "sensor_msgs/msg/CameraInfo" and len(rec.messages["/cam/info"]) == 5
+    assert rec.messages["/dct/inputs"][-1][1]["sensor_samples"] == 215  # every sample counted, CameraInfo too
+    # The replay's recording names the topic in its config: replayed, the same inputs at every tick
+    r2 = _invoke(tmp_path / "r1" / "replay.mcap", "--out", tmp_path / "r2")
+    assert r2.exit_code == 0, r2.output
+    s2 = json.loads((tmp_path / "r2" / "replay.json").read_text())
+    assert s2["kind"] == "dct" and s2["streams"]["camera_info"] == ["/cam/info", "sensor_msgs/msg/CameraInfo"]
+    assert s2["inputs"]["sensor_samples"] == 215 and s2["inputs"]["sensor_samples_missing"] == 0
+    assert s2["odometry_vs_live"]["matched"] == s1["ticks"] == s2["ticks"] and s2["odometry_vs_live"]["max_m"] == 0.0
+    assert s2["calibration_check"] == check
+    assert (tmp_path / "r2" / "odometry.tum").read_text() == (tmp_path / "r1" / "odometry.tum").read_text()

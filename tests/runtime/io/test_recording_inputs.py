@@ -101,6 +101,53 @@ def test_raw_samples_are_ros2_channels_that_mcap_ros2_decodes(tmp_path):
     assert lidar[1][2].data == b"\x00\x01\x00\x00garbage" and lidar[1][2].publish_time == lidar[1][2].log_time
 
 
+def _camera_info(stamp: float, fx: float = 336.0) -> bytes:
+    return M.to_cdr(M.CameraInfo(M.Header(M.stamp_to_time(stamp), "camera_color_optical_frame"), 480, 640,
+                                 "plumb_bob", [-0.05, 0.01, 0.0, 0.0, 0.0], [fx, 0.0, 319.5, 0.0, 337.0, 239.5, 0, 0, 1],
+                                 roi=M.RegionOfInterest(4, 8, 400, 600, True)))
+
+
+def _image(stamp: float) -> bytes:
+    rgb = np.full((6, 8, 3), 90, np.uint8)
+    return M.to_cdr(M.Image(M.Header(M.stamp_to_time(stamp), "camera"), 6, 8, "rgb8", 0, 24, rgb.tobytes()))
+
+
+def _numbered_streams() -> list[str]:
+    """The sensor streams the receiver can read (every topic of ros.inputs but the goal)."""
+    from runtime.io.ros.receiver import RosInputConfig
+
+    return [f for f in RosInputConfig.model_fields if f not in ("domain_id", "goal")]
+
+
+def test_every_stream_the_receiver_reads_is_recorded():
+    assert set(_numbered_streams()) | {"goal"} == set(RAW.KIND_OF_STREAM)
+    assert "camera_info" in _numbered_streams()
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning:mcap_ros2.reader")
+def test_camera_info_is_recorded_as_received_and_mcap_ros2_decodes_it(tmp_path):
+    from mcap_ros2.reader import read_ros2_messages
+
+    out = tmp_path / "info.mcap"
+    rec = RunRecorder(out)
+    tap = rec.sensor_tap(lambda: T)
+    tap("camera_info", "/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", _camera_info(T - 0.5), 1)
+    tap("camera_info", "/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", bytearray(_camera_info(T, 340.0)), 2)
+    summary = rec.close()
+    assert summary["written"]["raw_camera_info"] == 2 and summary["dropped_total"] == 0
+    msgs = list(read_ros2_messages(str(out), topics=["/camera/color/camera_info"]))
+    assert [m.schema.name for m in msgs] == ["sensor_msgs/msg/CameraInfo"] * 2
+    assert [m.ros_msg.k[0] for m in msgs] == [336.0, 340.0] and list(msgs[0].ros_msg.d) == [-0.05, 0.01, 0.0, 0.0, 0.0]
+    roi = msgs[0].ros_msg.roi
+    assert (roi.x_offset, roi.y_offset, roi.height, roi.width, roi.do_rectify) == (4, 8, 400, 600, True)
+    assert msgs[0].publish_time_ns == int(round((T - 0.5) * 1e9)) and msgs[0].log_time_ns == int(round(T * 1e9))
+    assert [m.sequence_count for m in msgs] == [1, 2]
+    assert msgs[0].channel.metadata == {RAW.STREAM_KEY: "camera_info"}
+    full = RunRecorder(tmp_path / "full.mcap", max_raw_pending_bytes=10)  # nothing fits: dropped, counted
+    full.sensor_tap(lambda: T)("camera_info", "/ci", "sensor_msgs/msg/CameraInfo", _camera_info(T), 1)
+    assert full.close()["dropped_queue_full"]["raw_camera_info"] == 1
+
+
 def test_raw_bytes_beyond_the_budget_are_dropped_and_counted(tmp_path):
     frame = _custom_msg(T, n=30)
     imu = encode_imu(T, "imu", [0, 0, 0], [0, 0, 9.8])
@@ -146,6 +193,61 @@ def test_the_receiver_numbers_the_samples_as_the_inbox_counts_them():
     transport.push("/livox/lidar", _custom_msg(T + 0.1))
     receiver.poll(0.0)
     assert inbox.take().delivered == 4 and tapped[-1][:2] == ("lidar", 4)
+
+
+def _good_and_bad() -> dict[str, tuple]:
+    """stream -> (topic, a sample the inbox accepts (given its stamp), one it refuses)."""
+    return {"lidar": ("/livox/lidar", lambda t: _custom_msg(t), b"\x00\x01\x00\x00\x01"),
+            "camera": ("/camera/color/image_raw", _image, M.to_cdr(M.Image(M.Header(M.Time(1, 0), "c"), 6, 8, "rgb8",
+                                                                           0, 24, b"short"))),
+            "camera_info": ("/camera/color/camera_info", _camera_info,
+                            M.to_cdr(M.CameraInfo(M.Header(M.Time(1, 0), "c"), 480, 640, "plumb_bob", [], [0.0] * 9))),
+            "imu": ("/livox/imu", lambda t: encode_imu(t, "imu", [0, 0, 0], [0, 0, 9.8]), b"\x00\x01")}
+
+
+@given(st.lists(st.tuples(st.sampled_from(["lidar", "camera", "camera_info", "imu"]), st.booleans(),
+                          st.integers(0, 3)), max_size=12))
+@settings(max_examples=40, deadline=None)
+def test_every_sample_the_receiver_numbers_counts_once_in_delivered(pushes):
+    """Accepted or refused (undecodable, unconvertible, out of order, frozen), by the receiver or by
+    the inbox: the inbox's count is the number of the last sample processed, on every stream."""
+    from runtime.app.replay.inject import ReplayTransport
+    from runtime.io.ros.receiver import RosSensorReceiver
+    from runtime.io.sensor_inbox import SensorInbox
+
+    assert set(_good_and_bad()) == set(_numbered_streams())
+    config = load_controller_config().ros.inputs
+    inbox, transport, tapped = SensorInbox(), ReplayTransport(), []
+    receiver = RosSensorReceiver(config, inbox, transport, camera_K=np.array([[8.0, 0, 4], [0, 8.0, 3], [0, 0, 1]]),
+                                 tap=lambda *a: tapped.append(a[4]))
+    samples = _good_and_bad()
+    for k, (stream, good, dt) in enumerate(pushes):
+        topic, make, bad = samples[stream]
+        transport.push(topic, make(T + 0.1 * (k - dt)) if good else bad)  # dt: a stamp back in time, or repeated
+        receiver.poll(0.0)
+        assert inbox.delivered == receiver.samples == k + 1 and tapped == list(range(1, k + 2))
+    assert inbox.take().delivered == len(pushes)
+
+
+def test_a_tap_that_raises_costs_the_recording_the_sample_never_the_controller():
+    from runtime.app.replay.inject import ReplayTransport
+    from runtime.io.ros.receiver import RosSensorReceiver
+    from runtime.io.sensor_inbox import SensorInbox
+
+    def tap(stream, *_):
+        if stream == "camera_info":
+            raise KeyError(stream)
+
+    inbox, transport = SensorInbox(), ReplayTransport()
+    receiver = RosSensorReceiver(load_controller_config().ros.inputs.model_copy(update={"camera": None}), inbox,
+                                 transport, tap=tap)
+    transport.push("/camera/color/camera_info", _camera_info(T))
+    transport.push("/camera/color/camera_info", _camera_info(T + 1.0, 340.0))
+    transport.push("/livox/imu", encode_imu(T, "imu", [0, 0, 0], [0, 0, 9.8]))
+    assert receiver.poll(0.0) == 3
+    snap = inbox.take()
+    assert snap.camera_info.K[0, 0] == 340.0 and len(snap.imu) == 1 and snap.delivered == receiver.samples == 3
+    assert receiver.error_counts == {"camera_info.tap_failed": 2} and receiver.thread_errors == 0
 
 
 def test_each_tick_records_what_it_took_in(tmp_path):
