@@ -93,7 +93,7 @@ def odometry_bench_command(*, scenario: str, seconds: float, hogs: tuple[int, ..
         atomic_write_json(json_path, with_provenance(out))
 
 
-@bench_group.command("odom")
+@bench_group.command("odom-settings")
 @click.option("--sequence", "sequences", multiple=True, type=click.Path(file_okay=False, path_type=Path),
               metavar="DIR", help="A recorded sequence's scan folder (repeatable; each with a --poses, in order).")
 @click.option("--poses", "poses", multiple=True, type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
@@ -125,10 +125,10 @@ def odom_settings_bench_command(*, sequences: tuple[Path, ...], poses: tuple[Pat
     from runtime.odometry.sequence import SequenceInputError, load_sequence
 
     if len(sequences) != len(poses):
-        raise InputError(f"dct bench odom: {len(sequences)} --sequence and {len(poses)} --poses: give one --poses "
+        raise InputError(f"dct bench odom-settings: {len(sequences)} --sequence and {len(poses)} --poses: give one --poses "
                          f"per --sequence, in the same order")
     if not sequences and not scenarios:
-        raise InputError("dct bench odom: nothing to run: give --sequence DIR --poses FILE and/or --scenario NAME")
+        raise InputError("dct bench odom-settings: nothing to run: give --sequence DIR --poses FILE and/or --scenario NAME")
     items = []
     try:
         for scans, pose_file in zip(sequences, poses):
@@ -136,7 +136,7 @@ def odom_settings_bench_command(*, sequences: tuple[Path, ...], poses: tuple[Pat
             items.append(BenchInput(scans.name if scans.name != "scans" else scans.parent.name, scans, pose_file))
         for name in scenarios:
             if load_scenario(name).route is None:
-                raise InputError(f"dct bench odom: scenario {name} has no route to drive (odom_loop has one)")
+                raise InputError(f"dct bench odom-settings: scenario {name} has no route to drive (odom_loop has one)")
     except (SequenceInputError, ConfigFileError) as exc:
         raise InputError(str(exc)) from None
     checked_output(json_path, "--json", [*poses], force)

@@ -1,4 +1,4 @@
-"""`dct bench odom`: the odometry's default (auto) settings beside the best of a small hand grid.
+"""`dct bench odom-settings`: the odometry's default (auto) settings beside the best of a small hand grid.
 
 For each input, KISS-ICP alone (runtime.odometry.sequence.evaluate_sequence, as `dct odom eval
 --scans` runs it) is run with the defaults (every setting "auto": derived from the first frame,

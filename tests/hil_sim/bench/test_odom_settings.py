@@ -1,4 +1,4 @@
-"""`dct bench odom`: the default (auto) ICP settings beside the best of a grid, on a recorded
+"""`dct bench odom-settings`: the default (auto) ICP settings beside the best of a grid, on a recorded
 sequence and on a scenario's drive recorded as one."""
 import json
 
@@ -21,7 +21,7 @@ def sequence(tmp_path_factory):
 def test_the_table_puts_the_defaults_beside_the_best_grid_setting(sequence, tmp_path):
     scans, poses, _ = sequence
     out = tmp_path / "bench.json"
-    r = CliRunner().invoke(bench_group, ["odom", "--sequence", str(scans), "--poses", str(poses), "--voxel", "0.3",
+    r = CliRunner().invoke(bench_group, ["odom-settings", "--sequence", str(scans), "--poses", str(poses), "--voxel", "0.3",
                                          "--voxel", "1.0", "--max-range", "12", "--iterations", "50", "--json", str(out)])
     assert r.exit_code == 0, r.output
     result = json.loads(out.read_text())["results"][0]
@@ -41,7 +41,7 @@ def test_the_table_puts_the_defaults_beside_the_best_grid_setting(sequence, tmp_
     (["--scenario", "case1"], "case1 has no route"),
 ])
 def test_input_errors_are_one_line(args, message):
-    r = CliRunner().invoke(bench_group, ["odom", *args])
+    r = CliRunner().invoke(bench_group, ["odom-settings", *args])
     assert r.exit_code == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
