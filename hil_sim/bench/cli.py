@@ -133,7 +133,7 @@ def odom_settings_bench_command(*, sequences: tuple[Path, ...], poses: tuple[Pat
     try:
         for scans, pose_file in zip(sequences, poses):
             load_sequence(scans, pose_file)  # checks every count and pose before anything runs
-            items.append(BenchInput(scans.name if scans.name != "scans" else scans.parent.name, scans, pose_file))
+            items.append(BenchInput(scans.name if scans.name not in ("scans", "frames", "velodyne", "points") else scans.parent.name, scans, pose_file))
         for name in scenarios:
             if load_scenario(name).route is None:
                 raise InputError(f"dct bench odom-settings: scenario {name} has no route to drive (odom_loop has one)")
