@@ -3,7 +3,6 @@ runs it: no settings given, the reference poses and times as the data ships them
 import json
 from pathlib import Path
 
-import pytest
 from click.testing import CliRunner
 
 from runtime.odometry.cli import odom_group
