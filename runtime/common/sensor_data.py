@@ -128,6 +128,17 @@ def _check_finite(a: np.ndarray, what: str) -> None:
         raise NonFiniteError(f"non-finite value at index {tuple(int(i) for i in bad)}", field_name=what)
 
 
+def _check_camera_matrix(K: np.ndarray) -> None:
+    """A pinhole camera matrix: 3x3, finite, positive focal lengths, upper triangular, K[2,2] = 1."""
+    if K.shape != (3, 3):
+        raise ShapeError(f"expected (3, 3), got {K.shape}", field_name="K")
+    _check_finite(K, "K")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise RangeError(f"focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}", field_name="K")
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise RangeError("K must be upper triangular with K[2,2] = 1", field_name="K")
+
+
 def _check_stamp(stamp_s: Any, what: str = "stamp_s") -> float:
     try:
         s = float(stamp_s)
@@ -264,13 +275,7 @@ class CameraImage:
         if not (0 < h <= MAX_IMAGE_SIDE_PX and 0 < w <= MAX_IMAGE_SIDE_PX):
             raise RangeError(f"image size {w}x{h} outside 1..{MAX_IMAGE_SIDE_PX}", field_name="pixels")
         K = self.K
-        if K.shape != (3, 3):
-            raise ShapeError(f"expected (3, 3), got {K.shape}", field_name="K")
-        _check_finite(K, "K")
-        if not (K[0, 0] > 0 and K[1, 1] > 0):
-            raise RangeError(f"focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}", field_name="K")
-        if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-            raise RangeError("K must be upper triangular with K[2,2] = 1", field_name="K")
+        _check_camera_matrix(K)
         if not (0.0 <= K[0, 2] <= w and 0.0 <= K[1, 2] <= h):
             raise RangeError(f"principal point ({K[0, 2]}, {K[1, 2]}) outside the {w}x{h} image", field_name="K")
         dist = self.distortion
@@ -321,13 +326,7 @@ class CameraInfo:
         if not all(isinstance(v, (int, np.integer)) and 0 < v <= MAX_IMAGE_SIDE_PX for v in (w, h)):
             raise RangeError(f"image size {w}x{h} outside 1..{MAX_IMAGE_SIDE_PX}", field_name="width_px")
         K = self.K
-        if K.shape != (3, 3):
-            raise ShapeError(f"expected (3, 3), got {K.shape}", field_name="K")
-        _check_finite(K, "K")
-        if not (K[0, 0] > 0 and K[1, 1] > 0):
-            raise RangeError(f"focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}", field_name="K")
-        if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-            raise RangeError("K must be upper triangular with K[2,2] = 1", field_name="K")
+        _check_camera_matrix(K)
         dist = self.distortion
         if dist.ndim != 1 or dist.shape[0] > 14:
             raise ShapeError(f"expected at most 14 coefficients, got shape {dist.shape}", field_name="distortion")

@@ -67,21 +67,14 @@ def _floor(cdr: bytes | None, topic: Any, sensors: Any, tol: Any, bad: str) -> C
     import numpy as np
 
     from calibration.consistency import fit_floor, floor_problem
+    from runtime.app.preflight.ros_graph import lidar_scan
     from runtime.common.sensor_data import SensorDataError
-    from runtime.io.ros import convert
-    from runtime.io.ros.receiver import decode_cdr
 
     name = "calibration:floor"
     if topic is None or cdr is None:
         return Check(name, "WARN", "not checked: no lidar frame heard", "see topic:lidar")
     try:
-        msg = decode_cdr(topic.type, cdr)
-        if topic.type == "livox_ros_driver2/msg/CustomMsg":
-            scan = convert.custom_msg_to_scan(msg, nominal_frame_duration_s=topic.nominal_frame_duration_s)
-        else:
-            scan = convert.pointcloud2_to_scan(msg, time_field=topic.time_field, time_unit_s=topic.time_unit_s,
-                                               time_is_absolute=topic.time_is_absolute,
-                                               nominal_frame_duration_s=topic.nominal_frame_duration_s)
+        scan = lidar_scan(topic, cdr)
     except SensorDataError as exc:
         return Check(name, "WARN", f"not checked: {topic.topic}: {one_line(exc)[:200]}", "see topic:lidar")
     T = sensors.T_base_lidar

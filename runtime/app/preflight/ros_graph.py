@@ -94,23 +94,29 @@ def header_stamp_s(cdr: bytes) -> float | None:
     return None if nanosec >= 1_000_000_000 else sec + nanosec * 1e-9
 
 
+def lidar_scan(topic: Any, cdr: bytes):
+    """The lidar sample `cdr` of `topic` (the config's lidar topic) decoded and converted as the
+    controller reads it (runtime.io.ros.convert); SensorDataError when it cannot be."""
+    from runtime.io.ros import convert
+    from runtime.io.ros.receiver import decode_cdr
+
+    msg = decode_cdr(topic.type, cdr)
+    if topic.type == "livox_ros_driver2/msg/CustomMsg":
+        return convert.custom_msg_to_scan(msg, nominal_frame_duration_s=topic.nominal_frame_duration_s)
+    return convert.pointcloud2_to_scan(msg, time_field=topic.time_field, time_unit_s=topic.time_unit_s,
+                                      time_is_absolute=topic.time_is_absolute,
+                                      nominal_frame_duration_s=topic.nominal_frame_duration_s)
+
+
 def sample_time_s(stream: str, topic: Any, cdr: bytes) -> float | None:
     """The instant a sample describes: a lidar frame's last point (it is published after its
     sweep, as the controller reads it: runtime.io.ros.convert), else the header stamp."""
     if stream != "lidar":
         return header_stamp_s(cdr)
     from runtime.common.sensor_data import SensorDataError
-    from runtime.io.ros import convert
-    from runtime.io.ros.receiver import decode_cdr
 
     try:
-        msg = decode_cdr(topic.type, cdr)
-        if topic.type == "livox_ros_driver2/msg/CustomMsg":
-            scan = convert.custom_msg_to_scan(msg, nominal_frame_duration_s=topic.nominal_frame_duration_s)
-        else:
-            scan = convert.pointcloud2_to_scan(msg, time_field=topic.time_field, time_unit_s=topic.time_unit_s,
-                                               time_is_absolute=topic.time_is_absolute,
-                                               nominal_frame_duration_s=topic.nominal_frame_duration_s)
+        scan = lidar_scan(topic, cdr)
     except SensorDataError:
         return None
     offsets = scan.point_time_offsets_s
