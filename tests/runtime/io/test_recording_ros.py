@@ -22,7 +22,12 @@ SHARE = Path(sys.prefix) / "share"
 # ----------------------------------------------------------------------------- msg definitions
 
 
-@pytest.mark.parametrize("name", sorted(set(D.DEFINITIONS) - {"tf2_msgs/TFMessage"}))
+#: Types whose package has no wheel (no .msg files under the venv's share/): their texts are
+#: checked by decoding recorded messages with mcap_ros2 (test_recording_inputs, this module's /tf tests).
+NOT_INSTALLED = {"tf2_msgs/TFMessage", "livox_ros_driver2/CustomMsg", "livox_ros_driver2/CustomPoint"}
+
+
+@pytest.mark.parametrize("name", sorted(set(D.DEFINITIONS) - NOT_INSTALLED))
 def test_definitions_are_the_installed_msg_files(name):
     pkg, type_name = name.split("/")
     path = SHARE / pkg / "msg" / f"{type_name}.msg"
