@@ -1,5 +1,7 @@
 """Scans (and IMU samples) from a ROS 2 bag: a rosbag2 folder (metadata.yaml, .db3 or .mcap
-storage) or a single .mcap file, read with `rosbags` (the `eval` extra).
+storage), read with `rosbags` (the `eval` extra), or a single .mcap file, read with `mcap`: its
+CDR channels, so a `dct run --record` recording (whose other channels are JSON, and whose header
+profile is not ROS 2's) reads as a drivers' bag does.
 
 The lidar topic is a sensor_msgs/msg/PointCloud2 or a livox_ros_driver2/msg/CustomMsg. Each
 message is decoded and validated by the controller's own ROS 2 decoders
@@ -45,11 +47,62 @@ def is_bag(path: str | Path) -> bool:
 
 
 def _reader(path: Path):
+    if path.is_file():
+        return _McapCdrReader(path)
     try:
         from rosbags.rosbag2 import Reader
     except ImportError:
         raise SequenceInputError(f"reading ROS 2 bags needs the rosbags package: {EVAL_EXTRA}") from None
     return Reader(path)
+
+
+@dataclass(frozen=True)
+class _Connection:
+    topic: str
+    msgtype: str
+    msgcount: int
+
+
+class _McapCdrReader:
+    """The part of rosbags' Reader this module uses (connections, duration, messages), over one
+    MCAP file's CDR channels (mcap's own reader: any profile, JSON channels left out)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._file = None
+
+    def __enter__(self) -> "_McapCdrReader":
+        from mcap.reader import make_reader
+
+        self._file = open(self.path, "rb")
+        try:
+            summary = make_reader(self._file).get_summary()
+        except Exception as exc:  # noqa: BLE001 - mcap's errors on a damaged file
+            self._file.close()
+            raise ValueError(f"a cut-off or damaged MCAP file (`mcap recover` rebuilds what it can): "
+                             f"{type(exc).__name__}: {exc}") from None
+        if summary is None or summary.statistics is None:
+            self._file.close()
+            raise ValueError("an MCAP file without its summary section (cut off? `mcap recover` rebuilds it)")
+        counts, st = summary.statistics.channel_message_counts, summary.statistics
+        self.connections = [_Connection(ch.topic, summary.schemas[ch.schema_id].name, counts.get(cid, 0))
+                            for cid, ch in summary.channels.items()
+                            if ch.message_encoding == "cdr" and ch.schema_id in summary.schemas]
+        self.duration = max(st.message_end_time - st.message_start_time, 0)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._file.close()
+
+    def messages(self, connections):
+        from mcap.reader import make_reader
+
+        self._file.seek(0)
+        by_topic = {c.topic: c for c in connections}
+        for _schema, channel, message in make_reader(self._file).iter_messages(topics=list(by_topic),
+                                                                               log_time_order=False):
+            if channel.message_encoding == "cdr":
+                yield by_topic[channel.topic], message.log_time, message.data
 
 
 def _bag_error(path: Path, exc: Exception) -> SequenceInputError:

@@ -1,6 +1,7 @@
 """`dct odom eval --scans` on every input a user has: the real HDL-32 pair written as a PCD
 folder, a KITTI .bin folder, an MCAP of PointCloud2 (mcap_ros2), a rosbag2 folder (rosbags'
-writer, sqlite3 and mcap storage, with an IMU topic) and an MCAP of Livox CustomMsg; then the
+writer, sqlite3 and mcap storage, with an IMU topic), an MCAP of Livox CustomMsg and a `dct run
+--record` recording (the recorder's own raw channels beside its JSON ones); then the
 checks that refuse inconsistent inputs, each one line naming both numbers."""
 import json
 import sys
@@ -29,6 +30,26 @@ def _frame(name: str) -> dict:
     return {"x": f["x"], "y": f["y"], "z": f["z"], "intensity": f["scalar_intensity"]}
 
 
+def _dct_recording(path: Path, frames: list[dict]) -> Path:
+    """What `dct run --record` writes: the receiver's raw samples through the recorder's tap (CDR
+    channels) beside its JSON channels, an MCAP whose profile is not ROS 2's."""
+    from runtime.io.recording import RunRecorder
+    from runtime.io.ros import messages as M
+
+    rec = RunRecorder(path)
+    tap = rec.sensor_tap(iter([s * 1e-9 + 0.01 for s in STAMPS]).__next__)
+    for k, (f, s) in enumerate(zip(frames, STAMPS)):
+        xyz = np.column_stack([f["x"], f["y"], f["z"]])
+        xyz = xyz[np.any(xyz != 0, axis=1)]
+        pts = np.zeros(len(xyz), dtype=M.CUSTOM_POINT_DTYPE)
+        pts["x"], pts["y"], pts["z"] = xyz.T
+        pts["offset_time"] = np.arange(len(xyz)) * (99_000_000 // len(xyz))
+        tap("lidar", "/livox/lidar", F.CUSTOM_MSG,
+            M.encode_custom_msg(M.Header(M.stamp_to_time(s * 1e-9), "livox_frame"), s, pts), k + 1)
+    rec.close()
+    return path
+
+
 def _imu(stamp_ns: int, cov0: float = 0.0):
     return ("/imu", F.IMU, F.imu_dict(stamp_ns, cov0=cov0), stamp_ns)
 
@@ -53,6 +74,7 @@ def pair(tmp_path_factory):
         "rosbag2_mcap": (F.write_rosbag2(root / "bag_mcap", clouds, storage="mcap"), ["--lidar-topic", "/points"]),
         "livox": (F.write_mcap(root / "livox.mcap", [("/livox/lidar", F.CUSTOM_MSG, F.custom_msg_dict(f, s), s)
                                                      for f, s in zip(frames, STAMPS)]), ["--lidar-topic", "/livox/lidar"]),
+        "dct_recording": (_dct_recording(root / "run.mcap", frames), ["--lidar-topic", "/livox/lidar"]),
     }
 
 
@@ -67,7 +89,7 @@ def one_line_error(result, code=2) -> str:
     return lines[0]
 
 
-@pytest.mark.parametrize("kind", ["pcd", "bin", "mcap", "rosbag2_db3", "rosbag2_mcap", "livox"])
+@pytest.mark.parametrize("kind", ["pcd", "bin", "mcap", "rosbag2_db3", "rosbag2_mcap", "livox", "dct_recording"])
 def test_the_real_pair_registers_to_its_reference_in_every_format(pair, tmp_path, kind):
     scans, extra = pair[kind]
     out, traj = tmp_path / "o.json", tmp_path / "est.txt"
@@ -85,7 +107,7 @@ def test_the_real_pair_registers_to_its_reference_in_every_format(pair, tmp_path
     assert "shorter than 1 m" in report["evo"]["rpe"]["1_m"]["skipped"]
     assert report["reference_consistency"]["consistent"]
     assert report["scan_times"] == "times file"
-    assert report["deskew"] is (kind == "livox")                    # only the CustomMsg has point times
+    assert report["deskew"] is (kind in ("livox", "dct_recording"))  # only the CustomMsg has point times
     if kind == "rosbag2_db3":
         imu = report["imu"]
         assert imu["messages"] == 21 and imu["within_scans"] == 11 and imu["covers_scans"]
@@ -243,7 +265,7 @@ def test_a_damaged_bag_or_undecodable_message_is_one_line(pair, tmp_path):
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(good.read_bytes()[:-40])
     err = one_line_error(invoke("--scans", cut, "--lidar-topic", "/points", "--poses", poses, "--json", tmp_path / "o"))
-    assert f"bag {cut}: cannot be read (ReaderError: " in err
+    assert f"bag {cut}: cannot be read (ValueError: a cut-off or damaged MCAP file" in err
     raw = tmp_path / "raw.mcap"          # message 1 is not a PointCloud2 at all
     msgdef = F.typestore().generate_msgdef(F.POINTCLOUD2, ros_version=2)[0]
     encode = serialize_dynamic(F.POINTCLOUD2, msgdef)[F.POINTCLOUD2]
