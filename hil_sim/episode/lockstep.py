@@ -410,9 +410,6 @@ def _result(ep: "_Episode", wall: float) -> EpisodeResult:
         extra=_extra_metrics(ep, report, final_distance),
     )
     result_metrics["failure_reason"] = failure_reason(result_metrics, report)
-    mismatch = report.get("calibration", {}).get("mismatch")
-    if result_metrics["failure_reason"] is not None and mismatch is not None:  # the likely cause, said with it
-        result_metrics["failure_reason"] += f" (after a calibration mismatch: {mismatch})"
     return EpisodeResult(
         metrics=result_metrics,
         telemetry=telemetry.summary(),
@@ -480,11 +477,20 @@ def _extra_metrics(ep: _Episode, report: dict, final_distance: float) -> dict:
 
 
 def failure_reason(metrics: dict, controller: dict) -> str | None:
-    """Why the episode failed, in words (None on success). The first that applies:
-    fixed contact; a latched safety stop; an input fault the robot was holding for at the end;
-    never became active; a patrol's missed goals or its early end (hil_sim.episode.patrol); time limit
-    while blocked (no path); stalled without progress with a valid reference path; the
-    controller's goal not the world's (odometry drift); time limit.
+    """Why the episode failed, in words (None on success), and after a calibration mismatch (the
+    partition fell back to all-fixed) that mismatch, the likely cause, said with it."""
+    reason = _first_failure(metrics, controller)
+    mismatch = controller.get("calibration", {}).get("mismatch")
+    if reason is not None and mismatch is not None:
+        reason += f" (after a calibration mismatch: {mismatch})"
+    return reason
+
+
+def _first_failure(metrics: dict, controller: dict) -> str | None:
+    """The first that applies: fixed contact; a latched safety stop; an input fault the robot was
+    holding for at the end; never became active; a patrol's missed goals or its early end
+    (hil_sim.episode.patrol); time limit while blocked (no path); stalled without progress with a
+    valid reference path; the controller's goal not the world's (odometry drift); time limit.
     """
     if metrics["success"]:
         return None

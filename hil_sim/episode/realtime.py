@@ -297,6 +297,7 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
     m["planner"] = report.get("mode")
     m["events"] = summary["events"]
     m["controller"] = report
+    m["partition_fallback"] = report.get("partition_fallback")
     m["sensor_errors"] = summary["sensor_errors"]
     m["faults"] = []  # fault injection is lockstep only
     m["failure_reason"] = failure_reason(m, report)
