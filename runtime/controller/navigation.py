@@ -245,6 +245,7 @@ class NavigationController:
             stop_reason=self.stop_reason, safety=self._safety_verdict(),
             inputs_delivered=self.inputs_delivered, icp_delivered=self.odometry.delivered,
             partition_fallback=self.partition.fallback, calibration_mismatch=self.calibration.mismatch,
+            vlm_delivered=vpp.delivered if vpp is not None else (),
         )
 
     def _safety_verdict(self) -> str | None:

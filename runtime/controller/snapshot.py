@@ -59,3 +59,6 @@ class ControllerSnapshot:
     partition_fallback: tuple[str, float] | None = None
     #: The calibration check's first mismatch (runtime.perception.calibration_monitor), None while none.
     calibration_mismatch: str | None = None
+    #: The answers the VLM backend runner handed the VPP stage at its last update (VlmAnswer each,
+    #: immutable; new ones when vlm_answers moved), () without the VPP: what a replay delivers again.
+    vlm_delivered: tuple = ()

@@ -126,6 +126,7 @@ class VppStage:
         self._last_scan_lidar: np.ndarray | None = None
         self.last_frame: VppFrame | None = None
         self.last_reconcile: ReconcileResult | None = None
+        self.delivered: tuple[VlmAnswer, ...] = ()  # the answers of the last poll that returned any
         # Counters (never reset).
         self.requests = 0
         self.answers = 0
@@ -187,7 +188,10 @@ class VppStage:
     def _apply_answers(self, now_s: float) -> None:
         """Phase II in the tick: the answers the runner delivered by now, applied to the mask
         memory (prepared beside the tick, or here when they were not)."""
-        for answer in self.runner.poll(now_s):
+        answers = self.runner.poll(now_s)
+        if answers:
+            self.delivered = tuple(answers)  # as the runner handed them (a recording keeps them)
+        for answer in answers:
             self.answers += 1
             self.failed_answers += int(answer.error is not None)
             stamp = float(answer.stamp_s)

@@ -86,6 +86,8 @@ def replay_command(**o) -> None:
         raise InputError(str(exc)) from None
     say = lambda s: click.echo(s, err=True)  # noqa: E731
     say(_describe(src, loaded.config))
+    if loaded.config.uses_vlm_backend:
+        say(_vlm_line(src))
     if src.kind == "bag":
         goal = tuple(o["goal"]) if o["goal"] else None
     else:  # its own goals (a replay that stood by, standing by again)
@@ -186,6 +188,16 @@ def _describe(src, config) -> str:
             f"noise floor, icp_prior {config.odometry.icp_prior}); planner {config.preset}")
 
 
+def _vlm_line(src) -> str:
+    """What the VPP's VLM does in this replay (runtime.app.replay.vlm)."""
+    if src.vlm_answers is None:
+        return ("dct replay: the recording carries no VLM answers (/dct/vpp/backend_answer): every VLM request "
+                "fails at once, so the VPP partition and the commands may differ from the live run's")
+    failed = sum(a.error is not None for _, a in src.vlm_answers)
+    return (f"dct replay: the VLM's answers as the live run received them: {len(src.vlm_answers)} "
+            f"({failed} failed), each delivered at its live tick")
+
+
 def _run(src, loaded, goal, paths: dict, pace: bool, say) -> dict:
     from calibration.outputs import atomic_write_json, atomic_write_text
     from runtime.app.replay.outputs import compare_odometry, tum_text, write_report
@@ -206,7 +218,7 @@ def _run(src, loaded, goal, paths: dict, pace: bool, say) -> dict:
         "total_wall_s": time.perf_counter() - t0,
         "inputs": {"sensor_samples": res.samples_fed, "sensor_samples_missing": res.samples_missing,
                    "can_frames": res.can_frames_fed, "frames_sent": res.frames_sent},
-        "icp": res.icp, "sensor_errors": res.sensor_errors, "controller_state": res.controller.get("state"),
+        "icp": res.icp, "vlm": res.vlm, "sensor_errors": res.sensor_errors, "controller_state": res.controller.get("state"),
         "calibration_check": _calibration_check(res.controller.get("calibration")),
         "odometry_vs_live": compare_odometry(src.live_poses, res.poses) if src.live_poses else None,
         "latency": {"tick": rep["tick"], "deadline_misses": rep["deadline_misses"]["count"]},
@@ -232,6 +244,8 @@ def _result_line(s: dict, out: Path) -> str:
     check = s.get("calibration_check") or {}
     if check.get("mismatch"):
         line += f"; the calibration check found a mismatch at {check['mismatch_at_s']:.2f} s (see calibration_check)"
+    if (s.get("vlm") or {}).get("mismatched"):
+        line += f"; {s['vlm']['mismatched']} VLM answers out of step with the live run"
     if s["icp"].get("out_of_step"):
         line += f"; {s['icp']['out_of_step']} ICP frames out of step with the live run"
     cmp = s["odometry_vs_live"]

@@ -7,9 +7,10 @@
 - `ReplayCanBus`: a python-can bus that the AgileX driver reads as it reads the robot's; the replay
   queues the frames the live driver received before the tick that read them, and every frame the
   controller sends (its commands) is kept, as the live run would have put them on the bus.
-- `ReplayVlm`: the VLM backend of a replay. A recording does not carry the VLM's answers, and
-  asking a live VLM would make the replay depend on it; every request fails at once, named, so
-  the vpp partition treats the points as it does when the VLM is down (deterministic).
+- `ReplayVlm`: the VLM backend of a replay. Asking a live VLM would make the replay depend on it;
+  a recording that carries the live runner's answers replaces the runner altogether
+  (runtime.app.replay.vlm). Without them (an older recording, a bag) every request fails at once,
+  named, so the vpp partition treats the points as it does when the VLM is down (deterministic).
 """
 from __future__ import annotations
 

@@ -8,7 +8,8 @@
 Open loop: the commands go nowhere; the base's feedback is what the robot reported live. The
 controller is built with lockstep timing (iteration caps, work beside the tick waited for), and
 ICP registers the frames the live run registered, delivered at the live ticks
-(runtime.app.replay.icp), so the replay's odometry is the live run's and two replays are the same.
+(runtime.app.replay.icp), the VPP's backend runner hands over the live runner's answers at the live
+ticks (runtime.app.replay.vlm), so the replay's odometry is the live run's and two replays are the same.
 A bag of the drivers has no ticks and no base: ticks every period from its first message, every
 lidar frame registered with the lockstep latency, and the controller waits for the base it never
 hears (its watchdogs say so).
@@ -44,6 +45,7 @@ class ReplayResult:
     can_frames_fed: int = 0
     frames_sent: int = 0
     icp: dict = field(default_factory=dict)
+    vlm: dict | None = None
     recording: dict = field(default_factory=dict)
     controller: dict = field(default_factory=dict)
     sensor_errors: dict = field(default_factory=dict)
@@ -121,6 +123,7 @@ def run_replay(setup: ReplaySetup, echo) -> ReplayResult:
     result.sensor_errors = {**dict(sorted(inbox.error_counts.items())),
                             **{f"ros.{k}": v for k, v in receiver.error_counts.items()}}
     result.icp = _icp_account(controller.odometry, scripted)
+    result.vlm = vlm_account(controller)
     return result
 
 
@@ -161,6 +164,7 @@ def _assemble(setup: ReplaySetup, clock, recorder, io: tuple, poses: list):
                             goal_given=setup.goal is not None))
     controller = parts.controller
     scripted = _script_icp(controller.odometry, setup.source)
+    _script_vlm(controller, setup.source)
     info = {"clock": "replay", "replay_of": str(setup.source.path), "goal": list(goal), "standby": setup.goal is None}
     hook = recorder.attach(controller, config, info, static_transforms=sensor_mounts(ld))
 
@@ -197,6 +201,32 @@ def _script_icp(odometry, src: ReplaySource):
         return None
     odometry.worker = ScriptedIcpWorker(odometry.worker, icp_schedule(src.ticks))
     return odometry.worker
+
+
+def _script_vlm(controller, src: ReplaySource) -> None:
+    """The VPP stage's backend runner, for a recording that carries the live runner's answers:
+    those answers at the live ticks (runtime.app.replay.vlm). Else the ReplayVlm backend stays:
+    every request fails at once."""
+    from runtime.app.replay.vlm import ScriptedVlmRunner
+
+    vpp = controller.partition.vpp
+    if vpp is None or src.vlm_answers is None:
+        return
+    runner = ScriptedVlmRunner(src.vlm_answers)
+    runner.post = vpp.runner.post  # the stage's Phase II preparation, as live
+    vpp.runner = runner
+
+
+def vlm_account(controller) -> dict | None:
+    """What the replay's VLM runner did (None without the VPP)."""
+    vpp = controller.partition.vpp
+    if vpp is None:
+        return None
+    from runtime.app.replay.vlm import ScriptedVlmRunner
+
+    runner = vpp.runner
+    scripted = isinstance(runner, ScriptedVlmRunner)
+    return {"scripted": scripted, **runner.counters(), **({"not_delivered": runner.left} if scripted else {})}
 
 
 def _icp_account(odometry, scripted) -> dict:

@@ -74,6 +74,9 @@ class ReplaySource:
     stopped_by: str | None = None
     first_s: float | None = None
     last_s: float | None = None
+    #: The answers the live VLM backend runner handed the VPP stage: (the tick's now_s, VlmAnswer), in
+    #: order; None when the recording has no such channel (older, or a bag).
+    vlm_answers: list | None = None
 
     @property
     def duration_s(self) -> float:
@@ -103,11 +106,12 @@ def open_source(path: Path, topics_for: Callable[[dict], dict[str, str | None]])
         topics = topics_for({})
         src = _rosbag_source(p, topics)
     else:
+        from runtime.io.recording.backend_answers import TOPIC as BA_TOPIC
         from runtime.io.recording.reader import RecordingReadError, read_recording
         from runtime.io.recording.schemas import TOPIC_CAN, TOPIC_INPUTS, TOPIC_POSE
 
         try:
-            rec = read_recording(p, topics=[TOPIC_INPUTS, TOPIC_CAN, TOPIC_POSE])
+            rec = read_recording(p, topics=[TOPIC_INPUTS, TOPIC_CAN, TOPIC_POSE, BA_TOPIC])
         except RecordingReadError as exc:
             raise ReplaySourceError(str(exc)) from None
         topics = topics_for(rec.run_info() if "dct.run" in rec.metadata else {})
@@ -162,10 +166,29 @@ def _dct_source(p: Path, rec, topics: dict[str, str | None]) -> ReplaySource:
         q, pos = m["pose"]["orientation"], m["pose"]["position"]
         yaw = 2.0 * math.atan2(float(q["z"]), float(q["w"]))
         src.live_poses.append((int(log_ns), float(pos["x"]), float(pos["y"]), math.atan2(math.sin(yaw), math.cos(yaw))))
+    src.vlm_answers = _vlm_answers(p, rec)
     if not src.ticks:
         raise ReplaySourceError(f"{p} is a dct recording without /dct/inputs (recorded before `dct replay` "
                                 "existed, or cut off before its first tick): nothing says what each tick took in")
     return src
+
+
+def _vlm_answers(p: Path, rec) -> list | None:
+    """(the tick's now_s, VlmAnswer) of each recorded backend answer, in order (validated where it
+    enters: ReplaySourceError); None when the recording has no /dct/vpp/backend_answer channel."""
+    from runtime.io.recording.backend_answers import TOPIC, RecordedAnswerError, answer_from_json
+
+    if TOPIC not in rec.topics:
+        return None
+    out = []
+    for _, m in rec.messages.get(TOPIC, []):
+        try:
+            tick, now_s = int(m["tick"]), float(m["now_s"])
+            out.extend((now_s, answer_from_json(a, f"(tick {tick}, answer {i})")) for i, a in enumerate(m["answers"]))
+        except (KeyError, TypeError, ValueError) as exc:  # RecordedAnswerError is a ValueError
+            why = str(exc) if isinstance(exc, RecordedAnswerError) else f"{type(exc).__name__}: {exc}"
+            raise ReplaySourceError(f"{p}: {TOPIC}: {why}") from None
+    return out
 
 
 def _dct_samples(src: ReplaySource) -> Iterator[Sample]:

@@ -1,6 +1,7 @@
 """The JSON messages a recording's channels carry, built from the records the tick queued.
 
-Each record kind (a tuple whose first item names it: "tick", "can", "points", "plan", "answer")
+Each record kind (a tuple whose first item names it: "tick", "can", "points", "plan", "answer",
+"backend_answer")
 has a generator of its `(topic, log time, message)` triples, in the order they are written;
 `messages_of(item, stages)` picks it. The mask image of a VPP answer (`mask_label_image`,
 `png_bytes`) is painted here too, on the writer thread.
@@ -15,6 +16,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from runtime.io.recording import backend_answers as BA
 from runtime.io.recording import schemas as S
 
 #: Size of the recorded mask image (width, height): small, the masks are coarse anyway.
@@ -161,8 +163,15 @@ def answer_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
                                  "data": base64.b64encode(png).decode()}
 
 
+def backend_answer_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
+    """The answers the backend runner handed the VPP stage at one tick, in full (backend_answers.py)."""
+    _, t, tick, now_s, answers = item
+    yield BA.TOPIC, t, {"timestamp": stamp(t), "tick": tick, "now_s": now_s,
+                        "answers": [BA.answer_json(a) for a in answers]}
+
+
 _BY_KIND = {"tick": tick_messages, "can": can_messages, "points": points_messages, "plan": plan_messages,
-            "answer": answer_messages}
+            "answer": answer_messages, "backend_answer": backend_answer_messages}
 
 
 def messages_of(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:

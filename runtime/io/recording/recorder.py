@@ -15,7 +15,9 @@ the run's description (stages, budgets, config) is written first, so a cut-off f
 Masks when they arrive: the hook notices a new VPP answer (the mask memory's `last_answer_s`
 changed) and queues references to its entries (immutable) and three floats; the writer thread
 counts their pixels, paints one downscaled label image coloured by contact cost and PNG-encodes
-it (`/dct/vpp/answer` and `/dct/vpp/masks`). The writer also samples every live Python thread's
+it (`/dct/vpp/answer` and `/dct/vpp/masks`). The answers the backend runner handed the stage at a
+tick (a tuple the snapshot references) are queued as they are and written in full on the writer
+thread (`/dct/vpp/backend_answer`, backend_answers.py), for `dct replay`. The writer also samples every live Python thread's
 CPU time about once a second of wall time (`/dct/threads`, from /proc/self/task; nothing where
 there is no /proc), with a first sample at start and a last at close, so the report can say what
 each thread spent over the run.
@@ -56,7 +58,7 @@ from runtime.io.recording import schemas as S
 from runtime.loop.telemetry import STAGES
 
 #: Channel message kinds, and how each is counted when dropped.
-KINDS = ("tick", "can", "points", "plan", "answer", *RAW.KINDS)
+KINDS = ("tick", "can", "points", "plan", "answer", "backend_answer", *RAW.KINDS)
 #: Wall-clock seconds between two samples of the threads' CPU time.
 THREAD_SAMPLE_EVERY_S = 1.0
 
@@ -167,6 +169,7 @@ class RunRecorder:
         self._last_plan: object = None
         self._last_reference: object = None
         self._last_answer_s: float | None = None
+        self._last_answers = 0  # the VPP stage's answer count at the last /dct/vpp/backend_answer
         self.thread_samples = 0
         self._threads_supported = True
         self._last_t_s = 0.0  # loop-clock time of the newest tick written: the threads' log time
@@ -277,6 +280,11 @@ class RunRecorder:
                 self._last_answer_s = stamp
                 t = float(row["scheduled_s"])  # references only: entries and their masks are immutable
                 put("answer", ("answer", t, float(stamp), int(snap.vlm_answers), tuple(snap.vlm_masks)))
+            delivered = getattr(snap, "vlm_delivered", ())
+            if delivered and snap.vlm_answers != self._last_answers:
+                self._last_answers = snap.vlm_answers  # the stage's count moved: this tick took these
+                put("backend_answer", ("backend_answer", float(row["scheduled_s"]), int(row["tick"]), float(snap.t_s),
+                                       delivered))
             if int(row["tick"]) % every == 0 and snap is not None:
                 self._sample_points(snap, row)
 

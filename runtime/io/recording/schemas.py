@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 
+from runtime.io.recording import backend_answers as BA
+
 TOPIC_TICK = "/dct/tick"
 TOPIC_POSE = "/dct/pose"
 TOPIC_CAN = "/dct/can"
@@ -226,6 +228,7 @@ def channel_schemas(stages: tuple[str, ...]) -> dict[str, tuple[str, dict]]:
         TOPIC_VPP_MASKS: ("foxglove.CompressedImage", COMPRESSED_IMAGE),
         TOPIC_THREADS: ("dct.Threads", THREADS),
         TOPIC_INPUTS: ("dct.TickInputs", TICK_INPUTS),
+        BA.TOPIC: (BA.SCHEMA["title"], BA.SCHEMA),
     }
 
 

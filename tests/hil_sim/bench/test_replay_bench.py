@@ -22,5 +22,11 @@ def test_the_replay_of_a_realtime_case3_gives_its_odometry_back_within_1_cm(tmp_
     assert c["matched"] == r["replay"]["ticks"] > 100, c
     assert c["max_m"] <= ACCEPT_M, c
     assert r["replay"]["icp"]["out_of_step"] == 0 and r["replay"]["inputs"]["sensor_samples_missing"] == 0
+    # the VLM's answers as the live runner delivered them: the partition and (but for the live MPC's
+    # wall-clock caps) the commands are the live run's
+    o = r["outputs_vs_live"]
+    assert r["replay"]["vlm"]["scripted"] and r["replay"]["vlm"]["mismatched"] == 0, r["replay"]["vlm"]
+    assert o["partitions_equal"] == o["partition_samples"] > 0, o
+    assert o["commands_equal"] >= 0.95 * o["command_ticks"], o
     assert r["report"]["html_bytes"] > 10_000
     assert r["size"]["file_mb_per_min"] > 0

@@ -255,3 +255,45 @@ def test_a_bags_camera_info_is_replayed_and_checked_and_its_replay_replays_it_in
     assert s2["odometry_vs_live"]["matched"] == s1["ticks"] == s2["ticks"] and s2["odometry_vs_live"]["max_m"] == 0.0
     assert s2["calibration_check"] == check
     assert (tmp_path / "r2" / "odometry.tum").read_text() == (tmp_path / "r1" / "odometry.tum").read_text()
+
+
+def _answer(stamp: float, error: str | None = None):
+    from models.vlm.interface import DetectedObject, VlmAnswer
+
+    mask = np.zeros((4, 6), bool)
+    mask[1:3, 2:5] = True
+    objects = () if error else (DetectedObject(mask=mask, label="box", movable=True, contact_cost=2.0, confidence=0.9),)
+    return VlmAnswer(stamp_s=stamp, camera_pose_odom=np.eye(4), objects=objects, backend="live", latency_s=0.4,
+                     error=error)
+
+
+def test_the_scripted_vlm_delivers_the_recorded_answers_at_their_ticks_in_order():
+    from runtime.app.replay.vlm import ScriptedVlmRunner
+
+    a1, a2, a3 = _answer(0.5), _answer(1.0, error="live: no answer within 5 s (abandoned)"), _answer(1.5)
+    runner = ScriptedVlmRunner([(1.05, a1), (1.05, a2), (2.0, a3)])
+    posted = []
+    runner.post = lambda request, answer: posted.append((request.stamp_s, answer))
+    for stamp in (0.5, 1.0):
+        runner.submit(SimpleNamespace(stamp_s=stamp))
+    assert runner.busy and runner.poll(1.0) == [] and runner.busy  # not before the live tick
+    got = runner.poll(1.05)
+    assert [a is b for a, b in zip(got, (a1, a2))] == [True, True] and len(got) == 2  # both, in order
+    assert [p[0] for p in posted] == [0.5] and posted[0][1] is a1  # post-processing: the valid answer only
+    assert not runner.busy
+    runner.submit(SimpleNamespace(stamp_s=1.5))
+    runner.submit(SimpleNamespace(stamp_s=2.5))  # the live run never got an answer to this one
+    assert runner.poll(1.99) == [] and runner.poll(2.0) == [a3]
+    assert runner.busy and runner.poll(100.0) == [] and runner.busy  # a missing answer stays missing
+    c = runner.counters()
+    assert (c["delivered"], c["failed"], c["mismatched"], runner.left) == (3, 1, 0, 0)
+
+
+def test_a_scripted_answer_to_an_image_the_replay_did_not_send_is_out_of_step():
+    from runtime.app.replay.vlm import ScriptedVlmRunner
+
+    runner = ScriptedVlmRunner([(1.0, _answer(0.5)), (3.0, _answer(2.0))])
+    runner.post = lambda request, answer: pytest.fail("no request: nothing to prepare")
+    runner.submit(SimpleNamespace(stamp_s=0.7))
+    assert len(runner.poll(1.0)) == 1 and runner.mismatched == 1 and not runner.busy
+    assert runner.left == 1  # the replay ended before the second

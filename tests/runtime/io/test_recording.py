@@ -123,6 +123,25 @@ def test_vlm_answers_are_recorded_when_they_arrive_with_their_masks(recorded_cas
     assert main == sorted(main) and main[-1] > 0
 
 
+def test_the_backend_runners_answers_are_recorded_in_full_at_the_tick_that_took_them(recorded_case2):
+    from runtime.io.recording.backend_answers import TOPIC, answer_from_json
+
+    path, summary, result = recorded_case2
+    rec = read_recording(path)
+    assert rec.topics[TOPIC] == "dct.VppBackendAnswers"
+    msgs = [m for _, m in rec.messages[TOPIC]]
+    assert len(msgs) == summary["written"]["backend_answer"] >= 1
+    now_of = {m["tick"]: m["now_s"] for _, m in rec.messages[S.TOPIC_INPUTS]}
+    applied = [m for _, m in rec.messages[S.TOPIC_VPP_ANSWER]]
+    answers = [answer_from_json(a) for m in msgs for a in m["answers"]]
+    assert len(answers) == applied[-1]["answers"]  # every answer the stage received, failed ones too
+    for m in msgs:
+        assert m["now_s"] == now_of[m["tick"]]  # the controller's clock at the tick that took them
+    assert {a.stamp_s for a in answers} == {m["capture_s"] for m in applied}
+    box = [o for a in answers for o in a.objects if o.label == "box"]
+    assert box and all(o.mask.shape == (480, 640) and o.mask.any() for o in box)
+
+
 def test_the_hook_records_a_new_answer_once_and_counts_drops(tmp_path):
     """A fake VPP stage: an answer is queued when last_answer_s changes, once; with a full queue it is
     dropped and counted."""
