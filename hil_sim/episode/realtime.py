@@ -42,7 +42,8 @@ import time
 from importlib import resources
 from pathlib import Path
 
-from hil_sim.episode.lockstep import failure_reason, goal_in_odom_frame
+from hil_sim.episode.failure import failure_reason
+from hil_sim.episode.lockstep import goal_in_odom_frame
 
 #: Seconds to wait for the simulator to say it is serving (imports, world build).
 SERVE_READY_TIMEOUT_S = 120.0
