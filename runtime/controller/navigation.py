@@ -475,9 +475,12 @@ class NavigationController:
         time in lockstep, where it is never missed; the wall clock on the robot)."""
         self.safety_stop.note_deadline(missed)
         if self.safety_stop.tripped and self.state is not ControllerState.STOPPED:
-            now = self.clock()
-            self._stop(now)
-            self._publish(now)  # observers see the stop before the next tick
+            self._stop(self.clock())  # the event at the time the verdict came
+            # Observers see the stop before the next tick, in a snapshot of this tick: its time is
+            # the tick's (what the tick read its inputs at, and what a recording replays it at),
+            # not the verdict's, which comes a whole tick later on a tick that overran.
+            tick_s = self.snapshot.t_s if self.snapshot is not None else self.clock()
+            self._publish(tick_s)
 
     def _stop(self, now: float) -> None:
         if self.state is not ControllerState.STOPPED:

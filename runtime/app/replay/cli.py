@@ -181,6 +181,8 @@ def _describe(src, config) -> str:
         return (f"dct replay: {src.path} (a dct run recording: {len(src.ticks)} ticks, {src.duration_s:.1f} s"
                 + ("" if src.complete else f", cut off: {src.stopped_by}")
                 + (f", {drops} records dropped by the recorder" if drops else "")
+                + (f", tick {', '.join(map(str, src.now_repaired))} replayed at its start (scheduled + lateness): "
+                   "recorded with a deadline stop's time" if src.now_repaired else "")
                 + f"): {streams}; the base: {len(src.can_rx)} CAN frames; planner {config.preset}")
     return (f"dct replay: {src.path} ({'a replay' if src.kind == 'dct' else 'a bag'}: {src.duration_s:.1f} s): "
             f"{streams}; no base feedback: the controller waits for the base (its watchdogs say so) and the "
@@ -217,7 +219,8 @@ def _run(src, loaded, goal, paths: dict, pace: bool, say) -> dict:
         "ticks": res.ticks, "recording_s": src.duration_s, "replay_wall_s": res.wall_s,
         "total_wall_s": time.perf_counter() - t0,
         "inputs": {"sensor_samples": res.samples_fed, "sensor_samples_missing": res.samples_missing,
-                   "can_frames": res.can_frames_fed, "frames_sent": res.frames_sent},
+                   "can_frames": res.can_frames_fed, "frames_sent": res.frames_sent,
+                   "ticks_now_repaired": list(src.now_repaired)},
         "icp": res.icp, "vlm": res.vlm, "sensor_errors": res.sensor_errors, "controller_state": res.controller.get("state"),
         "calibration_check": _calibration_check(res.controller.get("calibration")),
         "odometry_vs_live": compare_odometry(src.live_poses, res.poses) if src.live_poses else None,

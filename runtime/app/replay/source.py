@@ -45,6 +45,11 @@ class Sample:
     data: bytes
 
 
+#: A tick's recorded now_s exceeds its start (scheduled + lateness, both from /dct/tick) by the few
+#: microseconds between the loop's reading and the controller's; more than this, it is not the tick's.
+NOW_AFTER_START_S = 1e-3
+
+
 @dataclass(frozen=True)
 class TickInputs:
     """What one live tick took in (the recording's /dct/inputs)."""
@@ -77,6 +82,8 @@ class ReplaySource:
     #: The answers the live VLM backend runner handed the VPP stage: (the tick's now_s, VlmAnswer), in
     #: order; None when the recording has no such channel (older, or a bag).
     vlm_answers: list | None = None
+    #: Ticks whose recorded now_s was a deadline stop's verdict time, replayed at their start (_tick_now).
+    now_repaired: list[int] = field(default_factory=list)
 
     @property
     def duration_s(self) -> float:
@@ -108,10 +115,10 @@ def open_source(path: Path, topics_for: Callable[[dict], dict[str, str | None]])
     else:
         from runtime.io.recording.backend_answers import TOPIC as BA_TOPIC
         from runtime.io.recording.reader import RecordingReadError, read_recording
-        from runtime.io.recording.schemas import TOPIC_CAN, TOPIC_INPUTS, TOPIC_POSE
+        from runtime.io.recording.schemas import TOPIC_CAN, TOPIC_INPUTS, TOPIC_POSE, TOPIC_TICK
 
         try:
-            rec = read_recording(p, topics=[TOPIC_INPUTS, TOPIC_CAN, TOPIC_POSE, BA_TOPIC])
+            rec = read_recording(p, topics=[TOPIC_INPUTS, TOPIC_CAN, TOPIC_POSE, TOPIC_TICK, BA_TOPIC])
         except RecordingReadError as exc:
             raise ReplaySourceError(str(exc)) from None
         topics = topics_for(rec.run_info() if "dct.run" in rec.metadata else {})
@@ -153,8 +160,10 @@ def _dct_source(p: Path, rec, topics: dict[str, str | None]) -> ReplaySource:
 
     src = ReplaySource(p, "dct", _streams(rec.topics, topics, p), run_info=rec.run_info(),
                        recorder_account=rec.recorder_account(), complete=rec.complete, stopped_by=rec.stopped_by)
+    started = _tick_starts(rec)
     for _, m in rec.messages.get(TOPIC_INPUTS, []):
-        src.ticks.append(TickInputs(int(m["tick"]), float(m["scheduled_s"]), float(m["now_s"]),
+        tick = int(m["tick"])
+        src.ticks.append(TickInputs(tick, float(m["scheduled_s"]), _tick_now(src, tick, float(m["now_s"]), started),
                                     int(m["sensor_samples"]),
                                     tuple((int(r["seq"]), float(r["stamp_s"])) for r in m["icp_results"]),
                                     (float(m["goal"]["x"]), float(m["goal"]["y"]), float(m["goal"]["yaw"]))))
@@ -166,16 +175,41 @@ def _dct_source(p: Path, rec, topics: dict[str, str | None]) -> ReplaySource:
         q, pos = m["pose"]["orientation"], m["pose"]["position"]
         yaw = 2.0 * math.atan2(float(q["z"]), float(q["w"]))
         src.live_poses.append((int(log_ns), float(pos["x"]), float(pos["y"]), math.atan2(math.sin(yaw), math.cos(yaw))))
-    src.vlm_answers = _vlm_answers(p, rec)
+    src.vlm_answers = _vlm_answers(p, rec, {t.tick: t.now_s for t in src.ticks})
     if not src.ticks:
         raise ReplaySourceError(f"{p} is a dct recording without /dct/inputs (recorded before `dct replay` "
                                 "existed, or cut off before its first tick): nothing says what each tick took in")
     return src
 
 
-def _vlm_answers(p: Path, rec) -> list | None:
+def _tick_starts(rec) -> dict[int, float]:
+    """tick -> when it began on the controller's clock, from /dct/tick (scheduled time plus lateness)."""
+    from runtime.io.recording.schemas import TOPIC_TICK
+
+    out = {}
+    for _, m in rec.messages.get(TOPIC_TICK, []):
+        try:
+            out[int(m["tick"])] = float(m["scheduled_s"]) + float(m["lateness_ms"]) * 1e-3
+        except (KeyError, TypeError, ValueError):
+            continue  # a tick without its row keeps its recorded now_s
+    return out
+
+
+def _tick_now(src: ReplaySource, tick: int, now_s: float, started: dict[int, float]) -> float:
+    """The controller's clock during the tick. A recording made before a deadline stop was published
+    at its tick's time carries, for the tick the stop came after, the verdict's time (a whole tick
+    later): the tick's start (scheduled + lateness) is taken for it, and counted (`now_repaired`)."""
+    start = started.get(tick)
+    if start is None or now_s - start <= NOW_AFTER_START_S:
+        return now_s
+    src.now_repaired.append(tick)
+    return start
+
+
+def _vlm_answers(p: Path, rec, tick_now: dict[int, float]) -> list | None:
     """(the tick's now_s, VlmAnswer) of each recorded backend answer, in order (validated where it
-    enters: ReplaySourceError); None when the recording has no /dct/vpp/backend_answer channel."""
+    enters: ReplaySourceError); None when the recording has no /dct/vpp/backend_answer channel.
+    tick_now: the ticks' now (a repaired one replaces the recorded: _tick_now)."""
     from runtime.io.recording.backend_answers import TOPIC, RecordedAnswerError, answer_from_json
 
     if TOPIC not in rec.topics:
@@ -183,7 +217,8 @@ def _vlm_answers(p: Path, rec) -> list | None:
     out = []
     for _, m in rec.messages.get(TOPIC, []):
         try:
-            tick, now_s = int(m["tick"]), float(m["now_s"])
+            tick = int(m["tick"])
+            now_s = tick_now.get(tick, float(m["now_s"]))
             out.extend((now_s, answer_from_json(a, f"(tick {tick}, answer {i})")) for i, a in enumerate(m["answers"]))
         except (KeyError, TypeError, ValueError) as exc:  # RecordedAnswerError is a ValueError
             why = str(exc) if isinstance(exc, RecordedAnswerError) else f"{type(exc).__name__}: {exc}"

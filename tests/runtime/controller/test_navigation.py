@@ -300,6 +300,22 @@ def test_consecutive_deadline_misses_stop_the_robot():
     assert base.writes[-1] == (0.0, 0.0)
 
 
+def test_a_deadline_stop_is_published_at_the_time_of_the_tick_that_overran():
+    """The verdict comes after the tick (a tick that overran: a whole period later on the
+    robot); the snapshot it republishes is still that tick's, at that tick's time, which a
+    recording takes as the time the tick read its inputs at (dct replay replays it there)."""
+    ctl, base, _ = make()
+    run_ticks(ctl, base, 10)
+    tick_s = ctl.snapshot.t_s
+    ctl.note_deadline(True)
+    ctl.note_deadline(True)
+    base.t += 0.06  # the third overrunning tick ends 60 ms after it began
+    ctl.note_deadline(True)
+    assert ctl.state is ControllerState.STOPPED and ctl.snapshot.state is ControllerState.STOPPED
+    assert ctl.snapshot.t_s == tick_s
+    assert ctl.events.last().event == "safety_stop" and ctl.events.last().t_s == pytest.approx(base.t)
+
+
 def test_no_feedback_at_start_up_times_out():
     ctl, base, _ = make()
     base.silent = {"0x221", "0x311", "0x211"}
