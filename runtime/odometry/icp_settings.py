@@ -16,8 +16,11 @@ from one frame's squared ranges (the first frame the pipeline registers), determ
   held); then raised, step by step, while the first frame's source points (the frame
   downsampled at 1.5 voxels, as KISS-ICP does) are so many that the iteration budget pays for
   fewer than MIN_AFFORDED_ITERATIONS iterations (dense spinning lidars);
-- KISS-ICP's adaptive threshold: initial threshold 2 voxels (KISS-ICP: 2.0 m at its 1.0 m
-  voxel), at least 0.5 m; min motion 0.1 voxel (KISS-ICP: 0.1 m at 1.0 m), at least 0.05 m.
+- KISS-ICP's adaptive threshold: initial threshold max_range / 50 (KISS-ICP: 2.0 m at its 100 m
+  range, where its voxel rule gives 1.0 m), at least 0.5 m; min motion 0.1 voxel (KISS-ICP: 0.1 m at
+  1.0 m), at least 0.05 m. The initial threshold follows the range, not the voxel: indoors the voxel
+  is held at 0.3 m (not 12/100), and 2 voxels (0.6 m) there let the first frames take wrong
+  correspondences (the gap_offset approach stalled and odom_loop's fused end error grew 6 mm).
 
 `iteration_cap(n_source, budget_ms)`: how many ICP iterations a frame may take so that its
 iterations cost at most the budget, at COST_MS_PER_POINT_ITERATION (measured on the 2-core
@@ -218,7 +221,7 @@ def resolve_settings(config: IcpConfig, points: np.ndarray, r2: np.ndarray | Non
         update["voxel_size_m"], notes["voxel_rule"] = auto_voxel(max_range, points[in_gate], config.iteration_budget_ms)
     voxel = update.get("voxel_size_m", config.voxel_size_m)
     if "initial_threshold_m" in auto:
-        update["initial_threshold_m"] = max(0.5, 2.0 * voxel)
+        update["initial_threshold_m"] = max(0.5, max_range / 50.0)
     if "min_motion_m" in auto:
         update["min_motion_m"] = max(0.05, 0.1 * voxel)
     resolved = IcpConfig.model_validate({**config.model_dump(), **update})

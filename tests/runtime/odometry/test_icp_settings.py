@@ -47,7 +47,7 @@ def test_auto_settings_follow_the_frames_ranges(scale, spread, n, seed):
     kiss = min(max(s.max_range_m / 100.0, 0.3), 0.5)
     assert s.voxel_size_m <= kiss + 1e-9 or "raised" in why["voxel_rule"]
     assert s.voxel_size_m >= max(v for v in rules.VOXEL_STEPS_M if v <= kiss + 1e-9)
-    assert s.initial_threshold_m == max(0.5, 2 * s.voxel_size_m)
+    assert s.initial_threshold_m == max(0.5, s.max_range_m / 50)
     assert why["derived"]["voxel_size_m"] == s.voxel_size_m
     assert s.min_motion_m == max(0.05, 0.1 * s.voxel_size_m)
     assert s.max_iterations == "auto"  # a cap per frame
