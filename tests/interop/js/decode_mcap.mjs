@@ -75,5 +75,7 @@ try {
 } finally {
   await handle.close();
 }
+// exitCode, not process.exit(): stdout to a pipe is written asynchronously, and exit() would cut
+// the JSON off at the pipe's buffer (128 kB) now that the recording holds large sensor messages.
 console.log(json(out));
-process.exit(out.errors.length ? 1 : 0);
+process.exitCode = out.errors.length ? 1 : 0;
