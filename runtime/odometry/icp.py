@@ -15,7 +15,11 @@ iteration cap per frame from the time budget); what we add around it:
   deskews to the END of the sweep (it normalises the given times over [min, max] and moves every
   point to the time 1.0; measured: against ground truth, the pose matches the frame's end, not its
   middle), so every pose here is stamped with the time of the frame's last point.
-- Degeneracy: `planar_constraint` on the deskewed frame (runtime.odometry.degeneracy).
+- Degeneracy: `planar_constraint` on the deskewed frame (runtime.odometry.degeneracy), before the
+  map takes the pose: with a prior, a direction the scan does not constrain keeps the prior's
+  translation (solution remapping), so ICP's slide along featureless walls reaches neither the
+  map nor the next frame's guess, and the answer does not depend on where the iteration cap
+  stopped the slide.
 - The planar increment since the previous frame in the base frame (the lidar's mount applied).
 
 Frames must span their sweep in time for a deskew: a frame whose point times span less than half
@@ -127,7 +131,6 @@ class IcpEngine:
 
     def process(self, job: IcpJob) -> IcpResult:
         t0 = time.perf_counter()
-        from kiss_icp.voxelization import voxel_down_sample
 
         notes: list[str] = []
         pts = np.asarray(job.points, dtype=np.float64)
@@ -156,16 +159,15 @@ class IcpEngine:
                 deskew = False
                 notes.append("no wheel/gyro motion over the sweep: no deskew")
         kiss_deskews = deskew and mode == "kiss"
-        frame, source = self.kiss.register_frame(pts, offs, deskew=kiss_deskews)
+        analysis: list = []
+        frame, source = self.kiss.register_frame(pts, offs, deskew=kiss_deskews,
+                                                 correct=lambda f, g, p: self._remap(f, g, p, analysis))
         pose_base = se2_of_matrix(self.mount @ self.kiss.last_pose @ self.mount_inv)
         delta = None if self._prev_pose is None else se2_between(self._prev_pose, pose_base)
         prev_end = self._prev_end
         self._prev_pose, self._prev_end = pose_base, job.end_s
         self._prev_dead_reckoning = None if job.dead_reckoning_end is None else np.asarray(job.dead_reckoning_end)
-        constraint = None
-        if len(frame):
-            thin = voxel_down_sample(frame, self.degeneracy.voxel_m)
-            constraint = planar_constraint(thin @ self.mount[:3, :3].T + self.mount[:3, 3], self.degeneracy)
+        constraint = analysis[0] if analysis else None
         return IcpResult(
             seq=job.seq, stamp_s=job.stamp_s, end_s=job.end_s, ready_at_s=job.ready_at_s,
             pose_base=pose_base, delta_base=delta, prev_end_s=prev_end, constraint=constraint,
@@ -173,6 +175,25 @@ class IcpEngine:
             compute_s=time.perf_counter() - t0, notes=tuple(notes), gate=self.kiss.gate,
             iteration_cap=self.kiss.last_cap, settings=self._settings_once(),
         )
+
+    def _remap(self, frame: np.ndarray, guess: np.ndarray, pose: np.ndarray, out: list) -> np.ndarray:
+        """The registered pose with its translation along a direction the scan does not
+        constrain put back to the prior's (solution remapping, Zhang, Kaess and Singh 2016):
+        ICP's answer there is a slide along featureless walls, and the map must not take it."""
+        from kiss_icp.voxelization import voxel_down_sample
+
+        if not len(frame):
+            return pose
+        thin = voxel_down_sample(frame, self.degeneracy.voxel_m)
+        con = planar_constraint(thin @ self.mount[:3, :3].T + self.mount[:3, 3], self.degeneracy)
+        out.append(con)
+        weak = con.weak_direction_xy
+        if weak is None or not self.use_prior:
+            return pose
+        step = self.mount @ np.linalg.inv(guess) @ pose @ self.mount_inv   # base frame, at the guess
+        step = step.copy()
+        step[:2, 3] -= weak * float(weak @ step[:2, 3])
+        return guess @ self.mount_inv @ step @ self.mount
 
     def _settings_once(self) -> dict | None:
         """The settings in use and how the auto ones were derived: on the first result only."""

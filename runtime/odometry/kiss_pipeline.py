@@ -70,9 +70,13 @@ class KissPipeline:
                                                           max_num_threads=s.threads)
         return reg
 
-    def register_frame(self, frame, timestamps, deskew: bool | None = None):
+    def register_frame(self, frame, timestamps, deskew: bool | None = None, correct=None):
         """KISS-ICP's register_frame (module doc); returns (the deskewed frame within the range
-        gate, the source points registered), as KissICP does."""
+        gate, the source points registered), as KissICP does.
+
+        correct: None, or correct(points, initial_guess, pose) -> pose, called with the deskewed
+        frame, the initial guess and the registered pose (4x4, lidar odom frame) before the
+        adaptive threshold and the map take the pose: what it returns is the frame's pose."""
         from kiss_icp.voxelization import voxel_down_sample
 
         points = np.ascontiguousarray(frame, dtype=np.float64)
@@ -96,6 +100,8 @@ class KissPipeline:
         new_pose = self._registration(cap).align_points_to_map(
             points=source, voxel_map=self.local_map, initial_guess=initial_guess,
             max_correspondance_distance=3 * sigma, kernel=sigma)
+        if correct is not None:
+            new_pose = correct(points, initial_guess, new_pose)
         self.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
         self.local_map.update(frame_downsample, new_pose)
         self.last_delta = np.linalg.inv(self.last_pose) @ new_pose

@@ -164,11 +164,13 @@ def _scene():
     return np.vstack(parts)
 
 
-def _frames(n=6, step=(0.05, 0.0, 0.02), noise=0.005, seed=0):
-    """Frames of the synthetic scene seen by the lidar from a base moving `step` per frame."""
-    world = _scene()
+def _frames(n=6, step=(0.05, 0.0, 0.02), noise=0.005, seed=0, world=None, wheel_scale=1.0):
+    """Frames of the synthetic scene (or `world`) seen by the lidar from a base moving `step` per
+    frame; the wheels' pose (the prior) runs `wheel_scale` times the true motion."""
+    world = _scene() if world is None else world
     rng = np.random.default_rng(seed)
     pose = np.zeros(3)
+    wheels = np.zeros(3)
     frames = []
     for k in range(n):
         c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -179,8 +181,9 @@ def _frames(n=6, step=(0.05, 0.0, 0.02), noise=0.005, seed=0):
         pts = (lidar[keep] + rng.normal(0, noise, (keep.sum(), 3))).astype(np.float32)
         offs = np.linspace(0, 0.099, len(pts)).astype(np.float32)
         frames.append(IcpJob(seq=k, stamp_s=0.1 * k, end_s=0.1 * k + 0.099, points=pts, offsets_s=offs, duration_s=0.1,
-                             dead_reckoning_end=pose.copy(), ready_at_s=0.1 * k + 0.2))
+                             dead_reckoning_end=wheels.copy(), ready_at_s=0.1 * k + 0.2))
         pose = se2_compose(pose, np.asarray(step, float))
+        wheels = se2_compose(wheels, np.asarray(step, float) * wheel_scale)
     return frames
 
 
@@ -196,6 +199,27 @@ def test_kiss_icp_recovers_the_motion_of_a_synthetic_scene():
         np.testing.assert_allclose(r.delta_base[:2], [0.05, 0.0], atol=0.01)
         assert abs(r.delta_base[2] - 0.02) < math.radians(0.3)
         assert r.constraint is not None and not r.constraint.degenerate
+
+
+def test_where_the_scan_constrains_the_motion_icp_corrects_wheels_that_overstate_it():
+    engine = _engine()
+    results = [engine.process(j) for j in _frames(step=(0.05, 0.0, 0.0), wheel_scale=1.3)]
+    for r in results[1:]:
+        np.testing.assert_allclose(r.delta_base[:2], [0.05, 0.0], atol=0.01)
+
+
+def test_along_a_featureless_corridor_the_registered_motion_is_the_wheels_and_across_it_icps():
+    # The walls run past the range on both sides: nothing fixes the motion along x. ICP's answer
+    # there is a slide; the engine keeps the wheels' (here 30% long) along the axis, so the map it
+    # builds agrees with the pose the fusion gives, and across the axis what the scan measured.
+    corridor = np.vstack([_wall((-30, -1), (30, -1), step=0.03), _wall((-30, 1), (30, 1), step=0.03),
+                          _floor(12.0, 0.15)])
+    engine = _engine()
+    results = [engine.process(j) for j in _frames(n=8, step=(0.05, 0.0, 0.0), world=corridor, wheel_scale=1.3)]
+    for r in results[1:]:
+        assert r.constraint.degenerate_xy
+        assert abs(r.delta_base[0] - 0.065) < 1e-6, r.delta_base   # the wheels' 1.3 x 5 cm
+        assert abs(r.delta_base[1]) < 0.01 and abs(r.delta_base[2]) < math.radians(0.3)
 
 
 def test_deskew_with_motion_moves_each_point_to_the_frame_end():
