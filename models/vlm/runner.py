@@ -33,8 +33,9 @@ answer (no error) right after the backend's, where the backend ran (the worker t
 inline in settle in lockstep), before the answer is ready: the VPP stage prepares Phase II there
 (runtime.vpp.stage). An exception from it turns the answer into an error answer (named).
 
-Every answer carries the request's stamp and camera pose. `latency_s` of an answer: simulated
-in lockstep, the wall time from start to delivery-ready in real time.
+Every answer carries the request's stamp and camera pose, and `sent_s`, when the request went to
+the backend (after any wait behind the one before; None for a request never sent). `latency_s` of
+an answer: simulated in lockstep, the wall time from start to delivery-ready in real time.
 
 Counters: submitted (requests given to submit), replaced (waiting requests a newer one
 replaced, never sent), delivered (answers poll returned, errors included), failed (delivered
@@ -228,7 +229,7 @@ class BackendRunner:
         assert job.answer is not None
         self._emit(job.ready_s, dataclasses.replace(job.answer, stamp_s=job.request.stamp_s,
                                                     camera_pose_odom=job.request.camera_pose_odom,
-                                                    latency_s=self.latency_s))
+                                                    latency_s=self.latency_s, sent_s=job.start_s))
         self._in_flight = None
         if self._waiting is not None:
             nxt, self._waiting = self._waiting, None
@@ -247,13 +248,15 @@ class BackendRunner:
                 assert job.answer is not None
                 self._emit(now, dataclasses.replace(job.answer, stamp_s=job.request.stamp_s,
                                                     camera_pose_odom=job.request.camera_pose_odom,
-                                                    latency_s=max(job.finished_wall_s - job.start_s, self.latency_s)))
+                                                    latency_s=max(job.finished_wall_s - job.start_s, self.latency_s),
+                                                    sent_s=job.start_s))
             elif now - job.start_s >= self.config.timeout_s:
                 self.timed_out += 1
                 if job.thread is not None:
                     self._abandoned.append(job.thread)
-                self._emit(now, self._error(job.request, f"{self.name}: no answer within {self.config.timeout_s:g} s "
-                                                         "(abandoned)", now - job.start_s))
+                self._emit(now, dataclasses.replace(
+                    self._error(job.request, f"{self.name}: no answer within {self.config.timeout_s:g} s (abandoned)",
+                                now - job.start_s), sent_s=job.start_s))
             else:
                 return
             self._in_flight = None
