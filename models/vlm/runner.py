@@ -33,9 +33,11 @@ answer (no error) right after the backend's, where the backend ran (the worker t
 inline in settle in lockstep), before the answer is ready: the VPP stage prepares Phase II there
 (runtime.vpp.stage). An exception from it turns the answer into an error answer (named).
 
-Every answer carries the request's stamp and camera pose, and `sent_s`, when the request went to
-the backend (after any wait behind the one before; None for a request never sent). `latency_s` of
-an answer: simulated in lockstep, the wall time from start to delivery-ready in real time.
+Every answer carries the request's stamp and camera pose, `sent_s`, when the request went to the
+backend (after any wait behind the one before; None for a request never sent), and `answered_s`,
+when the answer was ready (in real time: the poll that delivers it), both on the runner's clock.
+`latency_s` of an answer: simulated in lockstep, the wall time from start to delivery-ready in
+real time.
 
 Counters: submitted (requests given to submit), replaced (waiting requests a newer one
 replaced, never sent), delivered (answers poll returned, errors included), failed (delivered
@@ -182,7 +184,7 @@ class BackendRunner:
         job.thread.start()
 
     def _emit(self, ready_s: float, answer: VlmAnswer) -> None:
-        self._done.append((ready_s, answer))
+        self._done.append((ready_s, dataclasses.replace(answer, answered_s=ready_s)))
 
     # -- the interface --------------------------------------------------------------------------
     def submit(self, request: VlmRequest, now_s: float | None = None) -> None:

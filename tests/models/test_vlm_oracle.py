@@ -257,10 +257,12 @@ def test_lockstep_one_in_flight_newest_waiting_replaces_older():
     r.submit(_req(0.2), now_s=0.25)  # waits
     r.submit(_req(0.4), now_s=0.45)  # replaces 0.2
     assert r.replaced == 1 and r.busy
-    assert [a.stamp_s for a in r.poll(1.0)] == [0.0]
-    # 0.4 starts when 0.0 is delivered (1.0), so it is delivered at 2.0.
+    (first,) = r.poll(1.0)
+    assert first.stamp_s == 0.0 and (first.sent_s, first.answered_s) == (0.0, 1.0)
+    # 0.4 starts when 0.0 is delivered (1.0), so it is delivered at 2.0: sent at 1.0, after its wait.
     assert r.poll(1.99) == []
-    assert [a.stamp_s for a in r.poll(2.0)] == [0.4]
+    (second,) = r.poll(2.5)
+    assert second.stamp_s == 0.4 and (second.sent_s, second.answered_s) == (1.0, 2.0)
     r.submit(_req(5.0), now_s=5.1)  # idle: starts at its submit time
     assert r.poll(6.09) == [] and [a.stamp_s for a in r.poll(6.1)] == [5.0]
     assert backend.asked == [0.0, 0.4, 5.0]  # 0.2 was never sent
