@@ -226,3 +226,53 @@ def test_the_loader_reads_or_refuses_any_tick_message_in_one_line(tmp_path_facto
         assert "\n" not in str(exc)
         return
     check_trace_format(chrome_trace(src)[0])
+
+
+def test_a_frame_recorded_as_it_arrived_shows_its_delivery_and_its_flow_starts_there(tmp_path):
+    """`dct run --record`: the receiver's tap stamps each raw frame on arrival; the tick that used
+    the frame names its start, which is the raw message's header stamp."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from runtime.config import load_controller_config
+    from runtime.io.recording import RunRecorder
+    from runtime.loop.telemetry import TickTelemetry
+    from tests.runtime.io.test_recording_inputs import _custom_msg
+
+    t0 = 1_760_000_000.25
+    out = tmp_path / "robot.mcap"
+    rec = RunRecorder(out)
+    scan = SimpleNamespace(stamp_s=t0, point_time_offsets_s=np.array([0.0, 0.098]), frame_duration_s=0.1)
+    snap = SimpleNamespace(t_s=t0, pose=SimpleNamespace(x_m=0.0, y_m=0.0, yaw_rad=0.0), scan=None,
+                           goal=SimpleNamespace(x_m=1.0, y_m=0.0, yaw_rad=0.0), points_fix=np.zeros((0, 2)),
+                           plan=None, reference_path=None, partition_frame=None, vlm_answers=0,
+                           vlm_last_answer_s=None, vlm_masks=(), inputs_delivered=0, icp_delivered=())
+    ctl = SimpleNamespace(snapshot=snap)
+    hook = rec.attach(ctl, load_controller_config(), {"clock": "wall"})
+    rec.sensor_tap(lambda: t0 + 0.13)("lidar", "/livox/lidar", "livox_ros_driver2/msg/CustomMsg", _custom_msg(t0), 1)
+    tel = TickTelemetry(capacity=8)
+    bus = rec.wrap_bus(SimpleNamespace(send=lambda msg, timeout=None: None), lambda: clock[0])
+    clock = [0.0]
+    for k in range(3):
+        row = tel.begin_tick()
+        row["tick"], row["scheduled_s"] = k, t0 + 0.1 + 0.05 * k
+        row["stage_s"][:] = 0.001
+        row["tick_s"], row["command_written_s"], row["command_latency_s"] = 0.0061, 0.0055, 0.0056
+        clock[0] = row["scheduled_s"] + 0.0055
+        bus.send(SimpleNamespace(arbitration_id=0x111, data=bytes(8)))
+        tel.commit_tick(row)
+        ctl.snapshot = SimpleNamespace(**{**vars(snap), "scan": scan if k == 1 else None, "inputs_delivered": 1})
+        hook(row)
+    rec.close()
+    src = load_trace_source(out)
+    assert src.lidar_arrivals == [(pytest.approx(t0, abs=1e-6), pytest.approx(t0 + 0.13))]
+    assert not any("lidar arrivals" in n for n in src.missing)
+    trace, summary = chrome_trace(src)
+    flows = check_trace_format(trace)
+    (frame,) = _x(trace, "lidar frame")
+    assert frame["args"]["arrival_s"] == pytest.approx(t0 + 0.13) and summary.counts["lidar arrivals"] == 1
+    (delivery,) = _x(trace, "delivery")
+    assert delivery["dur"] == pytest.approx(0.032e6, abs=1)  # the frame's last point -> arrival
+    (path,) = [evs for evs in flows.values() if evs[0]["name"] == "lidar -> 0x111"]
+    assert slice_at(trace, path[0])["name"] == "delivery" and slice_at(trace, path[-1])["args"]["tick"] == 1
