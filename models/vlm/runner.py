@@ -183,8 +183,9 @@ class BackendRunner:
         job.thread = threading.Thread(target=self._call, args=(job,), name="dct-vlm-backend", daemon=True)
         job.thread.start()
 
-    def _emit(self, ready_s: float, answer: VlmAnswer) -> None:
-        self._done.append((ready_s, dataclasses.replace(answer, answered_s=ready_s)))
+    def _emit(self, ready_s: float, answer: VlmAnswer, **changes) -> None:
+        """Queue an answer, ready at ready_s (one copy of it, with `changes` and its times)."""
+        self._done.append((ready_s, dataclasses.replace(answer, answered_s=ready_s, **changes)))
 
     # -- the interface --------------------------------------------------------------------------
     def submit(self, request: VlmRequest, now_s: float | None = None) -> None:
@@ -229,9 +230,8 @@ class BackendRunner:
             job.answer = self._error(job.request, f"{self.name}: no answer within the lockstep stall guard of "
                                                   f"{self.config.stall_guard_s:.0f} s wall time", self.latency_s)
         assert job.answer is not None
-        self._emit(job.ready_s, dataclasses.replace(job.answer, stamp_s=job.request.stamp_s,
-                                                    camera_pose_odom=job.request.camera_pose_odom,
-                                                    latency_s=self.latency_s, sent_s=job.start_s))
+        self._emit(job.ready_s, job.answer, stamp_s=job.request.stamp_s, camera_pose_odom=job.request.camera_pose_odom,
+                   latency_s=self.latency_s, sent_s=job.start_s)
         self._in_flight = None
         if self._waiting is not None:
             nxt, self._waiting = self._waiting, None
@@ -248,17 +248,14 @@ class BackendRunner:
             # came out a hair under the latency when the monotonic clock reads in the thousands)
             if job.done.is_set() and now - job.start_s >= self.latency_s:
                 assert job.answer is not None
-                self._emit(now, dataclasses.replace(job.answer, stamp_s=job.request.stamp_s,
-                                                    camera_pose_odom=job.request.camera_pose_odom,
-                                                    latency_s=max(job.finished_wall_s - job.start_s, self.latency_s),
-                                                    sent_s=job.start_s))
+                self._emit(now, job.answer, stamp_s=job.request.stamp_s, camera_pose_odom=job.request.camera_pose_odom,
+                           latency_s=max(job.finished_wall_s - job.start_s, self.latency_s), sent_s=job.start_s)
             elif now - job.start_s >= self.config.timeout_s:
                 self.timed_out += 1
                 if job.thread is not None:
                     self._abandoned.append(job.thread)
-                self._emit(now, dataclasses.replace(
-                    self._error(job.request, f"{self.name}: no answer within {self.config.timeout_s:g} s (abandoned)",
-                                now - job.start_s), sent_s=job.start_s))
+                self._emit(now, self._error(job.request, f"{self.name}: no answer within {self.config.timeout_s:g} s "
+                                                         "(abandoned)", now - job.start_s), sent_s=job.start_s)
             else:
                 return
             self._in_flight = None

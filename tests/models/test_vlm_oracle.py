@@ -347,8 +347,10 @@ def test_realtime_slow_backend_times_out_with_an_error_and_never_blocks_the_call
         assert not backend.release.is_set()
         assert first.stamp_s == 0.0 and first.objects == () and "no answer within 0.3 s" in first.error
         assert first.latency_s >= 0.3
+        assert first.answered_s - first.sent_s >= 0.3  # sent, abandoned after the timeout (wall clock)
         # The waiting request would need a thread, but the abandoned one still runs: it fails at once.
         assert second.stamp_s == 1.0 and second.objects == () and "backend hung" in second.error
+        assert second.sent_s is None and second.answered_s is not None  # never sent
         assert r.counters() == {"submitted": 2, "delivered": 2, "failed": 2, "timed_out": 1, "replaced": 0}
     finally:
         backend.release.set()
@@ -371,6 +373,8 @@ def test_realtime_oracle_answer_waits_for_its_latency_and_newest_replaces_waitin
     answers = _poll_until(r, n=2)
     assert [a.stamp_s for a in answers] == [0.0, 2.0]
     assert all(a.error is None and len(a.objects) == 5 and a.latency_s >= 0.2 for a in answers)
+    # Sent one after the other (the second once the first was answered), each answered after its latency.
+    assert all(a.answered_s - a.sent_s >= 0.2 for a in answers) and answers[1].sent_s >= answers[0].answered_s
     assert r.counters() == {"submitted": 3, "delivered": 2, "failed": 0, "timed_out": 0, "replaced": 1}
 
 
