@@ -1,8 +1,8 @@
 """A PNG timeline of a Chrome trace (runtime.app.reports.trace): one row per track, the slices as
 bars (nested ones narrower, on top), the flows as arrows, over a window of the run.
 
-For a picture without a trace viewer (Perfetto's UI needs the internet; chrome://tracing does not
-load a file without a click). Drawn from the trace's JSON alone, so it shows what a viewer would.
+For a picture without a trace viewer (Perfetto's UI needs the internet; headless Chromium does not
+open chrome://tracing). Drawn from the trace's JSON alone, so it shows what a viewer would.
 """
 from __future__ import annotations
 
@@ -11,6 +11,9 @@ import io
 #: Colours of the tick's stages and of each flow's kind; anything else by its track.
 STAGE_COLOURS = {"read": "#4c78a8", "odometry": "#f58518", "partition": "#54a24b", "planner": "#e45756",
                  "safety": "#72b7b2", "write": "#b279a2"}
+#: The nested slices of the other tracks, darker than their parent.
+PART_COLOURS = {"registration (worker)": "#a8470b", "backend": "#2e6b2a", "sweep": "#c9a227",
+                "delivery": "#7f6418"}
 TRACK_COLOURS = {"tick": "#d0d0d0", "slack": "#9d755d", "can": "#b279a2", "lidar": "#eeca3b", "icp": "#f58518",
                  "vlm": "#54a24b"}
 FLOW_COLOURS = {"lidar": "#1f77b4", "icp": "#d62728", "vlm": "#2ca02c"}
@@ -64,7 +67,7 @@ def render_png(trace: dict, window_us: tuple[float, float] | None = None, title:
             if e["ts"] + e["dur"] < w0 or e["ts"] > w1:
                 continue
             h = 0.8 * 0.6 ** depth
-            colour = STAGE_COLOURS.get(e["name"], TRACK_COLOURS.get(e.get("cat"), "#999999"))
+            colour = STAGE_COLOURS.get(e["name"]) or PART_COLOURS.get(e["name"]) or TRACK_COLOURS.get(e.get("cat"), "#999")
             ax.broken_barh([((e["ts"] - w0) / 1e3, max(e["dur"] / 1e3, (w1 - w0) / 1e3 * 1e-3))],
                            (row[tid] - h / 2, h), facecolors=colour, edgecolors="#333333", linewidth=0.3)
     flows: dict[int, list[dict]] = {}

@@ -5,6 +5,10 @@ Each record kind (a tuple whose first item names it: "tick", "can", "points", "p
 has a generator of its `(topic, log time, message)` triples, in the order they are written;
 `messages_of(item, stages)` picks it. The mask image of a VPP answer (`mask_label_image`,
 `png_bytes`) is painted here too, on the writer thread.
+
+What a trace of the run needs (runtime.app.reports.trace) rides on these: a tick's lidar frame
+start and end, where in the tick its command was written and its slack work began; each ICP
+result's frame and compute time (/dct/inputs); each CAN frame's send time (/dct/can).
 """
 from __future__ import annotations
 
