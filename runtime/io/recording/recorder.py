@@ -273,8 +273,7 @@ class RunRecorder:
                 pose, scan = snap.pose, snap.scan
                 xyyaw = (float(pose.x_m), float(pose.y_m), float(pose.yaw_rad))
             if scan is not None:
-                offs = scan.point_time_offsets_s
-                stamp = float(scan.stamp_s)
+                offs, stamp = scan.point_time_offsets_s, float(scan.stamp_s)
                 frame = (stamp, stamp + (float(offs.max()) if len(offs) else float(scan.frame_duration_s)))
             put("tick", ("tick", row.copy(), xyyaw, frame, _tick_inputs(snap)))
             stamp = snap.vlm_last_answer_s if snap is not None else None
