@@ -79,6 +79,10 @@ class VlmAnswer:
     latency_s: float  # request sent -> answer ready (wall clock, or simulated in lockstep)
     error: str | None = None  # the backend failed (down, timeout, garbage): no objects
     rejected: tuple[str, ...] = field(default_factory=tuple)  # why objects were dropped
+    #: When the request went to the backend and when its answer was ready, on the runner's clock
+    #: (simulated in lockstep, else time.monotonic); None: not sent (answered: not through a runner).
+    sent_s: float | None = None
+    answered_s: float | None = None
 
 
 class VlmBackend(Protocol):

@@ -33,8 +33,11 @@ answer (no error) right after the backend's, where the backend ran (the worker t
 inline in settle in lockstep), before the answer is ready: the VPP stage prepares Phase II there
 (runtime.vpp.stage). An exception from it turns the answer into an error answer (named).
 
-Every answer carries the request's stamp and camera pose. `latency_s` of an answer: simulated
-in lockstep, the wall time from start to delivery-ready in real time.
+Every answer carries the request's stamp and camera pose, `sent_s`, when the request went to the
+backend (after any wait behind the one before; None for a request never sent), and `answered_s`,
+when the answer was ready (in real time: the poll that delivers it), both on the runner's clock.
+`latency_s` of an answer: simulated in lockstep, the wall time from start to delivery-ready in
+real time.
 
 Counters: submitted (requests given to submit), replaced (waiting requests a newer one
 replaced, never sent), delivered (answers poll returned, errors included), failed (delivered
@@ -180,8 +183,9 @@ class BackendRunner:
         job.thread = threading.Thread(target=self._call, args=(job,), name="dct-vlm-backend", daemon=True)
         job.thread.start()
 
-    def _emit(self, ready_s: float, answer: VlmAnswer) -> None:
-        self._done.append((ready_s, answer))
+    def _emit(self, ready_s: float, answer: VlmAnswer, **changes) -> None:
+        """Queue an answer, ready at ready_s (one copy of it, with `changes` and its times)."""
+        self._done.append((ready_s, dataclasses.replace(answer, answered_s=ready_s, **changes)))
 
     # -- the interface --------------------------------------------------------------------------
     def submit(self, request: VlmRequest, now_s: float | None = None) -> None:
@@ -226,9 +230,8 @@ class BackendRunner:
             job.answer = self._error(job.request, f"{self.name}: no answer within the lockstep stall guard of "
                                                   f"{self.config.stall_guard_s:.0f} s wall time", self.latency_s)
         assert job.answer is not None
-        self._emit(job.ready_s, dataclasses.replace(job.answer, stamp_s=job.request.stamp_s,
-                                                    camera_pose_odom=job.request.camera_pose_odom,
-                                                    latency_s=self.latency_s))
+        self._emit(job.ready_s, job.answer, stamp_s=job.request.stamp_s, camera_pose_odom=job.request.camera_pose_odom,
+                   latency_s=self.latency_s, sent_s=job.start_s)
         self._in_flight = None
         if self._waiting is not None:
             nxt, self._waiting = self._waiting, None
@@ -245,15 +248,14 @@ class BackendRunner:
             # came out a hair under the latency when the monotonic clock reads in the thousands)
             if job.done.is_set() and now - job.start_s >= self.latency_s:
                 assert job.answer is not None
-                self._emit(now, dataclasses.replace(job.answer, stamp_s=job.request.stamp_s,
-                                                    camera_pose_odom=job.request.camera_pose_odom,
-                                                    latency_s=max(job.finished_wall_s - job.start_s, self.latency_s)))
+                self._emit(now, job.answer, stamp_s=job.request.stamp_s, camera_pose_odom=job.request.camera_pose_odom,
+                           latency_s=max(job.finished_wall_s - job.start_s, self.latency_s), sent_s=job.start_s)
             elif now - job.start_s >= self.config.timeout_s:
                 self.timed_out += 1
                 if job.thread is not None:
                     self._abandoned.append(job.thread)
                 self._emit(now, self._error(job.request, f"{self.name}: no answer within {self.config.timeout_s:g} s "
-                                                         "(abandoned)", now - job.start_s))
+                                                         "(abandoned)", now - job.start_s), sent_s=job.start_s)
             else:
                 return
             self._in_flight = None

@@ -52,7 +52,8 @@ class ControllerSnapshot:
     #: no supervisor ran, e.g. before the first command).
     safety: str | None = None
     #: What this tick took in, for a replay (runtime.app.replay): the sensor data that had reached
-    #: the inbox (SensorSnapshot.delivered), and the ICP results it received, (seq, frame stamp) each.
+    #: the inbox (SensorSnapshot.delivered), and the ICP results it received (IcpResult each, immutable:
+    #: the job's seq, its frame's stamp, the worker's compute time).
     inputs_delivered: int = 0
     icp_delivered: tuple = ()
     #: (reason, since_s) once the partition fell back to all-fixed (a calibration mismatch); None before.

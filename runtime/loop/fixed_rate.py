@@ -91,6 +91,10 @@ class StageClock:
     def elapsed_s(self) -> float:
         return (time.perf_counter_ns() - self._t0_ns) * 1e-9
 
+    def offset_s(self, t_ns: int) -> float:
+        """A perf_counter_ns reading as seconds after this tick's start."""
+        return (t_ns - self._t0_ns) * 1e-9
+
 
 class LoopControlled(Protocol):
     """What the loop drives: one tick per period and keep-alive writes in between."""
@@ -214,6 +218,8 @@ class FixedRateLoop:
         row["command_latency_s"] = latency
         missed = latency > self.command_deadline_s
         row["deadline_missed"] = missed
+        if stages.write_done_loop_s is not None:
+            row["command_written_s"] = stages.write_done_s
         wall_latency = (lateness if self.wall_clock_loop else 0.0) + stages.write_done_s
         row["wall_command_latency_s"] = wall_latency
         row["wall_deadline_missed"] = wall_latency > self.command_deadline_s
@@ -229,6 +235,7 @@ class FixedRateLoop:
             w0 = time.perf_counter_ns()
             if slack_work():
                 row["slack_work_s"] = (time.perf_counter_ns() - w0) * 1e-9
+                row["slack_work_start_s"] = self.stage_clock.offset_s(w0)
                 telemetry.slack_work_runs += 1
         else:
             self._postponed_in_row += 1

@@ -25,6 +25,10 @@ def tick_record_dtype(n_stages: int) -> np.dtype:
             ("stage_s", np.float64, (n_stages,)),  # duration of each stage (monotonic clock)
             ("tick_s", np.float64),  # whole tick: start of read() to end of write()
             ("slack_work_s", np.float64),  # work deferred to the slack after write() (replans); not in tick_s
+            # Where in the tick (wall clock, seconds after its start; NaN: did not happen): the
+            # command written, the slack work started. The stages start where the one before ended.
+            ("command_written_s", np.float64),
+            ("slack_work_start_s", np.float64),
             ("command_latency_s", np.float64),  # scheduled start -> command written (loop clock)
             ("overrun_mask", np.uint32),  # bit i set: stage i exceeded its budget (wall clock)
             ("deadline_missed", np.bool_),  # judged on the loop clock: what the controller acts on
@@ -80,6 +84,8 @@ class TickTelemetry:
         row["wall_deadline_missed"] = False
         row["wall_command_latency_s"] = 0.0
         row["slack_work_s"] = 0.0
+        row["command_written_s"] = np.nan
+        row["slack_work_start_s"] = np.nan
         return row
 
     def commit_tick(self, row: np.void) -> None:

@@ -25,7 +25,7 @@ from runtime.common.events import EventLog
 from runtime.common.geometry import Pose2D
 from runtime.odometry.degeneracy import DegeneracyConfig
 from runtime.odometry.fusion import FusionConfig, PoseFusion
-from runtime.odometry.icp import IcpEngine, IcpJob
+from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult
 from runtime.odometry.icp_config import IcpConfig
 from runtime.odometry.icp_settings import RangeGate
 from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse
@@ -94,9 +94,10 @@ class OdometryStage:
         #: apply it to anything placed in the odom frame with the pose before it.
         self.correction: np.ndarray | None = None
         self.frames_submitted = 0
-        #: The ICP results this tick fused or refused, (job seq, frame stamp) each: a recording notes
-        #: them per tick, so that a replay delivers each at the tick it came live (runtime.app.replay).
-        self.delivered: tuple[tuple[int, float], ...] = ()
+        #: The ICP results this tick fused or refused (IcpResult, immutable): a recording notes each
+        #: one's seq and frame stamp per tick, so that a replay delivers it at the tick it came live
+        #: (runtime.app.replay), and its compute time, for a trace.
+        self.delivered: tuple[IcpResult, ...] = ()
         self.compute_ms: deque[float] = deque(maxlen=4000)  # wall clock: measurements only
         self.latency_ms: deque[float] = deque(maxlen=4000)
         #: The worker's counters, kept when it is closed (reports are taken after the run).
@@ -170,7 +171,7 @@ class OdometryStage:
             if good_scan is not None:
                 self._submit(good_scan)
             results = self.worker.poll(now_s)
-            self.delivered = tuple((r.seq, r.stamp_s) for r in results)
+            self.delivered = tuple(results)
             if results:
                 before, _ = fusion.pose_now(d_now, now_s)
                 for result in results:

@@ -257,10 +257,12 @@ def test_lockstep_one_in_flight_newest_waiting_replaces_older():
     r.submit(_req(0.2), now_s=0.25)  # waits
     r.submit(_req(0.4), now_s=0.45)  # replaces 0.2
     assert r.replaced == 1 and r.busy
-    assert [a.stamp_s for a in r.poll(1.0)] == [0.0]
-    # 0.4 starts when 0.0 is delivered (1.0), so it is delivered at 2.0.
+    (first,) = r.poll(1.0)
+    assert first.stamp_s == 0.0 and (first.sent_s, first.answered_s) == (0.0, 1.0)
+    # 0.4 starts when 0.0 is delivered (1.0), so it is delivered at 2.0: sent at 1.0, after its wait.
     assert r.poll(1.99) == []
-    assert [a.stamp_s for a in r.poll(2.0)] == [0.4]
+    (second,) = r.poll(2.5)
+    assert second.stamp_s == 0.4 and (second.sent_s, second.answered_s) == (1.0, 2.0)
     r.submit(_req(5.0), now_s=5.1)  # idle: starts at its submit time
     assert r.poll(6.09) == [] and [a.stamp_s for a in r.poll(6.1)] == [5.0]
     assert backend.asked == [0.0, 0.4, 5.0]  # 0.2 was never sent
@@ -345,8 +347,10 @@ def test_realtime_slow_backend_times_out_with_an_error_and_never_blocks_the_call
         assert not backend.release.is_set()
         assert first.stamp_s == 0.0 and first.objects == () and "no answer within 0.3 s" in first.error
         assert first.latency_s >= 0.3
+        assert first.answered_s - first.sent_s >= 0.3  # sent, abandoned after the timeout (wall clock)
         # The waiting request would need a thread, but the abandoned one still runs: it fails at once.
         assert second.stamp_s == 1.0 and second.objects == () and "backend hung" in second.error
+        assert second.sent_s is None and second.answered_s is not None  # never sent
         assert r.counters() == {"submitted": 2, "delivered": 2, "failed": 2, "timed_out": 1, "replaced": 0}
     finally:
         backend.release.set()
@@ -369,6 +373,8 @@ def test_realtime_oracle_answer_waits_for_its_latency_and_newest_replaces_waitin
     answers = _poll_until(r, n=2)
     assert [a.stamp_s for a in answers] == [0.0, 2.0]
     assert all(a.error is None and len(a.objects) == 5 and a.latency_s >= 0.2 for a in answers)
+    # Sent one after the other (the second once the first was answered), each answered after its latency.
+    assert all(a.answered_s - a.sent_s >= 0.2 for a in answers) and answers[1].sent_s >= answers[0].answered_s
     assert r.counters() == {"submitted": 3, "delivered": 2, "failed": 0, "timed_out": 0, "replaced": 1}
 
 

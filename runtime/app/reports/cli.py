@@ -1,5 +1,6 @@
-"""`dct report latency RUN.mcap`: the latency report of a recorded run (HTML and JSON);
-`dct report results`: a results page from benchmarks' JSON."""
+"""`dct report latency RUN.mcap`: the latency report of a recorded run (HTML and JSON) and its
+trace (Chrome trace-event JSON, a PNG timeline); `dct report results`: a results page from
+benchmarks' JSON."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -27,9 +28,15 @@ def report_group() -> None:
                    "image_to_mask_ms, threads).")
 @click.option("--compare", "compare_path", type=click.Path(dir_okay=False, path_type=Path),
               help="A second recording to put beside RUN (before and after a change).")
-@click.option("--force", is_flag=True, help="Overwrite existing --html / --json files.")
+@click.option("--trace", "trace_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write RUN as Chrome trace-event JSON (Perfetto, chrome://tracing): each stage of each tick, "
+                   "the slack work, each 0x111 write, lidar frames, ICP registrations and VLM requests on tracks "
+                   "of their own, flows from a lidar frame to the 0x111 that used it.")
+@click.option("--trace-png", "trace_png_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Draw that trace as a PNG timeline (0.6 s from the first lidar -> ICP -> 0x111 flow).")
+@click.option("--force", is_flag=True, help="Overwrite existing --html / --json / --trace / --trace-png files.")
 def latency_command(*, run: Path, html_path: Path | None, json_path: Path | None, compare_path: Path | None,
-                    force: bool) -> None:
+                    trace_path: Path | None, trace_png_path: Path | None, force: bool) -> None:
     """Per-stage p50/p90/p99/p99.9/max against the budgets recorded with RUN, the whole tick, period
     jitter, deadline misses with their context, sensor-to-command latency. Prints a summary; exit
     status 2 on bad input (a file that is not a recording, an existing output without --force)."""
@@ -37,13 +44,17 @@ def latency_command(*, run: Path, html_path: Path | None, json_path: Path | None
     from runtime.app.reports.latency import ReportInputError, latency_report, load_ticks
 
     inputs = [run] + ([compare_path] if compare_path is not None else [])
+    outputs = [(w, p) for w, p in (("--html", html_path), ("--json", json_path), ("--trace", trace_path),
+                                   ("--trace-png", trace_png_path)) if p is not None]
     try:
-        for what, p in (("--html", html_path), ("--json", json_path)):
-            if p is not None:
-                check_output_path(p, what=what, inputs=inputs, overwrite=force)
-        if html_path is not None and json_path is not None and html_path.resolve() == json_path.resolve():
-            raise InputError(f"--html and --json are the same file {html_path}")
+        for what, p in outputs:
+            check_output_path(p, what=what, inputs=inputs, overwrite=force)
+        for i, (what, p) in enumerate(outputs):
+            same = [w for w, q in outputs[i + 1:] if q.resolve() == p.resolve()]
+            if same:
+                raise InputError(f"{what} and {same[0]} are the same file {p}")
         data = [load_ticks(p) for p in inputs]
+        trace = _trace(run) if trace_path is not None or trace_png_path is not None else None
     except (OutputPathError, ReportInputError) as exc:
         raise InputError(str(exc)) from exc
     reports = [latency_report(d) for d in data]
@@ -62,6 +73,35 @@ def latency_command(*, run: Path, html_path: Path | None, json_path: Path | None
         atomic_write_text(html_path, page)
     for lab, rep in zip(labels, reports):
         click.echo(summary_text(lab, rep))
+    if trace is not None:
+        _write_trace(trace, run, trace_path, trace_png_path)
+
+
+def _trace(run: Path):
+    """RUN's trace and what it holds (ReportInputError for a malformed recording)."""
+    from runtime.app.reports.trace import chrome_trace
+    from runtime.app.reports.trace_data import load_trace_source
+
+    return chrome_trace(load_trace_source(run))
+
+
+def _write_trace(trace, run: Path, trace_path: Path | None, png_path: Path | None) -> None:
+    """Write the trace (compact JSON) and its PNG, each atomically, and say what they hold."""
+    import json
+
+    from calibration.outputs import atomic_write_bytes, atomic_write_text
+    from runtime.app.reports.trace import summary_lines
+
+    events, summary = trace
+    if trace_path is not None:
+        atomic_write_text(trace_path, json.dumps(events, separators=(",", ":"), allow_nan=False))
+        for line in summary_lines(summary, str(trace_path)):
+            click.echo(line)
+    if png_path is not None:
+        from runtime.app.reports.trace_png import render_png
+
+        atomic_write_bytes(png_path, render_png(events, title=f"{run.name}: tracks and flows"))
+        click.echo(f"trace timeline {png_path}")
 
 
 def summary_text(label: str, rep: dict) -> str:

@@ -2,8 +2,8 @@
 
 One message per tick that received answers (models.vlm.runner.BackendRunner.poll, as the stage took
 them: validated, post-processed, failures included): the tick, the controller's clock at it, and
-each answer in full (the request's image stamp and camera pose, the objects with their masks, the
-error of a failed one). `dct replay` delivers them again at the same ticks (runtime.app.replay.vlm).
+each answer in full (the request's image stamp and camera pose, when the request went to the
+backend and when its answer was ready, the objects with their masks, the error of a failed one). `dct replay` delivers them again at the same ticks (runtime.app.replay.vlm).
 
 Masks are stored bit-packed (numpy packbits, row-major), zlib-compressed, base64; every float as
 JSON writes it (repr: read back exactly). `answer_from_json` validates what it reads where it
@@ -42,6 +42,10 @@ SCHEMA = {
             "stamp_s": {**_NUM, "description": "capture stamp of the request's image"},
             "camera_pose_odom": {"type": "array", "items": _NUM, "description": "T_odom_camera, 16 row-major"},
             "backend": {"type": "string"}, "latency_s": _NUM, "error": {"type": ["string", "null"]},
+            "sent_s": {"type": ["number", "null"], "description": "when the request went to the backend (the "
+                                                                  "runner's clock; null: not sent, or unknown)"},
+            "answered_s": {"type": ["number", "null"], "description": "when the answer was ready (the runner's "
+                                                                      "clock; null: unknown)"},
             "rejected": {"type": "array", "items": {"type": "string"}},
             "objects": {"type": "array", "items": _OBJECT}}}},
     },
@@ -65,6 +69,8 @@ def answer_json(answer: VlmAnswer) -> dict:
         "camera_pose_odom": [float(v) for v in np.asarray(answer.camera_pose_odom, float).reshape(-1)],
         "backend": str(answer.backend), "latency_s": float(answer.latency_s),
         "error": None if answer.error is None else str(answer.error),
+        "sent_s": None if answer.sent_s is None else float(answer.sent_s),
+        "answered_s": None if answer.answered_s is None else float(answer.answered_s),
         "rejected": [str(r) for r in answer.rejected],
         "objects": [{"mask": _mask_json(o.mask), "label": o.label, "movable": bool(o.movable),
                      "contact_cost": float(o.contact_cost), "confidence": float(o.confidence),
@@ -118,6 +124,14 @@ def _object(d, where: str) -> DetectedObject:
         raise RecordedAnswerError(str(exc)) from None
 
 
+def _optional_time(d: dict, key: str, where: str) -> float | None:
+    """A time that recordings made before it was recorded lack: None there, else a finite number."""
+    v = d.get(key)
+    if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v)):
+        raise _fail(where, key, f"expected a finite number or null, got {v!r}"[:200])
+    return None if v is None else float(v)
+
+
 def answer_from_json(d, where: str = "") -> VlmAnswer:
     """The VlmAnswer a message's entry holds (validated: RecordedAnswerError)."""
     stamp = float(_field(d, "stamp_s", (int, float), where))
@@ -128,6 +142,7 @@ def answer_from_json(d, where: str = "") -> VlmAnswer:
     error = d.get("error")
     if error is not None and not isinstance(error, str):
         raise _fail(where, "error", f"expected a string or null, got {type(error).__name__}")
+    sent, answered = _optional_time(d, "sent_s", where), _optional_time(d, "answered_s", where)
     rejected = _field(d, "rejected", (list,), where)
     if not all(isinstance(r, str) for r in rejected):
         raise _fail(where, "rejected", "expected strings")
@@ -144,7 +159,7 @@ def answer_from_json(d, where: str = "") -> VlmAnswer:
     return VlmAnswer(stamp_s=stamp, camera_pose_odom=np.array(pose, float).reshape(4, 4), objects=tuple(objs),
                      backend=_field(d, "backend", (str,), where),
                      latency_s=float(_field(d, "latency_s", (int, float), where)), error=error,
-                     rejected=tuple(rejected))
+                     rejected=tuple(rejected), sent_s=sent, answered_s=answered)
 
 
 __all__ = ["SCHEMA", "TOPIC", "RecordedAnswerError", "answer_from_json", "answer_json"]

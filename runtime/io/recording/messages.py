@@ -5,6 +5,10 @@ Each record kind (a tuple whose first item names it: "tick", "can", "points", "p
 has a generator of its `(topic, log time, message)` triples, in the order they are written;
 `messages_of(item, stages)` picks it. The mask image of a VPP answer (`mask_label_image`,
 `png_bytes`) is painted here too, on the writer thread.
+
+What a trace of the run needs (runtime.app.reports.trace) rides on these: a tick's lidar frame
+start and end, where in the tick its command was written and its slack work began; each ICP
+result's frame and compute time (/dct/inputs); each CAN frame's send time (/dct/can).
 """
 from __future__ import annotations
 
@@ -79,10 +83,11 @@ def png_bytes(rgb: np.ndarray) -> bytes:
 def tick_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
     """/dct/tick from a tick's telemetry row, the pose when the controller had one, and what the
     tick took in (/dct/inputs) when the controller published a snapshot."""
-    _, r, xyyaw, frame_end, inputs = item
+    _, r, xyyaw, frame, inputs = item
     t = float(r["scheduled_s"])
     mask = int(r["overrun_mask"])
     cmd_t = t + float(r["command_latency_s"])
+    frame_stamp, frame_end = frame if frame is not None else (None, None)
     msg = {
         "timestamp": stamp(t),
         "tick": int(r["tick"]),
@@ -99,8 +104,11 @@ def tick_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
         "state": _STATE_NAMES.get(int(r["state"]), str(int(r["state"]))),
         "v_cmd_mps": _finite(float(r["v_cmd_mps"])),
         "omega_cmd_radps": _finite(float(r["omega_cmd_radps"])),
+        "lidar_frame_stamp_s": frame_stamp,
         "lidar_frame_end_s": frame_end,
         "sensor_to_command_ms": (cmd_t - frame_end) * 1e3 if frame_end is not None else None,
+        "command_written_at_ms": _finite(float(r["command_written_s"]) * 1e3),
+        "slack_work_start_at_ms": _finite(float(r["slack_work_start_s"]) * 1e3),
     }
     yield S.TOPIC_TICK, t, msg
     if xyyaw is not None:
@@ -109,16 +117,25 @@ def tick_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
         now_s, samples, icp, goal = inputs
         yield S.TOPIC_INPUTS, t, {
             "timestamp": stamp(t), "tick": int(r["tick"]), "scheduled_s": t, "now_s": now_s,
-            "sensor_samples": samples, "icp_results": [{"seq": int(q), "stamp_s": float(s)} for q, s in icp],
+            "sensor_samples": samples, "icp_results": [_icp_result(res) for res in icp],
             "goal": {"x": goal[0], "y": goal[1], "yaw": goal[2]},
         }
 
 
+def _icp_result(res) -> dict:
+    """One ICP result a tick received: its job's number and frame (for a replay), and its timing
+    (for a trace): the frame's end and the worker's compute time."""
+    return {"seq": int(res.seq), "stamp_s": float(res.stamp_s), "end_s": float(res.end_s),
+            "compute_ms": float(res.compute_s) * 1e3,
+            "failed": res.error is not None}
+
+
 def can_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
     """/dct/can: one frame the driver sent or received."""
-    _, t, direction, can_id, data = item
+    _, t, direction, can_id, data, took_s = item
     yield S.TOPIC_CAN, t, {"timestamp": stamp(t), "direction": direction, "id": can_id,
-                           "id_hex": f"0x{can_id:03X}", "dlc": len(data), "data_hex": data.hex()}
+                           "id_hex": f"0x{can_id:03X}", "dlc": len(data), "data_hex": data.hex(),
+                           "send_us": None if took_s is None else float(took_s) * 1e6}
 
 
 def points_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:

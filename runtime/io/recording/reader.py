@@ -34,6 +34,9 @@ class Recording:
     topics: dict[str, str] = field(default_factory=dict)  # every channel: topic -> schema name
     complete: bool = False  # the footer was reached
     stopped_by: str | None = None  # why reading stopped before the footer (cut off, corrupt)
+    #: stream -> [(log_time_ns, publish_time_ns)] of the raw sensor channels asked for by their
+    #: stream name (raw_inputs.STREAM_KEY), not decoded: when each sample arrived, its header stamp.
+    stream_times: dict[str, list[tuple[int, int]]] = field(default_factory=dict)
 
     def run_info(self) -> dict:
         """The run's description written at record time (stages, budgets, config), decoded."""
@@ -53,8 +56,13 @@ class Recording:
         return {k: json.loads(v) for k, v in meta.items()}
 
 
-def read_recording(path: str | Path, topics: Iterable[str] | None = None) -> Recording:
-    """All messages of `topics` (None: all) and the file's metadata, up to the last complete chunk."""
+def read_recording(path: str | Path, topics: Iterable[str] | None = None,
+                   stream_times: Iterable[str] = ()) -> Recording:
+    """All messages of `topics` (None: all) and the file's metadata, up to the last complete chunk;
+    for the raw sensor streams named in `stream_times` (e.g. "lidar") only each sample's log and
+    publish time (Recording.stream_times), in the same pass."""
+    from runtime.io.recording.raw_inputs import STREAM_KEY
+
     from mcap.records import Channel, Footer, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
@@ -69,6 +77,8 @@ def read_recording(path: str | Path, topics: Iterable[str] | None = None) -> Rec
         f.seek(0)
         schemas: dict[int, str] = {}
         channels: dict[int, tuple[str, Callable[[bytes], Any]]] = {}
+        timed = set(stream_times)
+        times_of: dict[int, list[tuple[int, int]]] = {}  # channel id -> its stream's list
         reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 30)
         try:
             for record in reader.records:
@@ -78,7 +88,13 @@ def read_recording(path: str | Path, topics: Iterable[str] | None = None) -> Rec
                     schema = schemas.get(record.schema_id, "")
                     channels[record.id] = (record.topic, _decoder(record.message_encoding, schema))
                     rec.topics[record.topic] = schema
+                    stream = (record.metadata or {}).get(STREAM_KEY)
+                    if stream in timed:
+                        times_of[record.id] = rec.stream_times.setdefault(stream, [])
                 elif isinstance(record, Message):
+                    if record.channel_id in times_of:
+                        times_of[record.channel_id].append((record.log_time, record.publish_time))
+                        continue
                     topic, decode = channels.get(record.channel_id, (None, None))
                     if topic is None or (wanted is not None and topic not in wanted):
                         continue

@@ -100,7 +100,8 @@ def thread_cpu_seconds(proc_root: str = "/proc") -> list[dict] | None:
 
 def _tick_inputs(snap) -> tuple | None:
     """What the tick took in, for /dct/inputs: (the controller's clock, the sensor samples its inbox
-    had counted, the ICP results it received, its goal); None without a ControllerSnapshot."""
+    had counted, the ICP results it received (IcpResult each, immutable: read on the writer thread),
+    its goal); None without a ControllerSnapshot."""
     if getattr(snap, "inputs_delivered", None) is None:
         return None
     g = snap.goal
@@ -267,14 +268,14 @@ class RunRecorder:
             if mounts is not None and self.ticks_seen == 1:  # never dropped, as the run's description
                 self._queue.append(("tf_static", float(row["scheduled_s"]), mounts))
             snap = getattr(controller, "snapshot", None)
-            xyyaw = frame_end = scan = None
+            xyyaw = frame = scan = None
             if snap is not None:
                 pose, scan = snap.pose, snap.scan
                 xyyaw = (float(pose.x_m), float(pose.y_m), float(pose.yaw_rad))
             if scan is not None:
-                offs = scan.point_time_offsets_s
-                frame_end = float(scan.stamp_s) + (float(offs.max()) if len(offs) else float(scan.frame_duration_s))
-            put("tick", ("tick", row.copy(), xyyaw, frame_end, _tick_inputs(snap)))
+                offs, stamp = scan.point_time_offsets_s, float(scan.stamp_s)
+                frame = (stamp, stamp + (float(offs.max()) if len(offs) else float(scan.frame_duration_s)))
+            put("tick", ("tick", row.copy(), xyyaw, frame, _tick_inputs(snap)))
             stamp = snap.vlm_last_answer_s if snap is not None else None
             if stamp is not None and stamp != self._last_answer_s:
                 self._last_answer_s = stamp
@@ -472,7 +473,8 @@ class RunRecorder:
 
 class RecordingBus:
     """Stands between a driver and its python-can bus and records each frame it passes (the
-    frame's id and bytes and the loop clock's time: a tuple appended to the recorder's queue)."""
+    frame's id and bytes, the loop clock's time and, for a frame sent, the wall-clock time send()
+    took: a tuple appended to the recorder's queue)."""
 
     def __init__(self, bus, recorder: RunRecorder, clock: Callable[[], float]) -> None:
         self._bus = bus
@@ -480,13 +482,15 @@ class RecordingBus:
         self._clock = clock
 
     def send(self, msg, timeout: float | None = None) -> None:
+        t0 = time.perf_counter()
         self._bus.send(msg, timeout)
-        self._recorder._put("can", ("can", self._clock(), "tx", int(msg.arbitration_id), bytes(msg.data)))
+        took = time.perf_counter() - t0  # wall clock in send(): the write's span in a trace
+        self._recorder._put("can", ("can", self._clock(), "tx", int(msg.arbitration_id), bytes(msg.data), took))
 
     def recv(self, timeout: float | None = None):
         msg = self._bus.recv(timeout)
         if msg is not None:
-            self._recorder._put("can", ("can", self._clock(), "rx", int(msg.arbitration_id), bytes(msg.data)))
+            self._recorder._put("can", ("can", self._clock(), "rx", int(msg.arbitration_id), bytes(msg.data), None))
         return msg
 
     def __getattr__(self, name: str):

@@ -61,8 +61,13 @@ def tick_schema(stages: tuple[str, ...]) -> dict:
             "state": {"type": "string"},
             "v_cmd_mps": _NUM,
             "omega_cmd_radps": _NUM,
+            "lidar_frame_stamp_s": {**_NUM_OR_NULL, "description": "start of the lidar frame this tick used (null: none)"},
             "lidar_frame_end_s": {**_NUM_OR_NULL, "description": "end of the lidar frame this tick used (null: none)"},
             "sensor_to_command_ms": {**_NUM_OR_NULL, "description": "lidar frame end -> this tick's command"},
+            "command_written_at_ms": {**_NUM_OR_NULL, "description": "wall clock, tick start -> the command "
+                                                                     "written (null: none written)"},
+            "slack_work_start_at_ms": {**_NUM_OR_NULL, "description": "wall clock, tick start -> the slack work's "
+                                                                      "start (null: none ran)"},
         },
     }
 
@@ -117,6 +122,7 @@ CAN_FRAME = {
         "id_hex": {"type": "string"},
         "dlc": {"type": "integer"},
         "data_hex": {"type": "string"},
+        "send_us": {**_NUM_OR_NULL, "description": "wall-clock microseconds send() took (null: received)"},
     },
 }
 
@@ -206,8 +212,10 @@ TICK_INPUTS = {
                            "description": "sensor samples (lidar, camera, IMU) that had reached the controller"},
         "icp_results": {
             "type": "array",
-            "description": "the ICP results this tick received: the job's number and its frame's stamp",
-            "items": {"type": "object", "properties": {"seq": {"type": "integer"}, "stamp_s": _NUM}},
+            "description": "the ICP results this tick received: the job's number, its frame's stamp and end, "
+                           "the worker's compute time (wall clock), whether the registration failed",
+            "items": {"type": "object", "properties": {"seq": {"type": "integer"}, "stamp_s": _NUM, "end_s": _NUM,
+                                                       "compute_ms": _NUM, "failed": {"type": "boolean"}}},
         },
         "goal": {"type": "object", "properties": {"x": _NUM, "y": _NUM, "yaw": _NUM},
                  "description": "the controller's goal in the odometry frame"},

@@ -32,7 +32,8 @@ def _answers(draw):
     return VlmAnswer(stamp_s=draw(_FLOAT), camera_pose_odom=np.array(draw(st.lists(_FLOAT, min_size=16, max_size=16)))
                      .reshape(4, 4), objects=tuple(objects), backend=draw(st.text(max_size=10)),
                      latency_s=draw(st.floats(0, 100)), error="down" if failed else None,
-                     rejected=tuple(draw(st.lists(st.text(max_size=10), max_size=2))))
+                     rejected=tuple(draw(st.lists(st.text(max_size=10), max_size=2))),
+                     sent_s=draw(st.none() | _FLOAT), answered_s=draw(st.none() | _FLOAT))
 
 
 @settings(max_examples=60, deadline=None)
@@ -41,6 +42,7 @@ def test_an_answer_reads_back_exactly(a):
     b = answer_from_json(json.loads(json.dumps(answer_json(a), allow_nan=False)))
     assert (b.stamp_s, b.backend, b.latency_s, b.error, b.rejected) == (a.stamp_s, a.backend, a.latency_s, a.error,
                                                                        a.rejected)
+    assert (b.sent_s, b.answered_s) == (a.sent_s, a.answered_s)
     assert np.array_equal(b.camera_pose_odom, a.camera_pose_odom)
     assert len(b.objects) == len(a.objects)
     for p, q in zip(a.objects, b.objects):
@@ -56,6 +58,13 @@ def _good() -> dict:
         DetectedObject(mask=mask, label="box", movable=True, contact_cost=1.0, confidence=0.5),)))
 
 
+def test_an_answer_recorded_before_its_send_time_was_kept_reads_without_it():
+    d = _good()
+    del d["sent_s"], d["answered_s"]
+    a = answer_from_json(d)
+    assert (a.sent_s, a.answered_s) == (None, None) and a.latency_s == 0.5
+
+
 @pytest.mark.parametrize("damage, field", [
     (lambda d: d.pop("stamp_s"), "stamp_s: missing"),
     (lambda d: d.update(latency_s="fast"), "latency_s: expected"),
@@ -66,6 +75,8 @@ def _good() -> dict:
     (lambda d: d["objects"][0]["mask"].update(bits_zlib_b64="%%%"), "mask.bits_zlib_b64: not base64"),
     (lambda d: d["objects"][0]["mask"].update(width=6), "mask.bits_zlib_b64: 2 bytes, a 6x3 mask packs into 3"),
     (lambda d: d["objects"][0]["mask"].update(height=0), "mask: size 5x0"),
+    (lambda d: d.update(sent_s="soon"), "sent_s: expected a finite number or null"),
+    (lambda d: d.update(answered_s=True), "answered_s: expected a finite number or null"),
 ])
 def test_a_damaged_answer_is_refused_naming_the_field(damage, field):
     d = _good()

@@ -262,12 +262,16 @@ def test_each_tick_records_what_it_took_in(tmp_path):
     rec = RunRecorder(out)
     hook = rec.attach(ctl, load_controller_config(), {"clock": "test"})
     for k, row in enumerate(_rows(4)):
+        result = SimpleNamespace(seq=k - 1, stamp_s=0.05 * k - 0.1, end_s=0.05 * k - 0.01, compute_s=0.012,
+                                 error=None if k != 2 else "diverged")
         ctl.snapshot = SimpleNamespace(**{**vars(ctl.snapshot), "t_s": 0.05 * k + 0.001, "inputs_delivered": 7 * k,
-                                          "icp_delivered": ((k - 1, 0.05 * k - 0.1),) if k else ()})
+                                          "icp_delivered": (result,) if k else ()})
         hook(row)
     rec.close()
     msgs = [m for _, m in read_recording(out).messages[S.TOPIC_INPUTS]]
     assert [m["sensor_samples"] for m in msgs] == [0, 7, 14, 21]
     assert msgs[2]["now_s"] == 0.101 and msgs[2]["scheduled_s"] == 0.1 and msgs[2]["tick"] == 2
-    assert msgs[0]["icp_results"] == [] and msgs[3]["icp_results"] == [{"seq": 2, "stamp_s": 0.05 * 3 - 0.1}]
+    assert msgs[0]["icp_results"] == [] and msgs[3]["icp_results"] == [
+        {"seq": 2, "stamp_s": 0.05 * 3 - 0.1, "end_s": 0.05 * 3 - 0.01, "compute_ms": 12.0, "failed": False}]
+    assert msgs[2]["icp_results"][0]["failed"] is True
     assert msgs[1]["goal"] == {"x": 5.0, "y": 0.0, "yaw": 0.0}

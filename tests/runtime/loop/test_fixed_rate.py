@@ -229,6 +229,10 @@ def test_slack_work_runs_after_write_outside_the_tick_time_and_waits_when_the_pe
     rec = tel.snapshot()
     assert (rec["slack_work_s"][[0, 1, 3]] >= 0.002).all() and rec["slack_work_s"][2] == 0.0
     assert (rec["tick_s"] < 0.002).all()  # the slack work is not in the tick's time
+    # Where in the tick (wall clock): the command within the tick, the slack work after it.
+    assert ((0.0 < rec["command_written_s"]) & (rec["command_written_s"] <= rec["tick_s"])).all()
+    starts = rec["slack_work_start_s"]
+    assert (starts[[0, 1, 3]] >= rec["tick_s"][[0, 1, 3]]).all() and np.isnan(starts[2])
     summary = tel.summary()["slack_work"]
     assert summary["ticks"] == summary["runs"] == 3 and summary["windows_skipped"] == 1
 
