@@ -54,11 +54,13 @@ def voxel_filter(points: np.ndarray, voxel_m: float, min_support_ratio: float = 
 def _to_now(q: np.ndarray, dt: np.ndarray, v_mps: float, omega_radps: float) -> np.ndarray:
     """(N, 3) points in base_link at their cast times (dt = cast time - now, <= 0) to base_link
     now, with a constant twist since: the yaw turned and the chord driven."""
-    yaw = omega_radps * dt
-    half = 0.5 * yaw
-    tx = v_mps * dt * np.cos(half)
-    ty = v_mps * dt * np.sin(half)
-    c, s = np.cos(yaw), np.sin(yaw)
+    # Two trigonometric calls per point, not four: the yaw's from its half (double-angle identities).
+    half = (0.5 * omega_radps) * dt
+    ch, sh = np.cos(half), np.sin(half)
+    vdt = v_mps * dt
+    tx, ty = vdt * ch, vdt * sh
+    c = 1.0 - 2.0 * sh * sh
+    s = 2.0 * sh * ch
     out = np.empty_like(q)
     out[:, 0] = c * q[:, 0] - s * q[:, 1] + tx
     out[:, 1] = s * q[:, 0] + c * q[:, 1] + ty
