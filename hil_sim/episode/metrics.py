@@ -41,6 +41,8 @@ CONTACT_RELEASE_S = 0.1
 #: physics steps (5 ms: 2.5 mm of travel at 0.5 m/s), and only below this distance.
 CLEARANCE_EVERY_STEPS = 5
 CLEARANCE_MAX_M = 0.5
+#: Slack on the bounding-sphere pruning of clearance pairs (beyond the distance solver's tolerance).
+_PRUNE_MARGIN_M = 0.01
 
 
 class EpisodeMetrics:
@@ -75,6 +77,16 @@ class EpisodeMetrics:
             (i, r, int(g)) for g in np.flatnonzero(self._geom_obstacle >= 0) for r in robot_shapes
             for i in [int(self._geom_obstacle[g])]
         ]
+        # Pruned by bounding spheres before mj_geomDistance: a pair whose spheres are more than
+        # CLEARANCE_MAX_M (+ a margin) apart would only return distmax, which the metrics cap anyway.
+        cols = np.array(self._clearance_pairs, dtype=np.int64).reshape(-1, 3)
+        self._clearance_robot, self._clearance_geom = cols[:, 1], cols[:, 2]
+        rbound = m.geom_rbound
+        reach = rbound[self._clearance_robot] + rbound[self._clearance_geom] + CLEARANCE_MAX_M + _PRUNE_MARGIN_M
+        # A plane has no bounding sphere (rbound 0): never pruned.
+        unbounded = (rbound[self._clearance_robot] <= 0.0) | (rbound[self._clearance_geom] <= 0.0)
+        self._clearance_reach2 = np.where(unbounded, math.inf, reach * reach)
+        #: Smallest clearance per obstacle (inf until one of its geoms came within CLEARANCE_MAX_M).
         self.min_clearance_m = np.full(n, math.inf)
         self.costs: np.ndarray = np.asarray(world.obstacle_costs, dtype=float).copy()
         # Fragile objects: their geoms, thresholds and damage state.
@@ -92,35 +104,51 @@ class EpisodeMetrics:
         self.damage_count = np.zeros(n, dtype=np.int64)
         self._over_since = np.full(n, -np.inf)  # last time the force was above the threshold
         self._force = np.zeros(6)
+        # Per geom: 1 robot, 2 obstacle, 0 anything else (the floor): a contact whose two codes
+        # OR to 3 is the robot against an obstacle (robot geoms are never obstacle geoms).
+        self._geom_code = np.where(self._is_robot_geom, 1, np.where(self._geom_obstacle >= 0, 2, 0)).astype(np.int8)
+        self._any_touching = False
 
     def robot_contacts(self, world: World) -> np.ndarray:
         """Boolean per obstacle: is the robot touching it now?"""
         touching = np.zeros(len(self.names), dtype=bool)
-        ncon = world.data.ncon
-        if ncon == 0:
-            return touching
-        geoms = world.data.contact.geom  # (ncon, 2)
-        g1, g2 = geoms[:, 0], geoms[:, 1]
-        r1, r2 = self._is_robot_geom[g1], self._is_robot_geom[g2]
-        o1, o2 = self._geom_obstacle[g1], self._geom_obstacle[g2]
-        hit = np.concatenate([o2[r1 & (o2 >= 0)], o1[r2 & (o1 >= 0)]])
-        touching[hit] = True
+        hit = self._touched_obstacles(world.data)
+        if hit is not None:
+            touching[hit] = True
         return touching
+
+    def _touched_obstacles(self, d: mujoco.MjData) -> np.ndarray | None:
+        """The obstacle of every robot-obstacle contact now (repeats possible); None if there is none.
+        The robot stands on the floor, so there are always contacts: keep the common case cheap."""
+        if d.ncon == 0:
+            return None
+        geoms = d.contact.geom  # (ncon, 2)
+        code = self._geom_code[geoms]
+        rows = np.flatnonzero((code[:, 0] | code[:, 1]) == 3)
+        if rows.size == 0:
+            return None
+        return self._geom_obstacle[geoms[rows]].max(axis=1)  # the robot's side is -1
 
     def update(self, world: World) -> None:
         """Call once after every physics step."""
         t = world.time_s
         dt = t - self._t_last
         self._t_last = t
-        now = self.robot_contacts(world)
-        released = (t - self._last_touch_s) > CONTACT_RELEASE_S
-        self.contact_count += now & ~self.touching & released
-        # Duration of an event includes its short gaps (flicker), not the final release.
-        gap = t - self._last_touch_s
-        self.contact_duration_s += np.where(now, np.where(released, dt, gap), 0.0)
-        self._last_touch_s = np.where(now, t, self._last_touch_s)
-        self.touching = now
-        x, y, _ = world.robot_pose()
+        hit = self._touched_obstacles(world.data)
+        if hit is not None or self._any_touching:
+            # (Touching nothing now or at the last step changes no count, duration or touch time.)
+            now = np.zeros(len(self.names), dtype=bool)
+            if hit is not None:
+                now[hit] = True
+            released = (t - self._last_touch_s) > CONTACT_RELEASE_S
+            self.contact_count += now & ~self.touching & released
+            # Duration of an event includes its short gaps (flicker), not the final release.
+            gap = t - self._last_touch_s
+            self.contact_duration_s += np.where(now, np.where(released, dt, gap), 0.0)
+            self._last_touch_s = np.where(now, t, self._last_touch_s)
+            self.touching = now
+            self._any_touching = hit is not None
+        x, y = world.robot_xy()
         hop = math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         if hop >= PATH_MIN_HOP_M:
             self.path_length_m += hop
@@ -177,7 +205,13 @@ class EpisodeMetrics:
 
     def _update_clearance(self, world: World) -> None:
         m, d, best = world.model, world.data, self.min_clearance_m
-        for i, robot_geom, obstacle_geom in self._clearance_pairs:
+        xpos = d.geom_xpos
+        diff = xpos[self._clearance_robot] - xpos[self._clearance_geom]
+        # ~(d2 > reach2): a NaN position (a diverged state) is not pruned, as before the pruning.
+        near = np.flatnonzero(~(np.einsum("ij,ij->i", diff, diff) > self._clearance_reach2))
+        pairs = self._clearance_pairs
+        for k in near.tolist():
+            i, robot_geom, obstacle_geom = pairs[k]
             dist = mujoco.mj_geomDistance(m, d, robot_geom, obstacle_geom, CLEARANCE_MAX_M, None)
             if dist < best[i]:
                 best[i] = dist
