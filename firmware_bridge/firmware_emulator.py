@@ -120,7 +120,8 @@ class EmulatedBaseFirmware:
 
         self._integral = np.zeros(4)
         self._at_limit_s = np.zeros(4)
-        self._motor_temp_rise = np.zeros(4)
+        self._motor_temp_rise = [0.0] * 4  # K above ambient, per motor
+        self._currents = [0.0] * 4  # last_currents_a as floats
         self._charge_used_ah = 0.0
         self._battery_current_a = QUIESCENT_CURRENT_A
         self._t_last: float | None = None
@@ -130,6 +131,7 @@ class EmulatedBaseFirmware:
         self._next_fast_s = 0.0
         self._next_slow_s = 0.0
         self._next_bms_s = 0.0
+        self._next_feedback_s = 0.0  # the earliest of the three: no feedback work before it
         self._count_211 = 0
 
     # ------------------------------------------------------------------------------------
@@ -162,12 +164,13 @@ class EmulatedBaseFirmware:
             raise FirmwareEmulatorError(
                 f"step: expected 4 wheel speeds and 4 wheel angles, got shapes {speeds.shape} and {angles.shape}"
             )
-        if not math.isfinite(float(speeds.sum()) + float(angles.sum()) + t_s):
+        speed_list = speeds.tolist()
+        if not math.isfinite(sum(speed_list) + sum(angles.tolist()) + t_s):
             raise FirmwareEmulatorError(f"step: non-finite input at t_s={t_s}")
         if self._t_last is None:
             dt = 0.0
             self._angles0 = angles.copy()
-            self._next_fast_s = self._next_slow_s = self._next_bms_s = t_s
+            self._next_fast_s = self._next_slow_s = self._next_bms_s = self._next_feedback_s = t_s
         else:
             dt = t_s - self._t_last
             if dt < 0.0:
@@ -178,9 +181,10 @@ class EmulatedBaseFirmware:
         self._read_bus(t_s)
         self._check_timeout(t_s)
         self._update_targets(dt)
-        torques = self._speed_loop(dt, speeds)
-        self._update_battery_and_thermal(dt, speeds)
-        self._send_feedback(t_s)
+        torques = self._speed_loop(dt, speed_list)
+        self._update_battery_and_thermal(dt, speed_list)
+        if t_s + 1e-9 >= self._next_feedback_s:
+            self._send_feedback(t_s)
         return torques
 
     # ------------------------------------------------------------------------------------
@@ -242,7 +246,7 @@ class EmulatedBaseFirmware:
         left, right = (v - half) / self._radius, (v + half) / self._radius
         self.wheel_targets_radps = np.array([right, left, left, right])
 
-    def _speed_loop(self, dt: float, speeds: np.ndarray) -> np.ndarray:
+    def _speed_loop(self, dt: float, speeds: list[float]) -> np.ndarray:
         # Plain floats, not numpy, for the 4 wheels of every physics step
         # (docs/decisions/can-emulator-plain-float-speed-loop.md).
         kp, ki, lim, ke, r_ohm, v = self._kp, self._ki, self._i_limit, self._ke, self._r_ohm, self._v_supply
@@ -250,7 +254,7 @@ class EmulatedBaseFirmware:
         currents = [0.0] * 4
         integral = self._integral
         at_limit = self._at_limit_s
-        for k, w in enumerate(speeds.tolist()):
+        for k, w in enumerate(speeds):
             error = targets[k] - w
             i_hi = min(lim, (v - ke * w) / r_ohm)
             i_lo = max(-lim, (-v - ke * w) / r_ohm)
@@ -265,21 +269,25 @@ class EmulatedBaseFirmware:
                 integral[k] = integ
             at_limit[k] = at_limit[k] + dt if abs(current) >= lim - 1e-9 else 0.0
             currents[k] = current
+        self._currents = currents
         self.last_currents_a = np.array(currents)
         self.last_torques_nm = self._kt * self.last_currents_a
         return self.last_torques_nm.copy()
 
-    def _update_battery_and_thermal(self, dt: float, speeds: np.ndarray) -> None:
+    def _update_battery_and_thermal(self, dt: float, speeds: list[float]) -> None:
+        # Plain floats as in the speed loop: the same IEEE operations, in the same order, as the
+        # element-wise numpy expressions they replace.
         ke, r_ohm = self._ke, self._r_ohm
         power_w = 0.0
-        for i, w in zip(self.last_currents_a.tolist(), speeds.tolist()):
+        for i, w in zip(self._currents, speeds):
             power_w += i * (ke * w + i * r_ohm)
         self._battery_current_a = QUIESCENT_CURRENT_A + max(power_w, 0.0) / self._v_supply
         self._charge_used_ah += self._battery_current_a * dt / 3600.0
         if dt > 0:
-            i = self.last_currents_a
-            target = MOTOR_THERMAL_RESISTANCE_K_PER_W * i * i * r_ohm
-            self._motor_temp_rise += (target - self._motor_temp_rise) * (dt / MOTOR_THERMAL_TIME_CONSTANT_S)
+            rise, gain = self._motor_temp_rise, dt / MOTOR_THERMAL_TIME_CONSTANT_S
+            for k, i in enumerate(self._currents):
+                target = MOTOR_THERMAL_RESISTANCE_K_PER_W * i * i * r_ohm
+                rise[k] = rise[k] + (target - rise[k]) * gain
 
     # ------------------------------------------------------------------------------------
     def _send(self, record: object, t_s: float) -> None:
@@ -346,6 +354,7 @@ class EmulatedBaseFirmware:
                 voltage_v=round(self.battery_voltage_v, 1), current_a=round(self._battery_current_a, 1),
                 temperature_c=AMBIENT_TEMP_C,
             ), t_s)
+        self._next_feedback_s = min(self._next_fast_s, self._next_slow_s, self._next_bms_s)
 
 
 def _clamp(x: float, lo: float, hi: float) -> float:
