@@ -102,9 +102,11 @@ class EmulatedBaseFirmware:
 
         self.control_mode: int = p.CONTROL_MODE_STANDBY
         self.error_code: int = 0
-        self.wheel_targets_radps = np.zeros(4)
-        self.last_currents_a = np.zeros(4)
-        self.last_torques_nm = np.zeros(4)
+        # Per-wheel state as plain float lists (FR, FL, RL, RR): the loop below runs every
+        # physics step; the arrays are made on demand (wheel_targets_radps, last_currents_a, ...).
+        self._targets = [0.0] * 4
+        self._currents = [0.0] * 4
+        self._torques = [0.0] * 4
         #: (linear_mps, angular_radps) last accepted from 0x111 (clamped) and after the ramp.
         self.commanded = (0.0, 0.0)
         self.ramped = (0.0, 0.0)
@@ -118,10 +120,9 @@ class EmulatedBaseFirmware:
         self.suppressed_frame_ids: set[int] = set()
         self.frames_suppressed = 0
 
-        self._integral = np.zeros(4)
-        self._at_limit_s = np.zeros(4)
+        self._integral = [0.0] * 4
+        self._at_limit_s = [0.0] * 4
         self._motor_temp_rise = [0.0] * 4  # K above ambient, per motor
-        self._currents = [0.0] * 4  # last_currents_a as floats
         self._charge_used_ah = 0.0
         self._battery_current_a = QUIESCENT_CURRENT_A
         self._t_last: float | None = None
@@ -139,6 +140,21 @@ class EmulatedBaseFirmware:
     def frames_rejected(self) -> int:
         """Frames the decoder refused (unknown id, wrong DLC, out-of-range value, ...)."""
         return self.decoder.errors_total
+
+    @property
+    def wheel_targets_radps(self) -> np.ndarray:
+        """The speed loop's wheel targets (rad/s, FR, FL, RL, RR) after the ramp."""
+        return np.array(self._targets)
+
+    @property
+    def last_currents_a(self) -> np.ndarray:
+        """The motor currents of the last step (A, FR, FL, RL, RR)."""
+        return np.array(self._currents)
+
+    @property
+    def last_torques_nm(self) -> np.ndarray:
+        """The motor torques of the last step (N m, FR, FL, RL, RR): kt * current."""
+        return np.array(self._torques)
 
     @property
     def comm_lost(self) -> bool:
@@ -223,7 +239,7 @@ class EmulatedBaseFirmware:
     def _stop_now(self) -> None:
         """Zero the targets at once (no ramp) and clear the speed-loop integrators."""
         if self.commanded != (0.0, 0.0) or self.ramped != (0.0, 0.0):
-            self._integral[:] = 0.0
+            self._integral[:] = [0.0] * 4
         self.commanded = (0.0, 0.0)
         self.ramped = (0.0, 0.0)
 
@@ -244,17 +260,19 @@ class EmulatedBaseFirmware:
         self.ramped = (v, w)
         half = 0.5 * w * self._track
         left, right = (v - half) / self._radius, (v + half) / self._radius
-        self.wheel_targets_radps = np.array([right, left, left, right])
+        self._targets = [right, left, left, right]
 
     def _speed_loop(self, dt: float, speeds: list[float]) -> np.ndarray:
         # Plain floats, not numpy, for the 4 wheels of every physics step
         # (docs/decisions/can-emulator-plain-float-speed-loop.md).
-        kp, ki, lim, ke, r_ohm, v = self._kp, self._ki, self._i_limit, self._ke, self._r_ohm, self._v_supply
-        targets = self.wheel_targets_radps.tolist()
+        kp, ki, lim, ke, r_ohm, v, kt = self._kp, self._ki, self._i_limit, self._ke, self._r_ohm, self._v_supply, self._kt
+        at_limit_current = lim - 1e-9
+        targets = self._targets
         currents = [0.0] * 4
         integral = self._integral
         at_limit = self._at_limit_s
-        for k, w in enumerate(speeds):
+        for k in range(4):
+            w = speeds[k]
             error = targets[k] - w
             i_hi = min(lim, (v - ke * w) / r_ohm)
             i_lo = max(-lim, (-v - ke * w) / r_ohm)
@@ -267,12 +285,11 @@ class EmulatedBaseFirmware:
             # the error would push it further into saturation.
             if current == i_cmd or (error > 0.0) != (i_cmd > current):
                 integral[k] = integ
-            at_limit[k] = at_limit[k] + dt if abs(current) >= lim - 1e-9 else 0.0
+            at_limit[k] = at_limit[k] + dt if abs(current) >= at_limit_current else 0.0
             currents[k] = current
         self._currents = currents
-        self.last_currents_a = np.array(currents)
-        self.last_torques_nm = self._kt * self.last_currents_a
-        return self.last_torques_nm.copy()
+        self._torques = torques = [kt * c for c in currents]
+        return np.array(torques)
 
     def _update_battery_and_thermal(self, dt: float, speeds: list[float]) -> None:
         # Plain floats as in the speed loop: the same IEEE operations, in the same order, as the
@@ -322,7 +339,7 @@ class EmulatedBaseFirmware:
                 self._send(p.ActuatorHighSpeed(
                     motor_index=k,
                     rpm=int(_clamp(round(rpm[k]), *_INT16)),
-                    current_a=round(_clamp(float(self.last_currents_a[k]), -3276.0, 3276.0), 1),
+                    current_a=round(_clamp(self._currents[k], -3276.0, 3276.0), 1),
                     pulse_count=_wrap_int32(int(math.floor(pulses[k]))),
                 ), t_s)
             dist = (self._angles - self._angles0) * self._radius
