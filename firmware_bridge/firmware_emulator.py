@@ -32,8 +32,8 @@ switching, and the choices made where the sources are silent):
 * Fault injection for HIL: `suppressed_frame_ids` holds feedback ids the firmware stops sending
   (a silent stream; counted in `frames_suppressed`).
 * Frames are decoded with `FrameDecoder`: a bad frame is counted (`frames_rejected`) and never
-  acted on. Feedback frames carry `timestamp = t_s` (a virtual bus created with
-  `preserve_timestamps=True` keeps it).
+  acted on. Feedback frames carry `timestamp = t_s` (the lockstep simulator's bus keeps it, as
+  does a virtual bus created with `preserve_timestamps=True`).
 """
 from __future__ import annotations
 
