@@ -32,8 +32,8 @@ switching, and the choices made where the sources are silent):
 * Fault injection for HIL: `suppressed_frame_ids` holds feedback ids the firmware stops sending
   (a silent stream; counted in `frames_suppressed`).
 * Frames are decoded with `FrameDecoder`: a bad frame is counted (`frames_rejected`) and never
-  acted on. Feedback frames carry `timestamp = t_s` (a virtual bus created with
-  `preserve_timestamps=True` keeps it).
+  acted on. Feedback frames carry `timestamp = t_s` (the lockstep simulator's bus keeps it, as
+  does a virtual bus created with `preserve_timestamps=True`).
 """
 from __future__ import annotations
 
@@ -102,9 +102,11 @@ class EmulatedBaseFirmware:
 
         self.control_mode: int = p.CONTROL_MODE_STANDBY
         self.error_code: int = 0
-        self.wheel_targets_radps = np.zeros(4)
-        self.last_currents_a = np.zeros(4)
-        self.last_torques_nm = np.zeros(4)
+        # Per-wheel state as plain float lists (FR, FL, RL, RR): the loop below runs every
+        # physics step; the arrays are made on demand (wheel_targets_radps, last_currents_a, ...).
+        self._targets = [0.0] * 4
+        self._currents = [0.0] * 4
+        self._torques = [0.0] * 4
         #: (linear_mps, angular_radps) last accepted from 0x111 (clamped) and after the ramp.
         self.commanded = (0.0, 0.0)
         self.ramped = (0.0, 0.0)
@@ -118,9 +120,9 @@ class EmulatedBaseFirmware:
         self.suppressed_frame_ids: set[int] = set()
         self.frames_suppressed = 0
 
-        self._integral = np.zeros(4)
-        self._at_limit_s = np.zeros(4)
-        self._motor_temp_rise = np.zeros(4)
+        self._integral = [0.0] * 4
+        self._at_limit_s = [0.0] * 4
+        self._motor_temp_rise = [0.0] * 4  # K above ambient, per motor
         self._charge_used_ah = 0.0
         self._battery_current_a = QUIESCENT_CURRENT_A
         self._t_last: float | None = None
@@ -130,6 +132,7 @@ class EmulatedBaseFirmware:
         self._next_fast_s = 0.0
         self._next_slow_s = 0.0
         self._next_bms_s = 0.0
+        self._next_feedback_s = 0.0  # the earliest of the three: no feedback work before it
         self._count_211 = 0
 
     # ------------------------------------------------------------------------------------
@@ -137,6 +140,21 @@ class EmulatedBaseFirmware:
     def frames_rejected(self) -> int:
         """Frames the decoder refused (unknown id, wrong DLC, out-of-range value, ...)."""
         return self.decoder.errors_total
+
+    @property
+    def wheel_targets_radps(self) -> np.ndarray:
+        """The speed loop's wheel targets (rad/s, FR, FL, RL, RR) after the ramp."""
+        return np.array(self._targets)
+
+    @property
+    def last_currents_a(self) -> np.ndarray:
+        """The motor currents of the last step (A, FR, FL, RL, RR)."""
+        return np.array(self._currents)
+
+    @property
+    def last_torques_nm(self) -> np.ndarray:
+        """The motor torques of the last step (N m, FR, FL, RL, RR): kt * current."""
+        return np.array(self._torques)
 
     @property
     def comm_lost(self) -> bool:
@@ -162,12 +180,13 @@ class EmulatedBaseFirmware:
             raise FirmwareEmulatorError(
                 f"step: expected 4 wheel speeds and 4 wheel angles, got shapes {speeds.shape} and {angles.shape}"
             )
-        if not math.isfinite(float(speeds.sum()) + float(angles.sum()) + t_s):
+        speed_list = speeds.tolist()
+        if not math.isfinite(sum(speed_list) + sum(angles.tolist()) + t_s):
             raise FirmwareEmulatorError(f"step: non-finite input at t_s={t_s}")
         if self._t_last is None:
             dt = 0.0
             self._angles0 = angles.copy()
-            self._next_fast_s = self._next_slow_s = self._next_bms_s = t_s
+            self._next_fast_s = self._next_slow_s = self._next_bms_s = self._next_feedback_s = t_s
         else:
             dt = t_s - self._t_last
             if dt < 0.0:
@@ -178,9 +197,10 @@ class EmulatedBaseFirmware:
         self._read_bus(t_s)
         self._check_timeout(t_s)
         self._update_targets(dt)
-        torques = self._speed_loop(dt, speeds)
-        self._update_battery_and_thermal(dt, speeds)
-        self._send_feedback(t_s)
+        torques = self._speed_loop(dt, speed_list)
+        self._update_battery_and_thermal(dt, speed_list)
+        if t_s + 1e-9 >= self._next_feedback_s:
+            self._send_feedback(t_s)
         return torques
 
     # ------------------------------------------------------------------------------------
@@ -219,7 +239,7 @@ class EmulatedBaseFirmware:
     def _stop_now(self) -> None:
         """Zero the targets at once (no ramp) and clear the speed-loop integrators."""
         if self.commanded != (0.0, 0.0) or self.ramped != (0.0, 0.0):
-            self._integral[:] = 0.0
+            self._integral[:] = [0.0] * 4
         self.commanded = (0.0, 0.0)
         self.ramped = (0.0, 0.0)
 
@@ -240,17 +260,19 @@ class EmulatedBaseFirmware:
         self.ramped = (v, w)
         half = 0.5 * w * self._track
         left, right = (v - half) / self._radius, (v + half) / self._radius
-        self.wheel_targets_radps = np.array([right, left, left, right])
+        self._targets = [right, left, left, right]
 
-    def _speed_loop(self, dt: float, speeds: np.ndarray) -> np.ndarray:
+    def _speed_loop(self, dt: float, speeds: list[float]) -> np.ndarray:
         # Plain floats, not numpy, for the 4 wheels of every physics step
         # (docs/decisions/can-emulator-plain-float-speed-loop.md).
-        kp, ki, lim, ke, r_ohm, v = self._kp, self._ki, self._i_limit, self._ke, self._r_ohm, self._v_supply
-        targets = self.wheel_targets_radps.tolist()
+        kp, ki, lim, ke, r_ohm, v, kt = self._kp, self._ki, self._i_limit, self._ke, self._r_ohm, self._v_supply, self._kt
+        at_limit_current = lim - 1e-9
+        targets = self._targets
         currents = [0.0] * 4
         integral = self._integral
         at_limit = self._at_limit_s
-        for k, w in enumerate(speeds.tolist()):
+        for k in range(4):
+            w = speeds[k]
             error = targets[k] - w
             i_hi = min(lim, (v - ke * w) / r_ohm)
             i_lo = max(-lim, (-v - ke * w) / r_ohm)
@@ -263,23 +285,26 @@ class EmulatedBaseFirmware:
             # the error would push it further into saturation.
             if current == i_cmd or (error > 0.0) != (i_cmd > current):
                 integral[k] = integ
-            at_limit[k] = at_limit[k] + dt if abs(current) >= lim - 1e-9 else 0.0
+            at_limit[k] = at_limit[k] + dt if abs(current) >= at_limit_current else 0.0
             currents[k] = current
-        self.last_currents_a = np.array(currents)
-        self.last_torques_nm = self._kt * self.last_currents_a
-        return self.last_torques_nm.copy()
+        self._currents = currents
+        self._torques = torques = [kt * c for c in currents]
+        return np.array(torques)
 
-    def _update_battery_and_thermal(self, dt: float, speeds: np.ndarray) -> None:
+    def _update_battery_and_thermal(self, dt: float, speeds: list[float]) -> None:
+        # Plain floats as in the speed loop: the same IEEE operations, in the same order, as the
+        # element-wise numpy expressions they replace.
         ke, r_ohm = self._ke, self._r_ohm
         power_w = 0.0
-        for i, w in zip(self.last_currents_a.tolist(), speeds.tolist()):
+        for i, w in zip(self._currents, speeds):
             power_w += i * (ke * w + i * r_ohm)
         self._battery_current_a = QUIESCENT_CURRENT_A + max(power_w, 0.0) / self._v_supply
         self._charge_used_ah += self._battery_current_a * dt / 3600.0
         if dt > 0:
-            i = self.last_currents_a
-            target = MOTOR_THERMAL_RESISTANCE_K_PER_W * i * i * r_ohm
-            self._motor_temp_rise += (target - self._motor_temp_rise) * (dt / MOTOR_THERMAL_TIME_CONSTANT_S)
+            rise, gain = self._motor_temp_rise, dt / MOTOR_THERMAL_TIME_CONSTANT_S
+            for k, i in enumerate(self._currents):
+                target = MOTOR_THERMAL_RESISTANCE_K_PER_W * i * i * r_ohm
+                rise[k] = rise[k] + (target - rise[k]) * gain
 
     # ------------------------------------------------------------------------------------
     def _send(self, record: object, t_s: float) -> None:
@@ -314,7 +339,7 @@ class EmulatedBaseFirmware:
                 self._send(p.ActuatorHighSpeed(
                     motor_index=k,
                     rpm=int(_clamp(round(rpm[k]), *_INT16)),
-                    current_a=round(_clamp(float(self.last_currents_a[k]), -3276.0, 3276.0), 1),
+                    current_a=round(_clamp(self._currents[k], -3276.0, 3276.0), 1),
                     pulse_count=_wrap_int32(int(math.floor(pulses[k]))),
                 ), t_s)
             dist = (self._angles - self._angles0) * self._radius
@@ -346,6 +371,7 @@ class EmulatedBaseFirmware:
                 voltage_v=round(self.battery_voltage_v, 1), current_a=round(self._battery_current_a, 1),
                 temperature_c=AMBIENT_TEMP_C,
             ), t_s)
+        self._next_feedback_s = min(self._next_fast_s, self._next_slow_s, self._next_bms_s)
 
 
 def _clamp(x: float, lo: float, hi: float) -> float:

@@ -109,17 +109,31 @@ class FaultInjector:
         self._last_scan: LidarScan | None = None
         #: Physics steps (firmware faults) or sensor outputs (sensor faults) each fault acted on.
         self.applied: dict[str, int] = {f.name: 0 for f in self.faults}
+        # The faults of each name, looked up once: `_active` runs every physics step and for
+        # every sensor output, and most episodes have no fault at all.
+        self._by_name: dict[str, tuple[FaultSpec, ...]] = {
+            name: tuple(f for f in self.faults if f.name == name) for name in FAULT_NAMES}
+        self._frame_drops = tuple((name, frame_id, self._by_name[name]) for name, frame_id in _FRAME_DROPS.items())
+        self._firmware_faults = any(self._by_name[name] for name in (*_FRAME_DROPS, "estop"))
 
     def _active(self, name: str) -> bool:
+        faults = self._by_name.get(name, ())
+        if not faults:
+            return False
         t = self._now_s - self.start_s
-        return any(f.name == name and f.active(t) for f in self.faults)
+        return any(f.active(t) for f in faults)
 
     # -- lockstep device: the firmware faults --------------------------------------------------
     def step(self, t_s: float) -> None:
         """Before the firmware's step at t_s (LockstepSimulation `controls`)."""
         self._now_s = t_s
         fw = self.firmware
-        for name, frame_id in _FRAME_DROPS.items():
+        if not self._firmware_faults:  # nothing to switch: leave no frame suppressed, no E-stop
+            if fw.suppressed_frame_ids:
+                fw.suppressed_frame_ids.difference_update(_FRAME_DROPS.values())
+            fw.emergency_stop = False
+            return
+        for name, frame_id, _ in self._frame_drops:
             if self._active(name):
                 fw.suppressed_frame_ids.add(frame_id)
                 self.applied[name] += 1

@@ -3,9 +3,9 @@
 The controller runs its ordinary fixed-rate loop; its clock is the simulator's. Each
 `sleep_until(t)` of the loop advances physics to t, stepping the emulated base firmware
 (which reads the controller's CAN frames and answers with feedback frames) every physics
-step. The controller and the firmware talk over a python-can `virtual` bus, exactly the
-frames they would exchange on the robot; the controller is wired as on the robot
-(runtime.controller.builder).
+step. The controller and the firmware talk over an in-process python-can bus
+(hil_sim.episode.lockstep_bus.LockstepBus), exactly the frames they would exchange on the
+robot; the controller is wired as on the robot (runtime.controller.builder).
 
 Deterministic: an episode's metrics depend only on the scenario, robot, config, seed and faults.
 What the computer spent (wall-clock stage and tick times, wall-clock deadline misses) is returned
@@ -31,6 +31,7 @@ from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
 from hil_sim.episode.faults import FaultInjector, FaultSpec
 from hil_sim.episode.metrics import EpisodeMetrics
 from hil_sim.episode.failure import failure_reason
+from hil_sim.episode.lockstep_bus import LockstepBus
 from hil_sim.episode.patrol import PatrolSequencer
 from hil_sim.world.robot_variant import RobotVariant, resolve_variant
 from hil_sim.world.scenario import Scenario, load_scenario
@@ -133,12 +134,11 @@ class LockstepClock:
 
 
 def virtual_bus_pair(channel: str | None = None) -> tuple[can.BusABC, can.BusABC]:
-    """Two ends of one python-can virtual bus: (controller side, simulator side)."""
+    """Two ends of one in-process CAN bus: (controller side, simulator side). python-can buses
+    (hil_sim.episode.lockstep_bus.LockstepBus: python-can's virtual bus without its per-frame
+    deep copy and wall-clock stamps)."""
     channel = channel or f"dct-hil-{uuid.uuid4().hex}"
-    return (
-        can.Bus(interface="virtual", channel=channel, receive_own_messages=False),
-        can.Bus(interface="virtual", channel=channel, receive_own_messages=False),
-    )
+    return LockstepBus(channel), LockstepBus(channel)
 
 
 @dataclass

@@ -26,6 +26,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
+from numba import njit
 
 from hil_sim.world.model_spec import ROBOT_GEOM_GROUP
 from hil_sim.world.mujoco_world import World
@@ -41,6 +42,58 @@ CONTACT_RELEASE_S = 0.1
 #: physics steps (5 ms: 2.5 mm of travel at 0.5 m/s), and only below this distance.
 CLEARANCE_EVERY_STEPS = 5
 CLEARANCE_MAX_M = 0.5
+#: Up to this many contacts the robot-obstacle scan is a Python loop, above it numpy.
+_CONTACT_LOOP_MAX = 64
+#: Slack on the bounding-sphere pruning of clearance pairs (beyond the distance solver's tolerance).
+_PRUNE_MARGIN_M = 0.01
+
+
+class _ClearancePruning:
+    """Which clearance pairs (robot shape, obstacle geom) could be within CLEARANCE_MAX_M: the
+    others are not given to mj_geomDistance, which would only return its distmax for them (and
+    the metrics cap every clearance at CLEARANCE_MAX_M anyway).
+
+    A lower bound on a pair's distance: the distance from the centre of the robot shape's
+    bounding sphere to the obstacle geom's box (a box geom: its own box; any other geom: its
+    centre, less its bounding radius), less the robot shape's bounding radius. A pair is pruned
+    when that exceeds CLEARANCE_MAX_M + _PRUNE_MARGIN_M. Planes (no bounding sphere) never are.
+    """
+
+    def __init__(self, m: mujoco.MjModel, pairs: list[tuple[int, int, int]]) -> None:
+        cols = np.array(pairs, dtype=np.int64).reshape(-1, 3)
+        self.robot, self.obstacle = cols[:, 1], cols[:, 2]
+        rbound = m.geom_rbound
+        is_box = m.geom_type[self.obstacle] == mujoco.mjtGeom.mjGEOM_BOX
+        self.half = np.where(is_box[:, None], m.geom_size[self.obstacle], 0.0)
+        reach = rbound[self.robot] + np.where(is_box, 0.0, rbound[self.obstacle]) + CLEARANCE_MAX_M + _PRUNE_MARGIN_M
+        unbounded = (rbound[self.robot] <= 0.0) | (rbound[self.obstacle] <= 0.0)
+        self.reach2 = np.where(unbounded, math.inf, reach * reach)
+        self._out = np.empty(len(cols), dtype=np.int64)
+
+    def near(self, d: mujoco.MjData) -> list[int]:
+        """Indices of the pairs that are not pruned in the state in d."""
+        n = _near_pairs(d.geom_xpos, d.geom_xmat, self.robot, self.obstacle, self.half, self.reach2, self._out)
+        return self._out[:n].tolist()
+
+
+@njit(cache=True, nogil=True)
+def _near_pairs(xpos, xmat, robot, obstacle, half, reach2, out):  # pragma: no cover - compiled
+    """_ClearancePruning.near's test per pair, compiled (a dozen numpy calls cost more than the
+    mj_geomDistance calls they save). Writes the kept pair indices to out; returns their count."""
+    n = 0
+    for k in range(robot.shape[0]):
+        r, o = robot[k], obstacle[k]
+        dx, dy, dz = xpos[r, 0] - xpos[o, 0], xpos[r, 1] - xpos[o, 1], xpos[r, 2] - xpos[o, 2]
+        d2 = 0.0
+        for i in range(3):  # the robot shape's centre in the obstacle geom's frame: R^T (p_r - p_o)
+            local = xmat[o, i] * dx + xmat[o, 3 + i] * dy + xmat[o, 6 + i] * dz
+            q = abs(local) - half[k, i]
+            if not q <= 0.0:  # outside the box along this axis (a NaN is kept: never pruned)
+                d2 += q * q
+        if not d2 > reach2[k]:
+            out[n] = k
+            n += 1
+    return n
 
 
 class EpisodeMetrics:
@@ -75,6 +128,8 @@ class EpisodeMetrics:
             (i, r, int(g)) for g in np.flatnonzero(self._geom_obstacle >= 0) for r in robot_shapes
             for i in [int(self._geom_obstacle[g])]
         ]
+        self._clearance_prune = _ClearancePruning(m, self._clearance_pairs)
+        #: Smallest clearance per obstacle (inf until one of its geoms came within CLEARANCE_MAX_M).
         self.min_clearance_m = np.full(n, math.inf)
         self.costs: np.ndarray = np.asarray(world.obstacle_costs, dtype=float).copy()
         # Fragile objects: their geoms, thresholds and damage state.
@@ -92,35 +147,59 @@ class EpisodeMetrics:
         self.damage_count = np.zeros(n, dtype=np.int64)
         self._over_since = np.full(n, -np.inf)  # last time the force was above the threshold
         self._force = np.zeros(6)
+        # Per geom: 1 robot, 2 obstacle, 0 anything else (the floor): a contact whose two codes
+        # OR to 3 is the robot against an obstacle (robot geoms are never obstacle geoms).
+        self._geom_code = np.where(self._is_robot_geom, 1, np.where(self._geom_obstacle >= 0, 2, 0)).astype(np.int8)
+        self._geom_code_list: list[int] = self._geom_code.tolist()
+        self._geom_obstacle_list: list[int] = self._geom_obstacle.tolist()
+        self._any_touching = False
 
     def robot_contacts(self, world: World) -> np.ndarray:
         """Boolean per obstacle: is the robot touching it now?"""
         touching = np.zeros(len(self.names), dtype=bool)
-        ncon = world.data.ncon
-        if ncon == 0:
-            return touching
-        geoms = world.data.contact.geom  # (ncon, 2)
-        g1, g2 = geoms[:, 0], geoms[:, 1]
-        r1, r2 = self._is_robot_geom[g1], self._is_robot_geom[g2]
-        o1, o2 = self._geom_obstacle[g1], self._geom_obstacle[g2]
-        hit = np.concatenate([o2[r1 & (o2 >= 0)], o1[r2 & (o1 >= 0)]])
-        touching[hit] = True
+        hit = self._touched_obstacles(world.data)
+        if hit is not None:
+            touching[hit] = True
         return touching
+
+    def _touched_obstacles(self, d: mujoco.MjData) -> list[int] | np.ndarray | None:
+        """The obstacle of every robot-obstacle contact now (repeats possible); None if there is none.
+        The robot stands on the floor, so there are always contacts: keep the common case cheap
+        (a few dozen contacts: a loop over Python ints beats half a dozen numpy calls)."""
+        ncon = d.ncon
+        if ncon == 0:
+            return None
+        geoms = d.contact.geom  # (ncon, 2)
+        if ncon <= _CONTACT_LOOP_MAX:
+            code, obstacle = self._geom_code_list, self._geom_obstacle_list
+            hit = [max(obstacle[g1], obstacle[g2]) for g1, g2 in geoms.tolist() if code[g1] | code[g2] == 3]
+            return hit or None
+        code = self._geom_code[geoms]
+        rows = np.flatnonzero((code[:, 0] | code[:, 1]) == 3)
+        if rows.size == 0:
+            return None
+        return self._geom_obstacle[geoms[rows]].max(axis=1)  # the robot's side is -1
 
     def update(self, world: World) -> None:
         """Call once after every physics step."""
         t = world.time_s
         dt = t - self._t_last
         self._t_last = t
-        now = self.robot_contacts(world)
-        released = (t - self._last_touch_s) > CONTACT_RELEASE_S
-        self.contact_count += now & ~self.touching & released
-        # Duration of an event includes its short gaps (flicker), not the final release.
-        gap = t - self._last_touch_s
-        self.contact_duration_s += np.where(now, np.where(released, dt, gap), 0.0)
-        self._last_touch_s = np.where(now, t, self._last_touch_s)
-        self.touching = now
-        x, y, _ = world.robot_pose()
+        hit = self._touched_obstacles(world.data)
+        if hit is not None or self._any_touching:
+            # (Touching nothing now or at the last step changes no count, duration or touch time.)
+            now = np.zeros(len(self.names), dtype=bool)
+            if hit is not None:
+                now[hit] = True
+            released = (t - self._last_touch_s) > CONTACT_RELEASE_S
+            self.contact_count += now & ~self.touching & released
+            # Duration of an event includes its short gaps (flicker), not the final release.
+            gap = t - self._last_touch_s
+            self.contact_duration_s += np.where(now, np.where(released, dt, gap), 0.0)
+            self._last_touch_s = np.where(now, t, self._last_touch_s)
+            self.touching = now
+            self._any_touching = hit is not None
+        x, y = world.robot_xy()
         hop = math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         if hop >= PATH_MIN_HOP_M:
             self.path_length_m += hop
@@ -177,7 +256,9 @@ class EpisodeMetrics:
 
     def _update_clearance(self, world: World) -> None:
         m, d, best = world.model, world.data, self.min_clearance_m
-        for i, robot_geom, obstacle_geom in self._clearance_pairs:
+        pairs = self._clearance_pairs
+        for k in self._clearance_prune.near(d):
+            i, robot_geom, obstacle_geom = pairs[k]
             dist = mujoco.mj_geomDistance(m, d, robot_geom, obstacle_geom, CLEARANCE_MAX_M, None)
             if dist < best[i]:
                 best[i] = dist

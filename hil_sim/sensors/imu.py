@@ -94,6 +94,8 @@ class SimImu:
         self._period_s = 1.0 / self.config.rate_hz
         self._start_s = float(start_s)
         self._next_index = 0
+        #: When the next sample is due: a step before it takes none (callers may skip it).
+        self.next_due_s = self._start_s
         self._last_t: float | None = None
         self._last_sample_t: float | None = None
         self._gyro_bias = np.array(self.config.gyro_bias_radps, dtype=np.float64)
@@ -118,6 +120,7 @@ class SimImu:
         n_due = int(math.floor((t_s + 1e-9 - self._start_s) / self._period_s)) + 1 - self._next_index
         self.missed_samples += max(0, n_due - 1)
         self._next_index += max(1, n_due)
+        self.next_due_s = self._start_s + self._next_index * self._period_s
         c = self.config
         dt = self._period_s if self._last_sample_t is None else t_s - self._last_sample_t
         self._last_sample_t = t_s

@@ -119,8 +119,9 @@ def build_spec(scenario: Scenario, robot: RobotDescription, lens: CameraLens | N
     opt.iterations = 50
     opt.ls_iterations = 20
     opt.noslip_iterations = NOSLIP_ITERATIONS
-    spec.visual.global_.offwidth = 1280
-    spec.visual.global_.offheight = 960
+    # The offscreen framebuffer stays MuJoCo's 640x480 unless the camera's canvas needs more
+    # (_add_robot: ensure_offscreen_buffer). Each render clears the whole 4x multisampled buffer,
+    # in software (llvmpipe) here: a larger one cost ~10% of every camera frame, same pixels.
     world = spec.worldbody
     _add_floor_and_walls(world, scenario)
     for ob in scenario.obstacles:

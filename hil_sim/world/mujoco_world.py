@@ -182,7 +182,7 @@ class World:
         t = np.asarray(torques_nm, dtype=float)
         if t.shape != (4,):
             raise WorldError(f"set_wheel_torques: expected 4 torques (FR, FL, RL, RR), got shape {t.shape}")
-        if not np.all(np.isfinite(t)):
+        if not all(map(math.isfinite, t.tolist())):
             raise WorldError(f"set_wheel_torques: torques must be finite, got {t.tolist()}")
         self.data.ctrl[self._wheel_act] = t
 
@@ -200,6 +200,11 @@ class World:
         w, x, y, z = q[3], q[4], q[5], q[6]
         yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
         return float(q[0]), float(q[1]), yaw
+
+    def robot_xy(self) -> tuple[float, float]:
+        """Ground-truth (x_m, y_m) of base_link in the world (robot_pose without the yaw)."""
+        q, i = self.data.qpos, self._base_qpos
+        return float(q[i]), float(q[i + 1])
 
     def robot_body_velocity(self) -> tuple[float, float, float]:
         """Ground-truth (forward_mps, lateral_mps, yaw_rate_radps) of base_link, planar."""

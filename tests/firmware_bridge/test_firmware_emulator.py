@@ -372,7 +372,7 @@ def test_current_is_clamped_by_limit_and_back_emf():
         # Near the no-load speed the supply cannot push the current up: (V - k w) / R.
         w_fast = np.full(4, 0.95 * mot.supply_voltage_v / mot.torque_constant_nm_per_a)
         fw.wheel_targets_radps[:] = 0.0
-        fw._integral[:] = 10.0  # a wound-up integrator asks for far more than is available
+        fw._integral[:] = [10.0] * 4  # a wound-up integrator asks for far more than is available
         torques = fw.step(0.7, w_fast, np.zeros(4))
         cap = (mot.supply_voltage_v - mot.torque_constant_nm_per_a * w_fast) / mot.resistance_ohm
         assert np.all(fw.last_currents_a <= cap + 1e-9)

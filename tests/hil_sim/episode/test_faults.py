@@ -232,3 +232,23 @@ def _robot_with(d, old, new):
     text = (resources.files("calibration") / "robots" / "limo.yaml").read_text()
     assert old in text
     return _write(d, "robot.yaml", text.replace(old, new))
+
+
+def test_injector_switches_firmware_faults_by_their_windows_and_clears_them_without_faults():
+    from types import SimpleNamespace
+
+    from firmware_bridge import protocol as p
+    from hil_sim.episode.faults import FaultInjector
+
+    fw = SimpleNamespace(suppressed_frame_ids={p.ID_ODOMETRY, 0x7AB}, emergency_stop=True)
+    none = FaultInjector((), fw, inbox=None, start_s=1.0, far_m=10.0)
+    none.step(1.5)
+    assert fw.suppressed_frame_ids == {0x7AB} and fw.emergency_stop is False  # only the injector's ids cleared
+    faults = (FaultSpec("drop-0x311", 0.5, 0.25), FaultSpec("estop", 1.0), FaultSpec("drop-0x311", 2.0))
+    inj = FaultInjector(faults, fw, inbox=None, start_s=1.0, far_m=10.0)
+    seen = []
+    for t in (1.0, 1.5, 1.74, 1.75, 2.0, 3.0):
+        inj.step(t)
+        seen.append((p.ID_ODOMETRY in fw.suppressed_frame_ids, fw.emergency_stop))
+    assert seen == [(False, False), (True, False), (True, False), (False, False), (False, True), (True, True)]
+    assert inj.applied == {"drop-0x311": 3, "estop": 2}
