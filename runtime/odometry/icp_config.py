@@ -55,6 +55,11 @@ class IcpConfig(BaseModel):
     #: the auto iteration cap's budget. A count follows from it, never a clock.
     iteration_budget_ms: float = Field(80.0, gt=1.0, le=2000.0)
     convergence_criterion: float = Field(1e-4, gt=0.0, le=1.0)
+    #: The iteration cap of a frame whose translation the scan leaves unconstrained along a
+    #: direction (the degeneracy analysis runs before the registration): with a prior the pose
+    #: keeps the prior's translation there (runtime.odometry.icp), and the iterations past the
+    #: constrained directions' convergence only slide along it.
+    degenerate_max_iterations: int = Field(20, ge=1, le=500)
     #: KISS-ICP's TBB threads. 1: the registration is then deterministic (a parallel reduction
     #: sums in a varying order), and the robot's second core is the tick's.
     threads: int = Field(1, ge=1, le=16)

@@ -14,6 +14,9 @@ poses (test: against KissICP). What it adds:
   never a clock, so lockstep runs stay deterministic;
 - the deskew can be switched per frame (`register_frame(..., deskew=False)`) for frames whose
   point times do not span the sweep.
+- two hooks around the registration (runtime.odometry.icp): `inspect` sees the deskewed frame
+  before it and may lower the frame's iteration cap; `correct` may change the registered pose
+  before the adaptive threshold and the map take it.
 
 The attributes KissICP's users touch are kept: `last_pose`, `last_delta` (the constant-velocity
 prediction, replaced by the wheel/gyro motion in runtime.odometry.icp), `local_map`.
@@ -70,10 +73,12 @@ class KissPipeline:
                                                           max_num_threads=s.threads)
         return reg
 
-    def register_frame(self, frame, timestamps, deskew: bool | None = None, correct=None):
+    def register_frame(self, frame, timestamps, deskew: bool | None = None, correct=None, inspect=None):
         """KISS-ICP's register_frame (module doc); returns (the deskewed frame within the range
         gate, the source points registered), as KissICP does.
 
+        inspect: None, or inspect(points) -> int | None, called with the deskewed frame before the
+        registration: a number lowers the frame's iteration cap to it (a count, from the data).
         correct: None, or correct(points, initial_guess, pose) -> pose, called with the deskewed
         frame, the initial guess and the registered pose (4x4, lidar odom frame) before the
         adaptive threshold and the map take the pose: what it returns is the frame's pose."""
@@ -92,6 +97,9 @@ class KissPipeline:
         frame_downsample = voxel_down_sample(points, s.voxel_size_m * 0.5)
         source = voxel_down_sample(frame_downsample, s.voxel_size_m * 1.5)
         cap = s.max_iterations if s.max_iterations != AUTO else iteration_cap(len(source), s.iteration_budget_ms)
+        limit = inspect(points) if inspect is not None else None
+        if limit is not None:
+            cap = max(1, min(cap, int(limit)))
         self.last_cap = cap
         self.cap_range = (cap, cap) if self.cap_range is None else (min(self.cap_range[0], cap),
                                                                     max(self.cap_range[1], cap))
