@@ -84,6 +84,10 @@ class IcpResult:
     iteration_cap: int | None = None
     #: The first result only: the settings in use (auto ones resolved) and their derivation.
     settings: dict | None = None
+    #: Wall-clock ms by part (a measurement, never used for behaviour): "prepare" (the frame's
+    #: conversion, the prior, a wheel/gyro deskew), then KissPipeline's TIMED_PARTS ("inspect":
+    #: the degeneracy analysis).
+    parts_ms: dict = field(default_factory=dict)
 
 
 def _lidar_delta(prior_base: np.ndarray, mount: np.ndarray, mount_inv: np.ndarray) -> np.ndarray:
@@ -162,6 +166,7 @@ class IcpEngine:
                 notes.append("no wheel/gyro motion over the sweep: no deskew")
         kiss_deskews = deskew and mode == "kiss"
         analysis: list = []
+        prepared = time.perf_counter()
         frame, source = self.kiss.register_frame(pts, offs, deskew=kiss_deskews,
                                                  inspect=lambda f: self._analyse(f, analysis),
                                                  correct=lambda f, g, p: self._remap(g, p, analysis))
@@ -177,6 +182,7 @@ class IcpEngine:
             points_in=len(pts), points_registered=len(source), deskewed=deskew,
             compute_s=time.perf_counter() - t0, notes=tuple(notes), gate=self.kiss.gate,
             iteration_cap=self.kiss.last_cap, settings=self._settings_once(),
+            parts_ms={"prepare": (prepared - t0) * 1e3, **self.kiss.last_timings_ms},
         )
 
     def _analyse(self, frame: np.ndarray, out: list) -> int | None:

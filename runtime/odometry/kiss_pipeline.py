@@ -23,10 +23,19 @@ prediction, replaced by the wheel/gyro motion in runtime.odometry.icp), `local_m
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from runtime.odometry.icp_config import AUTO, IcpConfig, make_kiss_config
 from runtime.odometry.icp_settings import RangeGate, count_range_gate, iteration_cap, resolve_settings
+
+
+#: The parts of register_frame timed in `last_timings_ms` (wall clock, ms; a measurement, never
+#: used for behaviour): preprocess (range gate count, deskew, range filter), KISS-ICP's two voxel
+#: downsamples, the `inspect` hook (the degeneracy analysis), the registration, and the rest (the
+#: `correct` hook, the adaptive threshold and the map update).
+TIMED_PARTS = ("preprocess", "downsample", "inspect", "registration", "map_update")
 
 
 class KissPipeline:
@@ -45,6 +54,7 @@ class KissPipeline:
         self.gate_total = RangeGate.empty()
         self.last_cap: int | None = None  # the last frame's iteration cap
         self.cap_range: tuple[int, int] | None = None  # (min, max) over the frames
+        self.last_timings_ms: dict[str, float] = {}  # the last frame's, by TIMED_PARTS
         self._registrations: dict[int, object] = {}
         if config.resolved:
             self._build(config, None)
@@ -84,6 +94,7 @@ class KissPipeline:
         adaptive threshold and the map take the pose: what it returns is the frame's pose."""
         from kiss_icp.voxelization import voxel_down_sample
 
+        marks = [time.perf_counter()]
         points = np.ascontiguousarray(frame, dtype=np.float64)
         r2 = np.einsum("ij,ij->i", points, points)
         if self.settings is None:
@@ -94,10 +105,13 @@ class KissPipeline:
         use_deskew = self.deskew if deskew is None else bool(deskew)
         times = np.asarray(timestamps, dtype=np.float64) if use_deskew else np.zeros(0)
         points = self._preprocessors[use_deskew].preprocess(points, times, self.last_delta)
+        marks.append(time.perf_counter())
         frame_downsample = voxel_down_sample(points, s.voxel_size_m * 0.5)
         source = voxel_down_sample(frame_downsample, s.voxel_size_m * 1.5)
         cap = s.max_iterations if s.max_iterations != AUTO else iteration_cap(len(source), s.iteration_budget_ms)
+        marks.append(time.perf_counter())
         limit = inspect(points) if inspect is not None else None
+        marks.append(time.perf_counter())
         if limit is not None:
             cap = max(1, min(cap, int(limit)))
         self.last_cap = cap
@@ -108,13 +122,16 @@ class KissPipeline:
         new_pose = self._registration(cap).align_points_to_map(
             points=source, voxel_map=self.local_map, initial_guess=initial_guess,
             max_correspondance_distance=3 * sigma, kernel=sigma)
+        marks.append(time.perf_counter())
         if correct is not None:
             new_pose = correct(points, initial_guess, new_pose)
         self.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
         self.local_map.update(frame_downsample, new_pose)
         self.last_delta = np.linalg.inv(self.last_pose) @ new_pose
         self.last_pose = new_pose
+        marks.append(time.perf_counter())
+        self.last_timings_ms = {name: (b - a) * 1e3 for name, a, b in zip(TIMED_PARTS, marks, marks[1:])}
         return points, source
 
 
-__all__ = ["KissPipeline"]
+__all__ = ["KissPipeline", "TIMED_PARTS"]

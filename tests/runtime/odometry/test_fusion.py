@@ -15,6 +15,7 @@ from runtime.odometry.degeneracy import DegeneracyConfig, planar_constraint
 from runtime.odometry.fusion import FusionConfig, PoseFusion
 from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult, deskew_with_motion
 from runtime.odometry.icp_config import IcpConfig
+from runtime.odometry.kiss_pipeline import TIMED_PARTS
 from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse, wrap
 from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
 
@@ -200,6 +201,9 @@ def test_kiss_icp_recovers_the_motion_of_a_synthetic_scene():
         assert abs(r.delta_base[2] - 0.02) < math.radians(0.3)
         assert r.constraint is not None and not r.constraint.degenerate
         assert r.iteration_cap >= 20  # the auto cap: a well-constrained frame is not cut short
+        # Its time by part (a measurement): every part, none negative, within the whole.
+        assert list(r.parts_ms) == ["prepare", *TIMED_PARTS] and min(r.parts_ms.values()) >= 0.0
+        assert sum(r.parts_ms.values()) <= r.compute_s * 1e3
 
 
 def test_where_the_scan_constrains_the_motion_icp_corrects_wheels_that_overstate_it():
