@@ -3,7 +3,8 @@
 `KissPipeline.register_frame` runs the steps of kiss_icp.kiss_icp.KissICP.register_frame (kiss-icp
 1.3.0) with the package's own parts (its preprocessor, voxel downsampling, adaptive threshold,
 registration and voxel map), in the same order, so that with the same settings it gives the same
-poses (test: against KissICP). What it adds:
+poses (test: against KissICP). Its deskew is KISS-ICP's formula vectorised
+(runtime.odometry.kiss_deskew: the same points to 1e-9 m, a third of the time). What it adds:
 
 - "auto" settings (runtime.odometry.icp_settings) are resolved from the first frame it is given;
   `settings` holds the numbers, `derivation` what they came from;
@@ -28,6 +29,7 @@ import time
 import numpy as np
 
 from runtime.odometry.icp_config import AUTO, IcpConfig, make_kiss_config
+from runtime.odometry.kiss_deskew import deskew_constant_velocity
 from runtime.odometry.icp_settings import RangeGate, count_range_gate, iteration_cap, resolve_settings
 
 
@@ -67,8 +69,8 @@ class KissPipeline:
         self.settings, self.derivation = settings, derivation
         cap = settings.max_iterations if settings.max_iterations != AUTO else 500
         self.kiss_config = make_kiss_config(settings, deskew=True, max_iterations=cap)
-        self._preprocessors = {flag: get_preprocessor(make_kiss_config(settings, deskew=flag, max_iterations=cap))
-                               for flag in (True, False)}
+        # KISS-ICP's range filter; the deskew before it is kiss_deskew's.
+        self._range_filter = get_preprocessor(make_kiss_config(settings, deskew=False, max_iterations=cap))
         self.adaptive_threshold = get_threshold_estimator(self.kiss_config)
         self.local_map = get_voxel_hash_map(self.kiss_config)
 
@@ -103,8 +105,9 @@ class KissPipeline:
         self.gate = count_range_gate(r2, s.min_range_m, s.max_range_m)
         self.gate_total = self.gate_total + self.gate
         use_deskew = self.deskew if deskew is None else bool(deskew)
-        times = np.asarray(timestamps, dtype=np.float64) if use_deskew else np.zeros(0)
-        points = self._preprocessors[use_deskew].preprocess(points, times, self.last_delta)
+        if use_deskew:
+            points = deskew_constant_velocity(points, timestamps, self.last_delta)
+        points = self._range_filter.preprocess(points, np.zeros(0), self.last_delta)
         marks.append(time.perf_counter())
         frame_downsample = voxel_down_sample(points, s.voxel_size_m * 0.5)
         source = voxel_down_sample(frame_downsample, s.voxel_size_m * 1.5)
