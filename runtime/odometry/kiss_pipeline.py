@@ -4,7 +4,7 @@
 1.3.0) with the package's own parts (its preprocessor, voxel downsampling, adaptive threshold,
 registration and voxel map), in the same order, so that with the same settings it gives the same
 poses (test: against KissICP). Its deskew is KISS-ICP's formula vectorised
-(runtime.odometry.kiss_deskew: the same points to 1e-9 m, a third of the time). What it adds:
+(runtime.odometry.kiss_deskew: the same points to 1e-9 m, 40-50% of the time). What it adds:
 
 - "auto" settings (runtime.odometry.icp_settings) are resolved from the first frame it is given;
   `settings` holds the numbers, `derivation` what they came from;
