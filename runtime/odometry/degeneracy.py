@@ -111,10 +111,12 @@ def smallest_eigen(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.where(p > 0.0, det / (2.0 * p ** 3), 0.0)
     lam = q + 2.0 * p * np.cos(np.arccos(np.clip(r, -1.0, 1.0)) / 3.0 + 2.0 * np.pi / 3.0)
-    rows = cov - lam[:, None, None] * np.eye(3)
-    cands = np.stack([np.cross(rows[:, 0], rows[:, 1]), np.cross(rows[:, 0], rows[:, 2]),
-                      np.cross(rows[:, 1], rows[:, 2])], axis=1)           # (M, 3, 3)
-    norm2 = np.einsum("mij,mij->mi", cands, cands)
+    a, b, c = a - lam, b - lam, c - lam   # the rows of cov - lambda I: (a d f), (d b e), (f e c)
+    cands = np.stack([np.stack([d * e - f * b, f * d - a * e, a * b - d * d], axis=1),    # row 0 x row 1
+                      np.stack([d * c - f * e, f * f - a * c, a * e - d * f], axis=1),    # row 0 x row 2
+                      np.stack([b * c - e * e, e * f - d * c, d * e - b * f], axis=1)],   # row 1 x row 2
+                     axis=1)                                                          # (M, 3, 3)
+    norm2 = (cands * cands).sum(axis=2)
     best = norm2.argmax(axis=1)
     pick = np.arange(len(cov))
     vec, length = cands[pick, best], np.sqrt(norm2[pick, best])
@@ -150,7 +152,8 @@ def planar_constraint(points_base: np.ndarray, config: DegeneracyConfig = Degene
     pts = np.asarray(points_base, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {pts.shape}")
-    pts = pts[np.isfinite(pts).all(axis=1)]
+    if not np.isfinite(pts).all():
+        pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) > config.max_points:
         pts = pts[np.linspace(0, len(pts) - 1, config.max_points).astype(np.int64)]
     normals, ok = _normals(pts, config) if len(pts) else (np.zeros((0, 3)), np.zeros(0, dtype=bool))
