@@ -192,6 +192,34 @@ def tick_bench_command(*, scenarios: tuple[str, ...], seed: int, runs: int, hogs
         atomic_write_json(json_path, with_provenance(out))
 
 
+@bench_group.command("icp-parts")
+@click.option("--rays", "rays", multiple=True, type=click.IntRange(100, 200_000), metavar="N",
+              help="Rays per lidar frame (repeatable).  [default: 5000, 10000, 20000, 40000]")
+@click.option("--seconds", default=8.0, show_default=True, type=click.FloatRange(1.0, 120.0),
+              help="Simulated seconds of the drive per density.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 20),
+              help="Registrations of each frame (its fastest counts).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the figures as JSON (checked before the run, written atomically after it).")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def icp_parts_bench_command(*, rays: tuple[int, ...], seconds: float, seed: int, repeats: int,
+                            json_path: Path | None, force: bool) -> None:
+    """ICP time per lidar frame by part (preprocess and deskew, downsampling, degeneracy analysis,
+    registration, map update; the job's pickling) at several densities, on `dct bench tick`'s drive."""
+    from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
+    from hil_sim.bench.icp_parts import DEFAULT_RAYS, run_icp_parts
+
+    try:
+        if json_path is not None:
+            check_output_path(json_path, what="--json", overwrite=force)
+    except OutputPathError as exc:
+        raise InputError(str(exc)) from exc
+    out = run_icp_parts(tuple(sorted(set(rays))) or DEFAULT_RAYS, seconds, seed, repeats, click.echo)
+    if json_path is not None:
+        atomic_write_json(json_path, with_provenance(out))
+
+
 @bench_group.command("vpp")
 @click.option("--masks", "mask_counts", multiple=True, type=click.IntRange(1, 64), metavar="N",
               help="Movable masks in memory (repeatable).  [default: 1, 4, 8]")

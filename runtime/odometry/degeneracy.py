@@ -3,8 +3,8 @@
 The registration's Hessian tells (Zhang, Kaess and Singh, "On degeneracy of optimization-based
 state estimation problems", ICRA 2016). We use the point-to-plane form, because point-to-point
 ICP's translational Hessian is the identity times the point count whatever the geometry: it
-cannot see a corridor. For every registration point p with a surface normal n (from a local PCA
-of its neighbours), a planar motion (x, y, yaw) moves the point-to-plane residual by
+cannot see a corridor. For every point p with a surface normal n, a planar motion (x, y, yaw)
+moves the point-to-plane residual by
 
     J = [n_x, n_y, (p_x n_y - p_y n_x) / r]         (r: the scan's median planar range)
 
@@ -17,6 +17,13 @@ wall normal is across it). A scan is degenerate along the eigenvector whose eige
 `min_eigenvalue` (or when fewer than `min_points` points have a horizontal normal: a scan that
 sees too little); yaw is degenerate when its Schur complement (what yaw adds once x and y are
 known) falls below the same bound. The fusion then trusts wheels and IMU along that direction.
+
+The normals: the points are binned into cubic cells (`cell_m`); a cell's points share the normal
+of the cell's PCA (the covariance's smallest eigenvector) when the cell holds enough points and is
+flat. The covariances come from per-cell sums (np.bincount) and the eigenpairs from the closed
+form for symmetric 3x3 matrices: about a millisecond for a frame, where a k-d tree's 8 nearest
+neighbours and a batched np.linalg.eigh per point took 12-15 ms on the reference machine
+(docs/decisions/odometry-icp-speed.md).
 """
 from __future__ import annotations
 
@@ -24,19 +31,18 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial import cKDTree
 
 
 class DegeneracyConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    #: Neighbours of a point for its normal (PCA).
-    neighbours: int = Field(8, ge=4, le=64)
-    #: A neighbourhood is a surface when its smallest PCA eigenvalue is below this share of the
-    #: sum (0 = a perfect plane, 1/3 = an isotropic blob): edges and scattered points give no normal.
+    #: The cells the points are binned into for their normals (m, cubes).
+    cell_m: float = Field(0.4, gt=0.05, le=5.0)
+    #: A cell with fewer points than this gives its points no normal.
+    min_cell_points: int = Field(5, ge=4, le=1000)
+    #: A cell is a surface when its smallest PCA eigenvalue is below this share of the sum
+    #: (0 = a perfect plane, 1/3 = an isotropic blob): corners, edges and clutter give no normal.
     max_surface_variation: float = Field(0.05, gt=0.0, le=0.34)
-    #: Neighbours farther than this (m) are not the same surface.
-    max_neighbour_distance_m: float = Field(1.0, gt=0.0, le=10.0)
     #: A direction is constrained when its normalised eigenvalue is at least this. Measured on the
     #: simulator: 0.15-0.45 in rooms and clutter, below 0.01 in the 2 m corridor (docs in
     #: runtime/config/default.yaml).
@@ -46,8 +52,10 @@ class DegeneracyConfig(BaseModel):
     #: The deskewed frame is thinned to one point per voxel of this size (m) for the analysis
     #: (KISS-ICP's registration points, at 1.5 x its voxel, are too sparse for normals).
     voxel_m: float = Field(0.1, gt=0.01, le=1.0)
-    #: At most this many points are analysed (the rest is subsampled evenly).
-    max_points: int = Field(4000, ge=100, le=200_000)
+    #: At most this many points are analysed (the rest is subsampled evenly): a bound for
+    #: pathological frames. A subsampled frame leaves fewer points per cell, so the bound sits
+    #: above the thinned frames of a 40k-ray lidar (about 6k points).
+    max_points: int = Field(20_000, ge=100, le=200_000)
 
 
 @dataclass(frozen=True)
@@ -90,24 +98,53 @@ class PlanarConstraint:
         return "; ".join(parts) or "well constrained"
 
 
-def _normals(points: np.ndarray, config: DegeneracyConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals of the points on surfaces, and which points have one."""
-    n = len(points)
-    k = min(config.neighbours, n)
-    if k < 4:
-        return np.zeros((n, 3)), np.zeros(n, dtype=bool)
-    tree = cKDTree(points)
-    dist, idx = tree.query(points, k=k)
-    near = dist[:, -1] <= config.max_neighbour_distance_m
-    nb = points[idx]                                    # (n, k, 3)
-    centred = nb - nb.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", centred, centred) / k
-    evals, evecs = np.linalg.eigh(cov)                  # ascending
-    total = evals.sum(axis=1)
+def smallest_eigen(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The smallest eigenvalue, its unit eigenvector and the eigenvalue sum of each symmetric
+    3x3 matrix in cov (M, 3, 3), in closed form (the trigonometric solution of the characteristic
+    cubic; the eigenvector is the longest cross product of two rows of cov - lambda I)."""
+    a, b, c = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
+    d, e, f = cov[:, 0, 1], cov[:, 1, 2], cov[:, 0, 2]
+    q = (a + b + c) / 3.0
+    aq, bq, cq = a - q, b - q, c - q
+    p = np.sqrt((aq * aq + bq * bq + cq * cq + 2.0 * (d * d + e * e + f * f)) / 6.0)
+    det = aq * (bq * cq - e * e) - d * (d * cq - e * f) + f * (d * e - bq * f)
     with np.errstate(invalid="ignore", divide="ignore"):
-        variation = np.where(total > 0, evals[:, 0] / total, 1.0)
-    ok = near & (variation <= config.max_surface_variation)
-    return evecs[:, :, 0], ok
+        r = np.where(p > 0.0, det / (2.0 * p ** 3), 0.0)
+    lam = q + 2.0 * p * np.cos(np.arccos(np.clip(r, -1.0, 1.0)) / 3.0 + 2.0 * np.pi / 3.0)
+    a, b, c = a - lam, b - lam, c - lam   # the rows of cov - lambda I: (a d f), (d b e), (f e c)
+    cands = np.stack([np.stack([d * e - f * b, f * d - a * e, a * b - d * d], axis=1),    # row 0 x row 1
+                      np.stack([d * c - f * e, f * f - a * c, a * e - d * f], axis=1),    # row 0 x row 2
+                      np.stack([b * c - e * e, e * f - d * c, d * e - b * f], axis=1)],   # row 1 x row 2
+                     axis=1)                                                          # (M, 3, 3)
+    norm2 = (cands * cands).sum(axis=2)
+    best = norm2.argmax(axis=1)
+    pick = np.arange(len(cov))
+    vec, length = cands[pick, best], np.sqrt(norm2[pick, best])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        vec = np.where(length[:, None] > 0.0, vec / length[:, None], np.array([0.0, 0.0, 1.0]))
+    return lam, vec, 3.0 * q
+
+
+def _normals(points: np.ndarray, config: DegeneracyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals of the points on surfaces (their cell's), and which points have one."""
+    cell = config.cell_m
+    ijk = np.floor(points / cell)
+    idx = (ijk - ijk.min(axis=0)).astype(np.int64)
+    span = idx.max(axis=0) + 1
+    _, inv, counts = np.unique((idx[:, 0] * span[1] + idx[:, 1]) * span[2] + idx[:, 2],
+                               return_inverse=True, return_counts=True)
+    m = len(counts)
+    local = points - ijk * cell          # within the cell: no cancellation in the sums
+    mean = np.stack([np.bincount(inv, local[:, i], m) for i in range(3)], axis=1) / counts[:, None]
+    cov = np.empty((m, 3, 3))
+    for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2)):
+        cov[:, i, j] = cov[:, j, i] = (np.bincount(inv, local[:, i] * local[:, j], m) / counts
+                                       - mean[:, i] * mean[:, j])
+    lam, normal, total = smallest_eigen(cov)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        variation = np.where(total > 0.0, lam / total, 1.0)
+    ok = (counts >= config.min_cell_points) & (variation <= config.max_surface_variation)
+    return normal[inv], ok[inv]
 
 
 def planar_constraint(points_base: np.ndarray, config: DegeneracyConfig = DegeneracyConfig()) -> PlanarConstraint:
@@ -115,7 +152,8 @@ def planar_constraint(points_base: np.ndarray, config: DegeneracyConfig = Degene
     pts = np.asarray(points_base, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {pts.shape}")
-    pts = pts[np.isfinite(pts).all(axis=1)]
+    if not np.isfinite(pts).all():
+        pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) > config.max_points:
         pts = pts[np.linspace(0, len(pts) - 1, config.max_points).astype(np.int64)]
     normals, ok = _normals(pts, config) if len(pts) else (np.zeros((0, 3)), np.zeros(0, dtype=bool))
@@ -151,4 +189,4 @@ def planar_constraint(points_base: np.ndarray, config: DegeneracyConfig = Degene
     )
 
 
-__all__ = ["DegeneracyConfig", "PlanarConstraint", "planar_constraint"]
+__all__ = ["DegeneracyConfig", "PlanarConstraint", "planar_constraint", "smallest_eigen"]

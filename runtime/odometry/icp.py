@@ -16,10 +16,12 @@ iteration cap per frame from the time budget); what we add around it:
   point to the time 1.0; measured: against ground truth, the pose matches the frame's end, not its
   middle), so every pose here is stamped with the time of the frame's last point.
 - Degeneracy: `planar_constraint` on the deskewed frame (runtime.odometry.degeneracy), before the
-  map takes the pose: with a prior, a direction the scan does not constrain keeps the prior's
-  translation (solution remapping), so ICP's slide along featureless walls reaches neither the
-  map nor the next frame's guess, and the answer does not depend on where the iteration cap
-  stopped the slide.
+  registration: with a prior, a direction the scan does not constrain keeps the prior's
+  translation (solution remapping, applied to the registered pose before the map takes it), so
+  ICP's slide along featureless walls reaches neither the map nor the next frame's guess, and the
+  answer does not depend on where the iteration cap stopped the slide. Such a frame is registered
+  with the lower cap `IcpConfig.degenerate_max_iterations`: past the constrained directions'
+  convergence its iterations only slide.
 - The planar increment since the previous frame in the base frame (the lidar's mount applied).
 
 Frames must span their sweep in time for a deskew: a frame whose point times span less than half
@@ -82,6 +84,10 @@ class IcpResult:
     iteration_cap: int | None = None
     #: The first result only: the settings in use (auto ones resolved) and their derivation.
     settings: dict | None = None
+    #: Wall-clock ms by part (a measurement, never used for behaviour): "prepare" (the frame's
+    #: conversion, the prior, a wheel/gyro deskew), then KissPipeline's TIMED_PARTS ("inspect":
+    #: the degeneracy analysis).
+    parts_ms: dict = field(default_factory=dict)
 
 
 def _lidar_delta(prior_base: np.ndarray, mount: np.ndarray, mount_inv: np.ndarray) -> np.ndarray:
@@ -160,8 +166,10 @@ class IcpEngine:
                 notes.append("no wheel/gyro motion over the sweep: no deskew")
         kiss_deskews = deskew and mode == "kiss"
         analysis: list = []
+        prepared = time.perf_counter()
         frame, source = self.kiss.register_frame(pts, offs, deskew=kiss_deskews,
-                                                 correct=lambda f, g, p: self._remap(f, g, p, analysis))
+                                                 inspect=lambda f: self._analyse(f, analysis),
+                                                 correct=lambda f, g, p: self._remap(g, p, analysis))
         pose_base = se2_of_matrix(self.mount @ self.kiss.last_pose @ self.mount_inv)
         delta = None if self._prev_pose is None else se2_between(self._prev_pose, pose_base)
         prev_end = self._prev_end
@@ -174,20 +182,29 @@ class IcpEngine:
             points_in=len(pts), points_registered=len(source), deskewed=deskew,
             compute_s=time.perf_counter() - t0, notes=tuple(notes), gate=self.kiss.gate,
             iteration_cap=self.kiss.last_cap, settings=self._settings_once(),
+            parts_ms={"prepare": (prepared - t0) * 1e3, **self.kiss.last_timings_ms},
         )
 
-    def _remap(self, frame: np.ndarray, guess: np.ndarray, pose: np.ndarray, out: list) -> np.ndarray:
-        """The registered pose with its translation along a direction the scan does not
-        constrain put back to the prior's (solution remapping, Zhang, Kaess and Singh 2016):
-        ICP's answer there is a slide along featureless walls, and the map must not take it."""
+    def _analyse(self, frame: np.ndarray, out: list) -> int | None:
+        """The degeneracy analysis of the deskewed frame (into out), before the registration; the
+        iteration cap of a frame whose translation the remapping will put back along a direction
+        (IcpConfig.degenerate_max_iterations: the iterations past it would only slide there)."""
         from kiss_icp.voxelization import voxel_down_sample
 
         if not len(frame):
-            return pose
+            return None
         thin = voxel_down_sample(frame, self.degeneracy.voxel_m)
         con = planar_constraint(thin @ self.mount[:3, :3].T + self.mount[:3, 3], self.degeneracy)
         out.append(con)
-        weak = con.weak_direction_xy
+        if con.degenerate_xy and self.use_prior:
+            return self.config.degenerate_max_iterations
+        return None
+
+    def _remap(self, guess: np.ndarray, pose: np.ndarray, analysis: list) -> np.ndarray:
+        """The registered pose with its translation along a direction the scan does not
+        constrain put back to the prior's (solution remapping, Zhang, Kaess and Singh 2016):
+        ICP's answer there is a slide along featureless walls, and the map must not take it."""
+        weak = analysis[0].weak_direction_xy if analysis else None
         if weak is None or not self.use_prior:
             return pose
         step = self.mount @ np.linalg.inv(guess) @ pose @ self.mount_inv   # base frame, at the guess

@@ -54,7 +54,16 @@ class IcpConfig(BaseModel):
     #: What the iterations of one frame may cost at most (ms, on the 2-core reference machine):
     #: the auto iteration cap's budget. A count follows from it, never a clock.
     iteration_budget_ms: float = Field(80.0, gt=1.0, le=2000.0)
-    convergence_criterion: float = Field(1e-4, gt=0.0, le=1.0)
+    #: KISS-ICP stops iterating when an iteration's step (the norm of its 6-vector: m and rad) is
+    #: below this. KISS-ICP's 1e-4 is made for cars (about 1 m per frame); indoors, 1e-3 (a 1 mm,
+    #: 1 mrad step) halves the iterations (20k-ray frames: 10 -> 4 median, 20 -> 12 p99) with the
+    #: simulator's and the real sequences' accuracy kept (docs/decisions/odometry-icp-speed.md).
+    convergence_criterion: float = Field(1e-3, gt=0.0, le=1.0)
+    #: The iteration cap of a frame whose translation the scan leaves unconstrained along a
+    #: direction (the degeneracy analysis runs before the registration): with a prior the pose
+    #: keeps the prior's translation there (runtime.odometry.icp), and the iterations past the
+    #: constrained directions' convergence only slide along it.
+    degenerate_max_iterations: int = Field(10, ge=1, le=500)
     #: KISS-ICP's TBB threads. 1: the registration is then deterministic (a parallel reduction
     #: sums in a varying order), and the robot's second core is the tick's.
     threads: int = Field(1, ge=1, le=16)

@@ -15,6 +15,7 @@ from runtime.odometry.degeneracy import DegeneracyConfig, planar_constraint
 from runtime.odometry.fusion import FusionConfig, PoseFusion
 from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult, deskew_with_motion
 from runtime.odometry.icp_config import IcpConfig
+from runtime.odometry.kiss_pipeline import TIMED_PARTS
 from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse, wrap
 from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
 
@@ -199,6 +200,10 @@ def test_kiss_icp_recovers_the_motion_of_a_synthetic_scene():
         np.testing.assert_allclose(r.delta_base[:2], [0.05, 0.0], atol=0.01)
         assert abs(r.delta_base[2] - 0.02) < math.radians(0.3)
         assert r.constraint is not None and not r.constraint.degenerate
+        assert r.iteration_cap >= 20  # the auto cap: a well-constrained frame is not cut short
+        # Its time by part (a measurement): every part, none negative, within the whole.
+        assert list(r.parts_ms) == ["prepare", *TIMED_PARTS] and min(r.parts_ms.values()) >= 0.0
+        assert sum(r.parts_ms.values()) <= r.compute_s * 1e3
 
 
 def test_where_the_scan_constrains_the_motion_icp_corrects_wheels_that_overstate_it():
@@ -214,10 +219,11 @@ def test_along_a_featureless_corridor_the_registered_motion_is_the_wheels_and_ac
     # builds agrees with the pose the fusion gives, and across the axis what the scan measured.
     corridor = np.vstack([_wall((-30, -1), (30, -1), step=0.03), _wall((-30, 1), (30, 1), step=0.03),
                           _floor(12.0, 0.15)])
-    engine = _engine()
+    # The analysis runs before the registration: a degenerate frame gets the lower iteration cap.
+    engine = IcpEngine(IcpConfig(voxel_size_m=0.2, deskew="off", degenerate_max_iterations=7), DegeneracyConfig(), MOUNT, True)
     results = [engine.process(j) for j in _frames(n=8, step=(0.05, 0.0, 0.0), world=corridor, wheel_scale=1.3)]
     for r in results[1:]:
-        assert r.constraint.degenerate_xy
+        assert r.constraint.degenerate_xy and r.iteration_cap == 7
         assert abs(r.delta_base[0] - 0.065) < 1e-6, r.delta_base   # the wheels' 1.3 x 5 cm
         assert abs(r.delta_base[1]) < 0.01 and abs(r.delta_base[2]) < math.radians(0.3)
 
