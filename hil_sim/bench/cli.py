@@ -281,9 +281,12 @@ def planner_command(*, repeats: int, cvxpy_repeats: int, horizons: tuple[int, ..
                     net_path: str | None, json_path: Path | None, force: bool) -> None:
     """Planner step time (selection + net + QP, one thread) against points in range and horizon,
     with the share of each part and the constraint set's size, against cvxpy (ECOS, Clarabel)."""
+    from calibration.extras import require
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
     from hil_sim.bench.planner import HORIZONS, POINT_COUNTS, cap_warnings, print_planner_benchmark
 
+    if cvxpy_repeats > 0:  # checked before the OSQP rows, which take minutes
+        require("cvxpy", "ecos", "clarabel", what="dct bench planner (its cvxpy rows; --cvxpy-repeats 0 skips them)")
     if json_path is not None:
         try:
             check_output_path(json_path, what="--json", overwrite=force)
@@ -351,11 +354,9 @@ def _run_campaign_command(name: str, *, seeds: int, first_seed: int, methods: st
     except (CampaignError, ConfigFileError) as exc:
         raise InputError(str(exc)) from None
     if ray_address is not None:
-        import importlib.util
+        from calibration.extras import require
 
-        if importlib.util.find_spec("ray") is None:
-            raise InputError("--ray: Ray is not installed (pip install 'dct-controller[ray]', or run without --ray "
-                             "for local worker processes)") from None
+        require("ray", what="--ray (without it the campaign runs in local worker processes)")
     checked_output(json_path, "--json", [config_path], force)
     progress = RichProgress(name)
     try:
