@@ -89,6 +89,7 @@ class Measured(_Strict):
     reference_p50_ms: float = Field(gt=0)
     reference_p99_ms: float = Field(gt=0)
     ticks: int = Field(ge=1)
+    load_average: tuple[float, float] = Field(description="1-minute load average before and after the run")
     provenance: dict  # runtime.common.provenance: command, commit, machine, python, utc
 
 
@@ -270,9 +271,14 @@ class GateRun:
         section: dict = {"settings": self.settings.model_dump(mode="json"), **fig}
         out["gate"] = section
         if self.write_path is not None:
-            cal = calibration_of(self.settings, fig)
+            load = (out["load_average_before"][0], out["load_average_after"][0])
+            cal = calibration_of(self.settings, fig, load)
             write_calibration(self.write_path, cal)
             section["calibration"] = cal.model_dump(mode="json")
+            cores = (cal.measured.provenance.get("machine") or {}).get("cores") or 1
+            if max(load) > cores / 2:
+                echo(f"WARNING: the load average was {max(load):.2f} on {cores} cores: other work ran beside the "
+                     f"calibration, whose ratio and spread then describe that load (a loose budget)")
             echo(f"gate: reference p50 {fig['reference_p50_ms']:.3f} ms, p99 {fig['reference_p99_ms']:.3f} ms; tick p99 "
                  f"{fig['tick_p99_ms']:.2f} ms over {fig['ticks']} ticks = {cal.ratio:.3f} reference units (spread "
                  f"{cal.reference_spread:.3f}, margin {cal.margin:g}): written to {self.write_path}")
@@ -317,7 +323,8 @@ def prepare_gate(settings: RunSettings, budget_flag: bool, budget_ms: float | No
     return GateRun(settings, budget=Budget.of(cal, path))
 
 
-def calibration_of(settings: RunSettings, fig: dict, margin: float = DEFAULT_MARGIN) -> Calibration:
+def calibration_of(settings: RunSettings, fig: dict, load_average: tuple[float, float],
+                   margin: float = DEFAULT_MARGIN) -> Calibration:
     from runtime.common.provenance import provenance
 
     p50, p99 = fig["reference_p50_ms"], fig["reference_p99_ms"]
@@ -325,7 +332,7 @@ def calibration_of(settings: RunSettings, fig: dict, margin: float = DEFAULT_MAR
                        reference_spread=round(max(1.0, p99 / p50), 4), margin=margin,
                        measured=Measured(tick_p99_ms=round(fig["tick_p99_ms"], 3), reference_p50_ms=round(p50, 4),
                                          reference_p99_ms=round(p99, 4), ticks=fig["ticks"],
-                                         provenance=provenance()))
+                                         load_average=load_average, provenance=provenance()))
 
 
 _HEADER = """\

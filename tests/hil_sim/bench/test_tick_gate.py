@@ -84,7 +84,7 @@ def _settings(**kw) -> RunSettings:
 def _calibration(settings: RunSettings, ratio: float = 4.0) -> Calibration:
     return Calibration(settings=settings, ratio=ratio, reference_spread=1.5, margin=0.25,
                        measured=Measured(tick_p99_ms=12.0, reference_p50_ms=3.0, reference_p99_ms=4.5, ticks=300,
-                                         provenance={"commit": "abc", "machine": {"cpu": "test cpu"}}))
+                                         load_average=(0.5, 0.7), provenance={"commit": "abc", "machine": {"cpu": "test cpu"}}))
 
 
 def test_write_keeps_other_settings_and_replaces_equal_ones(tmp_path):
