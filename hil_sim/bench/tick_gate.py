@@ -19,8 +19,8 @@ weight and a margin. The verdict (`judge`, no timing in it):
     pass     = ratio <= allowed
 
 The noise weight (NOISE_WEIGHT, 1.25 ratio units per unit of spread) is fitted on the development
-machine: over runs of the same code with load averages from 1 to 4.7 on its two cores, the ratio
-less 1.25 x (spread - 1) varied by 9% (sd / mean) where the ratio alone varied by 22%
+machine: over 12 runs of the same code with load averages from 1 to 7.9 on its two cores, the
+ratio less 1.25 x (spread - 1) varied by 9% (sd / mean) where the ratio alone varied by 20%
 (docs/decisions/tick-regression-gate.md). A busier machine gets a larger allowance, a quieter one a
 smaller one; a slower one the same.
 `--budget-ms MS` judges the tick p99 against MS on this machine instead (a real-time requirement
