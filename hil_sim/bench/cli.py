@@ -1,4 +1,4 @@
-"""`dct bench`: benchmarks that print figures (no pass/fail)."""
+"""`dct bench`: benchmarks that print figures (no pass/fail, but for the regression gate `dct bench tick --budget`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,7 +11,7 @@ from runtime.common.provenance import with_provenance
 
 @click.group(name="bench")
 def bench_group() -> None:
-    """Benchmarks: each prints its figures (no pass/fail)."""
+    """Benchmarks: each prints its figures (no pass/fail, but for the gate of tick --budget)."""
 
 
 @bench_group.command("sim-speed")
