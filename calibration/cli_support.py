@@ -83,14 +83,19 @@ class LazyGroup(click.Group):
         try:
             return ep.load()
         except ImportError as exc:
-            return self._unavailable(name, str(exc))
+            return self._unavailable(name, exc)
 
-    def _unavailable(self, name: str, why: str) -> click.Command:
-        """A stand-in listed with the reason; invoked, it fails with one line."""
-        what = self.unavailable_what
+    def _unavailable(self, name: str, exc: ImportError) -> click.Command:
+        """A stand-in listed with the reason; invoked, it fails with one line (exit 2 naming the extra
+        when an optional dependency is missing, calibration.extras)."""
+        from calibration.extras import MissingExtraError, missing_extra, missing_extra_message
+
+        what, why, module = self.unavailable_what, str(exc), missing_extra(exc)
 
         @click.command(name=name, help=f"(unavailable: {why})")
         def unavailable() -> None:
+            if module is not None:
+                raise MissingExtraError(missing_extra_message(module, f"{what} '{name}'"))
             raise OneLineError(f"{what} '{name}' cannot be loaded: {why}")
 
         return unavailable

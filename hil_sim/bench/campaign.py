@@ -268,8 +268,10 @@ def _run_on_ray(tasks: list[EpisodeTask], address: str, workers: int,
     try:
         import ray
     except ImportError:
-        raise CampaignError("--ray: Ray is not installed (pip install 'dct-controller[ray]', or run without --ray "
-                            "for local worker processes)") from None
+        from calibration.extras import missing_extra_message
+
+        why = missing_extra_message("ray", "--ray (without it the campaign runs in local worker processes)")
+        raise CampaignError(why) from None
     if ray.is_initialized():
         raise CampaignError("--ray: Ray is already initialized in this process")
     kwargs = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)

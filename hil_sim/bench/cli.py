@@ -1,4 +1,4 @@
-"""`dct bench`: benchmarks that print figures (no pass/fail)."""
+"""`dct bench`: benchmarks that print figures (no pass/fail, but for the regression gate `dct bench tick --budget`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,7 +11,7 @@ from runtime.common.provenance import with_provenance
 
 @click.group(name="bench")
 def bench_group() -> None:
-    """Benchmarks: each prints its figures (no pass/fail)."""
+    """Benchmarks: each prints its figures (no pass/fail, but for the gate of tick --budget)."""
 
 
 @bench_group.command("sim-speed")
@@ -167,17 +167,47 @@ def odom_settings_bench_command(*, sequences: tuple[Path, ...], poses: tuple[Pat
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Write the figures as JSON (checked before the run, written atomically after it).")
 @click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
-def tick_bench_command(*, scenarios: tuple[str, ...], seed: int, runs: int, hogs: int, seconds: float | None,
-                       odometry_scaling: bool, scaling_rays: tuple[int, ...], json_path: Path | None,
-                       force: bool) -> None:
+@click.option("--short", is_flag=True,
+              help="The CI run: case1, 6 runs of at most 8 simulated seconds, no odometry table (not with --scenario, "
+                   "--runs, --seconds).")
+@click.option("--budget", "budget_flag", is_flag=True,
+              help="Regression gate: exit 1 when the tick p99, in units of a reference workload timed in this "
+                   "process, exceeds the calibrated budget for these settings beyond this machine's noise and "
+                   "the margin (hil_sim/bench/tick_budget.yaml).")
+@click.option("--budget-ms", type=click.FloatRange(0.1, 10_000.0), metavar="MS",
+              help="Gate against MS: exit 1 when the tick p99 on this machine exceeds it (no normalization).")
+@click.option("--budget-file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="The calibrations --budget reads (default: the shipped tick_budget.yaml).")
+@click.option("--write-budget", "write_budget", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
+              help="Measure the calibration of these settings on this machine and write it into FILE "
+                   "(other settings' calibrations kept).")
+@click.pass_context
+def tick_bench_command(ctx: click.Context, *, scenarios: tuple[str, ...], seed: int, runs: int, hogs: int,
+                       seconds: float | None, odometry_scaling: bool, scaling_rays: tuple[int, ...],
+                       json_path: Path | None, force: bool, short: bool, budget_flag: bool, budget_ms: float | None,
+                       budget_file: Path | None, write_budget: Path | None) -> None:
     """The whole controller tick (read, odometry, partition, planner, safety, write) on the wall clock,
     in lockstep episodes with 20k-ray lidar frames: per stage and per tick p50/p90/p99/max against the
-    budgets, deadline misses, points per frame, capped QP solves; and ICP time against points per frame."""
+    budgets, deadline misses, points per frame, capped QP solves; and ICP time against points per frame.
+    With --budget: the regression gate (exit 1 on a regression)."""
     from calibration.errors import ConfigFileError
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
     from hil_sim.bench.tick import DEFAULT_SCALING_RAYS, DEFAULT_SCENES, resolve_scene, run_tick_benchmark
+    from hil_sim.bench.tick_gate import SHORT, WARMUP_TICKS, GateInputError, RunSettings, prepare_gate
 
+    if short:
+        explicit = [f"--{n}" for n in ("scenario", "runs", "seconds")
+                    if ctx.get_parameter_source(n if n != "scenario" else "scenarios").name == "COMMANDLINE"]
+        if explicit:
+            raise InputError(f"--short sets the scene, runs and seconds: not with {', '.join(explicit)}")
+        scenarios, runs, seconds, odometry_scaling = SHORT.scenes, SHORT.runs, SHORT.seconds, False
     names = scenarios or DEFAULT_SCENES
+    settings = RunSettings(scenes=tuple(names), runs=runs, seconds=seconds, seed=seed, hogs=hogs,
+                           warmup_ticks=WARMUP_TICKS)
+    try:
+        gate = prepare_gate(settings, budget_flag, budget_ms, budget_file, write_budget)
+    except GateInputError as exc:
+        raise InputError(str(exc)) from None
     try:
         for name in names:
             resolve_scene(name)
@@ -187,9 +217,16 @@ def tick_bench_command(*, scenarios: tuple[str, ...], seed: int, runs: int, hogs
     except (ConfigFileError, OutputPathError) as exc:
         raise InputError(str(exc)) from exc
     rays = (scaling_rays or DEFAULT_SCALING_RAYS) if odometry_scaling else ()
-    out = run_tick_benchmark(tuple(names), seed, runs, hogs, seconds, rays, echo=click.echo)
+    out = run_tick_benchmark(tuple(names), seed, runs, hogs, seconds, rays, echo=click.echo,
+                             gate=gate.probe if gate is not None else None)
+    try:
+        passed = gate is None or gate.finish(out, click.echo)
+    except GateInputError as exc:
+        raise InputError(str(exc)) from None
     if json_path is not None:
         atomic_write_json(json_path, with_provenance(out))
+    if not passed:
+        ctx.exit(1)
 
 
 @bench_group.command("icp-parts")
@@ -272,9 +309,12 @@ def planner_command(*, repeats: int, cvxpy_repeats: int, horizons: tuple[int, ..
                     net_path: str | None, json_path: Path | None, force: bool) -> None:
     """Planner step time (selection + net + QP, one thread) against points in range and horizon,
     with the share of each part and the constraint set's size, against cvxpy (ECOS, Clarabel)."""
+    from calibration.extras import require
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
     from hil_sim.bench.planner import HORIZONS, POINT_COUNTS, cap_warnings, print_planner_benchmark
 
+    if cvxpy_repeats > 0:  # checked before the OSQP rows, which take minutes
+        require("cvxpy", "ecos", "clarabel", what="dct bench planner (its cvxpy rows; --cvxpy-repeats 0 skips them)")
     if json_path is not None:
         try:
             check_output_path(json_path, what="--json", overwrite=force)
@@ -342,11 +382,9 @@ def _run_campaign_command(name: str, *, seeds: int, first_seed: int, methods: st
     except (CampaignError, ConfigFileError) as exc:
         raise InputError(str(exc)) from None
     if ray_address is not None:
-        import importlib.util
+        from calibration.extras import require
 
-        if importlib.util.find_spec("ray") is None:
-            raise InputError("--ray: Ray is not installed (pip install 'dct-controller[ray]', or run without --ray "
-                             "for local worker processes)") from None
+        require("ray", what="--ray (without it the campaign runs in local worker processes)")
     checked_output(json_path, "--json", [config_path], force)
     progress = RichProgress(name)
     try:

@@ -116,6 +116,7 @@ class TickProbe:
     plans: list[int] = field(default_factory=list)  # cumulative MPC plans
     mpc_ms: list[tuple[float, ...]] = field(default_factory=list)  # MPC_PARTS of a fresh plan (NaN: none)
     keep_jobs: bool = False
+    after: Callable[[], None] | None = None  # called last, after each tick (the regression gate's reference)
     jobs: list = field(default_factory=list)  # IcpJob per good frame (odometry scaling)
     _last_plan: object = None
 
@@ -139,6 +140,8 @@ class TickProbe:
             self.mpc_ms.append((np.nan,) * len(MPC_PARTS))
         if self.keep_jobs and scan is not None:
             self.jobs.append(icp_job_of(controller.odometry, scan, len(self.jobs)))
+        if self.after is not None:
+            self.after()
 
 
 def icp_job_of(stage, scan, seq: int):
@@ -193,11 +196,12 @@ class EpisodeTicks:
         )
 
 
-def run_ticks(scene: Scenario, seed: int, config=None, sensors=None, keep_jobs: bool = False) -> EpisodeTicks:
+def run_ticks(scene: Scenario, seed: int, config=None, sensors=None, keep_jobs: bool = False,
+              after_tick: Callable[[], None] | None = None) -> EpisodeTicks:
     """One lockstep episode (hil_sim.episode.lockstep.run_episode, as `dct hil run`) with the tick probe."""
     from hil_sim.episode.lockstep import run_episode
 
-    probe = TickProbe(keep_jobs=keep_jobs)
+    probe = TickProbe(keep_jobs=keep_jobs, after=after_tick)
     result = run_episode(scene, config=config, seed=seed, sensors=sensors, observe=probe)
     rec = result.tick_records
     n = len(rec)
@@ -404,8 +408,13 @@ def cap_warning(fig: dict) -> str | None:
 
 
 def run_tick_benchmark(scene_names: tuple[str, ...], seed: int, runs: int, hogs: int, seconds: float | None,
-                       scaling_rays: tuple[int, ...], echo: Callable[[str], None] = print) -> dict:
-    """The whole benchmark (module docstring); returns the JSON figures."""
+                       scaling_rays: tuple[int, ...], echo: Callable[[str], None] = print,
+                       gate=None) -> dict:
+    """The whole benchmark (module docstring); returns the JSON figures. `gate` (the regression gate,
+    hil_sim.bench.tick_gate.GateProbe): gate.episode(None) before the first episode, gate.episode(ticks)
+    after each, gate.tick() after each tick (outside it); all beside the busy processes."""
+    episode_done = gate.episode if gate is not None else (lambda ep: None)
+    after_tick = gate.tick if gate is not None else None
     from runtime.config import load_controller_config
 
     scenes = [capped_scene(resolve_scene(n), seconds) for n in scene_names]
@@ -423,8 +432,12 @@ def run_tick_benchmark(scene_names: tuple[str, ...], seed: int, runs: int, hogs:
              f"processes beside it, {os.cpu_count()} cores; lockstep episodes as `dct hil run`, 20k-ray frames at "
              f"10 Hz, ticks at {1 / loop.period_s:g} Hz; times on the wall clock")
         per_scene: list[EpisodeTicks] = []
+        episode_done(None)
         for sc in scenes:
-            eps = [run_ticks(sc, seed + k) for k in range(runs)]
+            eps = []
+            for k in range(runs):
+                eps.append(run_ticks(sc, seed + k, after_tick=after_tick))
+                episode_done(eps[-1])
             ticks = EpisodeTicks.concat(eps, sc.name)
             per_scene.append(ticks)
             fig = figures(ticks, *args)

@@ -16,6 +16,7 @@ from importlib.metadata import EntryPoint, entry_points
 import click
 
 from calibration.cli_support import LazyGroup
+from calibration.extras import missing_extra, missing_extra_message
 
 
 def _command_entry_points() -> dict:
@@ -64,6 +65,10 @@ def main() -> None:
     except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, never a traceback
         if os.environ.get("DCT_DEBUG"):
             raise
+        module = missing_extra(exc)  # an optional dependency the command needs (calibration.extras)
+        if module is not None:
+            click.echo(f"Error: {missing_extra_message(module)}", err=True)
+            sys.exit(2)
         click.echo(f"Error: internal error: {type(exc).__name__}: {_one_line(str(exc))} "
                    "(set DCT_DEBUG=1 for the traceback)", err=True)
         sys.exit(3)

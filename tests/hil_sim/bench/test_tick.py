@@ -32,11 +32,12 @@ def _one_line_error(res) -> str:
 
 @pytest.fixture(scope="module")
 def short_run(tmp_path_factory):
-    """One scene, one short episode, and a one-density odometry table: the whole command. 3 s:
+    """One scene, one short episode, and a one-density odometry table: the whole command, with the
+    regression gate against a budget no tick reaches. 3 s:
     the default mode (dct) waits 1.5 s for the VLM's first answer before the MPC plans."""
     out = tmp_path_factory.mktemp("tick") / "tick.json"
     res = _invoke("--scenario", "gap", "--runs", "1", "--seconds", "3", "--scaling-rays", "2000",
-                  "--json", out)
+                  "--budget-ms", "10000", "--json", out)
     assert res.exit_code == 0, res.output
     return res.output, json.loads(out.read_text())
 
@@ -80,6 +81,18 @@ def test_json_odometry_scaling_row(short_run):
     assert row["frames"] >= 5
     _check_percentiles(row["icp_ms"])
     _check_percentiles(row["stage_ms"])
+
+
+def test_gate_times_the_reference_between_the_real_ticks(short_run):
+    text, d = short_run
+    gate = d["gate"]
+    assert gate["verdict"] == "pass" and "gate: PASS" in text
+    assert gate["ticks"] == d["ticks"] - gate["warmup_ticks_left_out"]
+    assert gate["tick_p99_ms"] <= d["tick"]["max_ms"]
+    whens = [s["when"] for s in gate["reference_samples"]]
+    assert whens == ["before the first episode", "between the ticks of gap seed 0", "after gap seed 0"]
+    assert gate["reference_samples"][1]["runs"] >= d["ticks"]  # one run after every tick
+    assert 0 < gate["reference_p50_ms"] <= gate["reference_p99_ms"]
 
 
 def test_printed_table_names_every_stage_and_the_deadline_clock(short_run):
