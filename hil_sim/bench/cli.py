@@ -1,6 +1,7 @@
 """`dct bench`: benchmarks that print figures (no pass/fail, but for the regression gate `dct bench tick --budget`)."""
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import click
@@ -181,11 +182,14 @@ def odom_settings_bench_command(*, sequences: tuple[Path, ...], poses: tuple[Pat
 @click.option("--write-budget", "write_budget", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
               help="Measure the calibration of these settings on this machine and write it into FILE "
                    "(other settings' calibrations kept).")
+@click.option("--profile", "profile_dir", type=click.Path(file_okay=False, path_type=Path), metavar="DIR",
+              help="Also where the tick's CPU time goes, part by part (printed, and in the JSON), with cProfile of "
+                   "the tick alone in DIR/tick.prof and DIR/tick_profile.txt (not with the gate: it slows the tick).")
 @click.pass_context
 def tick_bench_command(ctx: click.Context, *, scenarios: tuple[str, ...], seed: int, runs: int, hogs: int,
                        seconds: float | None, odometry_scaling: bool, scaling_rays: tuple[int, ...],
                        json_path: Path | None, force: bool, short: bool, budget_flag: bool, budget_ms: float | None,
-                       budget_file: Path | None, write_budget: Path | None) -> None:
+                       budget_file: Path | None, write_budget: Path | None, profile_dir: Path | None) -> None:
     """The whole controller tick (read, odometry, partition, planner, safety, write) on the wall clock,
     in lockstep episodes with 20k-ray lidar frames: per stage and per tick p50/p90/p99/max against the
     budgets, deadline misses, points per frame, capped QP solves; and ICP time against points per frame.
@@ -202,6 +206,10 @@ def tick_bench_command(ctx: click.Context, *, scenarios: tuple[str, ...], seed: 
             raise InputError(f"--short sets the scene, runs and seconds: not with {', '.join(explicit)}")
         scenarios, runs, seconds, odometry_scaling = SHORT.scenes, SHORT.runs, SHORT.seconds, False
     names = scenarios or DEFAULT_SCENES
+    if profile_dir is not None and (budget_flag or budget_ms is not None or write_budget is not None):
+        raise InputError("--profile slows the tick it measures: not with --budget, --budget-ms or --write-budget")
+    if profile_dir is not None and profile_dir.exists() and any(profile_dir.iterdir()) and not force:
+        raise InputError(f"--profile {profile_dir}: the folder is not empty (--force to write into it)")
     settings = RunSettings(scenes=tuple(names), runs=runs, seconds=seconds, seed=seed, hogs=hogs,
                            warmup_ticks=WARMUP_TICKS)
     try:
@@ -217,8 +225,22 @@ def tick_bench_command(ctx: click.Context, *, scenarios: tuple[str, ...], seed: 
     except (ConfigFileError, OutputPathError) as exc:
         raise InputError(str(exc)) from exc
     rays = (scaling_rays or DEFAULT_SCALING_RAYS) if odometry_scaling else ()
-    out = run_tick_benchmark(tuple(names), seed, runs, hogs, seconds, rays, echo=click.echo,
-                             gate=gate.probe if gate is not None else None)
+    profile = None
+    if profile_dir is not None:
+        from hil_sim.bench.tick_profile import TickProfile
+
+        profile = TickProfile()
+    with profile.installed() if profile is not None else contextlib.nullcontext():
+        out = run_tick_benchmark(tuple(names), seed, runs, hogs, seconds, rays, echo=click.echo,
+                                 gate=gate.probe if gate is not None else None)
+    if profile is not None:
+        from hil_sim.bench.tick_profile import parts_lines
+
+        out["profile"] = profile.table()
+        for line in parts_lines(out["profile"]):
+            click.echo(line)
+        profile.write(profile_dir)
+        click.echo(f"cProfile of the tick: {profile_dir / 'tick.prof'}, {profile_dir / 'tick_profile.txt'}")
     try:
         passed = gate is None or gate.finish(out, click.echo)
     except GateInputError as exc:
