@@ -2,8 +2,9 @@
 
 Two views of the same lockstep episodes, both on the CPU time of the controller's thread
 (`time.thread_time`: what the code itself costs, not the time another process took the core),
-each from every other tick (the odd ticks for the table, the even ones for cProfile, whose own
-overhead, about 80% on this code, would otherwise be in the table):
+each from every other pair of ticks (two for the table, the next two for cProfile, whose own
+overhead, about 80% on this code, would otherwise be in the table; pairs, as a lidar frame comes
+every other tick and each view must see ticks with and without one):
 
 - the parts table: the tick's main calls (PARTS: the reading of the base, the odometry stage,
   the obstacle points, the VPP partition, people tracking, the reference path, the MPC's
@@ -84,7 +85,9 @@ class TickProfile:
         @functools.wraps(f)
         def tick(*args, **kwargs):
             count[0] += 1
-            if count[0] % 2 == 0:  # cProfile's tick: its overhead stays out of the parts table
+            # Two ticks for the table, two for cProfile (whose overhead stays out of the table):
+            # pairs, as lidar frames come every other tick and each view must see both kinds.
+            if count[0] % 4 in (2, 3):
                 prof.enable()
                 try:
                     return f(*args, **kwargs)

@@ -20,7 +20,7 @@ def test_the_profile_times_every_tick_and_its_parts_then_gives_the_methods_back(
     assert _originals() == before
     table = profile.table()
     assert table["ticks"] == len(profile.rows) > 0
-    assert abs(2 * len(profile.rows) - len(ticks.tick_ms)) <= 2  # every other tick (the rest is cProfile's)
+    assert abs(2 * len(profile.rows) - len(ticks.tick_ms)) <= 2  # every other pair of ticks (the rest is cProfile's)
     parts = {p["part"]: p for p in table["parts"]}
     # every tick reads the base and writes a command; the parts never take longer than the tick
     assert parts["NavigationController._read"]["mean_ms"] > 0.0
