@@ -28,8 +28,10 @@ def test_the_replay_of_a_realtime_case3_gives_its_odometry_back_within_1_cm(tmp_
     assert r["replay"]["vlm"]["scripted"] and r["replay"]["vlm"]["mismatched"] == 0, r["replay"]["vlm"]
     assert o["partitions_equal"] == o["partition_samples"] > 0, o
     # The live MPC stops at its wall-clock cap, the replay's at its iteration cap: on a busy machine
-    # some of the live solves end early (measured: 94-100% of the commands equal, the others within
-    # 0.12 m/s); without the recorded VLM answers about 10% more differed, by up to the speed itself.
-    assert o["commands_equal"] >= 0.8 * o["command_ticks"], o
+    # some of the live solves end early, the more the busier (measured: 94-100% of the commands
+    # equal on a quiet machine, 77% beside the CI's other slow test, the others within 0.12 m/s);
+    # without the recorded VLM answers the commands differed by up to the speed itself.
+    assert o["commands_equal"] >= 0.5 * o["command_ticks"], o
+    assert o["command_max_diff"] <= 0.15, o
     assert r["report"]["html_bytes"] > 10_000
     assert r["size"]["file_mb_per_min"] > 0
