@@ -102,13 +102,21 @@ def smallest_eigen(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     """The smallest eigenvalue, its unit eigenvector and the eigenvalue sum of each symmetric
     3x3 matrix in cov (M, 3, 3), in closed form (the trigonometric solution of the characteristic
     cubic; the eigenvector is the longest cross product of two rows of cov - lambda I)."""
+    # Solved on cov / its largest entry (the roots scale with it): no under- or overflow in the
+    # squares and cubes below, whatever the matrix's own scale.
+    size = np.abs(cov).reshape(len(cov), 9).max(axis=1)
+    size = np.where(size > 0.0, size, 1.0)
+    cov = cov / size[:, None, None]
     a, b, c = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
     d, e, f = cov[:, 0, 1], cov[:, 1, 2], cov[:, 0, 2]
     q = (a + b + c) / 3.0
     aq, bq, cq = a - q, b - q, c - q
     p = np.sqrt((aq * aq + bq * bq + cq * cq + 2.0 * (d * d + e * e + f * f)) / 6.0)
     det = aq * (bq * cq - e * e) - d * (d * cq - e * f) + f * (d * e - bq * f)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    # Three equal roots (p negligible beside the matrix's scale, where p ** 3 would underflow):
+    # every root is q.
+    p = np.where(p > 1e-9 * np.maximum(np.abs(q), p), p, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         r = np.where(p > 0.0, det / (2.0 * p ** 3), 0.0)
     lam = q + 2.0 * p * np.cos(np.arccos(np.clip(r, -1.0, 1.0)) / 3.0 + 2.0 * np.pi / 3.0)
     a, b, c = a - lam, b - lam, c - lam   # the rows of cov - lambda I: (a d f), (d b e), (f e c)
@@ -119,10 +127,15 @@ def smallest_eigen(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     norm2 = (cands * cands).sum(axis=2)
     best = norm2.argmax(axis=1)
     pick = np.arange(len(cov))
-    vec, length = cands[pick, best], np.sqrt(norm2[pick, best])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        vec = np.where(length[:, None] > 0.0, vec / length[:, None], np.array([0.0, 0.0, 1.0]))
-    return lam, vec, 3.0 * q
+    vec = cands[pick, best]
+    # Scaled by its largest component first, so that a tiny (subnormal) cross product normalises.
+    big = np.abs(vec).max(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        unit = vec / big[:, None]
+        unit = unit / np.sqrt((unit * unit).sum(axis=1))[:, None]
+    ok = (big > 0.0) & np.isfinite(unit).all(axis=1)
+    vec = np.where(ok[:, None], unit, np.array([0.0, 0.0, 1.0]))
+    return lam * size, vec, 3.0 * q * size
 
 
 def _normals(points: np.ndarray, config: DegeneracyConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -3,7 +3,7 @@ normals of a plane, a corner and the floor."""
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from runtime.odometry.degeneracy import DegeneracyConfig, _normals, planar_constraint, smallest_eigen
@@ -14,6 +14,8 @@ scale = st.floats(1e-4, 10.0, allow_nan=False)
 
 @settings(max_examples=300, deadline=None)
 @given(st.lists(unit, min_size=9, max_size=9), st.lists(scale, min_size=3, max_size=3))
+@example(raw=[0.0, 0.0, 0.0, 1.1754943508222875e-38, 0.0, 0.0, 0.0, 1.1754943508222875e-38, 0.0],
+         spread=[1.0, 1.0, 1.0])  # three equal roots: p ** 3 underflowed and the root was NaN
 def test_the_closed_form_smallest_eigenpair_matches_lapack(raw, spread):
     q, _ = np.linalg.qr(np.asarray(raw).reshape(3, 3) + 3.0 * np.eye(3))
     evals = np.sort(np.asarray(spread))
@@ -33,6 +35,8 @@ def test_the_closed_form_smallest_eigenpair_matches_lapack(raw, spread):
 def test_a_zero_matrix_and_a_plane_give_finite_answers():
     lam, vec, total = smallest_eigen(np.zeros((1, 3, 3)))
     assert lam[0] == 0.0 and total[0] == 0.0 and np.all(np.isfinite(vec))
+    tiny = smallest_eigen(np.diag([1e-200, 1e-200, 0.0])[None])   # solved at the matrix's own scale
+    assert abs(tiny[0][0]) < 1e-210 and abs(abs(tiny[1][0, 2]) - 1.0) < 1e-12
     plane = np.diag([1.0, 1.0, 0.0])[None]
     lam, vec, _ = smallest_eigen(plane)
     assert abs(lam[0]) < 1e-12 and abs(abs(vec[0, 2]) - 1.0) < 1e-12
