@@ -207,8 +207,7 @@ class IcpEngine:
         weak = analysis[0].weak_direction_xy if analysis else None
         if weak is None or not self.use_prior:
             return pose
-        step = self.mount @ np.linalg.inv(guess) @ pose @ self.mount_inv   # base frame, at the guess
-        step = step.copy()
+        step = self.mount @ np.linalg.inv(guess) @ pose @ self.mount_inv   # base frame, at the guess (a new array)
         step[:2, 3] -= weak * float(weak @ step[:2, 3])
         return guess @ self.mount_inv @ step @ self.mount
 
