@@ -6,7 +6,8 @@ Published, as drivers publish them:
   2-4 m away, placed in the sensor frame by the pose the controller itself reports on its
   odometry, so the room stays put in the odometry frame while the robot drives;
 - sensor_msgs/Imu at 200 Hz (its own thread, samples stamped at their nominal times);
-- sensor_msgs/Image, rgb8, at 2 Hz;
+- sensor_msgs/Image, rgb8, at 10 Hz as a camera driver publishes it (0.9 MB each: with Fast DDS's
+  defaults and a kernel's default socket buffers many are lost on the way, so it takes several);
 - as an operator from RViz: a geometry_msgs/PoseStamped goal (reliable) on the goal topic, once
   a subscription is matched and until the controller's odometry shows it has started.
 
@@ -76,6 +77,11 @@ def cloud_array(msg: PointCloud2) -> np.ndarray:
     return np.frombuffer(bytes(msg.data), dtype=dtype, count=n) if n else np.zeros(0, dtype)
 
 
+#: How long images go to a matched camera reader before the node is done: with a kernel's default
+#: socket buffers (net.core.rmem_max 208 kB) about 15% of them arrived beside two busy processes.
+IMAGES_FOR_S = 5.0
+
+
 class Peer:
     def __init__(self, node, args) -> None:
         self.node, self.args = node, args
@@ -84,6 +90,7 @@ class Peer:
         self.room = room_points()
         self.rng = np.random.default_rng(0)
         self.published = {"lidar": 0, "imu": 0, "image": 0, "goal": 0}
+        self.image_matched_at: float | None = None  # when the controller's camera reader was first matched
         self.seen = {"odom": [], "plan": [], "p_fix": [], "diagnostics": [], "markers": []}
         self.first_odom_at: float | None = None
         self.imu_max_gap_s = 0.0
@@ -99,7 +106,7 @@ class Peer:
         node.create_subscription(MarkerArray, "/dct/safety_markers", self.on_markers, qos("best_effort", 10))
         self.image = self.make_image(args.width, args.height)
         node.create_timer(SWEEP_S, self.publish_lidar)
-        node.create_timer(0.5, self.publish_image)
+        node.create_timer(0.1, self.publish_image)
         node.create_timer(1.0, self.publish_goal)
         self.imu_thread = threading.Thread(target=self.imu_loop, daemon=True)
         self.imu_thread.start()
@@ -172,6 +179,8 @@ class Peer:
         return img
 
     def publish_image(self) -> None:
+        if self.image_matched_at is None and self.image_pub.get_subscription_count() > 0:
+            self.image_matched_at = time.monotonic()
         self.image.header.stamp = self.node.get_clock().now().to_msg()
         self.image_pub.publish(self.image)
         self.published["image"] += 1
@@ -248,7 +257,9 @@ class Peer:
 
     def done(self) -> bool:
         s = self.seen
-        return (self.first_odom_at is not None and time.monotonic() - self.first_odom_at > self.args.collect_s
+        now = time.monotonic()
+        return (self.first_odom_at is not None and now - self.first_odom_at > self.args.collect_s
+                and self.image_matched_at is not None and now - self.image_matched_at > IMAGES_FOR_S
                 and len(s["odom"]) >= 5 and sum(p["n"] > 0 for p in s["plan"]) >= 2 and len(s["p_fix"]) >= 2
                 and len(s["diagnostics"]) >= 3)
 
