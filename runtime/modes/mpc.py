@@ -61,7 +61,8 @@ class MpcMode:
                 self.reference.request_replan()  # the first answer: a path on what it says, next slack
             fixed, movable = s.points_fix, ((s.points_mov, s.costs_mov) if len(s.points_mov) else None)
         self._unclassified = s.unclassified
-        ref = self.reference.update(s.pose, s.goal_xy, fixed, movable, keep_clear=s.unclassified)
+        moving = s.command[0] != 0.0 or s.command[1] != 0.0
+        ref = self.reference.update(s.pose, s.goal_xy, fixed, movable, keep_clear=s.unclassified, moving=moving)
         self.last_reference = ref
         if ref.goal_reached:
             return ModeDecision(at_goal=True, remaining_m=0.0)

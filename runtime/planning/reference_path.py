@@ -15,8 +15,9 @@ blocked-ahead replan is asked for (`replan_pending`) and the loop runs it in the
 tick's command is written (`replan_in_slack`, from that tick's pose and P_fix); meanwhile the
 tick follows the current path, one period at most (the MPC keeps clear of P_fix and the safety
 supervisor checks every command against the raw points). The search for a new goal runs in the
-tick (`first_search_in_tick`): there is no path to follow meanwhile, and waiting would cost a
-whole period of standing (or braking) at every goal. With no path after a reset the tick waits:
+tick while the robot moves (`first_search_in_tick`): there is no path to follow meanwhile, and
+waiting would brake it for a period. A robot that stands (the start, a goal reached) waits for
+the slack instead: one period more standing, and no search in its tick. With no path after a reset the tick waits:
 zero command for that one period; after a search that found none, the tick reports blocked and
 the slack searches again. In lockstep the slack work runs at the same point of every period, so
 behaviour stays a function of simulated time. `replan_in_slack: false` searches in the tick.
@@ -54,8 +55,9 @@ class ReferencePathConfig(BaseModel):
     )
     first_search_in_tick: bool = Field(
         default=True,
-        description="the search for a new goal runs in the tick, not the slack after it: the robot would "
-        "otherwise hold (or brake) a whole period waiting for a path (after a reset it still waits: it stands). "
+        description="the search for a new goal given while the robot moves runs in the tick, not the slack "
+        "after it: the robot would otherwise brake for a whole period waiting for a path (standing still, "
+        "at the start, at a goal reached or after a reset, it waits for the slack: one period more standing). "
         "Inside the command deadline, over the planner's stage budget at worst, once per goal "
         "(docs/decisions/planning-search-in-slack.md). False: that search waits for the slack too, as every "
         "replan does")
@@ -233,12 +235,13 @@ class ReferencePathPlanner:
         return pose, goal_xy, points, movable
 
     def update(self, pose: np.ndarray, goal: np.ndarray, points_fix_world: np.ndarray,
-               movable: tuple[np.ndarray, np.ndarray] | None = None, keep_clear: bool = False) -> ReferenceUpdate:
+               movable: tuple[np.ndarray, np.ndarray] | None = None, keep_clear: bool = False,
+               moving: bool = True) -> ReferenceUpdate:
         """pose (x_m, y_m, yaw_rad), goal (x_m, y_m[, yaw]), P_fix (N, 2) in the odom frame;
         movable: (P_mov (M, 2), their contact costs (M,) in 0..10) or None
         (runtime.planning.push_or_detour). keep_clear: the soft zone (the berth paths keep) is
         also around P_mov, as around P_fix: for points of unknown touchability, which the MPC
-        treats as fixed."""
+        treats as fixed. moving: the robot's last command was not zero (first_search_in_tick)."""
         pose, goal_xy, points, movable = self._checked_inputs(pose, goal, points_fix_world, movable)
         self._movable = movable
         self._keep_clear = keep_clear
@@ -252,7 +255,7 @@ class ReferencePathPlanner:
             ref = np.zeros((cfg.horizon_steps + 1, 3))
             ref[:, :2] = goal_xy
             return ReferenceUpdate(ref, self._path, False, False, "goal reached", True, 0.0)
-        reason, urgent, held = self._why_replan(xy, goal_xy, points)
+        reason, urgent, held = self._why_replan(xy, goal_xy, points, moving)
         if held is not None:
             return held
         replanned = False
@@ -268,13 +271,13 @@ class ReferencePathPlanner:
             self._request(xy, goal_xy, points, reason)
         return self._follow(xy, goal_xy, reason, replanned)
 
-    def _why_replan(self, xy: np.ndarray, goal_xy: np.ndarray,
-                    points: np.ndarray) -> tuple[str, bool, ReferenceUpdate | None]:
+    def _why_replan(self, xy: np.ndarray, goal_xy: np.ndarray, points: np.ndarray,
+                    moving: bool) -> tuple[str, bool, ReferenceUpdate | None]:
         """(why to replan, "" for no need; whether in this tick; the update that holds the robot
         while the slack searches, or None to go on)."""
         cfg = self.config
         if self._path is None:
-            if not cfg.replan_in_slack or (cfg.first_search_in_tick and self._goal_changed(goal_xy)):
+            if not cfg.replan_in_slack or (cfg.first_search_in_tick and moving and self._goal_changed(goal_xy)):
                 return "no path", True, None
             if self._no_path_reason is not None and not self._goal_changed(goal_xy):
                 # The last search found no path: hold, and search again in the slack after this tick.
@@ -284,7 +287,7 @@ class ReferencePathPlanner:
             self._request(xy, goal_xy, points, "no path")
             return "", False, self._waiting_update(xy, "waiting for the first search")
         if self._goal_changed(goal_xy):
-            if not cfg.replan_in_slack or cfg.first_search_in_tick:
+            if not cfg.replan_in_slack or (cfg.first_search_in_tick and moving):
                 return "new goal", True, None
             # the old path leads elsewhere: hold until the slack has searched
             self._path = None

@@ -219,6 +219,21 @@ def test_a_new_goal_is_searched_in_its_first_tick() -> None:
     assert up.waiting and rp.replan_pending == "no path"
 
 
+def test_a_robot_standing_still_waits_one_period_for_its_first_path() -> None:
+    """first_search_in_tick saves a moving robot a period of braking; one that stands (the start,
+    a goal reached) gives up nothing by waiting, so its search runs in the slack, not its tick."""
+    rp = _planner()
+    pose, goal, pts = np.zeros(3), np.array([2.0, 0.0]), np.zeros((0, 2))
+    up = rp.update(pose, goal, pts, moving=False)
+    assert up.waiting and rp.replan_pending == "no path" and rp.replans_in_tick == 0
+    assert np.all(up.reference[:, 2] == 0.0)
+    assert rp.replan_in_slack() and rp.replans_in_slack == 1
+    up = rp.update(pose, goal, pts, moving=False)
+    assert not up.waiting and np.allclose(up.path_world[-1], goal) and up.reference[-1, 2] > 0.0
+    up = rp.update(pose, np.array([0.0, 2.0]), pts, moving=False)  # a new goal at a standstill: the same
+    assert up.waiting and rp.replan_pending == "new goal" and rp.replans_in_tick == 0
+
+
 def test_a_new_goal_holds_for_one_tick_then_follows_the_path_to_it() -> None:
     rp = _planner(first_search_in_tick=False)
     pose = np.zeros(3)
