@@ -6,23 +6,17 @@ deskewed with the robot's current twist and its own time stamp (the scan is cast
 100 ms while the robot moves), cut to the robot's height band (ground removed, overhead
 ignored), cropped to a range, reduced to one mean point per 2-D voxel (sparse noise cells
 dropped) and put in the odom frame.
-All numpy, no Python loop over points.
+numpy, and two compiled passes (runtime/perception/point_kernels.py: the deskew to now, the
+voxel means): no Python loop over points.
 """
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
 from calibration.robot_description import RobotDescription
 from runtime.common.geometry import Pose2D
 from runtime.common.sensor_data import LidarScan
-
-
-_KEY_STRIDE = np.int64(1 << 32)  # cell key = ix * stride + iy (cells within +-2^31 of the origin)
-_NEIGHBOUR_OFFSETS = np.array(
-    [dx * _KEY_STRIDE + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1) if (dx, dy) != (0, 0)], dtype=np.int64
-)
+from runtime.perception.point_kernels import band_in_odom, compile_point_kernels, deskew_to_now, voxel_means
 
 
 def voxel_filter(points: np.ndarray, voxel_m: float, min_support_ratio: float = 0.0) -> np.ndarray:
@@ -37,35 +31,12 @@ def voxel_filter(points: np.ndarray, voxel_m: float, min_support_ratio: float = 
     stays. A mean lies inside its cell: at a convex corner it can sit up to about a quarter cell
     behind the surface, which the MPC's d_min and the supervisor's stop distance cover.
     """
-    cells = np.floor(points / voxel_m).astype(np.int64)
-    key = cells[:, 0] * _KEY_STRIDE + cells[:, 1]
-    keys, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    out = np.empty((keys.shape[0], 2))
-    out[:, 0] = np.bincount(inverse, weights=points[:, 0]) / counts
-    out[:, 1] = np.bincount(inverse, weights=points[:, 1]) / counts
-    if min_support_ratio <= 0.0 or keys.shape[0] < 2:
-        return out
-    nb = keys[None, :] + _NEIGHBOUR_OFFSETS[:, None]  # (8, M) neighbour keys, looked up in the sorted keys
-    idx = np.minimum(np.searchsorted(keys, nb), keys.shape[0] - 1)
-    nb_counts = np.where(keys[idx] == nb, counts[idx], 0)
-    return out[counts >= min_support_ratio * nb_counts.max(axis=0)]
+    if points.shape[0] == 0:
+        return np.zeros((0, 2))
+    return voxel_means(np.ascontiguousarray(points, dtype=np.float64), float(voxel_m), float(min_support_ratio))
 
 
-def _to_now(q: np.ndarray, dt: np.ndarray, v_mps: float, omega_radps: float) -> np.ndarray:
-    """(N, 3) points in base_link at their cast times (dt = cast time - now, <= 0) to base_link
-    now, with a constant twist since: the yaw turned and the chord driven."""
-    # Two trigonometric calls per point, not four: the yaw's from its half (double-angle identities).
-    half = (0.5 * omega_radps) * dt
-    ch, sh = np.cos(half), np.sin(half)
-    vdt = v_mps * dt
-    tx, ty = vdt * ch, vdt * sh
-    c = 1.0 - 2.0 * sh * sh
-    s = 2.0 * sh * ch
-    out = np.empty_like(q)
-    out[:, 0] = c * q[:, 0] - s * q[:, 1] + tx
-    out[:, 1] = s * q[:, 0] + c * q[:, 1] + ty
-    out[:, 2] = q[:, 2]
-    return out
+_NO_MASK = np.zeros(0, np.bool_)
 
 
 class ObstaclePointExtractor:
@@ -93,6 +64,8 @@ class ObstaclePointExtractor:
         self.min_support_ratio = min_support_ratio
         self.points_in = 0
         self.points_out = 0
+        self._band = np.array([self.min_z_m, self.max_z_m, max_range_m ** 2], dtype=np.float64)
+        compile_point_kernels()  # here, not in the first tick
 
     def deskew(self, scan: LidarScan, now_s: float, v_mps: float, omega_radps: float,
                carried: tuple[float, float, float, float] | None = None) -> LidarScan:
@@ -110,14 +83,12 @@ class ObstaclePointExtractor:
         moves with it. Its points stay where the robot saw them (relative to the robot); deskewed
         with the world they would trail up to 14 cm behind the bumper, into the robot.
         """
-        q = scan.points_m.astype(np.float64) @ self.R_base_lidar.T + self.t_base_lidar  # base_link at cast time
-        dt = scan.stamp_s + scan.point_time_offsets_s.astype(np.float64) - now_s
-        if carried is not None:
-            x0, x1, y0, y1 = carried
-            dt[(q[:, 0] >= x0) & (q[:, 0] <= x1) & (q[:, 1] >= y0) & (q[:, 1] <= y1)] = 0.0
-        q = _to_now(q, dt, v_mps, omega_radps)
-        p = (q - self.t_base_lidar) @ self.R_base_lidar  # R^T (q - t), per row
-        return LidarScan(stamp_s=float(now_s), points_m=p.astype(np.float32),
+        box = np.zeros(5) if carried is None else np.array([*carried, 1.0], dtype=np.float64)
+        p = np.empty((scan.num_points, 3), np.float32)
+        deskew_to_now(np.ascontiguousarray(scan.points_m, dtype=np.float32),
+                      np.ascontiguousarray(scan.point_time_offsets_s, dtype=np.float32), float(scan.stamp_s),
+                      float(now_s), float(v_mps), float(omega_radps), self.R_base_lidar, self.t_base_lidar, box, p)
+        return LidarScan(stamp_s=float(now_s), points_m=p,
                          point_time_offsets_s=np.zeros(scan.num_points, np.float32),
                          frame_duration_s=scan.frame_duration_s, frame_id=scan.frame_id,
                          nothing_seen=scan.nothing_seen)
@@ -141,21 +112,12 @@ class ObstaclePointExtractor:
 
     def _deskewed(self, scan: LidarScan, pose_now: Pose2D, now_s: float, v_mps: float, omega_radps: float,
                   only: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        q = scan.points_m.astype(np.float64) @ self.R_base_lidar.T + self.t_base_lidar  # base_link at cast time
-        keep = (q[:, 2] > self.min_z_m) & (q[:, 2] < self.max_z_m)
-        if only is not None:
-            keep &= only
-        keep &= (q[:, 0] ** 2 + q[:, 1] ** 2) < self.max_range_m**2
-        index = np.flatnonzero(keep)
-        if scan.stamp_s == now_s and not scan.point_time_offsets_s.any():
-            b = q[keep]  # deskewed to now already (deskew): nothing to move
-        else:
-            dt = (scan.stamp_s + scan.point_time_offsets_s[keep].astype(np.float64)) - now_s
-            b = _to_now(q[keep], dt, v_mps, omega_radps)
-        bx, by = b[:, 0], b[:, 1]
-        # base_link now -> odom
-        cy, sy = math.cos(pose_now.yaw_rad), math.sin(pose_now.yaw_rad)
-        pts = np.empty((bx.shape[0], 2))
-        pts[:, 0] = pose_now.x_m + cy * bx - sy * by
-        pts[:, 1] = pose_now.y_m + sy * bx + cy * by
-        return pts, index
+        """The scan's points in the height band and range (and `only`), deskewed to now_s (not
+        when `deskew` did it already), in the odom frame: ((K, 2), their scan indices)."""
+        offsets = scan.point_time_offsets_s
+        moved = not (scan.stamp_s == now_s and not offsets.any())  # deskewed to now already: nothing to move
+        return band_in_odom(
+            np.ascontiguousarray(scan.points_m, dtype=np.float32), np.ascontiguousarray(offsets, dtype=np.float32),
+            float(scan.stamp_s), float(now_s), float(v_mps), float(omega_radps), self.R_base_lidar,
+            self.t_base_lidar, _NO_MASK if only is None else np.ascontiguousarray(only, dtype=np.bool_),
+            self._band, np.array([pose_now.x_m, pose_now.y_m, pose_now.yaw_rad], dtype=np.float64), moved)
