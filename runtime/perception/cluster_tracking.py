@@ -187,14 +187,13 @@ class ClusterTracker:
         centroids = [q.mean(axis=0) for q in clusters]
         # predicted track positions now; greedy nearest pairs under the gate
         pairs = []
-        for ti, t in enumerate(self.tracks):
-            dt = now - t.last[0]
-            guess = np.array(t.last[1:]) + t.velocity * dt
-            gate = c.gate_m + c.max_speed_mps * dt
-            for ci, q in enumerate(centroids):
-                d = float(np.hypot(*(q - guess)))
-                if d <= gate:
-                    pairs.append((d, ti, ci))
+        if self.tracks and centroids:
+            dt = np.array([now - t.last[0] for t in self.tracks])
+            guess = np.array([t.last[1:] for t in self.tracks]) + np.array([t.velocity for t in self.tracks]) * dt[:, None]
+            cen = np.array(centroids)
+            d = np.hypot(cen[None, :, 0] - guess[:, 0, None], cen[None, :, 1] - guess[:, 1, None])  # (tracks, clusters)
+            ti, ci = np.nonzero(d <= (c.gate_m + c.max_speed_mps * dt)[:, None])
+            pairs = list(zip(d[ti, ci].tolist(), ti.tolist(), ci.tolist()))
         used_t, used_c = set(), set()
         for _, ti, ci in sorted(pairs):
             if ti in used_t or ci in used_c:
