@@ -103,7 +103,10 @@ class ClusterTracker:
                 t.moving_from = move(t.moving_from[None])[0]
             if t.exit_side is not None:
                 t.exit_side = R @ t.exit_side
-            t.past = [(tp, move(q)) for tp, q in t.past]
+            if t.past:  # the past scans' points moved as one array (one call, not one per scan)
+                moved = move(np.concatenate([q for _, q in t.past]))
+                ends = np.cumsum([len(q) for _, q in t.past])
+                t.past = [(tp, moved[end - len(q):end]) for (tp, q), end in zip(t.past, ends)]
 
     # -- step 3's evidence ----------------------------------------------------------------------
     def _profile(self, points: np.ndarray, origin) -> np.ndarray:
