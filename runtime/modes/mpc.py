@@ -61,7 +61,7 @@ class MpcMode:
                 self.reference.request_replan()  # the first answer: a path on what it says, next slack
             fixed, movable = s.points_fix, ((s.points_mov, s.costs_mov) if len(s.points_mov) else None)
         self._unclassified = s.unclassified
-        moving = s.command[0] != 0.0 or s.command[1] != 0.0
+        moving = s.command[0] != 0.0 or s.command[1] != 0.0  # standing: the last command was zero
         ref = self.reference.update(s.pose, s.goal_xy, fixed, movable, keep_clear=s.unclassified, moving=moving)
         self.last_reference = ref
         if ref.goal_reached:

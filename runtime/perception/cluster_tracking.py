@@ -103,7 +103,7 @@ class ClusterTracker:
                 t.moving_from = move(t.moving_from[None])[0]
             if t.exit_side is not None:
                 t.exit_side = R @ t.exit_side
-            if t.past:  # the past scans' points moved as one array (one call, not one per scan)
+            if t.past:  # the past scans' points, moved together as one array
                 moved = move(np.concatenate([q for _, q in t.past]))
                 ends = np.cumsum([len(q) for _, q in t.past])
                 t.past = [(tp, moved[end - len(q):end]) for (tp, q), end in zip(t.past, ends)]

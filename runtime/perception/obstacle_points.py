@@ -6,8 +6,8 @@ deskewed with the robot's current twist and its own time stamp (the scan is cast
 100 ms while the robot moves), cut to the robot's height band (ground removed, overhead
 ignored), cropped to a range, reduced to one mean point per 2-D voxel (sparse noise cells
 dropped) and put in the odom frame.
-numpy, and two compiled passes (runtime/perception/point_kernels.py: the deskew to now, the
-voxel means): no Python loop over points.
+numpy, and three compiled passes (runtime/perception/point_kernels.py: the deskew to now, the
+height band in the odom frame, the voxel means): no Python loop over points.
 """
 from __future__ import annotations
 
@@ -55,8 +55,8 @@ class ObstaclePointExtractor:
         t = np.asarray(T_base_lidar, dtype=np.float64)
         if t.shape != (4, 4) or not np.isfinite(t).all():
             raise ValueError(f"ObstaclePointExtractor.T_base_lidar: must be a finite 4x4 transform, got shape {t.shape}")
-        self.R_base_lidar = t[:3, :3].astype(np.float64)
-        self.t_base_lidar = t[:3, 3].astype(np.float64)
+        self.R_base_lidar = np.ascontiguousarray(t[:3, :3], dtype=np.float64)
+        self.t_base_lidar = np.ascontiguousarray(t[:3, 3], dtype=np.float64)
         self.min_z_m = ground_clearance_m
         self.max_z_m = robot.body_height_m + overhead_margin_m
         self.max_range_m = max_range_m
@@ -114,6 +114,9 @@ class ObstaclePointExtractor:
                   only: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The scan's points in the height band and range (and `only`), deskewed to now_s (not
         when `deskew` did it already), in the odom frame: ((K, 2), their scan indices)."""
+        if only is not None and only.shape != (scan.num_points,):
+            raise ValueError(f"ObstaclePointExtractor: the point mask has shape {only.shape}, the scan "
+                             f"{scan.num_points} points")
         offsets = scan.point_time_offsets_s
         moved = not (scan.stamp_s == now_s and not offsets.any())  # deskewed to now already: nothing to move
         return band_in_odom(

@@ -4,8 +4,9 @@ Why compiled: the deskew and the voxel filter run on every lidar frame in the ti
 about 3k inside the height band). As numpy expressions each made a dozen temporaries of the
 frame's size and the voxel filter a full sort through np.unique: about 1.3 ms each on the robot's
 class of computer, a fifth of the frame tick. One pass per point without temporaries, and one
-sort of the band's cell keys, do the same arithmetic in the same order (the results equal the
-numpy forms' to the last bit or within an ulp: tests/runtime/perception/test_point_kernels.py).
+sort of the band's cell keys, do the same arithmetic; the results equal the numpy forms' within
+a few ulps (a cell's points may be summed in another order than np.bincount's), which
+tests/runtime/perception/test_point_kernels.py holds them to.
 """
 from __future__ import annotations
 
@@ -144,14 +145,22 @@ def voxel_means(points, voxel_m, min_support_ratio):  # pragma: no cover - compi
     return out[keep]
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
 def compile_point_kernels() -> None:
-    """Compile the kernels (or load them from numba's cache) now, not in the first tick."""
-    p = np.zeros((3, 3), np.float32)
-    deskew_to_now(p, np.zeros(3, np.float32), 0.0, 0.0, 0.0, 0.0, np.eye(3), np.zeros(3), np.zeros(5),
-                  np.empty_like(p))
+    """Compile the kernels (or load them from numba's cache) now, not in the first tick: for the
+    argument types a tick passes. numba compiles a read-only array apart from a writeable one, and
+    a LidarScan's arrays are read-only; the VPP's P_fix mask may be either."""
+    points, offsets = _read_only(np.zeros((3, 3), np.float32)), _read_only(np.zeros(3, np.float32))
+    deskew_to_now(points, offsets, 0.0, 0.0, 0.0, 0.0, np.eye(3), np.zeros(3), np.zeros(5),
+                  np.empty((3, 3), np.float32))
     voxel_means(np.zeros((3, 2)), 0.04, 0.25)
-    band_in_odom(p, np.zeros(3, np.float32), 0.0, 0.0, 0.0, 0.0, np.eye(3), np.zeros(3), np.ones(3, np.bool_),
-                 np.array([0.0, 1.0, 1.0]), np.zeros(3), True)
+    for only in (np.ones(3, np.bool_), _read_only(np.ones(3, np.bool_))):
+        band_in_odom(points, offsets, 0.0, 0.0, 0.0, 0.0, np.eye(3), np.zeros(3), only, np.array([0.0, 1.0, 1.0]),
+                     np.zeros(3), True)
 
 
 __all__ = ["KEY_STRIDE", "band_in_odom", "compile_point_kernels", "deskew_to_now", "voxel_means"]

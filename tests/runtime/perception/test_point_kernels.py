@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -115,3 +116,59 @@ def test_the_compiled_voxel_means_keep_the_same_cells(seed: int, n: int, spread:
     ref = _voxel_reference(pts, 0.04, ratio)
     assert got.shape == ref.shape
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+
+
+_FIRST_FRAME = """
+import numpy as np
+from calibration.robot_description import load_robot_description
+from runtime.common.geometry import Pose2D
+from runtime.common.sensor_data import LidarScan
+from runtime.perception.obstacle_points import ObstaclePointExtractor
+from runtime.perception.point_kernels import band_in_odom, deskew_to_now, voxel_means
+
+kernels = (deskew_to_now, band_in_odom, voxel_means)
+robot = load_robot_description()
+extractor = ObstaclePointExtractor(robot, T_base_lidar=robot.sensors.lidar.mount.transform())
+before = [len(k.signatures) for k in kernels]
+rng = np.random.default_rng(3)
+pts = rng.uniform(-3, 3, (500, 3)).astype(np.float32)
+scan = LidarScan(10.0, pts, np.sort(rng.uniform(0, 0.1, 500)).astype(np.float32), 0.1)
+assert not scan.points_m.flags.writeable
+fixed = rng.uniform(size=500) > 0.2
+frozen = fixed.copy()
+frozen.flags.writeable = False
+now = extractor.deskew(scan, 10.1, 0.5, 0.2, carried=(0.1, 0.4, -0.2, 0.2))
+for mask in (None, fixed, frozen):
+    for s in (now, scan):
+        extractor.extract(s, Pose2D(1.0, 2.0, 0.3), 10.1, 0.5, 0.2, only=mask)
+print(before, [len(k.signatures) for k in kernels])
+"""
+
+
+def test_the_first_frame_compiles_nothing_more() -> None:
+    """The extractor compiles its kernels when built, for the types a tick passes (a LidarScan's
+    read-only arrays, a writeable or read-only mask): the first frame finds them ready. In a
+    process of its own, so that no other test has compiled them first."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    out = subprocess.run([sys.executable, "-c", _FIRST_FRAME], cwd=root, capture_output=True, text=True,
+                         timeout=300, env={**__import__("os").environ, "PYTHONPATH": str(root)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    before, after = out.stdout.strip().splitlines()[-1].split("] [")
+    assert before + "]" == "[" + after, out.stdout
+
+
+def test_a_mask_of_another_length_is_refused() -> None:
+    from calibration.robot_description import load_robot_description
+    from runtime.common.geometry import Pose2D
+    from runtime.common.sensor_data import LidarScan
+    from runtime.perception.obstacle_points import ObstaclePointExtractor
+
+    robot = load_robot_description()
+    extractor = ObstaclePointExtractor(robot, T_base_lidar=robot.sensors.lidar.mount.transform())
+    pts, offs = _scan(np.random.default_rng(5), 50)
+    with pytest.raises(ValueError, match="mask has shape .49,., the scan 50 points"):
+        extractor.extract(LidarScan(1.0, pts, offs, 0.1), Pose2D(0, 0, 0), 1.0, 0.0, 0.0, only=np.ones(49, bool))
