@@ -24,12 +24,17 @@ def test_the_robot_passes_through_the_curtain(seed):
 @pytest.mark.slow  # the ablation: what the region model is for
 def test_without_the_region_model_the_curtain_stops_the_robot():
     """The ablation: the same scene with the regions switched off (the curtain a movable object
-    like a box, its mask and the tracker) fails: the model is what passes it."""
+    like a box, its mask and the tracker) fails in most seeds, where with them every seed passes:
+    the model is what passes it. (Without it the slats' swinging, a box that does not move as one,
+    is sometimes pushed through anyway: 3 of these 8 seeds when measured.) About 2 minutes."""
+    seeds = range(8)
     cfg = load_controller_config()
-    cfg = cfg.model_copy(update={"vpp": cfg.vpp.model_copy(update={
+    off = cfg.model_copy(update={"vpp": cfg.vpp.model_copy(update={
         "deformable": cfg.vpp.deformable.model_copy(update={"enabled": False})})})
-    m = run_episode("curtain", config=cfg, seed=1).metrics
-    assert not m["success"]
+    with_model = [run_episode("curtain", config=cfg, seed=s).metrics["success"] for s in seeds]
+    without = [run_episode("curtain", config=off, seed=s).metrics["success"] for s in seeds]
+    assert all(with_model), with_model
+    assert sum(without) <= len(seeds) // 2, without
 
 
 @pytest.mark.parametrize("seed", [0, pytest.param(4, marks=pytest.mark.slow)])

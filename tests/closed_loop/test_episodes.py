@@ -120,12 +120,15 @@ def test_steep_approach_to_the_tight_gap_reaches_the_goal_without_contact():
 
 @pytest.mark.slow
 def test_steep_approach_to_the_tight_gap_succeeds_in_all_fixed_mode_too():
-    """Seeds 0 and 3, which once wedged the all-fixed planner (stalled, the backoff did not free
-    them), pass with correcting mode, without contact. (About 30 s.)"""
+    """The steep approach once wedged the all-fixed planner in most seeds (stalled, the backoff
+    did not free it); with correcting mode it passes in nearly all of them, and never touches.
+    Which seed still stalls moves with any change that shifts the trajectory by a rounding (1 or 2
+    of these 10 when measured). About 2 minutes."""
     config = load_controller_config().with_planner_mode("all-fixed")
-    for seed in (0, 3):
-        m = run_episode("gap_offset", config=config, seed=seed).metrics
-        assert m["success"] and m["fixed_contacts"] == 0, (seed, m["failure_reason"], m["events"])
+    runs = [run_episode("gap_offset", config=config, seed=seed).metrics for seed in range(10)]
+    assert all(m["fixed_contacts"] == 0 for m in runs), [m["events"] for m in runs if m["fixed_contacts"]]
+    assert sum(m["success"] for m in runs) >= 8, [(k, m["failure_reason"]) for k, m in enumerate(runs)
+                                                   if not m["success"]]
 
 
 def test_a_walled_off_goal_fails_as_blocked_and_says_so():
