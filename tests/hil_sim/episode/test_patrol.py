@@ -278,5 +278,10 @@ def test_patrol_room_realtime_two_processes_with_a_recording(tmp_path):
     assert r.returncode in (0, 1), r.stderr[-2000:]
     m = json.loads(out.read_text())
     p = m["patrol"]
-    assert p["goals_reached"] >= 2 and p["goals_published"] >= 1 and p["end_reason"] == "duration", p
+    assert p["goals_reached"] >= 2 and p["goals_published"] >= 1, p
+    # Real time on a shared 2-core machine: the controller may miss its command deadline 3 ticks
+    # in a row (the simulator, the ICP worker and another test take the cores) and then stops, as
+    # it must. That is the only early end allowed here; timing itself is the benchmarks' to report.
+    early = p["end_reason"] == "controller_stopped" and "deadline" in (m["stop_reason"] or "")
+    assert p["end_reason"] == "duration" or early, (p["end_reason"], m["stop_reason"])
     assert m["realtime"]["recording"]["path"] == str(rec) and rec.is_file()
