@@ -19,6 +19,19 @@ from numba import njit
 KEY_STRIDE = np.int64(1 << 32)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _twist_moved(qx, qy, dt, v_mps, omega_radps):  # pragma: no cover - compiled
+    """A base_link point (qx, qy) at a time dt before now (dt <= 0) in base_link now, under a
+    constant twist (v, omega): the yaw turned (two trigonometric calls, from its half) and the
+    chord driven."""
+    half = (0.5 * omega_radps) * dt
+    ch, sh = math.cos(half), math.sin(half)
+    vdt = v_mps * dt
+    c = 1.0 - 2.0 * sh * sh
+    s = 2.0 * sh * ch
+    return c * qx - s * qy + vdt * ch, s * qx + c * qy + vdt * sh
+
+
 @njit(cache=True, nogil=True)
 def deskew_to_now(points, offsets, stamp_s, now_s, v_mps, omega_radps, R, t, carried, out):  # pragma: no cover - compiled
     """Each lidar point (float32 (N, 3), lidar frame, cast at stamp_s + offsets[i]) moved to where
@@ -34,15 +47,8 @@ def deskew_to_now(points, offsets, stamp_s, now_s, v_mps, omega_radps, R, t, car
         dt = (stamp_s + np.float64(offsets[i])) - now_s
         if on and qx >= x0 and qx <= x1 and qy >= y0 and qy <= y1:
             dt = 0.0
-        # the yaw turned (two trigonometric calls, from its half) and the chord driven
-        half = (0.5 * omega_radps) * dt
-        ch, sh = math.cos(half), math.sin(half)
-        vdt = v_mps * dt
-        c = 1.0 - 2.0 * sh * sh
-        s = 2.0 * sh * ch
-        nx = c * qx - s * qy + vdt * ch - t[0]
-        ny = s * qx + c * qy + vdt * sh - t[1]
-        nz = qz - t[2]
+        bx, by = _twist_moved(qx, qy, dt, v_mps, omega_radps)
+        nx, ny, nz = bx - t[0], by - t[1], qz - t[2]
         # R^T (q_now - t)
         out[i, 0] = R[0, 0] * nx + R[1, 0] * ny + R[2, 0] * nz
         out[i, 1] = R[0, 1] * nx + R[1, 1] * ny + R[2, 1] * nz
@@ -73,14 +79,7 @@ def band_in_odom(points, offsets, stamp_s, now_s, v_mps, omega_radps, R, t, only
         if not (qx * qx + qy * qy < band[2]):
             continue
         if deskew:
-            dt = (stamp_s + np.float64(offsets[i])) - now_s
-            half = (0.5 * omega_radps) * dt
-            ch, sh = math.cos(half), math.sin(half)
-            vdt = v_mps * dt
-            c = 1.0 - 2.0 * sh * sh
-            s = 2.0 * sh * ch
-            bx = c * qx - s * qy + vdt * ch
-            by = s * qx + c * qy + vdt * sh
+            bx, by = _twist_moved(qx, qy, (stamp_s + np.float64(offsets[i])) - now_s, v_mps, omega_radps)
         else:
             bx, by = qx, qy
         out[k, 0] = pose[0] + cy * bx - sy * by
