@@ -17,10 +17,11 @@ tick follows the current path, one period at most (the MPC keeps clear of P_fix 
 supervisor checks every command against the raw points). The search for a new goal runs in the
 tick while the robot moves (`first_search_in_tick`): there is no path to follow meanwhile, and
 waiting would brake it for a period. A robot that stands (its last command zero: the start, a
-goal reached) waits for the slack instead: one period more standing, and no search in its tick. With no path after a reset the tick waits:
-zero command for that one period; after a search that found none, the tick reports blocked and
-the slack searches again. In lockstep the slack work runs at the same point of every period, so
-behaviour stays a function of simulated time. `replan_in_slack: false` searches in the tick.
+goal reached) waits for the slack instead: one period more standing, and no search in its tick.
+With no path after a reset the tick waits: zero command for that one period; after a search that
+found none, the tick reports blocked and the slack searches again. In lockstep the slack work
+runs at the same point of every period, so behaviour stays a function of simulated time.
+`replan_in_slack: false` searches in the tick.
 """
 from __future__ import annotations
 
