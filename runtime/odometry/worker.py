@@ -263,14 +263,23 @@ class ProcessIcpWorker:
                 break
 
     def close(self) -> None:
+        """Ask the worker to end and return; the process is reaped by a thread (the child's
+        interpreter takes 0.1-0.2 s to end, which an episode in a campaign need not wait for)."""
         self._outbox.put(_CLOSE)
         self._sender.join(timeout=2.0)
-        try:
-            self._proc.wait(timeout=2.0)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            self._proc.wait(timeout=2.0)
-        self._conn.close()
+        threading.Thread(target=_reap, args=(self._proc, self._conn), name="dct-icp-reap", daemon=True).start()
+
+
+def _reap(proc: subprocess.Popen, conn, timeout_s: float = 2.0) -> None:
+    """Wait for a worker process that was asked to end (kill it when it does not), then close
+    its connection: open until then, so the results it still sends find a reader's socket."""
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=timeout_s)
+    finally:
+        conn.close()
 
 
 __all__ = ["IcpWorker", "InlineIcpWorker", "ProcessIcpWorker"]
