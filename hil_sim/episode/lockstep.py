@@ -50,6 +50,10 @@ if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
 
 #: Camera frames per second in planner mode dct (the VLM answers about once a second).
 DCT_CAMERA_RATE_HZ = 2.0
+#: Simulated time from a camera frame's instant to its arrival at the controller (exposure,
+#: read-out, USB transfer). The frame renders beside the physics meanwhile, in a thread of its
+#: own, so a lockstep step does not stall on the renderer (tens of ms per frame).
+CAMERA_LATENCY_S = 0.05
 
 
 class SimulatedDevice(Protocol):
@@ -321,6 +325,8 @@ class _SimulatedBench:
         return cls(world, metrics, controller_bus, sim_bus, firmware, inbox, injector, devices, has_sensors)
 
     def close(self) -> None:
+        for device in self.devices:
+            device.close()
         self.controller_bus.shutdown()
         self.sim_bus.shutdown()
 
@@ -330,10 +336,15 @@ def _sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibratio
 
     rig_config = SensorRigConfig(seed=seed) if sensors is True else sensors
     if config.uses_camera:
-        # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle.
-        # (A rig config that asks for a camera rate of its own keeps it: `dct vpp eval`.)
-        rate = rig_config.camera_rate_hz or DCT_CAMERA_RATE_HZ
-        rig_config = rig_config.model_copy(update={"camera_rate_hz": rate, "camera_segmentation": True})
+        # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle,
+        # arriving CAMERA_LATENCY_S after their instant. A rig config that sets its own camera
+        # keeps it (`dct vpp eval`: its listeners read the ground truth at the frame's instant).
+        update = {"camera_segmentation": True}
+        if not rig_config.model_fields_set & {"camera_rate_hz", "camera_async", "camera_latency_s"}:
+            update |= {"camera_rate_hz": DCT_CAMERA_RATE_HZ, "camera_async": True, "camera_latency_s": CAMERA_LATENCY_S}
+        elif not rig_config.camera_rate_hz:
+            update["camera_rate_hz"] = DCT_CAMERA_RATE_HZ
+        rig_config = rig_config.model_copy(update=update)
     intrinsics = None
     if sensor_calibration is not None:  # the images carry what the controller believes, as on the robot
         intrinsics = (sensor_calibration.camera.K, sensor_calibration.camera.dist)

@@ -71,14 +71,21 @@ class SensorRigConfig(BaseModel):
     camera_rate_hz: float = Field(0.0, ge=0.0, le=100.0)
     #: Also render ground-truth segmentation (geom ids) into each image (doubles the cost).
     camera_segmentation: bool = False
-    #: Render beside the physics, in a thread of its own (the real-time simulator, `dct hil
-    #: serve`): a frame costs tens of ms (55 with segmentation), which inline stalls physics, the
-    #: lidar and the IMU every frame. The state of the frame instant is copied (mj_copyData, a
-    #: few microseconds) and rendered from the copy; the image is delivered when it is done,
-    #: stamped with that instant, as a camera driver's image arrives after its exposure. A frame
-    #: due while the last one still renders is skipped (camera_frames_missed). Lockstep keeps it
-    #: off: there an image must reach the controller at a deterministic point of the run.
+    #: Render beside the physics, in a thread of its own: a frame costs tens of ms (55 with
+    #: segmentation), which inline stalls physics, the lidar and the IMU every frame. The state
+    #: of the frame instant is copied (mj_copyData, a few microseconds) and rendered from the
+    #: copy, stamped with that instant. Without camera_latency_s (the real-time simulator, `dct
+    #: hil serve`) the image is delivered when it is done, as a camera driver's image arrives
+    #: after its exposure, and a frame due while the last one still renders is skipped
+    #: (camera_frames_missed). Lockstep sets camera_latency_s: there an image must reach the
+    #: controller at a deterministic point of the run.
     camera_async: bool = False
+    #: The image reaches the inbox this long after its instant, in simulated time (exposure,
+    #: read-out and transfer: 30-100 ms for a USB camera), stamped with its instant. With
+    #: camera_async the frame renders beside the physics meanwhile and is handed over exactly at
+    #: that instant, waiting for the render when it is not done, so a lockstep run stays
+    #: deterministic and the render costs no simulator time. 0: delivered when rendered.
+    camera_latency_s: float = Field(0.0, ge=0.0, le=0.5)
     seed: int = Field(0, ge=0)
 
 
@@ -91,9 +98,13 @@ def _camera_pose_is_finite(data, camera_name: str) -> bool:
 
 class CameraThread:
     """SensorRigConfig.camera_async: a SimCamera in a thread of its own, rendering copies of the
-    state. The renderer (and its EGL context) is made and used in that thread only."""
+    state. The renderer (and its EGL context) is made and used in that thread only.
 
-    def __init__(self, model, camera_args: tuple, segmentation: bool, deliver: Callable[[CameraImage], None]) -> None:
+    deliver: called in the render thread with each image when it is done; None: the image is
+    kept for `result()`, which the simulator's thread calls at the instant it is due."""
+
+    def __init__(self, model, camera_args: tuple, segmentation: bool,
+                 deliver: Callable[[CameraImage], None] | None) -> None:
         import mujoco
 
         self._mujoco = mujoco
@@ -108,6 +119,7 @@ class CameraThread:
         self._stamp = 0.0
         self._started = threading.Event()
         self._camera = None
+        self._image: CameraImage | None = None
         #: The exception that ended the thread (re-raised by the next submit), if any.
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="sim-camera", daemon=True)
@@ -153,12 +165,25 @@ class CameraThread:
                 cam = self._camera
                 image = cam.render_rgb_with_segmentation(self._stamp) if self._segmentation else cam.render_rgb(
                     self._stamp)
-                self._deliver(image)
+                if self._deliver is None:
+                    self._image = image
+                else:
+                    self._deliver(image)
                 self._idle.set()
         except BaseException as exc:  # the simulator's loop raises it at the next frame
             self.error = exc
         finally:
             self._camera.close()
+
+    def result(self) -> CameraImage:
+        """The image of the last submit (deliver None), waiting for its render."""
+        self._idle.wait()
+        if self.error is not None:
+            raise self.error
+        image, self._image = self._image, None
+        if image is None:
+            raise RuntimeError("CameraThread.result: no frame was submitted")
+        return image
 
     def close(self) -> None:
         self._stop = True
@@ -210,6 +235,8 @@ class SensorRig:
         self._camera_period_s = 1.0 / c.camera_rate_hz if c.camera_rate_hz > 0 else math.inf
         self._camera_start_s = start_s
         self._camera_next = 0
+        #: (due time, image or None when the render thread holds it) of the frame not yet handed over.
+        self._camera_held: tuple[float, CameraImage | None] | None = None
         if c.camera_rate_hz > 0:
             self.camera = self._make_camera()
 
@@ -237,7 +264,8 @@ class SensorRig:
         args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups,
                 world.camera_lens)
         if c.camera_async:
-            return CameraThread(world.model, args, c.camera_segmentation, self._deliver_image)
+            deliver = None if c.camera_latency_s > 0 else self._deliver_image
+            return CameraThread(world.model, args, c.camera_segmentation, deliver)
         return SimCamera(world.model, world.data, *args)
 
     # ------------------------------------------------------------------ stepping
@@ -280,22 +308,42 @@ class SensorRig:
             spent["imu"] += clock() - t0
 
         if self.camera is not None:
-            due = self._camera_start_s + self._camera_next * self._camera_period_s
-            if t_s + _EPS_S >= due:
-                t0 = clock()
-                n_due = int(math.floor((t_s + _EPS_S - self._camera_start_s) / self._camera_period_s)) + 1
-                self.camera_frames_missed += max(0, n_due - self._camera_next - 1)
-                self._camera_next = max(self._camera_next + 1, n_due)
-                if not _camera_pose_is_finite(self.world.data, self.world.camera_name):
-                    self.camera_invalid_poses += 1  # no image rather than a blank one
-                elif isinstance(self.camera, CameraThread):
-                    if not self.camera.submit(self.world.data, t_s):
-                        self.camera_frames_missed += 1  # the last frame still renders
-                elif self.config.camera_segmentation:
-                    self._deliver_image(self.camera.render_rgb_with_segmentation(t_s))
-                else:
-                    self._deliver_image(self.camera.render_rgb(t_s))
-                spent["camera"] += clock() - t0
+            self._step_camera(t_s)
+
+    def _step_camera(self, t_s: float) -> None:
+        """Hand over the held frame when its time came, then render the frame due, if any."""
+        spent, clock = self.time_spent_s, time.perf_counter
+        held = self._camera_held
+        if held is not None and t_s + _EPS_S >= held[0]:
+            t0 = clock()
+            self._camera_held = None
+            self._deliver_image(held[1] if held[1] is not None else self.camera.result())
+            spent["camera"] += clock() - t0
+        due = self._camera_start_s + self._camera_next * self._camera_period_s
+        if t_s + _EPS_S < due:
+            return
+        t0 = clock()
+        n_due = int(math.floor((t_s + _EPS_S - self._camera_start_s) / self._camera_period_s)) + 1
+        self.camera_frames_missed += max(0, n_due - self._camera_next - 1)
+        self._camera_next = max(self._camera_next + 1, n_due)
+        latency = self.config.camera_latency_s
+        if not _camera_pose_is_finite(self.world.data, self.world.camera_name):
+            self.camera_invalid_poses += 1  # no image rather than a blank one
+        elif self._camera_held is not None:
+            self.camera_frames_missed += 1  # the last frame is still in transfer
+        elif isinstance(self.camera, CameraThread):
+            if not self.camera.submit(self.world.data, t_s):
+                self.camera_frames_missed += 1  # the last frame still renders
+            elif latency > 0:
+                self._camera_held = (t_s + latency, None)
+        else:
+            image = (self.camera.render_rgb_with_segmentation(t_s) if self.config.camera_segmentation
+                     else self.camera.render_rgb(t_s))
+            if latency > 0:
+                self._camera_held = (t_s + latency, image)
+            else:
+                self._deliver_image(image)
+        spent["camera"] += clock() - t0
 
     def _deliver_image(self, image: CameraImage) -> None:
         self.images_produced += 1
