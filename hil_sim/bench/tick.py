@@ -196,11 +196,30 @@ class EpisodeTicks:
         )
 
 
+def inline_camera(sensors):
+    """The rig config with the lockstep camera's latency, rendered inline: the same images at the
+    same instants as the threaded one (the episode sets the rate when the planner uses a camera)."""
+    from hil_sim.episode.lockstep import CAMERA_LATENCY_S
+
+    return sensors.model_copy(update={"camera_async": False, "camera_latency_s": CAMERA_LATENCY_S})
+
+
 def run_ticks(scene: Scenario, seed: int, config=None, sensors=None, keep_jobs: bool = False,
               after_tick: Callable[[], None] | None = None) -> EpisodeTicks:
-    """One lockstep episode (hil_sim.episode.lockstep.run_episode, as `dct hil run`) with the tick probe."""
+    """One lockstep episode (hil_sim.episode.lockstep.run_episode, as `dct hil run`) with the tick
+    probe. The camera renders between ticks (inline), its images handed over after the same
+    latency as in `dct hil run` (the same run): on the robot the camera driver is another process,
+    and a render thread in the controller's process would take Python's GIL from its ticks."""
     from hil_sim.episode.lockstep import run_episode
+    from hil_sim.world.sensor_rig import SensorRigConfig
+    from runtime.config.loading import load_controller_config
 
+    if sensors is None:  # as run_episode decides
+        sensors = (config or load_controller_config()).uses_lidar
+    if sensors is True:
+        sensors = SensorRigConfig(seed=seed)
+    if sensors is not False:
+        sensors = inline_camera(sensors)
     probe = TickProbe(keep_jobs=keep_jobs, after=after_tick)
     result = run_episode(scene, config=config, seed=seed, sensors=sensors, observe=probe)
     rec = result.tick_records
