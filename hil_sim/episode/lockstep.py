@@ -325,10 +325,12 @@ class _SimulatedBench:
         return cls(world, metrics, controller_bus, sim_bus, firmware, inbox, injector, devices, has_sensors)
 
     def close(self) -> None:
-        for device in self.devices:
-            device.close()
-        self.controller_bus.shutdown()
-        self.sim_bus.shutdown()
+        try:
+            for device in self.devices:
+                device.close()
+        finally:
+            self.controller_bus.shutdown()
+            self.sim_bus.shutdown()
 
 
 def _sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibration):
@@ -345,6 +347,9 @@ def _sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibratio
         elif not rig_config.camera_rate_hz:
             update["camera_rate_hz"] = DCT_CAMERA_RATE_HZ
         rig_config = rig_config.model_copy(update=update)
+    if rig_config.camera_async and rig_config.camera_latency_s == 0:
+        raise ValueError("lockstep: SensorRigConfig.camera_async needs camera_latency_s > 0 (an image handed "
+                         "over when its render is done would reach the controller at a wall-clock moment)")
     intrinsics = None
     if sensor_calibration is not None:  # the images carry what the controller believes, as on the robot
         intrinsics = (sensor_calibration.camera.K, sensor_calibration.camera.dist)

@@ -40,7 +40,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from calibration.robot_description import RobotDescription
 from hil_sim.sensors.imu import ImuConfig, SimImu
@@ -87,6 +87,14 @@ class SensorRigConfig(BaseModel):
     #: deterministic and the render costs no simulator time. 0: delivered when rendered.
     camera_latency_s: float = Field(0.0, ge=0.0, le=0.5)
     seed: int = Field(0, ge=0)
+
+    @model_validator(mode="after")
+    def _latency_within_a_frame(self) -> "SensorRigConfig":
+        # one frame in transfer at a time: a latency of a period or more would skip every other frame
+        if self.camera_rate_hz > 0 and self.camera_latency_s >= 1.0 / self.camera_rate_hz:
+            raise ValueError(f"camera_latency_s ({self.camera_latency_s} s) must be shorter than the camera "
+                             f"period (1 / camera_rate_hz = {1.0 / self.camera_rate_hz:g} s)")
+        return self
 
 
 def _camera_pose_is_finite(data, camera_name: str) -> bool:
@@ -173,6 +181,7 @@ class CameraThread:
         except BaseException as exc:  # the simulator's loop raises it at the next frame
             self.error = exc
         finally:
+            self._idle.set()  # a result() waiting for the frame that failed returns (and raises)
             self._camera.close()
 
     def result(self) -> CameraImage:

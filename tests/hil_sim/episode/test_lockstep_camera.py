@@ -56,3 +56,12 @@ def test_the_tick_benchmark_renders_between_ticks_with_the_same_latency():
         assert not isinstance(rig.camera, CameraThread)
     finally:
         rig.close()
+
+
+def test_a_threaded_camera_without_latency_is_refused_in_lockstep():
+    """Handed over when its render is done, an image would reach the controller at a wall-clock
+    moment: the same seed would not give the same run."""
+    import pytest
+
+    with pytest.raises(ValueError, match="camera_latency_s > 0"):
+        _rig(SensorRigConfig(seed=0, camera_async=True, lidar_enabled=False))

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -245,3 +246,36 @@ def test_a_camera_latency_is_checked():
         SensorRigConfig(camera_latency_s=-0.01)
     with pytest.raises(ValueError, match="camera_latency_s"):
         SensorRigConfig(camera_latency_s=float("nan"))
+    with pytest.raises(ValueError, match="shorter than the camera period"):  # every other frame would be lost
+        SensorRigConfig(camera_rate_hz=20.0, camera_latency_s=0.05)
+    assert SensorRigConfig(camera_rate_hz=2.0, camera_latency_s=0.49).camera_latency_s == 0.49
+
+
+def test_a_render_that_fails_in_the_camera_thread_raises_in_the_simulator_not_hangs(monkeypatch):
+    from hil_sim.sensors.camera import SimCamera
+
+    def broken(self, stamp_s, kind="geom"):
+        raise RuntimeError("EGL context lost")
+
+    monkeypatch.setattr(SimCamera, "render_rgb_with_segmentation", broken)
+    world = World(SCENARIO, ROBOT)
+    rig = SensorRig(world, ROBOT, SensorInbox(), SensorRigConfig(
+        camera_rate_hz=2.0, camera_segmentation=True, camera_async=True, camera_latency_s=0.05,
+        lidar_enabled=False, imu_enabled=False))
+    raised = []
+
+    def handover():  # the frame's hand-over waits for the render, which failed
+        try:
+            rig.step(0.05)
+        except RuntimeError as exc:
+            raised.append(exc)
+
+    try:
+        rig.step(0.0)
+        t = threading.Thread(target=handover, daemon=True)
+        t.start()
+        t.join(timeout=20.0)
+        assert not t.is_alive(), "the simulator's step hangs on a failed render"
+        assert len(raised) == 1 and "EGL context lost" in str(raised[0])
+    finally:
+        rig.close()
