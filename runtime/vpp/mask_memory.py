@@ -397,7 +397,13 @@ class AnswerPreparer:
 
     def prepare(self, answer: VlmAnswer, entries: tuple[MaskEntry, ...], *, prompt: str = "",
                 points_cam: np.ndarray | None = None,
-                tombstones: tuple[tuple[int, MaskEntry], ...] = ()) -> PreparedAnswer:
+                tombstones: tuple[tuple[int, MaskEntry], ...] = (),
+                motions: dict[int, tuple[float, float]] | None = None) -> PreparedAnswer:
+        """motions: object id -> how far (dx, dy in the odom frame, m) the object moved from its
+        entry's capture to the answer's (the tracker's: a pushed box). Its remembered mask is
+        warped from where the camera was relative to the object, not to the room: a mask warped
+        as a still plane misses the object it follows and the answer's mask of it would start a
+        new entry."""
         try:
             if not math.isfinite(answer.stamp_s):
                 raise MaskMemoryError(f"answer stamp_s: not finite ({answer.stamp_s})")
@@ -419,7 +425,8 @@ class AnswerPreparer:
         old = tuple(entries)
         iou = np.zeros((len(old), len(fresh)))
         if old and fresh:
-            warped = np.stack([self.warp_entry(e, T) for e in old])
+            motions = motions or {}
+            warped = np.stack([self.warp_entry(e, T, motions.get(e.object_id)) for e in old])
             iou = iou_matrix(warped, np.stack([f.mask for f in fresh]))
         stones = tuple(oid for oid, _ in tombstones)
         stone_iou = np.zeros((len(stones), len(fresh)))
@@ -428,8 +435,16 @@ class AnswerPreparer:
             stone_iou = iou_matrix(warped, np.stack([f.mask for f in fresh]))
         return PreparedAnswer(answer, fresh, old, iou, stones, stone_iou)
 
-    def warp_entry(self, entry: MaskEntry, camera_pose_odom: np.ndarray) -> np.ndarray:
-        R, t = relative_motion(entry.camera_pose_odom, camera_pose_odom)
+    def warp_entry(self, entry: MaskEntry, camera_pose_odom: np.ndarray,
+                   moved: tuple[float, float] | None = None) -> np.ndarray:
+        """The entry's mask seen from camera_pose_odom; moved: the object's (dx, dy) since the
+        entry's capture (the capture pose is moved with it: the same view of the object)."""
+        captured = entry.camera_pose_odom
+        if moved is not None:
+            captured = captured.copy()
+            captured[0, 3] += moved[0]
+            captured[1, 3] += moved[1]
+        R, t = relative_motion(captured, camera_pose_odom)
         return self.warper.warp(entry.mask, R, t, entry.plane)
 
     def _plane_for(self, mask: np.ndarray, points_cam: np.ndarray | None) -> Plane | None:

@@ -53,6 +53,10 @@ from runtime.vpp.partition.labels import FIXED, MOVABLE, PointPartition
 from runtime.vpp.partition.partitioner import PointPartitioner
 from runtime.vpp.tracking.tracker import ObjectTracker
 
+#: A tracked object that moved less than this since its mask's capture is warped as still (the
+#: tracker's anchor jitters by a few centimetres between scans).
+MIN_MOTION_M = 0.05
+
 def pose_matrix(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
     """T_odom_base (4x4) of a planar pose."""
     c, s = math.cos(yaw_rad), math.sin(yaw_rad)
@@ -103,6 +107,7 @@ class VppStage:
         # the demoted objects' last entries when each request was sent (snapshot on the tick's
         # thread: what the worker compares does not depend on thread timing)
         self._stones_at: dict[float, tuple] = {}
+        self._motions_at: dict[float, dict] = {}  # per request: how far the tracked objects moved
         runner.post = self._prepare
         self.partitioner = PointPartitioner(config.partition)
         self._per_pixel = lookup_supported(camera)
@@ -201,8 +206,10 @@ class VppStage:
                 # not prepared beside the tick (an error answer: nothing to prepare, cheap); the
                 # memory's own preparer (the worker's may be in use by an abandoned request)
                 prepared = self.memory.preparer.prepare(answer, tuple(self.memory.entries), prompt=self.config.prompt,
-                                                        points_cam=points_cam, tombstones=self.memory.tombstones())
+                                                        points_cam=points_cam, tombstones=self.memory.tombstones(),
+                                                        motions=self._motions_at.get(stamp))
             self._stones_at.pop(stamp, None)
+            self._motions_at.pop(stamp, None)
             try:
                 self.last_reconcile = self.memory.apply(prepared, now_s)
                 for e in self.memory.entries:  # a new object starts from the answer's prior
@@ -248,13 +255,13 @@ class VppStage:
         # the answer as the runner will deliver it: the request's stamp and camera pose
         answer = dataclasses.replace(answer, stamp_s=request.stamp_s, camera_pose_odom=request.camera_pose_odom)
         stamp = float(answer.stamp_s)
-        request_state = self._points_cam_at, self._stones_at
+        request_state = self._points_cam_at, self._stones_at, self._motions_at
         if stamp not in request_state[0]:
             return  # a request abandoned for its timeout (real time): the tick no longer waits for it
         with self._prepare_lock:  # an abandoned worker may still be in here: the preparer's buffers are shared
             self._prepared[stamp] = self._preparer.prepare(
                 answer, tuple(self.memory.entries), prompt=self.config.prompt, points_cam=request_state[0][stamp],
-                tombstones=request_state[1].get(stamp, ()))
+                tombstones=request_state[1].get(stamp, ()), motions=request_state[2].get(stamp))
 
     def _deformable_objects(self) -> dict[int, float]:
         """id -> contact cost of the objects the backend called deformable that may be passed
@@ -459,9 +466,21 @@ class VppStage:
         self._points_cam_at = {float(image.stamp_s):
                                self._last_scan_odom @ T_cam_odom[:3, :3].T + T_cam_odom[:3, 3]}
         self._stones_at = {float(image.stamp_s): self.memory.tombstones()}
+        self._motions_at = {float(image.stamp_s): self._motions_since_capture(image.stamp_s)}
         self.runner.submit(request, now_s)
         self.memory.note_query(image.stamp_s, T_odom_cam)
         self.requests += 1
+
+    def _motions_since_capture(self, stamp_s: float) -> dict[int, tuple[float, float]]:
+        """Entry id -> how far its object moved from the entry's capture to stamp_s, for the
+        objects the tracker followed all that time and saw move more than a few centimetres (a
+        pushed box): the answer's image shows them elsewhere than a still plane would be."""
+        out = {}
+        for e in self.memory.entries:
+            d = self.tracker.displacement(e.object_id, e.stamp_s, stamp_s)
+            if d is not None and math.hypot(*d) > MIN_MOTION_M:
+                out[e.object_id] = d
+        return out
 
     def ready(self, now_s: float) -> bool:
         """A first answer (or failure) has come back, or first_answer_timeout_s passed since the

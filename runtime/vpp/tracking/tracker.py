@@ -196,6 +196,23 @@ class ObjectTracker:
                 return None  # a scan after t_s that did not know where the object was
         return None
 
+    def displacement(self, object_id: int, t0_s: float, t1_s: float) -> tuple[float, float] | None:
+        """How far (dx, dy in the odom frame, m) object_id's anchor moved from time t0_s to t1_s
+        (t0_s <= t1_s; each read at the newest scan at or before it); None under moved_since's
+        rule: the tracker did not follow the object the whole time."""
+        obj = self.objects.get(int(object_id))
+        if obj is None or not obj.history or obj.history[0][0] > t0_s or t1_s < t0_s:
+            return None
+        at1 = None
+        for h in reversed(obj.history):
+            if at1 is None and h[0] <= t1_s:
+                at1 = h
+            if h[0] <= t0_s:
+                return (at1[1] - h[1], at1[2] - h[2]) if at1 is not None else None
+            if at1 is not None and not h[3]:
+                return None  # a scan in between that did not know where the object was
+        return None
+
     def _confirm_views(self, now_s: float, confirming: dict[int, np.ndarray], points_odom: np.ndarray,
                        cost: np.ndarray) -> None:
         """_confirm for every object a mask saw this scan, in id order. When each of them already

@@ -316,6 +316,25 @@ def test_match_after_motion_compares_in_the_fresh_capture_view():
     assert len(r.matched) == 1 and r.matched[0][2] >= 0.9 and r.dropped == ()
 
 
+def test_an_object_that_moved_with_the_camera_keeps_its_entry_when_its_motion_is_given():
+    """A box pushed by the robot: the camera and the box moved together by 0.3 m, so the fresh
+    mask is where the old one was. Warped as a still plane the old mask misses it (a new entry);
+    warped from where the camera was relative to the box (the tracker's motion) it matches."""
+    pts = _scene_points(FRONT, np.random.default_rng(4))
+    T1 = pose(t=(0.3, 0.0, 0.0))
+    moved = Face(FRONT.c + [0.3, 0.0, 0.0], FRONT.a, FRONT.b, FRONT.ha, FRONT.hb)
+    fresh = answer(1.0, T1, [moved.render(PINHOLE, T1)])
+    assert np.array_equal(fresh.objects[0].mask, FRONT.render(PINHOLE, np.eye(4)))
+    results = {}
+    for motions in (None, {0: (0.3, 0.0)}):
+        mem = MaskMemory(PINHOLE)
+        mem.reconcile(answer(0.0, np.eye(4), [FRONT.render(PINHOLE, np.eye(4))]), points_cam=pts)
+        results[motions is not None] = mem.apply(mem.preparer.prepare(fresh, tuple(mem.entries), motions=motions))
+    still, followed = results[False], results[True]
+    assert still.matched == () and still.inserted == ((1, 0),) and still.dropped == (0,)
+    assert followed.matched == ((0, 0, pytest.approx(1.0, abs=0.02)),) and followed.inserted == ()
+
+
 def test_unmatched_memory_is_dropped_and_unmatched_detection_inserted():
     mem = MaskMemory(PINHOLE)
     mem.reconcile(answer(0.0, np.eye(4), [rect(10, 10, 100, 100), rect(300, 200, 400, 300)]))

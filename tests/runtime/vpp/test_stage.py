@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from calibration.camera_model import CameraModel, transform_points
 from calibration.robot_description import load_robot_description
@@ -238,3 +239,30 @@ def test_a_frame_that_arrives_a_tick_after_its_capture_carries_the_capture_pose(
         stage.update(0.6, (0.05, 0.0, 0.0), None, scan_at(0.6)[0])
         (T,) = seen
         np.testing.assert_allclose(T, pose_matrix(expect_x, 0.0, 0.0) @ T_BASE_CAM, atol=1e-12)
+
+
+@pytest.mark.parametrize("follow", [True, False])
+def test_a_box_pushed_between_two_answers_keeps_its_entry(follow, monkeypatch):
+    """The robot stands (two answers: the tracker follows the box), then pushes it at 1 m/s (the
+    scan the same in the base frame: the box moves with the robot) until the next capture. The
+    tracker's motion of the box moves its remembered mask with it, so the next answer's mask of
+    it matches its entry; warped as a still plane it would not."""
+    stage = make(FakeVlm())
+    if not follow:
+        monkeypatch.setattr(stage, "_motions_since_capture", lambda stamp_s: {})
+    reconciles = []
+    for k in range(80):  # 4 s of ticks at 20 Hz, a scan every other tick, an image every tick
+        t = 0.05 * k
+        stage.settle(t)
+        answers = stage.answers
+        x = max(0.0, t - 2.0)
+        stage.update(t, (x, 0.0, 0.0), image_at(t), scan_at(t)[0] if k % 2 == 0 else None)
+        if stage.answers > answers:  # (how far the box was pushed at the capture, the reconcile)
+            reconciles.append((max(0.0, stage.delivered[-1].stamp_s - 2.0), stage.last_reconcile))
+    pushed = [r for x, r in reconciles if x > 0.5]
+    assert len(reconciles) >= 3 and pushed  # answers standing, and one captured after 0.5 m of pushing
+    r = pushed[0]
+    if follow:
+        assert len(r.matched) == 1 and r.inserted == () and r.dropped == ()
+    else:
+        assert r.matched == () and len(r.inserted) == 1

@@ -177,6 +177,23 @@ def test_moved_since_says_how_far_a_tracked_object_went():
     assert tracker.moved_since(99, 1.0) is None  # never tracked
 
 
+def test_displacement_says_where_a_tracked_object_went_between_two_instants():
+    tracker = ObjectTracker()
+    box = _box(0.0, 0.0)
+    tracker.update(1.0, _part(len(box), np.arange(len(box))), box)
+    for i in range(1, 5):  # pushed 4 cm a scan along x, 1 cm along y
+        moved = _box(0.04 * i, 0.01 * i)
+        tracker.update(1.0 + 0.1 * i, _part(len(moved)), moved)
+    dx, dy = tracker.displacement(7, 1.0, 1.4)
+    assert dx == pytest.approx(0.16, abs=0.02) and dy == pytest.approx(0.04, abs=0.02)
+    dx, dy = tracker.displacement(7, 1.1, 1.25)  # the scans at 1.1 and at 1.2
+    assert dx == pytest.approx(0.04, abs=0.02) and dy == pytest.approx(0.01, abs=0.02)
+    assert tracker.displacement(7, 1.2, 9.0) == pytest.approx(tracker.displacement(7, 1.2, 1.4))  # up to the newest
+    assert tracker.displacement(7, 0.5, 1.4) is None  # not tracked then: unknown
+    assert tracker.displacement(7, 1.3, 1.2) is None  # backwards
+    assert tracker.displacement(99, 1.0, 1.4) is None  # never tracked
+
+
 def test_faces_the_camera_never_saw_join_the_object_but_a_wall_it_touches_only_a_band():
     cfg = TrackingConfig()
     tracker = ObjectTracker(cfg)
