@@ -91,6 +91,7 @@ class ObjectTracker:
         c = self.config
         spread_all(pts, (np.zeros(1, np.int64), np.array([0, 1])), (face, np.array([0, len(face)]), np.zeros(1)),
                    np.ones(1), (float(c.max_spread_m), float(c.template_voxel_m), int(c.max_template_points)))
+        footprint(face, 0.1)  # the plausibility test's, reached only from a few confirmations on
         self.objects.clear()
         self._origin = None
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0

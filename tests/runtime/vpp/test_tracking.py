@@ -2,6 +2,8 @@
 it is pressed against."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -315,7 +317,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra.numpy import arrays  # noqa: E402
 
-from runtime.vpp.tracking.geometry import thin  # noqa: E402
+from runtime.vpp.tracking.geometry import footprint, thin  # noqa: E402
 
 _coords = arrays(np.float64, st.tuples(st.integers(1, 200), st.just(3)),
                  elements=st.floats(-1.0, 1.0, allow_nan=False, width=32))
@@ -335,6 +337,21 @@ def _thin_reference(points: np.ndarray, voxel_m: float, max_points: int) -> np.n
 @given(points=_coords, voxel=st.sampled_from([0.01, 0.03, 0.3]), cap=st.sampled_from([0, 5, 50]))
 def test_thin_keeps_the_first_point_of_each_voxel_in_order(points, voxel, cap):
     assert np.array_equal(thin(points, voxel, cap), _thin_reference(points, voxel, cap))
+
+
+def _footprint_reference(points: np.ndarray, yaw: float) -> float:
+    """The numpy form footprint replaced: the bounding box's diagonal in the object's frame."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    x = c * points[:, 0] + s * points[:, 1]
+    y = -s * points[:, 0] + c * points[:, 1]
+    return float(math.hypot(np.ptp(x), np.ptp(y)))
+
+
+@settings(max_examples=100, deadline=None)
+@given(points=_coords, yaw=st.floats(-7.0, 7.0, allow_nan=False), scale=st.sampled_from([0.01, 1.0, 30.0]))
+def test_footprint_is_the_numpy_form_bit_for_bit(points, yaw, scale):
+    p = points * scale
+    assert footprint(p, yaw) == (_footprint_reference(p, yaw) if len(p) >= 2 else 0.0)
 
 
 def test_a_fit_that_could_never_pair_enough_points_is_refused_at_start():
