@@ -53,9 +53,6 @@ from runtime.vpp.partition.labels import FIXED, MOVABLE, PointPartition
 from runtime.vpp.partition.partitioner import PointPartitioner
 from runtime.vpp.tracking.tracker import ObjectTracker
 
-#: A tracked object that moved less than this since its mask's capture is warped as still (the
-#: tracker's anchor jitters by a few centimetres between scans).
-MIN_MOTION_M = 0.05
 
 def pose_matrix(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
     """T_odom_base (4x4) of a planar pose."""
@@ -466,21 +463,12 @@ class VppStage:
         self._points_cam_at = {float(image.stamp_s):
                                self._last_scan_odom @ T_cam_odom[:3, :3].T + T_cam_odom[:3, 3]}
         self._stones_at = {float(image.stamp_s): self.memory.tombstones()}
-        self._motions_at = {float(image.stamp_s): self._motions_since_capture(image.stamp_s)}
+        # the tracked objects that moved since their masks' captures (a pushed box): warped with it
+        self._motions_at = {float(image.stamp_s): self.tracker.moved_objects(
+            [(e.object_id, e.stamp_s) for e in self.memory.entries], image.stamp_s)}
         self.runner.submit(request, now_s)
         self.memory.note_query(image.stamp_s, T_odom_cam)
         self.requests += 1
-
-    def _motions_since_capture(self, stamp_s: float) -> dict[int, tuple[float, float]]:
-        """Entry id -> how far its object moved from the entry's capture to stamp_s, for the
-        objects the tracker followed all that time and saw move more than a few centimetres (a
-        pushed box): the answer's image shows them elsewhere than a still plane would be."""
-        out = {}
-        for e in self.memory.entries:
-            d = self.tracker.displacement(e.object_id, e.stamp_s, stamp_s)
-            if d is not None and math.hypot(*d) > MIN_MOTION_M:
-                out[e.object_id] = d
-        return out
 
     def ready(self, now_s: float) -> bool:
         """A first answer (or failure) has come back, or first_answer_timeout_s passed since the

@@ -18,6 +18,9 @@ from runtime.vpp.tracking.registration import icp_all
 from runtime.vpp.tracking.scan_select import group_masked, in_boxes
 from runtime.vpp.tracking.templates import confirm_all, merge_view, spread_all
 
+#: An object that moved less than this between two instants counts as still (moved_objects: the
+#: anchor jitters by a few centimetres between scans).
+MIN_MOTION_M = 0.05
 #: Scans of centre history kept per object (30 s at 10 Hz: longer than the mask memory's max age).
 HISTORY_SCANS = 300
 
@@ -213,6 +216,16 @@ class ObjectTracker:
             if at1 is not None and not h[3]:
                 return None  # a scan in between that did not know where the object was
         return None
+
+    def moved_objects(self, since: list[tuple[int, float]], t1_s: float) -> dict[int, tuple[float, float]]:
+        """Object id -> displacement to t1_s, for each (object id, t0_s) in since whose object the
+        tracker followed all that time and saw move more than MIN_MOTION_M."""
+        out = {}
+        for object_id, t0_s in since:
+            d = self.displacement(object_id, t0_s, t1_s)
+            if d is not None and math.hypot(*d) > MIN_MOTION_M:
+                out[int(object_id)] = d
+        return out
 
     def _confirm_views(self, now_s: float, confirming: dict[int, np.ndarray], points_odom: np.ndarray,
                        cost: np.ndarray) -> None:

@@ -249,7 +249,7 @@ def test_a_box_pushed_between_two_answers_keeps_its_entry(follow, monkeypatch):
     it matches its entry; warped as a still plane it would not."""
     stage = make(FakeVlm())
     if not follow:
-        monkeypatch.setattr(stage, "_motions_since_capture", lambda stamp_s: {})
+        monkeypatch.setattr(stage.tracker, "moved_objects", lambda since, t1_s: {})
     reconciles = []
     for k in range(80):  # 4 s of ticks at 20 Hz, a scan every other tick, an image every tick
         t = 0.05 * k

@@ -194,6 +194,8 @@ def test_displacement_says_where_a_tracked_object_went_between_two_instants():
     assert tracker.displacement(7, 0.5, 1.4) is None  # not tracked then: unknown
     assert tracker.displacement(7, 1.3, 1.2) is None  # backwards
     assert tracker.displacement(99, 1.0, 1.4) is None  # never tracked
+    moved = tracker.moved_objects([(7, 1.0), (7, 1.3), (99, 1.0)], 1.4)
+    assert list(moved) == [7] and moved[7] == tracker.displacement(7, 1.0, 1.4)  # 4 cm since 1.3: still
 
 
 def test_faces_the_camera_never_saw_join_the_object_but_a_wall_it_touches_only_a_band():
