@@ -242,7 +242,7 @@ def run_episode(
         parts = assemble(RobotSetup(robot, config, wheel_calibration, sensor_calibration),
                          Wiring(bus, clock, goal_in_odom_frame(scenario), bench.inbox if bench.has_sensors else None,
                                 lockstep=True, vlm_backend=_vlm_backend(bench.world, config, oracle, seed),
-                                goal_given=not goal_when_ready))
+                                goal_given=not goal_when_ready, start_odometry=True))
     except BaseException:
         bench.close()
         raise

@@ -213,7 +213,8 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
     config = loaded.config
     driver_bus = recorder.wrap_bus(bus, clock.now) if recorder is not None else bus
     parts = assemble(RobotSetup(loaded.robot, config, loaded.wheel_calibration, loaded.sensor_calibration),
-                     Wiring(driver_bus, clock, Pose2D(*goal), inbox if config.uses_lidar else None, lockstep=False))
+                     Wiring(driver_bus, clock, Pose2D(*goal), inbox if config.uses_lidar else None, lockstep=False,
+                            start_odometry=True))
     record_hook = None
     if recorder is not None:
         record_hook = recorder.attach(parts.controller, config, {"clock": "wall", "goal": json.dumps(list(goal))},
@@ -222,6 +223,7 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
     parts.loop.after_tick = observer
     if stop.is_set():  # SIGINT/SIGTERM during the start-up work: the base is never enabled
         parts.controller.partition.close()
+        parts.controller.odometry.close()
         raise _StoppedBeforeStart
     echo(f"dct run: goal {goal[0]:.3f} {goal[1]:.3f} {goal[2]:.3f} (odom frame); bus "
          f"{loaded.bus_config.interface}:{loaded.bus_config.channel}; DDS domain {config.ros.inputs.domain_id}; "

@@ -49,6 +49,9 @@ class Wiring:
     vlm_backend: object = None
     #: False: standby until `controller.give_goal(now)` (the goal-when-ready clock).
     goal_given: bool = True
+    #: Start the ICP worker while the rest is built (PartsOptions.start_odometry): the caller then
+    #: runs the assembly, or closes `controller.odometry` itself.
+    start_odometry: bool = False
 
 
 @dataclass
@@ -80,7 +83,7 @@ def assemble(setup: RobotSetup, wiring: Wiring) -> Assembly:
     controller = NavigationController(
         robot, config, hardware, wiring.goal, wiring.clock.now, sensors=wiring.sensors, lockstep=wiring.lockstep,
         goal_given=wiring.goal_given, wheel_calibration=setup.wheel_calibration, vlm_backend=wiring.vlm_backend,
-        sensor_calibration=setup.sensor_calibration,
+        sensor_calibration=setup.sensor_calibration, start_odometry=wiring.start_odometry,
     )
     telemetry = TickTelemetry()
     loop = FixedRateLoop(

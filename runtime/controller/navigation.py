@@ -126,7 +126,8 @@ class NavigationController:
 
     # -- lifecycle ---------------------------------------------------------------------------
     def activate(self) -> None:
-        self.odometry.start()
+        self.odometry.start()  # already under way when the assembly started it early
+        self.odometry.wait_ready()
         self.hardware.configure()
         self.hardware.activate()
         self._activated_at_s = self.clock()

@@ -56,6 +56,10 @@ class PartsOptions:
     #: The camera and mounts as calibrated (calibration.sensor_calibration.SensorCalibration), read
     #: by every stage that places a point or projects one; None: the robot description's nominal ones.
     sensor_calibration: object = None
+    #: Start the ICP worker as soon as the odometry stage is built, so that its start-up (a fresh
+    #: interpreter, 0.3-0.5 s) overlaps the rest of the build (the distance net, the MPC's warm-up);
+    #: the caller then owns a running worker (`odometry.close()`, or deactivate). False: at activation.
+    start_odometry: bool = False
 
 
 def build_parts(robot: RobotDescription, config: ControllerConfig, goal, options: PartsOptions) -> ControllerParts:
@@ -74,6 +78,17 @@ def build_parts(robot: RobotDescription, config: ControllerConfig, goal, options
         config.odometry, robot.drive.track_m, track_factor, sensors.T_base_lidar,
         lockstep=options.lockstep, events=events, wheel_scale=wheel_scale, uses_lidar=options.uses_sensors,
     )
+    if not options.start_odometry:
+        return _build_rest(robot, config, goal, options, sensors, events, odometry)
+    odometry.start()
+    try:
+        return _build_rest(robot, config, goal, options, sensors, events, odometry)
+    except BaseException:
+        odometry.close()
+        raise
+
+
+def _build_rest(robot, config, goal, options: PartsOptions, sensors, events, odometry) -> ControllerParts:
     op = config.planner.obstacle_points
     monitor = InputMonitor(config.inputs, op.max_range_m, uses_lidar=options.uses_sensors,
                            uses_imu=options.uses_sensors)

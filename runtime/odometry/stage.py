@@ -126,6 +126,11 @@ class OdometryStage:
         else:
             self.worker = ProcessIcpWorker(factory, lockstep=self.lockstep)
 
+    def wait_ready(self) -> None:
+        """Block until the ICP worker has started and warmed up (start() first; start-up work)."""
+        if self.worker is not None:
+            self.worker.wait_ready()
+
     def close(self) -> None:
         if self.worker is not None:
             w = self.worker

@@ -31,7 +31,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult
+from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult, warm_up
 
 
 class IcpWorker(Protocol):
@@ -40,6 +40,8 @@ class IcpWorker(Protocol):
     def poll(self, now_s: float) -> list[IcpResult]: ...
 
     def settle(self, t_s: float) -> None: ...
+
+    def wait_ready(self) -> None: ...
 
     def close(self) -> None: ...
 
@@ -58,7 +60,9 @@ def _serve(conn) -> None:
     except OSError:  # pragma: no cover - not permitted here: runs at the controller's priority
         pass
     try:
-        engine = conn.recv()()
+        factory = conn.recv()
+        engine = factory()
+        warm_up(factory)  # a throwaway engine: the first real frame finds the kernels loaded
     except BaseException as exc:  # pragma: no cover - reported to the parent
         conn.send(("fatal", f"ICP worker could not start: {type(exc).__name__}: {exc}"))
         return
@@ -139,6 +143,9 @@ class InlineIcpWorker:
             out.append(self._done.popleft())
         return out
 
+    def wait_ready(self) -> None:
+        """Nothing to wait for: the engine is built at the first settle that has a job."""
+
     def close(self) -> None:
         self._jobs.clear()
 
@@ -187,6 +194,8 @@ class ProcessIcpWorker:
         #: Real time: wall-clock seconds from a job's send to its result (pose latency part).
         self.round_trip_s: deque[float] = deque(maxlen=2000)
         self._sent_at: dict[int, float] = {}
+        #: The worker said it has built its engine and registered its warm-up frames.
+        self.ready = False
 
     # -- plumbing ------------------------------------------------------------------------------
     def _send_loop(self) -> None:
@@ -219,7 +228,7 @@ class ProcessIcpWorker:
             self.failed = self.failed or f"ICP worker gone ({type(exc).__name__})"
             return False
         if kind == "ready":
-            pass
+            self.ready = True
         elif kind == "fatal":
             self.failed = payload
         elif kind in ("result", "error"):
@@ -259,6 +268,13 @@ class ProcessIcpWorker:
         if not self.lockstep:
             return
         while not self.failed and self._in_flight and self._in_flight[0].ready_at_s <= t_s + 1e-9:
+            if not self._receive(block=True):
+                break
+
+    def wait_ready(self) -> None:
+        """Block until the worker has started (a fresh interpreter, its engine built and warmed up:
+        0.3-0.5 s), or failed to (`failed` says why). Start-up work, never in a tick."""
+        while not self.ready and not self.failed:  # its first message is "ready" or "fatal"
             if not self._receive(block=True):
                 break
 

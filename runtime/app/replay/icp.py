@@ -54,6 +54,9 @@ class ScriptedIcpWorker:
     def settle(self, t_s: float) -> None:
         self.inner.settle(t_s)
 
+    def wait_ready(self) -> None:
+        self.inner.wait_ready()
+
     def close(self) -> None:
         self.inner.close()
 

@@ -495,3 +495,38 @@ def test_in_standby_every_stage_runs_but_the_robot_waits_for_its_goal():
     run_ticks(ctl, base, 200)
     assert ctl.state is ControllerState.GOAL_REACHED and ctl.goal_reached_at_s > given_at
     assert ctl.describe()["goal_given_at_s"] == given_at
+
+
+def test_an_early_started_icp_worker_is_ready_at_activation_and_closed_when_the_build_fails(monkeypatch):
+    """start_odometry (the assembly's): the ICP worker starts while the rest is built and is
+    ready (warmed up) once the controller is active; a build that fails after it started closes
+    it (no orphan process)."""
+    import runtime.controller.parts as parts
+    from runtime.odometry.stage import OdometryStage
+
+    robot = load_robot_description()
+    config = load_controller_config().with_planner_mode("pure-pursuit")
+    base = FakeBase()
+    ctl = NavigationController(robot, config, base, Pose2D(2.0, 0.0, 0.0), clock=lambda: base.t,
+                               sensors=SensorInbox(), start_odometry=True)
+    try:
+        worker = ctl.odometry.worker
+        assert worker is not None  # started by the build, before activation
+        ctl.activate()
+        assert ctl.odometry.worker is worker and worker.ready and worker.failed is None
+    finally:
+        ctl.deactivate()
+    assert ctl.odometry.worker is None
+
+    closed = []
+    close = OdometryStage.close
+    monkeypatch.setattr(OdometryStage, "close", lambda self: (closed.append(self.worker), close(self)))
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no distance net")
+
+    monkeypatch.setattr(parts, "build_planner", broken)
+    with pytest.raises(RuntimeError, match="no distance net"):
+        NavigationController(robot, config, FakeBase(), Pose2D(2.0, 0.0, 0.0), clock=lambda: 0.0,
+                             sensors=SensorInbox(), start_odometry=True)
+    assert len(closed) == 1 and closed[0] is not None

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from runtime.odometry.degeneracy import DegeneracyConfig, planar_constraint
 from runtime.odometry.fusion import FusionConfig, PoseFusion
-from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult, deskew_with_motion
+from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult, deskew_with_motion, warm_up
 from runtime.odometry.icp_config import IcpConfig
 from runtime.odometry.kiss_pipeline import TIMED_PARTS
 from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse, wrap
@@ -263,6 +263,37 @@ def test_lockstep_results_are_identical_from_the_process_and_inline_and_arrive_a
             worker.close()
     for a, b in zip(got["inline"], got["process"]):
         np.testing.assert_array_equal(a.pose_base, b.pose_base)
+
+
+def test_the_warm_up_leaves_nothing_behind_and_the_worker_is_ready_after_it():
+    """The worker registers synthetic frames with a throwaway engine before it says ready: the
+    engines that register real frames give the same poses, bit for bit, as without it."""
+    factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2, deskew="kiss"), DegeneracyConfig(), MOUNT, True)
+    frames = _frames(4)
+    e = factory()
+    cold = [e.process(j).pose_base for j in frames]
+    assert warm_up(factory) > 0.0
+    e = factory()
+    warm = [e.process(j).pose_base for j in frames]
+    for a, b in zip(cold, warm):
+        np.testing.assert_array_equal(a, b)
+    worker = ProcessIcpWorker(factory, lockstep=True)
+    try:
+        assert not worker.ready
+        worker.wait_ready()
+        assert worker.ready and worker.failed is None
+    finally:
+        worker.close()
+
+
+def test_a_worker_that_cannot_start_is_named_by_wait_ready():
+    worker = ProcessIcpWorker(functools.partial(IcpEngine, "not a config", DegeneracyConfig(), MOUNT, True),
+                              lockstep=True)
+    try:
+        worker.wait_ready()  # returns: never hangs on a worker that failed
+        assert not worker.ready and "could not start" in worker.failed
+    finally:
+        worker.close()
 
 
 def test_real_time_worker_keeps_only_the_newest_waiting_frame_and_names_a_dead_worker():
