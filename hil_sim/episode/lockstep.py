@@ -32,6 +32,7 @@ from hil_sim.episode.faults import FaultInjector, FaultSpec
 from hil_sim.episode.metrics import EpisodeMetrics
 from hil_sim.episode.failure import failure_reason
 from hil_sim.episode.lockstep_bus import LockstepBus
+from hil_sim.episode.lockstep_inbox import LockstepInbox
 from hil_sim.episode.patrol import PatrolSequencer
 from hil_sim.world.robot_variant import RobotVariant, resolve_variant
 from hil_sim.world.scenario import Scenario, load_scenario
@@ -308,7 +309,7 @@ class _SimulatedBench:
         controller_bus, sim_bus = virtual_bus_pair()
         try:  # a device that cannot be built must not leave the buses open
             firmware = EmulatedBaseFirmware(sim_bus, robot)
-            inbox = SensorInbox()
+            inbox = LockstepInbox()
             injector = FaultInjector(
                 faults, firmware, inbox, start_s=world.time_s,
                 far_m=config.planner.obstacle_points.max_range_m + 4.0,
@@ -318,6 +319,10 @@ class _SimulatedBench:
             has_sensors = sensors is not False
             devices = ([_sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibration)]
                        if has_sensors else [])
+            for rig in devices:
+                if rig.config.camera_async:  # its image is handed over as the controller reads (lockstep_inbox)
+                    rig.defer_hand_over = True
+                    inbox.before_take.append(rig.hand_over_due)
         except BaseException:
             controller_bus.shutdown()
             sim_bus.shutdown()

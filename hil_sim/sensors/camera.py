@@ -198,6 +198,17 @@ class SimCamera:
         return CameraImage(stamp_s=img.stamp_s, pixels=img.pixels, K=img.K, distortion=img.distortion,
                            frame_id=img.frame_id, segmentation=seg)
 
+    def warm_up(self, segmentation: bool = False) -> None:
+        """Render the state in data once (with segmentation too when asked), thrown away and not
+        counted in `renders`: a renderer's first pass compiles its shaders (about 60 ms more than a
+        steady frame with Mesa's llvmpipe), which start-up pays instead of the first frame."""
+        renders = self.renders
+        if segmentation:
+            self.render_rgb_with_segmentation(0.0)
+        else:
+            self.render_rgb(0.0)
+        self.renders = renders
+
     def close(self) -> None:
         self._renderer.close()
 

@@ -84,7 +84,8 @@ class SensorRigConfig(BaseModel):
     #: read-out and transfer: 30-100 ms for a USB camera), stamped with its instant. With
     #: camera_async the frame renders beside the physics meanwhile and is handed over exactly at
     #: that instant, waiting for the render when it is not done, so a lockstep run stays
-    #: deterministic and the render costs no simulator time. 0: delivered when rendered.
+    #: deterministic and the render costs no simulator time (SensorRig.defer_hand_over lets
+    #: the physics go on meanwhile). 0: delivered when rendered.
     camera_latency_s: float = Field(0.0, ge=0.0, le=0.5)
     seed: int = Field(0, ge=0)
 
@@ -123,6 +124,7 @@ class CameraThread:
         self._deliver = deliver
         self._job = threading.Event()
         self._idle = threading.Event()
+        self._warm = threading.Event()  # the renderer's warm-up render is done (or failed)
         self._stop = False
         self._stamp = 0.0
         self._started = threading.Event()
@@ -143,6 +145,7 @@ class CameraThread:
     def submit(self, data, t_s: float) -> bool:
         """Render the state now in data, stamped t_s, beside the caller; False (nothing done)
         while the last frame still renders."""
+        self._warm.wait()  # the first frame only: the warm-up started with the thread
         if self.error is not None:
             raise self.error
         if not self._idle.is_set():
@@ -162,9 +165,12 @@ class CameraThread:
             self.error = exc
             self._started.set()
             return
-        self._idle.set()
         self._started.set()
         try:
+            self._mujoco.mj_forward(self._model, self._snap)  # the model's initial state, to warm up on
+            self._camera.warm_up(self._segmentation)
+            self._warm.set()
+            self._idle.set()
             while True:
                 self._job.wait()
                 self._job.clear()
@@ -181,6 +187,7 @@ class CameraThread:
         except BaseException as exc:  # the simulator's loop raises it at the next frame
             self.error = exc
         finally:
+            self._warm.set()
             self._idle.set()  # a result() waiting for the frame that failed returns (and raises)
             self._camera.close()
 
@@ -246,6 +253,13 @@ class SensorRig:
         self._camera_next = 0
         #: (due time, image or None when the render thread holds it) of the frame not yet handed over.
         self._camera_held: tuple[float, CameraImage | None] | None = None
+        #: Set by a simulator whose inbox is read only at known points (lockstep: the controller's
+        #: take): a held frame whose time has come is handed over by `hand_over_due()`, which
+        #: that reader calls before it reads, instead of in the physics step, which would wait for
+        #: the render there. The reader finds the same image either way; the physics meanwhile
+        #: goes on beside the render.
+        self.defer_hand_over = False
+        self._camera_overdue = False
         if c.camera_rate_hz > 0:
             self.camera = self._make_camera()
 
@@ -324,13 +338,15 @@ class SensorRig:
         spent, clock = self.time_spent_s, time.perf_counter
         held = self._camera_held
         if held is not None and t_s + _EPS_S >= held[0]:
-            t0 = clock()
-            self._camera_held = None
-            self._deliver_image(held[1] if held[1] is not None else self.camera.result())
-            spent["camera"] += clock() - t0
+            if self.defer_hand_over:
+                self._camera_overdue = True
+            else:
+                self._hand_over()
         due = self._camera_start_s + self._camera_next * self._camera_period_s
         if t_s + _EPS_S < due:
             return
+        if self._camera_overdue:  # one frame in transfer at a time: the late one first
+            self._hand_over()
         t0 = clock()
         n_due = int(math.floor((t_s + _EPS_S - self._camera_start_s) / self._camera_period_s)) + 1
         self.camera_frames_missed += max(0, n_due - self._camera_next - 1)
@@ -353,6 +369,19 @@ class SensorRig:
             else:
                 self._deliver_image(image)
         spent["camera"] += clock() - t0
+
+    def _hand_over(self) -> None:
+        """The held frame to the inbox (waiting for its render when the thread still has it)."""
+        t0 = time.perf_counter()
+        held, self._camera_held, self._camera_overdue = self._camera_held, None, False
+        self._deliver_image(held[1] if held[1] is not None else self.camera.result())
+        self.time_spent_s["camera"] += time.perf_counter() - t0
+
+    def hand_over_due(self) -> None:
+        """With defer_hand_over: hand over the frame whose time the physics has passed, if any,
+        waiting for its render (the inbox's reader calls it before it reads)."""
+        if self._camera_overdue:
+            self._hand_over()
 
     def _deliver_image(self, image: CameraImage) -> None:
         self.images_produced += 1

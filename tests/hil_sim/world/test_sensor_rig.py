@@ -254,8 +254,12 @@ def test_a_camera_latency_is_checked():
 def test_a_render_that_fails_in_the_camera_thread_raises_in_the_simulator_not_hangs(monkeypatch):
     from hil_sim.sensors.camera import SimCamera
 
+    calls = []
+
     def broken(self, stamp_s, kind="geom"):
-        raise RuntimeError("EGL context lost")
+        calls.append(stamp_s)
+        if len(calls) > 1:  # the thread's warm-up render went through
+            raise RuntimeError("EGL context lost")
 
     monkeypatch.setattr(SimCamera, "render_rgb_with_segmentation", broken)
     world = World(SCENARIO, ROBOT)
@@ -279,3 +283,56 @@ def test_a_render_that_fails_in_the_camera_thread_raises_in_the_simulator_not_ha
         assert len(raised) == 1 and "EGL context lost" in str(raised[0])
     finally:
         rig.close()
+
+
+def test_a_deferred_hand_over_lets_the_physics_run_beside_a_slow_render_and_the_reader_gets_the_same_frame(
+        monkeypatch):
+    """defer_hand_over (lockstep, with its LockstepInbox): a frame whose render is not done at its
+    instant plus the latency does not stop the physics there; the inbox's reader, before it
+    takes, gets it (waiting for the render), stamped with its instant. Without deferral the step
+    at that instant waits for the render. A capture due while a frame is still undelivered
+    hands that frame over first."""
+    from hil_sim.episode.lockstep_inbox import LockstepInbox
+    from hil_sim.sensors.camera import SimCamera
+
+    render = SimCamera.render_rgb_with_segmentation
+    slow_s = 0.6
+
+    warmed = set()
+
+    def slow(self, stamp_s, kind="geom"):
+        if id(self) in warmed:  # not the camera thread's warm-up render
+            time.sleep(slow_s)
+        warmed.add(id(self))
+        return render(self, stamp_s, kind)
+
+    monkeypatch.setattr(SimCamera, "render_rgb_with_segmentation", slow)
+    config = SensorRigConfig(camera_rate_hz=5.0, camera_segmentation=True, camera_async=True, camera_latency_s=0.05,
+                             lidar_enabled=False, imu_enabled=False)
+    for defer in (True, False):
+        world = World(SCENARIO, ROBOT)
+        inbox = LockstepInbox()
+        rig = SensorRig(world, ROBOT, inbox, config)
+        rig.defer_hand_over = defer
+        inbox.before_take.append(rig.hand_over_due)
+        try:
+            rig.step(0.0)  # the capture: rendering starts
+            t0 = time.perf_counter()
+            for k in range(1, 61):  # past its instant + latency (0.05 s)
+                rig.step(0.001 * k)
+            stepped_s = time.perf_counter() - t0
+            if defer:
+                assert stepped_s < 0.5 * slow_s and rig.images_produced == 0
+                image = inbox.take().image  # waits for the render
+                assert image is not None and image.stamp_s == 0.0 and rig.images_produced == 1
+                rig.step(0.2)  # the next capture...
+                for k in range(1, 61):
+                    rig.step(0.2 + 0.001 * k)
+                rig.step(0.4)  # ...is still undelivered when the one after is due: handed over first
+                assert rig.images_produced == 2 and rig.camera_frames_missed == 0
+                assert inbox.take().image.stamp_s == pytest.approx(0.2)
+            else:
+                assert stepped_s > 0.5 * slow_s and rig.images_produced == 1
+                assert inbox.take().image.stamp_s == 0.0
+        finally:
+            rig.close()
