@@ -60,6 +60,36 @@ def footprint_nb(points, yaw):  # pragma: no cover - compiled
     return x1 - x0, y1 - y0
 
 
+@njit(cache=True, nogil=True)
+def centre_nb(points, rows):  # pragma: no cover - compiled
+    """(x, y) mean of points[rows] (rows None: all): the running sum numpy's mean over axis 0
+    makes, divided by the count, so the same bits (held by a test)."""
+    n = points.shape[0] if rows is None else rows.shape[0]
+    sx = 0.0
+    sy = 0.0
+    for j in range(n):
+        i = j if rows is None else rows[j]
+        sx += points[i, 0]
+        sy += points[i, 1]
+    return sx / n, sy / n
+
+
+@njit(cache=True, nogil=True)
+def view_against_template(points, rows, template, yaw):  # pragma: no cover - compiled
+    """The tracker's plausibility test's figures, in one call: the centres (x, y) of a mask's view
+    points[rows] and of the template (centre_nb), and the footprint extents (footprint_nb; none
+    below two points) of each, in the object's frame turned by yaw."""
+    vx, vy = centre_nb(points, rows)
+    tx, ty = centre_nb(template, None)
+    fv = (0.0, 0.0)
+    if rows.shape[0] >= 2:
+        fv = footprint_nb(points[rows], yaw)
+    ft = (0.0, 0.0)
+    if template.shape[0] >= 2:
+        ft = footprint_nb(template, yaw)
+    return vx, vy, tx, ty, fv, ft
+
+
 def thin(points: np.ndarray, voxel_m: float, max_points: int = 0) -> np.ndarray:
     """One point per voxel (the first), in a stable order; then at most max_points (0: no cap) by
     an even stride (thin_first: compiled, ~20 us for 1000 points)."""
@@ -145,4 +175,5 @@ def thin_first(points, voxel):  # pragma: no cover - compiled
 
 
 
-__all__ = ["bounds", "extent", "extent_nb", "footprint", "thin", "thin_first", "thin_nb"]
+__all__ = ["bounds", "centre_nb", "extent", "extent_nb", "footprint", "thin", "thin_first", "thin_nb",
+           "view_against_template"]

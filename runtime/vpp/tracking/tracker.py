@@ -12,7 +12,7 @@ import numpy as np
 from runtime.common.spatial_grid import near_any
 from runtime.vpp.partition.labels import FIXED, MOVABLE, PointPartition
 from runtime.vpp.tracking.config import TrackingConfig
-from runtime.vpp.tracking.geometry import bounds, extent, footprint, thin
+from runtime.vpp.tracking.geometry import bounds, extent, thin, view_against_template
 from runtime.vpp.tracking.labelling import take_all
 from runtime.vpp.tracking.registration import icp_all
 from runtime.vpp.tracking.scan_select import group_masked, in_boxes
@@ -94,7 +94,7 @@ class ObjectTracker:
         c = self.config
         spread_all(pts, (np.zeros(1, np.int64), np.array([0, 1])), (face, np.array([0, len(face)]), np.zeros(1)),
                    np.ones(1), (float(c.max_spread_m), float(c.template_voxel_m), int(c.max_template_points)))
-        footprint(face, 0.1)  # the plausibility test's, reached only from a few confirmations on
+        view_against_template(face, np.arange(len(face)), face, 0.1)  # the plausibility test's: a few confirmations on
         self.objects.clear()
         self._origin = None
         self.points_tracked = self.registrations = self.lost = self.handovers = self.unseen = 0
@@ -176,9 +176,9 @@ class ObjectTracker:
                 known = bool(h[3])
             if not known:
                 continue
-            view = points_odom[sel]
-            d = float(np.hypot(*(view[:, :2].mean(axis=0) - obj.centre())))
-            if d > 0.5 * (footprint(obj.template, obj.yaw) + footprint(view, obj.yaw)) + c.max_step_m:
+            vx, vy, tx, ty, fv, ft = view_against_template(points_odom, sel, obj.template, obj.yaw)
+            d = float(np.hypot(vx - tx, vy - ty))
+            if d > 0.5 * (math.hypot(*ft) + math.hypot(*fv)) + c.max_step_m:
                 out.append(k)
         return out
 

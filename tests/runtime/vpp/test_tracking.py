@@ -319,7 +319,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra.numpy import arrays  # noqa: E402
 
-from runtime.vpp.tracking.geometry import footprint, thin  # noqa: E402
+from runtime.vpp.tracking.geometry import footprint, thin, view_against_template  # noqa: E402
 
 _coords = arrays(np.float64, st.tuples(st.integers(1, 200), st.just(3)),
                  elements=st.floats(-1.0, 1.0, allow_nan=False, width=32))
@@ -354,6 +354,21 @@ def _footprint_reference(points: np.ndarray, yaw: float) -> float:
 def test_footprint_is_the_numpy_form_bit_for_bit(points, yaw, scale):
     p = points * scale
     assert footprint(p, yaw) == (_footprint_reference(p, yaw) if len(p) >= 2 else 0.0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(points=_coords, yaw=st.floats(-7.0, 7.0, allow_nan=False), scale=st.sampled_from([0.01, 1.0, 30.0]),
+       data=st.data())
+def test_the_plausibility_figures_are_the_numpy_forms_bit_for_bit(points, yaw, scale, data):
+    """view_against_template: the view's and the template's centres (numpy's mean over axis 0)
+    and footprints, as the numpy forms they replaced."""
+    p = points * scale
+    rows = np.array(sorted(data.draw(st.sets(st.integers(0, len(p) - 1), min_size=1))), np.int64)
+    template = p[::-1].copy()
+    vx, vy, tx, ty, fv, ft = view_against_template(p, rows, template, yaw)
+    assert (vx, vy) == tuple(p[rows][:, :2].mean(axis=0))
+    assert (tx, ty) == tuple(template[:, :2].mean(axis=0))
+    assert math.hypot(*fv) == footprint(p[rows], yaw) and math.hypot(*ft) == footprint(template, yaw)
 
 
 def test_a_fit_that_could_never_pair_enough_points_is_refused_at_start():
