@@ -32,7 +32,6 @@ from hil_sim.episode.faults import FaultInjector, FaultSpec
 from hil_sim.episode.metrics import EpisodeMetrics
 from hil_sim.episode.failure import failure_reason
 from hil_sim.episode.lockstep_bus import LockstepBus
-from hil_sim.episode.lockstep_inbox import LockstepInbox
 from hil_sim.episode.patrol import PatrolSequencer
 from hil_sim.world.robot_variant import RobotVariant, resolve_variant
 from hil_sim.world.scenario import Scenario, load_scenario
@@ -248,6 +247,7 @@ def run_episode(
         bench.close()
         raise
     controller = parts.controller
+    parts.loop.before_tick = bench.hand_over_due
     clock.barriers.append(controller.odometry)
     clock.barriers.append(controller)  # the VLM answers due (the vpp partition; nothing otherwise)
     operator = _Operator(sim, controller, scenario, settle_s, progress, observe)
@@ -309,7 +309,7 @@ class _SimulatedBench:
         controller_bus, sim_bus = virtual_bus_pair()
         try:  # a device that cannot be built must not leave the buses open
             firmware = EmulatedBaseFirmware(sim_bus, robot)
-            inbox = LockstepInbox()
+            inbox = SensorInbox()
             injector = FaultInjector(
                 faults, firmware, inbox, start_s=world.time_s,
                 far_m=config.planner.obstacle_points.max_range_m + 4.0,
@@ -319,15 +319,22 @@ class _SimulatedBench:
             has_sensors = sensors is not False
             devices = ([_sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibration)]
                        if has_sensors else [])
-            for rig in devices:
-                if rig.config.camera_async:  # its image is handed over as the controller reads (lockstep_inbox)
-                    rig.defer_hand_over = True
-                    inbox.before_take.append(rig.hand_over_due)
+            for rig in devices:  # a late render's image reaches the inbox before the tick (run_episode)
+                rig.defer_hand_over = rig.config.camera_async
         except BaseException:
             controller_bus.shutdown()
             sim_bus.shutdown()
             raise
         return cls(world, metrics, controller_bus, sim_bus, firmware, inbox, injector, devices, has_sensors)
+
+    def hand_over_due(self, t_s: float) -> None:
+        """Before the tick at t_s (FixedRateLoop.before_tick): every image whose time the physics
+        passed while it still rendered reaches the inbox (SensorRig.defer_hand_over), waiting
+        for its render: the tick finds what it would have found had the physics waited at the
+        image's instant, and the physics ran on beside the render meanwhile. Nothing but the
+        tick reads the inbox (the keepalives between ticks only re-send the command)."""
+        for device in self.devices:
+            device.hand_over_due()
 
     def close(self) -> None:
         try:
@@ -346,11 +353,15 @@ def _sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibratio
         # The VLM's eyes: 2 images a second with ground-truth segmentation for the sim-oracle,
         # arriving CAMERA_LATENCY_S after their instant. A rig config that sets its own camera
         # keeps it (`dct vpp eval`: its listeners read the ground truth at the frame's instant).
+        # The sim-oracle answers from the segmentation: its RGB (kept only by a recording) renders
+        # without multisampling, at half the cost.
         update = {"camera_segmentation": True}
         if not rig_config.model_fields_set & {"camera_rate_hz", "camera_async", "camera_latency_s"}:
             update |= {"camera_rate_hz": DCT_CAMERA_RATE_HZ, "camera_async": True, "camera_latency_s": CAMERA_LATENCY_S}
         elif not rig_config.camera_rate_hz:
             update["camera_rate_hz"] = DCT_CAMERA_RATE_HZ
+        if "camera_antialias" not in rig_config.model_fields_set and config.vpp.backend.kind == "sim-oracle":
+            update["camera_antialias"] = False
         rig_config = rig_config.model_copy(update=update)
     if rig_config.camera_async and rig_config.camera_latency_s == 0:
         raise ValueError("lockstep: SensorRigConfig.camera_async needs camera_latency_s > 0 (an image handed "

@@ -100,9 +100,12 @@ class SimCamera:
 
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, camera_name: str, width: int = 640,
                  height: int = 480, frame_id: str = "camera", hidden_geom_groups: tuple[int, ...] = (),
-                 lens: CameraLens | None = None) -> None:
+                 lens: CameraLens | None = None, antialias: bool = True) -> None:
         """lens: the true camera of a robot variant (the model's camera renders its canvas: see
-        add_camera_to_spec); None: the model camera's pinhole."""
+        add_camera_to_spec); None: the model camera's pinhole. antialias: False renders without
+        the model's multisampling (`vis.quality.offsamples`, 4 by default): half the render's
+        CPU with Mesa's software rasteriser; the segmentation is the same pixel for pixel, the
+        RGB image's edges are a pinhole's hard ones."""
         cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera_name)
         if cam_id < 0:
             raise ValueError(f"SimCamera: the model has no camera named {camera_name!r}")
@@ -136,7 +139,13 @@ class SimCamera:
         near = CAMERA_NEAR_M / max(float(model.stat.extent), 1e-9)
         if model.vis.map.znear > near:
             model.vis.map.znear = near
-        self._renderer = mujoco.Renderer(model, height=render_h, width=render_w)
+        samples = int(model.vis.quality.offsamples)
+        if not antialias:  # read when the renderer's GL context is made; the model keeps its own
+            model.vis.quality.offsamples = 0
+        try:
+            self._renderer = mujoco.Renderer(model, height=render_h, width=render_w)
+        finally:
+            model.vis.quality.offsamples = samples
         flags = self._renderer.scene.flags
         flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0

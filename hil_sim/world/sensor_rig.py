@@ -71,6 +71,9 @@ class SensorRigConfig(BaseModel):
     camera_rate_hz: float = Field(0.0, ge=0.0, le=100.0)
     #: Also render ground-truth segmentation (geom ids) into each image (doubles the cost).
     camera_segmentation: bool = False
+    #: Multisampled RGB (SimCamera's antialias). Off halves the render; the segmentation is the
+    #: same either way (lockstep's camera for the sim-oracle, which answers from the segmentation).
+    camera_antialias: bool = True
     #: Render beside the physics, in a thread of its own: a frame costs tens of ms (55 with
     #: segmentation), which inline stalls physics, the lidar and the IMU every frame. The state
     #: of the frame instant is copied (mj_copyData, a few microseconds) and rendered from the
@@ -254,10 +257,10 @@ class SensorRig:
         #: (due time, image or None when the render thread holds it) of the frame not yet handed over.
         self._camera_held: tuple[float, CameraImage | None] | None = None
         #: Set by a simulator whose inbox is read only at known points (lockstep: the controller's
-        #: take): a held frame whose time has come is handed over by `hand_over_due()`, which
-        #: that reader calls before it reads, instead of in the physics step, which would wait for
-        #: the render there. The reader finds the same image either way; the physics meanwhile
-        #: goes on beside the render.
+        #: tick): a held frame whose time has come is handed over by `hand_over_due()`, which the
+        #: simulator calls before that reader reads, instead of in the physics step, which would
+        #: wait for the render there. The reader finds the same image either way; the physics
+        #: meanwhile goes on beside the render. A capture due first hands it over too.
         self.defer_hand_over = False
         self._camera_overdue = False
         if c.camera_rate_hz > 0:
@@ -285,7 +288,7 @@ class SensorRig:
         world, c = self.world, self.config
         cam = self.robot.sensors.camera
         args = (world.camera_name, cam.width_px, cam.height_px, "camera", world.camera_hidden_geom_groups,
-                world.camera_lens)
+                world.camera_lens, c.camera_antialias)
         if c.camera_async:
             deliver = None if c.camera_latency_s > 0 else self._deliver_image
             return CameraThread(world.model, args, c.camera_segmentation, deliver)

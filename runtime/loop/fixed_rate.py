@@ -136,7 +136,10 @@ class FixedRateLoop:
         starve: without a path the robot holds still), and a next tick that starts late is counted
         as such (lateness, skipped ticks).
         after_tick: called with each tick's committed telemetry row, outside the tick's timings (a
-        recorder copies it into its queue: runtime.io.recording); it must be short and must not block."""
+        recorder copies it into its queue: runtime.io.recording); it must be short and must not block.
+        `before_tick` (an attribute, None by default): called with the tick's scheduled time once the
+        clock reached it, before the tick and outside its timings: a lockstep simulator finishes
+        there what the tick must find in its inputs (a camera image whose render is still running)."""
         if not (period_s > 0.0 and math.isfinite(period_s)):
             raise ValueError(f"loop period must be a positive number of seconds, got {period_s}")
         if keepalive_period_s is not None and not 0.0 < keepalive_period_s <= period_s:
@@ -155,6 +158,7 @@ class FixedRateLoop:
         self.slack_work_min_s = slack_work_min_s
         self.slack_work_max_postpone = slack_work_max_postpone
         self.after_tick = after_tick
+        self.before_tick: Callable[[float], None] | None = None
         self.after_tick_errors = 0
         self.after_tick_error: str | None = None
         self._postponed_in_row = 0
@@ -184,6 +188,8 @@ class FixedRateLoop:
         while not should_stop() and (max_ticks is None or ticks_run < max_ticks):
             scheduled = t0 + k * self.period_s
             clock.sleep_until(scheduled)
+            if self.before_tick is not None:
+                self.before_tick(scheduled)
             row = telemetry.begin_tick()
             row["tick"] = k
             row["scheduled_s"] = scheduled

@@ -27,6 +27,7 @@ def test_a_dct_episode_renders_beside_the_physics_and_delivers_after_the_camera_
             c = rig.config
             assert c.camera_rate_hz == DCT_CAMERA_RATE_HZ and c.camera_segmentation
             assert c.camera_async and c.camera_latency_s == CAMERA_LATENCY_S > 0
+            assert not c.camera_antialias  # the sim-oracle reads the segmentation, not the RGB
             assert isinstance(rig.camera, CameraThread)
         finally:
             rig.close()

@@ -287,12 +287,11 @@ def test_a_render_that_fails_in_the_camera_thread_raises_in_the_simulator_not_ha
 
 def test_a_deferred_hand_over_lets_the_physics_run_beside_a_slow_render_and_the_reader_gets_the_same_frame(
         monkeypatch):
-    """defer_hand_over (lockstep, with its LockstepInbox): a frame whose render is not done at its
-    instant plus the latency does not stop the physics there; the inbox's reader, before it
-    takes, gets it (waiting for the render), stamped with its instant. Without deferral the step
+    """defer_hand_over (lockstep, which calls hand_over_due before each tick): a frame whose render
+    is not done at its instant plus the latency does not stop the physics there; hand_over_due
+    puts it into the inbox (waiting for the render), stamped with its instant. Without deferral the step
     at that instant waits for the render. A capture due while a frame is still undelivered
     hands that frame over first."""
-    from hil_sim.episode.lockstep_inbox import LockstepInbox
     from hil_sim.sensors.camera import SimCamera
 
     render = SimCamera.render_rgb_with_segmentation
@@ -311,10 +310,9 @@ def test_a_deferred_hand_over_lets_the_physics_run_beside_a_slow_render_and_the_
                              lidar_enabled=False, imu_enabled=False)
     for defer in (True, False):
         world = World(SCENARIO, ROBOT)
-        inbox = LockstepInbox()
+        inbox = SensorInbox()
         rig = SensorRig(world, ROBOT, inbox, config)
         rig.defer_hand_over = defer
-        inbox.before_take.append(rig.hand_over_due)
         try:
             rig.step(0.0)  # the capture: rendering starts
             t0 = time.perf_counter()
@@ -323,7 +321,8 @@ def test_a_deferred_hand_over_lets_the_physics_run_beside_a_slow_render_and_the_
             stepped_s = time.perf_counter() - t0
             if defer:
                 assert stepped_s < 0.5 * slow_s and rig.images_produced == 0
-                image = inbox.take().image  # waits for the render
+                rig.hand_over_due()  # waits for the render
+                image = inbox.take().image
                 assert image is not None and image.stamp_s == 0.0 and rig.images_produced == 1
                 rig.step(0.2)  # the next capture...
                 for k in range(1, 61):
@@ -331,8 +330,32 @@ def test_a_deferred_hand_over_lets_the_physics_run_beside_a_slow_render_and_the_
                 rig.step(0.4)  # ...is still undelivered when the one after is due: handed over first
                 assert rig.images_produced == 2 and rig.camera_frames_missed == 0
                 assert inbox.take().image.stamp_s == pytest.approx(0.2)
+                rig.hand_over_due()  # nothing due: nothing handed over
+                assert rig.images_produced == 2
             else:
                 assert stepped_s > 0.5 * slow_s and rig.images_produced == 1
                 assert inbox.take().image.stamp_s == 0.0
         finally:
             rig.close()
+
+
+def test_a_camera_without_antialiasing_renders_the_same_segmentation_and_leaves_the_model_as_it_was():
+    from hil_sim.sensors.camera import SimCamera
+
+    world = World(SCENARIO, ROBOT)
+    import mujoco
+
+    mujoco.mj_forward(world.model, world.data)
+    samples = int(world.model.vis.quality.offsamples)
+    args = (world.camera_name, 640, 480, "camera", world.camera_hidden_geom_groups, world.camera_lens)
+    smooth, hard = SimCamera(world.model, world.data, *args), SimCamera(world.model, world.data, *args, False)
+    try:
+        a, b = smooth.render_rgb_with_segmentation(0.0), hard.render_rgb_with_segmentation(0.0)
+        np.testing.assert_array_equal(a.segmentation, b.segmentation)
+        assert len(np.unique(a.segmentation)) > 2  # the scene is in view, not an empty frame
+        edges = np.abs(a.pixels.astype(int) - b.pixels.astype(int)).max(axis=2) > 0
+        assert 0 < edges.mean() < 0.2  # only the edges differ
+        assert int(world.model.vis.quality.offsamples) == samples
+    finally:
+        smooth.close()
+        hard.close()
