@@ -210,3 +210,50 @@ def any_within(pts, g, x, y, z, r2):  # pragma: no cover - compiled
     pts): nearest's search stopping at the first point found (the query's own cell first: on a
     template's surface it mostly holds one, so a pushed box's points each stop there)."""
     return _search(pts, g, x, y, z, r2, True)[0] >= 0
+
+
+@njit(cache=True, nogil=True)
+def near_indices(points, ref, r, planar):  # pragma: no cover - compiled
+    """Indices (ascending) of the points (N, 3, any float) closer than r to some ref point (M, 3
+    float64; planar: in x and y only, ref's z zero): near_any over the points in ref's box grown
+    by r, the box test and the float64 copy done in the same pass (numpy's comparisons of the
+    points against the box and its copy of those inside made two 20k-point temporaries a scan)."""
+    n_ref = ref.shape[0]
+    if n_ref == 0:
+        return np.zeros(0, np.int64)
+    k = 2 if planar else 3
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = ref[0, a]
+        hi[a] = ref[0, a]
+        for j in range(1, n_ref):
+            lo[a] = min(lo[a], ref[j, a])
+            hi[a] = max(hi[a], ref[j, a])
+        lo[a] -= r
+        hi[a] += r
+    inb = np.empty(points.shape[0], np.int64)
+    m = 0
+    for i in range(points.shape[0]):
+        inside = True
+        for a in range(k):
+            v = np.float64(points[i, a])
+            if not (v >= lo[a] and v <= hi[a]):
+                inside = False
+        if inside:
+            inb[m] = i
+            m += 1
+    q = np.empty((m, 3))
+    for s in range(m):
+        i = inb[s]
+        q[s, 0] = points[i, 0]
+        q[s, 1] = points[i, 1]
+        q[s, 2] = 0.0 if planar else points[i, 2]
+    near = near_any(q, ref, r)
+    out = np.empty(m, np.int64)
+    u = 0
+    for s in range(m):
+        if near[s]:
+            out[u] = inb[s]
+            u += 1
+    return out[:u]

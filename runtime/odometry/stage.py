@@ -258,21 +258,13 @@ class OdometryStage:
                          planar: bool = False) -> LidarScan:
         """scan less its points within radius_m (default exclude_radius_m) of ref (lidar frame;
         planar: in x, y only, ref's z zero; compiled grid search, only the points in ref's box
-        grown by the radius are queried)."""
-        from runtime.common.spatial_grid import near_any
+        grown by the radius are queried: spatial_grid.near_indices)."""
+        from runtime.common.spatial_grid import near_indices
 
         r = self.exclude_radius_m if radius_m is None else radius_m
         p = scan.points_m
         ref = np.ascontiguousarray(ref, dtype=np.float64)
-        lo, hi = ref.min(axis=0) - r, ref.max(axis=0) + r
-        k = 2 if planar else 3
-        inb = np.flatnonzero(np.all((p[:, :k] >= lo[:k]) & (p[:, :k] <= hi[:k]), axis=1))
-        if not inb.size:
-            return scan
-        q = np.ascontiguousarray(p[inb], dtype=np.float64)
-        if planar:
-            q[:, 2] = 0.0
-        near = inb[near_any(q, ref, r)]
+        near = near_indices(p, ref, float(r), bool(planar))
         if not near.size:
             return scan
         keep = np.ones(len(p), bool)

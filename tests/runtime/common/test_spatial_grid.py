@@ -5,7 +5,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial import cKDTree
 
-from runtime.common.spatial_grid import any_within, grid, near_any, nearest
+from runtime.common.spatial_grid import any_within, grid, near_any, near_indices, nearest
 
 _coords = arrays(np.float64, st.tuples(st.integers(1, 200), st.just(3)),
                  elements=st.floats(-1.0, 1.0, allow_nan=False, width=32))
@@ -28,3 +28,28 @@ def test_grid_nearest_is_the_kd_trees_nearest_within_r(ref, query, r, split):
     near = near_any(query, ref, r)
     assert near[d_ref < r * (1 - 1e-9)].all()
     assert not near[~np.isfinite(d_ref)].any()
+
+
+def _near_indices_reference(p, ref, r, planar):
+    """The numpy form near_indices replaced (the odometry's exclusion of movable points)."""
+    lo, hi = ref.min(axis=0) - r, ref.max(axis=0) + r
+    k = 2 if planar else 3
+    inb = np.flatnonzero(np.all((p[:, :k] >= lo[:k]) & (p[:, :k] <= hi[:k]), axis=1))
+    if not inb.size:
+        return inb
+    q = np.ascontiguousarray(p[inb], dtype=np.float64)
+    if planar:
+        q[:, 2] = 0.0
+    return inb[near_any(q, ref, r)]
+
+
+@settings(max_examples=150, deadline=None)
+@given(points=arrays(np.float32, st.tuples(st.integers(0, 300), st.just(3)),
+                     elements=st.floats(-5.0, 5.0, width=32)),
+       ref=arrays(np.float64, st.tuples(st.integers(1, 30), st.just(3)), elements=st.floats(-5.0, 5.0)),
+       r=st.sampled_from([0.05, 0.3, 1.0]), planar=st.booleans())
+def test_near_indices_is_the_box_then_grid_numpy_form(points, ref, r, planar):
+    if planar:
+        ref = ref.copy()
+        ref[:, 2] = 0.0
+    np.testing.assert_array_equal(near_indices(points, ref, r, planar), _near_indices_reference(points, ref, r, planar))
