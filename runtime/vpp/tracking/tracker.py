@@ -53,6 +53,14 @@ class TrackedObject:
         return self.template[:, :2].mean(axis=0)
 
 
+def _each_inside_one(inner: tuple[np.ndarray, np.ndarray], outer: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether every box of inner (lo (K, 3), hi (K, 3)) lies inside some box of outer (one numpy
+    expression for all K, not a Python loop over them)."""
+    lo, hi = inner
+    inside = (lo[:, None, :] >= outer[0][None, :, :]) & (hi[:, None, :] <= outer[1][None, :, :])
+    return bool(inside.all(axis=2).any(axis=1).all())
+
+
 class ObjectTracker:
     """Templates of movable objects and their registration to each scan (module docstring)."""
 
@@ -144,8 +152,7 @@ class ObjectTracker:
         # view beyond the old template): then one more pass
         reach = c.label_radius_m + (c.behind_m if origin_odom is not None else 0.0)
         lab = self._boxes(reach)
-        if boxes is None or not all(((lo >= boxes[0]) & (hi <= boxes[1])).all(axis=1).any()
-                                    for lo, hi in zip(*lab)):
+        if boxes is None or not _each_inside_one(lab, boxes):
             near, _ = self._near(label, points_odom, reach)
         added = self._label_all(label, oid, cost, near, points_odom)
         for k, obj in self.objects.items():
