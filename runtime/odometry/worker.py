@@ -74,13 +74,25 @@ def _serve(conn) -> None:
             return
         if job is None:
             return
+        if isinstance(job, str) and job == _NEXT_RUN:  # handed to the next run: its engine follows
+            try:
+                factory = conn.recv()
+            except (EOFError, OSError):  # idle until its process ended: nothing to say
+                return
+            try:
+                engine = factory()
+            except BaseException as exc:  # pragma: no cover - reported to the parent
+                conn.send(("fatal", f"ICP worker could not start: {type(exc).__name__}: {exc}"))
+                return
+            conn.send(("ready", None))
+            continue
         try:
             conn.send(("result", engine.process(job)))
         except BaseException as exc:  # only the job's identity goes back, never its points
             conn.send(("error", (_identity(job), f"{type(exc).__name__}: {exc}")))
 
 
-def _job_message(job: IcpJob | None) -> list:
+def _job_message(job: IcpJob | str | None) -> list:
     """A job as the parts the sender thread writes: a small header (the pickle of everything
     but the arrays, and how many arrays follow) and the arrays' own memory, out of band
     (pickle protocol 5): the tick copies nothing and allocates only the header."""
@@ -89,7 +101,7 @@ def _job_message(job: IcpJob | None) -> list:
     return [struct.pack("<I", len(buffers)) + header, *(b.raw() for b in buffers)]
 
 
-def _recv_job(conn) -> IcpJob | None:
+def _recv_job(conn) -> IcpJob | str | None:
     """The worker's side of _job_message."""
     head = conn.recv_bytes()
     (n,) = struct.unpack_from("<I", head)
@@ -99,6 +111,26 @@ def _recv_job(conn) -> IcpJob | None:
 
 #: The message that stops the worker (None) and its sender thread.
 _CLOSE = _job_message(None)
+#: The message that hands the worker to the next run (ProcessIcpWorker's `reuse`): it drops its
+#: engine and builds one from the factory sent next; its sender thread stops.
+_NEXT_RUN = "next run"
+_NEXT = _job_message(_NEXT_RUN)
+
+#: Idle workers kept for the next run in this process (`reuse`): a fresh interpreter takes 0.3-0.5 s
+#: to import and warm up, which every lockstep episode of a campaign waited for at its activation.
+_IDLE: list[tuple[subprocess.Popen, object]] = []
+_IDLE_LOCK = threading.Lock()
+MAX_IDLE_WORKERS = 1
+
+
+def _take_idle() -> tuple[subprocess.Popen, object] | None:
+    with _IDLE_LOCK:
+        while _IDLE:
+            proc, conn = _IDLE.pop()
+            if proc.poll() is None:
+                return proc, conn
+            conn.close()
+    return None
 
 
 def _identity(job: IcpJob) -> tuple[int, float, float, float, int]:
@@ -154,19 +186,27 @@ class ProcessIcpWorker:
     """KISS-ICP in a child process (see the module docstring for the two clocks)."""
 
     def __init__(self, engine_factory: Callable[[], IcpEngine], lockstep: bool,
-                 start_timeout_s: float = 60.0) -> None:
+                 start_timeout_s: float = 60.0, reuse: bool = False) -> None:
+        """reuse: take an idle worker a closed run of this process left (its engine is rebuilt
+        from engine_factory; what the last run left in the pipe is discarded up to its ready),
+        and leave this one idle at close. Lockstep campaigns: every episode is a run."""
         # A fresh interpreter running this module (`python -m runtime.odometry.worker FD`), joined
         # by a socket pair: no fork of a process that holds CAN-bus threads, and, unlike
         # multiprocessing's spawn, no re-import of the caller's main script.
         from multiprocessing.connection import Connection
 
-        ours, theirs = socket.socketpair()
-        self._proc = subprocess.Popen(
-            [sys.executable, "-m", "runtime.odometry.worker", str(theirs.fileno())],
-            pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, close_fds=True,
-        )
-        theirs.close()
-        self._conn = Connection(ours.detach())
+        self.reuse = reuse
+        idle = _take_idle() if reuse else None
+        if idle is not None:
+            self._proc, self._conn = idle
+        else:
+            ours, theirs = socket.socketpair()
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "runtime.odometry.worker", str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, close_fds=True,
+            )
+            theirs.close()
+            self._conn = Connection(ours.detach())
         try:
             self._conn.send(engine_factory)
         except BaseException:
@@ -207,7 +247,7 @@ class ProcessIcpWorker:
             except (OSError, ValueError) as exc:
                 self.failed = self.failed or f"ICP worker gone ({exc})"
                 return
-            if parts is _CLOSE:
+            if parts is _CLOSE or parts is _NEXT:
                 return
 
     def _send(self, job: IcpJob) -> None:
@@ -231,6 +271,8 @@ class ProcessIcpWorker:
             self.ready = True
         elif kind == "fatal":
             self.failed = payload
+        elif kind in ("result", "error") and not self.ready:
+            pass  # an idle worker's answers to its last run, sent before this run's ready
         elif kind in ("result", "error"):
             result = payload if kind == "result" else _failed(*payload)
             if self._in_flight and self._in_flight[0].seq == result.seq:
@@ -280,9 +322,27 @@ class ProcessIcpWorker:
 
     def close(self) -> None:
         """Ask the worker to end and return; the process is reaped by a thread (the child's
-        interpreter takes 0.1-0.2 s to end, which an episode in a campaign need not wait for)."""
-        self._outbox.put(_CLOSE)
-        self._sender.join(timeout=2.0)
+        interpreter takes 0.1-0.2 s to end, which an episode in a campaign need not wait for).
+        With reuse, a worker that is well is left idle for the next run instead (at most
+        MAX_IDLE_WORKERS; it ends with this process, when its socket closes)."""
+        if self.reuse and not self.failed and self._proc.poll() is None:
+            self._outbox.put(_NEXT)
+            self._sender.join(timeout=2.0)
+            if self._sender.is_alive():  # the worker reads nothing any more
+                self._proc.kill()
+            else:
+                with _IDLE_LOCK:
+                    if len(_IDLE) < MAX_IDLE_WORKERS:
+                        _IDLE.append((self._proc, self._conn))
+                        return
+                try:  # enough idle ones: this one ends (its sender has stopped: written here)
+                    for part in _CLOSE:
+                        self._conn.send_bytes(part)
+                except (OSError, ValueError):
+                    self._proc.kill()
+        else:
+            self._outbox.put(_CLOSE)
+            self._sender.join(timeout=2.0)
         threading.Thread(target=_reap, args=(self._proc, self._conn), name="dct-icp-reap", daemon=True).start()
 
 

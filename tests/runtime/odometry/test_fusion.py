@@ -286,6 +286,50 @@ def test_the_warm_up_leaves_nothing_behind_and_the_worker_is_ready_after_it():
         worker.close()
 
 
+def test_a_reused_worker_answers_the_next_run_as_a_fresh_one_and_drops_the_last_runs_answers():
+    """reuse (lockstep campaigns): a closed run leaves its worker process idle; the next run takes
+    it, its engine rebuilt from the new factory, and gets the same poses as from a fresh worker,
+    none of the answers the last run left unread."""
+    import runtime.odometry.worker as worker_module
+
+    factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2, deskew="kiss"), DegeneracyConfig(), MOUNT, True)
+    frames = _frames(4)
+
+    def run(worker, jobs):
+        worker.wait_ready()
+        out = []
+        for job in jobs:
+            worker.submit(job)
+            worker.settle(job.ready_at_s)
+            out += [r.pose_base for r in worker.poll(job.ready_at_s)]
+        return out
+
+    while (idle := worker_module._take_idle()) is not None:  # another test's idle worker
+        idle[0].kill()
+        idle[1].close()
+    fresh = ProcessIcpWorker(factory, lockstep=True)
+    try:
+        expected = run(fresh, frames)
+    finally:
+        fresh.close()
+    first = ProcessIcpWorker(factory, lockstep=True, reuse=True)
+    run(first, frames[:2])
+    for job in frames[2:]:
+        first.submit(job)  # left unread: the worker answers them after the run closed
+    first.close()
+    second = ProcessIcpWorker(factory, lockstep=True, reuse=True)
+    try:
+        assert second._proc is first._proc  # the same process, no new interpreter
+        got = run(second, frames)
+        assert len(got) == len(expected)
+        for a, b in zip(got, expected):
+            np.testing.assert_array_equal(a, b)
+    finally:
+        second.reuse = False  # this test leaves no idle worker behind
+        second.close()
+    assert worker_module._take_idle() is None
+
+
 def test_a_worker_that_cannot_start_is_named_by_wait_ready():
     worker = ProcessIcpWorker(functools.partial(IcpEngine, "not a config", DegeneracyConfig(), MOUNT, True),
                               lockstep=True)
