@@ -1,5 +1,5 @@
-"""The tracker's geometry of point sets, compiled where the tick calls it: bounding boxes, the
-size of a set in an object's own frame, and voxel thinning (the first point of each voxel,
+"""The tracker's geometry of point sets, compiled where the tick calls it: bounding boxes
+(runtime/common/spatial_grid.py's `bounds`), the size of a set in an object's own frame, and voxel thinning (the first point of each voxel,
 through the VPP's voxel hash: runtime/vpp/voxel_hash.py)."""
 from __future__ import annotations
 
@@ -8,22 +8,8 @@ import math
 import numpy as np
 from numba import njit
 
+from runtime.common.spatial_grid import bounds
 from runtime.vpp.voxel_hash import EMPTY, find_slot
-
-
-@njit(cache=True, nogil=True)
-def bounds(points):  # pragma: no cover - compiled
-    """(min (3,), max (3,)) of (N >= 1, 3) points (numpy's min and max: ~10 us each on small arrays)."""
-    lo = points[0].copy()
-    hi = points[0].copy()
-    for i in range(1, points.shape[0]):
-        for a in range(3):
-            x = points[i, a]
-            if x < lo[a]:
-                lo[a] = x
-            if x > hi[a]:
-                hi[a] = x
-    return lo, hi
 
 
 def extent(points: np.ndarray, yaw: float = 0.0) -> float:
