@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
@@ -33,6 +33,7 @@ def _cloud(ranges: np.ndarray, seed: int = 0) -> np.ndarray:
 
 @settings(max_examples=40, deadline=None)
 @given(scale=st.floats(0.5, 150.0), spread=st.floats(0.05, 1.5), n=st.integers(200, 3000), seed=st.integers(0, 99))
+@example(scale=0.5, spread=1.5, n=200, seed=3)  # 6.5% of the ranges clipped to 0.05 m, where the gate lands
 def test_auto_settings_follow_the_frames_ranges(scale, spread, n, seed):
     """Log-normal range distributions, indoor to far outdoor: the far gate keeps 99% of the frame
     (unless that is under 12 m), the voxel is KISS-ICP's max_range/100 within [0.3, 0.5] m or
@@ -53,7 +54,10 @@ def test_auto_settings_follow_the_frames_ranges(scale, spread, n, seed):
     assert s.max_iterations == "auto"  # a cap per frame
     near = float(np.quantile(ranges, 0.05))
     assert s.min_range_m == (0.3 if near >= 0.3 else math.floor(near * 100) / 100)
-    assert np.mean(ranges <= s.min_range_m) <= 0.05 + 2.0 / n
+    # at most 5% below the near gate; the clip above makes ties at 0.05 m, which the 5% quantile
+    # (and so the gate) may fall on: those are counted apart
+    assert np.mean(ranges < s.min_range_m) <= 0.05 + 2.0 / n
+    assert np.mean(ranges <= s.min_range_m) <= 0.05 + 2.0 / n or s.min_range_m == 0.05 == near
     # Deterministic, and independent of the order of the points.
     pts = _cloud(ranges, seed)
     assert resolve_settings(IcpConfig(), pts)[0] == resolve_settings(IcpConfig(), pts[::-1].copy())[0]

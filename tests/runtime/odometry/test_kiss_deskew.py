@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
@@ -30,13 +30,19 @@ def _delta(rotvec, translation):
 
 @settings(max_examples=150, deadline=None)
 @given(st.tuples(coord, coord, coord), st.tuples(shift, shift, shift), st.integers(0, 2**31 - 1))
+@example((0.0, 0.0, 6.368011946474335e-09), (0.0, 1.0, 0.0), 0)  # Sophus' (1 - cos) / theta^2 is 0 there
 def test_the_deskew_moves_every_point_as_kiss_icps_preprocessor(rotvec, translation, seed):
+    """To 1e-9 m, but where KISS-ICP's Sophus loses more: for rotations of 1e-10 to 1e-6 rad its
+    V's (1 - cos) / theta^2 cancels (cos rounds towards 1), an error of up to min(eps / theta,
+    theta / 2) |u| in the translation (about 1e-8 m per m of it at worst; the half-angle forms
+    here do not cancel)."""
     rng = np.random.default_rng(seed)
     points = rng.uniform(-30.0, 30.0, (200, 3))
     times = np.sort(rng.uniform(0.0, 0.1, 200))
     delta = _delta(rotvec, translation)
+    sophus = 1.1e-8 * float(np.linalg.norm(translation)) if np.linalg.norm(rotvec) < 1e-6 else 0.0
     np.testing.assert_allclose(deskew_constant_velocity(points, times, delta), _kiss(points, times, delta),
-                               rtol=0.0, atol=1e-9)
+                               rtol=0.0, atol=1e-9 + sophus)
 
 
 @pytest.mark.parametrize("rotvec", [(0.0, 0.0, 0.0), (1e-13, 0.0, 0.0), (0.0, 0.0, 1e-7), (0.0, 0.0, 3.0)])
