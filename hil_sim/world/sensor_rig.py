@@ -113,7 +113,8 @@ class CameraThread:
     state. The renderer (and its EGL context) is made and used in that thread only.
 
     deliver: called in the render thread with each image when it is done; None: the image is
-    kept for `result()`, which the simulator's thread calls at the instant it is due."""
+    kept for `result()`, which the simulator's thread calls when it hands the image over (at
+    the instant it is due, or with defer_hand_over before the next tick)."""
 
     def __init__(self, model, camera_args: tuple, segmentation: bool,
                  deliver: Callable[[CameraImage], None] | None) -> None:
@@ -172,8 +173,8 @@ class CameraThread:
         try:
             self._mujoco.mj_forward(self._model, self._snap)  # the model's initial state, to warm up on
             self._camera.warm_up(self._segmentation)
+            self._idle.set()  # before _warm: a submit that waited for the warm-up finds the thread idle
             self._warm.set()
-            self._idle.set()
             while True:
                 self._job.wait()
                 self._job.clear()
@@ -268,7 +269,9 @@ class SensorRig:
 
         self._last_t: float | None = None
         #: Called with every scan and image the rig produces, before the inbox gets it, in the
-        #: simulator's time (evaluations read the ground truth beside them: `dct vpp eval`).
+        #: simulator's time (evaluations read the ground truth beside them: `dct vpp eval`, whose
+        #: camera renders inline; with defer_hand_over an image comes at its hand-over, up to a
+        #: tick after its time, so the world may have moved on since its instant).
         self.listeners: list[Callable[[LidarScan | CameraImage], None]] = []
         self.scans_produced = 0
         self.images_produced = 0

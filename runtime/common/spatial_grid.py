@@ -222,10 +222,15 @@ def near_indices(points, ref, r, planar):  # pragma: no cover - compiled
     """Indices (ascending) of the points (N, 3, any float) closer than r to some ref point (M, 3
     float64; planar: in x and y only, ref's z zero): near_any over the points in ref's box grown
     by r, the box test and the float64 copy done in the same pass (numpy's comparisons of the
-    points against the box and its copy of those inside made two 20k-point temporaries a scan)."""
+    points against the box and its copy of those inside made two 20k-point temporaries a scan).
+    A ref with a value that is not finite gives none (its box would be NaN: no point inside)."""
     n_ref = ref.shape[0]
     if n_ref == 0:
         return np.zeros(0, np.int64)
+    for j in range(n_ref):
+        for a in range(3):
+            if not math.isfinite(ref[j, a]):
+                return np.zeros(0, np.int64)
     k = 2 if planar else 3
     lo, hi = bounds(ref)
     for a in range(3):
@@ -242,6 +247,8 @@ def near_indices(points, ref, r, planar):  # pragma: no cover - compiled
         if inside:
             inb[m] = i
             m += 1
+    if m == 0:
+        return np.zeros(0, np.int64)
     q = np.empty((m, 3))
     for s in range(m):
         i = inb[s]

@@ -85,14 +85,18 @@ def assemble(setup: RobotSetup, wiring: Wiring) -> Assembly:
         goal_given=wiring.goal_given, wheel_calibration=setup.wheel_calibration, vlm_backend=wiring.vlm_backend,
         sensor_calibration=setup.sensor_calibration, start_odometry=wiring.start_odometry,
     )
-    telemetry = TickTelemetry()
-    loop = FixedRateLoop(
-        wiring.clock,
-        period_s=config.loop.period_s,
-        stage_budgets_s=config.loop.stage_budgets_s,
-        command_deadline_s=config.loop.command_deadline_s,
-        keepalive_period_s=config.loop.keepalive_period_s,
-        telemetry=telemetry,
-        slack_work_min_s=config.loop.slack_work_min_s,
-    )
+    try:
+        telemetry = TickTelemetry()
+        loop = FixedRateLoop(
+            wiring.clock,
+            period_s=config.loop.period_s,
+            stage_budgets_s=config.loop.stage_budgets_s,
+            command_deadline_s=config.loop.command_deadline_s,
+            keepalive_period_s=config.loop.keepalive_period_s,
+            telemetry=telemetry,
+            slack_work_min_s=config.loop.slack_work_min_s,
+        )
+    except BaseException:
+        controller.odometry.close()  # an early-started ICP worker
+        raise
     return Assembly(driver, hardware, controller, telemetry, loop)

@@ -116,7 +116,8 @@ class OdometryStage:
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
-        """Start the ICP worker (a process: it takes a moment; call at activation, not in a tick)."""
+        """Start the ICP worker (a process: it takes a moment; call at start-up, never in a tick:
+        the assembly calls it as the parts are built, activation otherwise; wait_ready after)."""
         if not self.icp_enabled or self.worker is not None:
             return
         c = self.config

@@ -17,6 +17,7 @@ Two clocks (real time and lockstep, docs/architecture.md):
 """
 from __future__ import annotations
 
+import itertools
 import os
 import pickle
 import queue
@@ -54,19 +55,24 @@ WORKER_NICENESS = 10
 
 
 def _serve(conn) -> None:
-    """The worker process: build the engine it is sent, register every job, answer each."""
+    """The worker process: build the engine it is sent, register every job, answer each; handed
+    to a next run (ProcessIcpWorker's reuse), build that run's engine. Each run's engine comes
+    with the run's generation, which its "ready" carries back."""
     try:
         os.nice(WORKER_NICENESS)
     except OSError:  # pragma: no cover - not permitted here: runs at the controller's priority
         pass
     try:
-        factory = conn.recv()
+        generation, factory = conn.recv()
         engine = factory()
-        warm_up(factory)  # a throwaway engine: the first real frame finds the kernels loaded
     except BaseException as exc:  # pragma: no cover - reported to the parent
         conn.send(("fatal", f"ICP worker could not start: {type(exc).__name__}: {exc}"))
         return
-    conn.send(("ready", None))
+    try:  # a throwaway engine: the first real frame finds the kernels loaded
+        warm_up(factory)
+    except Exception:  # noqa: BLE001 - speed only: the real engine's frames report their own errors
+        pass
+    conn.send(("ready", generation))
     while True:
         try:
             job = _recv_job(conn)
@@ -75,16 +81,20 @@ def _serve(conn) -> None:
         if job is None:
             return
         if isinstance(job, str) and job == _NEXT_RUN:  # handed to the next run: its engine follows
+            engine = None  # the last run's engine and map go now
             try:
-                factory = conn.recv()
+                message = conn.recv()
             except (EOFError, OSError):  # idle until its process ended: nothing to say
                 return
+            if message is None:  # no next run after all (the parent's pool was full)
+                return
+            generation, factory = message
             try:
                 engine = factory()
             except BaseException as exc:  # pragma: no cover - reported to the parent
                 conn.send(("fatal", f"ICP worker could not start: {type(exc).__name__}: {exc}"))
                 return
-            conn.send(("ready", None))
+            conn.send(("ready", generation))
             continue
         try:
             conn.send(("result", engine.process(job)))
@@ -112,7 +122,8 @@ def _recv_job(conn) -> IcpJob | str | None:
 #: The message that stops the worker (None) and its sender thread.
 _CLOSE = _job_message(None)
 #: The message that hands the worker to the next run (ProcessIcpWorker's `reuse`): it drops its
-#: engine and builds one from the factory sent next; its sender thread stops.
+#: engine and builds one from the (generation, factory) sent next (None: it ends); the sender
+#: thread stops after writing it.
 _NEXT_RUN = "next run"
 _NEXT = _job_message(_NEXT_RUN)
 
@@ -121,6 +132,22 @@ _NEXT = _job_message(_NEXT_RUN)
 _IDLE: list[tuple[subprocess.Popen, object]] = []
 _IDLE_LOCK = threading.Lock()
 MAX_IDLE_WORKERS = 1
+#: Each run's number (its worker's "ready" carries it: a ready left unread by an earlier run of
+#: the same worker is not this run's).
+_GENERATIONS = itertools.count(1)
+
+
+def _spawn():
+    """A fresh worker process and our end of its socket pair."""
+    from multiprocessing.connection import Connection
+
+    ours, theirs = socket.socketpair()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "runtime.odometry.worker", str(theirs.fileno())],
+        pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, close_fds=True,
+    )
+    theirs.close()
+    return proc, Connection(ours.detach())
 
 
 def _take_idle() -> tuple[subprocess.Popen, object] | None:
@@ -193,37 +220,13 @@ class ProcessIcpWorker:
         # A fresh interpreter running this module (`python -m runtime.odometry.worker FD`), joined
         # by a socket pair: no fork of a process that holds CAN-bus threads, and, unlike
         # multiprocessing's spawn, no re-import of the caller's main script.
-        from multiprocessing.connection import Connection
-
         self.reuse = reuse
+        self._factory = engine_factory
+        self._generation = next(_GENERATIONS)
         idle = _take_idle() if reuse else None
-        if idle is not None:
-            self._proc, self._conn = idle
-        else:
-            ours, theirs = socket.socketpair()
-            self._proc = subprocess.Popen(
-                [sys.executable, "-m", "runtime.odometry.worker", str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, close_fds=True,
-            )
-            theirs.close()
-            self._conn = Connection(ours.detach())
-        try:
-            self._conn.send(engine_factory)
-        except BaseException:
-            self._proc.kill()
-            self._proc.wait()
-            self._conn.close()
-            raise
-        # Sending a 20k-point frame (320 kB) blocks while the worker is still registering the
-        # previous one (the socket buffer is smaller): a sender thread writes it, the tick only
-        # pickles its small header and queues it with views of the frame's arrays (no copy:
-        # pickle protocol 5, out of band; a validated frame's arrays are read-only,
-        # runtime.common.sensor_data). The thread then holds the GIL only between its socket writes (which release
-        # it); pickling the whole frame in the thread let it take the GIL from the tick
-        # mid-stage, for as long as the OS kept it off a core.
-        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
-        self._sender = threading.Thread(target=self._send_loop, name="dct-icp-send", daemon=True)
-        self._sender.start()
+        #: This run took an idle worker (a fresh one replaces it if it does not come back).
+        self._reused = idle is not None
+        self._attach(idle if idle is not None else _spawn())
         self.lockstep = lockstep
         self._start_timeout_s = start_timeout_s
         self._in_flight: deque[IcpJob] = deque()  # sent, result not received (in order)
@@ -238,14 +241,43 @@ class ProcessIcpWorker:
         self.ready = False
 
     # -- plumbing ------------------------------------------------------------------------------
-    def _send_loop(self) -> None:
+    def _attach(self, worker) -> None:
+        """Send the worker (process, connection) this run's engine, and start the sender thread.
+        A reused worker that died while idle is replaced by a fresh one."""
+        self._proc, self._conn = worker
+        try:
+            self._conn.send((self._generation, self._factory))
+        except BaseException:
+            self._proc.kill()
+            self._proc.wait()
+            self._conn.close()
+            if not self._reused:
+                raise
+            self._reused = False
+            self._attach(_spawn())
+            return
+        # Sending a 20k-point frame (320 kB) blocks while the worker is still registering the
+        # previous one (the socket buffer is smaller): a sender thread writes it, the tick only
+        # pickles its small header and queues it with views of the frame's arrays (no copy:
+        # pickle protocol 5, out of band; a validated frame's arrays are read-only,
+        # runtime.common.sensor_data). The thread then holds the GIL only between its socket writes (which release
+        # it); pickling the whole frame in the thread let it take the GIL from the tick
+        # mid-stage, for as long as the OS kept it off a core.
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._sender = threading.Thread(target=self._send_loop, args=(self._outbox, self._conn), name="dct-icp-send",
+                                        daemon=True)
+        self._sender.start()
+
+    def _send_loop(self, outbox: queue.SimpleQueue, conn) -> None:
+        """The sender thread of one worker connection (a replaced worker's thread keeps its own)."""
         while True:
-            parts = self._outbox.get()
+            parts = outbox.get()
             try:
                 for part in parts:
-                    self._conn.send_bytes(part)
+                    conn.send_bytes(part)
             except (OSError, ValueError) as exc:
-                self.failed = self.failed or f"ICP worker gone ({exc})"
+                if conn is self._conn:
+                    self.failed = self.failed or f"ICP worker gone ({exc})"
                 return
             if parts is _CLOSE or parts is _NEXT:
                 return
@@ -268,7 +300,7 @@ class ProcessIcpWorker:
             self.failed = self.failed or f"ICP worker gone ({type(exc).__name__})"
             return False
         if kind == "ready":
-            self.ready = True
+            self.ready = self.ready or payload == self._generation  # not an earlier run's unread one
         elif kind == "fatal":
             self.failed = payload
         elif kind in ("result", "error") and not self.ready:
@@ -316,9 +348,16 @@ class ProcessIcpWorker:
     def wait_ready(self) -> None:
         """Block until the worker has started (a fresh interpreter, its engine built and warmed up:
         0.3-0.5 s), or failed to (`failed` says why). Start-up work, never in a tick."""
-        while not self.ready and not self.failed:  # its first message is "ready" or "fatal"
+        while not self.ready and not self.failed:  # this run's "ready" or "fatal" comes first
             if not self._receive(block=True):
                 break
+        if self.failed and self._reused:  # the idle worker did not come back: a fresh one, once
+            self._outbox.put(_CLOSE)
+            self._proc.kill()
+            threading.Thread(target=_reap, args=(self._proc, self._conn), name="dct-icp-reap", daemon=True).start()
+            self.failed, self._reused = None, False
+            self._attach(_spawn())
+            self.wait_ready()
 
     def close(self) -> None:
         """Ask the worker to end and return; the process is reaped by a thread (the child's
@@ -335,9 +374,8 @@ class ProcessIcpWorker:
                     if len(_IDLE) < MAX_IDLE_WORKERS:
                         _IDLE.append((self._proc, self._conn))
                         return
-                try:  # enough idle ones: this one ends (its sender has stopped: written here)
-                    for part in _CLOSE:
-                        self._conn.send_bytes(part)
+                try:  # enough idle ones: no next run for this one, which ends
+                    self._conn.send(None)
                 except (OSError, ValueError):
                     self._proc.kill()
         else:

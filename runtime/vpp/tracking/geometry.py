@@ -64,7 +64,8 @@ def centre_nb(points, rows):  # pragma: no cover - compiled
 def view_against_template(points, rows, template, yaw):  # pragma: no cover - compiled
     """The tracker's plausibility test's figures, in one call: the centres (x, y) of a mask's view
     points[rows] and of the template (centre_nb), and the footprint extents (footprint_nb; none
-    below two points) of each, in the object's frame turned by yaw."""
+    below two points) of each, in the object's frame turned by yaw. float64 points and template
+    (the tracker's): numpy would average float32 ones in float32."""
     vx, vy = centre_nb(points, rows)
     tx, ty = centre_nb(template, None)
     fv = (0.0, 0.0)

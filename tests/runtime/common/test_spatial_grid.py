@@ -53,3 +53,12 @@ def test_near_indices_is_the_box_then_grid_numpy_form(points, ref, r, planar):
         ref = ref.copy()
         ref[:, 2] = 0.0
     np.testing.assert_array_equal(near_indices(points, ref, r, planar), _near_indices_reference(points, ref, r, planar))
+
+
+def test_near_indices_of_a_ref_with_a_nan_or_nothing_near_is_empty():
+    """As the numpy form: a NaN in the reference makes its box NaN, so nothing is near."""
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]], np.float32)
+    for bad in ([[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0]], [[np.nan, 0.0, 0.0], [0.0, 0.0, 0.0]]):
+        ref = np.array(bad)
+        assert near_indices(pts, ref, 0.5, False).size == 0 == _near_indices_reference(pts, ref, 0.5, False).size
+    assert near_indices(pts, np.array([[9.0, 9.0, 9.0]]), 0.5, False).size == 0

@@ -304,9 +304,7 @@ def test_a_reused_worker_answers_the_next_run_as_a_fresh_one_and_drops_the_last_
             out += [r.pose_base for r in worker.poll(job.ready_at_s)]
         return out
 
-    while (idle := worker_module._take_idle()) is not None:  # another test's idle worker
-        idle[0].kill()
-        idle[1].close()
+    _no_idle_workers()  # another test's
     fresh = ProcessIcpWorker(factory, lockstep=True)
     try:
         expected = run(fresh, frames)
@@ -327,6 +325,80 @@ def test_a_reused_worker_answers_the_next_run_as_a_fresh_one_and_drops_the_last_
     finally:
         second.reuse = False  # this test leaves no idle worker behind
         second.close()
+    assert worker_module._take_idle() is None
+
+
+def _no_idle_workers():
+    import runtime.odometry.worker as worker_module
+
+    while (idle := worker_module._take_idle()) is not None:
+        idle[0].kill()
+        idle[0].wait()
+        idle[1].close()
+
+
+def test_a_run_that_closed_before_its_ready_does_not_hand_the_next_run_a_stale_ready():
+    """A run closed before it read its worker's ready (a build that failed), with a job in flight:
+    the next run on that worker waits for its own ready, and gets a fresh worker's poses."""
+    import runtime.odometry.worker as worker_module
+
+    factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2, deskew="kiss"), DegeneracyConfig(), MOUNT, True)
+    frames = _frames(3)
+    _no_idle_workers()
+    fresh = ProcessIcpWorker(factory, lockstep=True)
+    try:
+        fresh.wait_ready()
+        expected = []
+        for job in frames:
+            fresh.submit(job)
+            fresh.settle(job.ready_at_s)
+            expected += [r.pose_base for r in fresh.poll(job.ready_at_s)]
+    finally:
+        fresh.close()
+    early = ProcessIcpWorker(factory, lockstep=True, reuse=True)
+    early.submit(frames[0])
+    early.close()  # its ready and its answer unread
+    later = ProcessIcpWorker(factory, lockstep=True, reuse=True)
+    try:
+        assert later._proc is early._proc and later._generation != early._generation
+        later.wait_ready()
+        got = []
+        for job in frames:
+            later.submit(job)
+            later.settle(job.ready_at_s)
+            got += [r.pose_base for r in later.poll(job.ready_at_s)]
+        assert len(got) == len(expected)
+        for a, b in zip(got, expected):
+            np.testing.assert_array_equal(a, b)
+    finally:
+        later.reuse = False
+        later.close()
+    assert worker_module._take_idle() is None
+
+
+def test_a_worker_handed_on_to_a_full_pool_ends_quietly_and_a_dead_idle_one_is_replaced():
+    import runtime.odometry.worker as worker_module
+
+    factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2), DegeneracyConfig(), MOUNT, True)
+    _no_idle_workers()
+    a = ProcessIcpWorker(factory, lockstep=True, reuse=True)
+    b = ProcessIcpWorker(factory, lockstep=True, reuse=True)
+    a.wait_ready()
+    b.wait_ready()
+    a.close()  # idle: the pool holds one
+    b.close()  # the pool is full: told there is no next run, it ends
+    assert b._proc.wait(timeout=10) == 0
+    assert len(worker_module._IDLE) == 1 and worker_module._IDLE[0][0] is a._proc
+    a._proc.kill()  # the idle one dies
+    a._proc.wait()
+    c = ProcessIcpWorker(factory, lockstep=True, reuse=True)
+    try:
+        assert c._proc is not a._proc  # a fresh one instead
+        c.wait_ready()
+        assert c.ready and c.failed is None
+    finally:
+        c.reuse = False
+        c.close()
     assert worker_module._take_idle() is None
 
 
