@@ -294,31 +294,16 @@ def test_a_reused_worker_answers_the_next_run_as_a_fresh_one_and_drops_the_last_
 
     factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2, deskew="kiss"), DegeneracyConfig(), MOUNT, True)
     frames = _frames(4)
-
-    def run(worker, jobs):
-        worker.wait_ready()
-        out = []
-        for job in jobs:
-            worker.submit(job)
-            worker.settle(job.ready_at_s)
-            out += [r.pose_base for r in worker.poll(job.ready_at_s)]
-        return out
-
-    _no_idle_workers()  # another test's
-    fresh = ProcessIcpWorker(factory, lockstep=True)
-    try:
-        expected = run(fresh, frames)
-    finally:
-        fresh.close()
+    expected = _fresh_worker_poses(factory, frames)
     first = ProcessIcpWorker(factory, lockstep=True, reuse=True)
-    run(first, frames[:2])
+    _lockstep_poses(first, frames[:2])
     for job in frames[2:]:
         first.submit(job)  # left unread: the worker answers them after the run closed
     first.close()
     second = ProcessIcpWorker(factory, lockstep=True, reuse=True)
     try:
         assert second._proc is first._proc  # the same process, no new interpreter
-        got = run(second, frames)
+        got = _lockstep_poses(second, frames)
         assert len(got) == len(expected)
         for a, b in zip(got, expected):
             np.testing.assert_array_equal(a, b)
@@ -326,6 +311,28 @@ def test_a_reused_worker_answers_the_next_run_as_a_fresh_one_and_drops_the_last_
         second.reuse = False  # this test leaves no idle worker behind
         second.close()
     assert worker_module._take_idle() is None
+
+
+def _lockstep_poses(worker, jobs) -> list:
+    """The worker's poses for jobs, each waited for at its delivery time (as the simulator does)."""
+    worker.wait_ready()
+    out = []
+    for job in jobs:
+        worker.submit(job)
+        worker.settle(job.ready_at_s)
+        out += [r.pose_base for r in worker.poll(job.ready_at_s)]
+    return out
+
+
+def _fresh_worker_poses(factory, jobs) -> list:
+    """The poses a fresh (not reused) lockstep worker gives; the pool emptied of other tests'
+    idle workers first, so that the next reuse takes the one the test leaves."""
+    _no_idle_workers()
+    fresh = ProcessIcpWorker(factory, lockstep=True)
+    try:
+        return _lockstep_poses(fresh, jobs)
+    finally:
+        fresh.close()
 
 
 def _no_idle_workers():
@@ -344,29 +351,14 @@ def test_a_run_that_closed_before_its_ready_does_not_hand_the_next_run_a_stale_r
 
     factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2, deskew="kiss"), DegeneracyConfig(), MOUNT, True)
     frames = _frames(3)
-    _no_idle_workers()
-    fresh = ProcessIcpWorker(factory, lockstep=True)
-    try:
-        fresh.wait_ready()
-        expected = []
-        for job in frames:
-            fresh.submit(job)
-            fresh.settle(job.ready_at_s)
-            expected += [r.pose_base for r in fresh.poll(job.ready_at_s)]
-    finally:
-        fresh.close()
+    expected = _fresh_worker_poses(factory, frames)
     early = ProcessIcpWorker(factory, lockstep=True, reuse=True)
     early.submit(frames[0])
     early.close()  # its ready and its answer unread
     later = ProcessIcpWorker(factory, lockstep=True, reuse=True)
     try:
         assert later._proc is early._proc and later._generation != early._generation
-        later.wait_ready()
-        got = []
-        for job in frames:
-            later.submit(job)
-            later.settle(job.ready_at_s)
-            got += [r.pose_base for r in later.poll(job.ready_at_s)]
+        got = _lockstep_poses(later, frames)
         assert len(got) == len(expected)
         for a, b in zip(got, expected):
             np.testing.assert_array_equal(a, b)
