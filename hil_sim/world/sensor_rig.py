@@ -385,7 +385,7 @@ class SensorRig:
 
     def hand_over_due(self) -> None:
         """With defer_hand_over: hand over the frame whose time the physics has passed, if any,
-        waiting for its render (the inbox's reader calls it before it reads)."""
+        waiting for its render (lockstep calls it before each tick, the inbox's only reader)."""
         if self._camera_overdue:
             self._hand_over()
 

@@ -226,7 +226,6 @@ class ProcessIcpWorker:
         idle = _take_idle() if reuse else None
         #: This run took an idle worker (a fresh one replaces it if it does not come back).
         self._reused = idle is not None
-        self._attach(idle if idle is not None else _spawn())
         self.lockstep = lockstep
         self._start_timeout_s = start_timeout_s
         self._in_flight: deque[IcpJob] = deque()  # sent, result not received (in order)
@@ -239,6 +238,7 @@ class ProcessIcpWorker:
         self._sent_at: dict[int, float] = {}
         #: The worker said it has built its engine and registered its warm-up frames.
         self.ready = False
+        self._attach(idle if idle is not None else _spawn())  # last: its sender thread may set `failed`
 
     # -- plumbing ------------------------------------------------------------------------------
     def _attach(self, worker) -> None:
