@@ -31,6 +31,7 @@ def _delta(rotvec, translation):
 @settings(max_examples=150, deadline=None)
 @given(st.tuples(coord, coord, coord), st.tuples(shift, shift, shift), st.integers(0, 2**31 - 1))
 @example((0.0, 0.0, 6.368011946474335e-09), (0.0, 1.0, 0.0), 0)  # Sophus' (1 - cos) / theta^2 is 0 there
+@example((0.0, 0.0, 5.00708494277561e-11), (0.0, 0.0, 0.0), 0)  # a rotation below 1e-10 rad still turns
 def test_the_deskew_moves_every_point_as_kiss_icps_preprocessor(rotvec, translation, seed):
     """To 1e-9 m, but where KISS-ICP's Sophus loses more: for rotations of 1e-10 to 1e-6 rad its
     V's (1 - cos) / theta^2 cancels (cos rounds towards 1), an error of up to min(eps / theta,
@@ -45,7 +46,7 @@ def test_the_deskew_moves_every_point_as_kiss_icps_preprocessor(rotvec, translat
                                rtol=0.0, atol=1e-9 + sophus)
 
 
-@pytest.mark.parametrize("rotvec", [(0.0, 0.0, 0.0), (1e-13, 0.0, 0.0), (0.0, 0.0, 1e-7), (0.0, 0.0, 3.0)])
+@pytest.mark.parametrize("rotvec", [(0.0, 0.0, 0.0), (1e-13, 0.0, 0.0), (0.0, 0.0, 5e-11), (0.0, 0.0, 1e-7), (0.0, 0.0, 3.0)])
 def test_no_small_or_large_rotation_is_a_special_case(rotvec):
     rng = np.random.default_rng(1)
     points, times = rng.uniform(-10, 10, (50, 3)), np.linspace(0.0, 0.1, 50)
