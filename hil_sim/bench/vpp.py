@@ -19,6 +19,10 @@ Split (wrapped methods, so the figures stay comparable across versions of the st
 the masks to the current pose), `partition` = PointPartitioner.partition (Phase III), `track`
 = the object tracker (runtime/vpp/tracking/), `other` = the rest of update.
 
+The garbage collector runs as in the loop (runtime.loop.fixed_rate.collector_outside_ticks): off
+during the timed calls, its collections between them, so a collection pause, which the loop never
+lets into a tick, is not counted as the stage's.
+
 Single-threaded: numba and OpenCV set to one thread (the product budgets one core for the
 stage); `--cpu N` also pins the process to core N. Figures are measurements on this machine, no
 pass/fail.
@@ -232,7 +236,16 @@ def _time_answers(stage, scan_at, masks, costs, t: float, dt: float, n: int) -> 
 
 def time_stage(n_masks: int, repeats: int = 300, n_points: int = 20000, seed: int = 0, warmup: int = 5) -> dict:
     """Times `repeats` VppStage.update calls with n_masks entries in memory (module docstring)."""
+    from runtime.loop.fixed_rate import collector_outside_ticks
+
     stage, scan_at, masks, costs = _build(n_points, n_masks, seed)
+    with collector_outside_ticks():
+        return _time_updates(stage, scan_at, masks, costs, n_masks, repeats, n_points, warmup)
+
+
+def _time_updates(stage, scan_at, masks, costs, n_masks: int, repeats: int, n_points: int, warmup: int) -> dict:
+    from runtime.loop.fixed_rate import FULL_COLLECTION_EVERY_TICKS, collect_between_ticks
+
     timer = _Timer()
     mem = stage.memory
     for attr in ("propagate", "lookup", "prepare"):  # Phase I, whichever this version of the stage calls
@@ -256,6 +269,7 @@ def time_stage(n_masks: int, repeats: int = 300, n_points: int = 20000, seed: in
         frame = stage.update(t, pose, None, scan)
         el = (time.perf_counter() - t0, time.thread_time() - c0)
         acc = timer.reset()
+        collect_between_ticks(k + 1, FULL_COLLECTION_EVERY_TICKS)
         if k < warmup:
             continue
         for i, clock in enumerate(("wall", "cpu")):

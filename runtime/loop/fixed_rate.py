@@ -20,14 +20,45 @@ The wall-clock latency of every command is measured beside it and recorded as wh
 """
 from __future__ import annotations
 
+import contextlib
 import gc
 import math
 import time
-from typing import Callable, Protocol
+from typing import Callable, Iterator, Protocol
 
 import numpy as np
 
 from runtime.loop.telemetry import STAGES, TickTelemetry
+
+
+#: Ticks between full collections (the loop's default).
+FULL_COLLECTION_EVERY_TICKS = 200
+
+
+@contextlib.contextmanager
+def collector_outside_ticks() -> Iterator[None]:
+    """Python's garbage collector as the loop runs it: the start-up heap frozen (never scanned
+    again), the automatic collector off, so no collection pause lands inside a tick; the caller
+    collects between ticks with `collect_between_ticks`. Restored on exit."""
+    was_enabled = gc.isenabled()
+    gc.collect(1)  # the young garbage; a full pass over the start-up heap (torch's) costs 0.2 s
+    gc.freeze()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
+        if was_enabled:
+            gc.enable()
+
+
+def collect_between_ticks(ticks_run: int, full_every: int) -> None:
+    """The collection after tick number `ticks_run` (counted from 1): the youngest generation
+    every 10 ticks, everything every `full_every` ticks (0: never)."""
+    if full_every and ticks_run % full_every == 0:
+        gc.collect()
+    elif ticks_run % 10 == 0:
+        gc.collect(0)
 
 
 class Clock(Protocol):
@@ -124,7 +155,7 @@ class FixedRateLoop:
         command_deadline_s: float,
         keepalive_period_s: float | None,
         telemetry: TickTelemetry | None = None,
-        gc_every_ticks: int = 200,
+        gc_every_ticks: int = FULL_COLLECTION_EVERY_TICKS,
         slack_work_min_s: float = 0.02,
         slack_work_max_postpone: int = 2,
         after_tick: Callable[[np.void], None] | None = None,
@@ -168,16 +199,8 @@ class FixedRateLoop:
 
     def run(self, controlled: LoopControlled, should_stop: Callable[[], bool], max_ticks: int | None = None) -> None:
         """Run ticks until should_stop() (checked before each tick) or max_ticks."""
-        gc_was_enabled = gc.isenabled()
-        gc.collect(1)  # the young garbage; a full pass over the start-up heap (torch's) costs 0.2 s
-        gc.freeze()  # start-up objects are never scanned again
-        gc.disable()  # no collector pauses inside a tick; we collect in slack time below
-        try:
+        with collector_outside_ticks():
             self._run(controlled, should_stop, max_ticks)
-        finally:
-            gc.unfreeze()
-            if gc_was_enabled:
-                gc.enable()
 
     def _run(self, controlled: LoopControlled, should_stop: Callable[[], bool], max_ticks: int | None) -> None:
         clock, telemetry, stages = self.clock, self.telemetry, self.stage_clock
@@ -209,10 +232,7 @@ class FixedRateLoop:
             ticks_run += 1
 
             k, next_tick = self._next_grid_point(t0, k + 1)
-            if self.gc_every_ticks and ticks_run % self.gc_every_ticks == 0:
-                gc.collect()  # in the slack after write(), never inside a tick
-            elif ticks_run % 10 == 0:
-                gc.collect(0)
+            collect_between_ticks(ticks_run, self.gc_every_ticks)  # after write(), never inside a tick
             self._keepalives(controlled, scheduled, next_tick)
 
     def _judge_command(self, row: np.void, scheduled: float, lateness: float) -> bool:
