@@ -183,16 +183,31 @@ def _straight_reference(x0: float, H: int, step_s: float) -> np.ndarray:
 
 
 def _run_closed_loop(planner: MpcPlanner, scene: np.ndarray, n_points: int, ticks: int, seed: int) -> dict:
-    """Drive the corridor: per tick N points in range, one plan, 50 ms of the unicycle."""
+    """Drive the corridor: per tick N points in range, one plan, 50 ms of the unicycle. The
+    garbage collector runs as in the controller's loop: never inside a plan, its collections
+    between them (runtime.loop.fixed_rate.collector_outside_ticks)."""
+    from runtime.loop.fixed_rate import collector_outside_ticks
+
+    with collector_outside_ticks():
+        return _drive(planner, scene, n_points, ticks, seed)
+
+
+def _drive(planner: MpcPlanner, scene: np.ndarray, n_points: int, ticks: int, seed: int) -> dict:
+    from runtime.loop.fixed_rate import FULL_COLLECTION_EVERY_TICKS, collect_between_ticks
+
     H, dt = planner.config.horizon_steps, planner.config.step_s
     rng = np.random.default_rng(seed)
     state = np.zeros(3)
     u = np.array([1.0, 0.0])
     out: dict[str, list] = {k: [] for k in ("total", *PARTS, "rows_used", "reach", "cells", "expanded", "points",
-                                            "iterations")}
-    for _ in range(ticks):
+                                            "iterations", "cpu")}
+    for tick in range(ticks):
+        collect_between_ticks(tick + 1, FULL_COLLECTION_EVERY_TICKS)
         pts = points_in_range(scene, state[:2], n_points, rng)
-        res = planner.plan(state, u, _straight_reference(state[0], H, dt), pts)
+        reference = _straight_reference(state[0], H, dt)
+        c0 = time.thread_time()
+        res = planner.plan(state, u, reference, pts)
+        out["cpu"].append(1e3 * (time.thread_time() - c0))
         for k in ("total", *PARTS):
             out[k].append(res.timings_ms[k])
         out["rows_used"].append(res.constraint_points)
@@ -296,6 +311,8 @@ def _osqp_row(bench: _Bench, cfg: MpcConfig, n: int) -> tuple[dict, MpcPlanner]:
         "p90_ms": _pct(t["total"], 90),
         "p99_ms": _pct(t["total"], 99),
         "max_ms": float(t["total"].max()),
+        "cpu_p50_ms": _pct(t["cpu"], 50),
+        "cpu_p99_ms": _pct(t["cpu"], 99),
         **{f"{k}_p50_ms": _pct(t[k], 50) for k in PARTS},
         "share": {k: float(t[k].mean()) / total_mean for k in PARTS},
         "iterations_median": float(np.median(t["iterations"])),
@@ -382,11 +399,12 @@ def format_planner_table(rows: list[dict]) -> str:
         "it: OSQP iterations per step; 2QP: the step with both alternations always run (as in the HIL scenes); "
         "per cvxpy solver: its step "
         "p50, x = its p50 over ours, |du| = largest input difference of the two solutions of the last QP "
-        "(OSQP stops at eps 1e-3 and the cost is flat in omega: up to ~0.1 rad/s there)",
+        "(OSQP stops at eps 1e-3 and the cost is flat in omega: up to ~0.1 rad/s there); "
+        "cpu: the step's CPU time, p50/p99 (the wall-clock percentiles add the time other processes took the core)",
     ]
     head = (f"{'H':>3} {'points':>6} {'reach':>5} {'cells':>5} {'rows':>5} {'p50':>6} {'p90':>6} {'p99':>6} {'max':>6} "
             f"{'sel%':>5} {'net%':>5} {'row%':>5} {'bld%':>5} {'slv%':>5} {'QPs':>4} {'it':>4} {'capped':>7} "
-            f"{'2QP p50':>7} {'p99':>6}")
+            f"{'2QP p50':>7} {'p99':>6} {'cpu p50/p99':>11}")
     for sv in solvers:
         head += f" | {sv + ' p50':>13} {'x':>6} {'|du|':>7}"
     lines.append(head)
@@ -399,7 +417,8 @@ def format_planner_table(rows: list[dict]) -> str:
             f"{100 * sh['select']:>5.0f} {100 * sh['net']:>5.0f} {100 * sh['rows']:>5.0f} "
             f"{100 * sh['build']:>5.0f} {100 * sh['solve']:>5.0f} {r['qp_solves'] / r['repeats']:>4.2f} "
             f"{r['iterations_median']:>4.0f} "
-            f"{100 * r['capped_fraction']:>6.1f}% {r['two_qps_p50_ms']:>7.2f} {r['two_qps_p99_ms']:>6.2f}"
+            f"{100 * r['capped_fraction']:>6.1f}% {r['two_qps_p50_ms']:>7.2f} {r['two_qps_p99_ms']:>6.2f} "
+            f"{r['cpu_p50_ms']:>5.2f}/{r['cpu_p99_ms']:<5.2f}"
         )
         for sv in solvers:
             if f"cvxpy_{sv}_p50_ms" in r:

@@ -8,7 +8,7 @@ from click.testing import CliRunner
 from hil_sim.bench import planner as planner_bench
 from hil_sim.bench.cli import bench_group
 
-ROW_KEYS = {"horizon", "points", "p50_ms", "p99_ms", "capped_fraction", "cvxpy_ratio"}
+ROW_KEYS = {"horizon", "points", "p50_ms", "p99_ms", "cpu_p50_ms", "cpu_p99_ms", "capped_fraction", "cvxpy_ratio"}
 
 
 def test_json_rows_have_their_keys_and_sane_values(tmp_path):
@@ -21,6 +21,7 @@ def test_json_rows_have_their_keys_and_sane_values(tmp_path):
     for r in rows:
         assert ROW_KEYS <= r.keys()
         assert 0.0 < r["p50_ms"] <= r["p99_ms"] and 0.0 <= r["capped_fraction"] <= 1.0
+        assert 0.0 < r["cpu_p50_ms"] <= r["cpu_p99_ms"]
         assert r["cvxpy_ratio"] > 0.0
         assert r["constraint_rows_median"] <= 10 * r["points_per_pose"]  # at most H x K rows
         assert abs(sum(r["share"].values())) <= 1.0 + 1e-9
