@@ -253,6 +253,7 @@ def run_episode(
     operator = _Operator(sim, controller, scenario, settle_s, progress, observe)
 
     def before() -> None:  # inside the run's clean-up: a harness that fails here closes everything
+        bench.wait_ready()
         if recorder is not None:
             from runtime.io.ros.outbound import robot_sensor_mounts
 
@@ -336,6 +337,12 @@ class _SimulatedBench:
         for device in self.devices:
             device.hand_over_due()
 
+    def wait_ready(self) -> None:
+        """Until every sensor device can produce (a rig's lidar cast process has started: it
+        starts with the bench, beside the controller's build)."""
+        for device in self.devices:
+            device.wait_ready()
+
     def close(self) -> None:
         try:
             for device in self.devices:
@@ -363,6 +370,8 @@ def _sensor_rig(world, robot, config, injector, sensors, seed, sensor_calibratio
         if "camera_antialias" not in rig_config.model_fields_set and config.vpp.backend.kind == "sim-oracle":
             update["camera_antialias"] = False
         rig_config = rig_config.model_copy(update=update)
+    if "lidar_process" not in rig_config.model_fields_set:  # the same frames, cast beside the physics
+        rig_config = rig_config.model_copy(update={"lidar_process": True})
     if rig_config.camera_async and rig_config.camera_latency_s == 0:
         raise ValueError("lockstep: SensorRigConfig.camera_async needs camera_latency_s > 0 (an image handed "
                          "over when its render is done would reach the controller at a wall-clock moment)")

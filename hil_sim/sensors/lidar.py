@@ -12,6 +12,10 @@ every slice due up to t_s from the lidar pose in `data` at that moment, so a fra
 the robot moves is distorted exactly as a real one (deskewing matters). Each point is given in
 the lidar frame *at the time its ray was cast*, with that time as its offset within the frame.
 
+The rays are cast by hil_sim.sensors.lidar_cast: in this process, or with `cast_in_process` in a
+child process of their own, from a copy of the state of each slice's instant, with the same
+frames bit for bit.
+
 Robustness: nothing in the physics state makes `step` raise (only a bad call: time not finite
 or going backwards). A non-finite distance is a no-return like a miss; a non-finite body pose
 makes its slice all no-returns (counted in `invalid_pose_slices`); ranges outside
@@ -37,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from runtime.common.sensor_data import LidarScan
 
 _PLASTIC = 1.324717957244746025960908854  # g for Roberts' R2 sequence: g^3 = g + 1
-_GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
+GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
 
 
 class LidarConfig(BaseModel):
@@ -103,7 +107,7 @@ def ray_returns(geomid: np.ndarray, dist_m: np.ndarray, max_range_m: float) -> n
 
 
 @njit(cache=True, nogil=True)
-def _collect_returns(dl, geomid, dist, noise, sigma, min_range, max_range, offset_s, pts, offs, gids, keep_gids,
+def collect_returns(dl, geomid, dist, noise, sigma, min_range, max_range, offset_s, pts, offs, gids, keep_gids,
                      count):  # pragma: no cover - compiled (exercised through SimLidar)
     """Append the returns of one cast to the frame's buffers; the new point count.
 
@@ -152,7 +156,11 @@ class SimLidar:
     """
 
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, robot_body_id: int, mount: Any,
-                 config: LidarConfig | None = None, seed: int = 0, start_s: float = 0.0) -> None:
+                 config: LidarConfig | None = None, seed: int = 0, start_s: float = 0.0,
+                 cast_in_process: bool = False) -> None:
+        """cast_in_process: cast the rays in a child process of their own
+        (hil_sim.sensors.lidar_cast.CastProcess: the same frames, the simulator's thread freed
+        of the casts); `close` then ends it or leaves it for the next lidar."""
         self.config = config or LidarConfig()
         c = self.config
         if not (-1 <= robot_body_id < model.nbody):
@@ -162,8 +170,9 @@ class SimLidar:
         t = _mount_transform(mount)
         self._mount_r = t[:3, :3].copy()
         self._mount_t = t[:3, 3].copy()
-        self._geomgroup = None if c.geomgroup is None else np.asarray(c.geomgroup, dtype=np.uint8)
-        self._rng = np.random.default_rng(seed)
+        from hil_sim.sensors.lidar_cast import CastProcess, RayCaster
+
+        self._caster = (CastProcess if cast_in_process else RayCaster)(model, c, self._body, seed)
 
         n = c.points_per_frame
         self._period_s = c.frame_duration_s
@@ -171,28 +180,12 @@ class SimLidar:
         self._max_offset_s = float(np.nextafter(np.float32(self._period_s), np.float32(0)))  # < period in float32
         # Slice j of a frame holds rays [bounds[j], bounds[j+1]).
         self._bounds = np.linspace(0, n, c.slices_per_frame + 1).round().astype(np.int64)
-        self._table = pattern_directions(n * c.pattern_frames, c.elevation_min_deg, c.elevation_max_deg)
-
-        # Buffers sized for a whole frame: several due slices of one frame are cast in one call.
-        self._dir_l = np.empty((n, 3))      # directions in the lidar frame (this pass's rotation)
-        self._dir_w = np.empty((n, 3))      # the same in the world frame
-        self._geomid = np.empty(n, dtype=np.int32)
-        self._dist = np.empty(n)
-        self._noise = np.zeros(n)
-        self._dirs_buf = np.empty((n, 3))  # this frame's directions when the pass turns the table
-        self._dirs: np.ndarray = self._dirs_buf
-        self._dirs_frame = -1             # the frame _dirs belongs to
-        self._no_gids = np.empty(0, dtype=np.int32)
 
         self._start_s = float(start_s)
         self._frame = 0                     # index of the frame being cast
         self._slice = 0                     # next slice to cast in that frame
         self._last_t: float | None = None
-        self._pts = np.empty((n, 3), dtype=np.float32)
-        self._offs = np.empty(n, dtype=np.float32)
-        self._gids = np.empty(n, dtype=np.int32) if c.ground_truth_frames else None
         self._truth: deque[tuple[float, np.ndarray]] = deque(maxlen=max(c.ground_truth_frames, 1))
-        self._count = 0
         self._done: deque[LidarScan] = deque()
         self.late_slices = 0
         #: Slices cast while the body pose in data was not finite (all their rays: no return).
@@ -201,6 +194,16 @@ class SimLidar:
         self.frames_completed = 0
         #: When the next slice is due: a step before it casts nothing (callers may skip it).
         self.next_due_s = self._due_s(0, 0)
+
+    def wait_ready(self) -> None:
+        """Until the caster can cast (a cast process has started); raises when it cannot."""
+        self._caster.wait_ready()
+
+    def close(self) -> None:
+        """Release the caster (a cast process ends or waits for the next lidar); once."""
+        caster, self._caster = self._caster, None
+        if caster is not None:
+            caster.close()
 
     # ------------------------------------------------------------------ pose
 
@@ -248,59 +251,22 @@ class SimLidar:
 
     def _cast(self, i0: int, i1: int, offset_s: float) -> bool:
         """Cast rays [i0, i1) of this frame; False (and no returns) when the body pose is not finite."""
-        c = self.config
-        n = i1 - i0
-        if n <= 0:
+        if i1 <= i0:
             return True
-        dl = self._dir_l[:n]
-        dl[...] = self._frame_directions()[i0:i1]  # a fresh buffer: matmul's input laid out as always
         r_wl, origin = self.lidar_pose_world()
         if not (np.isfinite(r_wl).all() and np.isfinite(origin).all()):
             return False  # a diverged physics state: these rays return nothing
-        dw = self._dir_w[:n]
-        np.matmul(dl, r_wl.T, out=dw)
-        geomid, dist = self._geomid[:n], self._dist[:n]
-        mujoco.mj_multiRay(self._m, self._d, np.ascontiguousarray(origin), dw.reshape(-1), self._geomgroup, 1,
-                           self._body if self._body > 0 else -1, geomid, dist, None, n, c.max_range_m)
-        sigma = c.range_noise_sigma_m
-        noise = self._noise[:n]
-        if sigma > 0:
-            self._rng.standard_normal(out=noise)
-        gids = self._gids if self._gids is not None else self._no_gids
-        self._count = _collect_returns(dl, geomid, dist, noise, sigma, c.min_range_m, c.max_range_m, offset_s,
-                                       self._pts, self._offs, gids, self._gids is not None, self._count)
+        self._caster.cast(self._d, self._frame, i0, i1, offset_s, r_wl, origin)
         return True
 
-    def _frame_directions(self) -> np.ndarray:
-        """This frame's ray directions in the lidar frame (n, 3): its rows of the pattern table,
-        turned about z by the golden angle once per pass over the table (computed once a frame)."""
-        if self._dirs_frame != self._frame:
-            c = self.config
-            pass_index, frame_in_table = divmod(self._frame, c.pattern_frames)
-            base = frame_in_table * c.points_per_frame
-            tab = self._table[base: base + c.points_per_frame]
-            if pass_index:
-                a = pass_index * _GOLDEN_ANGLE_RAD
-                ca, sa = math.cos(a), math.sin(a)
-                d = self._dirs_buf
-                d[:, 0] = ca * tab[:, 0] - sa * tab[:, 1]
-                d[:, 1] = sa * tab[:, 0] + ca * tab[:, 1]
-                d[:, 2] = tab[:, 2]
-                self._dirs = d
-            else:
-                self._dirs = tab
-            self._dirs_frame = self._frame
-        return self._dirs
-
     def _finish_frame(self) -> None:
-        k = self._count
-        pts = self._pts[:k].copy()
-        offs = self._offs[:k].copy()
+        pts, offs, gids = self._caster.take()
+        k = len(pts)
         pts.flags.writeable = False       # hand over ownership: LidarScan keeps them without copying
         offs.flags.writeable = False
         stamp_s = self._due_s(self._frame, 0)
-        if self._gids is not None:
-            self._truth.append((stamp_s, self._gids[:k].copy()))
+        if gids is not None:
+            self._truth.append((stamp_s, gids))
         scan = LidarScan(stamp_s=stamp_s, points_m=pts, point_time_offsets_s=offs,
                          frame_duration_s=self._period_s, frame_id=self.config.frame_id, nothing_seen=(k == 0))
         if len(self._done) >= self.config.max_queued_frames:
@@ -310,7 +276,6 @@ class SimLidar:
         self.frames_completed += 1
         self._frame += 1
         self._slice = 0
-        self._count = 0
 
     def ground_truth_geom_ids(self, stamp_s: float) -> np.ndarray | None:
         """(N,) int32: the MuJoCo geom id each point of the frame stamped stamp_s hit, in the

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hil_sim.sensors.imu import SimImu
-from hil_sim.sensors.lidar import LidarConfig, SimLidar, _collect_returns, ray_returns
+from hil_sim.sensors.lidar import LidarConfig, SimLidar, collect_returns, ray_returns
 from tests.hil_sim.sensors.test_sensors import LIDAR_MOUNT, _scene
 
 _DIST = st.one_of(st.floats(-2.0, 50.0), st.sampled_from([-1.0, 0.0, 40.0, 0.1, np.nan, np.inf, -np.inf]))
@@ -35,7 +35,7 @@ def test_compiled_collection_equals_the_numpy_expressions_bit_for_bit(data, sigm
     pts = np.full((already + n, 3), -7.0, dtype=np.float32)
     offs = np.full(already + n, -7.0, dtype=np.float32)
     gids = np.full(already + n, -7, dtype=np.int32)
-    count = _collect_returns(dl, geomid, dist, noise, sigma, 0.1, 40.0, 0.0375, pts, offs, gids, True, already)
+    count = collect_returns(dl, geomid, dist, noise, sigma, 0.1, 40.0, 0.0375, pts, offs, gids, True, already)
     want_pts, want_gids = _reference(dl, geomid, dist, noise, sigma, 0.1, 40.0)
     assert count == already + len(want_pts)
     assert pts[already:count].tobytes() == want_pts.tobytes()
@@ -49,11 +49,11 @@ def test_a_lidar_step_before_next_due_casts_nothing():
     lidar = SimLidar(model, data, body, LIDAR_MOUNT, LidarConfig(slices_per_frame=50), seed=1)
     lidar.step(0.0)
     assert lidar.next_due_s == 0.002 and lidar._slice == 1
-    before = (lidar._count, lidar._rng.bit_generator.state["state"]["state"])
+    before = (lidar._caster.count, lidar._caster._rng.bit_generator.state["state"]["state"])
     lidar.step(0.0015)
-    assert (lidar._count, lidar._rng.bit_generator.state["state"]["state"]) == before
+    assert (lidar._caster.count, lidar._caster._rng.bit_generator.state["state"]["state"]) == before
     lidar.step(0.002)
-    assert lidar._slice == 2 and lidar._count > before[0]
+    assert lidar._slice == 2 and lidar._caster.count > before[0]
 
 
 def test_next_due_follows_every_frame_and_coarse_step():

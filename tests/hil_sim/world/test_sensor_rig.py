@@ -359,3 +359,71 @@ def test_a_camera_without_antialiasing_renders_the_same_segmentation_and_leaves_
     finally:
         smooth.close()
         hard.close()
+
+
+def _frames_inline_and_in_a_process(scenario: str, seconds: float, torques) -> tuple[list, list]:
+    world = World(load_scenario(scenario), ROBOT)
+    lidar = LidarConfig(ground_truth_frames=8)
+    rigs, inboxes = [], []
+    for in_process in (False, True):
+        inboxes.append(SensorInbox())
+        rigs.append(SensorRig(world, ROBOT, inboxes[-1], SensorRigConfig(
+            camera_rate_hz=0.0, imu_enabled=False, lidar=lidar, lidar_process=in_process, seed=5)))
+    frames = ([], [])
+    try:
+        for k in range(int(round(seconds / world.timestep_s))):
+            world.set_wheel_torques(np.asarray(torques(k), float))
+            t_before = world.time_s
+            world.step()
+            for rig, inbox, got in zip(rigs, inboxes, frames):
+                rig.step(t_before)
+                scan = inbox.take().scan
+                if scan is not None:
+                    got.append((k, scan, rig.lidar.ground_truth_geom_ids(scan.stamp_s)))
+    finally:
+        for rig in rigs:
+            rig.close()
+    return frames
+
+
+def test_the_lidar_cast_in_a_process_gives_the_inline_frames_bit_for_bit():
+    """lidar_process: each slice is cast in a child process from a copy of the state of its
+    instant; the frames (points, time offsets, stamps, the geoms each point hit) are the inline
+    lidar's, with the robot turning past the boxes, each handed over at the same physics step;
+    and a second lidar takes the idle process over with the same result."""
+    def turn(k):
+        return np.array([0.4, -0.2, 0.4, -0.2]) * (1 if k < 150 else -1)
+
+    for _ in range(2):
+        inline, in_process = _frames_inline_and_in_a_process("case2", 0.6, turn)
+        assert len(inline) == 6 and [f[0] for f in inline] == [f[0] for f in in_process]
+        for (_, a, ga), (_, b, gb) in zip(inline, in_process):
+            assert a.stamp_s == b.stamp_s and len(a.points_m) > 10000
+            np.testing.assert_array_equal(a.points_m, b.points_m)
+            np.testing.assert_array_equal(a.point_time_offsets_s, b.point_time_offsets_s)
+            np.testing.assert_array_equal(ga, gb)
+        assert not b.points_m.flags.writeable
+
+
+def test_a_cast_process_that_dies_is_named_at_the_frame_not_waited_for():
+    world = World(SCENARIO, ROBOT)
+    rig = SensorRig(world, ROBOT, SensorInbox(), SensorRigConfig(camera_rate_hz=0.0, imu_enabled=False,
+                                                                lidar_process=True))
+    raised = []
+
+    def frame():
+        try:
+            for k in range(60):
+                rig.step(0.002 * k)
+        except RuntimeError as exc:
+            raised.append(exc)
+
+    try:
+        rig.lidar._caster._proc.kill()
+        t = threading.Thread(target=frame, daemon=True)
+        t.start()
+        t.join(timeout=30.0)
+        assert not t.is_alive(), "the simulator's step waits for a dead cast process"
+        assert len(raised) == 1 and "cast process" in str(raised[0])
+    finally:
+        rig.close()
