@@ -172,9 +172,24 @@ class CastProcess:
             os.close(fd)
         self._slots, self._pts, self._offs, self._gids = layout.views(self._mem)
         self._slot = 0
-        self._proc, self._conn = _take_idle() or _spawn()
-        self._conn.send_bytes(b"I" + pickle.dumps((model, config, body, seed, self._path)))
         self._ready = False
+        init = b"I" + pickle.dumps((model, config, body, seed, self._path))
+        try:
+            idle = _take_idle()
+            if idle is not None:
+                try:
+                    idle[1].send_bytes(init)
+                except OSError:  # it ended while idle: a fresh one
+                    idle[0].kill()
+                    idle[1].close()
+                    idle = None
+            self._proc, self._conn = idle or _spawn()
+            if idle is None:
+                self._conn.send_bytes(init)
+        except BaseException:
+            self._mem.close()
+            self._unlink()
+            raise
 
     def cast(self, data: mujoco.MjData, frame: int, i0: int, i1: int, offset_s: float, r_wl: np.ndarray,
              origin: np.ndarray) -> None:

@@ -427,3 +427,16 @@ def test_a_cast_process_that_dies_is_named_at_the_frame_not_waited_for():
         assert len(raised) == 1 and "cast process" in str(raised[0])
     finally:
         rig.close()
+
+
+def test_a_cast_process_that_ended_while_idle_is_replaced():
+    from hil_sim.sensors import lidar_cast
+
+    inline, in_process = _frames_inline_and_in_a_process("case1", 0.1, lambda k: np.zeros(4))  # leaves one idle
+    assert len(lidar_cast._IDLE) == 1
+    proc, _ = lidar_cast._IDLE[0]
+    proc.kill()
+    proc.wait()
+    inline, in_process = _frames_inline_and_in_a_process("case1", 0.1, lambda k: np.zeros(4))
+    assert len(in_process) == 1 and np.array_equal(inline[0][1].points_m, in_process[0][1].points_m)
+    assert lidar_cast._IDLE and lidar_cast._IDLE[0][0] is not proc
