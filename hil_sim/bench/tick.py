@@ -196,12 +196,15 @@ class EpisodeTicks:
         )
 
 
-def inline_camera(sensors):
-    """The rig config with the lockstep camera's latency, rendered inline: the same images at the
-    same instants as the threaded one (the episode sets the rate when the planner uses a camera)."""
+def inline_sensors(sensors):
+    """The rig config with the lockstep camera's latency, rendered inline, and the lidar cast
+    inline: the same images and frames at the same instants as in `dct hil run` (the episode sets
+    the camera's rate when the planner uses one), with the simulator's own work between the ticks,
+    never beside them."""
     from hil_sim.episode.lockstep import CAMERA_LATENCY_S
 
-    return sensors.model_copy(update={"camera_async": False, "camera_latency_s": CAMERA_LATENCY_S})
+    return sensors.model_copy(update={"camera_async": False, "camera_latency_s": CAMERA_LATENCY_S,
+                                      "lidar_process": False})
 
 
 def run_ticks(scene: Scenario, seed: int, config=None, sensors=None, keep_jobs: bool = False,
@@ -209,7 +212,10 @@ def run_ticks(scene: Scenario, seed: int, config=None, sensors=None, keep_jobs: 
     """One lockstep episode (hil_sim.episode.lockstep.run_episode, as `dct hil run`) with the tick
     probe. The camera renders between ticks (inline), its images handed over after the same
     latency as in `dct hil run` (the same run): on the robot the camera driver is another process,
-    and a render thread in the controller's process would take Python's GIL from its ticks."""
+    and a render thread in the controller's process would take Python's GIL from its ticks. The
+    lidar's rays are cast between ticks too: a cast process (`dct hil run`'s) would take the
+    second core from the ticks and the ICP worker, for work the robot's lidar does in its own
+    hardware."""
     from hil_sim.episode.lockstep import run_episode
     from hil_sim.world.sensor_rig import SensorRigConfig
     from runtime.config.loading import load_controller_config
@@ -219,7 +225,7 @@ def run_ticks(scene: Scenario, seed: int, config=None, sensors=None, keep_jobs: 
     if sensors is True:
         sensors = SensorRigConfig(seed=seed)
     if sensors is not False:
-        sensors = inline_camera(sensors)
+        sensors = inline_sensors(sensors)
     probe = TickProbe(keep_jobs=keep_jobs, after=after_tick)
     result = run_episode(scene, config=config, seed=seed, sensors=sensors, observe=probe)
     rec = result.tick_records

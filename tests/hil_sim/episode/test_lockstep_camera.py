@@ -47,9 +47,9 @@ def test_a_rig_config_that_sets_its_camera_keeps_it():
 def test_the_tick_benchmark_renders_between_ticks_with_the_same_latency():
     """`dct bench tick` times the tick: its camera renders inline (no render thread in the
     controller's process), its images reach the controller as in `dct hil run`."""
-    from hil_sim.bench.tick import inline_camera
+    from hil_sim.bench.tick import inline_sensors
 
-    rig = _rig(inline_camera(SensorRigConfig(seed=0, lidar_enabled=False)))
+    rig = _rig(inline_sensors(SensorRigConfig(seed=0, lidar_enabled=False)))
     try:
         c = rig.config
         assert c.camera_rate_hz == DCT_CAMERA_RATE_HZ and c.camera_segmentation
