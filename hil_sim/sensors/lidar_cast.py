@@ -23,15 +23,14 @@ import math
 import mmap
 import os
 import pickle
-import socket
 import struct
 import subprocess
-import sys
 import tempfile
-import threading
 
 import mujoco
 import numpy as np
+
+from runtime.common.child_process import IdleChildren, spawn_module
 
 _CAST = struct.Struct("<ciiiid")   # b"C", frame, i0, i1, slot, offset_s
 _COUNT = struct.Struct("<i")
@@ -224,11 +223,7 @@ class CastProcess:
             conn.send_bytes(b"N")
             if self._recv() != b"n":
                 raise OSError("no idle answer")
-            with _IDLE_LOCK:
-                keep = len(_IDLE) < MAX_IDLE
-                if keep:
-                    _IDLE.append((proc, conn))
-            if not keep:
+            if not _IDLE.offer(proc, conn):
                 conn.close()
                 proc.wait(timeout=5.0)
         except (OSError, EOFError, RuntimeError, subprocess.TimeoutExpired):
@@ -271,30 +266,17 @@ class CastProcess:
 
 
 #: Idle cast processes for the next lidar of this process (a campaign's next episode).
-_IDLE: list[tuple[subprocess.Popen, object]] = []
-_IDLE_LOCK = threading.Lock()
 MAX_IDLE = 1
+_IDLE = IdleChildren(MAX_IDLE)
 
 
 def _spawn():
     """A fresh cast process and our end of its socket pair."""
-    from multiprocessing.connection import Connection
-
-    ours, theirs = socket.socketpair()
-    proc = subprocess.Popen([sys.executable, "-m", "hil_sim.sensors.lidar_cast", str(theirs.fileno())],
-                            pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, close_fds=True)
-    theirs.close()
-    return proc, Connection(ours.detach())
+    return spawn_module("hil_sim.sensors.lidar_cast")
 
 
 def _take_idle():
-    with _IDLE_LOCK:
-        while _IDLE:
-            proc, conn = _IDLE.pop()
-            if proc.poll() is None:
-                return proc, conn
-            conn.close()
-    return None
+    return _IDLE.take()
 
 
 def _serve(conn) -> None:
@@ -360,6 +342,7 @@ __all__ = ["CastProcess", "RayCaster"]
 
 if __name__ == "__main__":  # the cast process (started by CastProcess)
     import signal
+    import sys
     from multiprocessing.connection import Connection as _Connection
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the simulator ends it (closing the socket)

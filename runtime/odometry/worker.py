@@ -21,7 +21,6 @@ import itertools
 import os
 import pickle
 import queue
-import socket
 import struct
 import subprocess
 import sys
@@ -32,6 +31,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from runtime.common.child_process import IdleChildren, spawn_module
 from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult, warm_up
 
 
@@ -129,9 +129,8 @@ _NEXT = _job_message(_NEXT_RUN)
 
 #: Idle workers kept for the next run in this process (`reuse`): a fresh interpreter takes 0.3-0.5 s
 #: to import and warm up, which every lockstep episode of a campaign waited for at its activation.
-_IDLE: list[tuple[subprocess.Popen, object]] = []
-_IDLE_LOCK = threading.Lock()
 MAX_IDLE_WORKERS = 1
+_IDLE = IdleChildren(MAX_IDLE_WORKERS)
 #: Each run's number (its worker's "ready" carries it: a ready left unread by an earlier run of
 #: the same worker is not this run's).
 _GENERATIONS = itertools.count(1)
@@ -139,25 +138,11 @@ _GENERATIONS = itertools.count(1)
 
 def _spawn():
     """A fresh worker process and our end of its socket pair."""
-    from multiprocessing.connection import Connection
-
-    ours, theirs = socket.socketpair()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "runtime.odometry.worker", str(theirs.fileno())],
-        pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, close_fds=True,
-    )
-    theirs.close()
-    return proc, Connection(ours.detach())
+    return spawn_module("runtime.odometry.worker")
 
 
 def _take_idle() -> tuple[subprocess.Popen, object] | None:
-    with _IDLE_LOCK:
-        while _IDLE:
-            proc, conn = _IDLE.pop()
-            if proc.poll() is None:
-                return proc, conn
-            conn.close()
-    return None
+    return _IDLE.take()
 
 
 def _identity(job: IcpJob) -> tuple[int, float, float, float, int]:
@@ -370,10 +355,8 @@ class ProcessIcpWorker:
             if self._sender.is_alive():  # the worker reads nothing any more
                 self._proc.kill()
             else:
-                with _IDLE_LOCK:
-                    if len(_IDLE) < MAX_IDLE_WORKERS:
-                        _IDLE.append((self._proc, self._conn))
-                        return
+                if _IDLE.offer(self._proc, self._conn):
+                    return
                 try:  # enough idle ones: no next run for this one, which ends
                     self._conn.send(None)
                 except (OSError, ValueError):

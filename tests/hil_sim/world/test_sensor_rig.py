@@ -36,6 +36,24 @@ def _run(world: World, rig: SensorRig, inbox: SensorInbox, seconds: float):
     return scans, images, imu
 
 
+def _raised_within(call, timeout_s: float) -> str:
+    """The RuntimeError `call` raises in a thread, which must end within timeout_s (not hang)."""
+    raised = []
+
+    def run():
+        try:
+            call()
+        except RuntimeError as exc:
+            raised.append(exc)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(timeout=timeout_s)
+    assert not t.is_alive(), "the simulator's step hangs"
+    assert len(raised) == 1, "no RuntimeError"
+    return str(raised[0])
+
+
 @pytest.fixture(scope="module")
 def one_second():
     world = World(SCENARIO, ROBOT)
@@ -266,21 +284,10 @@ def test_a_render_that_fails_in_the_camera_thread_raises_in_the_simulator_not_ha
     rig = SensorRig(world, ROBOT, SensorInbox(), SensorRigConfig(
         camera_rate_hz=2.0, camera_segmentation=True, camera_async=True, camera_latency_s=0.05,
         lidar_enabled=False, imu_enabled=False))
-    raised = []
-
-    def handover():  # the frame's hand-over waits for the render, which failed
-        try:
-            rig.step(0.05)
-        except RuntimeError as exc:
-            raised.append(exc)
-
     try:
         rig.step(0.0)
-        t = threading.Thread(target=handover, daemon=True)
-        t.start()
-        t.join(timeout=20.0)
-        assert not t.is_alive(), "the simulator's step hangs on a failed render"
-        assert len(raised) == 1 and "EGL context lost" in str(raised[0])
+        # the frame's hand-over waits for the render, which failed
+        assert "EGL context lost" in _raised_within(lambda: rig.step(0.05), 20.0)
     finally:
         rig.close()
 
@@ -409,22 +416,14 @@ def test_a_cast_process_that_dies_is_named_at_the_frame_not_waited_for():
     world = World(SCENARIO, ROBOT)
     rig = SensorRig(world, ROBOT, SensorInbox(), SensorRigConfig(camera_rate_hz=0.0, imu_enabled=False,
                                                                 lidar_process=True))
-    raised = []
 
     def frame():
-        try:
-            for k in range(60):
-                rig.step(0.002 * k)
-        except RuntimeError as exc:
-            raised.append(exc)
+        for k in range(60):
+            rig.step(0.002 * k)
 
     try:
         rig.lidar._caster._proc.kill()
-        t = threading.Thread(target=frame, daemon=True)
-        t.start()
-        t.join(timeout=30.0)
-        assert not t.is_alive(), "the simulator's step waits for a dead cast process"
-        assert len(raised) == 1 and "cast process" in str(raised[0])
+        assert "cast process" in _raised_within(frame, 30.0)
     finally:
         rig.close()
 
