@@ -327,28 +327,76 @@ def vpp_bench_command(*, mask_counts: tuple[int, ...], repeats: int, n_points: i
 @click.option("--net", "net_path", type=click.Path(exists=True, dir_okay=False), help="Distance net (default: shipped).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the rows as JSON.")
 @click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+@click.option("--neupan", "neupan_path", type=click.Path(path_type=Path),
+              help="Also time NeuPAN's own planner against ours: the folder of NeuPAN's source (the one that holds "
+                   "its neupan/ package; GPL-3.0, never part of this repository), its dependencies installed.")
+@click.option("--neupan-model", "neupan_model", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="NeuPAN's DUNE model (.pth) for our footprint.  [default: NeuPAN's diff_robot_default, "
+                   "trained for another footprint]")
+@click.option("--neupan-repeats", default=100, show_default=True, type=click.IntRange(10, 100000),
+              help="NeuPAN's warm steps per (horizon, points).")
+@click.option("--neupan-cold-runs", default=20, show_default=True, type=click.IntRange(1, 1000),
+              help="Fresh planners per (horizon, points) for the cold steps (their first 3 steps each).")
+@click.option("--neupan-d-max", default=0.3, show_default=True, type=click.FloatRange(0.01, 10.0),
+              help="NeuPAN's d_max (m), the distance up to which it rewards clearance; its corridor example's "
+                   "1.0 exceeds the benchmark corridor's 0.34 m per side.")
+@click.option("--neupan-autograd", is_flag=True,
+              help="Step NeuPAN with autograd on, as its examples do (default: under torch.no_grad, its faster "
+                   "way: a planning step needs no gradients).")
 def planner_command(*, repeats: int, cvxpy_repeats: int, horizons: tuple[int, ...], point_counts: tuple[int, ...],
-                    net_path: str | None, json_path: Path | None, force: bool) -> None:
+                    net_path: str | None, json_path: Path | None, force: bool, neupan_path: Path | None,
+                    neupan_model: Path | None, neupan_repeats: int, neupan_cold_runs: int,
+                    neupan_d_max: float, neupan_autograd: bool) -> None:
     """Planner step time (selection + net + QP, one thread) against points in range and horizon,
-    with the share of each part and the constraint set's size, against cvxpy (ECOS, Clarabel)."""
+    with the share of each part and the constraint set's size, against cvxpy (ECOS, Clarabel);
+    with --neupan, against NeuPAN's own planner too (hil_sim.bench.neupan_peer), warm and cold."""
     from calibration.extras import require
     from calibration.outputs import OutputPathError, atomic_write_json, check_output_path
     from hil_sim.bench.planner import HORIZONS, POINT_COUNTS, cap_warnings, print_planner_benchmark
 
     if cvxpy_repeats > 0:  # checked before the OSQP rows, which take minutes
         require("cvxpy", "ecos", "clarabel", what="dct bench planner (its cvxpy rows; --cvxpy-repeats 0 skips them)")
+    if neupan_model is not None and neupan_path is None:
+        raise InputError("--neupan-model needs --neupan PATH")
+    if neupan_path is not None:  # also before the OSQP rows
+        from hil_sim.bench.neupan_peer import NeupanUnavailable, import_neupan
+
+        try:
+            import_neupan(neupan_path)
+        except NeupanUnavailable as exc:
+            raise InputError(str(exc)) from exc
     if json_path is not None:
         try:
             check_output_path(json_path, what="--json", overwrite=force)
         except OutputPathError as exc:
             raise InputError(str(exc)) from exc
+    horizons = tuple(sorted(set(horizons))) or HORIZONS
+    point_counts = tuple(sorted(set(point_counts))) or POINT_COUNTS
+
+    def progress(what: str) -> None:
+        click.echo(f"... {what}", err=True)
+
     rows = print_planner_benchmark(
         echo=click.echo, repeats=repeats, cvxpy_repeats=cvxpy_repeats, distance_net_path=net_path,
-        horizons=tuple(sorted(set(horizons))) or HORIZONS, point_counts=tuple(sorted(set(point_counts))) or POINT_COUNTS,
-        progress=lambda what: click.echo(f"... {what}", err=True),
+        horizons=horizons, point_counts=point_counts, progress=progress,
     )
+    out = {"rows": rows, "warnings": cap_warnings(rows)}
+    if neupan_path is not None:
+        from hil_sim.bench.neupan_peer import NeupanUnavailable, format_neupan_table, run_neupan_comparison
+
+        try:
+            neupan_rows = run_neupan_comparison(
+                neupan_path=neupan_path, model_path=neupan_model, horizons=horizons, point_counts=point_counts,
+                repeats=repeats, neupan_repeats=neupan_repeats, cold_runs=neupan_cold_runs, d_max_m=neupan_d_max,
+                autograd=neupan_autograd,
+                distance_net_path=net_path, progress=progress,
+            )
+        except NeupanUnavailable as exc:
+            raise InputError(str(exc)) from exc
+        click.echo(format_neupan_table(neupan_rows))
+        out["neupan_rows"] = neupan_rows
     if json_path is not None:
-        atomic_write_json(json_path, with_provenance({"rows": rows, "warnings": cap_warnings(rows)}))
+        atomic_write_json(json_path, with_provenance(out))
 
 
 def _campaign_options(func):
