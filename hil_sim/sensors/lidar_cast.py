@@ -163,7 +163,7 @@ class CastProcess:
         self.config = config
         self._layout = layout = _Layout(model, config)
         self._start_timeout_s = start_timeout_s
-        fd, self._path = tempfile.mkstemp(prefix="dct-lidar-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
+        fd, self._path = _shared_file()
         try:
             os.ftruncate(fd, layout.size)
             self._mem = mmap.mmap(fd, layout.size)
@@ -263,6 +263,15 @@ class CastProcess:
             return b"" if ready_only else self._conn.recv_bytes()
         except (EOFError, OSError) as exc:
             raise RuntimeError(f"SimLidar's cast process is gone ({type(exc).__name__})") from exc
+
+
+def _shared_file() -> tuple[int, str]:
+    """A new file for the shared memory: in /dev/shm (memory only) when it is there and writable,
+    else in the temporary directory (the page cache keeps it in memory as long as it is mapped)."""
+    try:
+        return tempfile.mkstemp(prefix="dct-lidar-", dir="/dev/shm")
+    except OSError:
+        return tempfile.mkstemp(prefix="dct-lidar-")
 
 
 #: Idle cast processes for the next lidar of this process (a campaign's next episode).

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 
@@ -439,3 +440,23 @@ def test_a_cast_process_that_ended_while_idle_is_replaced():
     inline, in_process = _frames_inline_and_in_a_process("case1", 0.1, lambda k: np.zeros(4))
     assert len(in_process) == 1 and np.array_equal(inline[0][1].points_m, in_process[0][1].points_m)
     assert lidar_cast._IDLE and lidar_cast._IDLE[0][0] is not proc
+
+
+def test_the_cast_process_shares_memory_through_the_temporary_directory_without_dev_shm(monkeypatch):
+    import tempfile as tempfile_module
+
+    from hil_sim.sensors import lidar_cast
+
+    made = []
+    real = tempfile_module.mkstemp
+
+    def mkstemp(prefix="", dir=None):
+        if dir == "/dev/shm":
+            raise PermissionError(13, "Permission denied", dir)
+        made.append(real(prefix=prefix, dir=dir))
+        return made[-1]
+
+    monkeypatch.setattr(lidar_cast.tempfile, "mkstemp", mkstemp)
+    inline, in_process = _frames_inline_and_in_a_process("case1", 0.1, lambda k: np.zeros(4))
+    assert made and np.array_equal(inline[0][1].points_m, in_process[0][1].points_m)
+    assert not os.path.exists(made[0][1])  # unlinked once both ends had it mapped
