@@ -359,12 +359,14 @@ def planner_command(*, repeats: int, cvxpy_repeats: int, horizons: tuple[int, ..
     if neupan_model is not None and neupan_path is None:
         raise InputError("--neupan-model needs --neupan PATH")
     if neupan_path is not None:  # also before the OSQP rows
-        from hil_sim.bench.neupan_peer import NeupanUnavailable, import_neupan
+        from hil_sim.bench.neupan_peer import SHIPPED_MODEL, NeupanUnavailable, import_neupan
 
         try:
             import_neupan(neupan_path)
         except NeupanUnavailable as exc:
             raise InputError(str(exc)) from exc
+        if neupan_model is None and not (neupan_path / SHIPPED_MODEL).is_file():
+            raise InputError(f"NeuPAN's DUNE model {neupan_path / SHIPPED_MODEL} is not a file (--neupan-model PATH)")
     if json_path is not None:
         try:
             check_output_path(json_path, what="--json", overwrite=force)

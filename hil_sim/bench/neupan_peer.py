@@ -28,7 +28,8 @@ thread), the garbage collector outside the steps as in the controller's loop. Ea
 with time.perf_counter (wall) and time.thread_time (CPU) around the planner's call.
 
 Warm: the steady state: after 10 steps and a reset (the planner forgets its previous plan, keeps
-its solver set up), `repeats` steps from the corridor's start. Cold: the first `cold_steps` plans
+its solver set up), steps from the corridor's start; the percentiles of both are over the same
+first min(repeats, neupan_repeats) steps (the same stretch of corridor, as many samples). Cold: the first `cold_steps` plans
 with no previous plan of a freshly built planner, for `cold_runs` planners placed along the
 corridor: each is built (ours: a new OSQP workspace; NeuPAN: a new CvxpyLayer, DUNE net and
 nominal velocities, its initial path set at construction), started as the controller starts ours
@@ -59,7 +60,6 @@ import numpy as np
 
 from hil_sim.bench.planner import (
     HORIZONS,
-    RANGE_M,
     TICK_S,
     _run_closed_loop,
     cluttered_corridor,
@@ -366,7 +366,7 @@ def run_neupan_comparison(
                     fresh_np.reset()
                     np_cold.extend(_drive_neupan(fresh_np, further, n, cold_steps, seed + 200 + c, autograd)["wall"])
 
-                k = min(repeats, neupan_repeats)  # the same stretch of corridor for both
+                k = min(repeats, neupan_repeats)  # the same stretch of corridor, and as many steps, for both
                 ours_poses = np.asarray(ours.poses)[:k]
                 np_poses = theirs["poses"][:k]
                 row = {
@@ -384,9 +384,9 @@ def run_neupan_comparison(
                     "neupan_repeats": neupan_repeats,
                     "cold_runs": cold_runs,
                     "cold_steps": cold_steps,
-                    "ours_warm_p50_ms": _pct(ours.wall_ms, 50),
-                    "ours_warm_p99_ms": _pct(ours.wall_ms, 99),
-                    "ours_warm_cpu_p50_ms": _pct(ours.cpu_ms, 50),
+                    "ours_warm_p50_ms": _pct(ours.wall_ms[:k], 50),
+                    "ours_warm_p99_ms": _pct(ours.wall_ms[:k], 99),
+                    "ours_warm_cpu_p50_ms": _pct(ours.cpu_ms[:k], 50),
                     "ours_cold_p50_ms": _pct(ours_cold, 50),
                     "ours_cold_p99_ms": _pct(ours_cold, 99),
                     "ours_build_p50_ms": _pct(ours_build, 50),
@@ -430,7 +430,7 @@ def format_neupan_table(rows: list[dict], target_ratio: float = 10.0) -> str:
         f"{r0['neupan_dune_error_p99_mm']:.1f} mm); ours: {r0['distance_model']}; K = {r0['points_per_pose']} "
         f"points per pose (NeuPAN's nrmp_max_num), dune_max_num = N; NeuPAN d_max {r0['neupan_d_max_m']:g} m; "
         f"NeuPAN {'with autograd on, as its examples' if r0.get('neupan_autograd') else 'under torch.no_grad'}",
-        f"warm: steady state, {r0['repeats']} steps ours, {r0['neupan_repeats']} NeuPAN; cold: the first "
+        f"warm: steady state, the first {r0['clearance_ticks']} steps of each; cold: the first "
         f"{r0['cold_steps']} plans with no previous plan of {r0['cold_runs']} fresh planners, each started as the "
         f"controller starts ours ({START_PLANS} plans, then a reset; build time apart: build p50); "
         f"clearance: min footprint distance to the scene over the first {r0['clearance_ticks']} warm steps "

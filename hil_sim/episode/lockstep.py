@@ -269,8 +269,10 @@ def run_episode(
     try:
         parts.run(operator.should_stop, before=before)
     finally:
-        sim.advance_to(sim.time_s + 0.02)  # let the firmware consume the final zero command
-        bench.close()
+        try:
+            sim.advance_to(sim.time_s + 0.02)  # let the firmware consume the final zero command
+        finally:
+            bench.close()
     wall = time.perf_counter() - wall0
     return _result(_Episode(bench, sim, parts, operator, config, faults, goal_when_ready), wall)
 

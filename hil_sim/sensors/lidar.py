@@ -194,6 +194,7 @@ class SimLidar:
         self.frames_completed = 0
         #: When the next slice is due: a step before it casts nothing (callers may skip it).
         self.next_due_s = self._due_s(0, 0)
+        self._failure: Exception | None = None  # a cast that failed: every later step raises
 
     def wait_ready(self) -> None:
         """Until the caster can cast (a cast process has started); raises when it cannot."""
@@ -229,10 +230,19 @@ class SimLidar:
         if self._last_t is not None and t_s < self._last_t:
             raise ValueError(f"SimLidar.step: time went backwards ({t_s} < {self._last_t})")
         self._last_t = t_s
+        if self._failure is not None:  # its frame is lost: no later frame is whole either
+            raise RuntimeError(f"SimLidar failed earlier: {self._failure}") from self._failure
         eps = 1e-9
-        c = self.config
         if self.next_due_s > t_s + eps:
             return
+        try:
+            self._step_slices(t_s, eps)
+        except Exception as exc:
+            self._failure = exc
+            raise
+
+    def _step_slices(self, t_s: float, eps: float) -> None:
+        c = self.config
         while self._due_s(self._frame, self._slice) <= t_s + eps:
             j0 = self._slice
             j1 = j0 + 1

@@ -19,6 +19,7 @@ the next one in this process (a campaign's next episode): its interpreter takes 
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import mmap
 import os
@@ -172,15 +173,15 @@ class CastProcess:
         self._slots, self._pts, self._offs, self._gids = layout.views(self._mem)
         self._slot = 0
         self._ready = False
-        init = b"I" + pickle.dumps((model, config, body, seed, self._path))
+        self._closed = False
         try:
+            init = b"I" + pickle.dumps((model, config, body, seed, self._path))
             idle = _take_idle()
             if idle is not None:
                 try:
                     idle[1].send_bytes(init)
                 except OSError:  # it ended while idle: a fresh one
-                    idle[0].kill()
-                    idle[1].close()
+                    _end(*idle)
                     idle = None
             self._proc, self._conn = idle or _spawn()
             if idle is None:
@@ -216,19 +217,23 @@ class CastProcess:
         return self._pts[:k].copy(), self._offs[:k].copy(), gids
 
     def close(self) -> None:
-        """Leave the child idle for the next lidar of this process (or end it), and remove the
-        shared memory file."""
+        """Leave the child idle for the next lidar of this process, or end it (one that never
+        said ready, failed or does not answer is killed); remove the shared memory file. Once."""
+        if self._closed:
+            return
+        self._closed = True
         proc, conn = self._proc, self._conn
         try:
+            if not self._ready:
+                raise OSError("not started")
             conn.send_bytes(b"N")
-            if self._recv() != b"n":
+            if not conn.poll(5.0) or conn.recv_bytes() != b"n":
                 raise OSError("no idle answer")
             if not _IDLE.offer(proc, conn):
                 conn.close()
                 proc.wait(timeout=5.0)
-        except (OSError, EOFError, RuntimeError, subprocess.TimeoutExpired):
-            proc.kill()
-            conn.close()
+        except (OSError, EOFError, subprocess.TimeoutExpired):
+            _end(proc, conn)
         finally:
             self._slots = self._pts = self._offs = self._gids = None
             self._mem.close()
@@ -236,8 +241,9 @@ class CastProcess:
 
     def _unlink(self) -> None:
         if self._path is not None:
-            os.unlink(self._path)
-            self._path = None
+            path, self._path = self._path, None
+            with contextlib.suppress(FileNotFoundError):  # removed by someone else: gone either way
+                os.unlink(path)
 
     def wait_ready(self) -> None:
         """Until the child has built its caster and loaded its kernels (its interpreter starts in
@@ -263,6 +269,16 @@ class CastProcess:
             return b"" if ready_only else self._conn.recv_bytes()
         except (EOFError, OSError) as exc:
             raise RuntimeError(f"SimLidar's cast process is gone ({type(exc).__name__})") from exc
+
+
+def _end(proc: subprocess.Popen, conn) -> None:
+    """Kill a child and reap it (no zombie left), and close our end of its socket."""
+    proc.kill()
+    try:
+        proc.wait(timeout=5.0)
+    except subprocess.TimeoutExpired:
+        pass
+    conn.close()
 
 
 def _shared_file() -> tuple[int, str]:

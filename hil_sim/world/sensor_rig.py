@@ -249,12 +249,7 @@ class SensorRig:
         seeds = np.random.SeedSequence(c.seed).generate_state(2)
 
         self.lidar: SimLidar | None = _make_lidar(world, c, int(seeds[0]), start_s) if c.lidar_enabled else None
-
         self.imu: SimImu | None = None
-        if c.imu_enabled:
-            gyro, accel = world.imu_sensor_names
-            self.imu = SimImu(m, d, gyro, accel, c.imu, seed=int(seeds[1]), start_s=start_s)
-
         self.camera = None
         self._camera_period_s = 1.0 / c.camera_rate_hz if c.camera_rate_hz > 0 else math.inf
         self._camera_start_s = start_s
@@ -268,8 +263,16 @@ class SensorRig:
         #: meanwhile goes on beside the render. A capture due first hands it over too.
         self.defer_hand_over = False
         self._camera_overdue = False
-        if c.camera_rate_hz > 0:
-            self.camera = self._make_camera()
+        try:  # a device that cannot be built must not leave the lidar's cast process running
+            if c.imu_enabled:
+                gyro, accel = world.imu_sensor_names
+                self.imu = SimImu(m, d, gyro, accel, c.imu, seed=int(seeds[1]), start_s=start_s)
+            if c.camera_rate_hz > 0:
+                self.camera = self._make_camera()
+        except BaseException:
+            if self.lidar is not None:
+                self.lidar.close()
+            raise
 
         self._last_t: float | None = None
         #: Called with every scan and image the rig produces, before the inbox gets it, in the

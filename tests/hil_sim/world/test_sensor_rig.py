@@ -425,8 +425,35 @@ def test_a_cast_process_that_dies_is_named_at_the_frame_not_waited_for():
     try:
         rig.lidar._caster._proc.kill()
         assert "cast process" in _raised_within(frame, 30.0)
+        # the frame is lost, and so is every later one: each later step names the failure
+        assert "SimLidar failed earlier" in _raised_within(lambda: rig.step(0.2), 30.0)
     finally:
         rig.close()
+        rig.close()  # once is enough; twice does nothing
+
+
+def test_a_cast_process_that_fails_to_start_is_named_and_closed_at_once(monkeypatch):
+    import time as time_module
+
+    from hil_sim.sensors import lidar_cast
+
+    real = lidar_cast._shared_file
+
+    def gone():  # the child cannot open it: it fails to start
+        fd, path = real()
+        os.unlink(path)
+        return fd, path + "-gone"
+
+    monkeypatch.setattr(lidar_cast, "_shared_file", gone)
+    world = World(SCENARIO, ROBOT)
+    rig = SensorRig(world, ROBOT, SensorInbox(), SensorRigConfig(camera_rate_hz=0.0, imu_enabled=False,
+                                                                lidar_process=True))
+    try:
+        assert "failed to start" in _raised_within(rig.wait_ready, 60.0)
+    finally:
+        t0 = time_module.perf_counter()
+        rig.close()
+        assert time_module.perf_counter() - t0 < 5.0
 
 
 def test_a_cast_process_that_ended_while_idle_is_replaced():
