@@ -43,6 +43,11 @@ class CollisionRows:
         self._dummy_far = np.array([1.0e3, 0.0])
         self._local = np.empty((H, K, 2))  # robot-frame points of the net's batch
         self.last_selection = None
+        # required_clearance and the slack weights of (selection, state0), the last fill's
+        self._required_for = None
+        self._required_at: tuple | None = None
+        self._required: np.ndarray | None = None
+        self._slack_weight: np.ndarray | None = None
 
     def select(self, nominal_states: np.ndarray, points_world: np.ndarray, timings: dict) -> None:
         """The K P_fix points nearest to each nominal pose; once per plan, kept for all alternations
@@ -81,7 +86,14 @@ class CollisionRows:
         coef = lin.coll_coef
         coef[..., 0] = lx
         coef[..., 1] = ly
-        required = self.required_clearance(lin, sel)
+        state0 = tuple(lin.state0.tolist())
+        # once per plan: every alternation has the same selection and state0
+        if self._required_for is not sel or self._required_at != state0:
+            self._required_for, self._required_at = sel, state0
+            self._required = required = self.required_clearance(lin, sel)
+            w = self.config.weights
+            self._slack_weight = np.where(required < self.config.d_min_m, w.slack_linear_holding, w.slack_linear)
+        required = self._required
         rhs = required - dist + lx * poses[:, 0, None] + ly * poses[:, 1, None]
         if self.config.linearize_heading:
             lth = lam_r[..., 1] * local[..., 0] - lam_r[..., 0] * local[..., 1]
@@ -89,8 +101,7 @@ class CollisionRows:
             rhs += lth * poses[:, 2, None]
         lin.coll_rhs[:] = rhs
         lin.coll_active[:] = sel.valid
-        w = self.config.weights
-        lin.coll_slack_weight[:] = np.where(required < self.config.d_min_m, w.slack_linear_holding, w.slack_linear)
+        lin.coll_slack_weight[:] = self._slack_weight
         timings["net"] += (t2 - t1) * 1e3
         timings["rows"] += (time.perf_counter() - t2) * 1e3
         return sel.count
