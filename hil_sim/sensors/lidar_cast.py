@@ -143,18 +143,37 @@ class _Layout:
                        ("flexvert_xpos", model.nflexvert * 3), ("r_wl", 9), ("origin", 3))
         self.slot = sum(size for _, size in self.fields)
         self.slots = config.slices_per_frame
-        n = config.points_per_frame
+        self.n = n = config.points_per_frame
         self.size = 8 * self.slot * self.slots + 12 * n + 4 * n + 4 * n
 
     def views(self, buf) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(slots (S, slot) float64, points (n, 3) float32, offsets (n,) float32, geom ids (n,) int32)."""
-        n = (self.size - 8 * self.slot * self.slots) // 20
+        n = self.n
         slots = np.ndarray((self.slots, self.slot), np.float64, buf)
         at = slots.nbytes
         pts = np.ndarray((n, 3), np.float32, buf, at)
         offs = np.ndarray(n, np.float32, buf, at + 12 * n)
         gids = np.ndarray(n, np.int32, buf, at + 16 * n)
         return slots, pts, offs, gids
+
+    def put(self, slot: np.ndarray, data: mujoco.MjData, r_wl: np.ndarray, origin: np.ndarray) -> None:
+        """Write the state the cast reads, and the lidar pose, into a slot (the simulator's side)."""
+        at = 0
+        for name, size in self.fields[:4]:
+            if size:
+                slot[at:at + size] = getattr(data, name).ravel()
+            at += size
+        slot[at:at + 9] = r_wl.ravel()
+        slot[at + 9:at + 12] = origin
+
+    def get(self, slot: np.ndarray, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        """Put a slot's state into data; the lidar pose (r_wl, origin) (the child's side)."""
+        at = 0
+        for name, size in self.fields[:4]:
+            if size:
+                getattr(data, name).ravel()[...] = slot[at:at + size]
+            at += size
+        return slot[at:at + 9].reshape(3, 3), slot[at + 9:at + 12]
 
 
 class CastProcess:
@@ -176,7 +195,7 @@ class CastProcess:
         self._closed = False
         try:
             init = b"I" + pickle.dumps((model, config, body, seed, self._path))
-            idle = _take_idle()
+            idle = _IDLE.take()
             if idle is not None:
                 try:
                     idle[1].send_bytes(init)
@@ -194,14 +213,7 @@ class CastProcess:
     def cast(self, data: mujoco.MjData, frame: int, i0: int, i1: int, offset_s: float, r_wl: np.ndarray,
              origin: np.ndarray) -> None:
         """Copy the state the cast reads into this slice's slot and send the slice."""
-        slot = self._slots[self._slot]
-        at = 0
-        for name, size in self._layout.fields[:4]:
-            if size:
-                slot[at:at + size] = getattr(data, name).ravel()
-            at += size
-        slot[at:at + 9] = r_wl.ravel()
-        slot[at + 9:at + 12] = origin
+        self._layout.put(self._slots[self._slot], data, r_wl, origin)
         self._send(_CAST.pack(b"C", frame, i0, i1, self._slot, offset_s))
         self._slot += 1
 
@@ -300,10 +312,6 @@ def _spawn():
     return spawn_module("hil_sim.sensors.lidar_cast")
 
 
-def _take_idle():
-    return _IDLE.take()
-
-
 def _serve(conn) -> None:
     """The child: one lidar at a time (I: its model, config, seed and memory file; C: a slice;
     T: the frame's returns; N: idle until the next lidar), until the socket closes."""
@@ -336,13 +344,7 @@ def _serve(conn) -> None:
                 _, frame, i0, i1, slot, offset_s = _CAST.unpack(message)
                 if error is None:
                     try:
-                        at = 0
-                        s = slots[slot]
-                        for name, size in layout.fields[:4]:
-                            if size:
-                                getattr(data, name).ravel()[...] = s[at:at + size]
-                            at += size
-                        caster.cast(data, frame, i0, i1, offset_s, s[at:at + 9].reshape(3, 3), s[at + 9:at + 12])
+                        caster.cast(data, frame, i0, i1, offset_s, *layout.get(slots[slot], data))
                     except Exception as exc:  # noqa: BLE001 - answered at the frame's end
                         error = f"{type(exc).__name__}: {exc}"
             elif kind == b"T":
