@@ -230,14 +230,17 @@ class MaskMemory:
         return [self.warp_entry(e, T) for e in self.entries]
 
     def lookup(self, now_s: float, camera_pose_odom: np.ndarray,
-               select: "Callable[[MaskEntry], bool] | None" = None) -> tuple[list[MaskEntry], WarpLookup]:
+               select: "Callable[[MaskEntry], bool] | None" = None,
+               area_of: "Callable[[MaskEntry], bool] | None" = None) -> tuple[list[MaskEntry], WarpLookup]:
         """Phase I for a scan: age out, then every entry set up for per-pixel lookup at the current
         camera pose (homography.lookup.WarpLookup: the same warp as propagate, evaluated only where
         Phase III asks, exactly rather than on MaskWarper's interpolated grid). No image is
         warped: about 0.1 ms for 8 entries instead of 0.3-0.9 ms per entry. The capture side
         (stacked masks, outlines) is prepared once per set of entries. Returns (entries, lookup),
         lookup index k = entries[k]. select: only the entries it accepts (the stage's: those that
-        can gate points; a wall's mask spans the image, and its warp costs milliseconds)."""
+        can gate points; a wall's mask spans the image, and its warp costs milliseconds). area_of:
+        the entries whose warped area the caller reads (lookup.area_px, NaN for the others;
+        None: all)."""
         T = np.asarray(camera_pose_odom, dtype=np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all() or np.any(T[3] != _LAST_ROW) or \
                 float(np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max()) > 1e-5 or np.linalg.det(T[:3, :3]) < 0.0:
@@ -257,7 +260,8 @@ class MaskMemory:
             poses = np.stack([e.camera_pose_odom for e in entries]) if entries else np.zeros((0, 4, 4))
             self._source = (entries, WarpSource(self.camera, masks, [outlines[id(e)][1] for e in entries], poses,
                                                 [e.plane for e in entries]))
-        return list(entries), self._source[1].at(T)
+        want = None if area_of is None else np.array([bool(area_of(e)) for e in entries], np.bool_)
+        return list(entries), self._source[1].at(T, area_of=want)
 
     def mask_px(self) -> np.ndarray:
         """Pixels set in each entry's capture mask (the entries of the last lookup)."""

@@ -35,6 +35,7 @@ import dataclasses
 import math
 import threading
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -280,23 +281,33 @@ class VppStage:
         not warped per scan."""
         return entry.movable and entry.contact_cost < self.config.never_touch_cost
 
-    def _gates(self, entry, warped_px: float, captured_px: float) -> bool:
+    def _moved(self, entry) -> float | None:
+        """How far the tracker saw entry's object move since the mask's capture (None: it did not
+        follow it all that time)."""
+        return self.tracker.moved_since(entry.object_id, entry.stamp_s)
+
+    def _gates(self, entry, warped_px: Callable[[], float], captured_px: float, in_image: bool) -> bool:
         """Does this entry's warped mask gate points this scan? Movable, below never_touch_cost,
-        not empty, and trusted: the warp assumes the object stood still since capture. The
-        tracker knows whether it did: a moved one is not warped but tracked; a still one is
-        trusted however much the camera's approach grew it. Not followed all that time: the
-        growth rule (max_mask_growth). Distrusted masks are counted."""
-        if not (entry.movable and entry.contact_cost < self.config.never_touch_cost and warped_px > 0):
+        in the image (in_image: its warped bounding box is not empty), and trusted: the warp
+        assumes the object stood still since capture. The tracker knows whether it did: a moved
+        one is not warped but tracked; a still one is trusted however much the camera's approach
+        grew it. Not followed all that time: the growth rule (max_mask_growth) on the warped
+        area (warped_px(), counted only then; an empty warp does not gate). Distrusted masks are
+        counted."""
+        if not (entry.movable and entry.contact_cost < self.config.never_touch_cost and in_image):
             return False
         if entry.object_id in self.memory.demoted:  # correcting mode: a push on it failed (eq. 14)
             return False
         if self._believed_fixed(entry.object_id):  # believed heavy or fragile (it becomes demoted)
             return False
-        moved = self.tracker.moved_since(entry.object_id, entry.stamp_s)
+        moved = self._moved(entry)
         if moved is not None:
             distrust = moved > self.config.moved_tolerance_m
         else:
-            distrust = warped_px > self.config.max_mask_growth * captured_px
+            area = warped_px()
+            if not area > 0:
+                return False
+            distrust = area > self.config.max_mask_growth * captured_px
         if distrust:
             self.masks_distrusted += 1
             return False
@@ -435,12 +446,16 @@ class VppStage:
         The growth test takes the warped area from the lookup (exact for a warped mask whose
         bounding box has at most homography.lookup.AREA_SAMPLES pixels, else estimated on a grid)."""
         if self._per_pixel:
-            entries, lk = self.memory.lookup(now_s, T_odom_cam, select=self._may_gate)
+            # the growth test reads the warped area only of objects the tracker did not follow
+            entries, lk = self.memory.lookup(now_s, T_odom_cam, select=self._may_gate,
+                                             area_of=lambda e: self._moved(e) is None)
             px = self.memory.mask_px()
-            use = [k for k, e in enumerate(entries) if self._gates(e, float(lk.area_px[k]), float(px[k]))]
+            use = [k for k, e in enumerate(entries)
+                   if self._gates(e, lambda k=k: float(lk.area_px[k]), float(px[k]), lk.box[k, 0] <= lk.box[k, 2])]
             return lk.select(use), [entries[k] for k in use]
         warped = [w for w in self.memory.propagate(now_s, T_odom_cam)
-                  if self._gates(w.entry, np.count_nonzero(w.mask), np.count_nonzero(w.entry.mask))]
+                  if self._gates(w.entry, lambda w=w: np.count_nonzero(w.mask), np.count_nonzero(w.entry.mask),
+                                 bool(w.mask.any()))]
         h, w = self.camera.height_px, self.camera.width_px
         masks = np.stack([m.mask for m in warped]) if warped else np.zeros((0, h, w), bool)
         return masks, [m.entry for m in warped]

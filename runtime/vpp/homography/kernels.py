@@ -243,12 +243,15 @@ def _plane_warp(T_cur, planes, e, rows):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def warp_lookup_kernel(crops, T_cur, planes, outlines, rays, lens, samples, out):  # pragma: no cover - compiled
+def warp_lookup_kernel(crops, T_cur, planes, outlines, rays, lens, area_of, out):  # pragma: no cover - compiled
     """Per capture entry e: Hn (capture -> current, normalized; _plane_warp), Hinv = Hn^-1, the
     two half-planes of homography.plane.valid_halfplanes as rows over current rays (x, y, 1)
     ((0, 0, 1), always true, when there is no plane; (0, 0, -1), never true, when the camera
     crossed the plane), its box and area, into out = (Hinv (E, 3, 3), rows (E, 2, 3), box (E, 4),
-    area (E,)). outlines: (outline rays (n, 2), starts (E + 1,)), each entry's mask_outline."""
+    area (E,)). outlines: (outline rays (n, 2), starts (E + 1,)), each entry's mask_outline.
+    area_of: (samples (count_box's), (E,) bool: the entries whose area is counted; NaN for the
+    others, whose caller needs only the warp)."""
+    samples, want = area_of
     Hinv, rows, box, area = out
     outline, outline_start = outlines
     H = rays.shape[0]
@@ -267,7 +270,8 @@ def warp_lookup_kernel(crops, T_cur, planes, outlines, rays, lens, samples, out)
         rows[e, 1, :] = Hi[2]
         a, b, c, f = forward_box(outline[outline_start[e]:outline_start[e + 1]], Hn, rows[e], lens, W, H)
         box[e, 0], box[e, 1], box[e, 2], box[e, 3] = a, b, c, f
-        area[e] = count_box(crops, e, (a, b, c, f), rays, warp_coeffs(Hinv, rows, e), lens, samples)
+        area[e] = count_box(crops, e, (a, b, c, f), rays, warp_coeffs(Hinv, rows, e), lens, samples) if want[e] \
+            else np.nan
 
 
 @njit(cache=True, nogil=True)

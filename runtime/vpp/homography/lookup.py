@@ -139,8 +139,11 @@ class WarpSource:
     def __len__(self) -> int:
         return int(self.T_cap.shape[0])
 
-    def at(self, T_odom_cam_current: np.ndarray, samples: int = AREA_SAMPLES) -> "WarpLookup":
-        """Every mask set up for lookup at the current camera pose (trusted: the caller checks it)."""
+    def at(self, T_odom_cam_current: np.ndarray, samples: int = AREA_SAMPLES,
+           area_of: np.ndarray | None = None) -> "WarpLookup":
+        """Every mask set up for lookup at the current camera pose (trusted: the caller checks it).
+        area_of: (E,) bool, the masks whose warped area to count (WarpLookup.area_px; NaN for the
+        others: up to `samples` warp lookups a mask saved); None: all."""
         E = len(self)
         Hinv = np.zeros((E, 3, 3))
         rows = np.zeros((E, 2, 3))
@@ -149,7 +152,9 @@ class WarpSource:
         if E:
             warp_lookup_kernel(self.crops, np.ascontiguousarray(T_odom_cam_current, dtype=np.float64),
                                (self.T_cap, self.normals, self.dists, self.has_plane), (self.outline, self.starts),
-                               self.rays, self.lens, int(samples), (Hinv, rows, box, area))
+                               self.rays, self.lens, (int(samples), np.ones(E, np.bool_) if area_of is None
+                                                      else np.asarray(area_of, np.bool_)),
+                               (Hinv, rows, box, area))
         return WarpLookup(self.masks, np.arange(E, dtype=np.int64), Hinv, rows, box, area, self.rays, self.lens,
                           self.crops)
 
@@ -160,7 +165,7 @@ class WarpLookup:
     Phase III): masks[sel[m]] warped by Hinv[m] (rows[m]: its two half-planes), box[m] the
     warped mask's bounding box in the current image (u0, v0, u1, v1 inclusive; empty when
     u0 > u1), area_px[m] its pixel count (exact for boxes up to AREA_SAMPLES pixels, else an
-    estimate exact but for the border). The camera's pixel rays and lens (K and distortion,
+    estimate exact but for the border; NaN where the caller did not ask for it). The camera's pixel rays and lens (K and distortion,
     r2_max infinite without distortion) ride along for the numba kernels (kernels.warp_hit), and
     the capture masks cropped to their bounding boxes (mask_crops, indexed by entry as masks)
     that the kernels of the tick read (kernels.warp_hit_crop: the same bits in a few tens of kB

@@ -9,12 +9,13 @@ and lists the seen points inside the union of the warped masks' boxes with their
 candidates of the warped-mask lookup (gating.mask_lookup_warp). No temporaries: every output is
 a work array the caller keeps between scans.
 
-The pass is branch-free but for flags that are the same for every point (selects, not ifs):
+The loops are branch-free but for flags that are the same for every point (selects, not ifs):
 whether a point is in front of the camera is a coin toss in a 360-degree scan, and mispredicted
-branches cost more than the arithmetic. The rays are gathered in a loop of their own after the
-pass, not in the lookup: the 4.9 MB ray table is mostly out of cache by the next scan, and a loop
-that does nothing but gather keeps many misses in flight, where the lookup would wait on each
-(docs/decisions/vpp-compiled-kernels.md).
+branches cost more than the arithmetic. So a first pass over every point (transforms, ground,
+memory key) lists the points in front, and a second pass runs the lens on those only (half of the
+scan). The rays are gathered in a loop of their own after that, not in the lookup: the 4.9 MB ray
+table is mostly out of cache by the next scan, and a loop that does nothing but gather keeps many
+misses in flight, where the lookup would wait on each (docs/decisions/vpp-compiled-kernels.md).
 
 Kernel arguments, grouped: camera = (T_cam_lidar, lens, W, H); ground_cut = (T_base_lidar,
 has_base, z_max); odom = (T_odom_lidar, has_odom, 1 / voxel edge, keys out, p_odom out);
@@ -68,7 +69,7 @@ def transform(p, T):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  # pragma: no cover - compiled
-    """The pass (module docstring); returns the number of candidates: cand[:k] the seen points
+    """The passes (module docstring); returns the number of candidates: cand[:k] the seen points
     whose pixel lies in rbox, in order, ray[:k] their pixel rays (cand and ray need n + 1 rows).
     in_view is CameraModel.project's `valid` of p_cam, seen = in_view and not ground, pix the
     nearest pixel centre of each seen point (-1 for the others); ground |= height after Tb <
@@ -81,7 +82,10 @@ def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  #
     ground, p_cam, in_view, seen, pix = per_point
     uv, store_uv = uv_out
     rays, rbox, cand, ray = candidates
-    k = 0
+    # Pass 1, every point: the transforms, the ground, the memory's key; the points in front of
+    # the camera are listed (branch-free) in cand, which pass 2 then compacts in place into the
+    # candidates (it reads entry j before it writes entry k <= j).
+    nf = 0
     for i in range(p.shape[0]):
         x, y, z, X, Y, Z = rigid_point(p, i, T)
         p_cam[i, 0] = X
@@ -98,11 +102,25 @@ def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  #
             p_odom[i, 2] = Zo
             key = memory_voxel_key(Xo, Yo, Zo, inv)
             keys[i] = EMPTY if g else key
-        front = (Z > 1e-9) & (Z < np.inf)
-        Zs = Z if front else 1.0
-        vis, u, v = project_normalized(lens, X / Zs, Y / Zs, front, W, H)
+        in_view[i] = False
+        seen[i] = False
+        pix[i, 0] = -1
+        pix[i, 1] = -1
+        if store_uv:
+            uv[i, 0] = 0.0
+            uv[i, 1] = 0.0
+        cand[nf] = i
+        nf += (Z > 1e-9) & (Z < np.inf)
+    # Pass 2, the points in front (half of a 360-degree scan): the lens.
+    k = 0
+    for j in range(nf):
+        i = cand[j]
+        X = p_cam[i, 0]
+        Y = p_cam[i, 1]
+        Z = p_cam[i, 2]
+        vis, u, v = project_normalized(lens, X / Z, Y / Z, True, W, H)
         in_view[i] = vis
-        sn = vis & (not g)
+        sn = vis & (not ground[i])
         seen[i] = sn
         uu = min(max(int(math.floor((u if sn else 0.0) + 0.5)), 0), W - 1)
         vv = min(max(int(math.floor((v if sn else 0.0) + 0.5)), 0), H - 1)

@@ -109,6 +109,26 @@ def test_lookup_is_the_full_image_warp_at_every_pixel(seed, motion, camera, plan
         assert lk.area_px[0] == 0
 
 
+def test_area_is_counted_only_where_asked():
+    """The warp of every mask is set up; the warped area only of the masks asked for (the stage
+    asks for those the tracker did not follow), NaN for the others."""
+    cam = CAMERAS["distorted"]
+    masks = np.zeros((2, H, W), bool)
+    masks[0, 100:140, 140:180] = True
+    masks[1, 200:260, 300:330] = True
+    planes = [Plane(np.array([0.0, 0.0, 1.0]), 2.0)] * 2
+    T_cur = pose(np.eye(3), (0.05, 0.0, 0.1))
+    every = warp_lookup(cam, masks, np.stack([np.eye(4)] * 2), planes, T_cur)
+    from runtime.vpp.homography.lookup import WarpSource, mask_outline
+
+    src = WarpSource(cam, masks, [mask_outline(cam, m) for m in masks], np.stack([np.eye(4)] * 2), planes)
+    some = src.at(T_cur, area_of=np.array([False, True]))
+    assert np.isnan(some.area_px[0]) and some.area_px[1] == every.area_px[1] > 0
+    np.testing.assert_array_equal(some.box, every.box)
+    np.testing.assert_array_equal(some.Hinv, every.Hinv)
+    assert (some.render(0) == every.render(0)).all() and some.render(0).any()
+
+
 def test_camera_behind_the_plane_gives_nothing():
     cam = CAMERAS["distorted"]
     mask = np.zeros((H, W), bool)

@@ -401,3 +401,23 @@ def test_float16_and_strided_points_give_the_same_labels():
     np.testing.assert_array_equal(strided.label, ref.label)
     half = partition_points(pts.astype(np.float16), T_CL, CAM, [m], [7], [3.0], T_base_lidar=T_BL)
     assert (half.label[kind == 0] == MOVABLE).mean() > 0.95
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 3000), spread=st.floats(0.02, 30.0),
+       masks=st.integers(1, 16), eps=st.floats(0.01, 1.0))
+def test_cluster_cells_are_a_stable_sort_of_the_keys(seed, n, spread, masks, eps):
+    """The refinement's cells (bucketed through a hash table, only the distinct keys sorted) are
+    exactly what numpy's stable argsort of the per-point keys gives: keys ascending, and the
+    points of one cell in scan order."""
+    from runtime.vpp.partition.clustering import _movable_keys, cell_keys
+
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(0.0, spread, (n, 3))
+    pts[: n // 4] = pts[: n // 4].round(1)  # many points sharing cells
+    midx = rng.integers(-1, masks, n).astype(np.int32)
+    keys, mv = _movable_keys(pts, midx, 2.0 / eps)
+    order = np.argsort(keys, kind="stable")
+    got_keys, got_points = cell_keys(pts, midx, eps)
+    np.testing.assert_array_equal(got_keys, keys[order])
+    np.testing.assert_array_equal(got_points, mv[order])
