@@ -61,6 +61,42 @@ def centre_nb(points, rows):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def stacked_bounds(points, off):  # pragma: no cover - compiled
+    """(lo (K, 3), hi (K, 3)): the bounding box of each of K point sets stacked in points (set k:
+    rows off[k]:off[k + 1], none empty), in one call."""
+    K = off.shape[0] - 1
+    lo = np.empty((K, 3))
+    hi = np.empty((K, 3))
+    for k in range(K):
+        for a in range(3):
+            lo[k, a] = points[off[k], a]
+            hi[k, a] = points[off[k], a]
+        for i in range(off[k] + 1, off[k + 1]):
+            for a in range(3):
+                x = points[i, a]
+                if x < lo[k, a]:
+                    lo[k, a] = x
+                if x > hi[k, a]:
+                    hi[k, a] = x
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def each_inside_one(lo, hi, outer_lo, outer_hi):  # pragma: no cover - compiled
+    """Whether every box (lo[k], hi[k]) lies inside some box of (outer_lo, outer_hi)."""
+    for k in range(lo.shape[0]):
+        inside = False
+        for j in range(outer_lo.shape[0]):
+            if lo[k, 0] >= outer_lo[j, 0] and lo[k, 1] >= outer_lo[j, 1] and lo[k, 2] >= outer_lo[j, 2] and \
+                    hi[k, 0] <= outer_hi[j, 0] and hi[k, 1] <= outer_hi[j, 1] and hi[k, 2] <= outer_hi[j, 2]:
+                inside = True
+                break
+        if not inside:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def view_against_template(points, rows, template, yaw):  # pragma: no cover - compiled
     """The tracker's plausibility test's figures, in one call: the centres (x, y) of a mask's view
     points[rows] and of the template (centre_nb), and the footprint extents (footprint_nb; none
@@ -162,5 +198,5 @@ def thin_first(points, voxel):  # pragma: no cover - compiled
 
 
 
-__all__ = ["bounds", "centre_nb", "extent", "extent_nb", "footprint", "thin", "thin_first", "thin_nb",
-           "view_against_template"]
+__all__ = ["bounds", "centre_nb", "each_inside_one", "extent", "extent_nb", "footprint", "stacked_bounds", "thin",
+           "thin_first", "thin_nb", "view_against_template"]

@@ -12,7 +12,7 @@ import numpy as np
 from runtime.common.spatial_grid import near_any
 from runtime.vpp.partition.labels import FIXED, MOVABLE, PointPartition
 from runtime.vpp.tracking.config import TrackingConfig
-from runtime.vpp.tracking.geometry import bounds, extent, thin, view_against_template
+from runtime.vpp.tracking.geometry import each_inside_one, extent, stacked_bounds, thin, view_against_template
 from runtime.vpp.tracking.labelling import take_all
 from runtime.vpp.tracking.registration import icp_all
 from runtime.vpp.tracking.scan_select import group_masked, in_boxes
@@ -53,14 +53,6 @@ class TrackedObject:
         return self.template[:, :2].mean(axis=0)
 
 
-def _each_inside_one(inner: tuple[np.ndarray, np.ndarray], outer: tuple[np.ndarray, np.ndarray]) -> bool:
-    """Whether every box of inner (lo (K, 3), hi (K, 3)) lies inside some box of outer (one numpy
-    expression for all K, not a Python loop over them)."""
-    lo, hi = inner
-    inside = (lo[:, None, :] >= outer[0][None, :, :]) & (hi[:, None, :] <= outer[1][None, :, :])
-    return bool(inside.all(axis=2).any(axis=1).all())
-
-
 class ObjectTracker:
     """Templates of movable objects and their registration to each scan (module docstring)."""
 
@@ -79,6 +71,8 @@ class ObjectTracker:
         #: the object's belief with it)
         self.handover_pairs: list[tuple[int, int]] = []
         self._origin: np.ndarray | None = None  # this scan's lidar position (update)
+        #: The last stack of templates (_stack): (the objects' template arrays, points, offsets).
+        self._stacked: tuple | None = None
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -152,7 +146,7 @@ class ObjectTracker:
         # view beyond the old template): then one more pass
         reach = c.label_radius_m + (c.behind_m if origin_odom is not None else 0.0)
         lab = self._boxes(reach)
-        if boxes is None or not _each_inside_one(lab, boxes):
+        if boxes is None or not each_inside_one(lab[0], lab[1], boxes[0], boxes[1]):
             near, _ = self._near(label, points_odom, reach)
         added = self._label_all(label, oid, cost, near, points_odom)
         for k, obj in self.objects.items():
@@ -256,9 +250,9 @@ class ObjectTracker:
         merged, noff, outcome, view_extent = confirm_all(points_odom, (np.concatenate(sels), starts), (tpl, ooff, yaws),
                                                     (float(c.template_voxel_m), int(c.max_template_points),
                                                      float(c.max_growth_m)))
+        self._adopt(objs, merged, noff)
         for k, (obj, sel) in enumerate(zip(objs, sels)):
             obj.cost = float(cost[sel[0]])
-            obj.template = merged[noff[k]:noff[k + 1]]
             obj.confirmed_s = now_s
             obj.confirmations += 1
             obj.view_extent_m = max(float(view_extent[k]), obj.view_extent_m)
@@ -301,10 +295,11 @@ class ObjectTracker:
 
     def _boxes(self, grow: float) -> tuple[np.ndarray, np.ndarray]:
         """(lo (K, 3), hi (K, 3)): the tracked templates' boxes grown by `grow`."""
-        b = [bounds(o.template) for o in self.objects.values() if len(o.template)]
-        if not b:
+        objs = [o for o in self.objects.values() if len(o.template)]
+        if not objs:
             return np.zeros((0, 3)), np.zeros((0, 3))
-        return np.array([x[0] for x in b]) - grow, np.array([x[1] for x in b]) + grow
+        lo, hi = stacked_bounds(*self._stack(objs))
+        return lo - grow, hi + grow
 
     def _near(self, label, points_odom: np.ndarray, grow: float):
         """(indices, boxes): the scan points (not ground) in any tracked object's template box
@@ -316,12 +311,26 @@ class ObjectTracker:
             return np.zeros(0, np.int64), None
         return in_boxes(points_odom, label, lo, hi), (lo, hi)
 
-    @staticmethod
-    def _stack(objs: list[TrackedObject]) -> tuple[np.ndarray, np.ndarray]:
-        """The objects' templates concatenated, and each one's row offsets."""
+    def _stack(self, objs: list[TrackedObject]) -> tuple[np.ndarray, np.ndarray]:
+        """The objects' templates concatenated, and each one's row offsets. The kernels return
+        the templates stacked and the objects keep views of that stack (_adopt): while the
+        objects' templates are the very arrays of the last stack, it is returned again instead of
+        a copy."""
+        last = self._stacked
+        if last is not None and len(last[0]) == len(objs) and all(o.template is t for o, t in zip(objs, last[0])):
+            return last[1], last[2]
         off = np.zeros(len(objs) + 1, np.int64)
         off[1:] = np.cumsum([len(o.template) for o in objs])
-        return np.ascontiguousarray(np.concatenate([o.template for o in objs]), dtype=np.float64), off
+        tpl = np.ascontiguousarray(np.concatenate([o.template for o in objs]), dtype=np.float64)
+        self._stacked = (tuple(o.template for o in objs), tpl, off)
+        return tpl, off
+
+    def _adopt(self, objs: list[TrackedObject], tpl: np.ndarray, off: np.ndarray) -> None:
+        """Object k's template becomes rows off[k]:off[k + 1] of the stack tpl (a kernel's
+        output), and the stack is the last one (_stack)."""
+        for k, obj in enumerate(objs):
+            obj.template = tpl[off[k]:off[k + 1]]
+        self._stacked = (tuple(o.template for o in objs), tpl, off)
 
     def _register_all(self, label, oid, cost, near: np.ndarray, points_odom: np.ndarray) -> set[int]:
         """Move every template onto this scan's points (planar ICP, registration.icp: the fixed points and the
@@ -341,21 +350,23 @@ class ObjectTracker:
             yaw, tx, ty, inlier_fraction, rms, step = res[k].tolist()
             if status[k] == 1:
                 self.unseen += 1  # not in this scan (occluded, out of range, gone)
+                moved[off[k]:off[k + 1]] = tpl[off[k]:off[k + 1]]  # it stays where it was
                 continue
             # Too few pairs; a fit that matched too little of the template (it slid half-way onto
             # something else), or matched it loosely, or jumped farther than an object goes in a
             # scan: refused.
             if status[k] == 2 or step > c.max_step_m or inlier_fraction < c.min_inlier_fraction or rms > c.max_rms_m:
                 self.lost += 1
+                moved[off[k]:off[k + 1]] = tpl[off[k]:off[k + 1]]
                 continue
             self.registrations += 1
-            obj.template = moved[off[k]:off[k + 1]]
             cs, sn = math.cos(yaw), math.sin(yaw)
             ax, ay = float(obj.anchor[0]), float(obj.anchor[1])
             obj.anchor = np.array([cs * ax - sn * ay + tx, sn * ax + cs * ay + ty])
             obj.yaw += yaw
             obj.tracked_scans += 1
             followed.add(obj.object_id)
+        self._adopt(objs, moved, off)
         return followed
 
     def _label_all(self, label, oid, cost, near: np.ndarray, points_odom: np.ndarray) -> int:
@@ -380,8 +391,7 @@ class ObjectTracker:
             yaws = np.array([o.yaw for o in objs])
             merged, noff, grown = spread_all(points_odom, (taken, toff), (tpl, off, yaws), view_extents,
                                              (float(c.max_spread_m), float(c.template_voxel_m), int(c.max_template_points)))
-            for k in np.flatnonzero(grown):
-                objs[k].template = merged[noff[k]:noff[k + 1]]
+            self._adopt(objs, merged, noff)  # (an object not grown: its template's values again)
         n = int(taken.size)
         if self._origin is not None and c.behind_m > 0.0:
             tpl, off = self._stack(objs)  # as grown

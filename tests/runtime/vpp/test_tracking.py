@@ -409,3 +409,38 @@ def test_a_point_seen_behind_the_objects_face_is_the_objects_but_not_a_wall_beyo
         tracker.update(0.1 * k, part, pts, origin_odom=origin)
         assert (part.label[len(front):len(front) + 5] == MOVABLE).all()
     assert tracker.objects[7].template[:, 0].max() <= 1.8 + 0.06 + 1e-9
+
+
+def test_the_reused_stack_of_templates_is_always_the_templates_themselves():
+    """The tracker hands the kernels the templates stacked and reuses the last stack while the
+    objects still hold its very arrays: after every kind of scan (registered, refused, confirmed,
+    an object dropped, objects in another order than their ids) the stack it would use is the
+    templates concatenated."""
+    tracker = ObjectTracker()
+    wall = _wall(1.5)
+    boxes = {7: (0.0, 0.0), 8: (0.0, 0.7), 9: (0.0, -0.7)}
+    t = 0.0
+    for scan in range(12):
+        t += 0.1
+        pts, label = [], []
+        for k, (x, y) in boxes.items():
+            dx = 0.03 * scan if k == 7 else (0.5 if k == 8 and scan == 6 else 0.0)  # pushed; knocked away once
+            b = _box(x + dx, y)
+            pts.append(b)
+            # object 9 first (the tracker's order is not the ids' order), then every third scan all
+            label.append(np.full(len(b), k if k == 9 or (scan % 3 == 0 and scan > 0) else -1))
+        pts.append(wall)
+        label.append(np.full(len(wall), -1))
+        pts, label = np.concatenate(pts), np.concatenate(label)
+        part = _part(len(pts))
+        for k in boxes:
+            sel = label == k
+            part.label[sel], part.object_id[sel], part.cost[sel] = MOVABLE, k, 2.0
+        if scan == 9:
+            tracker.objects.pop(9, None)  # the stage demoted it
+        tracker.update(t, part, pts)
+        objs = [o for o in tracker.objects.values() if len(o.template)]
+        tpl, off = tracker._stack(objs)
+        np.testing.assert_array_equal(tpl, np.concatenate([o.template for o in objs]))
+        assert off.tolist() == np.concatenate([[0], np.cumsum([len(o.template) for o in objs])]).tolist()
+    assert tracker.registrations > 0 and tracker.lost > 0
