@@ -17,7 +17,7 @@ dense grid holds) and separate the objects. The label memory's voxel table
 (runtime/vpp/voxel_hash.py) persists between scans and answers "what was here"; these cells live
 for one call.
 
-Kernel arguments, grouped: points = (p_cam, seen, pix, midx); keys = (sorted keys, their point
+Kernel arguments, grouped: points = (p_cam, the seen points' indices (ascending), pix, midx); keys = (sorted keys, their point
 indices) (cell_keys); cells = (point indices sp, the occupied cells' keys, their starts in sp);
 gate = (warped, masks, warp tables, lens, costs, completion_dilate_px): the completion's mask
 test; limits = (eps, n_min, depth_gap (-1: off), completion on).
@@ -58,15 +58,17 @@ def _find(parent, a):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _movable_keys(pts, midx, inv):  # pragma: no cover - compiled
+def _movable_keys(pts, midx, rows, inv):  # pragma: no cover - compiled
+    """The cell keys and indices of the movable points among rows (ascending point indices)."""
     k = 0
-    for i in range(midx.shape[0]):
-        if midx[i] >= 0:
+    for j in range(rows.shape[0]):
+        if midx[rows[j]] >= 0:
             k += 1
     keys = np.empty(k, np.int64)
     mv = np.empty(k, np.int64)
     k = 0
-    for i in range(midx.shape[0]):
+    for j in range(rows.shape[0]):
+        i = rows[j]
         if midx[i] >= 0:
             keys[k] = pack(midx[i], cell(pts[i, 0], inv), cell(pts[i, 1], inv), cell(pts[i, 2], inv))
             mv[k] = i
@@ -124,14 +126,15 @@ def _scatter_cells(ukeys, counts, pc, mv, order):  # pragma: no cover - compiled
     return sk, sp
 
 
-def cell_keys(pts: np.ndarray, midx: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted cell keys (object index, then cells of side eps/2) of the movable points, and the
+def cell_keys(pts: np.ndarray, midx: np.ndarray, rows: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted cell keys (object index, then cells of side eps/2) of the movable points (midx >= 0)
+    among rows (ascending point indices: the seen points, the only ones a mask can hold), and the
     point index at each sorted position (ascending within a cell): what a stable argsort of the
     keys gives, the same on every CPU. Thousands of points fall in hundreds of cells, so the
     points are bucketed by cell through a hash table and only the distinct keys are sorted (a
     stable sort of the int64 keys themselves is timsort in numpy: ~150 us on a scan's 5,000
     movable points, against ~40 us for this)."""
-    keys, mv = _movable_keys(pts, midx, 2.0 / eps)
+    keys, mv = _movable_keys(pts, midx, rows, 2.0 / eps)
     if not keys.shape[0]:
         return keys, mv
     ukeys, counts, pc = _bucket_cells(keys)
@@ -337,7 +340,7 @@ def complete(points, cells, ckept, gate, eps, out):  # pragma: no cover - compil
     """Completion: a seen point no mask labelled joins the highest-cost object m that has a kept
     point within eps of it and whose mask, dilated by a square of half-size dilate_px, holds its
     pixel (out[i] = m). Returns the points added."""
-    pts, seen, pix, midx = points
+    pts, seen_rows, pix, midx = points
     warped, masks, tables, lens, costs, dilate_px = gate
     # Known defect, kept as the partition behaves: the dilated-mask test of a warped mask reads
     # the flat crop array from the cell runs' starts (cells[2]), not from the crops' own starts
@@ -350,8 +353,9 @@ def complete(points, cells, ckept, gate, eps, out):  # pragma: no cover - compil
     eps2 = eps * eps
     bb = _kept_boxes(pts, cells, ckept, M, eps)
     added = 0
-    for i in range(pts.shape[0]):
-        if not seen[i] or midx[i] >= 0:
+    for j in range(seen_rows.shape[0]):
+        i = seen_rows[j]
+        if midx[i] >= 0:
             continue
         best = -1
         bc = -1.0
@@ -379,7 +383,7 @@ def refine(points, depth, keys, gate, limits, half):  # pragma: no cover - compi
     """The cluster refinement (step 4): components (join_cells), suppression, completion.
     keys: (sorted cell keys, their point indices) of the movable points (cell_keys, at least
     one); depth: each point's camera depth. Returns (new midx, n removed, n added)."""
-    pts, seen, pix, midx = points
+    pts, _, _, midx = points
     eps, n_min, depth_gap, do_complete = limits
     sk, sp = keys
     out = midx.copy()

@@ -78,8 +78,9 @@ class PointPartitioner:
             cap = max(n, int(1.25 * w["cap"]))
             w.update(cap=cap, ground=np.empty(cap, np.bool_), seen=np.empty(cap, np.bool_),
                      pix=np.empty((cap, 2), np.int64), midx=np.empty(cap, np.int32), keys=np.empty(cap, np.int64),
-                     p_cam=np.empty((cap, 3)), cand=np.empty(cap + 1, np.int64), ray=np.empty((cap + 1, 2)))
-        return {k: v[:n + 1] if k in ("cand", "ray") else v[:n] for k, v in w.items() if k != "cap"}
+                     p_cam=np.empty((cap, 3)), cand=np.empty(cap + 1, np.int64), ray=np.empty((cap + 1, 2)),
+                     seen_rows=np.empty(cap + 1, np.int64))
+        return {k: v[:n + 1] if k in ("cand", "ray", "seen_rows") else v[:n] for k, v in w.items() if k != "cap"}
 
     def _ids_and_costs(self, object_ids, costs, m: int) -> tuple[np.ndarray, np.ndarray]:
         """check_ids_costs, remembered for the same ids and costs as the last call (the stage
@@ -147,8 +148,8 @@ class PointPartitioner:
         """
         s = self._checked(points_lidar, T_cam_lidar, camera, masks, object_ids, costs, T_base_lidar=T_base_lidar,
                           ignore=ignore, T_odom_lidar=T_odom_lidar, stamp_s=stamp_s)
-        nc, p_cam, keys_done = self._project(s)
-        midx, removed, added = self._gate(s, nc, p_cam)
+        (nc, ns), p_cam, keys_done = self._project(s)
+        midx, removed, added = self._gate(s, (nc, ns), p_cam)
         n = s.p.shape[0]
         label = np.empty(n, np.int8)
         object_id = np.empty(n, np.int32)
@@ -210,20 +211,20 @@ class PointPartitioner:
         return _Scan(p, T, camera, m, lk, ids, cst, Tb, has_base, To, float(stamp_s) if To is not None else 0.0, wk,
                      np.empty(n, bool), np.empty((n, 3)) if To is not None else NO_PODOM)
 
-    def _project(self, s: _Scan) -> tuple[int, np.ndarray, bool]:
-        """Steps 1-2 (projection.py): (candidates of the warped lookup, p_cam, whether the memory's
-        keys were computed on the way)."""
+    def _project(self, s: _Scan) -> tuple[tuple[int, int], np.ndarray, bool]:
+        """Steps 1-2 (projection.py): ((candidates of the warped lookup, seen points), p_cam,
+        whether the memory's keys were computed on the way)."""
         c, wk, cam = self.config, s.wk, s.camera
         use_memory = s.To is not None
         W, H = cam.width_px, cam.height_px
-        per_point = (wk["ground"], wk["p_cam"], s.in_view, wk["seen"], wk["pix"])
+        per_point = (wk["ground"], wk["p_cam"], s.in_view, wk["seen"], wk["pix"], wk["seen_rows"])
         candidates = (s.lk.rays if s.lk is not None else NO_RAYS, union_box(s.lk.box) if s.lk is not None else NO_BOX,
                       wk["cand"], wk["ray"])
         if len(cam.dist) <= 12:
             odom = (s.To if use_memory else EYE4, use_memory, 1.0 / self.memory.voxel_m, wk["keys"], s.p_odom)
-            nc = project_scan(s.p, (s.T, cam.lens, W, H), (s.Tb, s.has_base, c.ground_max_z_m), odom, per_point,
+            counts = project_scan(s.p, (s.T, cam.lens, W, H), (s.Tb, s.has_base, c.ground_max_z_m), odom, per_point,
                               (NO_UV, False), candidates)
-            return nc, wk["p_cam"], use_memory
+            return counts, wk["p_cam"], use_memory
         # the 14-coefficient (tilted) model: cv2 through CameraModel.project
         p_cam = transform(s.p, s.T)
         if s.has_base:
@@ -233,16 +234,17 @@ class PointPartitioner:
         uv = np.zeros((s.p.shape[0], 2))
         s.in_view[:] = False
         uv[front], s.in_view[front] = cam.project(p_cam[front])
-        nc = seen_pixels(uv, W, H, per_point, candidates)
+        counts = seen_pixels(uv, W, H, per_point, candidates)
         if use_memory:
             s.p_odom = transform(s.p, s.To)
-        return nc, p_cam, False
+        return counts, p_cam, False
 
-    def _gate(self, s: _Scan, nc: int, p_cam: np.ndarray) -> tuple[np.ndarray, int, int]:
+    def _gate(self, s: _Scan, counts: tuple[int, int], p_cam: np.ndarray) -> tuple[np.ndarray, int, int]:
         """Steps 3-4 (gating.py, clustering.py): (mask index per point, outliers removed, points
         completed). Clustered in the camera frame: a rigid transform keeps distances, and p_cam
         is float64."""
         c, wk = self.config, s.wk
+        nc, ns = counts  # candidates of the warped lookup, seen points (wk["seen_rows"][:ns])
         midx = wk["midx"]
         if s.lk is not None:
             order = np.argsort(-s.costs, kind="stable")  # cost descending, index ascending among equals
@@ -251,11 +253,12 @@ class PointPartitioner:
             hits = mask_lookup(s.masks, s.costs, wk["pix"], wk["seen"], midx)
         if not (s.masks.shape[0] and hits):
             return midx, 0, 0
-        sk, sp = cell_keys(p_cam, midx, c.eps_cluster_m)
+        seen_rows = wk["seen_rows"][:ns]
+        sk, sp = cell_keys(p_cam, midx, seen_rows, c.eps_cluster_m)
         tables, lens = (s.lk.tables, s.lk.lens) if s.lk is not None else (_NO_WARP, s.camera.lens)
         gate = (s.lk is not None, s.masks, tables, lens, s.costs, c.completion_dilate_px)
         limits = (c.eps_cluster_m, c.n_min, c.max_depth_gap_m if c.max_depth_gap_m is not None else -1.0, c.completion)
-        return refine((p_cam, wk["seen"], wk["pix"], midx), p_cam[:, 2], (sk, sp), gate, limits, HALF)
+        return refine((p_cam, seen_rows, wk["pix"], midx), p_cam[:, 2], (sk, sp), gate, limits, HALF)
 
 
 def partition_points(points_lidar, T_cam_lidar, camera, masks, object_ids, costs,

@@ -19,7 +19,8 @@ misses in flight, where the lookup would wait on each (docs/decisions/vpp-compil
 
 Kernel arguments, grouped: camera = (T_cam_lidar, lens, W, H); ground_cut = (T_base_lidar,
 has_base, z_max); odom = (T_odom_lidar, has_odom, 1 / voxel edge, keys out, p_odom out);
-per_point = (ground, p_cam, in_view, seen, pix); uv_out = (uv, store_uv); candidates = (rays,
+per_point = (ground, p_cam, in_view, seen, pix, seen_rows: the indices of the seen points, in order);
+uv_out = (uv, store_uv); candidates = (rays,
 rbox (u0, v0, u1, v1 inclusive), cand out, ray out).
 """
 from __future__ import annotations
@@ -69,7 +70,7 @@ def transform(p, T):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  # pragma: no cover - compiled
-    """The passes (module docstring); returns the number of candidates: cand[:k] the seen points
+    """The passes (module docstring); returns (k, the number of seen points): cand[:k] the seen points
     whose pixel lies in rbox, in order, ray[:k] their pixel rays (cand and ray need n + 1 rows).
     in_view is CameraModel.project's `valid` of p_cam, seen = in_view and not ground, pix the
     nearest pixel centre of each seen point (-1 for the others); ground |= height after Tb <
@@ -79,7 +80,7 @@ def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  #
     T, lens, W, H = camera
     Tb, has_base, z_max = ground_cut
     To, has_odom, inv, keys, p_odom = odom
-    ground, p_cam, in_view, seen, pix = per_point
+    ground, p_cam, in_view, seen, pix, seen_rows = per_point
     uv, store_uv = uv_out
     rays, rbox, cand, ray = candidates
     # Pass 1, every point: the transforms, the ground, the memory's key; the points in front of
@@ -113,6 +114,7 @@ def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  #
         nf += (Z > 1e-9) & (Z < np.inf)
     # Pass 2, the points in front (half of a 360-degree scan): the lens.
     k = 0
+    ns = 0
     for j in range(nf):
         i = cand[j]
         X = p_cam[i, 0]
@@ -126,6 +128,8 @@ def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  #
         vv = min(max(int(math.floor((v if sn else 0.0) + 0.5)), 0), H - 1)
         pix[i, 0] = uu if sn else -1
         pix[i, 1] = vv if sn else -1
+        seen_rows[ns] = i
+        ns += sn
         cand[k] = i
         k += sn & (uu >= rbox[0]) & (uu <= rbox[2]) & (vv >= rbox[1]) & (vv <= rbox[3])
         if store_uv:
@@ -135,7 +139,7 @@ def project_scan(p, camera, ground_cut, odom, per_point, uv_out, candidates):  #
         i = cand[j]
         ray[j, 0] = rays[pix[i, 1], pix[i, 0], 0]
         ray[j, 1] = rays[pix[i, 1], pix[i, 0], 1]
-    return k
+    return k, ns
 
 
 def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
@@ -149,7 +153,8 @@ def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tup
     n = p.shape[0]
     uv = np.zeros((n, 2))
     valid = np.zeros(n, bool)
-    per_point = (np.zeros(n, bool), np.empty((n, 3)), valid, np.empty(n, bool), np.empty((n, 2), np.int64))
+    per_point = (np.zeros(n, bool), np.empty((n, 3)), valid, np.empty(n, bool), np.empty((n, 2), np.int64),
+                 np.empty(n + 1, np.int64))
     project_scan(p, (check_transform(T, "T"), camera.lens, camera.width_px, camera.height_px), (EYE4, False, 0.0),
                  (EYE4, False, 1.0, NO_KEYS, NO_PODOM), per_point, (uv, True),
                  (NO_RAYS, NO_BOX, np.empty(n + 1, np.int64), np.empty((n + 1, 2))))
@@ -158,15 +163,18 @@ def project_fused(points: np.ndarray, T: np.ndarray, camera: CameraModel) -> tup
 
 @njit(cache=True, nogil=True)
 def seen_pixels(uv, W, H, per_point, candidates):  # pragma: no cover - compiled
-    """seen, pix, cand and ray (as project_scan's; returns the count) from a projection made
-    elsewhere (uv and per_point's in_view: the 14-coefficient model's, by cv2)."""
-    ground, _, in_view, seen, pix = per_point
+    """seen, pix, seen_rows, cand and ray (as project_scan's; returns the same counts) from a
+    projection made elsewhere (uv and per_point's in_view: the 14-coefficient model's, by cv2)."""
+    ground, _, in_view, seen, pix, seen_rows = per_point
     rays, rbox, cand, ray = candidates
     k = 0
+    ns = 0
     for i in range(uv.shape[0]):
         sn = in_view[i] and not ground[i]
         seen[i] = sn
         if sn:
+            seen_rows[ns] = i
+            ns += 1
             uu = min(max(int(math.floor(uv[i, 0] + 0.5)), 0), W - 1)
             vv = min(max(int(math.floor(uv[i, 1] + 0.5)), 0), H - 1)
             pix[i, 0] = uu
@@ -179,7 +187,7 @@ def seen_pixels(uv, W, H, per_point, candidates):  # pragma: no cover - compiled
         else:
             pix[i, 0] = -1
             pix[i, 1] = -1
-    return k
+    return k, ns
 
 
 __all__ = ["EYE4", "mark_ground", "project_fused", "project_scan", "seen_pixels", "transform"]
