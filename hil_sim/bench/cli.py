@@ -287,11 +287,14 @@ def icp_parts_bench_command(*, rays: tuple[int, ...], seconds: float, seed: int,
               help="Lidar points per scan.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
 @click.option("--cpu", type=click.IntRange(0, 1023), help="Pin the process to this core.")
+@click.option("--first-answer", is_flag=True,
+              help="Time the scans right after the first answer (masks captured before the tracker followed the "
+                   "objects: their warped areas are counted), not the steady state.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Write the figures as JSON (checked before the run, written atomically after it).")
 @click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
 def vpp_bench_command(*, mask_counts: tuple[int, ...], repeats: int, n_points: int, seed: int, cpu: int | None,
-                      json_path: Path | None, force: bool) -> None:
+                      first_answer: bool, json_path: Path | None, force: bool) -> None:
     """The whole VPP stage per scan (VppStage.update: Phase I, partition, tracking), single-threaded,
     with 1, 4 and 8 movable masks in memory and the camera moving: p50/p99/max and the split."""
     import os
@@ -310,7 +313,7 @@ def vpp_bench_command(*, mask_counts: tuple[int, ...], repeats: int, n_points: i
     if n_points // 4 // max(counts) < 32:  # synthetic_frame: a quarter of the points on the boxes
         raise InputError(f"--points {n_points}: too few for {max(counts)} masks (each box needs 32 points for its "
                          f"plane; at least {128 * max(counts)})")
-    out = run_vpp_benchmark(counts, repeats, n_points, seed, cpu, echo=click.echo)
+    out = run_vpp_benchmark(counts, repeats, n_points, seed, cpu, echo=click.echo, first_answer=first_answer)
     if json_path is not None:
         atomic_write_json(json_path, with_provenance(out))
 

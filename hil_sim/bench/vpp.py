@@ -6,7 +6,13 @@ The scene is synthetic_frame (a room, a floor and boxes in front of the
 camera, with lens distortion), fixed in the odom frame. The stage runs as in the controller: a
 tiny in-process backend behind a lockstep BackendRunner answers the first image with one movable
 mask per box (the masks of synthetic_frame, capture pose = the start), so the memory holds
-`masks` entries, each with a plane from the lidar points in it. Then the robot sways (up to
+`masks` entries, each with a plane from the lidar points in it. The tracker follows the boxes
+from that answer on; a second answer, asked 2 s later (t_thres), captures the masks again while
+the tracker follows them: the steady state of an episode, where the stage knows whether each
+object moved since its mask's capture and counts no warped area (VppStage._gates). With
+`first_answer` the scans are timed right after the first answer instead (an episode's first
+seconds, or a new object: the masks' warped areas are counted for the growth rule). Then the
+robot sways (up to
 0.25 m along x and y, 0.08 rad of yaw, so every warp is a real homography) and each timed call
 is `update(now, pose, image=None, scan)` with the scan seen from that pose. No image is sent
 during the timed scans, so no answer arrives: the figures are the steady-state tick. The answer
@@ -160,9 +166,9 @@ def time_partition(n_points: int = 20000, n_masks: int = 8, width: int = 640, he
             "n_completed": res.n_completed, "repeats": repeats}
 
 
-def _build(n_points: int, n_masks: int, seed: int):
-    """(stage, world points (odom), n box points, capture info) with the memory filled through the
-    stage's own request -> answer -> reconcile path."""
+def _build(n_points: int, n_masks: int, seed: int, first_answer: bool = False):
+    """(stage, scan_at, masks, costs, the time of the last untimed scan) with the memory filled
+    through the stage's own request -> answer -> reconcile path (module docstring)."""
     from calibration.camera_model import transform_points
     from models.vlm.interface import DetectedObject, VlmAnswer, VlmRequest
     from models.vlm.runner import BackendRunner, BackendRunnerConfig
@@ -191,16 +197,34 @@ def _build(n_points: int, n_masks: int, seed: int):
         return LidarScan(stamp_s=t, points_m=p, point_time_offsets_s=np.zeros(len(p), np.float32),
                          frame_duration_s=0.1)
 
-    image = CameraImage(stamp_s=0.0, pixels=np.zeros((cam.height_px, cam.width_px, 3), np.uint8), K=cam.K,
-                        distortion=cam.dist)
-    stage.update(0.0, (0.0, 0.0, 0.0), image, scan_at(0.0, (0.0, 0.0, 0.0)))
+    def image_at(t: float) -> CameraImage:
+        return CameraImage(stamp_s=t, pixels=np.zeros((cam.height_px, cam.width_px, 3), np.uint8), K=cam.K,
+                           distortion=cam.dist)
+
+    start = (0.0, 0.0, 0.0)
+    stage.update(0.0, start, image_at(0.0), scan_at(0.0, start))
     stage.settle(0.06)
-    stage.update(0.06, (0.0, 0.0, 0.0), None, scan_at(0.06, (0.0, 0.0, 0.0)))
+    t = 0.06
+    stage.update(t, start, None, scan_at(t, start))
+    if not first_answer:  # scans until t_thres asks again, the second answer captured while tracked
+        ask = stage.config.memory.t_thres_s + 0.05
+        while t < ask:
+            t += 0.1
+            stage.update(t, start, image_at(t) if t >= ask else None, scan_at(t, start))
+        stage.settle(t + 0.06)
+        t += 0.06
+        stage.update(t, start, None, scan_at(t, start))
+        if stage.answers != 2:
+            raise RuntimeError(f"bench set-up: the second answer did not arrive ({stage.answers} answers)")
     entries = stage.memory.entries
     if len(entries) != n_masks or any(e.plane is None for e in entries):
         raise RuntimeError(f"bench set-up: expected {n_masks} entries with planes, got "
                            f"{[(e.object_id, e.plane is not None) for e in entries]}")
-    return stage, scan_at, masks, costs
+    followed = [stage.tracker.moved_since(e.object_id, e.stamp_s) is not None for e in entries]
+    if (any(followed) if first_answer else not all(followed)):
+        raise RuntimeError(f"bench set-up: the tracker followed {sum(followed)} of {n_masks} objects since their "
+                           f"masks' capture; expected {'none' if first_answer else 'all'}")
+    return stage, scan_at, masks, costs, t
 
 
 def _pose(k: int) -> tuple[float, float, float]:
@@ -234,16 +258,20 @@ def _time_answers(stage, scan_at, masks, costs, t: float, dt: float, n: int) -> 
     return prep, app
 
 
-def time_stage(n_masks: int, repeats: int = 300, n_points: int = 20000, seed: int = 0, warmup: int = 5) -> dict:
+def time_stage(n_masks: int, repeats: int = 300, n_points: int = 20000, seed: int = 0, warmup: int = 5,
+               first_answer: bool = False) -> dict:
     """Times `repeats` VppStage.update calls with n_masks entries in memory (module docstring)."""
     from runtime.loop.fixed_rate import collector_outside_ticks
 
-    stage, scan_at, masks, costs = _build(n_points, n_masks, seed)
+    stage, scan_at, masks, costs, t0 = _build(n_points, n_masks, seed, first_answer)
     with collector_outside_ticks():
-        return _time_updates(stage, scan_at, masks, costs, n_masks, repeats, n_points, warmup)
+        out = _time_updates(stage, scan_at, masks, costs, n_masks, repeats, n_points, warmup, t0)
+    out["first_answer"] = bool(first_answer)
+    return out
 
 
-def _time_updates(stage, scan_at, masks, costs, n_masks: int, repeats: int, n_points: int, warmup: int) -> dict:
+def _time_updates(stage, scan_at, masks, costs, n_masks: int, repeats: int, n_points: int, warmup: int,
+                  t: float) -> dict:
     from runtime.loop.fixed_rate import FULL_COLLECTION_EVERY_TICKS, collect_between_ticks
 
     timer = _Timer()
@@ -255,7 +283,6 @@ def _time_updates(stage, scan_at, masks, costs, n_masks: int, repeats: int, n_po
     timer.wrap(stage.tracker, "update", "track")
     # time advances slowly, so the entries never age out (max_age_s) over the timed scans
     dt = min(0.05, 0.5 * stage.config.memory.max_age_s / (repeats + warmup + 1))
-    t = 0.1
     names = ("masks", "partition", "track", "other")
     total = {"wall": [], "cpu": []}
     parts = {clock: {k: [] for k in names} for clock in ("wall", "cpu")}
@@ -294,10 +321,12 @@ def _time_updates(stage, scan_at, masks, costs, n_masks: int, repeats: int, n_po
 
 
 def run_vpp_benchmark(mask_counts=DEFAULT_MASK_COUNTS, repeats: int = 300, n_points: int = 20000, seed: int = 0,
-                      cpu: int | None = None, echo: Callable[[str], None] = print) -> dict:
+                      cpu: int | None = None, echo: Callable[[str], None] = print, first_answer: bool = False) -> dict:
     """Prints and returns the figures per mask count."""
     threads = _single_thread(cpu)
-    echo(f"VppStage.update, {n_points} points, {repeats} scans per row, camera moving, single thread "
+    when = ("right after the first answer (masks captured before the tracker followed the objects)" if first_answer
+            else "steady state (masks captured while the tracker follows the objects)")
+    echo(f"VppStage.update, {n_points} points, {repeats} scans per row, camera moving, {when}, single thread "
          f"(numba {threads['numba_threads']}, OpenCV {threads['opencv_threads']}"
          + (f", cpu {cpu}" if cpu is not None else "") + "); budget 3 ms p99 at 8 masks")
     head = (f"{'masks':>5} {'clock':>5} {'p50':>6} {'p99':>6} {'max':>6} | {'Phase I':>11} {'partition':>11} "
@@ -305,7 +334,7 @@ def run_vpp_benchmark(mask_counts=DEFAULT_MASK_COUNTS, repeats: int = 300, n_poi
     echo(head)
     rows = []
     for m in mask_counts:
-        r = time_stage(int(m), repeats, n_points, seed)
+        r = time_stage(int(m), repeats, n_points, seed, first_answer=first_answer)
         rows.append(r)
         for clock in ("cpu", "wall"):
             u, s = r[clock]["update"], r[clock]["split"]
@@ -319,7 +348,7 @@ def run_vpp_benchmark(mask_counts=DEFAULT_MASK_COUNTS, repeats: int = 300, n_poi
          "movable points per scan; an answer (Phase II, about once a second): apply = CPU p50/max of its part in "
          "the tick (add it to that tick's update), prepare = CPU p50 of its image work beside the tick (the "
          "backend runner's worker)")
-    return {"threads": threads, "rows": rows}
+    return {"threads": threads, "first_answer": bool(first_answer), "rows": rows}
 
 
 __all__ = ["DEFAULT_MASK_COUNTS", "run_vpp_benchmark", "synthetic_frame", "time_partition", "time_stage"]
