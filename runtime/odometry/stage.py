@@ -124,8 +124,11 @@ class OdometryStage:
         factory = functools.partial(IcpEngine, c.icp, c.degeneracy, self.mount, c.icp_prior == "odometry")
         from runtime.common.spatial_grid import near_indices
 
-        for planar in (False, True):  # the exclusions' kernel loaded now, not in the first tick that excludes
-            near_indices(np.zeros((1, 3), np.float32), np.zeros((1, 3)), 0.1, planar)
+        read_only = np.zeros((1, 3), np.float32)
+        read_only.flags.writeable = False  # a scan's points (LidarScan): another signature
+        for points in (np.zeros((1, 3), np.float32), read_only):
+            for planar in (False, True):  # the exclusions' kernel loaded now, not in the first tick that excludes
+                near_indices(points, np.zeros((1, 3)), 0.1, planar)
         if self.lockstep and c.lockstep_worker == "inline":
             self.worker = InlineIcpWorker(factory)
         else:

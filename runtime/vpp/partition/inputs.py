@@ -48,9 +48,12 @@ def nonfinite_rows(p):  # pragma: no cover - compiled
 
 
 def check_transform(T: np.ndarray, field: str, known: dict | None = None) -> np.ndarray:
-    """T as float64 (4, 4) if rigid, else PartitionInputError naming `field`. known: transforms
-    (by their bytes) that passed before, checked no more (the mounts are the same every scan)."""
-    T = np.asarray(T, dtype=np.float64)
+    """T as a new float64 (4, 4) C-contiguous writable array if rigid, else PartitionInputError
+    naming `field`. known: transforms (by their bytes) that passed before, checked no more (the
+    mounts are the same every scan). Always a fresh array of one type: the compiled kernels take
+    the transforms as arguments, and a read-only one (a calibration's) would be another signature
+    to compile, in the tick that first meets it."""
+    T = np.array(T, dtype=np.float64, order="C")
     if T.shape != (4, 4):
         raise fail(field, f"must be 4x4, got shape {T.shape}")
     key = T.tobytes() if known is not None else None

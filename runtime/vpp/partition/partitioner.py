@@ -98,8 +98,9 @@ class PointPartitioner:
 
     def _warm_up(self) -> None:
         """Run every kernel once on a tiny frame (compile or cache load at start-up). A scan's
-        points are read-only (LidarScan): numba compiles another signature for them, warmed up
-        too (docs/decisions/vpp-compiled-kernels.md)."""
+        points are read-only (LidarScan), and so may be a caller's masks: numba compiles another
+        signature for them, warmed up too (docs/decisions/vpp-compiled-kernels.md; the transforms
+        are copied by check_transform, one signature whatever the caller's)."""
         memory = self.memory
         self.memory = LabelMemory(1.0, 1.0, 64)
         try:
@@ -109,9 +110,12 @@ class PointPartitioner:
             ro.flags.writeable = False
             masks = np.zeros((1, 8, 8), bool)
             masks[0, 3:5, 3:5] = True
+            masks_ro = masks.copy()
+            masks_ro.flags.writeable = False
             for p in (pts, ro):
-                self.partition(p, np.eye(4), cam, masks, [0], [1.0], T_base_lidar=np.eye(4), T_odom_lidar=np.eye(4),
-                               stamp_s=0.0)
+                for m in (masks, masks_ro):
+                    self.partition(p, np.eye(4), cam, m, [0], [1.0], T_base_lidar=np.eye(4), T_odom_lidar=np.eye(4),
+                                   stamp_s=0.0)
             for dist in (np.zeros(5), np.array([-0.05, 0.01, 0.0, 0.0, 0.0])):  # the per-pixel warp path
                 wcam = CameraModel(cam.K, dist, 8, 8)
                 lk = warp_lookup(wcam, masks, np.eye(4)[None], [Plane(np.array([0.0, 0.0, 1.0]), 2.0)], np.eye(4))

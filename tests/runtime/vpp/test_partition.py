@@ -423,3 +423,40 @@ def test_cluster_cells_are_a_stable_sort_of_the_keys(seed, n, spread, masks, eps
     got_keys, got_points = cell_keys(pts, midx, rows, eps)
     np.testing.assert_array_equal(got_keys, keys[order])
     np.testing.assert_array_equal(got_points, mv[order])
+
+
+def test_after_construction_the_partition_compiles_nothing_whatever_its_inputs_flags():
+    """Every kernel signature the partition uses is compiled (or loaded from numba's cache) at
+    construction: read-only points, masks and transforms (a calibration's) in a scan add no
+    signature, which would be compiled in the tick that first met it."""
+    import importlib
+
+    from numba.core.registry import CPUDispatcher
+
+    from hil_sim.bench.vpp import synthetic_frame
+    from runtime.vpp.homography.lookup import warp_lookup
+    from runtime.vpp.homography.plane import Plane
+
+    pts, T, cam, masks, ids, costs, T_base = synthetic_frame(4000, 2)
+    part = PointPartitioner()
+    lk = warp_lookup(cam, masks, np.stack([np.eye(4)] * 2), [Plane(np.array([0.0, 0.0, 1.0]), 1.5)] * 2, np.eye(4))
+    modules = [importlib.import_module(f"runtime.vpp.partition.{m}")
+               for m in ("clustering", "gating", "label_memory", "projection")]
+    kernels = {f"{m.__name__}.{k}": v for m in modules for k, v in vars(m).items() if isinstance(v, CPUDispatcher)}
+
+    def signatures():
+        return {k: set(v.overloads) for k, v in kernels.items()}
+
+    def frozen(a):
+        a = np.array(a)
+        a.flags.writeable = False
+        return a
+
+    before = signatures()
+    for ro in (False, True):
+        f = frozen if ro else np.array
+        for m in (f(masks), lk):
+            part.partition(f(pts), f(T), cam, m, ids, costs, T_base_lidar=f(T_base), T_odom_lidar=f(np.eye(4)),
+                           stamp_s=1.0)
+    after = signatures()
+    assert {k: after[k] - before[k] for k in kernels if after[k] != before[k]} == {}
