@@ -286,21 +286,21 @@ class VppStage:
         follow it all that time)."""
         return self.tracker.moved_since(entry.object_id, entry.stamp_s)
 
-    def _gates(self, entry, warped_px: Callable[[], float], captured_px: float, in_image: bool) -> bool:
+    def _gates(self, entry, moved: float | None, warped_px: Callable[[], float], captured_px: float,
+               in_image: bool) -> bool:
         """Does this entry's warped mask gate points this scan? Movable, below never_touch_cost,
         in the image (in_image: its warped bounding box is not empty), and trusted: the warp
         assumes the object stood still since capture. The tracker knows whether it did: a moved
         one is not warped but tracked; a still one is trusted however much the camera's approach
         grew it. Not followed all that time: the growth rule (max_mask_growth) on the warped
         area (warped_px(), counted only then; an empty warp does not gate). Distrusted masks are
-        counted."""
+        counted. moved: _moved(entry)."""
         if not (entry.movable and entry.contact_cost < self.config.never_touch_cost and in_image):
             return False
         if entry.object_id in self.memory.demoted:  # correcting mode: a push on it failed (eq. 14)
             return False
         if self._believed_fixed(entry.object_id):  # believed heavy or fragile (it becomes demoted)
             return False
-        moved = self._moved(entry)
         if moved is not None:
             distrust = moved > self.config.moved_tolerance_m
         else:
@@ -447,15 +447,21 @@ class VppStage:
         bounding box has at most homography.lookup.AREA_SAMPLES pixels, else estimated on a grid)."""
         if self._per_pixel:
             # the growth test reads the warped area only of objects the tracker did not follow
-            entries, lk = self.memory.lookup(now_s, T_odom_cam, select=self._may_gate,
-                                             area_of=lambda e: self._moved(e) is None)
+            moved: dict[int, float | None] = {}
+
+            def not_followed(e) -> bool:
+                moved[id(e)] = self._moved(e)
+                return moved[id(e)] is None
+
+            entries, lk = self.memory.lookup(now_s, T_odom_cam, select=self._may_gate, area_of=not_followed)
             px = self.memory.mask_px()
             use = [k for k, e in enumerate(entries)
-                   if self._gates(e, lambda k=k: float(lk.area_px[k]), float(px[k]), lk.box[k, 0] <= lk.box[k, 2])]
+                   if self._gates(e, moved[id(e)], lambda k=k: float(lk.area_px[k]), float(px[k]),
+                                  lk.box[k, 0] <= lk.box[k, 2])]
             return lk.select(use), [entries[k] for k in use]
         warped = [w for w in self.memory.propagate(now_s, T_odom_cam)
-                  if self._gates(w.entry, lambda w=w: np.count_nonzero(w.mask), np.count_nonzero(w.entry.mask),
-                                 bool(w.mask.any()))]
+                  if self._gates(w.entry, self._moved(w.entry), lambda w=w: np.count_nonzero(w.mask),
+                                 np.count_nonzero(w.entry.mask), bool(w.mask.any()))]
         h, w = self.camera.height_px, self.camera.width_px
         masks = np.stack([m.mask for m in warped]) if warped else np.zeros((0, h, w), bool)
         return masks, [m.entry for m in warped]

@@ -42,6 +42,8 @@ class TrackedObject:
     #: (time, anchor x, y, known) after every scan: where the object was when, and whether this
     #: scan registered it or a mask saw it (moved_since).
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_SCANS))
+    #: The time of the newest scan in history that did not know where the object was.
+    last_unknown_s: float = -math.inf
     #: Mask views merged into the template (a template one view made may be that view's mistake).
     confirmations: int = 1
 
@@ -151,7 +153,10 @@ class ObjectTracker:
         added = self._label_all(label, oid, cost, near, points_odom)
         for k, obj in self.objects.items():
             # Known this scan: registered, or seen by a mask (whose view, if it disagreed, moved the anchor).
-            obj.history.append((float(now_s), *obj.anchor, k in followed or k in confirming))
+            known = k in followed or k in confirming
+            obj.history.append((float(now_s), *obj.anchor, known))
+            if not known:
+                obj.last_unknown_s = float(now_s)
         self.points_tracked += added
         return added
 
@@ -193,13 +198,19 @@ class ObjectTracker:
         obj = self.objects.get(int(object_id))
         if obj is None or not obj.history or obj.history[0][0] > t_s:
             return None
-        # newest first: a capture is a few scans old, the history up to HISTORY_SCANS long
-        for h in reversed(obj.history):
-            if h[0] <= t_s:
-                return float(math.hypot(obj.anchor[0] - h[1], obj.anchor[1] - h[2]))
-            if not h[3]:
-                return None  # a scan after t_s that did not know where the object was
-        return None
+        if obj.last_unknown_s > t_s:
+            return None  # a scan after t_s that did not know where the object was
+        # the newest scan at or before t_s (a binary search: the stage asks for every mask every scan)
+        hist = obj.history
+        lo, hi = 0, len(hist)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if hist[mid][0] <= t_s:
+                lo = mid + 1
+            else:
+                hi = mid
+        h = hist[lo - 1]
+        return float(math.hypot(obj.anchor[0] - h[1], obj.anchor[1] - h[2]))
 
     def displacement(self, object_id: int, t0_s: float, t1_s: float) -> tuple[float, float] | None:
         """How far (dx, dy in the odom frame, m) object_id's anchor moved from time t0_s to t1_s
@@ -278,6 +289,7 @@ class ObjectTracker:
                             view if old is None else max(view, old.view_extent_m), anchor, yaw)
         if old is not None:
             obj.history = old.history
+            obj.last_unknown_s = old.last_unknown_s
             obj.confirmations = old.confirmations + 1
         self.objects[k] = obj
 

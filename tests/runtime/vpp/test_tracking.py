@@ -444,3 +444,39 @@ def test_the_reused_stack_of_templates_is_always_the_templates_themselves():
         np.testing.assert_array_equal(tpl, np.concatenate([o.template for o in objs]))
         assert off.tolist() == np.concatenate([[0], np.cumsum([len(o.template) for o in objs])]).tolist()
     assert tracker.registrations > 0 and tracker.lost > 0
+
+
+def _moved_since_reference(obj, t_s):
+    """moved_since by its definition: newest scan first, back to the newest at or before t_s; None
+    on the way at a scan that did not know where the object was."""
+    if obj is None or not obj.history or obj.history[0][0] > t_s:
+        return None
+    for h in reversed(obj.history):
+        if h[0] <= t_s:
+            return float(math.hypot(obj.anchor[0] - h[1], obj.anchor[1] - h[2]))
+        if not h[3]:
+            return None
+    return None
+
+
+@settings(max_examples=200, deadline=None)
+@given(known=st.lists(st.booleans(), min_size=1, max_size=400), queries=st.lists(st.floats(-1.0, 50.0), max_size=20),
+       seed=st.integers(0, 2**31 - 1))
+def test_moved_since_is_its_definition(known, queries, seed):
+    """The binary search over the history and the newest unknown scan's time give what walking
+    the history newest first gives, whatever the history (longer than it keeps: the oldest drop)."""
+    rng = np.random.default_rng(seed)
+    tracker = ObjectTracker()
+    from runtime.vpp.tracking.tracker import TrackedObject
+
+    obj = TrackedObject(3, 1.0, _box(0.0, 0.0), 0.0)
+    t = 0.0
+    for k in known:  # as update() appends them: increasing scan times
+        t += float(rng.uniform(0.05, 0.15))
+        obj.history.append((t, float(rng.normal()), float(rng.normal()), k))
+        if not k:
+            obj.last_unknown_s = t
+    tracker.objects[3] = obj
+    times = [h[0] for h in obj.history]
+    for q in queries + times[:: max(1, len(times) // 10)]:
+        assert tracker.moved_since(3, q) == _moved_since_reference(obj, q)
