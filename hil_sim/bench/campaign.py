@@ -228,10 +228,11 @@ def default_workers() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def run_tasks(tasks: list[EpisodeTask], workers: int, ray_address: str | None = None,
-              on_done: Callable[[dict], None] | None = None) -> list[dict]:
-    """Every task's record, in the order of `tasks` (whatever order they finished in)."""
-    done: dict[EpisodeTask, dict] = {}
+def run_tasks(tasks: list, workers: int, ray_address: str | None = None,
+              on_done: Callable[[dict], None] | None = None, run: Callable = run_task) -> list[dict]:
+    """Every task's record (`run(task)`: a module-level function, picklable, for the workers), in
+    the order of `tasks` (whatever order they finished in)."""
+    done: dict[object, dict] = {}
 
     def finish(task: EpisodeTask, record: dict) -> None:
         done[task] = record
@@ -239,10 +240,10 @@ def run_tasks(tasks: list[EpisodeTask], workers: int, ray_address: str | None = 
             on_done(record)
 
     if ray_address is not None:
-        _run_on_ray(tasks, ray_address, workers, finish)
+        _run_on_ray(tasks, ray_address, workers, finish, run)
     elif workers <= 1 or len(tasks) <= 1:
         for task in tasks:
-            finish(task, run_task(task))
+            finish(task, run(task))
     else:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -250,7 +251,7 @@ def run_tasks(tasks: list[EpisodeTask], workers: int, ray_address: str | None = 
         # spawn: a fresh interpreter per worker (no forked MuJoCo/torch/thread state).
         with ProcessPoolExecutor(max_workers=min(workers, len(tasks)),
                                  mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = {pool.submit(run_task, t): t for t in tasks}
+            futures = {pool.submit(run, t): t for t in tasks}
             try:
                 for fut in as_completed(futures):
                     finish(futures[fut], fut.result())
@@ -260,8 +261,8 @@ def run_tasks(tasks: list[EpisodeTask], workers: int, ray_address: str | None = 
     return [done[t] for t in tasks]
 
 
-def _run_on_ray(tasks: list[EpisodeTask], address: str, workers: int,
-                finish: Callable[[EpisodeTask, dict], None]) -> None:
+def _run_on_ray(tasks: list, address: str, workers: int, finish: Callable[[object, dict], None],
+                run: Callable = run_task) -> None:
     """The tasks as Ray tasks (one CPU each). `address` "local": a private single-node Ray on
     this machine with `workers` CPUs; anything else is ray.init's address ("auto",
     "ray://head:10001", "head:6379"): every node needs this package installed."""
@@ -283,7 +284,7 @@ def _run_on_ray(tasks: list[EpisodeTask], address: str, workers: int,
     except (ConnectionError, ValueError, RuntimeError) as exc:
         raise CampaignError(f"--ray {address}: cannot connect: {exc}".splitlines()[0]) from None
     try:
-        remote = ray.remote(num_cpus=1, max_retries=0)(run_task)
+        remote = ray.remote(num_cpus=1, max_retries=0)(run)
         refs = {remote.remote(t): t for t in tasks}
         pending = list(refs)
         while pending:

@@ -496,6 +496,65 @@ def beacon_command(**options) -> None:
     _run_campaign_command("beacon", **options)
 
 
+@bench_group.command("faults")
+@click.option("--scenes", "scenes", multiple=True, metavar="NAME",
+              help="Scenes (repeatable, or comma-separated).  [default: case3, corridor_boxes, gap_wedged]")
+@click.option("--seeds", default=5, show_default=True, type=click.IntRange(1, 10000), help="Seeds per scene and fault.")
+@click.option("--first-seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--fault", "faults", multiple=True, metavar="NAME",
+              help="Faults to run (repeatable, or comma-separated).  [default: every fault]")
+@click.option("--start", "start_s", default=2.0, show_default=True, type=click.FloatRange(0.0, 600.0),
+              help="Simulated seconds from the episode's start to the injection.")
+@click.option("--duration", "duration_s", default=1.0, show_default=True, type=click.FloatRange(0.01, 600.0),
+              help="How long each fault lasts (s).")
+@click.option("--workers", type=click.IntRange(1, 256),
+              help="Episodes in parallel (worker processes; the rows do not depend on it).  [default: all cores]")
+@click.option("--ray", "ray_address", metavar="ADDRESS",
+              help="Run the episodes as Ray tasks: 'local', 'auto', 'ray://HEAD:10001' or 'HEAD:6379' (the [ray] "
+                   "extra).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the rows and the episodes as JSON (checked before the run, written atomically after it).")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def faults_bench_command(*, scenes: tuple[str, ...], seeds: int, first_seed: int, faults: tuple[str, ...],
+                         start_s: float, duration_s: float, workers: int | None, ray_address: str | None,
+                         json_path: Path | None, force: bool) -> None:
+    """Every fault (docs/faults.md) on a few scenes in lockstep: per fault, how many episodes stopped and how
+    soon after the injection (to the zero command the base obeyed), how soon it drove again after the fault,
+    fixed contacts, goals reached, the stop reasons; a row whose reaction differs from the documented one is
+    marked and the command exits 1."""
+    from calibration.outputs import atomic_write_json
+    from hil_sim.bench.campaign import default_workers
+    from hil_sim.bench.faults import DEFAULT_SCENES, FaultCampaignError, format_fault_table, run_fault_campaign
+    from hil_sim.episode.faults import FAULT_NAMES
+    from runtime.common.cli_support import checked_output
+
+    def split(values: tuple[str, ...]) -> tuple[str, ...]:
+        return tuple(x.strip() for v in values for x in v.split(",") if x.strip())
+
+    scene_list = split(scenes) or DEFAULT_SCENES
+    for scene in scene_list:
+        check_scenario_and_output(scene, first_seed, None, False)
+    if ray_address is not None:
+        from calibration.extras import require
+
+        require("ray", what="--ray (without it the campaign runs in local worker processes)")
+    checked_output(json_path, "--json", [], force)
+    try:
+        result = run_fault_campaign(scenes=scene_list, seeds=seeds, first_seed=first_seed,
+                                    faults=split(faults) or FAULT_NAMES, start_s=start_s, duration_s=duration_s,
+                                    workers=workers or default_workers(), ray_address=ray_address,
+                                    on_done=lambda r: click.echo(f"  {r['fault']} {r['scene']} seed {r['seed']}: "
+                                                                 f"{'error' if 'error' in r else 'done'}", err=True))
+    except FaultCampaignError as exc:
+        raise InputError(str(exc)) from None
+    for line in format_fault_table(result):
+        click.echo(line)
+    if json_path is not None:
+        atomic_write_json(json_path, with_provenance(result))
+    if result["differs"]:
+        raise SystemExit(1)
+
+
 @bench_group.command("replay")
 @click.option("--scenario", default="case3", show_default=True)
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))

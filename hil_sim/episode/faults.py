@@ -2,28 +2,39 @@
 
 `dct hil run SCENARIO --fault NAME:START_S[:DURATION_S]` (repeatable). Times are simulated
 seconds from the start of the episode; without a duration the fault lasts to the end.
+`dct bench faults` runs every fault on a few scenes and checks the reaction against the table
+of docs/faults.md (hil_sim/bench/faults.py).
 
-| name           | what the simulator does                                                      |
-|----------------|------------------------------------------------------------------------------|
-| lidar-blind    | every ray out of range: frames arrive with no points (`nothing_seen`)        |
-| lidar-far      | only returns beyond the planner's range: every point pushed out to far_m     |
-| lidar-frozen   | the last frame before the fault is delivered again and again, stamp included |
-| drop-0x311     | the base stops sending 0x311 (odometry)                                      |
-| drop-0x211     | the base stops sending 0x211 (system state)                                  |
-| drop-0x221     | the base stops sending 0x221 (motion state)                                  |
-| imu-silent     | no IMU samples                                                               |
-| estop          | the base reports E-stop in 0x211 (and stops its wheels, ignoring 0x111)      |
+Each fault is one failure type of one input, after PX4's failure injection (`off`, `stuck`,
+`garbage`, `slow`, `delayed`, `intermittent`), plus a few of the robot's own (`lidar-blind`,
+`lidar-far`, `estop`). FAULT_KINDS says what the simulator does for each; in short:
+
+| input | failures |
+|-------|----------|
+| lidar | blind (frames with no points), far (only returns beyond the planner's range), frozen (the last frame again, stamp included), off, stuck (the last frame's points with new stamps), garbage (NaN points), slow (every other frame), delayed (0.3 s late), intermittent (30% dropped) |
+| IMU | silent (off), stuck (the last sample's values with new stamps), garbage (NaN), slow (every other sample), delayed (0.3 s late), intermittent (30% dropped) |
+| 0x311, 0x221, 0x211 (the base's feedback) | drop-ID (off), stuck (the first payload of the fault repeated), garbage (3 random bytes: a wrong DLC), slow (every other frame), intermittent (30% dropped) |
+| 0x111 (our command stream) | cmd-off: no command reaches the base |
+| the base | estop: the base reports E-stop in 0x211 (and stops its wheels, ignoring 0x111) |
 
 The faults act where the real fault would: on the sensor data between the simulated sensor and
-the controller's inbox, and inside the emulated firmware. The controller is not told.
+the controller's inbox, on the CAN frames between the emulated firmware and the controller
+(FaultyBus), and inside the emulated firmware. The controller is not told. Random choices
+(which frames an intermittent fault drops, the garbage bytes) come from the episode's seed.
+
+The injector also watches the command the base obeys, at every physics step: for each fault,
+when the first zero command reached the base after the fault began, and when the base first
+drove again after it ended (`FaultInjector.reactions`).
 """
 from __future__ import annotations
 
 import math
 import re
+from collections import deque
 from dataclasses import dataclass
 from typing import Iterable
 
+import can
 import numpy as np
 
 from firmware_bridge import protocol as p
@@ -31,8 +42,60 @@ from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
 from runtime.common.sensor_data import CameraImage, ImuSample, LidarScan
 from runtime.io.sensor_inbox import SensorInbox
 
+
+@dataclass(frozen=True)
+class FaultKind:
+    """One fault: the input it hits, its failure type, and what the simulator does."""
+
+    name: str
+    stream: str  # lidar, imu, 0x311, 0x221, 0x211, 0x111, base
+    failure: str  # off, stuck, garbage, slow, delayed, intermittent; blind, far, frozen, estop
+    does: str
+
+
+#: Delay of the `delayed` faults (s), and the share of frames an `intermittent` fault drops.
+DELAY_S = 0.3
+DROP_FRACTION = 0.3
+
+_CAN_STREAMS = {"0x311": p.ID_ODOMETRY, "0x221": p.ID_MOTION_STATE, "0x211": p.ID_SYSTEM_STATE}
+_CAN_FAILURES = {
+    "stuck": "the first payload seen in the fault repeated in every later frame",
+    "garbage": "each frame replaced by 3 random bytes (a wrong DLC)",
+    "slow": "every other frame dropped (half the rate)",
+    "intermittent": f"{DROP_FRACTION:.0%} of the frames dropped at random",
+}
+
+FAULT_KINDS: tuple[FaultKind, ...] = (
+    FaultKind("lidar-blind", "lidar", "blind", "every ray out of range: frames arrive with no points (nothing_seen)"),
+    FaultKind("lidar-far", "lidar", "far", "only returns beyond the planner's range: every point pushed out to far_m"),
+    FaultKind("lidar-frozen", "lidar", "frozen", "the last frame before the fault delivered again and again, stamp "
+                                                 "included"),
+    FaultKind("lidar-off", "lidar", "off", "no frames"),
+    FaultKind("lidar-stuck", "lidar", "stuck", "the last frame before the fault, its points again with each new "
+                                               "frame's stamp"),
+    FaultKind("lidar-garbage", "lidar", "garbage", "every frame with a tenth of its points NaN"),
+    FaultKind("lidar-slow", "lidar", "slow", "every other frame dropped (5 Hz)"),
+    FaultKind("lidar-delayed", "lidar", "delayed", f"every frame delivered {DELAY_S:g} s after its end"),
+    FaultKind("lidar-intermittent", "lidar", "intermittent", f"{DROP_FRACTION:.0%} of the frames dropped at random"),
+    FaultKind("imu-silent", "imu", "off", "no IMU samples"),
+    FaultKind("imu-stuck", "imu", "stuck", "the last sample before the fault, its values again with each new "
+                                           "sample's stamp"),
+    FaultKind("imu-garbage", "imu", "garbage", "every sample's gyro NaN"),
+    FaultKind("imu-slow", "imu", "slow", "every other sample dropped (half the rate)"),
+    FaultKind("imu-delayed", "imu", "delayed", f"every sample delivered {DELAY_S:g} s after its stamp"),
+    FaultKind("imu-intermittent", "imu", "intermittent", f"{DROP_FRACTION:.0%} of the samples dropped at random"),
+    FaultKind("drop-0x311", "0x311", "off", "the base stops sending 0x311 (odometry)"),
+    FaultKind("drop-0x211", "0x211", "off", "the base stops sending 0x211 (system state)"),
+    FaultKind("drop-0x221", "0x221", "off", "the base stops sending 0x221 (motion state)"),
+    *(FaultKind(f"{stream}-{failure}", stream, failure, does)
+      for stream in _CAN_STREAMS for failure, does in _CAN_FAILURES.items()),
+    FaultKind("cmd-off", "0x111", "off", "no 0x111 from the controller reaches the base"),
+    FaultKind("estop", "base", "estop", "the base reports E-stop in 0x211 (and stops its wheels, ignoring 0x111)"),
+)
+FAULTS: dict[str, FaultKind] = {k.name: k for k in FAULT_KINDS}
+FAULT_NAMES: tuple[str, ...] = tuple(FAULTS)
+
 _FRAME_DROPS = {"drop-0x311": p.ID_ODOMETRY, "drop-0x211": p.ID_SYSTEM_STATE, "drop-0x221": p.ID_MOTION_STATE}
-FAULT_NAMES: tuple[str, ...] = ("lidar-blind", "lidar-far", "lidar-frozen", *_FRAME_DROPS, "imu-silent", "estop")
 
 _SPEC_RE = re.compile(r"^(?P<name>[a-z0-9-]+):(?P<start>[^:]+)(?::(?P<dur>[^:]+))?$")
 
@@ -88,8 +151,9 @@ def _seconds(text: str, what: str, value: str) -> float:
 
 
 class FaultInjector:
-    """Applies the faults: a lockstep device for the firmware faults, and an inbox in front of
-    the controller's inbox for the sensor faults (`sensor_inbox`)."""
+    """Applies the faults: a lockstep device for the firmware faults, a sensor inbox in front of
+    the controller's inbox for the sensor faults, and the rules FaultyBus applies to the CAN
+    frames (module docstring)."""
 
     def __init__(
         self,
@@ -98,6 +162,7 @@ class FaultInjector:
         inbox: SensorInbox,
         start_s: float,
         far_m: float,
+        seed: int = 0,
     ) -> None:
         self.faults = tuple(faults)
         self.firmware = firmware
@@ -105,16 +170,28 @@ class FaultInjector:
         self.start_s = float(start_s)
         self.far_m = float(far_m)
         self._now_s = self.start_s
+        self._rng = np.random.default_rng([int(seed), 0xFA17])
         self._frozen: LidarScan | None = None  # the frame replayed while lidar-frozen is active
         self._last_scan: LidarScan | None = None
-        #: Physics steps (firmware faults) or sensor outputs (sensor faults) each fault acted on.
+        self._last_imu: ImuSample | None = None
+        self._stuck_scan: LidarScan | None = None
+        self._stuck_imu: ImuSample | None = None
+        self._stuck_can: dict[int, bytes] = {}
+        self._every_other: dict[str, bool] = {}
+        self._late_scans: deque[tuple[float, LidarScan]] = deque()
+        self._late_imu: deque[tuple[float, ImuSample]] = deque()
+        #: Physics steps (firmware faults), frames or sensor outputs each fault acted on.
         self.applied: dict[str, int] = {f.name: 0 for f in self.faults}
         # The faults of each name, looked up once: `_active` runs every physics step and for
-        # every sensor output, and most episodes have no fault at all.
+        # every sensor output and CAN frame, and most episodes have no fault at all.
         self._by_name: dict[str, tuple[FaultSpec, ...]] = {
             name: tuple(f for f in self.faults if f.name == name) for name in FAULT_NAMES}
         self._frame_drops = tuple((name, frame_id, self._by_name[name]) for name, frame_id in _FRAME_DROPS.items())
         self._firmware_faults = any(self._by_name[name] for name in (*_FRAME_DROPS, "estop"))
+        self._can_faults = tuple((stream, failure, _CAN_STREAMS[stream]) for stream in _CAN_STREAMS
+                                 for failure in _CAN_FAILURES if self._by_name[f"{stream}-{failure}"])
+        #: Per fault (in the order given): what the base obeyed around it (reactions()).
+        self._watch = [{"first_zero_s": None, "moving_after_s": None} for _ in self.faults]
 
     def _active(self, name: str) -> bool:
         faults = self._by_name.get(name, ())
@@ -123,10 +200,15 @@ class FaultInjector:
         t = self._now_s - self.start_s
         return any(f.active(t) for f in faults)
 
-    # -- lockstep device: the firmware faults --------------------------------------------------
+    def _count(self, name: str) -> None:
+        self.applied[name] += 1
+
+    # -- lockstep device: the firmware faults, late deliveries, the command watch ----------------
     def step(self, t_s: float) -> None:
         """Before the firmware's step at t_s (LockstepSimulation `controls`)."""
         self._now_s = t_s
+        self._watch_command(t_s)
+        self._deliver_late(t_s)
         fw = self.firmware
         if not self._firmware_faults:  # nothing to switch: leave no frame suppressed, no E-stop
             if fw.suppressed_frame_ids:
@@ -136,41 +218,219 @@ class FaultInjector:
         for name, frame_id, _ in self._frame_drops:
             if self._active(name):
                 fw.suppressed_frame_ids.add(frame_id)
-                self.applied[name] += 1
+                self._count(name)
             else:
                 fw.suppressed_frame_ids.discard(frame_id)
         fw.emergency_stop = self._active("estop")
         if fw.emergency_stop:
-            self.applied["estop"] += 1
+            self._count("estop")
+
+    def _watch_command(self, t_s: float) -> None:
+        """The first zero command the base obeyed after each fault began, and the first nonzero
+        one after it ended (the firmware's `commanded`: what it last took from 0x111)."""
+        if not self.faults or self.firmware is None:
+            return
+        v, w = getattr(self.firmware, "commanded", (0.0, 0.0))
+        still = v == 0.0 and w == 0.0
+        t = t_s - self.start_s
+        for f, watch in zip(self.faults, self._watch):
+            if t < f.start_s:
+                continue
+            if still and watch["first_zero_s"] is None:
+                watch["first_zero_s"] = t
+            end = math.inf if f.duration_s is None else f.start_s + f.duration_s
+            if not still and t >= end and watch["moving_after_s"] is None:
+                watch["moving_after_s"] = t
+
+    def reactions(self) -> list[dict]:
+        """Per fault, in the order given: its window and what the base obeyed (episode seconds):
+        first_zero_s, the first instant at or after the fault's start with a zero command in
+        force (the fault's start when the robot stood still already), and moving_after_s, the
+        first instant after its end with a nonzero one (None: not within the episode)."""
+        return [{**f.to_dict(), **w} for f, w in zip(self.faults, self._watch)]
 
     # -- the sensor side (the SensorRig's inbox) -------------------------------------------------
+    def _drop(self, slow_key: str, slow: str, intermittent: str) -> bool:
+        """Whether the slow or intermittent fault drops this frame or sample."""
+        if self._active(slow):
+            keep = self._every_other.get(slow_key, False)
+            self._every_other[slow_key] = not keep
+            if not keep:
+                self._count(slow)
+                return True
+        if self._active(intermittent) and self._rng.random() < DROP_FRACTION:
+            self._count(intermittent)
+            return True
+        return False
+
     def put_scan(self, scan: LidarScan) -> bool:
         if self._active("lidar-frozen"):
             if self._frozen is None:
                 self._frozen = self._last_scan or scan
-            self.applied["lidar-frozen"] += 1
+            self._count("lidar-frozen")
             return self.inbox.put_scan(self._frozen)
         self._frozen = None
+        if self._active("lidar-off") or self._drop("lidar", "lidar-slow", "lidar-intermittent"):
+            if self._active("lidar-off"):
+                self._count("lidar-off")
+            return True  # the sensor said nothing; nothing was refused
+        if self._active("lidar-stuck"):
+            if self._stuck_scan is None:
+                self._stuck_scan = self._last_scan or scan
+            self._count("lidar-stuck")
+            last = self._stuck_scan
+            scan = LidarScan(scan.stamp_s, last.points_m, last.point_time_offsets_s, last.frame_duration_s,
+                             scan.frame_id, nothing_seen=last.nothing_seen)
+        else:
+            self._stuck_scan = None
         if self._active("lidar-blind"):
-            self.applied["lidar-blind"] += 1
+            self._count("lidar-blind")
             scan = _blind(scan)
         elif self._active("lidar-far"):
-            self.applied["lidar-far"] += 1
+            self._count("lidar-far")
             scan = _pushed_out(scan, self.far_m)
+        elif self._active("lidar-garbage"):
+            self._count("lidar-garbage")
+            scan = _nan_points(scan, self._rng)
+        if self._active("lidar-delayed"):
+            self._count("lidar-delayed")
+            self._late_scans.append((scan.stamp_s + scan.frame_duration_s + DELAY_S, scan))
+            return True
         self._last_scan = scan  # what the controller got: a frozen sensor repeats that
         return self.inbox.put_scan(scan)
 
     def put_imu(self, sample: ImuSample) -> bool:
-        if self._active("imu-silent"):
-            self.applied["imu-silent"] += 1
+        if self._active("imu-silent") or self._drop("imu", "imu-slow", "imu-intermittent"):
+            if self._active("imu-silent"):
+                self._count("imu-silent")
             return True  # the sensor said nothing; nothing was refused
+        if self._active("imu-stuck"):
+            if self._stuck_imu is None:
+                self._stuck_imu = self._last_imu or sample
+            self._count("imu-stuck")
+            last = self._stuck_imu
+            sample = ImuSample(sample.stamp_s, last.gyro_radps, last.accel_mps2, last.saturated)
+        else:
+            self._stuck_imu = None
+        if self._active("imu-garbage"):
+            self._count("imu-garbage")
+            sample = _unchecked(ImuSample, stamp_s=sample.stamp_s, gyro_radps=np.full(3, np.nan),
+                                accel_mps2=sample.accel_mps2, saturated=False)
+        if self._active("imu-delayed"):
+            self._count("imu-delayed")
+            self._late_imu.append((sample.stamp_s + DELAY_S, sample))
+            return True
+        self._last_imu = sample
         return self.inbox.put_imu(sample)
+
+    def _deliver_late(self, t_s: float) -> None:
+        """The delayed frames and samples whose time has come, in order."""
+        while self._late_scans and self._late_scans[0][0] <= t_s:
+            scan = self._late_scans.popleft()[1]
+            self._last_scan = scan
+            self.inbox.put_scan(scan)
+        while self._late_imu and self._late_imu[0][0] <= t_s:
+            sample = self._late_imu.popleft()[1]
+            self._last_imu = sample
+            self.inbox.put_imu(sample)
 
     def put_image(self, image: CameraImage) -> bool:
         return self.inbox.put_image(image)
 
     def put_camera_info(self, info) -> bool:
         return self.inbox.put_camera_info(info)
+
+    # -- the CAN side (FaultyBus) ----------------------------------------------------------------
+    def outgoing(self, msg: can.Message) -> can.Message | None:
+        """A frame the base sends, as the controller gets it (None: dropped)."""
+        for stream, failure, frame_id in self._can_faults:
+            if msg.arbitration_id != frame_id:
+                continue
+            name = f"{stream}-{failure}"
+            if not self._active(name):
+                if failure == "stuck":
+                    self._stuck_can.pop(frame_id, None)
+                continue
+            if failure == "stuck":
+                data = self._stuck_can.setdefault(frame_id, bytes(msg.data))
+                self._count(name)
+                return _with_data(msg, data)
+            if failure == "garbage":
+                self._count(name)
+                return _with_data(msg, bytes(self._rng.integers(0, 256, 3, dtype=np.uint8)))
+            if failure == "slow":
+                keep = self._every_other.get(name, False)
+                self._every_other[name] = not keep
+                if not keep:
+                    self._count(name)
+                    return None
+            elif failure == "intermittent" and self._rng.random() < DROP_FRACTION:
+                self._count(name)
+                return None
+        return msg
+
+    def incoming(self, msg: can.Message) -> bool:
+        """Whether a frame the controller sends reaches the base."""
+        if msg.arbitration_id == p.ID_MOTION_COMMAND and self._active("cmd-off"):
+            self._count("cmd-off")
+            return False
+        return True
+
+
+class FaultyBus(can.BusABC):
+    """The emulated firmware's end of the CAN bus, with the injector's rules on the frames
+    (FaultInjector.outgoing, .incoming): the bus the firmware is given, in front of its channel.
+    `injector` is set once the injector is built (it needs the firmware)."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self._bus = bus
+        self.injector: FaultInjector | None = None
+        self.channel_info = f"faults in front of {getattr(bus, 'channel_info', bus)}"
+        super().__init__(channel=getattr(bus, "channel_id", None))
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.injector is not None:
+            msg = self.injector.outgoing(msg)
+            if msg is None:
+                return
+        self._bus.send(msg, timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        while True:
+            msg = self._bus.recv(timeout)
+            if msg is None or self.injector is None or self.injector.incoming(msg):
+                return msg
+
+    def _recv_internal(self, timeout: float | None):  # recv is overridden; python-can requires it
+        return self._bus.recv(timeout), False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self._bus.shutdown()
+
+
+def _with_data(msg: can.Message, data: bytes) -> can.Message:
+    return can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                       dlc=len(data), data=data, channel=msg.channel)
+
+
+def _unchecked(cls, **fields):
+    """An instance of a frozen sensor-data class with these fields, not validated: what a broken
+    driver would hand over (the inbox's validate() refuses it)."""
+    obj = object.__new__(cls)
+    for k, v in fields.items():
+        object.__setattr__(obj, k, v)
+    return obj
+
+
+def _nan_points(scan: LidarScan, rng: np.random.Generator) -> LidarScan:
+    """The frame with a tenth of its points NaN (not validated: the inbox refuses it)."""
+    pts = np.array(scan.points_m, dtype=np.float32)
+    if len(pts):
+        pts[rng.random(len(pts)) < 0.1] = np.nan
+        pts[0] = np.nan
+    return _unchecked(LidarScan, stamp_s=scan.stamp_s, points_m=pts, point_time_offsets_s=scan.point_time_offsets_s,
+                      frame_duration_s=scan.frame_duration_s, frame_id=scan.frame_id, nothing_seen=scan.nothing_seen)
 
 
 def _blind(scan: LidarScan) -> LidarScan:
@@ -192,4 +452,5 @@ def _pushed_out(scan: LidarScan, far_m: float) -> LidarScan:
     return LidarScan(scan.stamp_s, out, scan.point_time_offsets_s, scan.frame_duration_s, scan.frame_id)
 
 
-__all__ = ["FAULT_NAMES", "FaultSpec", "FaultSpecError", "FaultInjector"]
+__all__ = ["DELAY_S", "DROP_FRACTION", "FAULTS", "FAULT_KINDS", "FAULT_NAMES", "FaultInjector", "FaultKind",
+           "FaultSpec", "FaultSpecError", "FaultyBus"]

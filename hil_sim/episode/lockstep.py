@@ -28,7 +28,7 @@ import numpy as np
 
 from calibration.robot_description import RobotDescription, load_robot_description
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
-from hil_sim.episode.faults import FaultInjector, FaultSpec
+from hil_sim.episode.faults import FaultInjector, FaultSpec, FaultyBus
 from hil_sim.episode.metrics import EpisodeMetrics
 from hil_sim.episode.failure import failure_reason
 from hil_sim.episode.lockstep_bus import LockstepBus
@@ -309,14 +309,16 @@ class _SimulatedBench:
                       variant=robot_variant)
         world.reset(seed)
         metrics = EpisodeMetrics(world, scenario, seed)
-        controller_bus, sim_bus = virtual_bus_pair()
+        controller_bus, channel = virtual_bus_pair()
+        sim_bus = FaultyBus(channel)  # the CAN faults act between the firmware and its channel
         try:  # a device that cannot be built must not leave the buses open
             firmware = EmulatedBaseFirmware(sim_bus, robot)
             inbox = SensorInbox()
             injector = FaultInjector(
                 faults, firmware, inbox, start_s=world.time_s,
-                far_m=config.planner.obstacle_points.max_range_m + 4.0,
+                far_m=config.planner.obstacle_points.max_range_m + 4.0, seed=seed,
             )
+            sim_bus.injector = injector
             if sensors is None:
                 sensors = config.uses_lidar
             has_sensors = sensors is not False
@@ -503,7 +505,9 @@ def _extra_metrics(ep: _Episode, report: dict, final_distance: float) -> dict:
         "navigation_clock": "goal-when-ready" if goal_when_ready else "switch-on",
         "standby_s": t_start - operator.t_switch_on,
         "planner": config.preset,
-        "faults": [{**f.to_dict(), "acted_on": bench.injector.applied[f.name]} for f in faults],
+        # each fault's window, what it acted on, and when the base first obeyed a zero command
+        # after it began and drove again after it ended (FaultInjector.reactions; fault times)
+        "faults": [{**r, "acted_on": bench.injector.applied[r["name"]]} for r in bench.injector.reactions()],
         "events": controller.events.to_list(t0_s=t_start),
         # DCT correcting mode (runtime.modes.correcting): how often, and each one's start,
         # duration, object relabelled fixed (None) and reason.

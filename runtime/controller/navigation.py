@@ -372,8 +372,13 @@ class NavigationController:
 
     # -- odometry ----------------------------------------------------------------------------
     def _update_odometry(self, now: float, inputs: BaseInputs, sensors: SensorSnapshot) -> None:
-        """Wheels + gyro every tick, good lidar frames to ICP (beside the tick), the fused pose."""
-        imu = sensors.imu
+        """Wheels + gyro every tick, good lidar frames to ICP (beside the tick), the fused pose. An
+        IMU the watchdogs fault this tick (stuck, saturated, a sample refused) gives the odometry
+        nothing: its samples may be valid one by one, not together, and the gyro is integrated. A
+        stuck 0x311 is still given: its distances, frozen, add no motion, and the first fresh ones
+        after it add what the wheels did meanwhile (the odometry re-anchors only after a gap the
+        0x221 speed bridged)."""
+        imu = sensors.imu if not any(f.stream == "imu" for f in self.faults) else ()
         if self.state is ControllerState.INITIALIZING and self.restarts == 0:
             # Standing still before the first start: learn the gyro bias (and let ICP build its
             # first map). After a restart the robot may still be rolling: keep integrating.

@@ -11,7 +11,12 @@ Streams and rules:
   staleness timeout (the frame's period times a few); 0x211's vehicle state must be normal (an
   E-stop, an exception or an unknown value are faults that need the start-up sequence again
   when they clear), and a 0x211 saying the base lost our command stream (error 0x0200) too.
-- IMU: a sample at least every `imu_timeout_s`; a saturated or rejected sample is a fault.
+  0x311 stuck: its wheel distances unchanged for `odometry_stuck_s` while 0x221 kept reporting
+  the base moving (both come from the same wheel encoders: a live base cannot do that); the
+  fault holds until the distances change.
+- IMU: a sample at least every `imu_timeout_s`; a saturated or rejected sample is a fault, and so
+  are `imu_stuck_samples` samples in a row with the very same values (a live sensor's noise
+  changes its last bits every sample); that fault holds until a sample differs.
 - lidar: each frame must see: at least `min_valid_return_fraction` of the expected rays must
   return within the planner's range, and in every azimuth sector at least
   `min_sector_return_fraction` of that sector's rays (a blind frame, or a frame whose returns
@@ -71,6 +76,13 @@ class InputsConfig(BaseModel):
     odometry_timeout_s: float = Field(default=0.1, gt=0.0, le=5.0, description="0x311")
     system_state_timeout_s: float = Field(default=0.35, gt=0.0, le=5.0, description="0x211")
     imu_timeout_s: float = Field(default=0.05, gt=0.0, le=5.0)
+    #: This many IMU samples in a row with identical values: the IMU is stuck (0: off). 20 at
+    #: 200 Hz: 0.1 s.
+    imu_stuck_samples: int = Field(default=20, ge=0, le=100_000)
+    #: 0x311's wheel distances unchanged this long while 0x221 reports the base moving at least
+    #: odometry_stuck_speed_mps: 0x311 is stuck (0: off).
+    odometry_stuck_s: float = Field(default=0.25, ge=0.0, le=10.0)
+    odometry_stuck_speed_mps: float = Field(default=0.05, gt=0.0, le=5.0)
     #: A sample or frame stamped later than now plus this is refused (a clock gone wrong must
     #: not make data look fresh for as long as it is wrong).
     future_tolerance_s: float = Field(default=0.01, ge=0.0, le=1.0)
@@ -139,6 +151,11 @@ class InputMonitor:
         self.uses_imu = uses_imu
         self._last_imu_stamp_s: float | None = None
         self._imu_fault: str | None = None
+        self._imu_last_values: tuple | None = None
+        self._imu_same = 0  # samples in a row with the previous one's values
+        self._odometry: tuple[float, float] | None = None  # the last 0x311 distances seen
+        self._moving_unchanged_s: float | None = None  # since when 0x221 says moving and 0x311 holds still
+        self._odometry_stuck: str | None = None
         self._lidar_good_end_s: float | None = None  # end of the newest good frame
         self._lidar_fault: str | None = None  # the last problem, until enough good frames
         self._lidar_good_streak = 0  # good frames since the last problem
@@ -165,6 +182,33 @@ class InputMonitor:
             if inputs.host_comm_lost:
                 out.append(InputFault("0x211", "base lost the command stream (0x211 error 0x0200)", restart=True,
                                       blocks_restart=False))
+        stuck = self._odometry_stuck_fault(inputs)
+        if stuck is not None:
+            out.append(InputFault("0x311", stuck))
+
+    def _odometry_stuck_fault(self, inputs: BaseInputs) -> str | None:
+        """0x311 stuck (module docstring): its distances unchanged for odometry_stuck_s while 0x221
+        reports motion; held until they change."""
+        c = self.config
+        if c.odometry_stuck_s <= 0.0 or inputs.odometry is None:
+            return None
+        now = inputs.stamp_s
+        if inputs.odometry != self._odometry:
+            self._odometry = inputs.odometry
+            self._moving_unchanged_s = None
+            self._odometry_stuck = None
+            return None
+        if self._odometry_stuck is not None:
+            return self._odometry_stuck
+        if abs(inputs.linear_mps) < c.odometry_stuck_speed_mps or inputs.motion_state_age_s > c.motion_state_timeout_s:
+            self._moving_unchanged_s = None
+            return None
+        if self._moving_unchanged_s is None:
+            self._moving_unchanged_s = now
+        if now - self._moving_unchanged_s >= c.odometry_stuck_s:
+            self._odometry_stuck = (f"0x311 stuck (wheel distances unchanged for {now - self._moving_unchanged_s:.2f} s "
+                                    f"while 0x221 reports {inputs.linear_mps:.2f} m/s)")
+        return self._odometry_stuck
 
     def _imu_faults(self, snapshot: SensorSnapshot, now_s: float, out: list[InputFault]) -> None:
         """Every sample of the tick is judged: one saturated or refused sample among ten good ones
@@ -181,6 +225,11 @@ class InputMonitor:
             self._last_imu_stamp_s = smp.stamp_s
             if getattr(smp, "saturated", False):
                 problem = "IMU saturated"
+            values = (*smp.gyro_radps.tolist(), *smp.accel_mps2.tolist())
+            self._imu_same = self._imu_same + 1 if values == self._imu_last_values else 0
+            self._imu_last_values = values
+            if c.imu_stuck_samples and self._imu_same + 1 >= c.imu_stuck_samples:
+                problem = f"IMU stuck ({self._imu_same + 1} samples in a row with the same values)"
         if problem is not None or snapshot.imu:
             self._imu_fault = problem
         last = self._last_imu_stamp_s

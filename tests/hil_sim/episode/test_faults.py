@@ -252,3 +252,124 @@ def test_injector_switches_firmware_faults_by_their_windows_and_clears_them_with
         seen.append((p.ID_ODOMETRY in fw.suppressed_frame_ids, fw.emergency_stop))
     assert seen == [(False, False), (True, False), (True, False), (False, False), (False, True), (True, True)]
     assert inj.applied == {"drop-0x311": 3, "estop": 2}
+
+
+# -- the failure types, unit level ------------------------------------------------------------------
+
+def _frame(t, n=200, seed=0):
+    from runtime.common.sensor_data import LidarScan
+
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-3, 3, (n, 3)).astype(np.float32)
+    return LidarScan(t, pts, np.zeros(n, np.float32), 0.1)
+
+
+def _sample(t, seed):
+    from runtime.common.sensor_data import ImuSample
+
+    rng = np.random.default_rng(seed)
+    return ImuSample(t, rng.normal(0, 0.01, 3), np.array([0, 0, 9.81]) + rng.normal(0, 0.01, 3))
+
+
+def _injector(*specs, seed=0):
+    from types import SimpleNamespace
+
+    from hil_sim.episode.faults import FaultInjector
+    from runtime.io.sensor_inbox import SensorInbox
+
+    fw = SimpleNamespace(suppressed_frame_ids=set(), emergency_stop=False, commanded=(0.3, 0.0))
+    inbox = SensorInbox()
+    return FaultInjector([FaultSpec.parse(s) for s in specs], fw, inbox, start_s=0.0, far_m=10.0, seed=seed), inbox
+
+
+def test_lidar_failures_reach_the_inbox_as_the_real_ones_would():
+    inj, inbox = _injector("lidar-stuck:1:1", "lidar-garbage:3:0.5")
+    got = []
+    for k in range(40):
+        t = 0.1 * k
+        inj.step(t)
+        inj.put_scan(_frame(t, seed=k))
+        snap = inbox.take()
+        got.append((snap.scan is not None, [r.name for r in snap.rejected if r.stream == "lidar"]))
+    assert all(g == (True, []) for g in got[:10])
+    assert got[10][1] == ["frozen_frame"] and all(g[1] == ["frozen_frame"] for g in got[10:20])  # new stamps
+    assert got[20] == (True, [])  # the fault is over: live frames again
+    assert all(g[1] == ["non_finite"] for g in got[30:35]) and got[35] == (True, [])
+
+
+def test_slow_intermittent_and_delayed_drop_or_hold_frames_and_samples():
+    inj, inbox = _injector("lidar-slow:0:1", "imu-intermittent:0:10", seed=3)
+    scans = 0
+    for k in range(10):
+        inj.step(0.1 * k)
+        inj.put_scan(_frame(0.1 * k, seed=k))
+        scans += inbox.take().scan is not None
+    assert scans == 5 and inj.applied["lidar-slow"] == 5
+    def delivered(injector, box):  # 1,000 samples, taken as ticks would (the inbox holds 400)
+        n = 0
+        for k in range(1000):
+            assert injector.put_imu(_sample(1.0 + 0.005 * k, k))  # nothing refused: the sensor said nothing
+            if k % 10 == 9:
+                n += len(box.take().imu)
+        return n
+
+    imu = delivered(inj, inbox)
+    assert 600 <= imu <= 800 and inj.applied["imu-intermittent"] == 1000 - imu
+    again, inbox2 = _injector("lidar-slow:0:1", "imu-intermittent:0:10", seed=3)
+    assert delivered(again, inbox2) == imu  # the episode's seed decides which
+    late, inbox3 = _injector("lidar-delayed:0:1")
+    late.step(0.0)
+    late.put_scan(_frame(0.0))
+    late.step(0.39)
+    assert inbox3.take().scan is None
+    late.step(0.40)  # 0.3 s after the frame's end
+    assert inbox3.take().scan.stamp_s == 0.0
+
+
+def test_imu_stuck_repeats_values_with_new_stamps_and_garbage_is_refused():
+    inj, inbox = _injector("imu-stuck:1:1", "imu-garbage:3:1")
+    inj.step(0.99)
+    inj.put_imu(_sample(0.99, 1))
+    inj.step(1.0)
+    for k in range(5):
+        inj.put_imu(_sample(1.0 + 0.005 * k, 100 + k))
+    snap = inbox.take()
+    assert [s.stamp_s for s in snap.imu] == [0.99, 1.0, 1.005, 1.01, 1.015, 1.02]
+    assert all(np.array_equal(s.gyro_radps, snap.imu[0].gyro_radps) for s in snap.imu)
+    inj.step(3.0)
+    inj.put_imu(_sample(3.0, 7))
+    snap = inbox.take()
+    assert snap.imu == () and [r.name for r in snap.rejected] == ["non_finite"]
+
+
+def test_can_failures_act_on_the_base_s_frames_and_cmd_off_on_ours():
+    import can
+
+    from firmware_bridge import protocol as p
+
+    inj, _ = _injector("0x311-stuck:1:1", "0x221-garbage:1:1", "0x211-slow:1:1", "cmd-off:1:1")
+    odo = [can.Message(arbitration_id=p.ID_ODOMETRY, data=bytes([k] * 8), is_extended_id=False) for k in range(4)]
+    motion = can.Message(arbitration_id=p.ID_MOTION_STATE, data=bytes(8), is_extended_id=False)
+    state = can.Message(arbitration_id=p.ID_SYSTEM_STATE, data=bytes(8), is_extended_id=False)
+    cmd = can.Message(arbitration_id=p.ID_MOTION_COMMAND, data=bytes(8), is_extended_id=False)
+    inj.step(0.5)
+    assert inj.outgoing(odo[0]) is odo[0] and inj.incoming(cmd)
+    inj.step(1.0)
+    assert [bytes(inj.outgoing(m).data) for m in odo[1:]] == [bytes([1] * 8)] * 3  # the first payload, again
+    bad = inj.outgoing(motion)
+    assert bad.dlc == 3 and len(bad.data) == 3
+    assert [inj.outgoing(state) is None for _ in range(4)] == [True, False, True, False]
+    assert not inj.incoming(cmd)
+    inj.step(2.0)
+    assert inj.outgoing(odo[3]) is odo[3] and inj.outgoing(motion) is motion and inj.incoming(cmd)
+
+
+def test_the_injector_times_the_zero_command_and_the_drive_after_each_fault():
+    inj, _ = _injector("imu-silent:1:0.5")
+    fw = inj.firmware
+    for k in range(300):
+        t = 0.01 * k
+        fw.commanded = (0.0, 0.0) if 1.12 <= t < 1.7 else (0.4, 0.0)
+        inj.step(t)
+    (r,) = inj.reactions()
+    assert r["name"] == "imu-silent" and abs(r["first_zero_s"] - 1.12) < 1e-9 and abs(r["moving_after_s"] - 1.7) < 1e-9

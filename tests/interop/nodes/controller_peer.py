@@ -108,6 +108,7 @@ class Peer:
         node.create_timer(SWEEP_S, self.publish_lidar)
         node.create_timer(0.1, self.publish_image)
         node.create_timer(1.0, self.publish_goal)
+        self.imu_rng = np.random.default_rng(1)  # the IMU thread's own (the lidar's is the timer's)
         self.imu_thread = threading.Thread(target=self.imu_loop, daemon=True)
         self.imu_thread.start()
 
@@ -158,7 +159,12 @@ class Peer:
             while t_next <= now:
                 msg.header.stamp.sec = int(t_next)
                 msg.header.stamp.nanosec = int((t_next - int(t_next)) * 1e9)
-                msg.angular_velocity.z = self.yaw_rate
+                # a MEMS part's noise: no two samples alike (20 alike in a row is a stuck IMU)
+                noise = self.imu_rng.normal(0.0, 1e-3, 6)
+                msg.angular_velocity.x, msg.angular_velocity.y = float(noise[0]), float(noise[1])
+                msg.angular_velocity.z = self.yaw_rate + float(noise[2])
+                msg.linear_acceleration.x, msg.linear_acceleration.y = float(noise[3]), float(noise[4])
+                msg.linear_acceleration.z = 9.81 + float(noise[5])
                 self.imu_pub.publish(msg)
                 self.published["imu"] += 1
                 t_next += period

@@ -84,7 +84,8 @@ class FakeBase:
 
 
 class FakeSensors:
-    """A lidar in a 4 x 4 m room (10 Hz frames with range noise) and a still IMU at 200 Hz."""
+    """A lidar in a 4 x 4 m room (10 Hz frames with range noise) and a still IMU at 200 Hz (with
+    its noise: a sample with the very same values as the 19 before is a stuck IMU)."""
 
     def __init__(self, inbox: SensorInbox, seed=0):
         self.inbox = inbox
@@ -108,7 +109,8 @@ class FakeSensors:
     def step(self, t):
         while self.next_imu_s <= t + 1e-9:
             if self.imu_on:
-                self.inbox.put_imu(ImuSample(self.next_imu_s, np.zeros(3), np.array([0.0, 0.0, 9.81])))
+                noise = self.rng.normal(0.0, 1e-3, 6)
+                self.inbox.put_imu(ImuSample(self.next_imu_s, noise[:3], np.array([0.0, 0.0, 9.81]) + noise[3:]))
             self.next_imu_s += 0.005
         while self.next_frame_s + 0.1 <= t + 1e-9:
             stamp = self.next_frame_s

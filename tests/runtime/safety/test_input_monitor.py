@@ -159,3 +159,58 @@ def test_base_state_faults_need_a_restart():
     lost = BaseInputs(0.0, False, True, True, 0x0200, 0.0, 0.0, (0.0, 0.0))
     (f,) = mon.check(lost, SensorSnapshot(None, None, ()), 0.0)
     assert f.restart and not f.blocks_restart
+
+
+def _imu(t, rng=None):
+    """A live IMU sample at rest: noise in every component (none: the very same values)."""
+    noise = rng.normal(0.0, 1e-3, 6) if rng is not None else np.zeros(6)
+    return ImuSample(t, noise[:3], np.array([0.0, 0.0, 9.81]) + noise[3:])
+
+
+def test_a_stuck_imu_is_named_after_its_limit_and_holds_until_a_sample_differs():
+    mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=False, uses_imu=True)
+    rng = np.random.default_rng(1)
+    t = 1.0
+    for _ in range(20):  # live samples: never stuck, however many
+        samples = tuple(_imu(t + 0.005 * k, rng) for k in range(10))
+        t += 0.05
+        assert mon.check(fresh_inputs(t), SensorSnapshot(None, None, samples), t) == ()
+    stuck = _imu(t)
+    seen = []
+    for _ in range(4):  # 10 identical samples a tick
+        samples = tuple(ImuSample(t + 0.005 * k, stuck.gyro_radps, stuck.accel_mps2) for k in range(10))
+        t += 0.05
+        seen.append([f.reason for f in mon.check(fresh_inputs(t), SensorSnapshot(None, None, samples), t)])
+    assert seen[0] == [] and seen[1][0].startswith("IMU stuck (20 samples in a row") and seen[3][0].startswith(
+        "IMU stuck (40 samples")
+    t += 0.05
+    assert mon.check(fresh_inputs(t), SensorSnapshot(None, None, (_imu(t - 0.01, rng),)), t) == ()
+    off = InputMonitor(InputsConfig(imu_stuck_samples=0), planner_range_m=6.0, uses_lidar=False, uses_imu=True)
+    same = tuple(ImuSample(2.0 + 0.005 * k, stuck.gyro_radps, stuck.accel_mps2) for k in range(30))
+    assert off.check(fresh_inputs(2.15), SensorSnapshot(None, None, same), 2.15) == ()
+
+
+def _base(now, odometry, speed):
+    return BaseInputs(now, False, True, True, 0, speed, 0.0, odometry)
+
+
+def test_wheel_distances_that_stop_while_the_base_reports_motion_are_a_stuck_0x311():
+    mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=False, uses_imu=False)
+    no_sensors = SensorSnapshot(None, None, ())
+    d, t = 0.0, 0.0
+    for _ in range(10):  # driving at 0.5 m/s: the distances move every tick
+        t += 0.05
+        d += 0.025
+        assert mon.check(_base(t, (d, d), 0.5), no_sensors, t) == ()
+    reasons = []
+    for _ in range(8):  # 0x311 stuck: 0x221 still says 0.5 m/s
+        t += 0.05
+        reasons.append([f.reason for f in mon.check(_base(t, (d, d), 0.5), no_sensors, t)])
+    assert reasons[:5] == [[]] * 5 and reasons[5][0].startswith("0x311 stuck (wheel distances unchanged for 0.25 s")
+    t += 0.05  # stopped by the controller: still stuck (the distances have not changed)
+    assert mon.check(_base(t, (d, d), 0.0), no_sensors, t)[0].reason.startswith("0x311 stuck")
+    t += 0.05
+    assert mon.check(_base(t, (d + 0.1, d + 0.1), 0.0), no_sensors, t) == ()  # they move again
+    for _ in range(20):  # standing still: unchanged distances are right
+        t += 0.05
+        assert mon.check(_base(t, (d + 0.1, d + 0.1), 0.0), no_sensors, t) == ()

@@ -1,0 +1,279 @@
+"""`dct bench faults`: every fault on a few scenes, in lockstep, against its documented reaction.
+
+Each episode is one scene, one seed and one fault (hil_sim.episode.faults: FAULT_KINDS), injected
+at `start_s` for `duration_s` of simulated time. Per episode: whether the base was given a zero
+command while the fault lasted and how long after the injection (the injector watches the
+command the emulated firmware obeys, every physics step), how long after the fault's end the
+base drove again, the stop events' reasons, fixed contacts, and whether the robot reached the
+goal. Per fault, one row over the episodes, checked against EXPECTED (the table of
+docs/faults.md): a row whose reaction differs is marked, and the command exits 1.
+
+The episodes are lockstep and deterministic for their seed: the rows do not depend on the
+machine, the workers or the backend (hil_sim.bench.campaign.run_tasks: processes or Ray).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable, Iterable
+
+import numpy as np
+
+from hil_sim.episode.faults import DELAY_S, FAULT_NAMES, FAULTS
+
+#: The scenes of the campaign: fixed clutter (case3), a corridor with movable boxes
+#: (corridor_boxes), a gap between fixed obstacles (gap_wedged).
+DEFAULT_SCENES = ("case3", "corridor_boxes", "gap_wedged")
+DEFAULT_START_S = 2.0
+DEFAULT_DURATION_S = 1.0
+
+
+@dataclass(frozen=True)
+class Reaction:
+    """What the controller does under a fault (docs/faults.md).
+
+    stops: True, the base is given a zero command while the fault lasts; False, the robot drives
+    on (the input stays good enough); None, either (a fault that may or may not cross a
+    watchdog's limit). within_s: the most time from the injection to the zero command the base
+    obeys. reason: the words a stop event's reason starts with (the input and what is wrong). resumes_within_s: the most time
+    from the fault's end until the base drives again (None: not checked). The robot reaches the
+    goal (the fault lasts DEFAULT_DURATION_S) and touches nothing fixed, under every fault."""
+
+    stops: bool | None
+    within_s: float | None = None
+    reason: str | None = None
+    resumes_within_s: float | None = None
+
+
+#: One tick of the loop (20 Hz). A stop comes at most three ticks after a watchdog's limit
+#: passed: the tick that sees it, the tick that says it, the zero command the base obeys.
+_TICK = 0.05
+_SEE = 3 * _TICK
+#: Frames judged one by one (a blind, frozen or refused frame): a frame period, then the ticks.
+_FRAME = 0.1 + 2 * _TICK
+_LIDAR_STALE = 0.3 + _SEE  # InputsConfig.lidar: max_age_frames x frame_period_s
+_IMU_STALE = 0.05 + _SEE  # imu_timeout_s
+_IMU_STUCK = 0.1 + _SEE  # imu_stuck_samples at 200 Hz
+_FEEDBACK_STALE = 0.1 + _SEE  # 0x311, 0x221 timeouts
+_STATE_STALE = 0.35 + _SEE  # 0x211 timeout
+_ODOMETRY_STUCK = 0.25 + _SEE + _TICK  # odometry_stuck_s, after 0x221 said moving for a tick
+#: Driving again after the fault: two good lidar frames in a row; the delayed faults' queued data
+#: (DELAY_S of it) first; a fresh enable after an E-stop.
+_RESUME_LIDAR = 0.35
+_RESUME = 0.3
+_RESUME_DELAYED = DELAY_S + 0.35
+
+EXPECTED: dict[str, Reaction] = {
+    "lidar-blind": Reaction(True, _FRAME, "lidar blind", _RESUME_LIDAR),
+    "lidar-far": Reaction(True, _FRAME, "lidar blind", _RESUME_LIDAR),
+    "lidar-frozen": Reaction(True, _FRAME, "lidar frozen", _RESUME_LIDAR),
+    "lidar-off": Reaction(True, _LIDAR_STALE, "lidar stale", _RESUME_LIDAR),
+    "lidar-stuck": Reaction(True, _FRAME, "lidar frozen", _RESUME_LIDAR),
+    "lidar-garbage": Reaction(True, _FRAME, "lidar frame rejected", _RESUME_LIDAR),
+    "lidar-slow": Reaction(False),
+    "lidar-delayed": Reaction(True, _LIDAR_STALE, "lidar stale", _RESUME_DELAYED),
+    "lidar-intermittent": Reaction(None),
+    "imu-silent": Reaction(True, _IMU_STALE, "IMU stale", _RESUME),
+    "imu-stuck": Reaction(True, _IMU_STUCK, "IMU stuck", _RESUME),
+    "imu-garbage": Reaction(True, 2 * _TICK, "IMU sample rejected", _RESUME),
+    "imu-slow": Reaction(False),
+    "imu-delayed": Reaction(True, _IMU_STALE, "IMU stale", _RESUME_DELAYED),
+    "imu-intermittent": Reaction(False),
+    "drop-0x311": Reaction(True, _FEEDBACK_STALE, "0x311 stale", _RESUME),
+    "drop-0x221": Reaction(True, _FEEDBACK_STALE, "0x221 stale", _RESUME),
+    "drop-0x211": Reaction(True, _STATE_STALE, "0x211 stale", _RESUME),
+    "0x311-stuck": Reaction(True, _ODOMETRY_STUCK, "0x311 stuck", _RESUME),
+    "0x311-garbage": Reaction(True, _FEEDBACK_STALE, "0x311 stale", _RESUME),
+    "0x311-slow": Reaction(False),
+    "0x311-intermittent": Reaction(False),
+    "0x221-stuck": Reaction(False),
+    "0x221-garbage": Reaction(True, _FEEDBACK_STALE, "0x221 stale", _RESUME),
+    "0x221-slow": Reaction(False),
+    "0x221-intermittent": Reaction(False),
+    "0x211-stuck": Reaction(False),
+    "0x211-garbage": Reaction(True, _STATE_STALE, "0x211 stale", _RESUME),
+    "0x211-slow": Reaction(False),
+    "0x211-intermittent": Reaction(False),
+    # the base stops itself: its command timeout (500 ms, the firmware's), then a step
+    "cmd-off": Reaction(True, 0.5 + 0.02, "base lost the command stream", 0.1),
+    "estop": Reaction(True, 0.02, "E-stop", 0.5),
+}
+#: A stop is a zero command within one tick of the watchdog's verdict (the stop event).
+STOP_AFTER_VERDICT_S = _TICK + 0.002
+
+
+class FaultCampaignError(ValueError):
+    """A campaign that cannot run as asked (one line)."""
+
+
+@dataclass(frozen=True)
+class FaultTask:
+    scene: str
+    seed: int
+    fault: str
+    start_s: float = DEFAULT_START_S
+    duration_s: float = DEFAULT_DURATION_S
+
+
+def run_fault_task(task: FaultTask) -> dict:
+    """One episode with one fault, reduced to what the rows need (picklable; any worker)."""
+    from hil_sim.episode.faults import FaultSpec
+    from hil_sim.episode.lockstep import run_episode
+
+    wall0 = time.perf_counter()
+    record = {"scene": task.scene, "seed": task.seed, "fault": task.fault}
+    try:
+        result = run_episode(task.scene, seed=task.seed,
+                             faults=[FaultSpec(task.fault, task.start_s, task.duration_s)])
+    except Exception as exc:  # a broken episode is named in its row, not a lost campaign
+        return {**record, "error": f"{type(exc).__name__}: {exc}", "wall_time_s": time.perf_counter() - wall0}
+    m = result.metrics
+    fault = m["faults"][0]
+    end = task.start_s + task.duration_s
+    zero = fault["first_zero_s"]
+    stopped = zero is not None and zero < end
+    stops = [e for e in m["events"] if e["event"] == "stop"]
+    # the watchdog's verdict: the first stop at or after the injection (event times share the
+    # faults' origin: the episode's start)
+    detected = next((e["t_s"] for e in stops if e["t_s"] >= task.start_s - 1e-9), None)
+    return {
+        **record,
+        "acted_on": int(fault["acted_on"]),
+        "stopped": stopped,
+        "stop_latency_s": (zero - task.start_s) if stopped else None,
+        "detected_s": (detected - task.start_s) if detected is not None and detected < end else None,
+        "stop_after_detect_s": max(0.0, zero - detected) if stopped and detected is not None and detected < end
+        else None,
+        "resume_s": (fault["moving_after_s"] - end) if fault["moving_after_s"] is not None else None,
+        "reasons": sorted({e["reason"] for e in stops}),
+        "failure_reason": m["failure_reason"],
+        "success": bool(m["success"]),
+        "fixed_contacts": int(m["fixed_contacts"]),
+        "wall_time_s": time.perf_counter() - wall0,
+    }
+
+
+def _pct(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None
+
+
+def _reason_matches(reasons: list[str], words: str) -> bool:
+    """A stop event's reason names the input and what is wrong as the table says (reasons of
+    several faults at once are joined by "; ")."""
+    return any(part.startswith(words) for r in reasons for part in r.split("; "))
+
+
+def fault_row(fault: str, records: list[dict]) -> dict:
+    """One row over the episodes of a fault, with its check against EXPECTED."""
+    expected = EXPECTED[fault]
+    ok = [r for r in records if "error" not in r]
+    latencies = [r["stop_latency_s"] for r in ok if r["stop_latency_s"] is not None]
+    after_verdict = [r["stop_after_detect_s"] for r in ok if r["stop_after_detect_s"] is not None]
+    resumes = [r["resume_s"] for r in ok if r["resume_s"] is not None]
+    reasons = sorted({x for r in ok for x in r["reasons"]})
+    row = {
+        "fault": fault, "stream": FAULTS[fault].stream, "failure": FAULTS[fault].failure,
+        "episodes": len(records), "errors": len(records) - len(ok),
+        "acted_on_min": min((r["acted_on"] for r in ok), default=0),
+        "stopped": sum(r["stopped"] for r in ok),
+        "stop_p50_s": _pct(latencies, 50), "stop_p99_s": _pct(latencies, 99),
+        "stop_max_s": max(latencies) if latencies else None,
+        "stop_after_verdict_max_s": max(after_verdict) if after_verdict else None,
+        "resume_p50_s": _pct(resumes, 50), "resume_max_s": max(resumes) if resumes else None,
+        "not_resumed": sum(1 for r in ok if r["resume_s"] is None),
+        "fixed_contacts": sum(r["fixed_contacts"] for r in ok),
+        "reached_goal": sum(r["success"] for r in ok),
+        "reasons": reasons,
+        "failures": [{"scene": r["scene"], "seed": r["seed"], "reason": r.get("failure_reason") or r.get("error")}
+                     for r in records if "error" in r or not r["success"]],
+        "expected": {"stops": expected.stops, "within_s": expected.within_s, "reason": expected.reason,
+                     "resumes_within_s": expected.resumes_within_s},
+    }
+    row["differs"] = _differences(row, ok, expected)
+    return row
+
+
+def _differences(row: dict, ok: list[dict], expected: Reaction) -> list[str]:
+    """How the row's reaction differs from the table's (empty: as documented)."""
+    out = []
+    n = row["episodes"]
+    if row["errors"]:
+        out.append(f"{row['errors']} episodes raised")
+    if ok and row["acted_on_min"] == 0:
+        out.append("the fault acted on nothing in some episode")
+    if row["fixed_contacts"]:
+        out.append(f"{row['fixed_contacts']} fixed contacts")
+    if row["reached_goal"] < len(ok):
+        out.append(f"goal reached in {row['reached_goal']} of {len(ok)}")
+    if expected.stops is True:
+        if row["stopped"] < len(ok):
+            out.append(f"stopped in {row['stopped']} of {len(ok)}")
+        if expected.within_s is not None and row["stop_max_s"] is not None and row["stop_max_s"] > expected.within_s:
+            out.append(f"stopped {row['stop_max_s']:.3f} s after the injection (at most {expected.within_s:.3f})")
+        late = row["stop_after_verdict_max_s"]
+        if late is not None and late > STOP_AFTER_VERDICT_S:
+            out.append(f"the zero command came {late:.3f} s after the watchdog's verdict (at most one tick)")
+        if expected.reason is not None:
+            missing = [r for r in ok if not _reason_matches(r["reasons"], expected.reason)]
+            if missing:
+                out.append(f"no stop named '{expected.reason}' in {len(missing)} episodes")
+        if expected.resumes_within_s is not None and row["resume_max_s"] is not None \
+                and row["resume_max_s"] > expected.resumes_within_s:
+            out.append(f"drove again {row['resume_max_s']:.2f} s after the end (at most "
+                       f"{expected.resumes_within_s:.2f})")
+    elif expected.stops is False and row["stopped"]:
+        out.append(f"stopped in {row['stopped']} of {n} (the table: drives on)")
+    return out
+
+
+def run_fault_campaign(*, scenes: Iterable[str] = DEFAULT_SCENES, seeds: int = 5, first_seed: int = 0,
+                       faults: Iterable[str] = FAULT_NAMES, start_s: float = DEFAULT_START_S,
+                       duration_s: float = DEFAULT_DURATION_S, workers: int = 1, ray_address: str | None = None,
+                       on_done: Callable[[dict], None] | None = None) -> dict:
+    """Every fault x scene x seed; one row per fault (module docstring)."""
+    from hil_sim.bench.campaign import run_tasks
+
+    scenes, faults = tuple(scenes), tuple(faults)
+    unknown = [f for f in faults if f not in FAULTS]
+    if unknown:
+        raise FaultCampaignError(f"--fault {', '.join(unknown)}: unknown; known: {', '.join(FAULT_NAMES)}")
+    if not (math.isfinite(start_s) and start_s >= 0.0 and math.isfinite(duration_s) and duration_s > 0.0):
+        raise FaultCampaignError(f"--start {start_s} / --duration {duration_s}: need start >= 0 and duration > 0")
+    tasks = [FaultTask(scene, first_seed + k, fault, start_s, duration_s)
+             for fault in faults for scene in scenes for k in range(seeds)]
+    wall0 = time.perf_counter()
+    records = run_tasks(tasks, workers, ray_address, on_done, run=run_fault_task)
+    rows = [fault_row(f, [r for r in records if r["fault"] == f]) for f in faults]
+    return {"scenes": list(scenes), "seeds": seeds, "first_seed": first_seed, "start_s": start_s,
+            "duration_s": duration_s, "workers": workers, "rows": rows, "episodes": records,
+            "differs": sum(1 for r in rows if r["differs"]), "wall_time_s": time.perf_counter() - wall0}
+
+
+def _ms(x: float | None) -> str:
+    return "-" if x is None else f"{1e3 * x:.0f}"
+
+
+def format_fault_table(result: dict) -> list[str]:
+    """The rows as printed: one per fault, marked when the reaction differs from the table."""
+    lines = [f"dct bench faults: {len(result['scenes'])} scenes ({', '.join(result['scenes'])}) x {result['seeds']} "
+             f"seeds per fault, lockstep; each fault at {result['start_s']:g} s for {result['duration_s']:g} s",
+             f"{'fault':<20} {'eps':>3} {'stop':>4} {'p50':>5} {'p99':>5} {'max':>5} | {'resume p50/max':>14} | "
+             f"{'fixed':>5} {'goal':>4} | reasons"]
+    for r in result["rows"]:
+        mark = "  DIFFERS: " + "; ".join(r["differs"]) if r["differs"] else ""
+        reasons = "; ".join(x[:48] for x in r["reasons"][:3]) or "-"
+        lines.append(f"{r['fault']:<20} {r['episodes']:>3} {r['stopped']:>4} {_ms(r['stop_p50_s']):>5} "
+                     f"{_ms(r['stop_p99_s']):>5} {_ms(r['stop_max_s']):>5} | "
+                     f"{_ms(r['resume_p50_s']):>6}/{_ms(r['resume_max_s']):<7} | {r['fixed_contacts']:>5} "
+                     f"{r['reached_goal']:>4} | {reasons}{mark}")
+    lines.append("stop: episodes whose base obeyed a zero command while the fault lasted; p50/p99/max: ms from the "
+                 "injection to it; resume: ms from the fault's end until the base drove again; fixed: fixed contacts; "
+                 "goal: episodes that reached it. The expected reactions: docs/faults.md.")
+    lines.append(f"{result['differs']} of {len(result['rows'])} faults differ from the table; wall time "
+                 f"{result['wall_time_s']:.0f} s on {result['workers']} workers")
+    return lines
+
+
+__all__ = ["DEFAULT_SCENES", "EXPECTED", "FaultCampaignError", "FaultTask", "Reaction", "fault_row",
+           "format_fault_table", "run_fault_campaign", "run_fault_task"]

@@ -1,0 +1,76 @@
+"""`dct bench faults` (hil_sim/bench/faults.py): the rows, their check against the documented
+reactions, and the table of docs/faults.md kept equal to the one the command checks."""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+from hil_sim.bench.faults import EXPECTED, fault_row, run_fault_campaign
+from hil_sim.episode.faults import FAULT_KINDS, FAULT_NAMES
+
+DOC = Path(__file__).parents[3] / "docs" / "faults.md"
+
+
+def test_every_fault_has_a_documented_reaction_and_the_doc_table_is_the_checked_one():
+    assert set(EXPECTED) == set(FAULT_NAMES)
+    rows = {}
+    for line in DOC.read_text().splitlines():
+        m = re.match(r"^\| `([a-z0-9-]+)` \| (.+?) \| (stops|drives on|may stop) \| (.+?) \| (.+?) \| (.+?) \|$", line)
+        if m:
+            rows[m.group(1)] = m.groups()[1:]
+    assert list(rows) == list(FAULT_NAMES)  # every fault, in the catalogue's order
+    for kind in FAULT_KINDS:
+        e = EXPECTED[kind.name]
+        does, stops, within, reason, resume = rows[kind.name]
+        assert does == kind.does
+        assert stops == {True: "stops", False: "drives on", None: "may stop"}[e.stops]
+        assert within == (f"{e.within_s:.2f} s" if e.within_s is not None else "-")
+        assert reason == (f"`{e.reason}`" if e.reason else "-")
+        assert resume == (f"{e.resumes_within_s:.2f} s" if e.resumes_within_s is not None else "-")
+
+
+def _record(**kw):
+    base = {"scene": "case3", "seed": 0, "fault": "imu-stuck", "acted_on": 40, "stopped": True,
+            "stop_latency_s": 0.1, "detected_s": 0.1, "stop_after_detect_s": 0.001, "resume_s": 0.15,
+            "reasons": ["IMU stuck (20 samples in a row with the same values)"], "failure_reason": None,
+            "success": True, "fixed_contacts": 0}
+    return {**base, **kw}
+
+
+def test_a_row_is_marked_where_the_reaction_differs_from_the_table():
+    assert fault_row("imu-stuck", [_record()])["differs"] == []
+    cases = {
+        "stopped in 0 of 1": _record(stopped=False, stop_latency_s=None, stop_after_detect_s=None, reasons=[]),
+        "after the injection": _record(stop_latency_s=0.6),
+        "after the watchdog's verdict": _record(stop_after_detect_s=0.2),
+        "no stop named 'IMU stuck'": _record(reasons=["IMU stale (no sample)"]),
+        "1 fixed contacts": _record(fixed_contacts=1),
+        "goal reached in 0 of 1": _record(success=False),
+        "acted on nothing": _record(acted_on=0),
+        "drove again": _record(resume_s=2.0),
+    }
+    for words, record in cases.items():
+        differs = fault_row("imu-stuck", [record])["differs"]
+        assert any(words in d for d in differs), (words, differs)
+    assert "the table: drives on" in fault_row("lidar-slow", [_record(fault="lidar-slow")])["differs"][0]
+
+
+def test_a_short_campaign_meets_the_table_in_the_simulator():
+    """Three faults whose reactions this controller had to learn (a stuck IMU and a stuck 0x311:
+    the samples are each valid) and one it must ride out, on case3."""
+    result = run_fault_campaign(scenes=("case3",), seeds=1, faults=("imu-stuck", "0x311-stuck", "lidar-slow"),
+                                workers=1)
+    rows = {r["fault"]: r for r in result["rows"]}
+    assert result["differs"] == 0, [r["differs"] for r in result["rows"]]
+    assert rows["imu-stuck"]["stopped"] == 1 and rows["0x311-stuck"]["stopped"] == 1
+    assert rows["lidar-slow"]["stopped"] == 0 and rows["lidar-slow"]["acted_on_min"] > 0
+    assert all(r["fixed_contacts"] == 0 and r["reached_goal"] == 1 for r in rows.values())
+
+
+def test_bad_arguments_are_one_line_errors():
+    proc = subprocess.run([sys.executable, "-m", "runtime.app.cli", "bench", "faults", "--fault", "bogus-fault"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "bogus-fault: unknown" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
