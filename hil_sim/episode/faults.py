@@ -174,8 +174,7 @@ class FaultInjector:
         self._frozen: LidarScan | None = None  # the frame replayed while lidar-frozen is active
         self._last_scan: LidarScan | None = None
         self._last_imu: ImuSample | None = None
-        self._stuck_scan: LidarScan | None = None
-        self._stuck_imu: ImuSample | None = None
+        self._held: dict[str, object] = {}  # per stuck fault: the output it repeats
         self._stuck_can: dict[int, bytes] = {}
         self._every_other: dict[str, bool] = {}
         self._late_scans: deque[tuple[float, LidarScan]] = deque()
@@ -263,6 +262,22 @@ class FaultInjector:
             return True
         return False
 
+    def _says_nothing(self, stream: str, off: str) -> bool:
+        """The off, slow or intermittent fault of `stream` keeps this output from the inbox."""
+        if self._active(off):
+            self._count(off)
+            return True
+        return self._drop(stream, f"{stream}-slow", f"{stream}-intermittent")
+
+    def _stuck(self, name: str, output, last):
+        """While the stuck fault `name` is active: the output it repeats (the last delivered when
+        it began, else this one); None when it is not active."""
+        if not self._active(name):
+            self._held.pop(name, None)
+            return None
+        self._count(name)
+        return self._held.setdefault(name, last or output)
+
     def put_scan(self, scan: LidarScan) -> bool:
         if self._active("lidar-frozen"):
             if self._frozen is None:
@@ -270,19 +285,12 @@ class FaultInjector:
             self._count("lidar-frozen")
             return self.inbox.put_scan(self._frozen)
         self._frozen = None
-        if self._active("lidar-off") or self._drop("lidar", "lidar-slow", "lidar-intermittent"):
-            if self._active("lidar-off"):
-                self._count("lidar-off")
+        if self._says_nothing("lidar", "lidar-off"):
             return True  # the sensor said nothing; nothing was refused
-        if self._active("lidar-stuck"):
-            if self._stuck_scan is None:
-                self._stuck_scan = self._last_scan or scan
-            self._count("lidar-stuck")
-            last = self._stuck_scan
-            scan = LidarScan(scan.stamp_s, last.points_m, last.point_time_offsets_s, last.frame_duration_s,
-                             scan.frame_id, nothing_seen=last.nothing_seen)
-        else:
-            self._stuck_scan = None
+        held = self._stuck("lidar-stuck", scan, self._last_scan)
+        if held is not None:
+            scan = LidarScan(scan.stamp_s, held.points_m, held.point_time_offsets_s, held.frame_duration_s,
+                             scan.frame_id, nothing_seen=held.nothing_seen)
         if self._active("lidar-blind"):
             self._count("lidar-blind")
             scan = _blind(scan)
@@ -300,18 +308,11 @@ class FaultInjector:
         return self.inbox.put_scan(scan)
 
     def put_imu(self, sample: ImuSample) -> bool:
-        if self._active("imu-silent") or self._drop("imu", "imu-slow", "imu-intermittent"):
-            if self._active("imu-silent"):
-                self._count("imu-silent")
+        if self._says_nothing("imu", "imu-silent"):
             return True  # the sensor said nothing; nothing was refused
-        if self._active("imu-stuck"):
-            if self._stuck_imu is None:
-                self._stuck_imu = self._last_imu or sample
-            self._count("imu-stuck")
-            last = self._stuck_imu
-            sample = ImuSample(sample.stamp_s, last.gyro_radps, last.accel_mps2, last.saturated)
-        else:
-            self._stuck_imu = None
+        held = self._stuck("imu-stuck", sample, self._last_imu)
+        if held is not None:
+            sample = ImuSample(sample.stamp_s, held.gyro_radps, held.accel_mps2, held.saturated)
         if self._active("imu-garbage"):
             self._count("imu-garbage")
             sample = _unchecked(ImuSample, stamp_s=sample.stamp_s, gyro_radps=np.full(3, np.nan),
