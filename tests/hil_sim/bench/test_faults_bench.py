@@ -47,7 +47,7 @@ def test_a_row_is_marked_where_the_reaction_differs_from_the_table():
         "after the watchdog's verdict": _record(stop_after_detect_s=0.2),
         "no stop named 'IMU stuck'": _record(reasons=["IMU stale (no sample)"]),
         "1 fixed contacts": _record(fixed_contacts=1),
-        "goal reached in 0 of 1": _record(success=False),
+        "the goal missed in 1 episodes": _record(success=False),
         "acted on nothing": _record(acted_on=0),
         "drove again": _record(resume_s=2.0),
     }
@@ -55,6 +55,8 @@ def test_a_row_is_marked_where_the_reaction_differs_from_the_table():
         differs = fault_row("imu-stuck", [record])["differs"]
         assert any(words in d for d in differs), (words, differs)
     assert "the table: drives on" in fault_row("lidar-slow", [_record(fault="lidar-slow")])["differs"][0]
+    # a goal the run without the fault missed too is not the fault's
+    assert fault_row("imu-stuck", [_record(success=False)], baseline={("case3", 0): False})["differs"] == []
 
 
 def test_a_short_campaign_meets_the_table_in_the_simulator():
