@@ -56,8 +56,9 @@ def list_command() -> None:
 )
 @click.option(
     "--fault", "fault_texts", multiple=True, metavar="NAME:START_S[:DURATION_S]",
-    help="Inject a fault (repeatable): lidar-blind, lidar-far, lidar-frozen, drop-0x311, drop-0x211, drop-0x221, "
-         "imu-silent, estop. Times in simulated seconds from the start; no duration = to the end.",
+    help="Inject a fault (repeatable): one of docs/faults.md (lidar-blind, imu-stuck, drop-0x311, 0x221-garbage, "
+         "cmd-off, estop, ...). Times in simulated seconds from the start (with --realtime: from when the "
+         "controller enabled the base); no duration = to the end.",
 )
 @click.option("--record", "record_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Record the run to this MCAP file (ticks, poses, CAN frames, P_fix, plan); "
@@ -68,7 +69,7 @@ def list_command() -> None:
                    "udp_multicast, sensors over DDS) and `dct run` (the controller). The JSON adds `realtime` "
                    "(tick and sensor-to-command latency, deadline misses, pids). Not deterministic. With --record "
                    "the controller process records the run.")
-@click.option("--duration", "duration_s", type=click.FloatRange(0.0, 3600.0, min_open=True), metavar="SECONDS",
+@click.option("--duration", "duration_s", type=click.FloatRange(0.0, 86400.0, min_open=True), metavar="SECONDS",
               help="A patrol scenario (goals:): patrol for this long instead of the file's patrol (loops or "
                    "duration_s); the time limit becomes this duration.")
 @click.option("--middleware", type=click.Choice(["auto", "rclpy", "cyclonedds"]),
@@ -289,9 +290,6 @@ def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None
     from calibration.outputs import atomic_write_json
     from hil_sim.episode.realtime import run_realtime_episode
 
-    for what, given in (("--fault", fault_texts),):
-        if given:
-            raise InputError(f"{what} is not supported with --realtime yet")
     if planner is not None and presets.blind(planner):
         raise InputError(f"--planner {planner} is not supported with --realtime: `dct run` refuses a planner blind to "
                          "obstacles")
@@ -299,7 +297,8 @@ def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None
         m = run_realtime_episode(scenario, seed, config_path, robot_path, calibration_path,
                                  echo=lambda s: click.echo(s, err=True), planner=planner, duration_s=duration_s,
                                  record_path=record_path.resolve() if record_path is not None else None,
-                                 force=force, middleware=middleware, robot_variant=robot_variant)
+                                 force=force, middleware=middleware, robot_variant=robot_variant,
+                                 faults=tuple(fault_texts))
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from None
     if json_path is not None:
@@ -342,8 +341,10 @@ def realtime_line(name: str, m: dict) -> str:
               help="Camera images per second (0: no camera; rendering is costly).")
 @click.option("--connect-timeout", "connect_timeout_s", default=120.0, show_default=True,
               type=click.FloatRange(1.0, 3600.0), help="End the episode if no controller enables the base by then.")
-@click.option("--duration", "duration_s", type=click.FloatRange(0.0, 3600.0, min_open=True), metavar="SECONDS",
+@click.option("--duration", "duration_s", type=click.FloatRange(0.0, 86400.0, min_open=True), metavar="SECONDS",
               help="A patrol scenario (goals:): patrol for this long instead of the file's patrol.")
+@click.option("--fault", "fault_texts", multiple=True, metavar="NAME:START_S[:DURATION_S]",
+              help="Inject a fault (repeatable; docs/faults.md), times from when the controller enabled the base.")
 @click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
 @click.option("--oracle/--no-oracle", "oracle", default=None,
               help="Serve the sim-oracle as a VLM over HTTP (chat completions + grounding /detect) with a 2 Hz camera "
@@ -364,7 +365,7 @@ def serve_command(*, scenario: str, seed: int, json_path: Path | None, config_pa
                   can_channel: str | None, can_port: int | None, camera_rate_hz: float, connect_timeout_s: float, force: bool, oracle: bool | None,
                   oracle_precision: float | None, oracle_recall: float | None, oracle_latency_s: float | None,
                   oracle_failure_rate: float | None, duration_s: float | None = None,
-                  robot_variant: str | None = None) -> None:
+                  robot_variant: str | None = None, fault_texts: tuple[str, ...] = ()) -> None:
     """The simulator of SCENARIO in real time, as its own process: the emulated base on a udp_multicast CAN bus,
     the sensors as ROS 2 DDS topics (Livox CustomMsg or PointCloud2, Imu, Image); for planner mode dct also the
     sim-oracle as a VLM over HTTP on 127.0.0.1 (hil_sim/vlm/service.py). The episode starts when a controller enables
@@ -373,9 +374,14 @@ def serve_command(*, scenario: str, seed: int, json_path: Path | None, config_pa
     import threading
 
     from calibration.errors import ConfigFileError
+    from hil_sim.episode.faults import FaultSpec, FaultSpecError
     from hil_sim.episode.serve import ServeOptions, serve
 
     check_scenario_and_output(scenario, seed, json_path, force, duration_s)
+    try:
+        faults = tuple(FaultSpec.parse(t) for t in fault_texts)
+    except FaultSpecError as exc:
+        raise InputError(str(exc)) from None
     try:
         oracle_config = _serve_oracle_config(config_path, seed, oracle, {
             "precision": oracle_precision, "recall": oracle_recall, "latency_s": oracle_latency_s,
@@ -388,7 +394,8 @@ def serve_command(*, scenario: str, seed: int, json_path: Path | None, config_pa
     try:
         m = serve(ServeOptions(scenario, seed, json_path, robot_path, config_path, domain_id, can_channel, can_port,
                                camera_rate_hz, connect_timeout_s, oracle=oracle_config, duration_s=duration_s,
-                               middleware=middleware, discovery=discovery, robot_variant=robot_variant), stop,
+                               middleware=middleware, discovery=discovery, robot_variant=robot_variant,
+                               faults=faults), stop,
                   echo=lambda s: click.echo(s, err=True))
     except (ConfigFileError, ValueError) as exc:
         raise InputError(str(exc)) from exc

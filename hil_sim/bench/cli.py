@@ -580,3 +580,53 @@ def replay_bench_command(*, scenario: str, seed: int, planner: str | None, domai
         click.echo(line)
     if json_path is not None:
         atomic_write_json(json_path, with_provenance(result))
+
+
+@bench_group.command("soak")
+@click.option("--minutes", default=60.0, show_default=True, type=click.FloatRange(1.0, 1440.0),
+              help="How long to patrol (simulated minutes in lockstep, wall-clock minutes with --realtime).")
+@click.option("--realtime", is_flag=True, help="The two processes of `dct hil run --realtime` on the wall clock (the "
+              "controller records the run into --out).")
+@click.option("--scene", default="patrol_people", show_default=True,
+              help="A patrol scenario (goals:); the default has people, movable boxes and random goals.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--fault-every", "fault_every_s", default=180.0, show_default=True, type=click.FloatRange(10.0, 86400.0),
+              help="Mean seconds between two injected faults (each one of docs/faults.md, for 1-5 s).")
+@click.option("--no-faults", is_flag=True, help="Patrol without faults.")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Controller config YAML.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="A new (or empty) folder: soak.json, soak.md, and with --realtime controller.mcap and latency.html. "
+                   "The figures so far are written to soak.partial.json every 10 minutes.")
+@click.option("--force", is_flag=True, help="Use --out even if it holds files (those of the same names are replaced).")
+def soak_bench_command(*, minutes: float, realtime: bool, scene: str, seed: int, fault_every_s: float, no_faults: bool,
+                       config_path: Path | None, out_dir: Path, force: bool) -> None:
+    """Patrol a cluttered scene with people and movable boxes for MINUTES with faults injected at random, and
+    measure what grows: every 10 s each process's resident memory, open files and threads (and the recorder's
+    queue), every 10 minutes the tick p50/p99/max and deadline misses. Prints growth per hour, the tick p99 of
+    each 10 minutes and its trend, goals reached and missed, contacts; writes soak.json and soak.md to --out."""
+    from calibration.outputs import atomic_write_json, atomic_write_text
+    from hil_sim.bench.soak import SoakError, SoakOptions, format_soak, run_soak
+    from hil_sim.episode.patrol import PatrolError, with_duration
+    from hil_sim.world.scenario import load_scenario
+
+    check_scenario_and_output(scene, seed, None, False)
+    try:
+        with_duration(load_scenario(scene, seed=seed), minutes * 60.0)
+    except PatrolError as exc:
+        raise InputError(str(exc)) from None
+    if out_dir.exists() and (not out_dir.is_dir() or (any(out_dir.iterdir()) and not force)):
+        raise InputError(f"--out {out_dir}: exists and is not an empty folder (give --force to use it anyway)")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        result = run_soak(SoakOptions(minutes=minutes, seed=seed, scene=scene, realtime=realtime,
+                                      fault_every_s=fault_every_s, faults=not no_faults, out_dir=out_dir,
+                                      config_path=config_path, force=force, echo=lambda s: click.echo(s, err=True)))
+    except SoakError as exc:
+        raise InputError(str(exc)) from None
+    lines = format_soak(result)
+    for line in lines:
+        click.echo(line)
+    atomic_write_json(out_dir / "soak.json", with_provenance(result))
+    atomic_write_text(out_dir / "soak.md", "\n".join(lines) + "\n")
+    (out_dir / "soak.partial.json").unlink(missing_ok=True)

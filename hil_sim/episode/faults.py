@@ -1,7 +1,9 @@
 """Faults injected into a HIL episode, so a user can watch the controller's reaction.
 
-`dct hil run SCENARIO --fault NAME:START_S[:DURATION_S]` (repeatable). Times are simulated
-seconds from the start of the episode; without a duration the fault lasts to the end.
+`dct hil run SCENARIO --fault NAME:START_S[:DURATION_S]` (repeatable; also with `--realtime`, where
+`dct hil serve --fault` injects them). Times are simulated seconds from the start of the episode
+(in real time: from when the controller enabled the base); without a duration the fault lasts to
+the end.
 `dct bench faults` runs every fault on a few scenes and checks the reaction against the table
 of docs/faults.md (hil_sim/bench/faults.py).
 
@@ -39,6 +41,7 @@ import numpy as np
 
 from firmware_bridge import protocol as p
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+from hil_sim.world.scenario import MAX_EPISODE_S
 from runtime.common.sensor_data import CameraImage, ImuSample, LidarScan
 from runtime.io.sensor_inbox import SensorInbox
 
@@ -145,8 +148,8 @@ def _seconds(text: str, what: str, value: str) -> float:
         raise FaultSpecError(f"--fault {text!r}: {what} {value!r} is not a number of seconds") from None
     if math.isnan(x):
         raise FaultSpecError(f"--fault {text!r}: {what} is NaN")
-    if not math.isfinite(x) or x < 0.0 or x > 3600.0:
-        raise FaultSpecError(f"--fault {text!r}: {what} {value} must be in [0, 3600] s")
+    if not math.isfinite(x) or x < 0.0 or x > MAX_EPISODE_S:
+        raise FaultSpecError(f"--fault {text!r}: {what} {value} must be in [0, {MAX_EPISODE_S:g}] s")
     return x
 
 
@@ -169,7 +172,8 @@ class FaultInjector:
         self.inbox = inbox
         self.start_s = float(start_s)
         self.far_m = float(far_m)
-        self._now_s = self.start_s
+        # start_s may be +inf (not started yet: `dct hil serve` sets it when the episode starts)
+        self._now_s = self.start_s if math.isfinite(self.start_s) else -math.inf
         self._rng = np.random.default_rng([int(seed), 0xFA17])
         self._frozen: LidarScan | None = None  # the frame replayed while lidar-frozen is active
         self._last_scan: LidarScan | None = None

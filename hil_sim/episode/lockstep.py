@@ -47,6 +47,7 @@ if TYPE_CHECKING:  # the rig imports MuJoCo rendering only when sensors are on
     from hil_sim.world.sensor_rig import SensorRigConfig
     from models.vlm.sim_oracle import SimOracleConfig
     from runtime.io.recording import RunRecorder
+    from runtime.loop.telemetry import TickTelemetry
 
 #: Camera frames per second in planner mode dct (the VLM answers about once a second).
 DCT_CAMERA_RATE_HZ = 2.0
@@ -188,6 +189,7 @@ def run_episode(
     sensor_calibration: "SensorCalibration | None" = None,
     goal_when_ready: bool = False,
     robot_variant: "RobotVariant | None" = None,
+    on_telemetry: "Callable[[TickTelemetry], None] | None" = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -204,6 +206,8 @@ def run_episode(
     observe: called with the controller once after every tick, outside the tick and its timing:
     evaluation harnesses that inspect the stages they measure (`dct bench tick` reads the frame's
     point counts and the planner's counters with it); other observers read `controller.snapshot`.
+    on_telemetry: called once with the loop's TickTelemetry before the first tick (a soak reads the
+    tick records as they come, outside the tick: hil_sim.bench.soak).
     on_start: called once with the simulation and the controller before the first tick
     (evaluations attach to the sensor rig's listeners: `dct vpp eval`).
     recorder: records the ticks, poses, CAN frames, P_fix and plan to MCAP (runtime.io.recording);
@@ -250,7 +254,7 @@ def run_episode(
     parts.loop.before_tick = bench.hand_over_due
     clock.barriers.append(controller.odometry)
     clock.barriers.append(controller)  # the VLM answers due (the vpp partition; nothing otherwise)
-    operator = _Operator(sim, controller, scenario, settle_s, progress, observe)
+    operator = _Operator(sim, controller, scenario, settle_s, progress, observe, seed)
 
     def before() -> None:  # inside the run's clean-up: a harness that fails here closes everything
         bench.wait_ready()
@@ -262,6 +266,8 @@ def run_episode(
                                          lidar_frame=out.lidar_frame, camera_frame=out.camera_frame)
             parts.loop.after_tick = recorder.attach(controller, config, {"scenario": scenario.name, "seed": seed,
                                                                           "clock": "lockstep"}, static_transforms=mounts)
+        if on_telemetry is not None:
+            on_telemetry(parts.telemetry)
         if on_start is not None:
             on_start(sim, controller)
 
@@ -389,13 +395,13 @@ class _Operator:
     """Between ticks (the loop asks before every tick and once at the end): the observer, the
     goal-when-ready clock, the patrol's next goal, and when the episode ends."""
 
-    def __init__(self, sim, controller, scenario, settle_s, progress, observe) -> None:
+    def __init__(self, sim, controller, scenario, settle_s, progress, observe, seed: int = 0) -> None:
         self.sim, self.controller, self.scenario = sim, controller, scenario
         self.settle_s, self.progress, self.observe = settle_s, progress, observe
         self.t_switch_on = sim.time_s
         self.clock_start = sim.time_s  # where the navigation clock starts (moved on by goal_when_ready)
         self.finished_at: float | None = None
-        self.patrol = PatrolSequencer(scenario, self.t_switch_on) if scenario.is_patrol else None
+        self.patrol = PatrolSequencer(scenario, self.t_switch_on, seed) if scenario.is_patrol else None
 
     def should_stop(self) -> bool:
         controller, snap = self.controller, self.controller.snapshot

@@ -30,9 +30,10 @@ where it is).
 from __future__ import annotations
 
 import math
+import random
 from dataclasses import asdict, dataclass
 
-from hil_sim.world.scenario import Patrol, Scenario
+from hil_sim.world.scenario import MAX_EPISODE_S, Patrol, Scenario
 from runtime.common.geometry import Pose2D
 
 #: The controller's goal equals the one sent when within this (m): it has taken it.
@@ -55,12 +56,13 @@ def with_duration(scenario: Scenario, duration_s: float | None) -> Scenario:
     if not scenario.is_patrol:
         raise PatrolError(f"--duration: scenario {scenario.name} has a single goal; only a patrol (goals: and "
                           "patrol: in the scenario file) runs for a set time")
-    if not (math.isfinite(duration_s) and 0.0 < duration_s <= 3600.0):
-        raise PatrolError(f"--duration: {duration_s!r} s is not in (0, 3600]")
+    if not (math.isfinite(duration_s) and 0.0 < duration_s <= MAX_EPISODE_S):
+        raise PatrolError(f"--duration: {duration_s!r} s is not in (0, {MAX_EPISODE_S:g}]")
     timeout = scenario.patrol.goal_timeout_s if scenario.patrol is not None else Patrol.model_fields[
         "goal_timeout_s"].default
     localized = scenario.patrol.localized if scenario.patrol is not None else False
-    patrol = Patrol(duration_s=float(duration_s), goal_timeout_s=timeout, localized=localized)
+    order = scenario.patrol.order if scenario.patrol is not None else "in_order"
+    patrol = Patrol(duration_s=float(duration_s), goal_timeout_s=timeout, localized=localized, order=order)
     # validated again (model_copy would skip the validators): a looped patrol's last -> first
     # pair is checked like the others
     try:
@@ -114,7 +116,7 @@ class PatrolSequencer:
     """The patrol's operator (module docstring). `t0_s` is when the first goal was given (the
     episode's start); every time passed in is on the same clock."""
 
-    def __init__(self, scenario: Scenario, t0_s: float) -> None:
+    def __init__(self, scenario: Scenario, t0_s: float, seed: int = 0) -> None:
         if not scenario.is_patrol:
             raise PatrolError(f"scenario {scenario.name} is not a patrol (no goals:)")
         self.scenario = scenario
@@ -124,6 +126,9 @@ class PatrolSequencer:
         self.duration_s = patrol.duration_s
         self.goal_timeout_s = patrol.goal_timeout_s
         self.localized = patrol.localized
+        #: random order: the next goal's draw (from the episode's seed, so the same seed drives the
+        #: same sequence of goals whatever the timing)
+        self._rng = random.Random(int(seed)) if patrol.order == "random" else None
         self.t0_s = float(t0_s)
         self.visits: list[GoalVisit] = []
         self._drift_m: float | None = None
@@ -140,12 +145,21 @@ class PatrolSequencer:
     def current_goal_odom(self) -> Pose2D:
         return Pose2D(*self.current.goal_odom)
 
+    def _next_index(self, k: int) -> int:
+        """The goal of visit k: in order, or (random order) any goal but the current one."""
+        n = len(self.goals)
+        if self._rng is None or k == 0:
+            return k % n
+        current = self.visits[-1].goal_index
+        return (current + 1 + self._rng.randrange(n - 1)) % n
+
     def _start_visit(self, k: int, t_s: float, world_pose, odom_pose: Pose2D | None) -> None:
         n = len(self.goals)
-        g = self.goals[k % n]
-        odom = (goal_in_odom(self.scenario, k % n, world_pose, odom_pose) if self.localized
-                else goal_in_odom(self.scenario, k % n))
-        self.visits.append(GoalVisit(k, k % n, k // n, (g.x_m, g.y_m), (odom.x_m, odom.y_m, odom.yaw_rad),
+        i = self._next_index(k)
+        g = self.goals[i]
+        odom = (goal_in_odom(self.scenario, i, world_pose, odom_pose) if self.localized
+                else goal_in_odom(self.scenario, i))
+        self.visits.append(GoalVisit(k, i, k // n, (g.x_m, g.y_m), (odom.x_m, odom.y_m, odom.yaw_rad),
                                      t_s - self.t0_s))
         self._last_sent_s = t_s
 

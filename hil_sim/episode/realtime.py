@@ -135,7 +135,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                          echo=None, keep_dir: Path | None = None, planner: str | None = None, *,
                          duration_s: float | None = None, record_path: Path | None = None,
                          force: bool = False, middleware: str | None = None, domain_id: int | None = None,
-                         robot_variant: str | None = None) -> dict:
+                         robot_variant: str | None = None, faults: tuple[str, ...] = (),
+                         monitor=None) -> dict:
     """Run one real-time episode with two processes; returns the merged metrics (module docstring).
     planner: overrides the config's planner.mode (dct, all-fixed).
     Raises RuntimeError when a process could not run (the message says which and its last words).
@@ -143,7 +144,10 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
     records the run (`dct run --record`, `--force` overwrites); middleware: ros.middleware of both
     processes (None: the config's). Both discover each other on this machine only. domain_id: the
     run's DDS domain (None: a random one, unique_channels). robot_variant: the simulated robot as
-    built (`dct hil serve --robot-variant`; the controller is not told)."""
+    built (`dct hil serve --robot-variant`; the controller is not told). faults: `--fault` texts
+    (NAME:START_S[:DURATION_S]) the simulator injects (`dct hil serve --fault`). monitor: called
+    with {"simulator": pid, "controller": pid} once both run, and with None when they have
+    stopped (a soak samples the processes meanwhile: hil_sim.bench.soak)."""
     from hil_sim.episode.patrol import with_duration
     from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
@@ -170,6 +174,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
             run_cmd += ["--middleware", middleware]
         if robot_variant is not None:
             serve_cmd += ["--robot-variant", str(robot_variant)]
+        for text in faults:
+            serve_cmd += ["--fault", str(text)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         t0 = time.monotonic()
         # Own sessions: a Ctrl-C in the terminal reaches this process only, which stops both
@@ -184,12 +190,16 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
             ctl = subprocess.Popen(run_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                    stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
             ctl_log = _Lines(ctl.stderr, "ctl", echo)
+            if monitor is not None:
+                monitor({"simulator": sim.pid, "controller": ctl.pid})
             _supervise(sim, ctl, t0, SERVE_READY_TIMEOUT_S + sc.time_limit_s + 120.0)
             ctl_log.join(2.0)
             sim_log.join(2.0)
         finally:  # also on an exception or a SIGINT/SIGTERM of this process
             _stop(ctl)
             _stop(sim)
+            if monitor is not None:
+                monitor(None)
         if not sim_json.is_file():
             raise RuntimeError(f"dct hil serve (exit {sim.returncode}) wrote no metrics: "
                                f"{' | '.join(sim_log.lines[-3:]) or 'no output'}")
@@ -300,7 +310,7 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
     m["controller"] = report
     m["partition_fallback"] = report.get("partition_fallback")
     m["sensor_errors"] = summary["sensor_errors"]
-    m["faults"] = []  # fault injection is lockstep only
+    m.setdefault("faults", [])  # the simulator's: each injected fault's window and what the base obeyed
     m["failure_reason"] = failure_reason(m, report)
     m["realtime"] = {
         "tick_ms": {k: rt["tick_ms"][k] for k in ("p50", "p99", "max")},

@@ -76,6 +76,9 @@ class ServeOptions:
     discovery: str = "localhost"
     #: The robot as built (a SPEC of hil_sim.world.robot_variant); None: the scenario's, else nominal.
     robot_variant: str | None = None
+    #: Faults injected (hil_sim.episode.faults.FaultSpec), their times from the episode's start (the
+    #: controller enabling the base), as `dct hil run --fault` injects them in lockstep.
+    faults: tuple = ()
 
 
 class DdsSensorSink:
@@ -221,12 +224,13 @@ class _PatrolOperator:
     """A patrol's operator in real time: hil_sim.episode.patrol.PatrolSequencer fed from the controller's
     diagnostics, its goals published on the goal topic (module docstring)."""
 
-    def __init__(self, scenario, transport, inputs, odom_frame: str, reader, t0_s: float, to_wall, echo) -> None:
+    def __init__(self, scenario, transport, inputs, odom_frame: str, reader, t0_s: float, to_wall, echo,
+                 seed: int = 0) -> None:
         from hil_sim.episode.patrol import PatrolSequencer
         from runtime.io.ros.messages import PoseStamped
 
         self.echo = echo
-        self.sequencer = PatrolSequencer(scenario, t0_s)
+        self.sequencer = PatrolSequencer(scenario, t0_s, seed)
         self.reader = reader
         self.writer = transport.writer(inputs.goal.topic, PoseStamped, inputs.goal.qos.spec())
         self.frame = odom_frame
@@ -326,6 +330,7 @@ class _Server:
         from firmware_bridge import protocol
         from firmware_bridge.buses import DEFAULT_UDP_GROUP, DEFAULT_UDP_PORT, BusConfig, open_bus
         from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
+        from hil_sim.episode.faults import FaultInjector, FaultyBus
         from hil_sim.episode.lockstep import LockstepSimulation
         from hil_sim.episode.metrics import EpisodeMetrics
         from hil_sim.world.mujoco_world import World
@@ -356,10 +361,17 @@ class _Server:
         if opts.oracle is not None:
             camera_rate_hz, segmentation = self._start_oracle(camera_rate_hz)
         self.diagnostics = self._diagnostics_reader()
-        self.rig = SensorRig(world, robot, self.sink, SensorRigConfig(
+        # The faults act where lockstep's do: between the firmware and its CAN bus, and between the
+        # sensors and what they publish. None is active before the episode starts (start_s, set
+        # when the controller enables the base).
+        fw_bus = FaultyBus(self.bus)
+        self.firmware = EmulatedBaseFirmware(fw_bus, robot)
+        self.injector = FaultInjector(tuple(opts.faults), self.firmware, self.sink, start_s=float("inf"),
+                                      far_m=config.planner.obstacle_points.max_range_m + 4.0, seed=opts.seed)
+        fw_bus.injector = self.injector
+        self.rig = SensorRig(world, robot, self.injector, SensorRigConfig(
             seed=opts.seed, camera_rate_hz=camera_rate_hz, camera_segmentation=segmentation, camera_async=True))
-        self.firmware = EmulatedBaseFirmware(self.bus, robot)
-        self.sim = LockstepSimulation(world, self.firmware, self.metrics, [self.rig])
+        self.sim = LockstepSimulation(world, self.firmware, self.metrics, [self.rig], controls=[self.injector])
         self._can_mode = protocol.CONTROL_MODE_CAN
         # every catch-up of a 10-minute run (at most one per physics step: 600k in 10 min at 1 ms)
         self.lag_samples = np.zeros(1 << 20)
@@ -435,11 +447,12 @@ class _Server:
         if st.t_start is None:
             if self.firmware.control_mode == self._can_mode:
                 st.t_start = t
+                self.injector.start_s = t
                 self.echo(f"dct hil serve: controller connected at t={t - self.sim_t0:.2f} s; episode starts")
                 if self.scenario.is_patrol:
                     st.patrol = _PatrolOperator(self.scenario, self.transport, self.inputs,
                                                 self.config.ros.outputs.odom_frame, self.diagnostics, t, self.to_wall,
-                                                self.echo)
+                                                self.echo, self.opts.seed)
             elif t - self.sim_t0 > self.opts.connect_timeout_s:
                 st.end_reason = "no_controller"
                 return True
@@ -489,6 +502,9 @@ class _Server:
                 "sim_time_s": t_end - started,
                 "scenario_warnings": list(world.scenario_warnings),
                 "firmware_frames_rejected": self.firmware.frames_rejected,
+                # as lockstep reports them: each fault's window and what the base obeyed around it
+                "faults": [{**r, "acted_on": self.injector.applied[r["name"]]} for r in self.injector.reactions()],
+                "faults_applied": dict(self.injector.applied),
                 "simulator": self._simulator_report(wall, sensor_stats, t_end),
                 **({"robot_variant": world.robot_variant.to_dict()} if world.robot_variant is not None else {}),
             },

@@ -12,8 +12,8 @@ check_scenario_against_robot checks that the robot's footprint swept along it cl
 
 The robot may be one as built rather than as described (`robot_variant:`: hil_sim.world.robot_variant).
 
-A patrol: `goals:` (two or more) instead of `goal:`, visited in order, and `patrol:` (`loops`
-times round, or for `duration_s`; `goal_timeout_s` per goal): hil_sim.episode.patrol sends the next goal
+A patrol: `goals:` (two or more) instead of `goal:`, visited in order (or at random: `patrol.order`),
+and `patrol:` (`loops` times round, or for `duration_s`; `goal_timeout_s` per goal): hil_sim.episode.patrol sends the next goal
 when the controller has reached the current one. `goal` is then the first of them.
 """
 from __future__ import annotations
@@ -31,6 +31,8 @@ from hil_sim.world.robot_variant import VariantDepartures
 from hil_sim.world.scenario_objects import (CLASS_DEFAULT_COST, NAME_PATTERN, BoxObstacle, CylinderObstacle,
                                             FiniteFloat, Obstacle, Pose2D, StrictModel)
 
+#: The longest episode (a patrol's duration, a time limit): a day, so that a soak may run for hours.
+MAX_EPISODE_S = 86400.0
 #: Names the simulator uses itself (MuJoCo names must be unique).
 RESERVED_NAMES: frozenset[str] = frozenset({"floor", "base_link", "world"})
 
@@ -114,8 +116,12 @@ class Patrol(StrictModel):
     sent."""
 
     loops: int | None = Field(default=None, ge=1, le=10000)
-    duration_s: float | None = Field(default=None, gt=0.0, le=3600.0)
+    duration_s: float | None = Field(default=None, gt=0.0, le=MAX_EPISODE_S)
     goal_timeout_s: float = Field(default=60.0, gt=0.0, le=3600.0)
+    #: in_order: goals[0], goals[1], ... and round again. random: after goals[0], each next goal
+    #: drawn at random (from the episode's seed) among the goals other than the current one (a
+    #: soak's random reachable goals; every pair of goals must then be a drivable leg).
+    order: Literal["in_order", "random"] = "in_order"
     #: False: goals in the odometry frame of the start (the odometry's drift goes into them). True:
     #: each goal placed as a localizer would, from the ground truth when it is sent (hil_sim.episode.patrol).
     localized: bool = False
@@ -204,7 +210,7 @@ class Scenario(StrictModel):
     #: A patrol's goals, visited in order (and round again, `patrol`); None: the single `goal`.
     goals: list[Goal] | None = Field(default=None, min_length=2, max_length=100)
     patrol: Patrol | None = None
-    time_limit_s: float = Field(gt=0.0, le=3600.0)
+    time_limit_s: float = Field(gt=0.0, le=MAX_EPISODE_S)
     randomization: Randomization = Field(default_factory=Randomization)
     route: Route | None = None
     #: The robot as built (hil_sim.world.robot_variant): `nominal`, a seed, or the departures
@@ -253,6 +259,8 @@ class Scenario(StrictModel):
         assert self.goals is not None
         looped = self.patrol is not None and (self.patrol.duration_s is not None or (self.patrol.loops or 1) > 1)
         pairs = [(i, i - 1) for i in range(1, len(self.goals))] + ([(0, len(self.goals) - 1)] if looped else [])
+        if self.patrol is not None and self.patrol.order == "random":
+            pairs = [(i, j) for i in range(len(self.goals)) for j in range(i)]
         for i, j in pairs:
             a, b = self.goals[i], self.goals[j]
             d = math.hypot(a.x_m - b.x_m, a.y_m - b.y_m)

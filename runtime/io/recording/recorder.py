@@ -98,6 +98,17 @@ def thread_cpu_seconds(proc_root: str = "/proc") -> list[dict] | None:
     return out
 
 
+def _process_figures(proc_root: str = "/proc") -> dict:
+    """{rss_mb, open_fds} of this process from /proc; {} where there is none."""
+    try:
+        with open(os.path.join(proc_root, "self", "statm"), "rb") as f:
+            resident_pages = int(f.read().split()[1])
+        fds = len(os.listdir(os.path.join(proc_root, "self", "fd")))
+    except (OSError, ValueError, IndexError):
+        return {}
+    return {"rss_mb": resident_pages * os.sysconf("SC_PAGE_SIZE") / 2 ** 20, "open_fds": fds}
+
+
 def _tick_inputs(snap) -> tuple | None:
     """What the tick took in, for /dct/inputs: (the controller's clock, the sensor samples its inbox
     had counted, the ICP results it received (IcpResult each, immutable: read on the writer thread),
@@ -360,7 +371,8 @@ class RunRecorder:
             return
         t = self._last_t_s
         self._emit(S.TOPIC_THREADS, t, {"timestamp": M.stamp(t), "wall_s": time.monotonic() - self._wall0,
-                                        "process_cpu_s": time.process_time(), "threads": threads})
+                                        "process_cpu_s": time.process_time(), "queue": len(self._queue),
+                                        **_process_figures(), "threads": threads})
         self.thread_samples += 1
 
     def _writer_main(self) -> None:

@@ -187,6 +187,9 @@ THREADS = {
         "timestamp": _TIME,
         "wall_s": {**_NUM, "description": "wall-clock seconds since the recorder started"},
         "process_cpu_s": {**_NUM, "description": "the whole process's CPU time (all threads, Python or not)"},
+        "queue": {"type": "integer", "description": "records waiting in the recorder's queue for the writer"},
+        "rss_mb": {**_NUM, "description": "the process's resident memory (MiB; absent where there is no /proc)"},
+        "open_fds": {"type": "integer", "description": "the process's open file descriptors (absent without /proc)"},
         "threads": {
             "type": "array",
             "items": {

@@ -161,6 +161,42 @@ def test_a_stopped_controller_ends_the_patrol_as_a_failure():
     assert seq.done and seq.end_reason == "controller_stopped" and not seq.succeeded
 
 
+def test_a_random_order_patrol_draws_each_next_goal_from_the_seed_among_the_others():
+    sc = scenario(patrol={"duration_s": 100.0, "order": "random"})
+
+    def drive(seed: int) -> list[int]:
+        seq = PatrolSequencer(sc, t0_s=0.0, seed=seed)
+        for k in range(60):
+            g = seq.current_goal_odom()
+            world = sc.goals[seq.current.goal_index]
+            seq.update(float(k + 1), (world.x_m, world.y_m), (g.x_m, g.y_m), True, False)
+        return [v.goal_index for v in seq.visits]
+
+    order = drive(3)
+    assert order[0] == 0 and len(order) == 61
+    assert all(a != b for a, b in zip(order, order[1:]))  # never the goal it is at
+    assert set(order) == {0, 1, 2} and order == drive(3)  # every goal, and the same for the same seed
+    assert order != drive(4)
+    in_order = PatrolSequencer(scenario(patrol={"duration_s": 100.0}), t0_s=0.0, seed=3)
+    assert [v.goal_index for v in in_order.visits] == [0]
+
+
+def test_a_random_order_patrol_checks_every_pair_of_goals():
+    goals = [{"pose": {"x_m": 1.5, "y_m": -1.0}, "tolerance_m": 0.2}, {"pose": {"x_m": 1.5, "y_m": 1.0}, "tolerance_m": 0.2},
+             {"pose": {"x_m": 1.6, "y_m": -0.9}, "tolerance_m": 0.2}]
+    assert scenario(goals=goals, patrol={"loops": 1}).is_patrol  # in order, once: goals[2] follows goals[1] only
+    with pytest.raises(ValueError, match=r"goals\[2\] is 0.141 m from goals\[0\]"):
+        scenario(goals=goals, patrol={"duration_s": 50.0, "order": "random"})
+
+
+def test_a_day_long_patrol_is_allowed_and_longer_is_refused():
+    assert with_duration(scenario(), 4 * 3600.0).patrol.duration_s == 14400.0
+    with pytest.raises(PatrolError, match="not in"):
+        with_duration(scenario(), 86401.0)
+    assert load_scenario("patrol_people").patrol.order == "random"
+    assert check_scenario_against_robot(load_scenario("patrol_people"), ROBOT) == []
+
+
 # -- lockstep episodes ----------------------------------------------------------------------------
 def test_lockstep_goal_change_mid_drive_redirects_the_robot_deterministically():
     """all-fixed (lidar, reference path, MPC): driving east, at 2 s the goal becomes a point to the
