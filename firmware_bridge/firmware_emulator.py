@@ -30,7 +30,13 @@ switching, and the choices made where the sources are silent):
   vehicle state 0x01, the wheels stop at once and 0x111 is ignored; releasing it lets 0x111
   through again (the host is expected to restart its own sequence, as our controller does).
 * Fault injection for HIL: `suppressed_frame_ids` holds feedback ids the firmware stops sending
-  (a silent stream; counted in `frames_suppressed`).
+  (a silent stream; counted in `frames_suppressed`). `booting = True` is a firmware reboot: the
+  firmware is silent, reads nothing, and its motors are off (no torque: the robot coasts); when it
+  is set back to False the firmware starts afresh, as after power-on: standby, no error bits,
+  odometers and the 0x211 counter at zero. `injected_error` is OR-ed into the error code
+  (a driver fault, 0x0100 motor driver, stops the wheels at once while it is raised, as the
+  driver does). `rc_takeover = True` is the remote control taking the base: control mode 3 (RC),
+  0x111 ignored, the sticks at zero; when it ends the base is left in standby.
 * Frames are decoded with `FrameDecoder`: a bad frame is counted (`frames_rejected`) and never
   acted on. Feedback frames carry `timestamp = t_s` (the lockstep simulator's bus keeps it, as
   does a virtual bus created with `preserve_timestamps=True`).
@@ -119,6 +125,12 @@ class EmulatedBaseFirmware:
         self.emergency_stop = False
         self.suppressed_frame_ids: set[int] = set()
         self.frames_suppressed = 0
+        self.booting = False
+        self._booted = True  # False while booting: the restart happens when booting ends
+        self.reboots = 0
+        self.injected_error = 0
+        self.rc_takeover = False
+        self._rc_held = False
 
         self._integral = [0.0] * 4
         self._at_limit_s = [0.0] * 4
@@ -193,6 +205,11 @@ class EmulatedBaseFirmware:
                 raise FirmwareEmulatorError(f"step: time went backwards ({self._t_last} -> {t_s})")
         self._t_last = t_s
         self._speeds, self._angles = speeds, angles
+        if self.booting or not self._booted:
+            if self.booting:
+                return self._boot_step(t_s)
+            self._power_on(angles)
+        self._take_over(self.rc_takeover)
 
         self._read_bus(t_s)
         self._check_timeout(t_s)
@@ -204,6 +221,39 @@ class EmulatedBaseFirmware:
         return torques
 
     # ------------------------------------------------------------------------------------
+    def _boot_step(self, t_s: float) -> np.ndarray:
+        """Rebooting: nothing read (frames sent meanwhile are lost), nothing sent, motors off."""
+        self._booted = False
+        while self.bus.recv(timeout=0.0) is not None:
+            pass
+        self._stop_now()
+        self._targets = [0.0] * 4
+        self._currents = [0.0] * 4
+        self._torques = [0.0] * 4
+        return np.zeros(4)
+
+    def _power_on(self, angles: np.ndarray) -> None:
+        """The firmware starts afresh after a reboot: standby, no errors, odometers at zero."""
+        self._booted = True
+        self.reboots += 1
+        self.control_mode = p.CONTROL_MODE_STANDBY
+        self.error_code = 0
+        self.last_command_time_s = None
+        self._integral = [0.0] * 4
+        self._angles0 = angles.copy()
+        self._count_211 = 0
+        self._rc_held = False
+
+    def _take_over(self, rc: bool) -> None:
+        """The remote control takes the base (control mode RC) and, when released, leaves it in standby."""
+        if rc and not self._rc_held:
+            self.control_mode = p.CONTROL_MODE_RC
+            self.last_command_time_s = None
+            self._stop_now()
+        elif not rc and self._rc_held:
+            self.control_mode = p.CONTROL_MODE_STANDBY
+        self._rc_held = rc
+
     def _read_bus(self, t_s: float) -> None:
         while True:
             msg = self.bus.recv(timeout=0.0)
@@ -216,9 +266,11 @@ class EmulatedBaseFirmware:
 
     def _handle(self, record: object, t_s: float) -> None:
         if isinstance(record, p.MotionCommand):
-            if self.control_mode != p.CONTROL_MODE_CAN or self.comm_lost or self.emergency_stop:
+            if (self.control_mode != p.CONTROL_MODE_CAN or self.comm_lost or self.emergency_stop
+                    or self.injected_error & p.ERROR_MOTOR_DRIVER):
                 self.commands_ignored += 1
-                if self.emergency_stop and self.control_mode == p.CONTROL_MODE_CAN and not self.comm_lost:
+                if ((self.emergency_stop or self.injected_error & p.ERROR_MOTOR_DRIVER)
+                        and self.control_mode == p.CONTROL_MODE_CAN and not self.comm_lost):
                     self.last_command_time_s = t_s  # the host is alive; its command is not obeyed
                 return
             v = min(max(float(record.linear_mps), -self._v_max), self._v_max)
@@ -226,6 +278,9 @@ class EmulatedBaseFirmware:
             self.commanded = (v, w)
             self.last_command_time_s = t_s
         elif isinstance(record, p.ControlModeCommand):
+            if self._rc_held:  # the remote control has the base: the host cannot switch it
+                self.frames_ignored += 1
+                return
             self.control_mode = int(record.mode)
             self.last_command_time_s = None
             if self.control_mode == p.CONTROL_MODE_CAN:
@@ -251,7 +306,7 @@ class EmulatedBaseFirmware:
             self._stop_now()
 
     def _update_targets(self, dt: float) -> None:
-        if self.control_mode != p.CONTROL_MODE_CAN or self.emergency_stop:
+        if self.control_mode != p.CONTROL_MODE_CAN or self.emergency_stop or self.injected_error & p.ERROR_MOTOR_DRIVER:
             self._stop_now()
         (v_cmd, w_cmd), (v, w) = self.commanded, self.ramped
         dv, dw = self._a_max * dt, self._alpha_max * dt
@@ -351,7 +406,7 @@ class EmulatedBaseFirmware:
             self._send(p.SystemState(
                 vehicle_state=p.VEHICLE_STATE_ESTOP if self.emergency_stop else p.VEHICLE_STATE_NORMAL,
                 control_mode=self.control_mode,
-                battery_voltage_v=volts, error_code=self.error_code,
+                battery_voltage_v=volts, error_code=self.error_code | self.injected_error,
                 motion_mode=p.MOTION_MODE_DIFFERENTIAL, count=self._count_211,
             ), t_s)
             self._count_211 = (self._count_211 + 1) % 256

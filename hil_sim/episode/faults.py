@@ -17,7 +17,8 @@ Each fault is one failure type of one input, after PX4's failure injection (`off
 | IMU | silent (off), stuck (the last sample's values with new stamps), garbage (NaN), slow (every other sample), delayed (0.3 s late), intermittent (30% dropped) |
 | 0x311, 0x221, 0x211 (the base's feedback) | drop-ID (off), stuck (the first payload of the fault repeated), garbage (3 random bytes: a wrong DLC), slow (every other frame), intermittent (30% dropped) |
 | 0x111 (our command stream) | cmd-off: no command reaches the base |
-| the base | estop: the base reports E-stop in 0x211 (and stops its wheels, ignoring 0x111) |
+| the CAN bus | bus-off: nothing either way |
+| the base | estop (E-stop in 0x211), reboot (silent, then standby with odometers at zero), error (0x211 error bit 0x0100, motor driver fault), rc (the remote control takes it) |
 
 The faults act where the real fault would: on the sensor data between the simulated sensor and
 the controller's inbox, on the CAN frames between the emulated firmware and the controller
@@ -93,12 +94,23 @@ FAULT_KINDS: tuple[FaultKind, ...] = (
     *(FaultKind(f"{stream}-{failure}", stream, failure, does)
       for stream in _CAN_STREAMS for failure, does in _CAN_FAILURES.items()),
     FaultKind("cmd-off", "0x111", "off", "no 0x111 from the controller reaches the base"),
+    FaultKind("bus-off", "can", "off", "the CAN bus carries nothing either way (bus-off): no feedback reaches the "
+                                      "controller, no command the base"),
     FaultKind("estop", "base", "estop", "the base reports E-stop in 0x211 (and stops its wheels, ignoring 0x111)"),
+    FaultKind("base-reboot", "base", "reboot", "the base firmware reboots: silent, motors off, for the fault's "
+                                               "duration; then back in standby, odometers at zero, needing a "
+                                               "fresh enable"),
+    FaultKind("base-error", "base", "error", "the base raises error bit 0x0100 (motor driver fault) in 0x211 and "
+                                             "stops its wheels while it lasts"),
+    FaultKind("rc-takeover", "base", "rc", "the remote control takes the base (control mode RC, 0x111 ignored); "
+                                           "released, the base is left in standby"),
 )
 FAULTS: dict[str, FaultKind] = {k.name: k for k in FAULT_KINDS}
 FAULT_NAMES: tuple[str, ...] = tuple(FAULTS)
 
 _FRAME_DROPS = {"drop-0x311": p.ID_ODOMETRY, "drop-0x211": p.ID_SYSTEM_STATE, "drop-0x221": p.ID_MOTION_STATE}
+#: The faults that put the emulated firmware itself into a state (EmulatedBaseFirmware's fault hooks).
+_FIRMWARE_STATES = ("estop", "base-reboot", "base-error", "rc-takeover")
 
 _SPEC_RE = re.compile(r"^(?P<name>[a-z0-9-]+):(?P<start>[^:]+)(?::(?P<dur>[^:]+))?$")
 
@@ -190,7 +202,7 @@ class FaultInjector:
         self._by_name: dict[str, tuple[FaultSpec, ...]] = {
             name: tuple(f for f in self.faults if f.name == name) for name in FAULT_NAMES}
         self._frame_drops = tuple((name, frame_id, self._by_name[name]) for name, frame_id in _FRAME_DROPS.items())
-        self._firmware_faults = any(self._by_name[name] for name in (*_FRAME_DROPS, "estop"))
+        self._firmware_faults = any(self._by_name[name] for name in (*_FRAME_DROPS, *_FIRMWARE_STATES))
         self._can_faults = tuple((stream, failure, _CAN_STREAMS[stream]) for stream in _CAN_STREAMS
                                  for failure in _CAN_FAILURES if self._by_name[f"{stream}-{failure}"])
         #: Per fault (in the order given): what the base obeyed around it (reactions()).
@@ -218,6 +230,12 @@ class FaultInjector:
                 fw.suppressed_frame_ids.difference_update(_FRAME_DROPS.values())
             fw.emergency_stop = False
             return
+        for name, attr, on in (("base-reboot", "booting", True), ("base-error", "injected_error", p.ERROR_MOTOR_DRIVER),
+                               ("rc-takeover", "rc_takeover", True)):
+            active = self._active(name)
+            setattr(fw, attr, on if active else type(on)(0))
+            if active:
+                self._count(name)
         for name, frame_id, _ in self._frame_drops:
             if self._active(name):
                 fw.suppressed_frame_ids.add(frame_id)
@@ -348,6 +366,8 @@ class FaultInjector:
     # -- the CAN side (FaultyBus) ----------------------------------------------------------------
     def outgoing(self, msg: can.Message) -> can.Message | None:
         """A frame the base sends, as the controller gets it (None: dropped)."""
+        if self._bus_off():
+            return None
         for stream, failure, frame_id in self._can_faults:
             if msg.arbitration_id != frame_id:
                 continue
@@ -374,8 +394,16 @@ class FaultInjector:
                 return None
         return msg
 
+    def _bus_off(self) -> bool:
+        if self._active("bus-off"):
+            self._count("bus-off")
+            return True
+        return False
+
     def incoming(self, msg: can.Message) -> bool:
         """Whether a frame the controller sends reaches the base."""
+        if self._bus_off():
+            return False
         if msg.arbitration_id == p.ID_MOTION_COMMAND and self._active("cmd-off"):
             self._count("cmd-off")
             return False

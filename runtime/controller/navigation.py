@@ -329,7 +329,8 @@ class NavigationController:
         elif inputs.system_state_age_s <= self.config.inputs.system_state_timeout_s:
             if inputs.stopping_error:
                 stop.trip(f"base reports error code 0x{inputs.error_code:04X}")
-            elif self.state is not ControllerState.INITIALIZING and not inputs.in_command_mode:
+            elif (self.state is not ControllerState.INITIALIZING and not inputs.in_command_mode
+                  and not self.monitor.base_rebooted):  # a rebooted base is enabled again (_restart)
                 stop.trip(f"base left CAN command mode (control mode {inputs.control_mode_name})")
         if stop.tripped:
             self._stop(now)
@@ -379,6 +380,8 @@ class NavigationController:
         after it add what the wheels did meanwhile (the odometry re-anchors only after a gap the
         0x221 speed bridged)."""
         imu = sensors.imu if not any(f.stream == "imu" for f in self.faults) else ()
+        if self.monitor.base_rebooted_now:  # its odometers restarted from zero: not motion
+            self.odometry.base_restarted()
         if self.state is ControllerState.INITIALIZING and self.restarts == 0:
             # Standing still before the first start: learn the gyro bias (and let ICP build its
             # first map). After a restart the robot may still be rolling: keep integrating.

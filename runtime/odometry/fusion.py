@@ -25,7 +25,10 @@ skid-steer base slips sideways when it turns), the ICP increment d_i (covariance
 constraint: `icp_sigma` along constrained directions, `degenerate_variance` along a degenerate
 one), fused: P = (Q^-1 + R^-1)^-1, d = P (Q^-1 d_w + R^-1 d_i); F_b = F_a (+) d. An ICP increment
 that no robot could have made (farther from the wheels' than `gate_m` + `gate_fraction` of the
-distance, or `gate_rad` in yaw) is refused and the wheels' is used (counted, named).
+distance, or `gate_rad` in yaw) is refused and the wheels' is used (counted, named). Over an
+interval in which the base said nothing of its motion (no wheel distances, no speed: a bus-off,
+a rebooting base) the wheels' translation is unknown, not zero: ICP's translation is taken (its
+rotation is still judged against the gyro's).
 """
 from __future__ import annotations
 
@@ -76,6 +79,7 @@ class FusionStats:
     refused: int = 0
     too_old: int = 0
     degenerate: int = 0
+    wheels_blind: int = 0  # fused with the translation from ICP alone (the base said nothing of it)
 
 
 class PoseFusion:
@@ -93,13 +97,19 @@ class PoseFusion:
         self.anchor_pose = np.zeros(3)
         self.anchor_cov = np.zeros((3, 3))
         self._anchor_d = np.zeros(3)
+        self._blind_t: float | None = None  # the last tick at which the wheels knew no translation
         self.stats = FusionStats()
         #: Time of the newest ICP result that was fused (None: none yet): the age of the correction.
         self.last_fused_t: float | None = None
 
     # -- dead reckoning ------------------------------------------------------------------------
-    def add_dead_reckoning(self, t_s: float, pose: np.ndarray) -> None:
-        """The wheel + gyro pose D(t) (call every tick, times increasing)."""
+    def add_dead_reckoning(self, t_s: float, pose: np.ndarray, translation_known: bool = True) -> None:
+        """The wheel + gyro pose D(t) (call every tick, times increasing). translation_known False:
+        the base said nothing of its motion since the call before (no wheel distances, no speed):
+        D did not move, which is not "the robot stood still"; an ICP increment over that time is
+        then judged and fused on its rotation only and gives the translation (icp_update)."""
+        if not translation_known:
+            self._blind_t = t_s
         i = self._n % self._cap
         self._t[i] = t_s
         self._d[i] = pose
@@ -222,6 +232,13 @@ class PoseFusion:
         off = math.hypot(d_i[0] - d_w[0], d_i[1] - d_w[1])
         off_yaw = abs(wrap(d_i[2] - d_w[2]))
         q = self.wheel_covariance(d_w, t_b - self.anchor_t)
+        if self._blind_t is not None and self._blind_t > self.anchor_t - 1e-9:
+            # the wheels knew nothing of the translation over part of this interval: ICP's counts
+            self.stats.wheels_blind += 1
+            q[:2, :] = 0.0
+            q[:, :2] = 0.0
+            q[0, 0] = q[1, 1] = c.degenerate_variance
+            off = 0.0
         if off > c.gate_m + c.gate_fraction * dist or off_yaw > c.gate_rad:
             self._move_anchor(t_b, d_b, d_w, q)
             return self._refuse(f"ICP increment {off * 100:.1f} cm / {math.degrees(off_yaw):.1f} deg from the "

@@ -88,6 +88,9 @@ class OdometryStage:
         self.points_excluded = 0  # counter
         self._first_submit_s: float | None = None
         self._last_update_s: float | None = None
+        self._last_wheels: tuple[float, float] | None = None
+        self._last_wheels_s: float | None = None  # when the wheel distances last changed
+        self._blind_since_s: float | None = None  # the base has said nothing of its motion since
         self.pose = Pose2D(0.0, 0.0, 0.0)
         self.covariance = np.zeros((3, 3))
         #: This tick's ICP correction as a planar transform of the odom frame (None: none):
@@ -167,6 +170,10 @@ class OdometryStage:
     def yaw_rate_radps(self) -> float:
         return self.wheels.yaw_rate_radps
 
+    def base_restarted(self) -> None:
+        """The base rebooted: its odometers start again from zero (the next reading re-anchors)."""
+        self.wheels.reanchor()
+
     def update(self, now_s: float, wheels: tuple[float, float] | None, imu_samples,
                good_scan: LidarScan | None, speed_mps: float | None = None) -> Pose2D:
         """wheels: the cumulative wheel distances (0x311) when fresh, else None; speed_mps: the
@@ -176,9 +183,26 @@ class OdometryStage:
         if wheels is None and speed_mps is not None and self._last_update_s is not None:
             fallback = speed_mps * (now_s - self._last_update_s)
         self._last_update_s = now_s
-        d_now = _pose_vec(self.wheels.update_with_imu(wheels, imu_samples, fallback))
+        gap = None
+        known = wheels is not None or fallback is not None
         fusion = self.fusion
-        fusion.add_dead_reckoning(now_s, d_now)
+        if not known and self._blind_since_s is None:
+            self._blind_since_s = now_s
+        elif known and self._blind_since_s is not None:
+            # The base speaks again after saying nothing of its motion. Where ICP measured the
+            # translation meanwhile (fused after the silence began), the wheels' jump over the
+            # silence would count it twice: they re-anchor. Without ICP the jump is all we know.
+            if fusion.last_fused_t is not None and fusion.last_fused_t >= self._blind_since_s:
+                self.wheels.reanchor()
+            self._blind_since_s = None
+        if wheels is not None:
+            # since the distances last changed (a stuck 0x311's frozen readings are no movement
+            # limit: the wheels turned meanwhile)
+            gap = None if self._last_wheels_s is None else now_s - self._last_wheels_s
+            if wheels != self._last_wheels:
+                self._last_wheels, self._last_wheels_s = wheels, now_s
+        d_now = _pose_vec(self.wheels.update_with_imu(wheels, imu_samples, fallback, gap))
+        fusion.add_dead_reckoning(now_s, d_now, translation_known=known)
         self.correction = None
         self.delivered = ()
         if self.worker is not None:
@@ -346,6 +370,7 @@ class OdometryStage:
             "icp_results": s.results,
             "icp_fused": s.fused,
             "icp_refused": s.refused,
+            "icp_fused_wheels_blind": s.wheels_blind,
             "icp_degenerate_frames": s.degenerate,
             "icp_dropped": self._worker_stat("dropped"),
             "icp_too_old": s.too_old,

@@ -9,8 +9,19 @@ import math
 from runtime.common.geometry import Pose2D, wrap_angle
 
 
+#: Faster than this a wheel's distance cannot change between two readings (twice the base's top
+#: speed): a bigger step is a counter that restarted (the base rebooted), not motion; the odometry
+#: re-anchors on the new reading instead of integrating the jump. Plus a margin for one reading.
+MAX_WHEEL_SPEED_MPS = 2.0
+WHEEL_STEP_MARGIN_M = 0.1
+
+
 class WheelOdometry:
     """Integrates left/right wheel distance increments (midpoint rule) into a pose in the odom frame.
+
+    A wheel's distance jumping further than it could have moved since the reading before
+    (MAX_WHEEL_SPEED_MPS over `gap_s`, given to `update_with_imu`) re-anchors instead (`jumps`
+    counts them), and so does `reanchor()` (the base said it restarted).
 
     The wheel distances are multiplied by `wheel_scale` (true distance / reported distance) and
     their difference turns into yaw over track_m * effective_track_factor. Calibrated values
@@ -28,6 +39,23 @@ class WheelOdometry:
         self._last: tuple[float, float] | None = None
         self._x = self._y = self._yaw = 0.0
         self.distance_travelled_m = 0.0
+        self.jumps = 0
+
+    def reanchor(self) -> None:
+        """The next wheel reading starts afresh (the base's odometers restarted)."""
+        self._last = None
+
+    def _jumped(self, left_wheel_m: float, right_wheel_m: float, gap_s: float | None) -> bool:
+        """The new reading is not reachable from the last one in gap_s (None: not judged)."""
+        last = self._last
+        if gap_s is None:
+            return False
+        step = MAX_WHEEL_SPEED_MPS * max(gap_s, 0.0) + WHEEL_STEP_MARGIN_M
+        if abs(left_wheel_m - last[0]) <= step and abs(right_wheel_m - last[1]) <= step:
+            return False
+        self._last = (left_wheel_m, right_wheel_m)
+        self.jumps += 1
+        return True
 
     @property
     def pose(self) -> Pose2D:
@@ -90,11 +118,12 @@ class WheelGyroOdometry(WheelOdometry):
             self.gyro_bias_radps = self._bias_sum / self._bias_n
 
     def update_with_imu(self, wheels: tuple[float, float] | None, imu_samples,
-                        fallback_distance_m: float | None = None) -> Pose2D:
+                        fallback_distance_m: float | None = None, gap_s: float | None = None) -> Pose2D:
         """wheels: the cumulative wheel distances (0x311), None when they are not fresh.
         fallback_distance_m: without fresh wheel distances, the distance travelled since the last
         update from the base's reported speed (0x221 x dt); the wheel distances then re-anchor
-        when they return (their jump over the gap is not counted twice). None: no translation."""
+        when they return (their jump over the gap is not counted twice). None: no translation.
+        gap_s: seconds since the wheel reading before this one (a bigger jump re-anchors)."""
         d_yaw = 0.0
         have_imu = False
         for s in imu_samples:
@@ -116,10 +145,11 @@ class WheelGyroOdometry(WheelOdometry):
             if have_imu:
                 self._yaw = wrap_angle(self._yaw + d_yaw)
             return self.pose
-        if not have_imu:
-            return self.update(*wheels)
         left, right = wheels
-        if self._last is None:
+        jumped = self._last is not None and self._jumped(left, right, gap_s)
+        if not have_imu and not jumped:
+            return self.update(left, right)
+        if self._last is None or jumped:
             self._last = (left, right)
             self._yaw = wrap_angle(self._yaw + d_yaw)
             return self.pose

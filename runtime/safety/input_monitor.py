@@ -11,6 +11,10 @@ Streams and rules:
   staleness timeout (the frame's period times a few); 0x211's vehicle state must be normal (an
   E-stop, an exception or an unknown value are faults that need the start-up sequence again
   when they clear), and a 0x211 saying the base lost our command stream (error 0x0200) too.
+  A base that went silent (0x211 stale) and came back in standby has rebooted: a fault that
+  needs the start-up sequence (a fresh enable), for up to `base_reboot_window_s` after it came
+  back (a base switched to standby while it kept talking has been taken from us: the controller
+  stops for good, runtime.controller.navigation).
   0x311 stuck: its wheel distances unchanged for `odometry_stuck_s` while 0x221 kept reporting
   the base moving (both come from the same wheel encoders: a live base cannot do that); the
   fault holds until the distances change.
@@ -36,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from firmware_bridge import protocol
 from runtime.io.hardware import BaseInputs
 from runtime.common.sensor_data import LidarScan
 from runtime.io.sensor_inbox import SensorSnapshot
@@ -87,6 +92,11 @@ class InputsConfig(BaseModel):
     #: not make data look fresh for as long as it is wrong).
     future_tolerance_s: float = Field(default=0.01, ge=0.0, le=1.0)
     lidar: LidarInputConfig = LidarInputConfig()
+
+
+#: After its feedback stopped, a base reporting standby within this many seconds of coming back
+#: has rebooted (the start-up sequence enables it again); later, standby is someone else's doing.
+BASE_REBOOT_WINDOW_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -154,6 +164,10 @@ class InputMonitor:
         self._imu_last_values: tuple | None = None
         self._imu_same = 0  # samples in a row with the previous one's values
         self._odometry: tuple[float, float] | None = None  # the last 0x311 distances seen
+        self._system_silent_s: float | None = None  # the last tick at which 0x211 was stale
+        #: This tick: the base is back in standby after a silence (it rebooted; module docstring);
+        #: _now: and it was not the tick before (its odometers restarted: the odometry re-anchors).
+        self.base_rebooted = self.base_rebooted_now = False
         self._moving_unchanged_s: float | None = None  # since when 0x221 says moving and 0x311 holds still
         self._odometry_stuck: str | None = None
         self._lidar_good_end_s: float | None = None  # end of the newest good frame
@@ -173,6 +187,15 @@ class InputMonitor:
             if age > timeout:
                 detail = "never received" if math.isinf(age) else f"no frame for {age:.2f} s"
                 out.append(InputFault(stream, f"{stream} stale ({detail}, timeout {timeout:g} s)"))
+        was = self.base_rebooted
+        self.base_rebooted = self.base_rebooted_now = False
+        if inputs.system_state_age_s > c.system_state_timeout_s:
+            self._system_silent_s = inputs.stamp_s
+        elif (inputs.control_mode == protocol.CONTROL_MODE_STANDBY and self._system_silent_s is not None
+              and inputs.stamp_s - self._system_silent_s <= BASE_REBOOT_WINDOW_S):
+            self.base_rebooted, self.base_rebooted_now = True, not was
+            out.append(InputFault("0x211", "base restarted (back in standby after its feedback stopped)",
+                                  restart=True, blocks_restart=False))
         if inputs.system_state_age_s <= c.system_state_timeout_s:
             if not inputs.vehicle_normal:
                 name = inputs.vehicle_state_name

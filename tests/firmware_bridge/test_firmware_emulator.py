@@ -445,3 +445,64 @@ def test_suppressed_feedback_frames_are_not_sent():
     finally:
         fw_bus.shutdown()
         host.shutdown()
+
+
+def test_a_reboot_is_silent_with_the_motors_off_and_comes_back_in_standby_with_odometers_at_zero():
+    world = World(open_floor(), ROBOT)
+    fw_bus, host = bus_pair()
+    try:
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 1.5, buses=(fw_bus, host))
+        assert trace.records(p.Odometry)[-1][1].left_wheel_m > 0.4
+        fw.booting = True
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 0.5, enable=False, firmware=fw, buses=(fw_bus, host))
+        assert trace.frames == [] and np.allclose(fw.last_torques_nm, 0.0)  # silent, motors off
+        fw.booting = False
+        x0 = world.robot_pose()[0]
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 0.5, enable=False, firmware=fw, buses=(fw_bus, host))
+        states = [r for _, r in trace.records(p.SystemState)]
+        assert states and all(s.control_mode == p.CONTROL_MODE_STANDBY and s.error_code == 0 for s in states)
+        assert states[0].count == 0 and fw.reboots == 1
+        assert abs(trace.records(p.Odometry)[0][1].left_wheel_m) < 0.05  # the odometers restarted
+        assert world.robot_pose()[0] - x0 < 0.15 and fw.commands_ignored > 0  # standby: 0x111 ignored
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 1.0, firmware=fw, buses=(fw_bus, host))  # a fresh enable
+        assert world.robot_pose()[0] - x0 > 0.3
+    finally:
+        fw_bus.shutdown()
+        host.shutdown()
+
+
+def test_an_injected_driver_fault_is_reported_and_stops_the_wheels_while_it_lasts():
+    world = World(open_floor(), ROBOT)
+    fw_bus, host = bus_pair()
+    try:
+        _, fw = drive(world, lambda t: (0.5, 0.0), 1.0, buses=(fw_bus, host))
+        fw.injected_error = p.ERROR_MOTOR_DRIVER
+        x0 = world.robot_pose()[0]
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 1.0, enable=False, firmware=fw, buses=(fw_bus, host))
+        assert all(r.error_code & p.ERROR_MOTOR_DRIVER for _, r in trace.records(p.SystemState))
+        assert world.robot_pose()[0] - x0 < 0.2 and np.allclose(fw.wheel_targets_radps, 0.0)
+        fw.injected_error = 0
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 0.3, enable=False, firmware=fw, buses=(fw_bus, host))
+        assert trace.records(p.SystemState)[-1][1].error_code == 0
+    finally:
+        fw_bus.shutdown()
+        host.shutdown()
+
+
+def test_the_remote_control_takes_the_base_and_leaves_it_in_standby():
+    world = World(open_floor(), ROBOT)
+    fw_bus, host = bus_pair()
+    try:
+        _, fw = drive(world, lambda t: (0.5, 0.0), 1.0, buses=(fw_bus, host))
+        fw.rc_takeover = True
+        x0 = world.robot_pose()[0]
+        # the host tries to take it back: 0x421 is ignored while the remote control has it
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 1.0, enable=True, firmware=fw, buses=(fw_bus, host))
+        assert all(r.control_mode == p.CONTROL_MODE_RC for _, r in trace.records(p.SystemState))
+        assert world.robot_pose()[0] - x0 < 0.2
+        fw.rc_takeover = False
+        trace, fw = drive(world, lambda t: (0.5, 0.0), 0.3, enable=False, firmware=fw, buses=(fw_bus, host))
+        assert trace.records(p.SystemState)[-1][1].control_mode == p.CONTROL_MODE_STANDBY
+    finally:
+        fw_bus.shutdown()
+        host.shutdown()

@@ -17,7 +17,7 @@ def test_every_fault_has_a_documented_reaction_and_the_doc_table_is_the_checked_
     assert set(EXPECTED) == set(FAULT_NAMES)
     rows = {}
     for line in DOC.read_text().splitlines():
-        m = re.match(r"^\| `([a-z0-9-]+)` \| (.+?) \| (stops|drives on|may stop) \| (.+?) \| (.+?) \| (.+?) \|$", line)
+        m = re.match(r"^\| `([a-z0-9-]+)` \| (.+?) \| (stops for good|stops|drives on|may stop) \| (.+?) \| (.+?) \| (.+?) \|$", line)
         if m:
             rows[m.group(1)] = m.groups()[1:]
     assert list(rows) == list(FAULT_NAMES)  # every fault, in the catalogue's order
@@ -25,7 +25,7 @@ def test_every_fault_has_a_documented_reaction_and_the_doc_table_is_the_checked_
         e = EXPECTED[kind.name]
         does, stops, within, reason, resume = rows[kind.name]
         assert does == kind.does
-        assert stops == {True: "stops", False: "drives on", None: "may stop"}[e.stops]
+        assert stops == ("stops for good" if e.latched else {True: "stops", False: "drives on", None: "may stop"}[e.stops])
         assert within == (f"{e.within_s:.2f} s" if e.within_s is not None else "-")
         assert reason == (f"`{e.reason}`" if e.reason else "-")
         assert resume == (f"{e.resumes_within_s:.2f} s" if e.resumes_within_s is not None else "-")

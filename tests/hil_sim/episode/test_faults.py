@@ -123,6 +123,33 @@ def test_estop_stops_and_clearing_it_restarts_the_start_up_sequence():
     assert m["success"] and m["controller"]["restarts"] == 1
 
 
+@pytest.mark.parametrize("fault", ["base-reboot", "bus-off"])
+def test_a_rebooted_or_silent_base_stops_the_robot_and_it_drives_on_without_losing_its_pose(fault):
+    """The base says nothing for 0.8 s while the robot rolls on; it comes back (rebooted: in
+    standby, odometers at zero; after a bus-off: having lost our commands). The controller
+    enables it again and reaches the goal: the odometry took ICP's translation meanwhile and did
+    not count the wheels' jump."""
+    m = run_episode("case1", config=ALL_FIXED, seed=0, faults=[FaultSpec(fault, 1.0, 0.8)]).metrics
+    stops = _stops(m)
+    assert stops and stops[0]["reason"].startswith("0x221 stale") and 1.0 <= stops[0]["t_s"] <= 1.25, m["events"]
+    restarts = [e for e in m["events"] if e["event"] == "restart"]
+    assert restarts and restarts[0]["t_s"] >= 1.8 and m["controller"]["restarts"] == 1
+    why = "base restarted" if fault == "base-reboot" else "base lost the command stream"
+    assert restarts[0]["reason"].startswith(why)
+    assert m["success"] and m["fixed_contacts"] == 0, m["failure_reason"]
+    assert m["controller"]["odometry"]["icp_fused_wheels_blind"] >= 5
+
+
+@pytest.mark.parametrize("fault, words", [("base-error", "base reports error code 0x0100"),
+                                          ("rc-takeover", "base left CAN command mode (control mode 3")])
+def test_a_driver_fault_or_a_remote_control_takeover_stops_the_controller_for_good(fault, words):
+    m = run_episode(_short("case1", 4.0), config=ALL_FIXED, seed=0, faults=[FaultSpec(fault, 1.0, 0.5)]).metrics
+    stops = [e for e in m["events"] if e["event"] == "safety_stop"]
+    assert stops and stops[0]["reason"].startswith(words) and 1.0 <= stops[0]["t_s"] <= 1.2, m["events"]
+    assert m["controller_state"] == "STOPPED" and not m["success"]
+    assert m["faults"][0]["moving_after_s"] is None  # it never drove again
+
+
 def test_a_permanent_estop_is_the_failure_reason():
     m = run_episode(_short("case1", 3.0), seed=0, faults=[FaultSpec("estop", 0.5)]).metrics
     assert not m["success"] and m["failure_reason"] == "base not ready: E-stop (held still at the time limit)"

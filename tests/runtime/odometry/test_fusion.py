@@ -146,6 +146,26 @@ def test_an_implausible_icp_increment_is_refused_and_named():
     assert abs(pose[0] - 0.04) < 1e-9  # the wheels' increment was used
 
 
+def test_while_the_base_says_nothing_of_its_motion_icp_gives_the_translation():
+    # a bus-off: the wheels stand still for 0.5 s (no distances, no speed), the robot does not
+    f = PoseFusion(FusionConfig())
+    f.add_dead_reckoning(0.0, np.zeros(3))
+    f.icp_update(_result(0, None, 0.0, None, _room_constraint()))
+    for k in range(1, 6):
+        f.add_dead_reckoning(0.1 * k, np.zeros(3), translation_known=False)
+        assert f.icp_update(_result(k, 0.1 * (k - 1), 0.1 * k, [0.08, 0.0, 0.0], _room_constraint())) is None
+    pose, _ = f.pose_now(np.zeros(3), 0.5)
+    assert abs(pose[0] - 0.40) < 0.005 and f.stats.wheels_blind == 5 and f.stats.refused == 0
+    # a rotation the gyro did not see is still refused
+    f.add_dead_reckoning(0.6, np.zeros(3), translation_known=False)
+    assert "implausible" in f.icp_update(_result(6, 0.5, 0.6, [0.08, 0.0, 0.5], _room_constraint()))
+    # the wheels back: an increment judged against them again
+    f.add_dead_reckoning(0.7, np.array([0.04, 0.0, 0.0]))
+    f.add_dead_reckoning(0.8, np.array([0.08, 0.0, 0.0]))
+    f.icp_update(_result(7, 0.6, 0.7, [0.04, 0.0, 0.0], _room_constraint()))
+    assert "implausible" in f.icp_update(_result(8, 0.7, 0.8, [0.60, 0.0, 0.0], _room_constraint()))
+
+
 def test_a_result_older_than_the_history_is_dropped_not_fused():
     f = PoseFusion(FusionConfig())
     f.add_dead_reckoning(10.0, np.zeros(3))

@@ -214,3 +214,25 @@ def test_wheel_distances_that_stop_while_the_base_reports_motion_are_a_stuck_0x3
     for _ in range(20):  # standing still: unchanged distances are right
         t += 0.05
         assert mon.check(_base(t, (d + 0.1, d + 0.1), 0.0), no_sensors, t) == ()
+
+
+def test_a_base_back_in_standby_after_its_feedback_stopped_has_rebooted_and_needs_a_restart():
+    from firmware_bridge import protocol
+
+    mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=False, uses_imu=False)
+    none = SensorSnapshot(None, None, ())
+    assert mon.check(fresh_inputs(0.0), none, 0.0) == () and not mon.base_rebooted
+    silent = BaseInputs(1.0, True, True, True, 0, 0.0, 0.0, None, 0.5, 0.5, 0.5)
+    assert {f.stream for f in mon.check(silent, none, 1.0)} == {"0x221", "0x311", "0x211"}
+    standby = [BaseInputs(t, False, True, False, 0, 0.0, 0.0, (0.0, 0.0), control_mode=protocol.CONTROL_MODE_STANDBY)
+               for t in (1.1, 1.15, 7.0)]
+    (f,) = mon.check(standby[0], none, 1.1)
+    assert f.reason.startswith("base restarted") and f.restart and not f.blocks_restart
+    assert mon.base_rebooted and mon.base_rebooted_now  # the first tick back: the odometers restarted
+    mon.check(standby[1], none, 1.15)
+    assert mon.base_rebooted and not mon.base_rebooted_now
+    # long after the silence, standby is not a reboot (someone switched it: a latched stop, not a restart)
+    assert mon.check(standby[2], none, 7.0) == () and not mon.base_rebooted
+    # standby while it kept talking is never a reboot
+    talking = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=False, uses_imu=False)
+    assert talking.check(standby[0], none, 1.1) == () and not talking.base_rebooted
