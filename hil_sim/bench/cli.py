@@ -630,3 +630,35 @@ def soak_bench_command(*, minutes: float, realtime: bool, scene: str, seed: int,
     atomic_write_json(out_dir / "soak.json", with_provenance(result))
     atomic_write_text(out_dir / "soak.md", "\n".join(lines) + "\n")
     (out_dir / "soak.partial.json").unlink(missing_ok=True)
+
+
+@bench_group.command("mislabel")
+@click.option("--seeds", default=10, show_default=True, type=click.IntRange(1, 1000))
+@click.option("--first-seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--workers", type=click.IntRange(1, 64), help="Worker processes (default: the CPUs, at most 8).")
+@click.option("--ray", "ray_address", metavar="ADDRESS", help="Run the episodes on a Ray cluster (`auto`, or its address).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the figures as JSON.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+def mislabel_bench_command(*, seeds: int, first_seed: int, workers: int | None, ray_address: str | None,
+                           json_path: Path | None, force: bool) -> None:
+    """The dangerous mislabel: the VLM calls a fixed cabinet (mislabel_cabinet) and a 30 kg look-alike box
+    (push_30kg) movable. Per seed and per scene: the peak contact force on the object and how far the robot
+    travelled against it, whether it was relabelled fixed, the correcting mode's stuck and back-off, the goal."""
+    from calibration.outputs import atomic_write_json
+    from hil_sim.bench.campaign import default_workers
+    from hil_sim.bench.mislabel import format_mislabel, run_mislabel_campaign
+    from runtime.common.cli_support import checked_output
+
+    if ray_address is not None:
+        from calibration.extras import require
+
+        require("ray", what="--ray (without it the campaign runs in local worker processes)")
+    checked_output(json_path, "--json", [], force)
+    result = run_mislabel_campaign(seeds=seeds, first_seed=first_seed, workers=workers or default_workers(),
+                                   ray_address=ray_address,
+                                   on_done=lambda r: click.echo(f"  {r['scene']} seed {r['seed']}: "
+                                                                f"{'error' if 'error' in r else 'done'}", err=True))
+    for line in format_mislabel(result):
+        click.echo(line)
+    if json_path is not None:
+        atomic_write_json(json_path, with_provenance(result))

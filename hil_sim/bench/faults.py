@@ -82,12 +82,15 @@ EXPECTED: dict[str, Reaction] = {
     "lidar-slow": Reaction(False),
     "lidar-delayed": Reaction(True, _LIDAR_STALE, "lidar stale", _RESUME_DELAYED),
     "lidar-intermittent": Reaction(None),
+    # wrong data that passes every check: not detected (docs/faults.md says what it does)
+    "lidar-wrong": Reaction(False),
     "imu-silent": Reaction(True, _IMU_STALE, "IMU stale", _RESUME),
     "imu-stuck": Reaction(True, _IMU_STUCK, "IMU stuck", _RESUME),
     "imu-garbage": Reaction(True, 2 * _TICK, "IMU sample rejected", _RESUME),
     "imu-slow": Reaction(False),
     "imu-delayed": Reaction(True, _IMU_STALE, "IMU stale", _RESUME_DELAYED),
     "imu-intermittent": Reaction(False),
+    "imu-wrong": Reaction(False),
     "drop-0x311": Reaction(True, _FEEDBACK_STALE, "0x311 stale", _RESUME),
     "drop-0x221": Reaction(True, _FEEDBACK_STALE, "0x221 stale", _RESUME),
     "drop-0x211": Reaction(True, _STATE_STALE, "0x211 stale", _RESUME),
@@ -103,6 +106,8 @@ EXPECTED: dict[str, Reaction] = {
     "0x211-garbage": Reaction(True, _STATE_STALE, "0x211 stale", _RESUME),
     "0x211-slow": Reaction(False),
     "0x211-intermittent": Reaction(False),
+    "0x311-wrong": Reaction(False),
+    "0x221-wrong": Reaction(False),
     # the base stops itself: its command timeout (500 ms, the firmware's), then a step
     "cmd-off": Reaction(True, 0.5 + 0.02, "base lost the command stream", 0.1, base_stops=True),
     # the controller stops at once, but its zero command cannot reach the base: the base's timeout

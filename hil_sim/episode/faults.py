@@ -13,9 +13,9 @@ Each fault is one failure type of one input, after PX4's failure injection (`off
 
 | input | failures |
 |-------|----------|
-| lidar | blind (frames with no points), far (only returns beyond the planner's range), frozen (the last frame again, stamp included), off, stuck (the last frame's points with new stamps), garbage (NaN points), slow (every other frame), delayed (0.3 s late), intermittent (30% dropped) |
-| IMU | silent (off), stuck (the last sample's values with new stamps), garbage (NaN), slow (every other sample), delayed (0.3 s late), intermittent (30% dropped) |
-| 0x311, 0x221, 0x211 (the base's feedback) | drop-ID (off), stuck (the first payload of the fault repeated), garbage (3 random bytes: a wrong DLC), slow (every other frame), intermittent (30% dropped) |
+| lidar | blind (frames with no points), far (only returns beyond the planner's range), frozen (the last frame again, stamp included), off, stuck (the last frame's points with new stamps), garbage (NaN points), slow (every other frame), delayed (0.3 s late), intermittent (30% dropped), wrong (rotated 10 deg) |
+| IMU | silent (off), stuck (the last sample's values with new stamps), garbage (NaN), slow (every other sample), delayed (0.3 s late), intermittent (30% dropped), wrong (a gyro bias step) |
+| 0x311, 0x221, 0x211 (the base's feedback) | drop-ID (off), stuck (the first payload of the fault repeated), garbage (3 random bytes: a wrong DLC), slow (every other frame), intermittent (30% dropped); 0x311 and 0x221 wrong (distances, speeds x 1.3) |
 | 0x111 (our command stream) | cmd-off: no command reaches the base |
 | the CAN bus | bus-off: nothing either way |
 | the base | estop (E-stop in 0x211), reboot (silent, then standby with odometers at zero), error (0x211 error bit 0x0100, motor driver fault), rc (the remote control takes it) |
@@ -40,6 +40,7 @@ from typing import Iterable
 import can
 import numpy as np
 
+from firmware_bridge import codec
 from firmware_bridge import protocol as p
 from firmware_bridge.firmware_emulator import EmulatedBaseFirmware
 from hil_sim.world.scenario import MAX_EPISODE_S
@@ -60,6 +61,11 @@ class FaultKind:
 #: Delay of the `delayed` faults (s), and the share of frames an `intermittent` fault drops.
 DELAY_S = 0.3
 DROP_FRACTION = 0.3
+#: The `wrong` faults: plausible but false. A lidar frame rotated about the sensor's z axis (its
+#: mount slipped), a gyro bias step, wheel distances and speeds scaled (a wrong wheel radius).
+WRONG_LIDAR_DEG = 10.0
+WRONG_GYRO_BIAS_RADPS = 0.1
+WRONG_SCALE = 1.3
 
 _CAN_STREAMS = {"0x311": p.ID_ODOMETRY, "0x221": p.ID_MOTION_STATE, "0x211": p.ID_SYSTEM_STATE}
 _CAN_FAILURES = {
@@ -81,6 +87,8 @@ FAULT_KINDS: tuple[FaultKind, ...] = (
     FaultKind("lidar-slow", "lidar", "slow", "every other frame dropped (5 Hz)"),
     FaultKind("lidar-delayed", "lidar", "delayed", f"every frame delivered {DELAY_S:g} s after its end"),
     FaultKind("lidar-intermittent", "lidar", "intermittent", f"{DROP_FRACTION:.0%} of the frames dropped at random"),
+    FaultKind("lidar-wrong", "lidar", "wrong", f"every frame's points rotated {WRONG_LIDAR_DEG:g} deg about the "
+                                               "sensor's z axis (a slipped mount)"),
     FaultKind("imu-silent", "imu", "off", "no IMU samples"),
     FaultKind("imu-stuck", "imu", "stuck", "the last sample before the fault, its values again with each new "
                                            "sample's stamp"),
@@ -88,11 +96,14 @@ FAULT_KINDS: tuple[FaultKind, ...] = (
     FaultKind("imu-slow", "imu", "slow", "every other sample dropped (half the rate)"),
     FaultKind("imu-delayed", "imu", "delayed", f"every sample delivered {DELAY_S:g} s after its stamp"),
     FaultKind("imu-intermittent", "imu", "intermittent", f"{DROP_FRACTION:.0%} of the samples dropped at random"),
+    FaultKind("imu-wrong", "imu", "wrong", f"a gyro bias step: {WRONG_GYRO_BIAS_RADPS:g} rad/s added to z"),
     FaultKind("drop-0x311", "0x311", "off", "the base stops sending 0x311 (odometry)"),
     FaultKind("drop-0x211", "0x211", "off", "the base stops sending 0x211 (system state)"),
     FaultKind("drop-0x221", "0x221", "off", "the base stops sending 0x221 (motion state)"),
     *(FaultKind(f"{stream}-{failure}", stream, failure, does)
       for stream in _CAN_STREAMS for failure, does in _CAN_FAILURES.items()),
+    FaultKind("0x311-wrong", "0x311", "wrong", f"the wheel distances travelled since the fault began x {WRONG_SCALE:g}"),
+    FaultKind("0x221-wrong", "0x221", "wrong", f"the reported speeds x {WRONG_SCALE:g}"),
     FaultKind("cmd-off", "0x111", "off", "no 0x111 from the controller reaches the base"),
     FaultKind("bus-off", "can", "off", "the CAN bus carries nothing either way (bus-off): no feedback reaches the "
                                       "controller, no command the base"),
@@ -192,6 +203,7 @@ class FaultInjector:
         self._last_imu: ImuSample | None = None
         self._held: dict[str, object] = {}  # per stuck fault: the output it repeats
         self._stuck_can: dict[int, bytes] = {}
+        self._wrong_from: dict[str, tuple[float, float]] = {}  # per wrong CAN fault: the distances it began at
         self._every_other: dict[str, bool] = {}
         self._late_scans: deque[tuple[float, LidarScan]] = deque()
         self._late_imu: deque[tuple[float, ImuSample]] = deque()
@@ -205,6 +217,7 @@ class FaultInjector:
         self._firmware_faults = any(self._by_name[name] for name in (*_FRAME_DROPS, *_FIRMWARE_STATES))
         self._can_faults = tuple((stream, failure, _CAN_STREAMS[stream]) for stream in _CAN_STREAMS
                                  for failure in _CAN_FAILURES if self._by_name[f"{stream}-{failure}"])
+        self._wrong_can = bool(self._by_name["0x311-wrong"] or self._by_name["0x221-wrong"])
         #: Per fault (in the order given): what the base obeyed around it (reactions()).
         self._watch = [{"first_zero_s": None, "moving_after_s": None} for _ in self.faults]
 
@@ -322,6 +335,9 @@ class FaultInjector:
         elif self._active("lidar-garbage"):
             self._count("lidar-garbage")
             scan = _nan_points(scan, self._rng)
+        elif self._active("lidar-wrong"):
+            self._count("lidar-wrong")
+            scan = _rotated(scan, math.radians(WRONG_LIDAR_DEG))
         if self._active("lidar-delayed"):
             self._count("lidar-delayed")
             self._late_scans.append((scan.stamp_s + scan.frame_duration_s + DELAY_S, scan))
@@ -335,6 +351,10 @@ class FaultInjector:
         held = self._stuck("imu-stuck", sample, self._last_imu)
         if held is not None:
             sample = ImuSample(sample.stamp_s, held.gyro_radps, held.accel_mps2, held.saturated)
+        if self._active("imu-wrong"):
+            self._count("imu-wrong")
+            sample = ImuSample(sample.stamp_s, sample.gyro_radps + np.array([0.0, 0.0, WRONG_GYRO_BIAS_RADPS]),
+                               sample.accel_mps2, sample.saturated)
         if self._active("imu-garbage"):
             self._count("imu-garbage")
             sample = _unchecked(ImuSample, stamp_s=sample.stamp_s, gyro_radps=np.full(3, np.nan),
@@ -368,6 +388,8 @@ class FaultInjector:
         """A frame the base sends, as the controller gets it (None: dropped)."""
         if self._bus_off():
             return None
+        if self._wrong_can and msg.arbitration_id in (p.ID_ODOMETRY, p.ID_MOTION_STATE):
+            msg = self._wrong(msg)
         for stream, failure, frame_id in self._can_faults:
             if msg.arbitration_id != frame_id:
                 continue
@@ -393,6 +415,26 @@ class FaultInjector:
                 self._count(name)
                 return None
         return msg
+
+    def _wrong(self, msg: can.Message) -> can.Message:
+        """0x311-wrong: the distances since the fault began scaled; 0x221-wrong: the speeds scaled."""
+        odometry = msg.arbitration_id == p.ID_ODOMETRY
+        name = "0x311-wrong" if odometry else "0x221-wrong"
+        if not self._active(name):
+            self._wrong_from.pop(name, None)
+            return msg
+        try:
+            record = codec.decode(msg)
+        except ValueError:
+            return msg  # not ours to judge: the controller's decoder refuses it
+        self._count(name)
+        if odometry:
+            left0, right0 = self._wrong_from.setdefault(name, (record.left_wheel_m, record.right_wheel_m))
+            out = p.Odometry(left_wheel_m=left0 + WRONG_SCALE * (record.left_wheel_m - left0),
+                             right_wheel_m=right0 + WRONG_SCALE * (record.right_wheel_m - right0))
+        else:
+            out = p.MotionState(linear_mps=WRONG_SCALE * record.linear_mps, angular_radps=WRONG_SCALE * record.angular_radps)
+        return _with_data(msg, bytes(codec.encode(out).data))
 
     def _bus_off(self) -> bool:
         if self._active("bus-off"):
@@ -464,6 +506,14 @@ def _nan_points(scan: LidarScan, rng: np.random.Generator) -> LidarScan:
         pts[0] = np.nan
     return _unchecked(LidarScan, stamp_s=scan.stamp_s, points_m=pts, point_time_offsets_s=scan.point_time_offsets_s,
                       frame_duration_s=scan.frame_duration_s, frame_id=scan.frame_id, nothing_seen=scan.nothing_seen)
+
+
+def _rotated(scan: LidarScan, angle_rad: float) -> LidarScan:
+    """The frame's points rotated about z (the sensor's mount turned): plausible, and false."""
+    c, s_ = math.cos(angle_rad), math.sin(angle_rad)
+    rot = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
+    return LidarScan(scan.stamp_s, scan.points_m @ rot.T, scan.point_time_offsets_s, scan.frame_duration_s,
+                     scan.frame_id, nothing_seen=scan.nothing_seen)
 
 
 def _blind(scan: LidarScan) -> LidarScan:

@@ -117,6 +117,8 @@ class EpisodeMetrics:
         self.path_length_m = 0.0
         x, y, _ = world.robot_pose()
         self._last_xy = (x, y)
+        self._step_xy = (x, y)
+        self._model = world.model
         self._t_start = world.time_s
         self._t_last = world.time_s
         self.steps = 0
@@ -143,6 +145,10 @@ class EpisodeMetrics:
         if self._fragile_index.size:
             self._is_fragile_geom[np.isin(self._geom_obstacle, self._fragile_index)] = True
         self.max_contact_force_n = np.zeros(n)
+        #: Per obstacle: the largest normal force of a robot contact on it (N), and how far the robot
+        #: travelled while touching it (m): what a push cost (a mislabelled fixed object included).
+        self.peak_robot_force_n = np.zeros(n)
+        self.travel_in_contact_m = np.zeros(n)
         self.damage_events: list[dict[str, Any]] = []
         self.damage_count = np.zeros(n, dtype=np.int64)
         self._over_since = np.full(n, -np.inf)  # last time the force was above the threshold
@@ -180,6 +186,17 @@ class EpisodeMetrics:
             return None
         return self._geom_obstacle[geoms[rows]].max(axis=1)  # the robot's side is -1
 
+    def _update_push(self, d: mujoco.MjData) -> None:
+        """The normal force of every robot-obstacle contact now, into each obstacle's peak."""
+        code, obstacle = self._geom_code_list, self._geom_obstacle_list
+        for c, (g1, g2) in enumerate(d.contact.geom[:d.ncon].tolist()):
+            if code[g1] | code[g2] == 3:
+                mujoco.mj_contactForce(self._model, d, c, self._force)
+                i = max(obstacle[g1], obstacle[g2])
+                f = abs(float(self._force[0]))
+                if f > self.peak_robot_force_n[i]:
+                    self.peak_robot_force_n[i] = f
+
     def update(self, world: World) -> None:
         """Call once after every physics step."""
         t = world.time_s
@@ -199,7 +216,13 @@ class EpisodeMetrics:
             self._last_touch_s = np.where(now, t, self._last_touch_s)
             self.touching = now
             self._any_touching = hit is not None
+        if hit is not None:
+            self._update_push(world.data)
         x, y = world.robot_xy()
+        hop_step = math.hypot(x - self._step_xy[0], y - self._step_xy[1])
+        self._step_xy = (x, y)
+        if hit is not None and hop_step > 0.0:
+            self.travel_in_contact_m[self.touching] += hop_step
         hop = math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         if hop >= PATH_MIN_HOP_M:
             self.path_length_m += hop
@@ -360,6 +383,8 @@ class EpisodeMetrics:
                     "contact_duration_s": float(self.contact_duration_s[i]),
                     "displacement_m": float(disp[i]),
                     "min_clearance_m": float(min(self.min_clearance_m[i], CLEARANCE_MAX_M)),
+                    "peak_contact_force_n": float(self.peak_robot_force_n[i]),
+                    "travel_in_contact_m": float(self.travel_in_contact_m[i]),
                     **({"damage_force_n": float(self.damage_force_n[i]), "damage_events": int(self.damage_count[i]),
                         "max_contact_force_n": float(self.max_contact_force_n[i])} if cls == "fragile" else {}),
                 }

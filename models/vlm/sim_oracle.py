@@ -8,7 +8,9 @@ knobs that degrade it to the quality of a real model (the DCT paper's figures: G
 
 Truth as the oracle sees it ("apparent" class). A `movable` object looks movable; a `fixed`
 one does not; a `heavy` look-alike looks movable (that is what makes it a look-alike), so the
-oracle calls it movable unless `heavy_looks_movable` is off. Recall and precision are measured
+oracle calls it movable unless `heavy_looks_movable` is off. The objects named in `called_movable`
+are called movable whatever they are (the dangerous mislabel: a fixed object said movable and
+cheap, as a VLM may say of a cabinet that looks like a box). Recall and precision are measured
 against the apparent class; against the physics, every heavy look-alike called movable is one
 more false positive, as it would be for a real VLM (the correcting mode has to catch it).
 
@@ -110,6 +112,8 @@ class SimOracleConfig(BaseModel):
     heavy_looks_movable: bool = True
     #: Let the precision knob mislabel walls too (off: only objects are mislabelled).
     mislabel_structure: bool = False
+    #: Objects (scenario names) the oracle calls movable whatever their class: the dangerous mislabel.
+    called_movable: tuple[str, ...] = ()
     confidence: float = Field(1.0, ge=0.0, le=1.0)
 
     @classmethod
@@ -187,6 +191,7 @@ class SimOracleBackend:
         self._truly_movable = np.array([o.obstacle_class == "movable" for o in self._objects], dtype=bool)
         self._looks_movable = np.array([o.obstacle_class == "movable" or (o.obstacle_class == "heavy"
                                                                           and c.heavy_looks_movable)
+                                        or o.name in c.called_movable
                                         for o in self._objects], dtype=bool)
         self._may_mislabel = np.array([not o.structure or c.mislabel_structure for o in self._objects], dtype=bool)
 

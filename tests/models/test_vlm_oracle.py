@@ -84,6 +84,13 @@ def test_heavy_told_apart_and_pixel_threshold_when_configured():
     assert objs["box"].contact_cost == 1.5  # its own cost wins over the default
 
 
+def test_the_dangerous_mislabel_calls_a_named_fixed_object_movable_and_cheap():
+    seg = _scene()
+    objs = _by_label(SimOracleBackend(TABLE, SimOracleConfig(called_movable=("cabinet",))).query(_request(seg)))
+    assert (objs["cabinet"].movable, objs["cabinet"].contact_cost) == (True, 2.0)
+    assert not objs["wall"].movable  # nothing else changes
+
+
 def test_presets_and_config_errors():
     assert SimOracleConfig.from_preset("gpt5").precision == 1.0
     assert SimOracleConfig.from_preset("gpt5").recall == 0.82

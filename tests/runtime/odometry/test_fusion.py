@@ -372,6 +372,7 @@ def test_a_run_that_closed_before_its_ready_does_not_hand_the_next_run_a_stale_r
     factory = functools.partial(IcpEngine, IcpConfig(voxel_size_m=0.2, deskew="kiss"), DegeneracyConfig(), MOUNT, True)
     frames = _frames(3)
     expected = _fresh_worker_poses(factory, frames)
+    _no_idle_workers()  # another test's idle worker would be the one handed on
     early = ProcessIcpWorker(factory, lockstep=True, reuse=True)
     early.submit(frames[0])
     early.close()  # its ready and its answer unread
@@ -524,12 +525,14 @@ def test_icp_lost_is_named_when_results_stop_or_are_all_refused_and_restored_whe
         assert [e["event"] for e in stage.events.to_list()][-1] == "icp_restored"
     finally:
         stage.close()
-    # Wheels that claim 1 m a frame (and ICP left to its own prediction, not theirs): every ICP
-    # increment is refused; ICP is lost even though results keep arriving.
+    # Wheels that claim a turn of about 0.2 rad a frame on a straight drive (and ICP left to its
+    # own prediction, not theirs): every ICP increment is refused; ICP is lost even though results
+    # keep arriving. (Wheels claiming more distance than a wheel can turn are re-anchored instead.)
     stage = _stage(icp_prior="constant_velocity")
     try:
         for k, job in enumerate(frames):
-            _tick(stage, job.end_s + 0.06, 1.0 * k, job)
+            stage.settle(job.end_s + 0.06)
+            stage.update(job.end_s + 0.06, (0.05 * k, 0.16 * k), (), _scan_of(job))
         d = stage.describe()
         assert d["icp_refused"] >= 8 and d["icp_fused"] == 0
         lost = [e for e in stage.events.to_list() if e["event"] == "icp_lost"]
