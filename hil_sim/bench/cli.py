@@ -515,10 +515,12 @@ def beacon_command(**options) -> None:
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Write the rows and the episodes as JSON (checked before the run, written atomically after it).")
 @click.option("--force", is_flag=True, help="Overwrite an existing --json file.")
+@click.option("--realtime", is_flag=True, help="Each episode as `dct hil run --realtime` (two processes on the wall "
+              "clock, the simulator injecting the fault), one at a time; not deterministic.")
 def faults_bench_command(*, scenes: tuple[str, ...], seeds: int, first_seed: int, faults: tuple[str, ...],
                          start_s: float, duration_s: float, workers: int | None, ray_address: str | None,
-                         json_path: Path | None, force: bool) -> None:
-    """Every fault (docs/faults.md) on a few scenes in lockstep: per fault, how many episodes stopped and how
+                         json_path: Path | None, force: bool, realtime: bool = False) -> None:
+    """Every fault (docs/faults.md) on a few scenes in lockstep (or --realtime): per fault, how many episodes stopped and how
     soon after the injection (to the zero command the base obeyed), how soon it drove again after the fault,
     fixed contacts, goals reached, the stop reasons; a row whose reaction differs from the documented one is
     marked and the command exits 1."""
@@ -542,7 +544,8 @@ def faults_bench_command(*, scenes: tuple[str, ...], seeds: int, first_seed: int
     try:
         result = run_fault_campaign(scenes=scene_list, seeds=seeds, first_seed=first_seed,
                                     faults=split(faults) or FAULT_NAMES, start_s=start_s, duration_s=duration_s,
-                                    workers=workers or default_workers(), ray_address=ray_address,
+                                    workers=workers or (1 if realtime else default_workers()),
+                                    ray_address=ray_address, realtime=realtime,
                                     on_done=lambda r: click.echo(f"  {r['fault']} {r['scene']} seed {r['seed']}: "
                                                                  f"{'error' if 'error' in r else 'done'}", err=True))
     except FaultCampaignError as exc:

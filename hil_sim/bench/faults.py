@@ -1,4 +1,4 @@
-"""`dct bench faults`: every fault on a few scenes, in lockstep, against its documented reaction.
+"""`dct bench faults`: every fault on a few scenes, against its documented reaction.
 
 Each episode is one scene, one seed and one fault (hil_sim.episode.faults: FAULT_KINDS), injected
 at `start_s` for `duration_s` of simulated time. Per episode: whether the base was given a zero
@@ -10,6 +10,9 @@ docs/faults.md): a row whose reaction differs is marked, and the command exits 1
 
 The episodes are lockstep and deterministic for their seed: the rows do not depend on the
 machine, the workers or the backend (hil_sim.bench.campaign.run_tasks: processes or Ray).
+`--realtime`: each episode is `dct hil run --realtime` (the simulator injects the fault,
+`dct hil serve --fault`; times from when the controller enabled the base), one at a time; not
+deterministic, and judged against the same table.
 """
 from __future__ import annotations
 
@@ -91,6 +94,11 @@ EXPECTED: dict[str, Reaction] = {
     "imu-delayed": Reaction(True, _IMU_STALE, "IMU stale", _RESUME_DELAYED),
     "imu-intermittent": Reaction(False),
     "imu-wrong": Reaction(False),
+    # the partition warps the last masks on; what no mask covers is fixed (never free)
+    "camera-off": Reaction(False),
+    "camera-stuck": Reaction(False),
+    "camera-garbage": Reaction(False),
+    "camera-delayed": Reaction(False),
     "drop-0x311": Reaction(True, _FEEDBACK_STALE, "0x311 stale", _RESUME),
     "drop-0x221": Reaction(True, _FEEDBACK_STALE, "0x221 stale", _RESUME),
     "drop-0x211": Reaction(True, _STATE_STALE, "0x211 stale", _RESUME),
@@ -133,6 +141,8 @@ class FaultTask:
     fault: str
     start_s: float = DEFAULT_START_S
     duration_s: float = DEFAULT_DURATION_S
+    #: the two processes on the wall clock (`dct hil run --realtime`), not lockstep
+    realtime: bool = False
 
 
 #: The task of an episode without a fault: each scene and seed's run to compare with.
@@ -151,10 +161,14 @@ def run_fault_task(task: FaultTask) -> dict:
     record = {"scene": task.scene, "seed": task.seed, "fault": task.fault}
     faults = [] if task.fault == NO_FAULT else [FaultSpec(task.fault, task.start_s, task.duration_s)]
     try:
-        result = run_episode(task.scene, seed=task.seed, faults=faults)
+        if task.realtime:
+            from hil_sim.episode.realtime import run_realtime_episode
+
+            m = run_realtime_episode(task.scene, task.seed, faults=tuple(str(f) for f in faults))
+        else:
+            m = run_episode(task.scene, seed=task.seed, faults=faults).metrics
     except Exception as exc:  # a broken episode is named in its row, not a lost campaign
         return {**record, "error": f"{type(exc).__name__}: {exc}", "wall_time_s": time.perf_counter() - wall0}
-    m = result.metrics
     outcome = {"failure_reason": m["failure_reason"], "success": bool(m["success"]),
                "fixed_contacts": int(m["fixed_contacts"]), "wall_time_s": time.perf_counter() - wall0}
     if not faults:
@@ -261,7 +275,7 @@ def _differences(row: dict, ok: list[dict], expected: Reaction) -> list[str]:
 def run_fault_campaign(*, scenes: Iterable[str] = DEFAULT_SCENES, seeds: int = 5, first_seed: int = 0,
                        faults: Iterable[str] = FAULT_NAMES, start_s: float = DEFAULT_START_S,
                        duration_s: float = DEFAULT_DURATION_S, workers: int = 1, ray_address: str | None = None,
-                       on_done: Callable[[dict], None] | None = None) -> dict:
+                       on_done: Callable[[dict], None] | None = None, realtime: bool = False) -> dict:
     """Every fault x scene x seed; one row per fault (module docstring)."""
     from hil_sim.bench.campaign import run_tasks
 
@@ -271,13 +285,18 @@ def run_fault_campaign(*, scenes: Iterable[str] = DEFAULT_SCENES, seeds: int = 5
         raise FaultCampaignError(f"--fault {', '.join(unknown)}: unknown; known: {', '.join(FAULT_NAMES)}")
     if not (math.isfinite(start_s) and start_s >= 0.0 and math.isfinite(duration_s) and duration_s > 0.0):
         raise FaultCampaignError(f"--start {start_s} / --duration {duration_s}: need start >= 0 and duration > 0")
-    tasks = [FaultTask(scene, first_seed + k, fault, start_s, duration_s)
+    if realtime and (workers != 1 or ray_address is not None):
+        raise FaultCampaignError("--realtime runs one episode at a time on this machine (its two processes are "
+                                 "timed on the wall clock): leave out --workers and --ray")
+    tasks = [FaultTask(scene, first_seed + k, fault, start_s, duration_s, realtime)
              for fault in (NO_FAULT, *faults) for scene in scenes for k in range(seeds)]
     wall0 = time.perf_counter()
     records = run_tasks(tasks, workers, ray_address, on_done, run=run_fault_task)
-    return campaign_result(records, scenes=scenes, seeds=seeds, first_seed=first_seed, faults=faults,
-                           start_s=start_s, duration_s=duration_s, workers=workers,
-                           wall_time_s=time.perf_counter() - wall0)
+    result = campaign_result(records, scenes=scenes, seeds=seeds, first_seed=first_seed, faults=faults,
+                             start_s=start_s, duration_s=duration_s, workers=workers,
+                             wall_time_s=time.perf_counter() - wall0)
+    result["realtime"] = realtime
+    return result
 
 
 def campaign_result(records: list[dict], *, scenes, seeds, first_seed, faults, start_s, duration_s, workers,
@@ -302,7 +321,8 @@ def _ms(x: float | None) -> str:
 def format_fault_table(result: dict) -> list[str]:
     """The rows as printed: one per fault, marked when the reaction differs from the table."""
     lines = [f"dct bench faults: {len(result['scenes'])} scenes ({', '.join(result['scenes'])}) x {result['seeds']} "
-             f"seeds per fault, lockstep; each fault at {result['start_s']:g} s for {result['duration_s']:g} s",
+             f"seeds per fault, {'real time' if result.get('realtime') else 'lockstep'}; each fault at "
+             f"{result['start_s']:g} s for {result['duration_s']:g} s",
              f"{'fault':<20} {'eps':>3} {'stop':>4} {'p50':>5} {'p99':>5} {'max':>5} | {'resume p50/max':>14} | "
              f"{'fixed':>5} {'goal':>4} | reasons"]
     for r in result["rows"]:

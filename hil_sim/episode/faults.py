@@ -14,6 +14,7 @@ Each fault is one failure type of one input, after PX4's failure injection (`off
 | input | failures |
 |-------|----------|
 | lidar | blind (frames with no points), far (only returns beyond the planner's range), frozen (the last frame again, stamp included), off, stuck (the last frame's points with new stamps), garbage (NaN points), slow (every other frame), delayed (0.3 s late), intermittent (30% dropped), wrong (rotated 10 deg) |
+| camera | off, stuck (the last image's pixels with new stamps), garbage (noise), delayed (0.3 s late) |
 | IMU | silent (off), stuck (the last sample's values with new stamps), garbage (NaN), slow (every other sample), delayed (0.3 s late), intermittent (30% dropped), wrong (a gyro bias step) |
 | 0x311, 0x221, 0x211 (the base's feedback) | drop-ID (off), stuck (the first payload of the fault repeated), garbage (3 random bytes: a wrong DLC), slow (every other frame), intermittent (30% dropped); 0x311 and 0x221 wrong (distances, speeds x 1.3) |
 | 0x111 (our command stream) | cmd-off: no command reaches the base |
@@ -34,7 +35,7 @@ from __future__ import annotations
 import math
 import re
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable
 
 import can
@@ -97,6 +98,11 @@ FAULT_KINDS: tuple[FaultKind, ...] = (
     FaultKind("imu-delayed", "imu", "delayed", f"every sample delivered {DELAY_S:g} s after its stamp"),
     FaultKind("imu-intermittent", "imu", "intermittent", f"{DROP_FRACTION:.0%} of the samples dropped at random"),
     FaultKind("imu-wrong", "imu", "wrong", f"a gyro bias step: {WRONG_GYRO_BIAS_RADPS:g} rad/s added to z"),
+    FaultKind("camera-off", "camera", "off", "no images"),
+    FaultKind("camera-stuck", "camera", "stuck", "the last image before the fault, its pixels again with each new "
+                                                 "image's stamp"),
+    FaultKind("camera-garbage", "camera", "garbage", "every image noise (random pixels: nothing a VLM can name)"),
+    FaultKind("camera-delayed", "camera", "delayed", f"every image delivered {DELAY_S:g} s after its stamp"),
     FaultKind("drop-0x311", "0x311", "off", "the base stops sending 0x311 (odometry)"),
     FaultKind("drop-0x211", "0x211", "off", "the base stops sending 0x211 (system state)"),
     FaultKind("drop-0x221", "0x221", "off", "the base stops sending 0x221 (motion state)"),
@@ -207,6 +213,8 @@ class FaultInjector:
         self._every_other: dict[str, bool] = {}
         self._late_scans: deque[tuple[float, LidarScan]] = deque()
         self._late_imu: deque[tuple[float, ImuSample]] = deque()
+        self._late_images: deque[tuple[float, CameraImage]] = deque()
+        self._last_image: CameraImage | None = None
         #: Physics steps (firmware faults), frames or sensor outputs each fault acted on.
         self.applied: dict[str, int] = {f.name: 0 for f in self.faults}
         # The faults of each name, looked up once: `_active` runs every physics step and for
@@ -376,8 +384,28 @@ class FaultInjector:
             sample = self._late_imu.popleft()[1]
             self._last_imu = sample
             self.inbox.put_imu(sample)
+        while self._late_images and self._late_images[0][0] <= t_s:
+            image = self._late_images.popleft()[1]
+            self._last_image = image
+            self.inbox.put_image(image)
 
     def put_image(self, image: CameraImage) -> bool:
+        if self._active("camera-off"):
+            self._count("camera-off")
+            return True  # the camera said nothing; nothing was refused
+        held = self._stuck("camera-stuck", image, self._last_image)
+        if held is not None:
+            image = replace(image, pixels=held.pixels, segmentation=held.segmentation)
+        if self._active("camera-garbage"):
+            self._count("camera-garbage")
+            pixels = self._rng.integers(0, 256, image.pixels.shape, dtype=np.uint8)
+            seg = None if image.segmentation is None else np.full_like(image.segmentation, -1)
+            image = replace(image, pixels=pixels, segmentation=seg)
+        if self._active("camera-delayed"):
+            self._count("camera-delayed")
+            self._late_images.append((image.stamp_s + DELAY_S, image))
+            return True
+        self._last_image = image
         return self.inbox.put_image(image)
 
     def put_camera_info(self, info) -> bool:

@@ -254,7 +254,7 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float) -> dict:
         "controller": report,
         # {reason, since_s, configured} once a calibration mismatch made the partition all-fixed
         "partition_fallback": report.get("partition_fallback"),
-        "events": controller.events.to_list(t0_s=controller._activated_at_s),
+        "events": controller.events.to_list(t0_s=controller.switched_on_at_s),
         "stop_reason": controller.stop_reason,
         "telemetry": telemetry.summary(),
         "realtime": {

@@ -108,6 +108,7 @@ class NavigationController:
         self._drive_unclassified = config.vpp.before_first_answer == "drive"
         self.goal_given_at_s: float | None = None
         self._activated_at_s = 0.0
+        self.switched_on_at_s = 0.0
         self.faults: tuple[InputFault, ...] = ()
         self.hold_reason: str | None = None
         self._held_streams: list[str] = []
@@ -131,6 +132,9 @@ class NavigationController:
         self.hardware.configure()
         self.hardware.activate()
         self._activated_at_s = self.clock()
+        #: The first activation (the base enabled; a restart activates again): the origin of the
+        #: event times a run reports.
+        self.switched_on_at_s = self._activated_at_s
         self.state = ControllerState.INITIALIZING
 
     def give_goal(self, now: float) -> None:
