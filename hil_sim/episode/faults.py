@@ -15,6 +15,7 @@ Each fault is one failure type of one input, after PX4's failure injection (`off
 |-------|----------|
 | lidar | blind (frames with no points), far (only returns beyond the planner's range), frozen (the last frame again, stamp included), off, stuck (the last frame's points with new stamps), garbage (NaN points), slow (every other frame), delayed (0.3 s late), intermittent (30% dropped), wrong (rotated 10 deg) |
 | camera | off, stuck (the last image's pixels with new stamps), garbage (noise), delayed (0.3 s late) |
+| the VLM service | error (HTTP 503), garbage (masks the wrong size), stale (an answer about a frame 5 s older) |
 | IMU | silent (off), stuck (the last sample's values with new stamps), garbage (NaN), slow (every other sample), delayed (0.3 s late), intermittent (30% dropped), wrong (a gyro bias step) |
 | 0x311, 0x221, 0x211 (the base's feedback) | drop-ID (off), stuck (the first payload of the fault repeated), garbage (3 random bytes: a wrong DLC), slow (every other frame), intermittent (30% dropped); 0x311 and 0x221 wrong (distances, speeds x 1.3) |
 | 0x111 (our command stream) | cmd-off: no command reaches the base |
@@ -67,6 +68,8 @@ DROP_FRACTION = 0.3
 WRONG_LIDAR_DEG = 10.0
 WRONG_GYRO_BIAS_RADPS = 0.1
 WRONG_SCALE = 1.3
+#: How much older than the frame asked about a `vlm-stale` answer's frame is (s).
+VLM_STALE_S = 5.0
 
 _CAN_STREAMS = {"0x311": p.ID_ODOMETRY, "0x221": p.ID_MOTION_STATE, "0x211": p.ID_SYSTEM_STATE}
 _CAN_FAILURES = {
@@ -103,6 +106,10 @@ FAULT_KINDS: tuple[FaultKind, ...] = (
                                                  "image's stamp"),
     FaultKind("camera-garbage", "camera", "garbage", "every image noise (random pixels: nothing a VLM can name)"),
     FaultKind("camera-delayed", "camera", "delayed", f"every image delivered {DELAY_S:g} s after its stamp"),
+    FaultKind("vlm-error", "vlm", "off", "every answer fails (HTTP 503, as a timeout or a 5xx/429 burst gives)"),
+    FaultKind("vlm-garbage", "vlm", "garbage", "every answer's masks the wrong size for the image"),
+    FaultKind("vlm-stale", "vlm", "stale", f"every answer about a frame {VLM_STALE_S:g} s older than the one asked "
+                                           "about: the objects (masks) of that answer, under the new request's stamp"),
     FaultKind("drop-0x311", "0x311", "off", "the base stops sending 0x311 (odometry)"),
     FaultKind("drop-0x211", "0x211", "off", "the base stops sending 0x211 (system state)"),
     FaultKind("drop-0x221", "0x221", "off", "the base stops sending 0x221 (motion state)"),
@@ -478,6 +485,46 @@ class FaultInjector:
             self._count("cmd-off")
             return False
         return True
+
+
+class FaultyVlm:
+    """The VLM service's faults (vlm-*), between the backend and the controller's runner: the
+    controller gets the answer a failing service would give (the injector says which are on)."""
+
+    def __init__(self, backend, injector: FaultInjector) -> None:
+        self.backend = backend
+        self.injector = injector
+        self.name = backend.name
+        self._past: deque = deque(maxlen=64)  # (stamp, objects) of the answers given, oldest first
+
+    @property
+    def latency_s(self) -> float:
+        return self.backend.latency_s
+
+    def __getattr__(self, name: str):  # the rest of the backend's interface, as it is
+        return getattr(self.backend, name)
+
+    def query(self, request):
+        from models.vlm.interface import VlmAnswer
+
+        inj = self.injector
+        if inj._active("vlm-error"):
+            inj._count("vlm-error")
+            return VlmAnswer(request.stamp_s, request.camera_pose_odom, (), self.name, self.latency_s,
+                             error="HTTP 503 Service Unavailable")
+        answer = self.backend.query(request)
+        self._past.append((float(request.stamp_s), answer.objects))
+        if inj._active("vlm-garbage") and answer.objects:
+            inj._count("vlm-garbage")
+            bad = tuple(replace(o, mask=o.mask[: o.mask.shape[0] // 2, :]) for o in answer.objects)
+            return replace(answer, objects=bad)
+        if inj._active("vlm-stale"):
+            # a service that answers from a cache of an older frame: that frame's objects, the
+            # newest at least VLM_STALE_S older (the oldest there is, early in a run)
+            inj._count("vlm-stale")
+            old = [objs for t, objs in self._past if t <= request.stamp_s - VLM_STALE_S]
+            return replace(answer, objects=old[-1] if old else self._past[0][1])
+        return answer
 
 
 class FaultyBus(can.BusABC):

@@ -245,7 +245,8 @@ def run_episode(
     try:  # loads the distance net: a bad model file must not leave the buses open
         parts = assemble(RobotSetup(robot, config, wheel_calibration, sensor_calibration),
                          Wiring(bus, clock, goal_in_odom_frame(scenario), bench.inbox if bench.has_sensors else None,
-                                lockstep=True, vlm_backend=_vlm_backend(bench.world, config, oracle, seed),
+                                lockstep=True, vlm_backend=_faulty(_vlm_backend(bench.world, config, oracle, seed),
+                                                                   bench.injector, faults),
                                 goal_given=not goal_when_ready, start_odometry=True))
     except BaseException:
         bench.close()
@@ -281,6 +282,15 @@ def run_episode(
             bench.close()
     wall = time.perf_counter() - wall0
     return _result(_Episode(bench, sim, parts, operator, config, faults, goal_when_ready), wall)
+
+
+def _faulty(backend, injector: FaultInjector, faults):
+    """The backend behind the VLM service's faults when any is injected (FaultyVlm), else as it is."""
+    if backend is None or not any(f.name.startswith("vlm-") for f in faults):
+        return backend
+    from hil_sim.episode.faults import FaultyVlm
+
+    return FaultyVlm(backend, injector)
 
 
 def _vlm_backend(world, config, oracle, seed):

@@ -400,3 +400,69 @@ def test_the_injector_times_the_zero_command_and_the_drive_after_each_fault():
         inj.step(t)
     (r,) = inj.reactions()
     assert r["name"] == "imu-silent" and abs(r["first_zero_s"] - 1.12) < 1e-9 and abs(r["moving_after_s"] - 1.7) < 1e-9
+
+
+def test_wrong_data_is_plausible_and_false():
+    import can
+
+    from firmware_bridge import codec
+    from firmware_bridge import protocol as p
+
+    inj, inbox = _injector("lidar-wrong:1:1", "imu-wrong:1:1", "0x311-wrong:1:1", "0x221-wrong:1:1")
+    inj.step(1.0)
+    scan = _frame(1.0, seed=1)
+    inj.put_scan(scan)
+    got = inbox.take().scan
+    az_in = np.arctan2(scan.points_m[:, 1], scan.points_m[:, 0])
+    az_out = np.arctan2(got.points_m[:, 1], got.points_m[:, 0])
+    assert np.allclose(np.angle(np.exp(1j * (az_out - az_in))), math.radians(10.0), atol=1e-4)
+    inj.put_imu(_sample(1.0, 0))
+    assert inbox.take().imu[-1].gyro_radps[2] > 0.05  # the bias step (noise 0.01)
+    odo = [codec.encode(p.Odometry(left_wheel_m=1.0 + d, right_wheel_m=2.0 + d)) for d in (0.0, 0.1)]
+    out = [codec.decode(inj.outgoing(m)) for m in odo]
+    assert (out[0].left_wheel_m, out[1].left_wheel_m) == pytest.approx((1.0, 1.13))  # x 1.3 since the start
+    speed = codec.decode(inj.outgoing(codec.encode(p.MotionState(linear_mps=0.5, angular_radps=0.2))))
+    assert (speed.linear_mps, speed.angular_radps) == pytest.approx((0.65, 0.26), abs=1e-3)
+    inj.step(2.5)
+    assert inj.outgoing(odo[1]) is odo[1]
+
+
+def test_camera_and_vlm_failures_reach_the_controller_as_the_real_ones_would():
+    from types import SimpleNamespace
+
+    from hil_sim.episode.faults import FaultyVlm
+    from models.vlm.interface import DetectedObject, VlmAnswer
+    from runtime.common.sensor_data import CameraImage
+
+    inj, inbox = _injector("camera-off:1:0.5", "camera-garbage:2:0.5", "vlm-error:1:0.5", "vlm-garbage:2:0.5",
+                           "vlm-stale:7:1")
+    K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
+
+    def image(t):
+        return CameraImage(t, np.full((48, 64, 3), 100, np.uint8), K, segmentation=np.zeros((48, 64), np.int32))
+
+    inj.step(1.2)
+    assert inj.put_image(image(1.2)) and inbox.take().image is None  # off: nothing
+    inj.step(2.2)
+    inj.put_image(image(2.2))
+    noisy = inbox.take().image
+    assert noisy.pixels.std() > 30 and (noisy.segmentation == -1).all()  # noise, and nothing a VLM can name
+
+    class Backend:
+        name, latency_s = "fake", 1.5
+
+        def query(self, request):
+            obj = DetectedObject(np.ones((48, 64), bool), f"box@{request.stamp_s:g}", True, 2.0, 1.0)
+            return VlmAnswer(request.stamp_s, request.camera_pose_odom, (obj,), self.name, 1.5)
+
+    vlm = FaultyVlm(Backend(), inj)
+
+    def ask(t):
+        inj.step(t)
+        return vlm.query(SimpleNamespace(stamp_s=t, camera_pose_odom=np.eye(4)))
+
+    assert ask(0.5).objects[0].label == "box@0.5"
+    assert ask(1.2).error.startswith("HTTP 503")
+    assert ask(2.2).objects[0].mask.shape == (24, 64)  # the wrong size: the runner refuses it
+    stale = ask(7.5)
+    assert stale.stamp_s == 7.5 and stale.objects[0].label == "box@2.2"  # the newest 5 s older, under a new stamp
