@@ -18,15 +18,21 @@ clock; the soak samples both from outside (/proc/PID) on the wall clock, and the
 records the run (`dct run --record`): the tick timings per window, the recorder's queue and the
 whole run's latency report (`dct report latency`) come from that recording.
 
+SIGINT or SIGTERM ends a lockstep soak between two ticks: its figures are written as they are
+(`complete` false, `interrupted_at_s`); the folder also holds soak.partial.json, the figures at
+the last 10-minute mark.
+
 Growth per hour is the least-squares slope over the samples after the warm-up (the first
 WARMUP_FRACTION of the run, at most WARMUP_MAX_S: imports, caches and pools filling up are not a
 leak); the file descriptors' and threads' growth is their last sample minus their first after it.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import random
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -215,6 +221,24 @@ class _Checkpoint:
             "realtime": self.opts.realtime, "samples": samples, "windows": windows})
 
 
+@contextlib.contextmanager
+def _interruptible():
+    """SIGINT/SIGTERM set the event (the lockstep episode then ends between two ticks and the soak
+    writes what it measured) instead of ending the process; the handlers are put back after."""
+    flag = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in old:
+        signal.signal(sig, lambda *_: flag.set())
+    try:
+        yield flag
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]) -> dict:
     from hil_sim.episode.lockstep import run_episode
     from hil_sim.episode.patrol import with_duration
@@ -259,8 +283,9 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
                       f"threads {stats.get('threads')}, window p99 {windows.windows[-1].get('tick_p99_ms') if windows.windows else None} ms, "
                       f"wall {time.monotonic() - wall0:.0f} s")
 
-    result = run_episode(scenario, config=config, seed=opts.seed, faults=faults, observe=observe,
-                         on_start=on_start, on_telemetry=on_telemetry)
+    with _interruptible() as interrupted:
+        result = run_episode(scenario, config=config, seed=opts.seed, faults=faults, observe=observe,
+                             on_start=on_start, on_telemetry=on_telemetry, end_requested=interrupted.is_set)
     tel = state["telemetry"]
     if tel is not None:  # the ticks after the last sample
         recs = tel.snapshot()
@@ -269,6 +294,7 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
                     new["wall_deadline_missed"])
     windows.close()
     return {"metrics": result.metrics, "samples": {"lockstep": samples}, "windows": windows.windows,
+            "interrupted_at_s": (round(samples[-1]["t_s"], 3) if samples else 0.0) if interrupted.is_set() else None,
             "whole": windows.whole(), "wall_s": result.wall_time_s,
             "deadline_misses": int(result.metrics.get("deadline_misses", 0)),
             "wall_deadline_misses": int(result.telemetry.get("wall_deadline_misses", 0))}
@@ -358,7 +384,9 @@ def _summary(opts: SoakOptions, duration_s: float, faults: list[FaultSpec], r: d
         procs[name] = {key: growth(samples, key, duration_s) for key in ("rss_mb", "fds", "threads")}
     visits = patrol.get("visits", [])
     return {
-        "complete": True,
+        # False: interrupted (SIGINT, SIGTERM) at interrupted_at_s; the figures cover what ran
+        "complete": r.get("interrupted_at_s") is None,
+        "interrupted_at_s": r.get("interrupted_at_s"),
         "mode": "realtime" if opts.realtime else "lockstep",
         "scene": opts.scene, "seed": opts.seed, "minutes": opts.minutes,
         "wall_s": r["wall_s"],
@@ -396,8 +424,10 @@ def _num(x, fmt: str = ".2f") -> str:
 
 
 def format_soak(result: dict) -> list[str]:
+    cut = ("" if result.get("interrupted_at_s") is None
+           else f", INTERRUPTED at {result['interrupted_at_s'] / 60:.1f} min: the figures cover what ran")
     lines = [f"dct bench soak: {result['mode']}, {result['scene']} seed {result['seed']}, {result['minutes']:g} min "
-             f"(wall {result['wall_s'] / 60:.1f} min), {len(result['faults_injected'])} faults injected"]
+             f"(wall {result['wall_s'] / 60:.1f} min), {len(result['faults_injected'])} faults injected{cut}"]
     lines.append("| process | RSS MB first -> last | RSS growth MB/h | fds change | threads change |")
     lines.append("|---|---|---|---|---|")
     for name, g in result["processes"].items():

@@ -190,6 +190,7 @@ def run_episode(
     goal_when_ready: bool = False,
     robot_variant: "RobotVariant | None" = None,
     on_telemetry: "Callable[[TickTelemetry], None] | None" = None,
+    end_requested: Callable[[], bool] | None = None,
 ) -> EpisodeResult:
     """Run one lockstep episode of the navigation controller in a scenario.
 
@@ -208,6 +209,8 @@ def run_episode(
     point counts and the planner's counters with it); other observers read `controller.snapshot`.
     on_telemetry: called once with the loop's TickTelemetry before the first tick (a soak reads the
     tick records as they come, outside the tick: hil_sim.bench.soak).
+    end_requested: asked between two ticks; True ends the episode there, its metrics as they are
+    (an interrupted soak keeps what it measured).
     on_start: called once with the simulation and the controller before the first tick
     (evaluations attach to the sensor rig's listeners: `dct vpp eval`).
     recorder: records the ticks, poses, CAN frames, P_fix and plan to MCAP (runtime.io.recording);
@@ -256,6 +259,7 @@ def run_episode(
     clock.barriers.append(controller.odometry)
     clock.barriers.append(controller)  # the VLM answers due (the vpp partition; nothing otherwise)
     operator = _Operator(sim, controller, scenario, settle_s, progress, observe, seed)
+    operator.end_requested = end_requested
 
     def before() -> None:  # inside the run's clean-up: a harness that fails here closes everything
         bench.wait_ready()
@@ -412,6 +416,7 @@ class _Operator:
         self.clock_start = sim.time_s  # where the navigation clock starts (moved on by goal_when_ready)
         self.finished_at: float | None = None
         self.patrol = PatrolSequencer(scenario, self.t_switch_on, seed) if scenario.is_patrol else None
+        self.end_requested: Callable[[], bool] | None = None
 
     def should_stop(self) -> bool:
         controller, snap = self.controller, self.controller.snapshot
@@ -420,6 +425,8 @@ class _Operator:
         now = self.sim.time_s
         if self.progress is not None:
             self.progress(now)
+        if self.end_requested is not None and self.end_requested():
+            return True
         if (not controller.goal_given and controller.state is ControllerState.ACTIVE
                 and controller.partition.ready(now)):
             controller.give_goal(now)  # this coming tick plans

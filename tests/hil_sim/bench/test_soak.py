@@ -91,3 +91,35 @@ def test_a_short_lockstep_soak_writes_its_figures(tmp_path):
     again = subprocess.run([sys.executable, "-m", "runtime.app.cli", "bench", "soak", "--minutes", "1",
                             "--out", str(out)], capture_output=True, text=True, env=env, timeout=120)
     assert again.returncode == 2 and "not an empty folder" in again.stderr
+
+
+def test_an_episode_asked_to_end_ends_between_two_ticks_with_its_metrics():
+    from hil_sim.episode.lockstep import run_episode
+    from runtime.config import load_controller_config
+
+    clock = {}
+
+    def on_start(sim, controller):
+        clock["sim"] = sim
+
+    m = run_episode("case1", config=load_controller_config().with_planner_mode("all-fixed"), seed=0,
+                    on_start=on_start, end_requested=lambda: clock["sim"].time_s >= 1.0).metrics
+    assert 1.0 <= m["sim_time_s"] <= 1.2 and not m["goal_reached"] and m["path_length_m"] > 0.1
+
+
+@pytest.mark.slow
+def test_a_lockstep_soak_stopped_with_sigterm_writes_what_it_measured(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "soak"
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    p = subprocess.Popen([sys.executable, "-m", "runtime.app.cli", "bench", "soak", "--minutes", "10", "--out",
+                          str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    time.sleep(40.0)
+    p.send_signal(signal.SIGTERM)
+    stdout, stderr = p.communicate(timeout=300)
+    assert p.returncode == 0, stderr[-2000:]
+    r = json.loads((out / "soak.json").read_text())
+    assert not r["complete"] and r["interrupted_at_s"] is not None and "INTERRUPTED" in stdout
+    assert r["whole_run"]["ticks"] > 0
