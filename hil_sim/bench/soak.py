@@ -208,8 +208,8 @@ class _Checkpoint:
     """The figures so far, written (atomically) to the output folder every WINDOW_S, so that a soak
     cut short (a machine reboot, a killed job) leaves what it measured."""
 
-    def __init__(self, opts: SoakOptions, duration_s: float, faults) -> None:
-        self.opts, self.duration_s, self.faults = opts, duration_s, faults
+    def __init__(self, opts: SoakOptions, faults: list[FaultSpec]) -> None:
+        self.opts, self.faults = opts, faults
 
     def write(self, samples: dict, windows: list[dict]) -> None:
         if self.opts.out_dir is None:
@@ -218,7 +218,8 @@ class _Checkpoint:
 
         atomic_write_json(self.opts.out_dir / "soak.partial.json", {
             "complete": False, "minutes": self.opts.minutes, "seed": self.opts.seed,
-            "realtime": self.opts.realtime, "samples": samples, "windows": windows})
+            "realtime": self.opts.realtime, "faults_injected": [f.to_dict() for f in self.faults],
+            "samples": samples, "windows": windows})
 
 
 @contextlib.contextmanager
@@ -249,7 +250,7 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
     config = load_controller_config(opts.config_path)
     windows = TickWindows()
     samples: list[dict] = []
-    checkpoint = _Checkpoint(opts, duration_s, faults)
+    checkpoint = _Checkpoint(opts, faults)
     state = {"sim": None, "telemetry": None, "next_s": 0.0, "next_tick": 0, "t0": None, "next_window": WINDOW_S}
     wall0 = time.monotonic()
 
@@ -347,7 +348,7 @@ def _realtime_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
     if opts.out_dir is None:
         raise SoakError("--realtime needs --out: the controller's recording goes there")
     record = opts.out_dir / "controller.mcap"
-    sampler = _ProcessSampler(opts.echo, _Checkpoint(opts, duration_s, faults))
+    sampler = _ProcessSampler(opts.echo, _Checkpoint(opts, faults))
     wall0 = time.monotonic()
     metrics = run_realtime_episode(opts.scene, opts.seed, opts.config_path, duration_s=duration_s,
                                    record_path=record.resolve(), faults=tuple(str(f) for f in faults),
