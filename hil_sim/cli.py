@@ -78,11 +78,15 @@ def list_command() -> None:
               help="Simulate the robot as built, not as described: nominal, a seed (departures drawn within "
                    "build tolerances), or a variant YAML file (docs/simulator.md#robot-variants); overrides the "
                    "scenario's robot_variant. The controller is not told (give it --calibration).")
+@click.option("--normal-priority", is_flag=True,
+              help="With --realtime: the controller's loop thread does not ask for SCHED_FIFO (`dct run "
+                   "--normal-priority`); by default it asks, as on the robot, and runs at normal priority where "
+                   "that is refused. The JSON's realtime.scheduling says what it got.")
 def run_command(*, scenario: str, json_path: Path | None, seed: int, config_path: Path | None,
                 robot_path: Path | None, planner: str | None, fault_texts: tuple[str, ...],
                 calibration_path: Path | None = None, record_path: Path | None = None, force: bool = False,
                 realtime: bool = False, duration_s: float | None = None, middleware: str | None = None,
-                robot_variant: str | None = None) -> None:
+                robot_variant: str | None = None, normal_priority: bool = False) -> None:
     """Run one lockstep episode of SCENARIO (a library name such as case1, or a YAML path).
 
     The metrics JSON is deterministic (same inputs and seed, same file, under any machine load);
@@ -102,10 +106,12 @@ def run_command(*, scenario: str, json_path: Path | None, seed: int, config_path
         _run_realtime(run.scenario.name, scenario=scenario, seed=seed, json_path=json_path, config_path=config_path,
                       robot_path=robot_path, calibration_path=calibration_path, planner=planner,
                       fault_texts=fault_texts, record_path=record_path, force=force, duration_s=duration_s,
-                      middleware=middleware, robot_variant=robot_variant)
+                      middleware=middleware, robot_variant=robot_variant, normal_priority=normal_priority)
         return
     if middleware is not None:
         raise InputError("--middleware applies to --realtime runs (lockstep has no ROS 2 in between)")
+    if normal_priority:
+        raise InputError("--normal-priority applies to --realtime runs (a lockstep tick is judged on simulated time)")
     result = _run_lockstep(run, seed, record_path, force)
     m = result.metrics
     if json_path is not None:
@@ -284,7 +290,7 @@ def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None
                   robot_path: Path | None, calibration_path: Path | None, planner: str | None,
                   fault_texts: tuple[str, ...], record_path: Path | None, force: bool = False,
                   duration_s: float | None = None, middleware: str | None = None,
-                  robot_variant: str | None = None) -> None:
+                  robot_variant: str | None = None, normal_priority: bool = False) -> None:
     """`dct hil run --realtime` of scenario `name`: hil_sim.episode.realtime (two processes); --record: the
     controller's."""
     from calibration.outputs import atomic_write_json
@@ -298,7 +304,7 @@ def _run_realtime(name: str, *, scenario: str, seed: int, json_path: Path | None
                                  echo=lambda s: click.echo(s, err=True), planner=planner, duration_s=duration_s,
                                  record_path=record_path.resolve() if record_path is not None else None,
                                  force=force, middleware=middleware, robot_variant=robot_variant,
-                                 faults=tuple(fault_texts))
+                                 faults=tuple(fault_texts), normal_priority=normal_priority)
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from None
     if json_path is not None:

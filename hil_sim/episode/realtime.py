@@ -23,6 +23,12 @@ controller knows merged in (its state, events, deadline misses: goal_reached nee
 controller's GOAL_REACHED as in lockstep) and `realtime`: the controller's `tick_ms` and
 `sensor_to_command_ms` (p50, p99, max), `deadline_misses`, and the processes' `pids`.
 
+The controller's loop thread asks for SCHED_FIFO as on the robot (its config's `realtime:`): on a
+machine that also runs the simulator, that is what keeps the simulator, the renderer and the
+controller's own helper threads from taking the tick's core. Where it is refused (no root, no
+rtprio) the loop runs at normal priority and says so; `normal_priority` does not ask. What it got
+is `realtime.scheduling` in the metrics.
+
 `--record run.mcap` is the controller process's recording (`dct run --record`, what `dct report
 latency` reads); `--duration S` is a patrol's length (`dct hil serve --duration`, hil_sim.episode.patrol).
 """
@@ -136,7 +142,7 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                          duration_s: float | None = None, record_path: Path | None = None,
                          force: bool = False, middleware: str | None = None, domain_id: int | None = None,
                          robot_variant: str | None = None, faults: tuple[str, ...] = (),
-                         monitor=None) -> dict:
+                         monitor=None, normal_priority: bool = False) -> dict:
     """Run one real-time episode with two processes; returns the merged metrics (module docstring).
     planner: overrides the config's planner.mode (dct, all-fixed).
     Raises RuntimeError when a process could not run (the message says which and its last words).
@@ -147,7 +153,9 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
     built (`dct hil serve --robot-variant`; the controller is not told). faults: `--fault` texts
     (NAME:START_S[:DURATION_S]) the simulator injects (`dct hil serve --fault`). monitor: called
     with {"simulator": pid, "controller": pid} once both run, and with None when they have
-    stopped (a soak samples the processes meanwhile: hil_sim.bench.soak)."""
+    stopped (a soak samples the processes meanwhile: hil_sim.bench.soak). normal_priority: the
+    controller's loop thread does not ask for SCHED_FIFO (`dct run --normal-priority`); by default it
+    asks, as on the robot (module docstring)."""
     from hil_sim.episode.patrol import with_duration
     from hil_sim.world.scenario import load_scenario
     from runtime.config import load_controller_config
@@ -168,7 +176,8 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         serve_cmd = _serve_command(scenario, seed, sim_json, channels, oracle=oracle, config_path=config_path,
                                    robot_path=robot_path, duration_s=duration_s)
         run_cmd = _run_command(goal, ctl_json, channels, robot_path=robot_path, planner=planner,
-                               calibration_path=calibration_path, record_path=record_path, force=force)
+                               calibration_path=calibration_path, record_path=record_path, force=force,
+                               normal_priority=normal_priority)
         if middleware is not None:
             serve_cmd += ["--middleware", middleware]
             run_cmd += ["--middleware", middleware]
@@ -230,10 +239,10 @@ def _serve_command(scenario: str, seed: int, sim_json: Path, channels: tuple[int
 
 def _run_command(goal, ctl_json: Path, channels: tuple[int, str, int], *, robot_path: Path | None,
                  planner: str | None, calibration_path: Path | None, record_path: Path | None,
-                 force: bool) -> list[str]:
+                 force: bool, normal_priority: bool = False) -> list[str]:
     """`dct run` of one real-time run, without its --config (_controller_config_args)."""
     domain, group, port = channels
-    cmd = _dct("run", "--normal-priority", "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json",
+    cmd = _dct("run", *(["--normal-priority"] if normal_priority else []), "--goal", repr(goal.x_m), repr(goal.y_m), repr(goal.yaw_rad), "--json",
                str(ctl_json), "--domain-id", str(domain), "--discovery", "localhost", "--can-interface", "udp_multicast",
                "--can-channel", group, "--can-port", str(port))
     if robot_path is not None:
@@ -328,6 +337,7 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
         "end_reason": m.get("end_reason"),
         "wall_time_s": wall_s,
         "middleware": summary.get("ros", {}).get("middleware"),
+        "scheduling": rt.get("scheduling"),
     }
     if "recording" in summary:  # `--record`: the controller's MCAP file (path, records dropped)
         m["realtime"]["recording"] = summary["recording"]

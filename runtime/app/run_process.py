@@ -230,15 +230,16 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
          f"planner {config.preset}")
     # SCHED_FIFO and CPU pinning for this (the loop's) thread, when allowed; said at start.
     if opts.normal_priority:
-        echo("dct run: real-time: not asked for (--normal-priority): the loop thread stays SCHED_OTHER")
+        scheduling = "real-time: not asked for (--normal-priority): the loop thread stays SCHED_OTHER"
     else:
-        echo(f"dct run: {request_realtime_from_config(config.realtime).summary()}")
+        scheduling = request_realtime_from_config(config.realtime).summary()
+    echo(f"dct run: {scheduling}")
     wall0 = time.monotonic()
     parts.run(stop.is_set)
-    return _summary(parts, observer, inbox, receiver, goal, time.monotonic() - wall0)
+    return _summary(parts, observer, inbox, receiver, goal, time.monotonic() - wall0, scheduling)
 
 
-def _summary(parts, observer, inbox, receiver, goal, wall: float) -> dict:
+def _summary(parts, observer, inbox, receiver, goal, wall: float, scheduling: str) -> dict:
     controller, telemetry, loop = parts.controller, parts.telemetry, parts.loop
     records = telemetry.snapshot()
     latency = observer.latency.values()
@@ -265,6 +266,7 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float) -> dict:
             "ticks": int(telemetry.ticks),
             "ticks_skipped": int(telemetry.ticks_skipped),
             "lateness_ms": _percentiles(records["lateness_s"]),
+            "scheduling": scheduling,  # what the loop thread asked the OS for and got
         },
         #: Every frame's sensor-to-command latency in ms, in order (for a closer look at the tail).
         "sensor_to_command_values_ms": [round(float(v) * 1e3, 3) for v in latency],

@@ -80,6 +80,9 @@ def test_case3_realtime_two_processes(tmp_path):
     for key in ("tick_ms", "sensor_to_command_ms"):
         assert set(rt[key]) == {"p50", "p99", "max"} and rt[key]["max"] >= rt[key]["p50"] > 0
     assert isinstance(rt["deadline_misses"], int)
+    # The loop thread asked for SCHED_FIFO as on the robot: granted, or refused with the OS's reason.
+    sched = rt["scheduling"]
+    assert sched.startswith("real-time: SCHED_FIFO priority 50") or "refused (" in sched, sched
     # The product's default preset, its VLM the simulator's oracle over HTTP (hil_sim.vlm.service).
     assert m["planner"] == "dct"
     assert m["simulator"]["oracle"]["bad_request"] == 0
