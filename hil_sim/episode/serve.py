@@ -369,6 +369,8 @@ class _Server:
         self.injector = FaultInjector(tuple(opts.faults), self.firmware, self.sink, start_s=float("inf"),
                                       far_m=config.planner.obstacle_points.max_range_m + 4.0, seed=opts.seed)
         fw_bus.injector = self.injector
+        if self.oracle_service is not None:  # the vlm-* faults act in the service, over HTTP
+            self.oracle_service.faults = self.injector
         self.rig = SensorRig(world, robot, self.injector, SensorRigConfig(
             seed=opts.seed, camera_rate_hz=camera_rate_hz, camera_segmentation=segmentation, camera_async=True))
         self.sim = LockstepSimulation(world, self.firmware, self.metrics, [self.rig], controls=[self.injector])

@@ -112,6 +112,12 @@ class FrameRing:
                              f"{diffs[k]:.1f} > {MATCH_MAX_DIFF}); send its capture stamp in {STAMP_HEADER}")
         return frames[k]
 
+    def older(self, frame: Frame, by_s: float) -> Frame:
+        """The newest kept frame at least by_s older than `frame` (the oldest kept, early in a run)."""
+        frames = self.frames()
+        old = [f for f in frames if f.stamp_s <= frame.stamp_s - by_s]
+        return old[-1] if old else frames[0]
+
 
 class OracleService:
     """The oracle behind /detect and /v1/chat/completions (module docstring). `record` takes the
@@ -119,6 +125,9 @@ class OracleService:
 
     def __init__(self, oracle: SimOracleBackend, ring: FrameRing | None = None, port: int = 0) -> None:
         self.oracle = oracle
+        #: The simulator's fault injector (hil_sim.episode.faults), set by `dct hil serve`: while a
+        #: vlm-* fault is on, the service answers as a failing one would (`_fault`); None: never.
+        self.faults = None
         self.ring = ring or FrameRing()
         self._names = {e.name: k for k, e in enumerate(oracle.objects)}
         self.counts = {"detect": 0, "chat": 0, "bad_request": 0, "failures": 0}
@@ -198,6 +207,11 @@ class OracleService:
             if not isinstance(body, dict):
                 raise BadRequest(f"body must be a JSON object, got {type(body).__name__}")
             stamp = _stamp_header(h.headers.get(STAMP_HEADER))
+            if self._fault("vlm-error"):
+                self._count("failures")
+                _send(h, 503, {"error": {"message": "Service Unavailable (injected fault vlm-error)",
+                                         "type": "server_error"}})
+                return
             if path == "/detect":
                 status, payload = self._detect(body, stamp)
                 self._count("detect")
@@ -212,6 +226,21 @@ class OracleService:
         except Exception as exc:  # noqa: BLE001 - a defect answers 500 and names itself, the server stays up
             status, payload = 500, {"error": {"message": f"{type(exc).__name__}: {exc}", "type": "server_error"}}
         _send(h, status, payload)
+
+    def _fault(self, name: str) -> bool:
+        """Whether the injected fault `name` is on now (and counted as acted on)."""
+        faults = self.faults
+        if faults is None or not faults._active(name):
+            return False
+        faults._count(name)
+        return True
+
+    def _asked(self, stamp: float | None, img: np.ndarray) -> Frame:
+        """The frame an answer is about: the one asked about, or under vlm-stale one VLM_STALE_S older."""
+        from hil_sim.episode.faults import VLM_STALE_S
+
+        frame = self.ring.find(stamp, img)
+        return self.ring.older(frame, VLM_STALE_S) if self._fault("vlm-stale") else frame
 
     def _image(self, b64: str, fmt_hint: str | None, where: str) -> np.ndarray:
         try:
@@ -252,7 +281,8 @@ class OracleService:
         h, w = img.shape[:2]
         if (body["width"], body["height"]) != (w, h):
             raise BadRequest(f"'width' x 'height' {body['width']}x{body['height']} is not the image's {w}x{h}")
-        frame = self.ring.find(stamp, img)
+        frame = self._asked(stamp, img)
+        garbage = return_masks and self._fault("vlm-garbage")
         H, W = frame.segmentation.shape
         obj, visible = self._visible(frame)
         if (h, w) != (H, W):
@@ -266,6 +296,8 @@ class OracleService:
             det = {"box_xyxy": [int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1],
                    "score": DETECTION_SCORE, "label": self.oracle.objects[k].name}
             if return_masks:
+                if garbage:  # the wrong size for the image, as lockstep's vlm-garbage
+                    m = m[: m.shape[0] // 2]
                 ok, png = cv2.imencode(".png", m.astype(np.uint8) * 255)
                 det["mask"] = base64.b64encode(png.tobytes()).decode("ascii")
             detections.append(det)
@@ -310,7 +342,7 @@ class OracleService:
                 raise BadRequest(f"mark {mark}: its label hint {name!r} names no object of this simulator; the oracle "
                                  "answers only about regions its /detect proposed (vpp.backend.regions: grounding-http)")
             marks[self._names[name]] = mark
-        frame = self.ring.find(stamp, img)
+        frame = self._asked(stamp, img)
         answer = self.oracle.query(VlmRequest(image=frame.pixels, stamp_s=frame.sim_stamp_s,
                                               camera_pose_odom=np.eye(4), prompt="",
                                               segmentation=frame.segmentation))

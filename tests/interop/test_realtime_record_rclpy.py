@@ -19,6 +19,7 @@ JS = REPO / "tests" / "interop" / "js"
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_case3_on_rclpy_reaches_the_goal_and_its_recording_decodes_elsewhere(tmp_path):
     mcap, out = tmp_path / "case3.mcap", tmp_path / "case3.json"
     run = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case3", "--realtime",

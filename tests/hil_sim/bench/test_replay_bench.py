@@ -11,6 +11,7 @@ import pytest
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_the_replay_of_a_realtime_case3_gives_its_odometry_back_within_1_cm(tmp_path):
     from hil_sim.bench.replay import ACCEPT_M, replay_bench
 

@@ -307,6 +307,7 @@ def test_patrol_room_one_loop_all_fixed():
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_patrol_room_realtime_two_processes_with_a_recording(tmp_path):
     out, rec = tmp_path / "p.json", tmp_path / "p.mcap"
     r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "patrol_room", "--realtime", "--duration",

@@ -94,6 +94,7 @@ def test_case3_realtime_two_processes(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_case3_realtime_reaches_the_goal_with_the_vlm_answering(tmp_path):
     """On a machine not loaded beyond its two cores: the goal, the oracle asked and answering."""
     m = _realtime_case3(tmp_path)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from calibration.robot_description import load_robot_description
+from hil_sim.episode.faults import FaultInjector, FaultSpec
 from hil_sim.vlm.service import STAMP_HEADER, OracleService
 from hil_sim.vlm.oracle import oracle_backend, oracle_request
 from tests.hil_sim.vlm.test_oracle import _render
@@ -135,5 +136,50 @@ def test_bad_requests_are_400_with_a_message(frame):
         status, payload = _post(f"{base}/v1/embeddings", {"input": "x"})
         assert status == 404 and "no such endpoint" in payload["error"]["message"]
         assert service.stats()["bad_request"] == len(cases) + 1
+    finally:
+        service.close()
+
+
+def _faulty(service: OracleService, name: str) -> FaultInjector:
+    """The simulator's injector with `name` on from the start (as `dct hil serve --fault` gives it)."""
+    service.faults = FaultInjector((FaultSpec(name, 0.0, 10.0),), None, None, start_s=0.0, far_m=10.0)
+    return service.faults
+
+
+def test_the_vlm_faults_go_over_the_wire_and_our_client_names_them(frame, caplog):
+    """vlm-error answers 503 on both endpoints; vlm-garbage sends masks the wrong size for the image,
+    which our client drops, naming why; each request the fault acted on is counted."""
+    world, image = frame
+    service = _service(world, image)
+    try:
+        inj = _faulty(service, "vlm-error")
+        status, body = _post(f"{service.base_url}/detect", {"image": "", "prompt": "x", "width": 1, "height": 1})
+        assert status == 503 and "vlm-error" in body["error"]["message"]
+        answer = _client(service).query(_request(image))
+        assert answer.error is not None and "503" in answer.error and not answer.objects
+        assert inj.applied["vlm-error"] >= 2
+        inj = _faulty(service, "vlm-garbage")
+        answer = _client(service).query(_request(image))
+        assert not answer.objects and answer.error == "no candidate regions to ask about", answer.error
+        assert "mask PNG is" in caplog.text and "the sent image is" in caplog.text
+        assert inj.applied["vlm-garbage"] == 1
+        service.faults = None
+        assert _client(service).query(_request(image)).objects  # the fault off: answers again
+    finally:
+        service.close()
+
+
+def test_vlm_stale_answers_about_a_frame_five_seconds_older(frame):
+    world, image = frame
+    service = _service(world, image)
+    try:
+        asked = service.ring.find(ROS_STAMP, image.pixels)
+        assert service.ring.older(asked, 5.0) is asked  # only one frame kept: the oldest there is
+        service.record(image, ROS_STAMP + 6.0)
+        newest = service.ring.find(ROS_STAMP + 6.0, image.pixels)
+        assert service.ring.older(newest, 5.0).stamp_s == pytest.approx(ROS_STAMP)
+        inj = _faulty(service, "vlm-stale")
+        answer = _client(service).query(_request(image, stamp=ROS_STAMP + 6.0))
+        assert answer.error is None and answer.objects and inj.applied["vlm-stale"] == 2  # /detect and chat
     finally:
         service.close()
