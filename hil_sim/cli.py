@@ -112,6 +112,12 @@ def run_command(*, scenario: str, json_path: Path | None, seed: int, config_path
         raise InputError("--middleware applies to --realtime runs (lockstep has no ROS 2 in between)")
     if normal_priority:
         raise InputError("--normal-priority applies to --realtime runs (a lockstep tick is judged on simulated time)")
+    from hil_sim.episode.faults import FAULTS
+
+    for f in run.faults:
+        if FAULTS[f.name].realtime_only:
+            raise InputError(f"--fault {f.name}: real time only (add --realtime): a lockstep episode has the "
+                             "controller in the simulator's process")
     result = _run_lockstep(run, seed, record_path, force)
     m = result.metrics
     if json_path is not None:

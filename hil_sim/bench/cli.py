@@ -527,7 +527,7 @@ def faults_bench_command(*, scenes: tuple[str, ...], seeds: int, first_seed: int
     from calibration.outputs import atomic_write_json
     from hil_sim.bench.campaign import default_workers
     from hil_sim.bench.faults import DEFAULT_SCENES, FaultCampaignError, format_fault_table, run_fault_campaign
-    from hil_sim.episode.faults import FAULT_NAMES
+    from hil_sim.episode.faults import FAULT_NAMES, LOCKSTEP_FAULT_NAMES
     from runtime.common.cli_support import checked_output
 
     def split(values: tuple[str, ...]) -> tuple[str, ...]:
@@ -543,7 +543,7 @@ def faults_bench_command(*, scenes: tuple[str, ...], seeds: int, first_seed: int
     checked_output(json_path, "--json", [], force)
     try:
         result = run_fault_campaign(scenes=scene_list, seeds=seeds, first_seed=first_seed,
-                                    faults=split(faults) or FAULT_NAMES, start_s=start_s, duration_s=duration_s,
+                                    faults=split(faults) or (FAULT_NAMES if realtime else LOCKSTEP_FAULT_NAMES), start_s=start_s, duration_s=duration_s,
                                     workers=workers or (1 if realtime else default_workers()),
                                     ray_address=ray_address, realtime=realtime,
                                     on_done=lambda r: click.echo(f"  {r['fault']} {r['scene']} seed {r['seed']}: "

@@ -23,7 +23,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from hil_sim.episode.faults import DELAY_S, FAULT_NAMES, FAULTS
+from hil_sim.episode.faults import DELAY_S, FAULT_NAMES, FAULTS, LOCKSTEP_FAULT_NAMES
 
 #: The scenes of the campaign: fixed clutter (case3), a corridor with movable boxes
 #: (corridor_boxes), a gap between fixed obstacles (gap_wedged).
@@ -74,6 +74,12 @@ _RESUME = 0.3
 _RESUME_DELAYED = DELAY_S + 0.35
 #: A base back after a silence: its next 0x211 (0.1 s), the fresh enable, the start-up sequence.
 _RESUME_ENABLE = 0.5
+#: The base's own command timeout (0.5 s after the last 0x111), plus the killed process's last
+#: keep-alive period (0.02 s) and a physics step.
+_BASE_TIMEOUT = 0.5 + 0.02 + 0.005
+#: A killed controller driving again: RestartSec (2 s), then the process's start-up (imports, the
+#: distance net, the ICP worker, DDS discovery, the gyro bias; 5-8 s on the development machine).
+_RESTART = 2.0 + 10.0
 
 EXPECTED: dict[str, Reaction] = {
     "lidar-blind": Reaction(True, _FRAME, "lidar blind", _RESUME_LIDAR),
@@ -128,6 +134,12 @@ EXPECTED: dict[str, Reaction] = {
     "base-reboot": Reaction(True, 0.02, "0x221 stale", _RESUME_ENABLE, base_stops=True),
     "base-error": Reaction(True, 0.02, "base reports error code 0x0100", base_stops=True, latched=True),
     "rc-takeover": Reaction(True, 0.02, "base left CAN command mode", base_stops=True, latched=True),
+    # nobody commands the base: it stops by its own command timeout; the unit starts the controller
+    # again after RestartSec, which takes up its odometry frame and goal and enables the base
+    "controller-kill": Reaction(True, _BASE_TIMEOUT, None, _RESTART, base_stops=True),
+    # the loop thread at SCHED_FIFO keeps its deadlines; the simulator and the helpers slow down,
+    # so sensor data may come late enough for a watchdog's hold
+    "cpu-hog": Reaction(None),
 }
 #: A stop is a zero command within one tick of the watchdog's verdict (the stop event).
 STOP_AFTER_VERDICT_S = _TICK + 0.002
@@ -183,6 +195,8 @@ def run_fault_task(task: FaultTask) -> dict:
     verdict = stops[0]["t_s"] if stops else None
     zero = fault["first_zero_s"]
     stopped = verdict is not None and zero is not None
+    if EXPECTED[task.fault].reason is None and EXPECTED[task.fault].base_stops:
+        stopped = zero is not None  # nobody's verdict (the controller is gone): the base stops by itself
     base_stop = zero is not None and zero < end and EXPECTED[task.fault].base_stops
     return {
         **record,
@@ -276,7 +290,7 @@ def _differences(row: dict, ok: list[dict], expected: Reaction) -> list[str]:
 
 
 def run_fault_campaign(*, scenes: Iterable[str] = DEFAULT_SCENES, seeds: int = 5, first_seed: int = 0,
-                       faults: Iterable[str] = FAULT_NAMES, start_s: float = DEFAULT_START_S,
+                       faults: Iterable[str] = LOCKSTEP_FAULT_NAMES, start_s: float = DEFAULT_START_S,
                        duration_s: float = DEFAULT_DURATION_S, workers: int = 1, ray_address: str | None = None,
                        on_done: Callable[[dict], None] | None = None, realtime: bool = False) -> dict:
     """Every fault x scene x seed; one row per fault (module docstring)."""
@@ -286,6 +300,9 @@ def run_fault_campaign(*, scenes: Iterable[str] = DEFAULT_SCENES, seeds: int = 5
     unknown = [f for f in faults if f not in FAULTS]
     if unknown:
         raise FaultCampaignError(f"--fault {', '.join(unknown)}: unknown; known: {', '.join(FAULT_NAMES)}")
+    rt_only = [f for f in faults if FAULTS[f].realtime_only]
+    if rt_only and not realtime:
+        raise FaultCampaignError(f"--fault {', '.join(rt_only)}: real time only (add --realtime)")
     if not (math.isfinite(start_s) and start_s >= 0.0 and math.isfinite(duration_s) and duration_s > 0.0):
         raise FaultCampaignError(f"--start {start_s} / --duration {duration_s}: need start >= 0 and duration > 0")
     if realtime and (workers != 1 or ray_address is not None):

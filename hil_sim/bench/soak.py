@@ -42,7 +42,7 @@ from typing import Callable
 
 import numpy as np
 
-from hil_sim.episode.faults import FAULT_NAMES, FaultSpec
+from hil_sim.episode.faults import LOCKSTEP_FAULT_NAMES, FaultSpec
 
 DEFAULT_SCENE = "patrol_people"
 SAMPLE_EVERY_S = 10.0
@@ -62,7 +62,7 @@ class SoakError(ValueError):
 def _recoverable_faults() -> tuple[str, ...]:
     from hil_sim.bench.faults import EXPECTED
 
-    return tuple(n for n in FAULT_NAMES if not (n in EXPECTED and EXPECTED[n].latched))
+    return tuple(n for n in LOCKSTEP_FAULT_NAMES if not (n in EXPECTED and EXPECTED[n].latched))
 
 
 #: The faults a soak draws from: the catalogue less the latched stops (docs/faults.md "stops for good").

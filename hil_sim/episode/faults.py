@@ -58,6 +58,8 @@ class FaultKind:
     stream: str  # lidar, imu, 0x311, 0x221, 0x211, 0x111, base
     failure: str  # off, stuck, garbage, slow, delayed, intermittent; blind, far, frozen, estop
     does: str
+    #: Only two processes on the wall clock can have it (`dct hil run --realtime`): lockstep refuses it.
+    realtime_only: bool = False
 
 
 #: Delay of the `delayed` faults (s), and the share of frames an `intermittent` fault drops.
@@ -128,9 +130,17 @@ FAULT_KINDS: tuple[FaultKind, ...] = (
                                              "stops its wheels while it lasts"),
     FaultKind("rc-takeover", "base", "rc", "the remote control takes the base (control mode RC, 0x111 ignored); "
                                            "released, the base is left in standby"),
+    FaultKind("controller-kill", "process", "killed", "the controller process killed with SIGKILL at the fault's "
+                                                      "start, then started again as its systemd unit does "
+                                                      "(Restart=on-failure, RestartSec); real time only",
+              realtime_only=True),
+    FaultKind("cpu-hog", "process", "hog", "a busy process on every core of the machine for the fault's duration, "
+                                           "at the controller's nice level; real time only", realtime_only=True),
 )
 FAULTS: dict[str, FaultKind] = {k.name: k for k in FAULT_KINDS}
 FAULT_NAMES: tuple[str, ...] = tuple(FAULTS)
+#: The faults a lockstep episode can have (all but the real-time-only ones).
+LOCKSTEP_FAULT_NAMES: tuple[str, ...] = tuple(k.name for k in FAULT_KINDS if not k.realtime_only)
 
 _FRAME_DROPS = {"drop-0x311": p.ID_ODOMETRY, "drop-0x211": p.ID_SYSTEM_STATE, "drop-0x221": p.ID_MOTION_STATE}
 #: The faults that put the emulated firmware itself into a state (EmulatedBaseFirmware's fault hooks).

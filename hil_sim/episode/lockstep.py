@@ -171,6 +171,16 @@ def goal_in_odom_frame(scenario: Scenario) -> Pose2D:
 
 
 # (Long for the documentation of its sixteen keyword options; the body is about 40 lines.)
+def _refuse_realtime_only(faults) -> None:
+    from hil_sim.episode.faults import FAULTS, FaultSpecError
+
+    for f in faults:
+        kind = FAULTS.get(f.name)
+        if kind is not None and kind.realtime_only:
+            raise FaultSpecError(f"--fault {f.name}: real time only (`dct hil run --realtime`): a lockstep episode "
+                                 "has the controller in the simulator's process")
+
+
 def run_episode(
     scenario: Scenario | str,
     *,
@@ -231,6 +241,7 @@ def run_episode(
     determinism.)
     """
     faults = tuple(faults)
+    _refuse_realtime_only(faults)
     if isinstance(scenario, str):
         scenario = load_scenario(scenario, seed=seed)  # a generated scene is drawn from the seed
     robot = robot or load_robot_description()

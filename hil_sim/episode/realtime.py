@@ -78,6 +78,8 @@ class _Lines(threading.Thread):
         self.stream, self.prefix, self.echo = stream, prefix, echo
         self.lines: list[str] = []
         self.ready = threading.Event()
+        self.kill_requests = 0  # the simulator's controller-kill faults said so far
+        self.hog_on = False  # a cpu-hog fault is on (the simulator said its start, not yet its end)
         self.start()
 
     def run(self) -> None:
@@ -86,6 +88,10 @@ class _Lines(threading.Thread):
             self.lines.append(line)
             if " serving:" in line:
                 self.ready.set()
+            if _KILL_LINE in line:
+                self.kill_requests += 1
+            elif _HOG_LINE in line:
+                self.hog_on = line.endswith(" start")
             if self.echo is not None:
                 self.echo(f"[{self.prefix}] {line}")
 
@@ -100,6 +106,116 @@ def _stop(p: subprocess.Popen | None) -> None:
     except subprocess.TimeoutExpired:
         p.kill()
         p.wait()
+
+
+#: What the simulator says when a controller-kill fault starts (hil_sim.episode.serve._ControllerKills)
+#: and when a cpu-hog fault begins or ends (hil_sim.episode.serve.HOG_LINE, then start or end).
+_KILL_LINE = "fault controller-kill: kill the controller now"
+_HOG_LINE = "fault cpu-hog:"
+
+
+class _CpuHog:
+    """A busy process on every core while the simulator's cpu-hog fault is on, at normal priority
+    (what a runaway process on the robot's computer does to the controller's helpers; the loop
+    thread at SCHED_FIFO is above it where that was granted)."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+        self.runs = 0
+
+    def step(self, on: bool) -> None:
+        if on and not self.procs:
+            self.runs += 1
+            self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL,
+                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                          for _ in range(os.cpu_count() or 1)]
+        elif not on and self.procs:
+            self.stop()
+
+    def stop(self) -> None:
+        for p in self.procs:
+            p.kill()
+            p.wait()
+        self.procs = []
+
+
+def unit_restart_s() -> float:
+    """RestartSec of the deploy bundle's systemd unit (runtime/app/deploy/templates.py), which
+    restarts a controller that died by a signal (Restart=on-failure)."""
+    from runtime.app.deploy.templates import UNIT
+
+    restart = re.search(r"^RestartSec=([0-9.]+)$", UNIT, re.M)
+    if not re.search(r"^Restart=on-failure$", UNIT, re.M) or restart is None:
+        raise RuntimeError("the deploy unit no longer says Restart=on-failure and RestartSec=: the HIL cannot "
+                           "restart the controller as it would")
+    return float(restart.group(1))
+
+
+class _ControllerUnit:
+    """The controller process as its systemd unit runs it: `cmd` started; on each controller-kill
+    line of the simulator, killed with SIGKILL and started again RestartSec later with the unit's
+    command line (no --goal: the restarted process continues the odometry frame and the goal from
+    its --resume-file, runtime.app.resume; a recording goes on in a file of its own). `restarts`
+    says when each kill and start happened (seconds since the run began)."""
+
+    def __init__(self, cmd: list[str], env: dict, echo, t0: float, monitor, sim_pid: int) -> None:
+        self.cmd, self.env, self.echo, self.t0, self.monitor, self.sim_pid = cmd, env, echo, t0, monitor, sim_pid
+        self.restart_s = unit_restart_s()
+        self.restarts: list[dict] = []
+        self._pending: float | None = None  # when the next start is due (monotonic)
+        self.proc: subprocess.Popen | None = None
+        self.log: _Lines | None = None
+        self._start(cmd)
+
+    def _start(self, cmd: list[str]) -> None:
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE, text=True, env=self.env, start_new_session=True)
+        self.log = _Lines(self.proc.stderr, "ctl", self.echo)
+        if self.monitor is not None:
+            self.monitor({"simulator": self.sim_pid, "controller": self.proc.pid})
+
+    def step(self, kill_requests: int) -> None:
+        """Kill on a new request, start again when RestartSec has passed."""
+        now = time.monotonic()
+        if kill_requests > len(self.restarts) and self._pending is None:
+            pid = self.proc.pid
+            self.proc.kill()  # SIGKILL: nothing of the controller runs after it
+            self.proc.wait()
+            try:  # what is left of it (its ICP worker): systemd stops the unit's whole cgroup before a restart
+                os.killpg(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            self.restarts.append({"killed_pid": pid, "killed_at_s": now - self.t0, "started_at_s": None,
+                                  "started_pid": None})
+            self._pending = now + self.restart_s
+            if self.echo is not None:
+                self.echo(f"[unit] controller pid {pid} killed (SIGKILL); starting it again in {self.restart_s:g} s")
+        if self._pending is not None and now >= self._pending:
+            self._pending = None
+            self._start(_restart_command(self.cmd, len(self.restarts)))
+            self.restarts[-1].update(started_at_s=time.monotonic() - self.t0, started_pid=self.proc.pid)
+
+    def ended(self) -> bool:
+        """The controller exited by itself (not killed for a restart)."""
+        return self._pending is None and self.proc.poll() is not None
+
+
+def _restart_command(cmd: list[str], n: int) -> list[str]:
+    """The unit's command line for the n-th restart: without --goal (the goal comes from the saved
+    state), a recording in a file of its own (NAME.restartN.mcap beside --record)."""
+    out, i = [], 0
+    while i < len(cmd):
+        if cmd[i] == "--goal":
+            i += 4
+            continue
+        if cmd[i] == "--record":
+            rec = Path(cmd[i + 1])
+            out += ["--record", str(rec.with_name(f"{rec.stem}.restart{n}{rec.suffix}"))]
+            i += 2
+            continue
+        out.append(cmd[i])
+        i += 1
+    return out
 
 
 def _sigterm_raises() -> None:
@@ -192,19 +308,19 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
         sim = subprocess.Popen(serve_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
         sim_log = _Lines(sim.stderr, "sim", echo)
-        ctl = None
+        ctl = unit = None
         try:
             _await_serving(sim, sim_log, t0)
             run_cmd += _controller_config_args(oracle, config_path, config.vpp.backend.latency_s, work, sim_log)
-            ctl = subprocess.Popen(run_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                   stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
-            ctl_log = _Lines(ctl.stderr, "ctl", echo)
-            if monitor is not None:
-                monitor({"simulator": sim.pid, "controller": ctl.pid})
-            _supervise(sim, ctl, t0, SERVE_READY_TIMEOUT_S + sc.time_limit_s + 120.0)
+            run_cmd += ["--resume-file", str(work / "resume.json")]
+            unit = _ControllerUnit(run_cmd, env, echo, t0, monitor, sim.pid)
+            _supervise(sim, unit, sim_log, t0, SERVE_READY_TIMEOUT_S + sc.time_limit_s + 120.0)
+            ctl, ctl_log = unit.proc, unit.log
             ctl_log.join(2.0)
             sim_log.join(2.0)
         finally:  # also on an exception or a SIGINT/SIGTERM of this process
+            if unit is not None:
+                ctl = unit.proc
             _stop(ctl)
             _stop(sim)
             if monitor is not None:
@@ -217,8 +333,14 @@ def run_realtime_episode(scenario: str, seed: int = 0, config_path: Path | None 
                                f"{' | '.join(ctl_log.lines[-3:]) or 'no output'}")
         metrics = json.loads(sim_json.read_text())
         summary = json.loads(ctl_json.read_text())
-    return merge(metrics, summary, {"simulator": sim.pid, "controller": ctl.pid},
-                 {"simulator": sim.returncode, "controller": ctl.returncode}, time.monotonic() - t0)
+        if "controller" not in summary:  # it never got to drive: no goal, or still starting up
+            raise RuntimeError(f"dct run never started driving (state {summary.get('state')}; the simulator's end: "
+                               f"{metrics.get('end_reason') or 'unknown'}): "
+                               f"{' | '.join(ctl_log.lines[-3:]) or 'no output'}")
+    m = merge(metrics, summary, {"simulator": sim.pid, "controller": ctl.pid},
+              {"simulator": sim.returncode, "controller": ctl.returncode}, time.monotonic() - t0)
+    m["realtime"]["restarts"] = unit.restarts
+    return m
 
 
 def _serve_command(scenario: str, seed: int, sim_json: Path, channels: tuple[int, str, int], *, oracle: bool,
@@ -287,15 +409,22 @@ def _controller_config_args(oracle: bool, config_path: Path | None, latency_s: f
     return []
 
 
-def _supervise(sim: subprocess.Popen, ctl: subprocess.Popen, t0: float, limit_s: float) -> None:
-    """Until the simulator ends the episode, the controller exits first or limit_s have passed since
-    t0 (monotonic); then both are stopped (SIGTERM: they write their files)."""
-    while sim.poll() is None:
-        if ctl.poll() is not None or time.monotonic() - t0 > limit_s:
-            break  # the controller ended first, or the episode overran: end it
-        time.sleep(0.1)
+def _supervise(sim: subprocess.Popen, unit: _ControllerUnit, sim_log: _Lines, t0: float, limit_s: float) -> None:
+    """Until the simulator ends the episode, the controller exits first (not killed by a fault) or
+    limit_s have passed since t0 (monotonic); then both are stopped (SIGTERM: they write their
+    files). Meanwhile the unit kills and restarts the controller when the simulator says so."""
+    hog = _CpuHog()
+    try:
+        while sim.poll() is None:
+            unit.step(sim_log.kill_requests)
+            hog.step(sim_log.hog_on)
+            if unit.ended() or time.monotonic() - t0 > limit_s:
+                break  # the controller ended first, or the episode overran: end it
+            time.sleep(0.01)
+    finally:
+        hog.stop()
     _stop(sim)
-    _stop(ctl)
+    _stop(unit.proc)
 
 
 def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: float) -> dict:

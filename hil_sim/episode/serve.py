@@ -42,6 +42,7 @@ patrol), and the metrics add `patrol`.
 """
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -369,8 +370,14 @@ class _Server:
         self.injector = FaultInjector(tuple(opts.faults), self.firmware, self.sink, start_s=float("inf"),
                                       far_m=config.planner.obstacle_points.max_range_m + 4.0, seed=opts.seed)
         fw_bus.injector = self.injector
+        kills = tuple(f for f in opts.faults if f.name == "controller-kill")
+        self.kills = _ControllerKills(kills, self.firmware, world, self.injector, self.echo) if kills else None
+        self.hogs = tuple(f for f in opts.faults if f.name == "cpu-hog")
+        self._hogs_on = [False] * len(self.hogs)
         if self.oracle_service is not None:  # the vlm-* faults act in the service, over HTTP
-            self.oracle_service.faults = self.injector
+            from hil_sim.episode.faults import VLM_STALE_S
+
+            self.oracle_service.faults, self.oracle_service.stale_s = self.injector, VLM_STALE_S
         self.rig = SensorRig(world, robot, self.injector, SensorRigConfig(
             seed=opts.seed, camera_rate_hz=camera_rate_hz, camera_segmentation=segmentation, camera_async=True))
         self.sim = LockstepSimulation(world, self.firmware, self.metrics, [self.rig], controls=[self.injector])
@@ -429,6 +436,7 @@ class _Server:
                 if stepped:
                     self.lag_samples[self.n_lag % len(self.lag_samples)] = max(0.0, behind)
                     self.n_lag += 1
+                    self._watch_kills(world.time_s)
                 if self._episode_ended(world.time_s):
                     break
                 if not stepped:
@@ -478,6 +486,19 @@ class _Server:
                 return True
         return False
 
+    def _watch_kills(self, t: float) -> None:
+        if self.state.t_start is None:
+            return
+        if self.kills is not None:
+            self.kills.step(t - self.state.t_start)
+        for k, fault in enumerate(self.hogs):  # say when each cpu-hog begins and ends (the runner runs it)
+            on = fault.active(t - self.state.t_start)
+            if on != self._hogs_on[k]:
+                self._hogs_on[k] = on
+                if on:
+                    self.injector._count("cpu-hog")
+                self.echo(f"dct hil serve: t={t - self.state.t_start:.3f} s: {HOG_LINE} {'start' if on else 'end'}")
+
     def report(self, wall: float, sensor_stats: dict) -> dict:
         """The episode's metrics (hil_sim.episode.metrics) with end_reason, the patrol's and the simulator's figures."""
         from hil_sim.episode.lockstep import world_distance_to_goal, world_goal_reached
@@ -507,6 +528,7 @@ class _Server:
                 # as lockstep reports them: each fault's window and what the base obeyed around it
                 "faults": [{**r, "acted_on": self.injector.applied[r["name"]]} for r in self.injector.reactions()],
                 "faults_applied": dict(self.injector.applied),
+                **({"controller_kills": self.kills.records} if self.kills is not None else {}),
                 "simulator": self._simulator_report(wall, sensor_stats, t_end),
                 **({"robot_variant": world.robot_variant.to_dict()} if world.robot_variant is not None else {}),
             },
@@ -535,3 +557,49 @@ class _Server:
 
 
 __all__ = ["serve", "ServeOptions", "DdsSensorSink"]
+
+
+#: What the simulator says when a cpu-hog fault begins and ends (then "start" or "end"): the runner
+#: (`dct hil run --realtime`) runs the busy processes.
+HOG_LINE = "fault cpu-hog:"
+
+
+class _ControllerKills:
+    """The controller-kill faults (real time only): at each one's start the simulator says KILL_LINE
+    on stderr (`dct hil run --realtime` kills the controller with SIGKILL when it reads it and starts
+    it again as the systemd unit would) and then watches the base: the last 0x111 it took from the
+    dead controller and its command, the moment its own command timeout stopped it, the wheels at
+    rest, and the first command to move again (the restarted controller). Episode seconds."""
+
+    KILL_LINE = "fault controller-kill: kill the controller now"
+
+    def __init__(self, kills, firmware, world, injector, echo) -> None:
+        self.kills, self.firmware, self.world, self.injector, self.echo = kills, firmware, world, injector, echo
+        self.records: list[dict | None] = [None] * len(kills)
+
+    def step(self, t: float) -> None:
+        from firmware_bridge import protocol as p
+
+        fw = self.firmware
+        for k, fault in enumerate(self.kills):
+            r = self.records[k]
+            if r is None:
+                if fault.active(t):
+                    self.records[k] = {"start_s": fault.start_s, "said_s": t, "last_command_s": None,
+                                       "last_command": None, "base_timeout_s": None, "at_rest_s": None,
+                                       "commanded_again_s": None}
+                    self.injector._count("controller-kill")
+                    self.echo(f"dct hil serve: t={t:.3f} s: {self.KILL_LINE}")
+                continue
+            if r["base_timeout_s"] is None:
+                if fw.last_command_time_s is not None:
+                    r["last_command_s"] = fw.last_command_time_s - (self.world.time_s - t)
+                    r["last_command"] = [float(fw.commanded[0]), float(fw.commanded[1])]
+                elif fw.error_code & p.ERROR_HOST_COMM_LOST:
+                    r["base_timeout_s"] = t
+            elif r["at_rest_s"] is None:
+                vx, vy, wz = self.world.robot_body_velocity()
+                if math.hypot(vx, vy) < 0.01 and abs(wz) < 0.02:
+                    r["at_rest_s"] = t
+            elif r["commanded_again_s"] is None and fw.commanded != (0.0, 0.0):
+                r["commanded_again_s"] = t

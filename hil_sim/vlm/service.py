@@ -128,6 +128,7 @@ class OracleService:
         #: The simulator's fault injector (hil_sim.episode.faults), set by `dct hil serve`: while a
         #: vlm-* fault is on, the service answers as a failing one would (`_fault`); None: never.
         self.faults = None
+        self.stale_s = 5.0  # how much older a vlm-stale answer's frame is (the injector's VLM_STALE_S)
         self.ring = ring or FrameRing()
         self._names = {e.name: k for k, e in enumerate(oracle.objects)}
         self.counts = {"detect": 0, "chat": 0, "bad_request": 0, "failures": 0}
@@ -236,11 +237,9 @@ class OracleService:
         return True
 
     def _asked(self, stamp: float | None, img: np.ndarray) -> Frame:
-        """The frame an answer is about: the one asked about, or under vlm-stale one VLM_STALE_S older."""
-        from hil_sim.episode.faults import VLM_STALE_S
-
+        """The frame an answer is about: the one asked about, or under vlm-stale one stale_s older."""
         frame = self.ring.find(stamp, img)
-        return self.ring.older(frame, VLM_STALE_S) if self._fault("vlm-stale") else frame
+        return self.ring.older(frame, self.stale_s) if self._fault("vlm-stale") else frame
 
     def _image(self, b64: str, fmt_hint: str | None, where: str) -> np.ndarray:
         try:

@@ -50,6 +50,13 @@ _FILE = click.Path(dir_okay=False, path_type=Path)
               help="Do not ask for SCHED_FIFO / CPU pinning (config realtime:), e.g. beside a simulator.")
 @click.option("--goal-wait", "goal_wait_s", type=click.FloatRange(0.0, None),
               help="Without --goal: give up after this many seconds without a goal (default: wait).")
+@click.option("--resume-file", "resume_path", type=_FILE,
+              help="Save the odometry frame and the goal here twice a second; at start, continue from a state "
+                   "saved there within --resume-max-age (a restart after a crash: the goals given in the old "
+                   "frame stay right). Without --goal, an unreached saved goal is driven on to.")
+@click.option("--resume-max-age", "resume_max_age_s", type=click.FloatRange(0.0, 3600.0, min_open=True),
+              default=60.0, show_default=True, metavar="SECONDS",
+              help="A saved state older than this (wall clock) starts a new odometry frame.")
 def run_command(**options) -> None:
     """The controller process: sensors over ROS 2 DDS, the base over CAN, the fixed-rate loop on the wall
     clock until SIGINT/SIGTERM (then: zero command, deactivate, flush, exit 0). Exit 2 on bad input."""

@@ -41,6 +41,9 @@ class RunOptions:
     normal_priority: bool = False
     #: Let the blind pure-pursuit planner run (no obstacle awareness: tests and benches only).
     allow_pure_pursuit: bool = False
+    #: `--resume-file`: the warm-restart state (runtime.app.resume); None: none kept.
+    resume_path: Path | None = None
+    resume_max_age_s: float = 60.0
 
 
 @dataclass

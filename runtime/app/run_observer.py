@@ -57,6 +57,9 @@ class RunObserver:
         self._said: tuple[str, str] | None = None
         self._said_mismatch = False
         self._said_at_s = -1e9
+        #: runtime.app.resume.ResumeWriter (`--resume-file`), or None
+        self.resume_writer = None
+        self._said_resume = False
 
     def __call__(self, row: np.void) -> None:
         from runtime.io.ros.publisher import TickView
@@ -86,6 +89,13 @@ class RunObserver:
             points_mov=snap.p_mov_lidar() if clouds and snap.partition_frame is not None else None,
             clouds=clouds,
         ))
+        if self.resume_writer is not None:
+            if not self._said_resume and self.assembly.controller.odometry.resume_outcome is not None:
+                self._said_resume = True
+                self.echo(f"dct run: odometry {self.assembly.controller.odometry.resume_outcome}")
+            p, g = snap.pose, snap.goal
+            self.resume_writer.offer((p.x_m, p.y_m, p.yaw_rad), snap.wheels_m, (g.x_m, g.y_m, g.yaw_rad),
+                                     snap.state.name == "GOAL_REACHED")
         self._take_goal()
         self._say_state(snap)
         self._say_fallback(snap)

@@ -107,6 +107,20 @@ def _wait_for_goal(opts: RunOptions, ros, receiver, notifier, stop, echo) -> tup
                         f"{topic or 'the goal topic'}")
 
 
+def _load_resume(opts: RunOptions, echo):
+    """The saved state of `--resume-file` (runtime.app.resume), said in one line; None without it."""
+    if opts.resume_path is None:
+        return None
+    from runtime.app.resume import load_resume
+
+    folder = opts.resume_path.resolve().parent
+    if not folder.is_dir():
+        raise RunInputError(f"--resume-file {opts.resume_path}: the folder {folder} does not exist")
+    resume = load_resume(opts.resume_path, opts.resume_max_age_s)
+    echo(f"dct run: {resume.line()}")
+    return resume
+
+
 def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threading.Event | None = None,
                    echo=lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
     """Run the controller process until `stop` is set (SIGINT/SIGTERM set it); returns the summary
@@ -146,8 +160,15 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
         _say_routes(transport, echo)
         receiver.start()
         notifier.ready()
-        goal = _wait_for_goal(opts, ros, receiver, notifier, stop, echo)
-        summary = _drive(opts, loaded, goal, (bus, inbox, receiver, publisher, recorder, notifier, clock), stop, echo)
+        resume = _load_resume(opts, echo)
+        if opts.goal is None and resume is not None and resume.state is not None and resume.state.goal is not None \
+                and not resume.state.goal_reached:
+            goal = resume.state.goal
+            echo(f"dct run: driving on to the saved goal {goal[0]:.3f} {goal[1]:.3f} {goal[2]:.3f} (odom frame)")
+        else:
+            goal = _wait_for_goal(opts, ros, receiver, notifier, stop, echo)
+        summary = _drive(opts, loaded, goal, (bus, inbox, receiver, publisher, recorder, notifier, clock), stop, echo,
+                         resume)
     except _StoppedBeforeStart:
         echo("dct run: stopped before the start (waiting for a goal, or during the start-up work); the base was never enabled")
         summary = {"state": "NOT_STARTED"}
@@ -202,8 +223,9 @@ def _say_routes(transport, echo) -> None:
                  f"{r.via}: {r.note}")
 
 
-def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, echo) -> dict:
-    """Assemble the controller on the bus, run it until `stop`, return the summary."""
+def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, echo, resume=None) -> dict:
+    """Assemble the controller on the bus, run it until `stop`, return the summary. resume: the
+    `--resume-file` state (runtime.app.resume.Resume), None without the option."""
     from runtime.app.run_observer import RunObserver
     from runtime.common.geometry import Pose2D
     from runtime.controller.builder import RobotSetup, Wiring, assemble
@@ -221,6 +243,8 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
                                       static_transforms=sensor_mounts(loaded))
     observer = RunObserver(parts, config.ros, publisher, receiver, notifier, echo, record_hook)
     parts.loop.after_tick = observer
+    writer = _start_resume(opts, resume, parts.controller.odometry)
+    observer.resume_writer = writer
     if stop.is_set():  # SIGINT/SIGTERM during the start-up work: the base is never enabled
         parts.controller.partition.close()
         parts.controller.odometry.close()
@@ -235,8 +259,36 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
         scheduling = request_realtime_from_config(config.realtime).summary()
     echo(f"dct run: {scheduling}")
     wall0 = time.monotonic()
-    parts.run(stop.is_set)
-    return _summary(parts, observer, inbox, receiver, goal, time.monotonic() - wall0, scheduling)
+    try:
+        parts.run(stop.is_set)
+    finally:
+        if writer is not None:
+            writer.close()
+    summary = _summary(parts, observer, inbox, receiver, goal, time.monotonic() - wall0, scheduling)
+    if resume is not None:
+        summary["resume"] = {"saved_state": resume.state is not None, "why": resume.why,
+                             "outcome": parts.controller.odometry.resume_outcome,
+                             "writes": writer.writes, "write_error": writer.error}
+    return summary
+
+
+def _start_resume(opts: RunOptions, resume, odometry):
+    """Hand the odometry the saved frame to continue, start the writer; None without --resume-file."""
+    if resume is None:
+        return None
+    from runtime.app.resume import ResumeWriter
+    from runtime.common.geometry import Pose2D
+    from runtime.odometry.wheels import MAX_WHEEL_SPEED_MPS, WHEEL_STEP_MARGIN_M
+
+    if resume.state is not None:
+        # the most the base could have driven since the state was saved (its first reading comes
+        # within a few ticks of now: two seconds of margin)
+        since_s = max(0.0, time.time() - resume.state.written_at_s) + 2.0
+        odometry.resume_from(Pose2D(*resume.state.pose), resume.state.wheels_m,
+                             MAX_WHEEL_SPEED_MPS * since_s + WHEEL_STEP_MARGIN_M)
+    writer = ResumeWriter(opts.resume_path)
+    writer.start()
+    return writer
 
 
 def _summary(parts, observer, inbox, receiver, goal, wall: float, scheduling: str) -> dict:

@@ -251,6 +251,7 @@ class NavigationController:
             inputs_delivered=self.inputs_delivered, icp_delivered=self.odometry.delivered,
             partition_fallback=self.partition.fallback, calibration_mismatch=self.calibration.mismatch,
             vlm_delivered=vpp.delivered if vpp is not None else (),
+            wheels_m=self.odometry.last_wheels_m,
         )
 
     def _safety_verdict(self) -> str | None:

@@ -63,3 +63,6 @@ class ControllerSnapshot:
     #: The answers the VLM backend runner handed the VPP stage at its last update (VlmAnswer each,
     #: immutable; new ones when vlm_answers moved), () without the VPP: what a replay delivers again.
     vlm_delivered: tuple = ()
+    #: The base's cumulative wheel distances (0x311) of the reading `pose` was computed with, None
+    #: before the first: what a restarted controller continues the odometry frame from (runtime.app.resume).
+    wheels_m: tuple[float, float] | None = None

@@ -102,6 +102,13 @@ class PoseFusion:
         #: Time of the newest ICP result that was fused (None: none yet): the age of the correction.
         self.last_fused_t: float | None = None
 
+    def start_at(self, pose) -> None:
+        """Begin the fused pose at `pose` (an earlier run's frame continued) instead of the origin;
+        only before the first dead-reckoning sample, whose pose it then stands for."""
+        if self._n:
+            raise RuntimeError("start_at after dead reckoning began")
+        self.anchor_pose = np.array([pose.x_m, pose.y_m, pose.yaw_rad], dtype=float)
+
     # -- dead reckoning ------------------------------------------------------------------------
     def add_dead_reckoning(self, t_s: float, pose: np.ndarray, translation_known: bool = True) -> None:
         """The wheel + gyro pose D(t) (call every tick, times increasing). translation_known False:

@@ -29,7 +29,7 @@ from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult
 from runtime.odometry.icp_config import IcpConfig
 from runtime.odometry.icp_settings import RangeGate
 from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse
-from runtime.odometry.wheels import WheelGyroOdometry
+from runtime.odometry.wheels import WheelGyroOdometry, WheelOdometry
 from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
 from runtime.common.sensor_data import LidarScan
 
@@ -116,6 +116,10 @@ class OdometryStage:
         #: The settings the worker uses (auto ones resolved on its first frame), from its first result.
         self.icp_settings: dict | None = None
         self.iteration_caps: tuple[int, int] = (10**9, 0)  # (min, max) over the results
+        #: An earlier run's frame to continue (resume_from), until the first wheel reading.
+        self._resume: tuple[Pose2D, tuple[float, float], float] | None = None
+        #: What became of it: None (not asked), else a sentence (continued, or why a new frame).
+        self.resume_outcome: str | None = None
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
@@ -170,15 +174,52 @@ class OdometryStage:
     def yaw_rate_radps(self) -> float:
         return self.wheels.yaw_rate_radps
 
+    @property
+    def last_wheels_m(self) -> tuple[float, float] | None:
+        """The base's cumulative wheel distances of the newest reading given to update()."""
+        return self._last_wheels
+
     def base_restarted(self) -> None:
         """The base rebooted: its odometers start again from zero (the next reading re-anchors)."""
         self.wheels.reanchor()
+
+    def resume_from(self, pose: Pose2D, wheels_m: tuple[float, float], max_step_m: float) -> None:
+        """Continue an earlier run's odometry frame (runtime.app.resume), before the first update:
+        `pose` is where it was when the base's cumulative wheel distances read `wheels_m`. At the
+        first wheel reading the pose starts there, moved by what the wheels did since (their own
+        heading: the gyro was not read meanwhile); a wheel that moved more than `max_step_m` (the
+        base rebooted and counts from zero, or the robot was carried) gives a new frame instead."""
+        self._resume = (pose, (float(wheels_m[0]), float(wheels_m[1])), float(max_step_m))
+
+    def _take_up_resume(self, wheels: tuple[float, float]) -> Pose2D | None:
+        pose, saved, max_step = self._resume
+        self._resume = None
+        dl, dr = wheels[0] - saved[0], wheels[1] - saved[1]
+        if not (abs(dl) <= max_step and abs(dr) <= max_step):
+            self.resume_outcome = (f"a new frame: the base's odometers moved {dl:+.2f} / {dr:+.2f} m since the saved "
+                                   f"state, more than the {max_step:.2f} m it could have driven (a rebooted base "
+                                   "counts from zero)")
+            return None
+        between = WheelOdometry(self.wheels.effective_track_m, wheel_scale=self.wheels.wheel_scale)
+        between.reset(pose)
+        between.update(*saved)
+        start = between.update(*wheels)
+        self.resume_outcome = (f"continued: the wheels moved {dl:+.3f} / {dr:+.3f} m since the saved pose; starting "
+                               f"at {start.x_m:.3f} {start.y_m:.3f} {start.yaw_rad:.3f}")
+        return start
 
     def update(self, now_s: float, wheels: tuple[float, float] | None, imu_samples,
                good_scan: LidarScan | None, speed_mps: float | None = None) -> Pose2D:
         """wheels: the cumulative wheel distances (0x311) when fresh, else None; speed_mps: the
         base's reported linear speed (0x221) when fresh, else None: it carries the translation
         while the wheel distances are missing (never "no data = standing still")."""
+        resumed = None
+        if self._resume is not None and wheels is not None:
+            resumed = self._take_up_resume(wheels)
+            if resumed is not None:  # the dead reckoning and a fresh fusion start at the resumed pose
+                self.wheels.reset(resumed)
+                self.fusion = PoseFusion(self.fusion.config)
+                self.fusion.start_at(resumed)
         fallback = None
         if wheels is None and speed_mps is not None and self._last_update_s is not None:
             fallback = speed_mps * (now_s - self._last_update_s)
@@ -384,6 +425,7 @@ class OdometryStage:
             "icp_range_gate": self.gate.to_dict(),
             "icp_iteration_cap": None if not self.iteration_caps[1] else list(self.iteration_caps),
             "icp_settings": self.icp_settings,
+            "resume": self.resume_outcome,
         }
         return out
 

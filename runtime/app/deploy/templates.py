@@ -169,7 +169,8 @@ StartLimitBurst=5
 # Type=notify + WatchdogSec: the controller sends READY=1 once its loop runs and WATCHDOG=1 from
 # the loop thread (runtime.app.deploy.sd_notify); a loop that hangs for WatchdogSec is killed and
 # restarted, as is a process that dies. The base stops the wheels by itself 500 ms after the
-# last command either way.
+# last command either way. The restarted controller continues the odometry frame and the goal
+# saved in logs/resume.json (--resume-file) when they are younger than a minute.
 Type=notify
 NotifyAccess=main
 WatchdogSec=@@WATCHDOG_S@@
@@ -180,7 +181,7 @@ Environment=PYTHONUNBUFFERED=1
 # ROS 2 (--ros @@ROS_MODE@@): @@ROS_NOTE@@
 # Every check that driving needs must pass before the controller starts (dct preflight).
 ExecStartPre=@@EXEC_PREFIX@@@TARGET@/venv/bin/dct preflight --robot @TARGET@/robot/robot.yaml --calibration @TARGET@/robot/calibration.yaml --config @TARGET@/robot/config.yaml --can-interface @@CAN_INTERFACE@@ --can-channel @@CAN_CHANNEL@@ --log-dir @TARGET@/logs --manifest @TARGET@/MANIFEST.json --json @TARGET@/logs/preflight.json
-ExecStart=@@EXEC_PREFIX@@@TARGET@/venv/bin/dct run --robot @TARGET@/robot/robot.yaml --calibration @TARGET@/robot/calibration.yaml --config @TARGET@/robot/config.yaml
+ExecStart=@@EXEC_PREFIX@@@TARGET@/venv/bin/dct run --robot @TARGET@/robot/robot.yaml --calibration @TARGET@/robot/calibration.yaml --config @TARGET@/robot/config.yaml --resume-file @TARGET@/logs/resume.json
 # The controller stops cleanly (zero commands to the base) on SIGINT, as on Ctrl-C.
 KillSignal=SIGINT
 TimeoutStopSec=5

@@ -126,3 +126,50 @@ def test_merge_takes_a_patrols_verdict_from_the_simulator_unless_the_controller_
     report["state"], report["stop_reason"] = "STOPPED", "3 deadline misses in a row"
     m = merge(sim, ctl, {}, {}, 1.0)
     assert not m["success"] and m["failure_reason"] == "safety stop: 3 deadline misses in a row"
+
+
+def test_the_unit_restart_follows_the_deploy_bundle_and_drops_the_goal():
+    """A killed controller is started again as the bundle's systemd unit does: after its RestartSec,
+    with its command line less --goal (the restarted one takes its goal from the saved state) and a
+    recording of its own."""
+    from hil_sim.episode.realtime import _restart_command, unit_restart_s
+    from runtime.app.deploy.templates import UNIT
+
+    assert f"RestartSec={unit_restart_s():g}" in UNIT
+    cmd = ["python", "-m", "runtime.app.cli", "run", "--goal", "4.8", "0.0", "0.0", "--json", "c.json",
+           "--record", "/x/run.mcap", "--resume-file", "/x/resume.json"]
+    assert _restart_command(cmd, 1) == ["python", "-m", "runtime.app.cli", "run", "--json", "c.json", "--record",
+                                        "/x/run.restart1.mcap", "--resume-file", "/x/resume.json"]
+
+
+def test_a_process_fault_is_refused_in_lockstep(tmp_path):
+    from hil_sim.episode.faults import FaultSpec, FaultSpecError
+    from hil_sim.episode.lockstep import run_episode
+
+    with pytest.raises(FaultSpecError, match="real time only"):
+        run_episode("case1", faults=[FaultSpec("controller-kill", 1.0, 1.0)])
+    r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case1", "--fault", "controller-kill:1"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "real time only (add --realtime)" in r.stderr, r.stderr[-500:]
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+def test_a_controller_killed_mid_drive_is_restarted_and_drives_on_to_the_goal(tmp_path):
+    """SIGKILL of the controller 3 s into case3: the base stops by its own command timeout (0.5 s
+    after the last 0x111), the unit starts the controller again after RestartSec, it continues the
+    odometry frame from its saved state and reaches the goal without touching anything fixed."""
+    out = tmp_path / "kill.json"
+    r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case3", "--realtime", "--fault",
+                        "controller-kill:3:1", "--json", str(out)], capture_output=True, text=True, timeout=400)
+    assert r.returncode in (0, 1), r.stderr[-2000:]
+    m = json.loads(out.read_text())
+    kill = m["controller_kills"][0]
+    assert kill["last_command"] is not None and abs(kill["last_command"][0]) > 0.05, kill  # it was driving
+    assert 0.45 <= kill["base_timeout_s"] - kill["last_command_s"] <= 0.55, kill  # the base's own timeout
+    assert kill["at_rest_s"] is not None and kill["commanded_again_s"] is not None, kill
+    (restart,) = m["realtime"]["restarts"]
+    assert restart["started_pid"] not in (None, restart["killed_pid"]), restart
+    assert m["controller"]["odometry"]["resume"].startswith("continued"), m["controller"]["odometry"]["resume"]
+    assert m["fixed_contacts"] == 0
+    assert m["success"], m["failure_reason"]

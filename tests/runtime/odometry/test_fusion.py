@@ -375,6 +375,9 @@ def test_a_run_that_closed_before_its_ready_does_not_hand_the_next_run_a_stale_r
     _no_idle_workers()  # another test's idle worker would be the one handed on
     early = ProcessIcpWorker(factory, lockstep=True, reuse=True)
     early.submit(frames[0])
+    # The worker has warmed up and said ready (left unread): on a busy machine its warm-up takes
+    # seconds, and a close that cannot hand over its frame meanwhile ends the worker instead.
+    assert early._conn.poll(60.0)
     early.close()  # its ready and its answer unread
     later = ProcessIcpWorker(factory, lockstep=True, reuse=True)
     try:
