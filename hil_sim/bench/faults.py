@@ -184,6 +184,15 @@ def run_fault_task(task: FaultTask) -> dict:
             m = run_episode(task.scene, seed=task.seed, faults=faults).metrics
     except Exception as exc:  # a broken episode is named in its row, not a lost campaign
         return {**record, "error": f"{type(exc).__name__}: {exc}", "wall_time_s": time.perf_counter() - wall0}
+    try:
+        return _reduce(task, record, m, faults, wall0)
+    except Exception as exc:  # noqa: BLE001 - an episode that cannot be reduced is named too, not a lost campaign
+        return {**record, "error": f"reducing the episode: {type(exc).__name__}: {exc}",
+                "wall_time_s": time.perf_counter() - wall0}
+
+
+def _reduce(task: FaultTask, record: dict, m: dict, faults: list, wall0: float) -> dict:
+    """An episode's metrics reduced to its record (run_fault_task)."""
     outcome = {"failure_reason": m["failure_reason"], "success": bool(m["success"]),
                "fixed_contacts": int(m["fixed_contacts"]), "wall_time_s": time.perf_counter() - wall0}
     if not faults:
@@ -205,7 +214,7 @@ def run_fault_task(task: FaultTask) -> dict:
         # the base's own zero command where it stops by itself, else the one at the verdict
         "stop_latency_s": zero - start if base_stop else (max(zero, verdict) - start if stopped else None),
         "detected_s": verdict - start if verdict is not None else None,
-        "stop_after_detect_s": max(0.0, zero - verdict) if stopped else None,
+        "stop_after_detect_s": max(0.0, zero - verdict) if stopped and verdict is not None else None,
         "resume_s": (fault["moving_after_s"] - end) if fault["moving_after_s"] is not None else None,
         "reasons": sorted({e["reason"] for e in stops}),
         **outcome,

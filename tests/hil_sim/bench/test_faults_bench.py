@@ -76,3 +76,25 @@ def test_bad_arguments_are_one_line_errors():
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "bogus-fault: unknown" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_a_killed_controller_is_judged_on_the_base_stopping_by_itself(monkeypatch):
+    """controller-kill has no watchdog verdict (the controller is gone): the row takes the base's
+    own zero command as the stop, and an episode that cannot be reduced is an error row, never a
+    lost campaign."""
+    import hil_sim.bench.faults as F
+    import hil_sim.episode.realtime as R
+
+    def episode(scene, seed, faults=()):
+        return {"failure_reason": None, "success": True, "fixed_contacts": 0, "events": [],
+                "faults": [{"name": "controller-kill", "start_s": 2.0, "duration_s": 1.0, "first_zero_s": 2.51,
+                            "moving_after_s": 11.7, "acted_on": 1}]}
+
+    monkeypatch.setattr(R, "run_realtime_episode", episode)
+    r = F.run_fault_task(F.FaultTask("case3", 0, "controller-kill", realtime=True))
+    assert r["stopped"] and abs(r["stop_latency_s"] - 0.51) < 1e-9 and r["stop_after_detect_s"] is None
+    assert abs(r["resume_s"] - 8.7) < 1e-9
+    assert F.fault_row("controller-kill", [r])["differs"] == []
+    monkeypatch.setattr(R, "run_realtime_episode", lambda *a, **k: {"failure_reason": None})
+    bad = F.run_fault_task(F.FaultTask("case3", 0, "controller-kill", realtime=True))
+    assert bad["error"].startswith("reducing the episode: KeyError")
