@@ -90,9 +90,9 @@ class RunObserver:
             clouds=clouds,
         ))
         if self.resume_writer is not None:
-            if not self._said_resume and self.assembly.controller.odometry.resume_outcome is not None:
+            if not self._said_resume and snap.resume_outcome is not None:
                 self._said_resume = True
-                self.echo(f"dct run: odometry {self.assembly.controller.odometry.resume_outcome}")
+                self.echo(f"dct run: odometry {snap.resume_outcome}")
             p, g = snap.pose, snap.goal
             self.resume_writer.offer((p.x_m, p.y_m, p.yaw_rad), snap.wheels_m, (g.x_m, g.y_m, g.yaw_rad),
                                      snap.state.name == "GOAL_REACHED")

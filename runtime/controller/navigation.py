@@ -252,6 +252,7 @@ class NavigationController:
             partition_fallback=self.partition.fallback, calibration_mismatch=self.calibration.mismatch,
             vlm_delivered=vpp.delivered if vpp is not None else (),
             wheels_m=self.odometry.last_wheels_m,
+            resume_outcome=self.odometry.resume_outcome,
         )
 
     def _safety_verdict(self) -> str | None:

@@ -66,3 +66,6 @@ class ControllerSnapshot:
     #: The base's cumulative wheel distances (0x311) of the reading `pose` was computed with, None
     #: before the first: what a restarted controller continues the odometry frame from (runtime.app.resume).
     wheels_m: tuple[float, float] | None = None
+    #: What the odometry made of a saved state to resume from (continued, or why a new frame), None
+    #: until it decided or without one (runtime.odometry.stage).
+    resume_outcome: str | None = None
