@@ -9,7 +9,8 @@ controller's queues; every WINDOW_S it closes a window of tick timings (p50, p99
 misses). At the end: growth per hour of each figure, the tick p99 of each window and its trend,
 goals reached and missed, contacts, and the latency of the whole run.
 
-Lockstep (default): one process, simulated time; faster than real time when the machine is.
+Lockstep (default): one process (and its children: the lidar cast, the ICP worker, each sampled
+as its own process), simulated time; faster than real time when the machine is.
 The samples are taken on simulated time (every SAMPLE_EVERY_S of it), the tick timings come from
 the controller's telemetry, read outside the tick. The soak's own bookkeeping is preallocated
 (histograms, a fixed number of windows), so it adds nothing that grows to what it measures.
@@ -82,6 +83,36 @@ def fault_schedule(seed: int, duration_s: float, every_s: float = DEFAULT_FAULT_
     while t < duration_s - 30.0:
         out.append(FaultSpec(rng.choice(names), round(t, 1), round(rng.uniform(*FAULT_DURATION_S), 1)))
         t += every_s * rng.uniform(0.7, 1.3)
+    return out
+
+
+def child_processes() -> dict[str, int]:
+    """This process's children by the module they run (`python -m NAME`: its last part, e.g.
+    lidar_cast, worker) or their program's name: the lidar cast and the ICP worker of a lockstep
+    episode. From /proc (Linux); {} elsewhere."""
+    out: dict[str, int] = {}
+    try:
+        tasks = os.listdir("/proc/self/task")
+    except OSError:
+        return out
+    for tid in tasks:
+        try:
+            with open(f"/proc/self/task/{tid}/children", encoding="ascii") as f:
+                pids = [int(x) for x in f.read().split()]
+        except (OSError, ValueError):
+            continue
+        for pid in pids:
+            try:
+                with open(f"/proc/{pid}/cmdline", "rb") as f:
+                    argv = [a.decode("utf-8", "replace") for a in f.read().split(b"\0") if a]
+                if "-m" in argv[:-1]:
+                    name = argv[argv.index("-m") + 1].rsplit(".", 1)[-1]
+                else:  # the program's name (its command line may still be empty just after its exec)
+                    with open(f"/proc/{pid}/comm", encoding="utf-8", errors="replace") as f:
+                        name = f.read().strip() or str(pid)
+            except OSError:
+                continue
+            out[name if name not in out else f"{name}.{pid}"] = pid
     return out
 
 
@@ -260,7 +291,7 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
     scenario = with_duration(load_scenario(opts.scene, seed=opts.seed), duration_s)
     config = load_controller_config(opts.config_path)
     windows = TickWindows()
-    samples: list[dict] = []
+    samples: dict[str, list[dict]] = {"lockstep": []}  # per process: this one and its children
     checkpoint = _Checkpoint(opts, faults)
     state = {"sim": None, "telemetry": None, "next_s": 0.0, "next_tick": 0, "t0": None, "next_window": WINDOW_S}
     wall0 = time.monotonic()
@@ -287,10 +318,15 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
             windows.add(new["scheduled_s"] - state["t0"], new["tick_s"] * 1e3, new["deadline_missed"],
                         new["wall_deadline_missed"])
         stats = process_stats() or {}
-        samples.append({"t_s": round(t, 3), "wall_s": round(time.monotonic() - wall0, 3), **stats})
+        stamp = {"t_s": round(t, 3), "wall_s": round(time.monotonic() - wall0, 3)}
+        samples["lockstep"].append({**stamp, **stats})
+        for name, pid in child_processes().items():  # the lidar cast and the ICP worker
+            child = process_stats(pid)
+            if child is not None:
+                samples.setdefault(name, []).append({**stamp, **child})
         if t >= state["next_window"]:
             state["next_window"] += WINDOW_S
-            checkpoint.write({"lockstep": samples}, windows.windows)
+            checkpoint.write(samples, windows.windows)
             opts.echo(f"  soak {t / 60:.0f} min: rss {stats.get('rss_mb', float('nan')):.1f} MB, fds {stats.get('fds')}, "
                       f"threads {stats.get('threads')}, window p99 {windows.windows[-1].get('tick_p99_ms') if windows.windows else None} ms, "
                       f"wall {time.monotonic() - wall0:.0f} s")
@@ -305,8 +341,9 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
         windows.add(new["scheduled_s"] - state["t0"], new["tick_s"] * 1e3, new["deadline_missed"],
                     new["wall_deadline_missed"])
     windows.close()
-    return {"metrics": result.metrics, "samples": {"lockstep": samples}, "windows": windows.windows,
-            "interrupted_at_s": (round(samples[-1]["t_s"], 3) if samples else 0.0) if interrupted.is_set() else None,
+    own = samples["lockstep"]
+    return {"metrics": result.metrics, "samples": samples, "windows": windows.windows,
+            "interrupted_at_s": (round(own[-1]["t_s"], 3) if own else 0.0) if interrupted.is_set() else None,
             "whole": windows.whole(), "wall_s": result.wall_time_s,
             "deadline_misses": int(result.metrics.get("deadline_misses", 0)),
             "wall_deadline_misses": int(result.telemetry.get("wall_deadline_misses", 0))}

@@ -6,11 +6,13 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
-from hil_sim.bench.soak import (FAULT_DURATION_S, TickWindows, fault_schedule, format_soak, growth, process_stats,
+from hil_sim.bench.soak import (FAULT_DURATION_S, TickWindows, child_processes, fault_schedule, format_soak, growth,
+                                process_stats,
                                 trend)
 from hil_sim.episode.faults import FAULT_NAMES
 
@@ -72,6 +74,24 @@ def test_process_stats_read_this_process_and_none_for_one_that_is_gone():
     assert process_stats(p.pid) is None
 
 
+def test_child_processes_names_each_child_by_its_module():
+    a = subprocess.Popen([sys.executable, "-m", "json.tool"], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
+    b = subprocess.Popen(["sleep", "30"])
+    try:
+        deadline = time.monotonic() + 10.0  # a child just spawned may not have exec'd its program yet
+        while True:
+            kids = child_processes()
+            if (kids.get("tool"), kids.get("sleep")) == (a.pid, b.pid) or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        assert kids.get("tool") == a.pid and kids.get("sleep") == b.pid, kids
+    finally:
+        for p in (a, b):
+            p.kill()
+            p.wait()
+    assert a.pid not in child_processes().values()
+
+
 @pytest.mark.slow
 def test_a_short_lockstep_soak_writes_its_figures(tmp_path):
     out = tmp_path / "soak"
@@ -85,6 +105,8 @@ def test_a_short_lockstep_soak_writes_its_figures(tmp_path):
     assert len(r["fault_reactions"]) == len(r["faults_injected"])
     assert r["goals"]["reached"] >= 1 and r["fixed_contacts"] == 0
     assert len(r["samples"]["lockstep"]) >= 8 and r["processes"]["lockstep"]["fds"]["change"] is not None
+    # the episode's children are sampled as processes of their own: the lidar cast, the ICP worker
+    assert {"lidar_cast", "worker"} <= set(r["processes"]), set(r["processes"])
     assert r["whole_run"]["ticks"] >= 1700  # 90 s at 20 Hz
     assert "RSS growth MB/h" in (out / "soak.md").read_text() and not (out / "soak.partial.json").exists()
     assert format_soak(r)[0].startswith("dct bench soak: lockstep, patrol_people")
