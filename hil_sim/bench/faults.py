@@ -136,6 +136,9 @@ EXPECTED: dict[str, Reaction] = {
     "rc-takeover": Reaction(True, 0.02, "base left CAN command mode", base_stops=True, latched=True),
     # nobody commands the base: it stops by its own command timeout; the unit starts the controller
     # again after RestartSec, which takes up its odometry frame and goal and enables the base
+    # the inbox moves the stamps back onto the loop's clock (runtime.io.sensor_inbox)
+    "clock-step-forward": Reaction(False),
+    "clock-step-back": Reaction(False),
     "controller-kill": Reaction(True, _BASE_TIMEOUT, None, _RESTART, base_stops=True),
     # the loop thread at SCHED_FIFO keeps its deadlines; the simulator and the helpers slow down,
     # so sensor data may come late enough for a watchdog's hold

@@ -21,11 +21,16 @@ Each fault is one failure type of one input, after PX4's failure injection (`off
 | 0x111 (our command stream) | cmd-off: no command reaches the base |
 | the CAN bus | bus-off: nothing either way |
 | the base | estop (E-stop in 0x211), reboot (silent, then standby with odometers at zero), error (0x211 error bit 0x0100, motor driver fault), rc (the remote control takes it) |
+| the system clock | clock-step-forward, clock-step-back (stepped 2 s at the fault's start, back at its end) |
 
 The faults act where the real fault would: on the sensor data between the simulated sensor and
 the controller's inbox, on the CAN frames between the emulated firmware and the controller
 (FaultyBus), and inside the emulated firmware. The controller is not told. Random choices
 (which frames an intermittent fault drops, the garbage bytes) come from the episode's seed.
+The system clock's steps: in lockstep the injector is the machine's system clock, so it moves the
+sensors' stamps by the step (as drivers stamping with the stepped clock would) and tells the
+controller's clock how far it stepped (`system_step_s`, what the OS would answer it); in real time
+`dct hil serve` steps the machine's own clock (hil_sim.episode.serve).
 
 The injector also watches the command the base obeys, at every physics step: for each fault,
 when the first zero command reached the base after the fault began, and when the base first
@@ -36,7 +41,7 @@ from __future__ import annotations
 import math
 import re
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Iterable
 
 import can
@@ -72,6 +77,10 @@ WRONG_GYRO_BIAS_RADPS = 0.1
 WRONG_SCALE = 1.3
 #: How much older than the frame asked about a `vlm-stale` answer's frame is (s).
 VLM_STALE_S = 5.0
+#: How far the `clock-step-*` faults step the system clock (s), as NTP steps a clock that is off.
+CLOCK_STEP_S = 2.0
+#: The system-clock faults and the direction of their step at the fault's start.
+CLOCK_STEPS = {"clock-step-forward": CLOCK_STEP_S, "clock-step-back": -CLOCK_STEP_S}
 
 _CAN_STREAMS = {"0x311": p.ID_ODOMETRY, "0x221": p.ID_MOTION_STATE, "0x211": p.ID_SYSTEM_STATE}
 _CAN_FAILURES = {
@@ -130,6 +139,12 @@ FAULT_KINDS: tuple[FaultKind, ...] = (
                                              "stops its wheels while it lasts"),
     FaultKind("rc-takeover", "base", "rc", "the remote control takes the base (control mode RC, 0x111 ignored); "
                                            "released, the base is left in standby"),
+    FaultKind("clock-step-forward", "clock", "stepped", f"the system clock stepped {CLOCK_STEP_S:g} s forward at the "
+                                                       f"fault's start (as NTP steps it) and {CLOCK_STEP_S:g} s back at "
+                                                       "its end: the sensors' stamps jump with it, the controller's "
+                                                       "loop clock (monotonic) does not"),
+    FaultKind("clock-step-back", "clock", "stepped", f"the system clock stepped {CLOCK_STEP_S:g} s back at the fault's "
+                                                    f"start and {CLOCK_STEP_S:g} s forward at its end (as above)"),
     FaultKind("controller-kill", "process", "killed", "the controller process killed with SIGKILL at the fault's "
                                                       "start, then started again as its systemd unit does "
                                                       "(Restart=on-failure, RestartSec); real time only",
@@ -212,8 +227,12 @@ class FaultInjector:
         start_s: float,
         far_m: float,
         seed: int = 0,
+        emulate_clock: bool = True,
     ) -> None:
+        """emulate_clock: the clock-step faults move the stamps here (lockstep); False where the
+        machine's own clock is stepped and the sensors stamp with it (`dct hil serve`)."""
         self.faults = tuple(faults)
+        self.emulate_clock = emulate_clock
         self.firmware = firmware
         self.inbox = inbox
         self.start_s = float(start_s)
@@ -255,6 +274,25 @@ class FaultInjector:
 
     def _count(self, name: str) -> None:
         self.applied[name] += 1
+
+    def system_step_s(self) -> float:
+        """How far the system clock is stepped now (s): the clock-step faults active."""
+        return sum(step for name, step in CLOCK_STEPS.items() if self._active(name))
+
+    def _stamped_now(self, item):
+        """The sensor output as it reaches the inbox, stamped by a driver reading the (emulated)
+        system clock. Not validated here: a clock stepped back near the simulation's start makes
+        negative stamps, which only the inbox judges (after putting them back onto its clock)."""
+        if not self.emulate_clock:
+            return item
+        step = self.system_step_s()
+        if step == 0.0:
+            return item
+        for name in CLOCK_STEPS:
+            if self._active(name):
+                self._count(name)
+        return _unchecked(type(item), **{**{f.name: getattr(item, f.name) for f in fields(item)},
+                                         "stamp_s": item.stamp_s + step})
 
     # -- lockstep device: the firmware faults, late deliveries, the command watch ----------------
     def step(self, t_s: float) -> None:
@@ -343,7 +381,7 @@ class FaultInjector:
             if self._frozen is None:
                 self._frozen = self._last_scan or scan
             self._count("lidar-frozen")
-            return self.inbox.put_scan(self._frozen)
+            return self.inbox.put_scan(self._stamped_now(self._frozen))
         self._frozen = None
         if self._says_nothing("lidar", "lidar-off"):
             return True  # the sensor said nothing; nothing was refused
@@ -368,7 +406,7 @@ class FaultInjector:
             self._late_scans.append((scan.stamp_s + scan.frame_duration_s + DELAY_S, scan))
             return True
         self._last_scan = scan  # what the controller got: a frozen sensor repeats that
-        return self.inbox.put_scan(scan)
+        return self.inbox.put_scan(self._stamped_now(scan))
 
     def put_imu(self, sample: ImuSample) -> bool:
         if self._says_nothing("imu", "imu-silent"):
@@ -389,22 +427,22 @@ class FaultInjector:
             self._late_imu.append((sample.stamp_s + DELAY_S, sample))
             return True
         self._last_imu = sample
-        return self.inbox.put_imu(sample)
+        return self.inbox.put_imu(self._stamped_now(sample))
 
     def _deliver_late(self, t_s: float) -> None:
         """The delayed frames and samples whose time has come, in order."""
         while self._late_scans and self._late_scans[0][0] <= t_s:
             scan = self._late_scans.popleft()[1]
             self._last_scan = scan
-            self.inbox.put_scan(scan)
+            self.inbox.put_scan(self._stamped_now(scan))
         while self._late_imu and self._late_imu[0][0] <= t_s:
             sample = self._late_imu.popleft()[1]
             self._last_imu = sample
-            self.inbox.put_imu(sample)
+            self.inbox.put_imu(self._stamped_now(sample))
         while self._late_images and self._late_images[0][0] <= t_s:
             image = self._late_images.popleft()[1]
             self._last_image = image
-            self.inbox.put_image(image)
+            self.inbox.put_image(self._stamped_now(image))
 
     def put_image(self, image: CameraImage) -> bool:
         if self._active("camera-off"):
@@ -423,7 +461,7 @@ class FaultInjector:
             self._late_images.append((image.stamp_s + DELAY_S, image))
             return True
         self._last_image = image
-        return self.inbox.put_image(image)
+        return self.inbox.put_image(self._stamped_now(image))
 
     def put_camera_info(self, info) -> bool:
         return self.inbox.put_camera_info(info)

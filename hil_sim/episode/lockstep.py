@@ -125,12 +125,20 @@ class LockstepClock:
     """The loop's clock in lockstep mode: now() is simulation time; sleeping advances physics
     (and waits for every barrier's work due by then)."""
 
-    def __init__(self, sim: LockstepSimulation, barriers: Iterable[LockstepBarrier] = ()) -> None:
+    def __init__(self, sim: LockstepSimulation, barriers: Iterable[LockstepBarrier] = (),
+                 system_step: Callable[[], float] | None = None) -> None:
+        """system_step: how far the emulated system clock is stepped now (the clock-step faults,
+        hil_sim.episode.faults.FaultInjector.system_step_s); None: it never steps."""
         self.sim = sim
         self.barriers = list(barriers)
+        self._system_step = system_step
 
     def now(self) -> float:
         return self.sim.time_s
+
+    def system_step_s(self) -> float:
+        """What runtime.loop.clocks.EpochMonotonicClock.system_step_s says on the robot."""
+        return 0.0 if self._system_step is None else self._system_step()
 
     def sleep_until(self, t_s: float) -> None:
         self.sim.advance_to(t_s)
@@ -250,7 +258,8 @@ def run_episode(
         robot_variant = resolve_variant(scenario.robot_variant, robot)
     bench = _SimulatedBench.build(scenario, robot, config, seed, faults, sensors, sensor_calibration, robot_variant)
     sim = LockstepSimulation(bench.world, bench.firmware, bench.metrics, bench.devices, controls=[bench.injector])
-    clock = LockstepClock(sim)
+    clock = LockstepClock(sim, system_step=bench.injector.system_step_s)
+    bench.inbox.stamp_clock = clock  # stamps back onto the loop's clock across a step, as on the robot
     bus = recorder.wrap_bus(bench.controller_bus, clock.now) if recorder is not None else bench.controller_bus
     if sensor_calibration is None:
         from calibration.sensor_calibration import nominal_sensors

@@ -448,8 +448,11 @@ def merge(metrics: dict, summary: dict, pids: dict, exit_codes: dict, wall_s: fl
     m["controller"] = report
     m["partition_fallback"] = report.get("partition_fallback")
     m["sensor_errors"] = summary["sensor_errors"]
+    m["clock_steps"] = summary.get("clock_steps")  # steps of the system clock the controller's inbox saw
     m.setdefault("faults", [])  # the simulator's: each injected fault's window and what the base obeyed
-    m["failure_reason"] = failure_reason(m, report)
+    # a controller at its goal when the simulator ended is judged there, not by the stale inputs
+    # of the simulator's shutdown it held for afterwards
+    m["failure_reason"] = failure_reason(m, {**report, "state": "GOAL_REACHED"} if at_goal else report)
     m["realtime"] = {
         "tick_ms": {k: rt["tick_ms"][k] for k in ("p50", "p99", "max")},
         "sensor_to_command_ms": {k: rt["sensor_to_command_ms"][k] for k in ("p50", "p99", "max")},

@@ -19,7 +19,8 @@ sensor stamps follow simulated time mapped onto the wall clock, so a late simula
 controller like late sensor data, which is what it is.
 
 Stamps: ROS time, i.e. the system clock, through runtime.app.run_process.EpochMonotonicClock (the
-same clock the controller runs on).
+same clock the controller runs on), and as a driver's they follow a step of the system clock: the
+clock-step faults step this machine's clock (`_SystemClockSteps`, root only) and undo it at the end.
 
 The episode: starts when the controller puts the base into CAN command mode (0x421), so the
 controller's start-up time is not counted; ends `settle_s` after the controller says it has
@@ -50,6 +51,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from hil_sim.episode.faults import CLOCK_STEPS
+from runtime.io.sensor_inbox import CLOCK_STEP_MIN_S
 
 
 @dataclass
@@ -367,11 +371,16 @@ class _Server:
         # when the controller enables the base).
         fw_bus = FaultyBus(self.bus)
         self.firmware = EmulatedBaseFirmware(fw_bus, robot)
+        # emulate_clock False: the clock-step faults step this machine's clock (_SystemClockSteps), and
+        # the sensors stamp with it (to_wall)
         self.injector = FaultInjector(tuple(opts.faults), self.firmware, self.sink, start_s=float("inf"),
-                                      far_m=config.planner.obstacle_points.max_range_m + 4.0, seed=opts.seed)
+                                      far_m=config.planner.obstacle_points.max_range_m + 4.0, seed=opts.seed,
+                                      emulate_clock=False)
         fw_bus.injector = self.injector
         kills = tuple(f for f in opts.faults if f.name == "controller-kill")
         self.kills = _ControllerKills(kills, self.firmware, world, self.injector, self.echo) if kills else None
+        steps = tuple(f for f in opts.faults if f.name in CLOCK_STEPS)
+        self.clock_steps = _SystemClockSteps(steps, self.injector, self.echo) if steps else None
         self.hogs = tuple(f for f in opts.faults if f.name == "cpu-hog")
         self._hogs_on = [False] * len(self.hogs)
         if self.oracle_service is not None:  # the vlm-* faults act in the service, over HTTP
@@ -388,8 +397,10 @@ class _Server:
         self.state = _EpisodeState()
 
     def to_wall(self, t_sim: float) -> float:
-        """A simulated time on the wall clock (ROS time) of the loop's start."""
-        return self.wall_t0 + (t_sim - self.sim_t0)
+        """A simulated time on the wall clock (ROS time), as a driver stamps with the system clock:
+        a step of that clock since the start (the clock-step faults, NTP) moves the stamps with it."""
+        step = self.clock.system_step_s()
+        return self.wall_t0 + (t_sim - self.sim_t0) + (step if abs(step) >= CLOCK_STEP_MIN_S else 0.0)
 
     def _start_oracle(self, camera_rate_hz: float) -> tuple[float, bool]:
         """Serve the sim-oracle over HTTP; the sink records what the oracle answers about. Returns the
@@ -442,6 +453,8 @@ class _Server:
                 if not stepped:
                     time.sleep(0.5 * dt)  # the next step is due within dt
         finally:
+            if self.clock_steps is not None:  # the machine's clock as it was, whatever ended the run
+                self.clock_steps.undo()
             wall = time.monotonic() - wall_start
             sensor_stats = self.rig.stats()  # before close: it lets the renderer go
             self.rig.close()
@@ -491,6 +504,8 @@ class _Server:
             return
         if self.kills is not None:
             self.kills.step(t - self.state.t_start)
+        if self.clock_steps is not None:
+            self.clock_steps.step(t - self.state.t_start)
         for k, fault in enumerate(self.hogs):  # say when each cpu-hog begins and ends (the runner runs it)
             on = fault.active(t - self.state.t_start)
             if on != self._hogs_on[k]:
@@ -562,6 +577,49 @@ __all__ = ["serve", "ServeOptions", "DdsSensorSink"]
 #: What the simulator says when a cpu-hog fault begins and ends (then "start" or "end"): the runner
 #: (`dct hil run --realtime`) runs the busy processes.
 HOG_LINE = "fault cpu-hog:"
+
+
+class _SystemClockSteps:
+    """The clock-step faults in real time: this machine's system clock (CLOCK_REALTIME) stepped by
+    CLOCK_STEPS at each fault's start and back at its end, as NTP steps a clock, for every process:
+    the simulator's sensors stamp with it (SimulatorProcess.to_wall) and the controller reads it.
+    The monotonic clock, which both loops run on, does not move. Needs CAP_SYS_TIME (root); the
+    step in force is undone when the run ends, however it ends (SIGKILL aside)."""
+
+    def __init__(self, faults, injector, echo) -> None:
+        if not _may_set_the_clock():
+            names = ", ".join(sorted({f.name for f in faults}))
+            raise ValueError(f"--fault {names}: stepping the system clock needs CAP_SYS_TIME (run as root)")
+        self.faults, self.injector, self.echo = faults, injector, echo
+        self.applied_s = 0.0
+
+    def step(self, t: float) -> None:
+        want = sum(CLOCK_STEPS[f.name] for f in self.faults if f.active(t))
+        if want != self.applied_s:
+            self._set(want, f"t={t:.3f} s")
+        for f in self.faults:
+            if f.active(t):
+                self.injector._count(f.name)
+
+    def undo(self) -> None:
+        if self.applied_s != 0.0:
+            self._set(0.0, "the run's end")
+
+    def _set(self, want: float, when: str) -> None:
+        delta = want - self.applied_s
+        time.clock_settime(time.CLOCK_REALTIME, time.time() + delta)
+        self.applied_s = want
+        self.echo(f"dct hil serve: {when}: the system clock stepped {delta:+.3f} s")
+
+
+def _may_set_the_clock() -> bool:
+    """CAP_SYS_TIME in this process's effective capabilities (Linux)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            caps = next(line.split()[1] for line in f if line.startswith("CapEff:"))
+    except (OSError, StopIteration, IndexError):
+        return False
+    return bool(int(caps, 16) >> 25 & 1)
 
 
 class _ControllerKills:

@@ -1,6 +1,7 @@
 """What `dct run` does after each tick, outside the tick's timings (the loop's after_tick hook):
 the sensor-to-command latency, the recorder, the ROS publisher, new goals, the systemd watchdog,
-the console's state lines (holds, stops, a calibration mismatch and the partition's fall-back).
+the console's state lines (holds, stops, a calibration mismatch and the partition's fall-back, a
+step of the system clock).
 
 It reads the controller's published snapshot (runtime.controller.snapshot), never its internals,
 and everything it does is O(1) and non-blocking: the publisher and the recorder have their own
@@ -60,6 +61,7 @@ class RunObserver:
         #: runtime.app.resume.ResumeWriter (`--resume-file`), or None
         self.resume_writer = None
         self._said_resume = False
+        self._clock_steps_said = 0
 
     def __call__(self, row: np.void) -> None:
         from runtime.io.ros.publisher import TickView
@@ -97,12 +99,20 @@ class RunObserver:
             self.resume_writer.offer((p.x_m, p.y_m, p.yaw_rad), snap.wheels_m, (g.x_m, g.y_m, g.yaw_rad),
                                      snap.state.name == "GOAL_REACHED")
         self._take_goal()
+        self._say_clock_step()
         self._say_state(snap)
         self._say_fallback(snap)
         self.notifier.watchdog()
 
     #: At most one console line about holds per this many seconds (a flapping input would flood it).
     SAY_EVERY_S = 1.0
+
+    def _say_clock_step(self) -> None:
+        """Say on the console when the sensor inbox saw the system clock stepped (an int read a tick)."""
+        inbox = self.receiver.inbox
+        if inbox.clock_steps != self._clock_steps_said:
+            self._clock_steps_said = inbox.clock_steps
+            self.echo(f"dct run: {inbox.last_clock_step}")
 
     def _say_state(self, snap) -> None:
         """Say on the console when the controller starts or stops holding or stops, and why."""

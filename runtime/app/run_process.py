@@ -141,15 +141,16 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
             recorder.close()
         raise RunInputError(f"{opts.config_path or 'the shipped controller config'}: can_bus: {exc}") from None
     ros = loaded.config.ros
-    inbox = SensorInbox()
+    # One loop clock for the whole process: the recorder stamps the raw sensor samples with it as
+    # the loop stamps its ticks (a replay compares the two); the inbox puts the sensors' stamps
+    # back onto it when the system clock is stepped.
+    clock = EpochMonotonicClock()
+    inbox = SensorInbox(stamp_clock=clock)
     # systemd (the deploy bundle's unit: Type=notify, WatchdogSec): ready once inputs are up, a
     # watchdog ping every tick and while waiting for a goal; a no-op outside systemd.
     notifier = SystemdNotifier()
     receiver = publisher = transport = None
     summary: dict = {"pid": None}
-    # One loop clock for the whole process: the recorder stamps the raw sensor samples with it as
-    # the loop stamps its ticks (a replay compares the two).
-    clock = EpochMonotonicClock()
     try:
         transport = _open_transport(ros, echo)
         receiver = RosSensorReceiver(ros.inputs, inbox, transport, camera_K=loaded.camera_K,
@@ -323,6 +324,9 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float, scheduling: st
         #: Every frame's sensor-to-command latency in ms, in order (for a closer look at the tail).
         "sensor_to_command_values_ms": [round(float(v) * 1e3, 3) for v in latency],
         "sensor_frames": dict(inbox.accepted),
+        # steps of the system clock seen (the stamps were moved back onto the loop's clock)
+        "clock_steps": {"count": inbox.clock_steps, "in_force_s": round(inbox.clock_step_s, 6),
+                        "last": inbox.last_clock_step},
         "sensor_errors": {**dict(sorted(inbox.error_counts.items())),
                           **{f"ros.{k}": v for k, v in receiver.error_counts.items()}},
         "ros_received": dict(receiver.received),

@@ -150,6 +150,23 @@ def test_a_driver_fault_or_a_remote_control_takeover_stops_the_controller_for_go
     assert m["faults"][0]["moving_after_s"] is None  # it never drove again
 
 
+@pytest.mark.parametrize("fault", ["clock-step-forward", "clock-step-back"])
+def test_a_step_of_the_system_clock_neither_stops_the_robot_nor_hides_a_silent_sensor(fault):
+    """The drivers' stamps jump 2 s (and back when the fault ends) while the loop's clock does not:
+    the inbox moves them back onto it, so no frame is judged stale or from the future and the
+    robot drives through both steps; a lidar that goes silent while the clock is stepped forward
+    is still seen to (its last frame does not look 2 s younger than it is)."""
+    m = run_episode("case1", config=ALL_FIXED, seed=0, faults=[FaultSpec(fault, 1.0, 1.5)]).metrics
+    assert not _stops(m) and m["faults"][0]["acted_on"] > 100, m["events"]
+    assert m["success"] and m["fixed_contacts"] == 0
+    silent = run_episode("case1", config=ALL_FIXED, seed=0,
+                         faults=[FaultSpec(fault, 1.0, 1.5), FaultSpec("lidar-off", 1.5, 0.5)]).metrics
+    stops = _stops(silent)
+    assert stops and stops[0]["reason"].startswith("lidar stale") and 1.5 <= stops[0]["t_s"] <= 1.5 + 0.45, \
+        silent["events"]
+    assert silent["success"]
+
+
 def test_a_permanent_estop_is_the_failure_reason():
     m = run_episode(_short("case1", 3.0), seed=0, faults=[FaultSpec("estop", 0.5)]).metrics
     assert not m["success"] and m["failure_reason"] == "base not ready: E-stop (held still at the time limit)"

@@ -36,6 +36,13 @@ def test_merge_needs_the_controller_at_the_goal():
     assert m["deadline_misses"] == 2 and m["realtime"]["tick_ms"] == {"p50": 1.0, "p99": 2.0, "max": 3.0}
     ctl["state"] = "GOAL_REACHED"
     assert merge(sim, ctl, {}, {}, 1.0)["success"]
+    # at its goal in its own frame, the robot outside the tolerance in the world; then the simulator
+    # ended and its inputs went stale: the verdict is the odometry's, not the shutdown's stale inputs
+    sim.update(goal_reached=False, success=False, final_distance_to_goal_m=0.156)
+    ctl.update(state="HOLDING", goal_reached_at_s=8.45)
+    ctl["controller"] = {**report, "state": "HOLDING", "hold_reason": "0x221 stale (no frame for 0.70 s)"}
+    m = merge(sim, ctl, {}, {}, 1.0)
+    assert not m["success"] and m["failure_reason"].startswith("odometry drift") and "0.16 m" in m["failure_reason"]
 
 
 def test_controller_config_asks_the_oracle_service():
@@ -173,3 +180,27 @@ def test_a_controller_killed_mid_drive_is_restarted_and_drives_on_to_the_goal(tm
     assert m["controller"]["odometry"]["resume"].startswith("continued"), m["controller"]["odometry"]["resume"]
     assert m["fixed_contacts"] == 0
     assert m["success"], m["failure_reason"]
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+def test_the_machines_clock_stepped_back_and_forth_mid_drive_costs_no_sensor_data(tmp_path):
+    """The simulator steps this machine's system clock 2 s back 2 s into case3 and forward again 2 s
+    later (as NTP steps a clock; root only). Its sensors stamp with the stepped clock; the
+    controller's inbox sees both steps and puts every stamp back onto its loop's clock: nothing is
+    refused for its stamp and no watchdog calls the data stale or from the future."""
+    from hil_sim.episode.serve import _may_set_the_clock
+
+    if not _may_set_the_clock():
+        pytest.skip("stepping the system clock needs CAP_SYS_TIME")
+    out = tmp_path / "step.json"
+    r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case3", "--realtime", "--fault",
+                        "clock-step-back:2:2", "--json", str(out)], capture_output=True, text=True, timeout=400)
+    assert r.returncode in (0, 1), r.stderr[-2000:]
+    m = json.loads(out.read_text())
+    assert m["clock_steps"]["count"] == 2 and abs(m["clock_steps"]["in_force_s"]) < 0.05, m["clock_steps"]
+    stamp_errors = {k: v for k, v in m["sensor_errors"].items() if "stamp" in k}
+    assert not stamp_errors, stamp_errors
+    reasons = [e.get("reason") or "" for e in m["events"]]
+    assert not [x for x in reasons if "in the future" in x or "s after its end" in x], reasons
+    assert m["fixed_contacts"] == 0
