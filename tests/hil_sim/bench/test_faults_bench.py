@@ -34,8 +34,8 @@ def test_every_fault_has_a_documented_reaction_and_the_doc_table_is_the_checked_
 def _record(**kw):
     base = {"scene": "case3", "seed": 0, "fault": "imu-stuck", "acted_on": 40, "stopped": True,
             "stop_latency_s": 0.1, "detected_s": 0.1, "stop_after_detect_s": 0.001, "resume_s": 0.15,
-            "reasons": ["IMU stuck (20 samples in a row with the same values)"], "failure_reason": None,
-            "success": True, "fixed_contacts": 0}
+            "reasons": ["IMU stuck (20 samples in a row with the same values)"], "stop_kinds": ["IMU stuck"],
+            "failure_reason": None, "success": True, "fixed_contacts": 0}
     return {**base, **kw}
 
 
@@ -57,6 +57,22 @@ def test_a_row_is_marked_where_the_reaction_differs_from_the_table():
     assert "the table: drives on" in fault_row("lidar-slow", [_record(fault="lidar-slow")])["differs"][0]
     # a goal the run without the fault missed too is not the fault's
     assert fault_row("imu-stuck", [_record(success=False)], baseline={("case3", 0): False})["differs"] == []
+    # nor a stop of a kind the runs without the fault had (a loaded machine's late IMU sample), under
+    # a fault the robot drives through; a stop of another kind is
+    late = _record(fault="clock-step-back", reasons=["IMU stale (no sample for 0.056 s, timeout 0.05 s)"],
+                   stop_kinds=["IMU stale"])
+    assert fault_row("clock-step-back", [late], baseline_stops=["IMU stale"])["differs"] == []
+    assert "the table: drives on" in fault_row("clock-step-back", [late])["differs"][0]
+    future = _record(fault="clock-step-back", stop_kinds=["IMU stale", "lidar frame stamped in the future"])
+    assert "the table: drives on" in fault_row("clock-step-back", [future], baseline_stops=["IMU stale"])["differs"][0]
+
+
+def test_stop_kinds_drop_the_figures_and_split_joined_reasons():
+    from hil_sim.bench.faults import stop_kinds
+
+    assert stop_kinds(["IMU stale (no sample for 0.056 s, timeout 0.05 s); lidar stale (newest good frame ended "
+                       "0.33 s ago, limit 0.30 s)", "IMU stale (no sample for 0.1 s)", "E-stop"]) == \
+        ["E-stop", "IMU stale", "lidar stale"]
 
 
 def test_a_short_campaign_meets_the_table_in_the_simulator():
