@@ -269,10 +269,11 @@ def _run_lockstep(run: _RunInputs, seed: int, record_path: Path | None, force: b
 
     recorder = None
     if record_path is not None:
+        from runtime.app.run_inputs import DEFAULT_RECORD_PART_MIN
         from runtime.io.recording import RecordingError, RunRecorder
 
         try:
-            recorder = RunRecorder(record_path, force=force)
+            recorder = RunRecorder(record_path, force=force, split_every_s=DEFAULT_RECORD_PART_MIN * 60.0)
         except RecordingError as exc:
             raise InputError(str(exc)) from exc
     try:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from runtime.app.run_inputs import RunInputError, RunOptions, load_inputs
+from runtime.app.run_inputs import DEFAULT_RECORD_PART_MIN, RunInputError, RunOptions, load_inputs
 from runtime.app.run_process import install_stop_signals, run_controller, summary_line
 from runtime.config import presets
 
@@ -28,6 +28,10 @@ _FILE = click.Path(dir_okay=False, path_type=Path)
               help="Goal in the odometry frame (m, m, rad). Default: the first PoseStamped on the goal topic.")
 @click.option("--record", "record_path", type=_FILE,
               help="Record the run to this MCAP file (`dct report latency` reads it).")
+@click.option("--record-part-minutes", "record_part_min", type=click.FloatRange(0.0, min_open=False),
+              default=DEFAULT_RECORD_PART_MIN, show_default=True, metavar="MINUTES",
+              help="Record in parts of this many minutes (NAME.mcap, NAME.part1.mcap, ...: the readers join "
+                   "them), so that a long run's recording index does not grow in memory; 0: one file.")
 @click.option("--json", "json_path", type=_FILE,
               help="Write the run's summary here at exit (state, tick and sensor-to-command latency).")
 @click.option("--force", is_flag=True, help="Overwrite an existing --record or --json file.")

@@ -15,6 +15,11 @@ class RunInputError(ValueError):
     """Bad input to `dct run`: one line naming the file and the field (exit status 2)."""
 
 
+#: Minutes of a recording's part (runtime.io.recording.recorder): the MCAP writer's index of a
+#: part stays in memory until the part is finished, about 10 MB for ten minutes in real time.
+DEFAULT_RECORD_PART_MIN = 10.0
+
+
 @dataclass
 class RunOptions:
     robot_path: Path | None = None
@@ -22,6 +27,8 @@ class RunOptions:
     config_path: Path | None = None
     goal: tuple[float, float, float] | None = None
     record_path: Path | None = None
+    #: Minutes per part of the recording (runtime.io.recording.recorder); 0: one file.
+    record_part_min: float = DEFAULT_RECORD_PART_MIN
     json_path: Path | None = None
     force: bool = False
     #: Overrides of the config (`dct hil run --realtime` gives each run its own domain and group).

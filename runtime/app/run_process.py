@@ -77,7 +77,8 @@ def _open_outputs(opts: RunOptions):
     from runtime.io.recording import RecordingError, RunRecorder
 
     try:
-        return RunRecorder(opts.record_path, force=opts.force)
+        return RunRecorder(opts.record_path, force=opts.force,
+                           split_every_s=opts.record_part_min * 60.0 if opts.record_part_min > 0 else None)
     except RecordingError as exc:
         raise RunInputError(str(exc)) from None
 

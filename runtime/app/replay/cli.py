@@ -21,6 +21,7 @@ from pathlib import Path
 import click
 
 from runtime.app.replay.source import ReplaySourceError
+from runtime.app.run_inputs import DEFAULT_RECORD_PART_MIN
 
 _FILE = click.Path(dir_okay=False, path_type=Path)
 _STREAM_OF_OPTION = {"lidar_topic": "lidar", "imu_topic": "imu", "image_topic": "camera",
@@ -44,6 +45,10 @@ class InputError(click.ClickException):
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the outputs (default: RECORDING's name + .replay, beside it).")
 @click.option("--force", is_flag=True, help="Overwrite outputs already in --out.")
+@click.option("--record-part-minutes", "record_part_min", type=click.FloatRange(0.0), default=DEFAULT_RECORD_PART_MIN,
+              show_default=True, metavar="MINUTES",
+              help="The replay's recording in parts of this many minutes (as `dct run --record-part-minutes`); "
+                   "0: one file.")
 @click.option("--lidar-topic", help="The lidar topic to replay (default: the config's ros.inputs.lidar).")
 @click.option("--imu-topic", help="The IMU topic (default: the config's ros.inputs.imu).")
 @click.option("--image-topic", help="The camera topic (default: the config's ros.inputs.camera).")
@@ -92,7 +97,8 @@ def replay_command(**o) -> None:
         goal = tuple(o["goal"]) if o["goal"] else None
     else:  # its own goals (a replay that stood by, standing by again)
         goal = None if src.run_info.get("standby") is True else src.ticks[0].goal
-    summary = _run(src, loaded, goal, paths, o["rate"] == "recorded", say)
+    part_s = o["record_part_min"] * 60.0 if o["record_part_min"] > 0 else None
+    summary = _run(src, loaded, goal, paths, o["rate"] == "recorded", say, part_s)
     say(_result_line(summary, paths["summary"].parent))
 
 
@@ -200,7 +206,7 @@ def _vlm_line(src) -> str:
             f"({failed} failed), each delivered at its live tick")
 
 
-def _run(src, loaded, goal, paths: dict, pace: bool, say) -> dict:
+def _run(src, loaded, goal, paths: dict, pace: bool, say, part_s: float | None) -> dict:
     from calibration.outputs import atomic_write_json, atomic_write_text
     from runtime.app.replay.outputs import compare_odometry, tum_text, write_report
     from runtime.app.replay.session import ReplaySetup, run_replay
@@ -209,7 +215,7 @@ def _run(src, loaded, goal, paths: dict, pace: bool, say) -> dict:
     paths["summary"].parent.mkdir(exist_ok=True)
     t0 = time.perf_counter()
     try:
-        res = run_replay(ReplaySetup(src, loaded, goal, paths["recording"], pace), say)
+        res = run_replay(ReplaySetup(src, loaded, goal, paths["recording"], pace, part_s), say)
     except DistanceNetError as exc:
         raise InputError(f"planner.distance_net_path: {exc}") from None
     atomic_write_text(paths["trajectory"], tum_text(res.poses))

@@ -33,6 +33,7 @@ class ReplaySetup:
     goal: tuple[float, float, float] | None  # None: standby (a bag without --goal)
     recording_path: Path  # the replay's own recording (replay.mcap)
     pace: bool = False
+    record_part_s: float | None = None  # its parts' length (runtime.io.recording.recorder); None: one file
 
 
 @dataclass
@@ -97,7 +98,7 @@ def run_replay(setup: ReplaySetup, echo) -> ReplayResult:
     period = ld.config.loop.period_s
     plans = recorded_plans(src.ticks) if src.ticks else grid_plans(src.first_s, period, src.last_s + 1.0)
     clock = ReplayClock(plans, lambda plan, after: _before_tick(plan, after, holder, result), period, pace=setup.pace)
-    recorder = RunRecorder(setup.recording_path, force=True)
+    recorder = RunRecorder(setup.recording_path, force=True, split_every_s=setup.record_part_s)
     # The replay's recording carries the inputs as the controller took them, as `dct run --record`
     # does: it can itself be replayed (with other settings, or to check that it replays the same).
     receiver = RosSensorReceiver(ld.config.ros.inputs, inbox, transport, camera_K=ld.camera_K,

@@ -84,6 +84,8 @@ class ReplaySource:
     vlm_answers: list | None = None
     #: Ticks whose recorded now_s was a deadline stop's verdict time, replayed at their start (_tick_now).
     now_repaired: list[int] = field(default_factory=list)
+    #: The files of a recording made in parts (runtime.io.recording.reader), in order; empty: `path` alone.
+    parts: tuple[Path, ...] = ()
 
     @property
     def duration_s(self) -> float:
@@ -159,7 +161,8 @@ def _dct_source(p: Path, rec, topics: dict[str, str | None]) -> ReplaySource:
     from runtime.io.recording.schemas import TOPIC_CAN, TOPIC_INPUTS, TOPIC_POSE
 
     src = ReplaySource(p, "dct", _streams(rec.topics, topics, p), run_info=rec.run_info(),
-                       recorder_account=rec.recorder_account(), complete=rec.complete, stopped_by=rec.stopped_by)
+                       recorder_account=rec.recorder_account(), complete=rec.complete, stopped_by=rec.stopped_by,
+                       parts=tuple(rec.parts))
     started = _tick_starts(rec)
     for _, m in rec.messages.get(TOPIC_INPUTS, []):
         tick = int(m["tick"])
@@ -233,21 +236,22 @@ def _dct_samples(src: ReplaySource) -> Iterator[Sample]:
     from mcap.stream_reader import StreamReader
 
     by_topic = {topic: stream for stream, (topic, _) in src.streams.items()}
-    channels: dict[int, tuple[str, str, str]] = {}
-    schemas: dict[int, str] = {}
-    with open(src.path, "rb") as f:
-        try:
-            for record in StreamReader(f, validate_crcs=True, record_size_limit=1 << 30).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record.name
-                elif isinstance(record, Channel) and record.topic in by_topic and record.message_encoding == "cdr":
-                    channels[record.id] = (by_topic[record.topic], record.topic, schemas.get(record.schema_id, ""))
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    stream, topic, type_name = channels[record.channel_id]
-                    yield Sample(int(record.sequence), record.log_time * 1e-9, stream, topic, type_name,
-                                 bytes(record.data))
-        except Exception:  # noqa: BLE001 - a cut-off tail: what was whole has been replayed
-            return
+    for part in src.parts or (src.path,):
+        channels: dict[int, tuple[str, str, str]] = {}  # ids are per file
+        schemas: dict[int, str] = {}
+        with open(part, "rb") as f:
+            try:
+                for record in StreamReader(f, validate_crcs=True, record_size_limit=1 << 30).records:
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record.name
+                    elif isinstance(record, Channel) and record.topic in by_topic and record.message_encoding == "cdr":
+                        channels[record.id] = (by_topic[record.topic], record.topic, schemas.get(record.schema_id, ""))
+                    elif isinstance(record, Message) and record.channel_id in channels:
+                        stream, topic, type_name = channels[record.channel_id]
+                        yield Sample(int(record.sequence), record.log_time * 1e-9, stream, topic, type_name,
+                                     bytes(record.data))
+            except Exception:  # noqa: BLE001 - a cut-off tail: what was whole has been replayed
+                return
 
 
 # ----------------------------------------------------------------------------- drivers' bags

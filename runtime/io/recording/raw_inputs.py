@@ -52,7 +52,7 @@ class RawInputWriter:
         self._writer = writer
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
-        self._goal_seq = 0
+        self.goal_seq = 0
 
     def _channel(self, stream: str, topic: str, type_name: str) -> int:
         ch = self._channels.get(topic)
@@ -77,7 +77,7 @@ class RawInputWriter:
         log_ns = max(0, int(round(t_s * 1e9)))
         stamp = header_stamp_ns(data)
         if seq is None:  # a goal: numbered among the goals
-            self._goal_seq += 1
-            seq = self._goal_seq
+            self.goal_seq += 1
+            seq = self.goal_seq
         self._writer.add_message(ch, log_time=log_ns, data=data, publish_time=log_ns if stamp is None else stamp,
                                  sequence=int(seq) & 0xFFFFFFFF)

@@ -7,17 +7,43 @@ everything in the complete chunks before it is returned, and `complete` / `stopp
 the file ended. (A chunk's messages are only handed out after the whole chunk was read and its
 CRC matched, so a half-written chunk yields nothing, never half of its messages.)
 
+A run recorded in parts (runtime.io.recording.recorder: `run.mcap`, `run.part1.mcap`, ...) is
+read as one: from the part named, each next part that exists and carries the same
+`recording_id` is read after it and its messages appended (`Recording.parts` lists them).
+
 JSON channels decode to dicts; ROS 2 channels (message encoding `cdr`, e.g. /tf) to the
 runtime.io.ros.messages struct their schema names (raw bytes for a type we do not declare).
 """
 from __future__ import annotations
 
 import json
+import glob
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+#: The name of part k > 0 of the recording `name.mcap`: `name.part<k>.mcap`.
+_PART_NAME = re.compile(r"^(?P<stem>.*)\.part(?P<k>[1-9][0-9]*)\.mcap$")
+
+
+def part_path(path: str | Path, k: int) -> Path:
+    """Part k of the recording whose first part is `path` (k = 0: `path` itself)."""
+    p = Path(path)
+    return p if k == 0 else p.with_name(f"{p.stem}.part{k}.mcap")
+
+
+def existing_parts(path: str | Path) -> list[Path]:
+    """The files beside `path` named as its parts 1, 2, ... (whoever wrote them)."""
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    out = []
+    for q in parent.glob(f"{glob.escape(p.stem)}.part*.mcap"):
+        m = _PART_NAME.match(q.name)
+        if m is not None and m["stem"] == p.stem:
+            out.append(q)
+    return out
 
 
 class RecordingReadError(ValueError):
@@ -37,6 +63,7 @@ class Recording:
     #: stream -> [(log_time_ns, publish_time_ns)] of the raw sensor channels asked for by their
     #: stream name (raw_inputs.STREAM_KEY), not decoded: when each sample arrived, its header stamp.
     stream_times: dict[str, list[tuple[int, int]]] = field(default_factory=dict)
+    parts: list[Path] = field(default_factory=list)  # the files read, in order (one unless split)
 
     def run_info(self) -> dict:
         """The run's description written at record time (stages, budgets, config), decoded."""
@@ -57,10 +84,53 @@ class Recording:
 
 
 def read_recording(path: str | Path, topics: Iterable[str] | None = None,
-                   stream_times: Iterable[str] = ()) -> Recording:
+                   stream_times: Iterable[str] = (), follow_parts: bool = True) -> Recording:
     """All messages of `topics` (None: all) and the file's metadata, up to the last complete chunk;
     for the raw sensor streams named in `stream_times` (e.g. "lidar") only each sample's log and
-    publish time (Recording.stream_times), in the same pass."""
+    publish time (Recording.stream_times), in the same pass. follow_parts: the run's later parts
+    are read too (module docstring); the description (`dct.run`) is the part named's, the
+    recorder's account and `complete` the last part's."""
+    topics = list(topics) if topics is not None else None
+    stream_times = tuple(stream_times)
+    rec = _read_file(path, topics, stream_times)
+    if not follow_parts:
+        return rec
+    run = rec.metadata.get("dct.run", {})
+    rid, part = run.get("recording_id"), run.get("part", "0")
+    if rid is None or not part.isdigit():
+        return rec
+    k = int(part)
+    first = rec.path
+    if k > 0:
+        m = _PART_NAME.match(first.name)
+        if m is None or int(m["k"]) != k:
+            return rec  # renamed: its neighbours cannot be named
+        first = first.with_name(f"{m['stem']}.mcap")
+    while True:
+        k += 1
+        q = part_path(first, k)
+        if not q.is_file():
+            return rec
+        nxt = _read_file(q, topics, stream_times)
+        run = nxt.metadata.get("dct.run", {})
+        if run.get("recording_id") != rid or run.get("part") != str(k):
+            return rec  # another run's file under the name
+        for topic, messages in nxt.messages.items():
+            rec.messages.setdefault(topic, []).extend(messages)
+        for stream, times in nxt.stream_times.items():
+            rec.stream_times.setdefault(stream, []).extend(times)
+        rec.topics.update(nxt.topics)
+        for name, meta in nxt.metadata.items():
+            if name != "dct.run":
+                rec.metadata[name] = meta
+        if "dct.recording" not in nxt.metadata:
+            rec.metadata.pop("dct.recording", None)  # the last part was cut off: no account
+        rec.complete, rec.stopped_by = nxt.complete, nxt.stopped_by
+        rec.parts.append(q)
+
+
+def _read_file(path: str | Path, topics: list[str] | None, stream_times: tuple[str, ...]) -> Recording:
+    """read_recording of one file."""
     from runtime.io.recording.raw_inputs import STREAM_KEY
 
     from mcap.records import Channel, Footer, Message, Metadata, Schema
@@ -70,7 +140,7 @@ def read_recording(path: str | Path, topics: Iterable[str] | None = None,
     if not p.is_file():
         raise RecordingReadError(f"{p}: no such file")
     wanted = set(topics) if topics is not None else None
-    rec = Recording(path=p)
+    rec = Recording(path=p, parts=[p])
     with open(p, "rb") as f:
         if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
             raise RecordingReadError(f"{p} is not an MCAP file (it does not start with the MCAP magic bytes)")

@@ -12,6 +12,14 @@ chunks are small (`chunk_size`) and the writer also closes a chunk every `flush_
 The file is written under a temporary name beside the output and renamed onto it at the end;
 the run's description (stages, budgets, config) is written first, so a cut-off file keeps it.
 
+Parts (`split_every_s`): the MCAP writer keeps every chunk's index in memory until the file is
+finished (about 1.3 kB a chunk, some 13 chunks a second in real time: 60 MB an hour), so a long
+run is recorded in parts, as rosbag2 splits a bag by duration: every `split_every_s` of the
+loop's clock the part is finished and renamed (`run.mcap`, then `run.part1.mcap`,
+`run.part2.mcap`, ...) and the next begins with the run's description again (with its `part`
+number and the `recording_id` all parts share) and /tf_static. Each part is a whole MCAP file
+any reader opens; runtime.io.recording.reader joins them into the run.
+
 Masks when they arrive: the hook notices a new VPP answer (the mask memory's `last_answer_s`
 changed) and queues references to its entries (immutable) and three floats; the writer thread
 counts their pixels, paints one downscaled label image coloured by contact cost and PNG-encodes
@@ -45,6 +53,7 @@ import os
 import tempfile
 import threading
 import time
+import uuid
 from collections import deque
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -55,6 +64,7 @@ from runtime.io.recording import messages as M
 from runtime.io.recording import raw_inputs as RAW
 from runtime.io.recording import ros_channels as R
 from runtime.io.recording import schemas as S
+from runtime.io.recording.reader import existing_parts, part_path
 from runtime.loop.telemetry import STAGES
 
 #: Channel message kinds, and how each is counted when dropped.
@@ -127,6 +137,7 @@ class RunRecorder:
     queue_capacity: records waiting for the writer; beyond it records are dropped and counted.
     points_every_ticks: P_fix / partition counts / plan every this many ticks (the lower rate).
     max_raw_pending_bytes: raw sensor bytes waiting for the writer beyond which a sample is dropped.
+    split_every_s: loop-clock seconds per part (module docstring); None: one file however long.
     """
 
     def __init__(
@@ -142,6 +153,7 @@ class RunRecorder:
         compression: str = "zstd",
         opener: Callable[[str], Any] | None = None,
         max_raw_pending_bytes: int = 64 << 20,
+        split_every_s: float | None = None,
     ) -> None:
         from calibration.outputs import OutputPathError, check_output_path
 
@@ -153,6 +165,21 @@ class RunRecorder:
             raise RecordingError(str(exc)) from exc
         if not str(self.path).endswith(".mcap"):
             raise RecordingError(f"--record {self.path}: the file name must end in .mcap")
+        if split_every_s is not None and not (math.isfinite(split_every_s) and split_every_s > 0):
+            raise RecordingError(f"--record: a part's length must be a positive number of seconds, not {split_every_s}")
+        if split_every_s is not None and not force:
+            taken = sorted(str(q) for q in existing_parts(self.path))
+            if taken:
+                raise RecordingError(f"--record {self.path}: parts of an earlier recording are there ({taken[0]}, "
+                                     f"{len(taken)} in all): move them or pass --force")
+        self.split_every_s = split_every_s
+        self.recording_id = uuid.uuid4().hex
+        self.part = 0  # the part being written
+        self.parts: list[str] = []  # the parts finished and renamed, in order
+        self._part_t0: float | None = None  # loop clock of the part's first tick
+        self._run_meta: dict | None = None
+        self._mounts = None
+        self._opener, self._chunk_size, self._compression = opener, chunk_size, compression
         self.force = force
         self.stages = tuple(stages)
         self.queue_capacity = int(queue_capacity)
@@ -195,7 +222,8 @@ class RunRecorder:
         from mcap.writer import CompressionType, Writer
 
         parent = self.path.parent if str(self.path.parent) else Path(".")
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=parent)
+        name = part_path(self.path, self.part).name
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".part", dir=parent)
         os.close(fd)
         self.tmp_path = Path(tmp)
         # opener: tests put a slow or failing file object here (full disk, slow disk).
@@ -269,8 +297,10 @@ class RunRecorder:
             "controller_config": json.dumps(config.model_dump(mode="json")),
             "recorded_at_unix_s": repr(time.time()),
             **{k: str(v) for k, v in (run_info or {}).items()},
+            "recording_id": self.recording_id,
         }
-        self._queue.append(("meta", S.META_RUN, info))  # never dropped
+        self._run_meta, self._mounts = info, mounts
+        self._queue.append(("meta", S.META_RUN, {**info, "part": "0"}))  # never dropped
         every = self.points_every_ticks
         put = self._put
 
@@ -355,11 +385,61 @@ class RunRecorder:
             return
         if kind == "tick":
             self._last_t_s = float(item[1]["scheduled_s"])
+            if self._part_t0 is None:
+                self._part_t0 = self._last_t_s
+            elif self.split_every_s is not None and self._last_t_s - self._part_t0 >= self.split_every_s:
+                self._next_part()
+                self._part_t0 = self._last_t_s
         for topic, t, msg in M.messages_of(item, self.stages):
             self._emit(topic, t, msg)
         if kind == "tick" and item[2] is not None:
             self._add(R.TOPIC_TF, self._last_t_s, R.tf_cdr(self._last_t_s, item[2], self._tf_frames))
         self.written[kind] += 1
+
+    def _next_part(self) -> None:
+        """Finish the part being written (writer thread) and begin the next: its description and
+        /tf_static again, the raw channels registered again as their samples come."""
+        self._finish_part(last=False)
+        self.part += 1
+        goal_seq = self._raw.goal_seq if self._raw is not None else 0
+        self._open(self._opener, self._chunk_size, self._compression)
+        self._register()
+        self._raw.goal_seq = goal_seq  # goals are numbered across the parts
+        if self._run_meta is not None:
+            self._writer.add_metadata(S.META_RUN, {**self._run_meta, "part": str(self.part)})
+        if self._mounts is not None:
+            self._add(R.TOPIC_TF_STATIC, self._last_t_s, R.tf_static_cdr(self._last_t_s, self._mounts))
+
+    def _finish_part(self, last: bool) -> None:
+        """The recorder's account and the summary written, the file synced, closed and renamed onto
+        its part's name. OSError from writing or renaming is the caller's."""
+        meta = {k: json.dumps(v) for k, v in self.summary().items() if k != "path"}
+        meta["part"] = json.dumps(self.part)
+        meta["last_part"] = json.dumps(last)
+        try:
+            if self.write_error is None:
+                self._writer.add_metadata(S.META_RECORDING, meta)
+                self._writer.finish()
+        except OSError as exc:
+            self.write_error = f"{type(exc).__name__}: {exc}"
+        finally:
+            try:
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except (OSError, ValueError, io.UnsupportedOperation):
+                pass
+            try:
+                self._file.close()
+            except OSError as exc:
+                self.write_error = self.write_error or f"{type(exc).__name__}: {exc}"
+        target = part_path(self.path, self.part)
+        if not self.force and target.exists():  # appeared during the run: keep both
+            raise RecordingError(f"--record {target} appeared during the run; the recording is in {self.tmp_path}")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(self.tmp_path, 0o666 & ~umask)
+        os.replace(self.tmp_path, target)
+        self.parts.append(str(target))
 
     def _sample_threads(self) -> None:
         """One /dct/threads message (writer thread only); off for good where there is no /proc."""
@@ -414,7 +494,7 @@ class RunRecorder:
                 if now - last_flush >= self.flush_interval_s:
                     self._writer.flush()  # closes the chunk: a power loss loses at most this much
                     last_flush = now
-            except OSError as exc:  # full disk, I/O error: count the rest, stop writing
+            except (OSError, RecordingError) as exc:  # full disk, I/O error, a part's name taken: stop writing
                 self.write_error = f"{type(exc).__name__}: {exc}"
                 if item[0] != "meta":
                     self.dropped_write_error += 1
@@ -430,6 +510,8 @@ class RunRecorder:
     def summary(self) -> dict:
         return {
             "path": str(self.path),
+            "recording_id": self.recording_id,
+            "parts": list(self.parts),  # finished and renamed so far
             "ticks_seen": self.ticks_seen,
             "written": dict(self.written),
             "thread_samples": self.thread_samples,
@@ -450,29 +532,7 @@ class RunRecorder:
         self._closing = True  # records put from now on are dropped and counted
         self._thread.join()
         self._closed = True
-        meta = {k: json.dumps(v) for k, v in self.summary().items() if k != "path"}
-        try:
-            if self.write_error is None:
-                self._writer.add_metadata(S.META_RECORDING, meta)
-                self._writer.finish()
-        except OSError as exc:
-            self.write_error = f"{type(exc).__name__}: {exc}"
-        finally:
-            try:
-                self._file.flush()
-                os.fsync(self._file.fileno())
-            except (OSError, ValueError, io.UnsupportedOperation):
-                pass
-            try:
-                self._file.close()
-            except OSError as exc:
-                self.write_error = self.write_error or f"{type(exc).__name__}: {exc}"
-        if not self.force and self.path.exists():  # appeared during the run: keep both
-            raise RecordingError(f"--record {self.path} appeared during the run; the recording is in {self.tmp_path}")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(self.tmp_path, 0o666 & ~umask)
-        os.replace(self.tmp_path, self.path)
+        self._finish_part(last=True)
         return self.summary()
 
     def __enter__(self) -> "RunRecorder":

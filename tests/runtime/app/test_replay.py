@@ -225,6 +225,16 @@ def test_a_drivers_bag_replays_deterministically_and_its_replay_replays_the_same
     assert (tmp_path / "r3" / "odometry.tum").read_text() == "\n".join(traj) + "\n"
     r4 = _invoke(tmp_path / "r1" / "replay.mcap", "--out", tmp_path / "r3")
     assert r4.exit_code == 2 and "already exists" in r4.output
+    # Recorded in parts of 0.6 s, the replay's recording replays as the whole run
+    r5 = _invoke(bag, "--out", tmp_path / "r5", "--record-part-minutes", "0.01")
+    assert r5.exit_code == 0, r5.output
+    assert (tmp_path / "r5" / "replay.part3.mcap").exists()
+    assert latency_report(load_ticks(tmp_path / "r5" / "replay.mcap"))["run"]["ticks"] == s1["ticks"]
+    r6 = _invoke(tmp_path / "r5" / "replay.mcap", "--out", tmp_path / "r6")
+    assert r6.exit_code == 0, r6.output
+    s6 = json.loads((tmp_path / "r6" / "replay.json").read_text())
+    assert s6["ticks"] == s1["ticks"] and s6["inputs"]["sensor_samples"] == s1["inputs"]["sensor_samples"]
+    assert (tmp_path / "r6" / "odometry.tum").read_text() == "\n".join(traj) + "\n"
 
 
 def test_a_bags_camera_info_is_replayed_and_checked_and_its_replay_replays_it_in_step(tmp_path):
