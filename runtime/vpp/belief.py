@@ -73,6 +73,10 @@ class BeliefConfig(BaseModel):
     fragile_cost: float = Field(10.0, ge=0.0, le=10.0)
     #: Trace entries kept per obstacle (telemetry).
     max_trace: int = Field(200, ge=1, le=100000)
+    #: Beliefs kept of objects the stage no longer knows (out of its memory and its tracker, not
+    #: demoted) that contact had taught something; the oldest go first. Those it taught nothing
+    #: (the backend's prior alone) are forgotten at once: their id is never used again.
+    max_remembered: int = Field(256, ge=0, le=100000)
 
     @model_validator(mode="after")
     def _probabilities(self) -> "BeliefConfig":
@@ -92,6 +96,8 @@ class ObjectBelief:
     probs: np.ndarray  # (3,) over CLASSES, sums to 1
     backend_cost: float  # the backend's contact cost (0..10)
     trace: list[tuple[float, str, tuple[float, float, float]]] = field(default_factory=list)
+    evidence: int = 0  # contact evidence applied (pushes, resistance)
+    last_s: float = 0.0  # the controller's clock at the newest trace entry
 
     def most_likely(self) -> str:
         return CLASSES[int(np.argmax(self.probs))]
@@ -109,6 +115,7 @@ class BeliefTable:
         self.never_touch_cost = float(never_touch_cost)
         self.beliefs: dict[int, ObjectBelief] = {}
         self.updates = 0  # evidence applied (counter)
+        self.forgotten = 0  # beliefs dropped by forget() (counter)
 
     # ------------------------------------------------------------------ prior
     def prior(self, movable: bool, cost: float, confidence: float) -> np.ndarray:
@@ -149,6 +156,21 @@ class BeliefTable:
         self.beliefs[int(new_id)] = b
         self._trace(b, b.trace[-1][0] if b.trace else 0.0, f"renamed from {int(old_id)}")
 
+    def forget(self, live: set[int]) -> int:
+        """Drop the beliefs of objects not in `live` (the ids the stage can still name: its mask
+        memory's, its tracker's, the demoted): at once those without contact evidence, and the
+        oldest of the rest beyond `max_remembered`. Keeps the table as small as the scene rather
+        than the run. Returns how many were dropped (counted in `forgotten`)."""
+        gone = [k for k, b in self.beliefs.items() if k not in live and b.evidence == 0]
+        kept = [k for k, b in self.beliefs.items() if k not in live and b.evidence > 0]
+        if len(kept) > self.config.max_remembered:
+            kept.sort(key=lambda k: self.beliefs[k].last_s)
+            gone += kept[: len(kept) - self.config.max_remembered]
+        for k in gone:
+            del self.beliefs[k]
+        self.forgotten += len(gone)
+        return len(gone)
+
     # ------------------------------------------------------------------ evidence
     def observe_push(self, object_id: int, moved: bool, t_s: float) -> ObjectBelief | None:
         """A push outcome (BEACON eq. 3)."""
@@ -188,7 +210,7 @@ class BeliefTable:
         return float(b.probs @ np.array([backend_cost, c.heavy_cost, c.fragile_cost]))
 
     def describe(self) -> dict:
-        return {"enabled": self.config.enabled, "updates": self.updates,
+        return {"enabled": self.config.enabled, "updates": self.updates, "forgotten": self.forgotten,
                 "objects": {str(k): b.as_dict() for k, b in sorted(self.beliefs.items())}}
 
     # ------------------------------------------------------------------ helpers
@@ -201,10 +223,12 @@ class BeliefTable:
         post = b.probs * likelihood
         b.probs = self._normalised(post / post.sum())
         self.updates += 1
+        b.evidence += 1
         self._trace(b, t_s, what)
 
     def _trace(self, b: ObjectBelief, t_s: float, what: str) -> None:
         b.trace.append((round(float(t_s), 3), what, tuple(round(float(p), 4) for p in b.probs)))
+        b.last_s = float(t_s)
         if len(b.trace) > self.config.max_trace:
             del b.trace[: len(b.trace) - self.config.max_trace]
 

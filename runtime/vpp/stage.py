@@ -212,6 +212,8 @@ class VppStage:
                 self.last_reconcile = self.memory.apply(prepared, now_s)
                 for e in self.memory.entries:  # a new object starts from the answer's prior
                     self.belief.observe_answer(e.object_id, e.movable, e.contact_cost, e.confidence, now_s)
+                self.belief.forget({e.object_id for e in self.memory.entries}
+                                   | self.memory.demoted.keys() | self.tracker.objects.keys())
             except MaskMemoryError as exc:  # the memory stays as it was; the answer is named, not raised
                 self.rejected_answers += 1
                 self.last_rejection = str(exc)

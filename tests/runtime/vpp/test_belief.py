@@ -62,6 +62,24 @@ def test_a_later_answer_keeps_what_contact_taught_and_a_renamed_object_keeps_its
     assert 3 not in t.beliefs and t.is_fixed(9) and t.beliefs[9].backend_cost == 2.5
 
 
+def test_beliefs_of_objects_no_longer_known_are_forgotten_and_the_table_stays_bounded():
+    t = BeliefTable(BeliefConfig(max_remembered=2))
+    for k in range(5):
+        t.observe_answer(k, True, 2.0, 0.8, float(k))
+    for k in (1, 2, 3):  # pushed: contact taught these something
+        t.observe_push(k, moved=True, t_s=10.0 + k)
+    assert t.forget(live={0, 4}) == 1  # 1, 2, 3 remembered beyond the live ones; max 2: 1 (the oldest) goes
+    assert set(t.beliefs) == {0, 2, 3, 4}
+    assert t.forget(live={0, 2, 3, 4}) == 0
+    # A run of new objects that come and go (the backend naming each box it sees anew): the table
+    # holds what is live and the few remembered, not every object of the run.
+    for k in range(100, 5000):
+        t.observe_answer(k, True, 2.0, 0.8, float(k))
+        t.forget(live={k, k - 1})
+    assert len(t.beliefs) <= 2 + 2 and t.forgotten >= 4895
+    assert t.describe()["forgotten"] == t.forgotten
+
+
 @settings(max_examples=50, deadline=None)
 @given(st.lists(st.tuples(st.booleans(), st.floats(0.0, 2.0)), max_size=30))
 def test_the_belief_stays_a_distribution_and_never_reaches_zero(evidence):
