@@ -241,9 +241,9 @@ def run_soak(opts: SoakOptions) -> dict:
     names = SOAK_FAULTS
     if opts.realtime and opts.faults:
         from hil_sim.episode.faults import CLOCK_STEPS
-        from hil_sim.episode.serve import _may_set_the_clock
+        from hil_sim.episode.serve import may_set_the_clock
 
-        if not _may_set_the_clock():  # the clock faults step the machine's clock: root only
+        if not may_set_the_clock():  # the clock faults step the machine's clock: root only
             names = tuple(n for n in SOAK_FAULTS if n not in CLOCK_STEPS)
             opts.echo("dct bench soak: without CAP_SYS_TIME the clock-step faults are left out")
     faults = fault_schedule(opts.seed, duration_s, opts.fault_every_s, names) if opts.faults else []

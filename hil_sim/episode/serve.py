@@ -678,7 +678,7 @@ class _SystemClockSteps:
     step in force is undone when the run ends, however it ends (SIGKILL aside)."""
 
     def __init__(self, faults, injector, echo) -> None:
-        if not _may_set_the_clock():
+        if not may_set_the_clock():
             names = ", ".join(sorted({f.name for f in faults}))
             raise ValueError(f"--fault {names}: stepping the system clock needs CAP_SYS_TIME (run as root)")
         self.faults, self.injector, self.echo = faults, injector, echo
@@ -703,7 +703,7 @@ class _SystemClockSteps:
         self.echo(f"dct hil serve: {when}: the system clock stepped {delta:+.3f} s")
 
 
-def _may_set_the_clock() -> bool:
+def may_set_the_clock() -> bool:
     """CAP_SYS_TIME in this process's effective capabilities (Linux)."""
     try:
         with open("/proc/self/status", encoding="ascii") as f:

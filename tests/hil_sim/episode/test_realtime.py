@@ -191,9 +191,9 @@ def test_the_machines_clock_stepped_back_and_forth_mid_drive_costs_no_sensor_dat
     later (as NTP steps a clock; root only). Its sensors stamp with the stepped clock; the
     controller's inbox sees both steps and puts every stamp back onto its loop's clock: nothing is
     refused for its stamp and no watchdog calls the data stale or from the future."""
-    from hil_sim.episode.serve import _may_set_the_clock
+    from hil_sim.episode.serve import may_set_the_clock
 
-    if not _may_set_the_clock():
+    if not may_set_the_clock():
         pytest.skip("stepping the system clock needs CAP_SYS_TIME")
     out = tmp_path / "step.json"
     r = subprocess.run([sys.executable, "-m", "runtime.app.cli", "hil", "run", "case3", "--realtime", "--fault",
