@@ -507,6 +507,7 @@ def _result(ep: "_Episode", wall: float) -> EpisodeResult:
         sim_time_s=sim.time_s - operator.t_switch_on,
         extra={
             "keepalives_sent": parts.loop.keepalives_sent,
+            "heap_trim": parts.loop.heap.summary(),
             "firmware_frames_rejected": bench.firmware.frames_rejected,
             "physics_steps": sim.steps,
             "timestep_s": world.timestep_s,

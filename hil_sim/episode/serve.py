@@ -54,6 +54,10 @@ import numpy as np
 
 from hil_sim.episode.faults import CLOCK_STEPS
 from runtime.io.sensor_inbox import CLOCK_STEP_MIN_S
+from runtime.loop.heap import HeapTrimmer
+
+#: Simulated seconds between two returns of the C heap's free pages to the system (runtime.loop.heap).
+TRIM_EVERY_S = 10.0
 
 
 @dataclass
@@ -417,6 +421,7 @@ class _Server:
         # every catch-up of a 10-minute run (at most one per physics step: 600k in 10 min at 1 ms)
         self.lag_samples = np.zeros(1 << 20)
         self.n_lag = 0
+        self.heap = HeapTrimmer(every_ticks=0)
         self.state = _EpisodeState()
 
     def to_wall(self, t_sim: float) -> float:
@@ -458,6 +463,7 @@ class _Server:
                   f"({self.transport.name}, discovery {self.opts.discovery}), pid {os.getpid()}")
         self.wall_t0 = self.clock.now()
         wall_start = time.monotonic()
+        next_trim = world.time_s + TRIM_EVERY_S
         try:
             while not stop.is_set():
                 now = self.clock.now()
@@ -474,6 +480,9 @@ class _Server:
                 if self._episode_ended(world.time_s):
                     break
                 if not stepped:
+                    if world.time_s >= next_trim:  # the C heap's free pages back, in the slack (runtime.loop.heap)
+                        self.heap.trim()
+                        next_trim = world.time_s + TRIM_EVERY_S
                     time.sleep(0.5 * dt)  # the next step is due within dt
         finally:
             if self.clock_steps is not None:  # the machine's clock as it was, whatever ended the run
@@ -589,6 +598,7 @@ class _Server:
             "sim_time_total_s": t_end - self.sim_t0,
             "realtime_factor": (t_end - self.sim_t0) / wall if wall > 0 else None,
             "physics_steps": self.sim.steps,
+            "heap_trim": self.heap.summary(),
             "controller_connected_after_s": None if t_start is None else t_start - self.sim_t0,
             "sim_lag_ms": {"p50": float(np.percentile(lags, 50)) if len(lags) else None,
                            "p99": float(np.percentile(lags, 99)) if len(lags) else None,

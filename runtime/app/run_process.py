@@ -339,6 +339,7 @@ def _summary(parts, observer, inbox, receiver, goal, wall: float, scheduling: st
                 "executor_errors": getattr(receiver.transport, "spin_errors", 0)},
         "goals_ignored": observer.goals_ignored,
         "keepalives_sent": loop.keepalives_sent,
+        "heap_trim": loop.heap.summary(),
     }
 
 

@@ -28,6 +28,7 @@ from typing import Callable, Iterator, Protocol
 
 import numpy as np
 
+from runtime.loop.heap import TRIM_EVERY_TICKS, HeapTrimmer
 from runtime.loop.telemetry import STAGES, TickTelemetry
 
 
@@ -156,6 +157,7 @@ class FixedRateLoop:
         keepalive_period_s: float | None,
         telemetry: TickTelemetry | None = None,
         gc_every_ticks: int = FULL_COLLECTION_EVERY_TICKS,
+        trim_every_ticks: int = TRIM_EVERY_TICKS,
         slack_work_min_s: float = 0.02,
         slack_work_max_postpone: int = 2,
         after_tick: Callable[[np.void], None] | None = None,
@@ -186,6 +188,8 @@ class FixedRateLoop:
         budgets = np.array([stage_budgets_s.get(s, period_s) for s in self.telemetry.stages])
         self.stage_clock = StageClock(budgets, loop_clock=clock.now)
         self.gc_every_ticks = gc_every_ticks
+        #: The C heap's free pages given back between ticks (runtime.loop.heap).
+        self.heap = HeapTrimmer(trim_every_ticks)
         self.slack_work_min_s = slack_work_min_s
         self.slack_work_max_postpone = slack_work_max_postpone
         self.after_tick = after_tick
@@ -233,6 +237,7 @@ class FixedRateLoop:
 
             k, next_tick = self._next_grid_point(t0, k + 1)
             collect_between_ticks(ticks_run, self.gc_every_ticks)  # after write(), never inside a tick
+            self.heap.between_ticks(ticks_run)
             self._keepalives(controlled, scheduled, next_tick)
 
     def _judge_command(self, row: np.void, scheduled: float, lateness: float) -> bool:
