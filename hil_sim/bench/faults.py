@@ -30,6 +30,9 @@ from hil_sim.episode.faults import DELAY_S, FAULT_NAMES, FAULTS, LOCKSTEP_FAULT_
 DEFAULT_SCENES = ("case3", "corridor_boxes", "gap_wedged")
 DEFAULT_START_S = 2.0
 DEFAULT_DURATION_S = 1.0
+#: In real time a VLM fault lasts at least this long (s): the service hears a question about every
+#: 1.5 s (an answer's latency), so a shorter window may hold no request for the fault to act on.
+REALTIME_VLM_MIN_DURATION_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -324,6 +327,14 @@ def _differences(row: dict, ok: list[dict], expected: Reaction) -> list[str]:
     return out
 
 
+def fault_duration_s(fault: str, duration_s: float, realtime: bool) -> float:
+    """How long `fault` lasts in the campaign: `duration_s`, but a VLM fault in real time at least
+    REALTIME_VLM_MIN_DURATION_S."""
+    if realtime and fault in FAULTS and FAULTS[fault].stream == "vlm":
+        return max(duration_s, REALTIME_VLM_MIN_DURATION_S)
+    return duration_s
+
+
 def run_fault_campaign(*, scenes: Iterable[str] = DEFAULT_SCENES, seeds: int = 5, first_seed: int = 0,
                        faults: Iterable[str] = LOCKSTEP_FAULT_NAMES, start_s: float = DEFAULT_START_S,
                        duration_s: float = DEFAULT_DURATION_S, workers: int = 1, ray_address: str | None = None,
@@ -343,7 +354,7 @@ def run_fault_campaign(*, scenes: Iterable[str] = DEFAULT_SCENES, seeds: int = 5
     if realtime and (workers != 1 or ray_address is not None):
         raise FaultCampaignError("--realtime runs one episode at a time on this machine (its two processes are "
                                  "timed on the wall clock): leave out --workers and --ray")
-    tasks = [FaultTask(scene, first_seed + k, fault, start_s, duration_s, realtime)
+    tasks = [FaultTask(scene, first_seed + k, fault, start_s, fault_duration_s(fault, duration_s, realtime), realtime)
              for fault in (NO_FAULT, *faults) for scene in scenes for k in range(seeds)]
     wall0 = time.perf_counter()
     records = run_tasks(tasks, workers, ray_address, on_done, run=run_fault_task)
@@ -378,7 +389,9 @@ def format_fault_table(result: dict) -> list[str]:
     """The rows as printed: one per fault, marked when the reaction differs from the table."""
     lines = [f"dct bench faults: {len(result['scenes'])} scenes ({', '.join(result['scenes'])}) x {result['seeds']} "
              f"seeds per fault, {'real time' if result.get('realtime') else 'lockstep'}; each fault at "
-             f"{result['start_s']:g} s for {result['duration_s']:g} s",
+             f"{result['start_s']:g} s for {result['duration_s']:g} s"
+             + (f" (the VLM's at least {REALTIME_VLM_MIN_DURATION_S:g} s: a question every 1.5 s)"
+                if result.get("realtime") and any(FAULTS[r["fault"]].stream == "vlm" for r in result["rows"]) else ""),
              f"{'fault':<20} {'eps':>3} {'stop':>4} {'p50':>5} {'p99':>5} {'max':>5} | {'resume p50/max':>14} | "
              f"{'fixed':>5} {'goal':>4} | reasons"]
     for r in result["rows"]:

@@ -230,6 +230,7 @@ class RunRecorder:
         self._file = opener(tmp) if opener is not None else open(tmp, "wb")
         if isinstance(self._file, io.RawIOBase):  # our buffer, so that close() flushes it
             self._file = io.BufferedWriter(self._file)
+        self._part_open = True  # a temporary file to finish and rename
         self._writer = Writer(self._file, chunk_size=chunk_size,
                               compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                                            "none": CompressionType.NONE}[compression])
@@ -412,7 +413,10 @@ class RunRecorder:
 
     def _finish_part(self, last: bool) -> None:
         """The recorder's account and the summary written, the file synced, closed and renamed onto
-        its part's name. OSError from writing or renaming is the caller's."""
+        its part's name. OSError from renaming is the caller's. Nothing when the next part's file
+        could not be opened (the previous one is already in place)."""
+        if not self._part_open:
+            return
         meta = {k: json.dumps(v) for k, v in self.summary().items() if k != "path"}
         meta["part"] = json.dumps(self.part)
         meta["last_part"] = json.dumps(last)
@@ -439,6 +443,7 @@ class RunRecorder:
         os.umask(umask)
         os.chmod(self.tmp_path, 0o666 & ~umask)
         os.replace(self.tmp_path, target)
+        self._part_open = False
         self.parts.append(str(target))
 
     def _sample_threads(self) -> None:

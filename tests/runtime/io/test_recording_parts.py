@@ -143,3 +143,34 @@ def test_the_writers_index_is_released_with_each_part(tmp_path):
     # About a chunk a tick here: one file would hold 3000 indexes at its end; a part holds its 600.
     assert chunks >= 3000 and max(held) <= 1.1 * 600
     assert json.loads(json.dumps(rec.summary()))["dropped_total"] == 0
+
+
+def test_a_next_part_that_cannot_be_opened_stops_the_recording_and_keeps_the_parts_written(tmp_path):
+    """A full disk when a part begins: the parts finished stay, the rest is counted as dropped,
+    and closing the recorder neither raises nor loses the first part."""
+    import errno
+    import io
+
+    from runtime.loop.telemetry import TickTelemetry
+
+    opened = []
+
+    def opener(name):
+        opened.append(name)
+        if len(opened) > 1:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return io.FileIO(name, "wb")
+
+    tel = TickTelemetry(capacity=64)
+    rec = RunRecorder(tmp_path / "run.mcap", split_every_s=0.5, opener=opener)
+    hook = rec.attach(object(), load_controller_config())
+    for k in range(40):  # 2 s of ticks: the second part would begin at 0.5 s
+        row = tel.begin_tick()
+        row["tick"], row["scheduled_s"], row["tick_s"] = k, 0.05 * k, 0.004
+        tel.commit_tick(row)
+        hook(row)
+    summary = rec.close()
+    assert "No space left" in summary["write_error"] and summary["dropped_write_error"] > 0
+    assert [p.rsplit("/", 1)[-1] for p in summary["parts"]] == ["run.mcap"]
+    first = read_recording(tmp_path / "run.mcap")
+    assert first.complete and [m["tick"] for _, m in first.messages[S.TOPIC_TICK]] == list(range(10))
