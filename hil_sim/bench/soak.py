@@ -191,6 +191,52 @@ class TickWindows:
                 "tick_max_ms": self._total_max_ms}
 
 
+class Holds:
+    """The stretches the robot was held or stopped (state HOLDING or STOPPED), from each tick's
+    state and reason: how many, how long in all, by reason kind, and the longest (with the
+    reason they began with)."""
+
+    STANDING = ("HOLDING", "STOPPED")
+    LONGEST = 10
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.held_s = 0.0
+        self.by_kind: dict[str, float] = {}
+        self.longest: list[dict] = []
+        self._open: tuple[float, str, str] | None = None  # (start, state, reason)
+        self._last_t = 0.0
+
+    def add(self, t_s: float, state: str, reason: str | None) -> None:
+        standing = state in self.STANDING
+        if self._open is not None and (not standing or state != self._open[1]):
+            self._close(t_s)
+        if standing and self._open is None:
+            self._open = (t_s, state, reason or "")
+        self._last_t = t_s
+
+    def _close(self, t_s: float) -> None:
+        start, state, reason = self._open
+        self._open = None
+        d = t_s - start
+        self.count += 1
+        self.held_s += d
+        from hil_sim.bench.faults import stop_kinds
+
+        for kind in stop_kinds([reason]) or ["(no reason)"]:
+            self.by_kind[kind] = self.by_kind.get(kind, 0.0) + d
+        self.longest.append({"start_s": round(start, 2), "duration_s": round(d, 2), "state": state, "reason": reason})
+        self.longest.sort(key=lambda h: -h["duration_s"])
+        del self.longest[self.LONGEST:]
+
+    def summary(self) -> dict:
+        if self._open is not None:
+            self._close(self._last_t)
+        return {"count": self.count, "held_s": round(self.held_s, 2),
+                "by_kind_s": {k: round(v, 2) for k, v in sorted(self.by_kind.items(), key=lambda kv: -kv[1])},
+                "longest": self.longest}
+
+
 def _hist_pct(hist: np.ndarray, q: float) -> float | None:
     n = int(hist.sum())
     if n == 0:
@@ -299,6 +345,7 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
     scenario = with_duration(load_scenario(opts.scene, seed=opts.seed), duration_s)
     config = load_controller_config(opts.config_path)
     windows = TickWindows()
+    holds = Holds()
     samples: dict[str, list[dict]] = {"lockstep": []}  # per process: this one and its children
     checkpoint = _Checkpoint(opts, faults)
     state = {"sim": None, "telemetry": None, "next_s": 0.0, "next_tick": 0, "t0": None, "next_window": WINDOW_S}
@@ -316,6 +363,9 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
         if sim is None or tel is None:
             return
         t = sim.time_s - state["t0"]
+        snap = controller.snapshot
+        if snap is not None:
+            holds.add(t, snap.state.name, snap.hold_reason or snap.stop_reason)
         if t < state["next_s"]:
             return
         state["next_s"] += SAMPLE_EVERY_S
@@ -350,7 +400,7 @@ def _lockstep_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
                     new["wall_deadline_missed"])
     windows.close()
     own = samples["lockstep"]
-    return {"metrics": result.metrics, "samples": samples, "windows": windows.windows,
+    return {"metrics": result.metrics, "samples": samples, "windows": windows.windows, "holds": holds.summary(),
             "interrupted_at_s": (round(own[-1]["t_s"], 3) if own else 0.0) if interrupted.is_set() else None,
             "whole": windows.whole(), "wall_s": result.wall_time_s,
             "deadline_misses": int(result.metrics.get("deadline_misses", 0)),
@@ -415,6 +465,9 @@ def _realtime_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
     t0 = float(ticks.t_s[0]) if len(ticks.t_s) else 0.0
     windows.add(ticks.t_s - t0, ticks.tick_ms, ticks.missed, ticks.wall_missed)
     windows.close()
+    holds = Holds()
+    for t, st, why in zip(ticks.t_s - t0, ticks.state, ticks.reason):
+        holds.add(float(t), str(st), why)
     queue = [{"t_s": float(m.get("wall_s", 0.0)), "recorder_queue": m.get("queue")} for m in ticks.thread_samples]
     report = latency_report(ticks)  # the whole run's, as `dct report latency` makes it
     html = opts.out_dir / "latency.html"
@@ -422,6 +475,7 @@ def _realtime_soak(opts: SoakOptions, duration_s: float, faults: list[FaultSpec]
     atomic_write_text(html, render_html([(record.name, report, all_figures(ticks))], title))
     rt = metrics.get("realtime", {})
     return {"metrics": metrics, "samples": sampler.samples, "windows": windows.windows, "whole": windows.whole(),
+            "holds": holds.summary(),
             "recorder_queue": _queue_figures(queue), "wall_s": wall, "recording": str(record),
             "latency": report, "latency_report": str(html),
             "deadline_misses": int(rt.get("deadline_misses", 0) or 0),
@@ -461,7 +515,8 @@ def _summary(opts: SoakOptions, duration_s: float, faults: list[FaultSpec], r: d
                   "missed": sum(str(v.get("outcome", "")).startswith("missed") for v in visits),
                   "outcomes": _count(v.get("outcome") for v in visits)},
         "fixed_contacts": m.get("fixed_contacts"), "movable_contacts": m.get("movable_contacts"),
-        "person_contacts": m.get("person_contacts"),
+        "person_contacts": m.get("person_contacts"), "fixed_contact_log": m.get("fixed_contact_log"),
+        "holds": r.get("holds"),
         "end_reason": patrol.get("end_reason") or m.get("end_reason"),
         "failure_reason": m.get("failure_reason"),
         "distance_m": m.get("path_length_m"),
@@ -508,6 +563,15 @@ def format_soak(result: dict) -> list[str]:
                  f"fixed {result['fixed_contacts']}, movable {result['movable_contacts']}, "
                  f"person {result['person_contacts']}; driven {_num(result['distance_m'], '.0f')} m; "
                  f"ended: {result['end_reason']}")
+    for c in result.get("fixed_contact_log") or []:
+        lines.append(f"fixed contact at {c['t_s'] / 60:.1f} min: {c['object']} ({c['class']}), the robot at "
+                     f"{c['robot_speed_mps']:.2f} m/s")
+    h = result.get("holds")
+    if h:
+        kinds = ", ".join(f"{k} {v:.0f} s" for k, v in list(h["by_kind_s"].items())[:5])
+        lines.append(f"held or stopped: {h['count']} times, {h['held_s']:.0f} s in all ({kinds})")
+        for x in h["longest"][:3]:
+            lines.append(f"  {x['duration_s']:.1f} s {x['state']} from {x['start_s'] / 60:.1f} min: {x['reason'] or '-'}")
     if result.get("recorder_queue"):
         q = result["recorder_queue"]
         lines.append(f"recorder queue: max {q['max']}, last {q['last']} ({q['samples']} samples)")
@@ -515,4 +579,4 @@ def format_soak(result: dict) -> list[str]:
 
 
 __all__ = ["SoakOptions", "SoakError", "run_soak", "format_soak", "fault_schedule", "process_stats", "TickWindows",
-           "growth", "trend"]
+           "Holds", "growth", "trend"]

@@ -18,6 +18,8 @@ name. Fragile damage: a contact force (normal, N) on a fragile object above its
 `damage_force_n`, from anything but the floor (the robot, or a box the robot pushes into it), is
 one damage event until the force has stayed at or below the threshold for CONTACT_RELEASE_S
 (`fragile_damage_events`, and each event's time, peak force and what hit it in `fragile_damage`).
+Each fixed contact event's time, object and class, and the robot's speed as it began
+(`fixed_contact_log`, the first MAX_CONTACT_LOG of them): an hour's soak says when and where.
 """
 from __future__ import annotations
 
@@ -38,6 +40,8 @@ from hil_sim.world.scenario_objects import HIGH_COST_THRESHOLD, NON_MOVABLE_CLAS
 PATH_MIN_HOP_M = 0.002
 #: A touch that starts within this time of the previous one ending continues that event.
 CONTACT_RELEASE_S = 0.1
+#: Fixed contact events logged with their time (the count goes on beyond).
+MAX_CONTACT_LOG = 200
 #: Ground-truth clearance (signed distance robot <-> obstacle geoms) is sampled every this many
 #: physics steps (5 ms: 2.5 mm of travel at 0.5 m/s), and only below this distance.
 CLEARANCE_EVERY_STEPS = 5
@@ -120,7 +124,7 @@ class EpisodeMetrics:
         self._step_xy = (x, y)
         self._model = world.model
         self._t_start = world.time_s
-        self._t_last = world.time_s
+        self._t_last = self._t_prev_step = world.time_s
         self.steps = 0
         self._world = world
         # Clearance pairs: the robot's collision shapes (chassis, wheels) x each obstacle's geoms.
@@ -150,6 +154,8 @@ class EpisodeMetrics:
         self.peak_robot_force_n = np.zeros(n)
         self.travel_in_contact_m = np.zeros(n)
         self.damage_events: list[dict[str, Any]] = []
+        self.fixed_contact_log: list[dict[str, Any]] = []
+        self._non_movable = np.array([c in NON_MOVABLE_CLASSES for c in self.classes], dtype=bool)
         self.damage_count = np.zeros(n, dtype=np.int64)
         self._over_since = np.full(n, -np.inf)  # last time the force was above the threshold
         self._force = np.zeros(6)
@@ -186,6 +192,17 @@ class EpisodeMetrics:
             return None
         return self._geom_obstacle[geoms[rows]].max(axis=1)  # the robot's side is -1
 
+    def _log_fixed(self, world: World, t: float, began: np.ndarray) -> None:
+        """The fixed contact events that began at t, with the robot's speed (from its last step)."""
+        for i in np.flatnonzero(began & self._non_movable):
+            if len(self.fixed_contact_log) >= MAX_CONTACT_LOG:
+                return
+            x, y = world.robot_xy()
+            dt = t - self._t_prev_step if t > self._t_prev_step else 0.0
+            speed = math.hypot(x - self._step_xy[0], y - self._step_xy[1]) / dt if dt > 0 else 0.0
+            self.fixed_contact_log.append({"t_s": round(float(t - self._t_start), 3), "object": self.names[i],
+                                           "class": self.classes[i], "robot_speed_mps": round(speed, 3)})
+
     def _update_push(self, d: mujoco.MjData) -> None:
         """The normal force of every robot-obstacle contact now, into each obstacle's peak."""
         code, obstacle = self._geom_code_list, self._geom_obstacle_list
@@ -201,7 +218,7 @@ class EpisodeMetrics:
         """Call once after every physics step."""
         t = world.time_s
         dt = t - self._t_last
-        self._t_last = t
+        self._t_prev_step, self._t_last = self._t_last, t
         hit = self._touched_obstacles(world.data)
         if hit is not None or self._any_touching:
             # (Touching nothing now or at the last step changes no count, duration or touch time.)
@@ -209,7 +226,10 @@ class EpisodeMetrics:
             if hit is not None:
                 now[hit] = True
             released = (t - self._last_touch_s) > CONTACT_RELEASE_S
-            self.contact_count += now & ~self.touching & released
+            began = now & ~self.touching & released
+            self.contact_count += began
+            if began.any():
+                self._log_fixed(world, t, began)
             # Duration of an event includes its short gaps (flicker), not the final release.
             gap = t - self._last_touch_s
             self.contact_duration_s += np.where(now, np.where(released, dt, gap), 0.0)
@@ -368,6 +388,7 @@ class EpisodeMetrics:
             "fragile_contacts": self._events({"fragile"}),
             "fragile_damage_events": int(self.damage_count.sum()),
             "fragile_damage": [dict(ev) for ev in self.damage_events],
+            "fixed_contact_log": [dict(ev) for ev in self.fixed_contact_log],
             "path_cost": self.path_cost,
             "high_cost_displacement_m": self.high_cost_displacement_m(disp),
             "contact_duration_s": {name: float(self.contact_duration_s[i]) for i, name in enumerate(self.names)

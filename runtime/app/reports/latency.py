@@ -57,6 +57,9 @@ class TickData:
     recorder: dict | None = None
     image_to_mask_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))  # one per applied VLM answer
     thread_samples: list[dict] = field(default_factory=list)  # /dct/threads messages, in file order
+    #: why the robot stood, per tick (HOLDING: the faulty inputs; STOPPED: the stop); None when it
+    #: did not, or the recording is older than the field
+    reason: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=object))
 
 
 def load_ticks(path: str | Path) -> TickData:
@@ -93,6 +96,7 @@ def load_ticks(path: str | Path) -> TickData:
         wall_missed=np.array([bool(m.get("wall_deadline_missed")) for m in msgs]),
         overrun=np.array([[s in m.get("overrun_stages", ()) for s in stages] for m in msgs], dtype=bool),
         state=np.array([m.get("state", "") for m in msgs]),
+        reason=np.array([m.get("reason") for m in msgs], dtype=object),
         sensor_to_command_ms=col("sensor_to_command_ms"),
         sensor_recorded=any("sensor_to_command_ms" in m for m in msgs),
         info=info, complete=rec.complete, stopped_by=rec.stopped_by,

@@ -83,7 +83,7 @@ def png_bytes(rgb: np.ndarray) -> bytes:
 def tick_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
     """/dct/tick from a tick's telemetry row, the pose when the controller had one, and what the
     tick took in (/dct/inputs) when the controller published a snapshot."""
-    _, r, xyyaw, frame, inputs = item
+    _, r, xyyaw, frame, inputs, why = item
     t = float(r["scheduled_s"])
     mask = int(r["overrun_mask"])
     cmd_t = t + float(r["command_latency_s"])
@@ -102,6 +102,7 @@ def tick_messages(item: tuple, stages: tuple[str, ...]) -> Iterator[Message]:
         "wall_command_latency_ms": float(r["wall_command_latency_s"]) * 1e3,
         "wall_deadline_missed": bool(r["wall_deadline_missed"]),
         "state": _STATE_NAMES.get(int(r["state"]), str(int(r["state"]))),
+        "reason": why,
         "v_cmd_mps": _finite(float(r["v_cmd_mps"])),
         "omega_cmd_radps": _finite(float(r["omega_cmd_radps"])),
         "lidar_frame_stamp_s": frame_stamp,

@@ -310,14 +310,15 @@ class RunRecorder:
             if mounts is not None and self.ticks_seen == 1:  # never dropped, as the run's description
                 self._queue.append(("tf_static", float(row["scheduled_s"]), mounts))
             snap = getattr(controller, "snapshot", None)
-            xyyaw = frame = scan = None
+            xyyaw = frame = scan = why = None
             if snap is not None:
                 pose, scan = snap.pose, snap.scan
                 xyyaw = (float(pose.x_m), float(pose.y_m), float(pose.yaw_rad))
+                why = getattr(snap, "hold_reason", None) or getattr(snap, "stop_reason", None)  # a reference
             if scan is not None:
                 offs, stamp = scan.point_time_offsets_s, float(scan.stamp_s)
                 frame = (stamp, stamp + (float(offs.max()) if len(offs) else float(scan.frame_duration_s)))
-            put("tick", ("tick", row.copy(), xyyaw, frame, _tick_inputs(snap)))
+            put("tick", ("tick", row.copy(), xyyaw, frame, _tick_inputs(snap), why))
             stamp = snap.vlm_last_answer_s if snap is not None else None
             if stamp is not None and stamp != self._last_answer_s:
                 self._last_answer_s = stamp

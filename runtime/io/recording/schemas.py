@@ -59,6 +59,9 @@ def tick_schema(stages: tuple[str, ...]) -> dict:
             "wall_command_latency_ms": _NUM,
             "wall_deadline_missed": {"type": "boolean"},
             "state": {"type": "string"},
+            "reason": {"type": ["string", "null"],
+                       "description": "why the robot is held (HOLDING: the faulty inputs) or stopped (STOPPED); "
+                                      "null otherwise"},
             "v_cmd_mps": _NUM,
             "omega_cmd_radps": _NUM,
             "lidar_frame_stamp_s": {**_NUM_OR_NULL, "description": "start of the lidar frame this tick used (null: none)"},

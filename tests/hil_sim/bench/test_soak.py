@@ -11,9 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from hil_sim.bench.soak import (FAULT_DURATION_S, TickWindows, child_processes, fault_schedule, format_soak, growth,
-                                process_stats,
-                                trend)
+from hil_sim.bench.soak import (FAULT_DURATION_S, Holds, TickWindows, child_processes, fault_schedule, format_soak,
+                                growth, process_stats, trend)
 from hil_sim.episode.faults import FAULT_NAMES
 
 
@@ -58,6 +57,21 @@ def test_growth_per_hour_is_the_slope_after_the_warm_up():
     assert g["per_hour"] == pytest.approx(3.0, rel=1e-6) and g["first"] > 150.0
     assert growth(samples, "fds", 3600.0)["change"] == 0
     assert growth(samples[:1], "rss_mb", 3600.0)["per_hour"] is None
+
+
+def test_holds_are_the_stretches_held_or_stopped_with_the_reason_they_began_with():
+    h = Holds()
+    ticks = ([("ACTIVE", None)] * 10 + [("HOLDING", "IMU stale (no sample for 0.06 s)")] * 4 + [("ACTIVE", None)] * 5
+             + [("HOLDING", "lidar frozen (10 frames)")] * 20 + [("STOPPED", "E-stop")] * 6)
+    for k, (state, why) in enumerate(ticks):
+        h.add(0.05 * k, state, why)
+    s = h.summary()
+    assert s["count"] == 3
+    assert [x["reason"] for x in s["longest"]] == ["lidar frozen (10 frames)", "E-stop",
+                                                   "IMU stale (no sample for 0.06 s)"]  # longest first
+    assert s["longest"][0]["duration_s"] == 1.0 and s["longest"][0]["start_s"] == 0.95
+    assert set(s["by_kind_s"]) == {"lidar frozen", "IMU stale", "E-stop"}
+    assert abs(s["held_s"] - (0.2 + 1.0 + 0.25)) < 1e-9  # the last one ends at the last tick
 
 
 def test_process_stats_read_this_process_and_none_for_one_that_is_gone():
@@ -108,6 +122,7 @@ def test_a_short_lockstep_soak_writes_its_figures(tmp_path):
     # the episode's children are sampled as processes of their own: the lidar cast, the ICP worker
     assert {"lidar_cast", "worker"} <= set(r["processes"]), set(r["processes"])
     assert r["whole_run"]["ticks"] >= 1700  # 90 s at 20 Hz
+    assert r["holds"]["count"] >= 1 and r["holds"]["longest"][0]["reason"]  # the faults held it, and say so
     assert "RSS growth MB/h" in (out / "soak.md").read_text() and not (out / "soak.partial.json").exists()
     assert format_soak(r)[0].startswith("dct bench soak: lockstep, patrol_people")
     again = subprocess.run([sys.executable, "-m", "runtime.app.cli", "bench", "soak", "--minutes", "1",

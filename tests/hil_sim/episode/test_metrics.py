@@ -82,6 +82,11 @@ def test_fixed_contact_fails_the_episode_and_events_are_counted_per_touch():
     # Path cost counts the block once (cost 10, a fixed object's default), however often touched.
     assert out["path_cost"] == 10.0 and block["contact_cost"] == 10.0
     assert out["contact_duration_s"] == {"block": block["contact_duration_s"]}
+    # Each event logged with its time, the object and the robot's speed as it began.
+    log = out["fixed_contact_log"]
+    assert [(c["object"], c["class"]) for c in log] == [("block", "fixed")] * 2
+    assert 0.0 < log[0]["t_s"] < 1.2 < 2.2 < log[1]["t_s"] < 3.6
+    assert all(0.0 < c["robot_speed_mps"] < 0.35 for c in log), log
 
 
 def test_min_clearance_is_the_ground_truth_gap_to_the_block():

@@ -368,3 +368,19 @@ def test_hil_run_record_option(tmp_path):
     assert len(read_recording(out).messages[S.TOPIC_TICK]) >= 10
     again = CliRunner().invoke(hil_group, ["run", str(scenario), "--record", str(out)])
     assert again.exit_code == 2 and "already exists" in again.output
+
+
+def test_a_held_tick_says_why_in_the_recording(tmp_path):
+    """/dct/tick carries the reason the robot stands (the faulty inputs while HOLDING), so that a
+    long hold in a recorded run can be explained from the file alone."""
+    from hil_sim.episode.faults import FaultSpec
+
+    out = tmp_path / "held.mcap"
+    config = load_controller_config().with_planner_mode("all-fixed")
+    with RunRecorder(out) as rec:
+        run_episode(_short().model_copy(update={"time_limit_s": 2.0}), seed=0, recorder=rec, config=config,
+                    faults=[FaultSpec("imu-silent", 0.8, 0.5)])
+    ticks = [m for _, m in read_recording(out).messages[S.TOPIC_TICK]]
+    held = [t for t in ticks if t["state"] == "HOLDING"]
+    assert held and all("IMU" in t["reason"] for t in held)
+    assert all(t["reason"] is None for t in ticks if t["state"] == "ACTIVE")
