@@ -43,6 +43,7 @@ from typing import Callable
 
 import numpy as np
 
+from hil_sim.bench.faults import stop_kinds
 from hil_sim.episode.faults import LOCKSTEP_FAULT_NAMES, FaultSpec
 
 DEFAULT_SCENE = "patrol_people"
@@ -221,8 +222,6 @@ class Holds:
         d = t_s - start
         self.count += 1
         self.held_s += d
-        from hil_sim.bench.faults import stop_kinds
-
         for kind in stop_kinds([reason]) or ["(no reason)"]:
             self.by_kind[kind] = self.by_kind.get(kind, 0.0) + d
         self.longest.append({"start_s": round(start, 2), "duration_s": round(d, 2), "state": state, "reason": reason})
