@@ -29,6 +29,13 @@ distance, or `gate_rad` in yaw) is refused and the wheels' is used (counted, nam
 interval in which the base said nothing of its motion (no wheel distances, no speed: a bus-off,
 a rebooting base) the wheels' translation is unknown, not zero: ICP's translation is taken (its
 rotation is still judged against the gyro's).
+
+The gyro's bias is estimated online from the same ICP frames (runtime.odometry.gyro_bias), over
+blocks of consecutive fused frames whose rotation ICP constrains; a block over which the gyro and
+ICP disagree beyond the estimate's gate has its heading given back to ICP (the anchor's yaw),
+and the gyro's rotation is weighed by the bias's uncertainty, so that while a bias step is being
+learnt ICP leads the heading. The stage applies the estimate to the dead reckoning
+(runtime.odometry.stage).
 """
 from __future__ import annotations
 
@@ -38,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from runtime.odometry.gyro_bias import GyroBiasConfig, GyroBiasEstimator
 from runtime.odometry.icp import IcpResult
 from runtime.odometry.se2 import compose_jacobians, se2_between, se2_compose, wrap
 
@@ -70,6 +78,8 @@ class FusionConfig(BaseModel):
     gate_rad: float = Field(0.15, gt=0.0, le=3.2)
     #: How far back (s) the dead-reckoning history reaches (ICP results older are dropped).
     history_s: float = Field(3.0, gt=0.2, le=60.0)
+    #: The online estimate of the gyro's bias from ICP's rotation (runtime.odometry.gyro_bias).
+    gyro_bias: GyroBiasConfig = GyroBiasConfig()
 
 
 @dataclass
@@ -85,13 +95,17 @@ class FusionStats:
 class PoseFusion:
     """EKF on increments: wheels + gyro predict, KISS-ICP increments correct (module docstring)."""
 
-    def __init__(self, config: FusionConfig, capacity: int = 1024) -> None:
+    def __init__(self, config: FusionConfig, capacity: int = 1024, gyro_bias: GyroBiasEstimator | None = None) -> None:
         """capacity: dead-reckoning samples kept (one per tick; 1024 = 51 s at 20 Hz, more than
-        history_s can ask for)."""
+        history_s can ask for). gyro_bias: the estimate to go on with (a fusion started afresh
+        keeps what was learnt of the gyro); None: a new one, at zero."""
         self.config = config
         self._cap = capacity
         self._t = np.full(capacity, -np.inf)
         self._d = np.zeros((capacity, 3))
+        #: With each D(t): the raw gyro's integral and the time it covers (add_dead_reckoning).
+        self._g = np.full((capacity, 2), np.nan)
+        self.gyro_bias = gyro_bias if gyro_bias is not None else GyroBiasEstimator(config.gyro_bias)
         self._n = 0  # samples written (ring index = n % cap)
         self.anchor_t: float | None = None
         self.anchor_pose = np.zeros(3)
@@ -110,23 +124,29 @@ class PoseFusion:
         self.anchor_pose = np.array([pose.x_m, pose.y_m, pose.yaw_rad], dtype=float)
 
     # -- dead reckoning ------------------------------------------------------------------------
-    def add_dead_reckoning(self, t_s: float, pose: np.ndarray, translation_known: bool = True) -> None:
+    def add_dead_reckoning(self, t_s: float, pose: np.ndarray, translation_known: bool = True,
+                           gyro: tuple[float, float] | None = None) -> None:
         """The wheel + gyro pose D(t) (call every tick, times increasing). translation_known False:
         the base said nothing of its motion since the call before (no wheel distances, no speed):
         D did not move, which is not "the robot stood still"; an ICP increment over that time is
-        then judged and fused on its rotation only and gives the translation (icp_update)."""
+        then judged and fused on its rotation only and gives the translation (icp_update).
+        gyro: the raw gyro's yaw integral (rad) and the time it has covered (s) so far
+        (runtime.odometry.wheels), for the bias estimate; None: no gyro."""
         if not translation_known:
             self._blind_t = t_s
         i = self._n % self._cap
         self._t[i] = t_s
         self._d[i] = pose
+        self._g[i] = gyro if gyro is not None else (np.nan, np.nan)
         self._n += 1
         if self.anchor_t is None:
             self.anchor_t = t_s
             self._anchor_d = np.array(pose, dtype=float)
 
-    def dead_reckoning_at(self, t_s: float) -> np.ndarray | None:
-        """D(t) interpolated from the history (None when t is outside it)."""
+    def _locate(self, t_s: float) -> tuple[np.ndarray, int, float] | None:
+        """Where t_s falls in the history: (ring indices in time order, j, w) for the samples
+        j-1 and j weighted 1-w and w (j = 0: the oldest alone; w = 1 past the newest); None
+        when t_s is outside it."""
         n = min(self._n, self._cap)
         if n == 0:
             return None
@@ -137,18 +157,38 @@ class PoseFusion:
         if t_s < ts[0] - 1e-9 or t_s > ts[-1] + 1e-9:
             # A little past the newest sample (the frame ended after the last tick): hold it.
             if ts[-1] < t_s <= ts[-1] + 0.06:
-                return self._d[:n][order][-1].copy()
+                return order, n - 1, 1.0
             return None
-        ds = self._d[:n][order]
         j = int(np.searchsorted(ts, t_s))
         if j == 0:
-            return ds[0].copy()
+            return order, 1 if n > 1 else 0, 0.0 if n > 1 else 1.0
         if j >= n:
-            return ds[-1].copy()
+            return order, n - 1, 1.0
         t0, t1 = ts[j - 1], ts[j]
-        w = 0.0 if t1 <= t0 else (t_s - t0) / (t1 - t0)
-        a, b = ds[j - 1], ds[j]
+        return order, j, 0.0 if t1 <= t0 else (t_s - t0) / (t1 - t0)
+
+    def dead_reckoning_at(self, t_s: float) -> np.ndarray | None:
+        """D(t) interpolated from the history (None when t is outside it)."""
+        where = self._locate(t_s)
+        if where is None:
+            return None
+        order, j, w = where
+        b = self._d[order[j]]
+        if j == 0 or w >= 1.0:
+            return b.copy()
+        a = self._d[order[j - 1]]
         return np.array([a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), wrap(a[2] + w * wrap(b[2] - a[2]))])
+
+    def gyro_at(self, t_s: float) -> np.ndarray | None:
+        """The raw gyro's (yaw integral, covered time) at t_s, interpolated (None: outside the
+        history, or no gyro there)."""
+        where = self._locate(t_s)
+        if where is None:
+            return None
+        order, j, w = where
+        b = self._g[order[j]]
+        g = b.copy() if j == 0 or w >= 1.0 else self._g[order[j - 1]] + w * (b - self._g[order[j - 1]])
+        return None if np.isnan(g).any() else g
 
     def motion_samples(self, t0_s: float, t1_s: float) -> np.ndarray:
         """Dead-reckoning samples (K, 4: t, x, y, yaw) covering [t0, t1] (for deskew)."""
@@ -169,7 +209,9 @@ class PoseFusion:
         return pose, cov
 
     # -- noise models --------------------------------------------------------------------------
-    def wheel_covariance(self, inc: np.ndarray, dt_s: float) -> np.ndarray:
+    def wheel_covariance(self, inc: np.ndarray, dt_s: float, bias_sigma_radps: float | None = None) -> np.ndarray:
+        """bias_sigma_radps: the uncertainty of the gyro bias applied over the increment, when
+        it exceeds the configured rate noise (a bias step being learnt); None: the estimate's now."""
         c = self.config
         dist = math.hypot(inc[0], inc[1])
         turn = abs(inc[2])
@@ -180,7 +222,10 @@ class PoseFusion:
         rot = np.array([[ch, -sh], [sh, ch]])
         cov = np.zeros((3, 3))
         cov[:2, :2] = rot @ np.diag([along**2, across**2]) @ rot.T
-        yaw = c.gyro_fraction * turn + c.gyro_rate_sigma_radps * dt_s + c.wheel_floor_rad
+        if bias_sigma_radps is None:
+            bias_sigma_radps = self.gyro_bias.sigma_radps
+        rate_sigma = max(c.gyro_rate_sigma_radps, bias_sigma_radps)
+        yaw = c.gyro_fraction * turn + rate_sigma * dt_s + c.wheel_floor_rad
         cov[2, 2] = yaw**2
         return cov
 
@@ -238,7 +283,8 @@ class PoseFusion:
         dist = math.hypot(d_w[0], d_w[1])
         off = math.hypot(d_i[0] - d_w[0], d_i[1] - d_w[1])
         off_yaw = abs(wrap(d_i[2] - d_w[2]))
-        q = self.wheel_covariance(d_w, t_b - self.anchor_t)
+        bias_sigma, bias_back = self._observe_gyro_bias(result, d_i) if off_yaw <= c.gate_rad else (None, None)
+        q = self.wheel_covariance(d_w, t_b - self.anchor_t, bias_sigma)
         if self._blind_t is not None and self._blind_t > self.anchor_t - 1e-9:
             # the wheels knew nothing of the translation over part of this interval: ICP's counts
             self.stats.wheels_blind += 1
@@ -247,6 +293,7 @@ class PoseFusion:
             q[0, 0] = q[1, 1] = c.degenerate_variance
             off = 0.0
         if off > c.gate_m + c.gate_fraction * dist or off_yaw > c.gate_rad:
+            self.gyro_bias.break_run()
             self._move_anchor(t_b, d_b, d_w, q)
             return self._refuse(f"ICP increment {off * 100:.1f} cm / {math.degrees(off_yaw):.1f} deg from the "
                                 f"wheels' over {t_b - result.prev_end_s:.2f} s: implausible, wheels used")
@@ -258,9 +305,33 @@ class PoseFusion:
         d = d_w + p @ (r_inf @ innov)   # = P (Q^-1 d_w + R^-1 d_i), angles wrapped
         d[2] = wrap(d[2])
         self._move_anchor(t_b, d_b, d, p)
+        if bias_back is not None:
+            # a block in which the gyro and ICP disagree beyond the bias's gate: its heading is
+            # ICP's (runtime.odometry.gyro_bias)
+            self.anchor_pose[2] = wrap(self.anchor_pose[2] - bias_back)
         self.stats.fused += 1
         self.last_fused_t = t_b
         return None
+
+    def _observe_gyro_bias(self, result: IcpResult, d_i: np.ndarray) -> tuple[float | None, float | None]:
+        """ICP's rotation over the frame into the gyro bias's estimate (runtime.odometry.gyro_bias).
+        Returns (the bias's uncertainty before this frame, which the dead reckoning's rotation
+        over it carried; None when the frame is no observation: ICP does not constrain the
+        rotation, or no gyro over it), and (when this frame completed a block whose bias was a
+        step) the rotation the old bias put into the block's heading, else None."""
+        con = result.constraint
+        est = self.gyro_bias
+        if con is None or con.degenerate_yaw or con.too_few_points:
+            est.break_run()
+            return None, None
+        g_a, g_b = self.gyro_at(result.prev_end_s), self.gyro_at(result.end_s)
+        if g_a is None or g_b is None:
+            est.break_run()
+            return None, None
+        prior = est.sigma_radps
+        back = est.add_frame(result.end_s, float(g_b[0] - g_a[0]), float(d_i[2]), result.end_s - result.prev_end_s,
+                             float(g_b[1] - g_a[1]))
+        return prior, back
 
     def _move_anchor(self, t_b: float, d_b: np.ndarray, inc: np.ndarray, inc_cov: np.ndarray) -> None:
         ja, jb = compose_jacobians(self.anchor_pose, inc)
@@ -271,6 +342,7 @@ class PoseFusion:
 
     def _refuse(self, why: str) -> str:
         self.stats.refused += 1
+        self.gyro_bias.break_run()
         return why
 
 

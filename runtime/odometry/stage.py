@@ -85,6 +85,7 @@ class OdometryStage:
         self._exclude_xy: np.ndarray | None = None
         self.mover_radius_m = 0.30
         self._pose_dr: np.ndarray | None = None
+        self._bias_step_seen: tuple[float, float] | None = None
         self.points_excluded = 0  # counter
         self._first_submit_s: float | None = None
         self._last_update_s: float | None = None
@@ -169,6 +170,22 @@ class OdometryStage:
     # -- the tick ------------------------------------------------------------------------------
     def calibrate_bias(self, imu_samples) -> None:
         self.wheels.calibrate_bias(imu_samples)
+        self.fusion.gyro_bias.restart(self.wheels.gyro_bias_radps)
+
+    def _follow_gyro_bias(self, now_s: float) -> None:
+        """The dead reckoning integrates the gyro with the fusion's newest bias estimate from the
+        next sample on (runtime.odometry.gyro_bias); a step is an event."""
+        est = self.fusion.gyro_bias
+        if not est.config.enabled:
+            return
+        step = est.last_step
+        if step is not None and step != self._bias_step_seen:
+            self._bias_step_seen = step
+            if self.events is not None:
+                self.events.add(now_s, "gyro_bias_step",
+                                f"the gyro's yaw rate disagrees with ICP's rotation: bias now {step[1]:+.4f} rad/s "
+                                f"(was {self.wheels.gyro_bias_radps:+.4f}); ICP leads the heading until it is learnt")
+        self.wheels.gyro_bias_radps = est.bias_radps
 
     @property
     def yaw_rate_radps(self) -> float:
@@ -218,7 +235,7 @@ class OdometryStage:
             resumed = self._take_up_resume(wheels)
             if resumed is not None:  # the dead reckoning and a fresh fusion start at the resumed pose
                 self.wheels.reset(resumed)
-                self.fusion = PoseFusion(self.fusion.config)
+                self.fusion = PoseFusion(self.fusion.config, gyro_bias=self.fusion.gyro_bias)
                 self.fusion.start_at(resumed)
         fallback = None
         if wheels is None and speed_mps is not None and self._last_update_s is not None:
@@ -243,7 +260,9 @@ class OdometryStage:
             if wheels != self._last_wheels:
                 self._last_wheels, self._last_wheels_s = wheels, now_s
         d_now = _pose_vec(self.wheels.update_with_imu(wheels, imu_samples, fallback, gap))
-        fusion.add_dead_reckoning(now_s, d_now, translation_known=known)
+        w = self.wheels
+        fusion.add_dead_reckoning(now_s, d_now, translation_known=known,
+                                  gyro=(w.raw_gyro_yaw_rad, w.gyro_covered_s) if w.imu_samples_used else None)
         self.correction = None
         self.delivered = ()
         if self.worker is not None:
@@ -256,6 +275,7 @@ class OdometryStage:
                 for result in results:
                     self._take(result, now_s)
         pose, cov = fusion.pose_now(d_now, now_s)
+        self._follow_gyro_bias(now_s)
         if self.worker is not None and results:
             # What the corrections did to the pose now, as a motion of the odom frame: whatever
             # was placed in the odom frame with the pose before them (the obstacle points of the
@@ -426,6 +446,7 @@ class OdometryStage:
             "icp_iteration_cap": None if not self.iteration_caps[1] else list(self.iteration_caps),
             "icp_settings": self.icp_settings,
             "resume": self.resume_outcome,
+            "gyro_bias": self.fusion.gyro_bias.describe(),
         }
         return out
 

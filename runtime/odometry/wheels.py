@@ -101,7 +101,12 @@ class WheelGyroOdometry(WheelOdometry):
         self._bias_n = 0
         self._last_imu_stamp: float | None = None
         self._last_rate = 0.0
+        self._last_raw = 0.0
         self.imu_samples_used = 0
+        #: The integral of the raw gyro z rate (rad, unwrapped) and the time it covers (s): what
+        #: the online bias estimate observes (runtime.odometry.gyro_bias), never reset.
+        self.raw_gyro_yaw_rad = 0.0
+        self.gyro_covered_s = 0.0
 
     @property
     def yaw_rate_radps(self) -> float:
@@ -114,6 +119,7 @@ class WheelGyroOdometry(WheelOdometry):
             self._bias_sum += float(s.gyro_radps[2])
             self._bias_n += 1
             self._last_imu_stamp = s.stamp_s
+            self._last_raw = float(s.gyro_radps[2])
         if self._bias_n:
             self.gyro_bias_radps = self._bias_sum / self._bias_n
 
@@ -127,13 +133,17 @@ class WheelGyroOdometry(WheelOdometry):
         d_yaw = 0.0
         have_imu = False
         for s in imu_samples:
-            rate = float(s.gyro_radps[2]) - self.gyro_bias_radps
+            raw = float(s.gyro_radps[2])
+            rate = raw - self.gyro_bias_radps
             if self._last_imu_stamp is not None:
                 dt = s.stamp_s - self._last_imu_stamp
                 if 0.0 < dt < 0.1:  # a gap longer than 100 ms is not integrated
                     d_yaw += 0.5 * (rate + self._last_rate) * dt
+                    self.raw_gyro_yaw_rad += 0.5 * (raw + self._last_raw) * dt
+                    self.gyro_covered_s += dt
             self._last_imu_stamp = s.stamp_s
             self._last_rate = rate
+            self._last_raw = raw
             have_imu = True
             self.imu_samples_used += 1
         if wheels is None:
