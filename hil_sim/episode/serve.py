@@ -94,18 +94,21 @@ class DdsSensorSink:
     """Stands where the lockstep rig's SensorInbox stands (put_scan / put_imu / put_image) and
     publishes each piece as the robot's drivers would (module docstring)."""
 
-    def __init__(self, transport, inputs, to_wall, frames: tuple[str, str] = ("livox_frame", "camera")) -> None:
+    def __init__(self, transport, inputs, to_wall, frames: tuple[str, str] = ("livox_frame", "camera"),
+                 rays_per_frame: int = 20_000) -> None:
         """frames: the lidar's and the camera's frame ids, as the robot's drivers stamp them (the
         controller config's ros.outputs lidar_frame and camera_frame, the children of base_link in
-        its /tf_static)."""
+        its /tf_static). rays_per_frame: the simulated lidar's, for a frame with no return."""
         self.to_wall = to_wall
+        self.rays_per_frame = int(rays_per_frame)
         self.lidar_frame, self.camera_frame = frames
         self.inputs = inputs
         #: CustomMsg, or PointCloud2 in livox_ros_driver2's xfer_format 0 layout (put_scan)
         self._lidar_type = inputs.lidar.type if inputs.lidar is not None else None
         self.open_writers(transport)
         self.published = {"lidar": 0, "imu": 0, "camera": 0}
-        self.skipped_empty_scans = 0
+        #: Frames with no return at all, published as the driver does (put_scan).
+        self.no_return_frames = 0
         self.publish_s = {"lidar": 0.0, "imu": 0.0, "camera": 0.0}
         #: While the drivers' DDS participant is gone (the dds-lost fault): what was not published.
         self.lost = False
@@ -140,9 +143,12 @@ class DdsSensorSink:
 
         if self._lidar is None or self._unheard():
             return True
-        if scan.num_points == 0:  # a Livox driver never sends an empty frame (nothing seen: no frame)
-            self.skipped_empty_scans += 1
-            return True
+        if scan.num_points == 0:
+            # A Livox reports every ray it fires, a ray with no return as a point at (0, 0, 0),
+            # and livox_ros_driver2 publishes them as they come: a frame that saw nothing is a
+            # frame of such points, never a missing one.
+            self.no_return_frames += 1
+            scan = no_return_frame(scan, self.rays_per_frame)
         t0 = time.perf_counter()
         stamp = self.to_wall(scan.stamp_s)
         timebase = int(round(stamp * 1e9))
@@ -200,6 +206,16 @@ class DdsSensorSink:
             width=info.width_px, distortion_model=info.distortion_model, d=[float(v) for v in info.distortion], k=K,
             r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], p=P))
         return True
+
+
+def no_return_frame(scan, rays: int):
+    """`scan` (no points: nothing seen) as a Livox frame of `rays` rays with no return: every
+    point at (0, 0, 0), spread evenly over the frame's duration."""
+    from runtime.common.sensor_data import LidarScan
+
+    pts = np.zeros((rays, 3), dtype=np.float32)
+    offsets = (np.arange(rays, dtype=np.float64) * (scan.frame_duration_s / rays)).astype(np.float32)
+    return LidarScan(scan.stamp_s, pts, offsets, scan.frame_duration_s, scan.frame_id)
 
 
 def lidar_pointcloud2_cdr(scan, timebase_ns: int, frame_id: str = "livox_frame") -> bytes:
@@ -383,7 +399,8 @@ class _Server:
         # the dds-lost fault takes the sensor drivers' own participant away (on the robot they are
         # nodes of their own): they get one; otherwise they share the simulator's
         drivers = _open_transport(config.ros, inputs.domain_id, opts) if losses else self.transport
-        self.sink = DdsSensorSink(drivers, inputs, self.to_wall, (out.lidar_frame, out.camera_frame))
+        self.sink = DdsSensorSink(drivers, inputs, self.to_wall, (out.lidar_frame, out.camera_frame),
+                                  rays_per_frame=SensorRigConfig().lidar.points_per_frame)
         self.dds_loss = (_DdsLoss(losses, self.sink, drivers, lambda: _open_transport(config.ros, inputs.domain_id, opts),
                                   self.echo) if losses else None)
         self.oracle_service = None

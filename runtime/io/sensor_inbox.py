@@ -11,7 +11,9 @@ lidar is not the same as a silent one, and both are named in the stop reason).
 
 A frozen lidar: a frame whose points are identical to the previous frame's (with the same stamp,
 or a new one) is rejected as `frozen_frame`. Real range noise makes two live frames differ in
-every point; a repeated buffer is a driver or network fault.
+every point; a repeated buffer is a driver or network fault. Frames in which no ray returned
+(every point at (0, 0, 0), as a Livox reports them) are alike without being frozen: they pass
+here, and the input monitor judges them blind.
 
 The camera driver's intrinsics (`put_camera_info`, sensor_msgs/CameraInfo) are kept newest-only
 beside the image: what the camera says it is, for the calibration check
@@ -149,6 +151,8 @@ class SensorInbox:
         if last is None or last.num_points != scan.num_points or scan.num_points == 0:
             return
         if scan.points_m is last.points_m or np.array_equal(scan.points_m, last.points_m):
+            if not np.any(scan.points_m):
+                return  # every ray without a return (a Livox's (0, 0, 0)): a blind frame, judged as one
             same_stamp = scan.stamp_s == last.stamp_s
             raise FrozenFrameError(
                 f"frame at {scan.stamp_s:.6f} s repeats the previous frame's {scan.num_points} points"

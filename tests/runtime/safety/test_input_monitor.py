@@ -61,6 +61,25 @@ def test_inbox_rejects_a_repeated_frame_with_or_without_a_new_stamp():
     assert inbox.take().rejected == ()  # handed over once
 
 
+def test_frames_without_any_return_are_blind_not_frozen():
+    """A Livox reports a ray with no return as a point at (0, 0, 0): a sensor that sees nothing
+    sends frames of such points, alike from frame to frame. They are blind, not a repeated buffer."""
+    from hil_sim.episode.serve import no_return_frame
+
+    mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=True, uses_imu=False)
+    inbox = SensorInbox()
+    inbox.put_scan(ring_scan(0.0))
+    assert mon.check(fresh_inputs(0.1), inbox.take(), 0.1) == ()
+    for k in (1, 2, 3):
+        empty = LidarScan(0.1 * k, np.zeros((0, 3), np.float32), np.zeros(0, np.float32), 0.1, nothing_seen=True)
+        frame = no_return_frame(empty, 20_000)
+        assert frame.num_points == 20_000 and not frame.points_m.any()
+        assert inbox.put_scan(frame)
+        faults = mon.check(fresh_inputs(0.1 * k + 0.12), inbox.take(), 0.1 * k + 0.12)
+        assert [f.reason for f in faults] == ["lidar blind: 0 of 20000 rays returned within 6 m (minimum 5%)"]
+    assert inbox.error_counts == {}
+
+
 def test_monitor_names_frozen_then_stale_then_resumes_on_a_good_frame():
     mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=True, uses_imu=False)
     inbox = SensorInbox()
