@@ -92,7 +92,8 @@ _CAN_FAILURES = {
 }
 
 FAULT_KINDS: tuple[FaultKind, ...] = (
-    FaultKind("lidar-blind", "lidar", "blind", "every ray out of range: frames arrive with no points (nothing_seen)"),
+    FaultKind("lidar-blind", "lidar", "blind", "every ray out of range: frames with no return (lockstep: no points, "
+                                               "nothing_seen; over DDS: every point at (0, 0, 0), as a Livox sends them)"),
     FaultKind("lidar-far", "lidar", "far", "only returns beyond the planner's range: every point pushed out to far_m"),
     FaultKind("lidar-frozen", "lidar", "frozen", "the last frame before the fault delivered again and again, stamp "
                                                  "included"),
