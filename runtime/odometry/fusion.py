@@ -317,8 +317,9 @@ class PoseFusion:
         """ICP's rotation over the frame into the gyro bias's estimate (runtime.odometry.gyro_bias).
         Returns (the bias's uncertainty before this frame, which the dead reckoning's rotation
         over it carried; None when the frame is no observation: ICP does not constrain the
-        rotation, or no gyro over it), and (when this frame completed a block whose bias was a
-        step) the rotation the old bias put into the block's heading, else None."""
+        rotation, or no gyro over it), and (when this frame completed a block over which the gyro
+        and ICP disagree beyond the estimate's gate) the rotation the gyro put into the block's
+        heading beyond ICP's, else None."""
         con = result.constraint
         est = self.gyro_bias
         if con is None or con.degenerate_yaw or con.too_few_points:
