@@ -13,6 +13,7 @@ from runtime.odometry.gyro_bias import GyroBiasConfig, GyroBiasEstimator
 from tests.runtime.odometry.test_fusion import _result, _room_constraint
 
 DT = 0.1  # one ICP frame
+ON = GyroBiasConfig(enabled=True)
 
 
 def _frames(bias_at, seconds, rng, jitter_rad=0.005, turn_radps=0.3, start_s=0.0):
@@ -45,19 +46,19 @@ def _feed(est, frames):
 def test_icp_jitter_alone_is_no_step_and_the_bias_is_learnt(seed, bias):
     # Fixed seeds: with the gate at 3 sigma, two agreeing blocks beyond it happen by chance about
     # once in 300,000 pairs (Gaussian jitter), so a random draw would make this test flaky.
-    est = GyroBiasEstimator(GyroBiasConfig())
+    est = GyroBiasEstimator(ON)
     steps, _ = _feed(est, _frames(lambda t: bias, 600.0, np.random.default_rng(seed)))
     assert steps == []
     assert abs(est.bias_radps - bias) < 0.003, est.describe()
 
 
 def test_a_bias_step_is_found_within_two_blocks_and_its_heading_given_back():
-    est = GyroBiasEstimator(GyroBiasConfig())
+    est = GyroBiasEstimator(ON)
     steps, _ = _feed(est, _frames(lambda t: 0.1 if 10.0 <= t < 20.0 else 0.0, 15.0, np.random.default_rng(3)))
     ((t_on, bias_on),) = steps
     assert 10.0 < t_on <= 11.05 and abs(bias_on - 0.1) < 0.02, steps
     # the two blocks before the step was sure: the gyro's extra rotation went back to ICP
-    on_blocks = GyroBiasEstimator(GyroBiasConfig())
+    on_blocks = GyroBiasEstimator(ON)
     _feed(on_blocks, _frames(lambda t: 0.0, 10.0, np.random.default_rng(3)))
     _, back = _feed(on_blocks, _frames(lambda t: 0.1, 1.0, np.random.default_rng(4), start_s=10.0))
     assert abs(back - 0.1) < 0.02, back
@@ -67,7 +68,7 @@ def test_a_bias_step_is_found_within_two_blocks_and_its_heading_given_back():
 
 
 def test_one_bad_block_is_suspect_not_a_step():
-    est = GyroBiasEstimator(GyroBiasConfig())
+    est = GyroBiasEstimator(ON)
     frames = _frames(lambda t: 0.0, 20.0, np.random.default_rng(4))
     frames[52] = (frames[52][0], frames[52][1], frames[52][2] + 0.05)  # ICP off by 3 degrees once
     steps, _ = _feed(est, frames)
@@ -75,13 +76,13 @@ def test_one_bad_block_is_suspect_not_a_step():
 
 
 def test_a_slow_drift_is_followed_without_steps():
-    est = GyroBiasEstimator(GyroBiasConfig())
+    est = GyroBiasEstimator(ON)
     steps, _ = _feed(est, _frames(lambda t: 0.015 * min(t / 120.0, 1.0), 300.0, np.random.default_rng(5)))
     assert steps == [] and abs(est.bias_radps - 0.015) < 0.004, est.describe()
 
 
 def test_frames_the_gyro_did_not_cover_break_the_block():
-    est = GyroBiasEstimator(GyroBiasConfig())
+    est = GyroBiasEstimator(ON)
     for k in range(20):
         est.add_frame(0.1 * k, 0.05, 0.0, DT, 0.02)  # the IMU was silent for most of each frame
     assert est.stats.observations == 0 and est.stats.skipped == 20 and est.bias_radps == 0.0
@@ -120,7 +121,7 @@ def _drive_with_biased_gyro(config: FusionConfig, seconds=20.0):
 
 def test_with_the_estimate_a_bias_step_costs_the_heading_little():
     off, _ = _drive_with_biased_gyro(FusionConfig(gyro_bias=GyroBiasConfig(enabled=False)))
-    on, f = _drive_with_biased_gyro(FusionConfig())
+    on, f = _drive_with_biased_gyro(FusionConfig(gyro_bias=ON))
     assert off > 0.5  # 15 s of 0.1 rad/s, the gyro leading: most of 1.5 rad
     # the step's second is given back; what stays is the estimate's own error (a few mrad/s)
     # integrated over the 14 s after it
