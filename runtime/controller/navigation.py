@@ -382,9 +382,9 @@ class NavigationController:
         """Wheels + gyro every tick, good lidar frames to ICP (beside the tick), the fused pose. An
         IMU the watchdogs fault this tick (stuck, saturated, a sample refused) gives the odometry
         nothing: its samples may be valid one by one, not together, and the gyro is integrated. A
-        stuck 0x311 is still given: its distances, frozen, add no motion, and the first fresh ones
-        after it add what the wheels did meanwhile (the odometry re-anchors only after a gap the
-        0x221 speed bridged)."""
+        stuck 0x311 is given as it comes: the odometry stage judges its distances frozen when
+        they stop changing while 0x221 reports motion, and takes the 0x221 speed instead
+        (runtime.odometry.stage, OdometryConfig.wheels_frozen_s)."""
         imu = sensors.imu if not any(f.stream == "imu" for f in self.faults) else ()
         if self.monitor.base_rebooted_now:  # its odometers restarted from zero: not motion
             self.odometry.base_restarted()

@@ -29,7 +29,7 @@ from runtime.odometry.icp import IcpEngine, IcpJob, IcpResult
 from runtime.odometry.icp_config import IcpConfig
 from runtime.odometry.icp_settings import RangeGate
 from runtime.odometry.se2 import se2_between, se2_compose, se2_inverse
-from runtime.odometry.wheels import WheelGyroOdometry, WheelOdometry
+from runtime.odometry.wheels import OdometerWatch, WheelGyroOdometry, WheelOdometry
 from runtime.odometry.worker import InlineIcpWorker, ProcessIcpWorker
 from runtime.common.sensor_data import LidarScan
 
@@ -52,6 +52,14 @@ class OdometryConfig(BaseModel):
     lockstep_latency_s: float = Field(0.1, gt=0.0, le=2.0)
     #: No ICP correction for longer than this: "icp_lost" event (wheels and gyro carry the pose).
     max_icp_age_s: float = Field(0.6, gt=0.05, le=30.0)
+    #: 0x311's wheel distances unchanged for at least this long while the 0x221 speed accounts
+    #: for `wheels_frozen_speed_mps` x `wheels_frozen_s` of wheel travel (5 mm; the odometer counts
+    #: millimetres): frozen readings, not a robot standing still (both come from the same
+    #: encoders; runtime.odometry.wheels.OdometerWatch). The distances are then not used until
+    #: they change; the base's speed carries the translation from their last change, and they
+    #: re-anchor on the next new one (0: off, every fresh reading is used).
+    wheels_frozen_s: float = Field(0.1, ge=0.0, le=5.0)
+    wheels_frozen_speed_mps: float = Field(0.05, gt=0.0, le=5.0)
 
 
 def _pose_vec(p: Pose2D) -> np.ndarray:
@@ -92,6 +100,12 @@ class OdometryStage:
         self._last_wheels: tuple[float, float] | None = None
         self._last_wheels_s: float | None = None  # when the wheel distances last changed
         self._blind_since_s: float | None = None  # the base has said nothing of its motion since
+        self._speed_m = 0.0  # the base's reported speed (0x221) integrated: a distance odometer
+        self._speed_m_at_change = 0.0  # ... when the wheel distances last changed
+        self._wheels_used = False  # the last update used wheel distances
+        self.frozen_wheels_since_s: float | None = None  # 0x311 frozen while 0x221 reports motion
+        self._odometer = OdometerWatch(config.wheels_frozen_speed_mps * config.wheels_frozen_s, config.wheels_frozen_s)
+        self.frozen_wheel_spells = 0  # counter
         self.pose = Pose2D(0.0, 0.0, 0.0)
         self.covariance = np.zeros((3, 3))
         #: This tick's ICP correction as a planar transform of the odom frame (None: none):
@@ -196,6 +210,26 @@ class OdometryStage:
         """The base's cumulative wheel distances of the newest reading given to update()."""
         return self._last_wheels
 
+    def _unless_frozen(self, now_s: float, wheels: tuple[float, float] | None,
+                       speed_mps: float | None) -> tuple[float, float] | None:
+        """The wheel distances, or None while they are frozen (OdometryConfig.wheels_frozen_s,
+        runtime.odometry.wheels.OdometerWatch), until they change (a robot the stuck readings'
+        fault stopped still has them withheld: the next new reading re-anchors, its jump over the
+        spell is not counted beside the speed's)."""
+        frozen = self._odometer.update(now_s, wheels, speed_mps) if self.config.wheels_frozen_s > 0.0 else False
+        if wheels is None:
+            return None
+        if self.frozen_wheels_since_s is not None:
+            if wheels != self._last_wheels:
+                self.frozen_wheels_since_s = None
+                return wheels
+            return None
+        if frozen:
+            self.frozen_wheels_since_s = self._last_wheels_s
+            self.frozen_wheel_spells += 1
+            return None
+        return wheels
+
     def base_restarted(self) -> None:
         """The base rebooted: its odometers start again from zero (the next reading re-anchors)."""
         self.wheels.reanchor()
@@ -237,9 +271,16 @@ class OdometryStage:
                 self.wheels.reset(resumed)
                 self.fusion = PoseFusion(self.fusion.config, gyro_bias=self.fusion.gyro_bias)
                 self.fusion.start_at(resumed)
+        if speed_mps is not None and self._last_update_s is not None:
+            self._speed_m += speed_mps * (now_s - self._last_update_s)
+        wheels = self._unless_frozen(now_s, wheels, speed_mps)
         fallback = None
         if wheels is None and speed_mps is not None and self._last_update_s is not None:
-            fallback = speed_mps * (now_s - self._last_update_s)
+            # The distances given since their last change added no motion: the first tick
+            # without them takes what the base's speed says it moved since that change.
+            fallback = self._speed_m - self._speed_m_at_change if self._wheels_used \
+                else speed_mps * (now_s - self._last_update_s)
+        self._wheels_used = wheels is not None
         self._last_update_s = now_s
         gap = None
         known = wheels is not None or fallback is not None
@@ -259,6 +300,7 @@ class OdometryStage:
             gap = None if self._last_wheels_s is None else now_s - self._last_wheels_s
             if wheels != self._last_wheels:
                 self._last_wheels, self._last_wheels_s = wheels, now_s
+                self._speed_m_at_change = self._speed_m
         d_now = _pose_vec(self.wheels.update_with_imu(wheels, imu_samples, fallback, gap))
         w = self.wheels
         fusion.add_dead_reckoning(now_s, d_now, translation_known=known,
@@ -447,6 +489,8 @@ class OdometryStage:
             "icp_settings": self.icp_settings,
             "resume": self.resume_outcome,
             "gyro_bias": self.fusion.gyro_bias.describe(),
+            "wheels_frozen_spells": self.frozen_wheel_spells,
+            "wheels_frozen": self.frozen_wheels_since_s is not None,
         }
         return out
 

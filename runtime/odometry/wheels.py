@@ -16,6 +16,46 @@ MAX_WHEEL_SPEED_MPS = 2.0
 WHEEL_STEP_MARGIN_M = 0.1
 
 
+#: Speeds below this count no travel in OdometerWatch: a millimetre odometer read at 50 Hz may
+#: stay unchanged for a frame or more that slowly, and a still base's speed may carry noise.
+ODOMETER_WATCH_SPEED_FLOOR_MPS = 0.02
+
+
+class OdometerWatch:
+    """Whether the wheel distances (0x311) follow the base's reported speed (0x221). Both come from
+    the same encoders: distances that stay unchanged while the speed accounts for `travel_m` of
+    wheel travel (|speed| integrated, trapezoid) over at least `min_s` are frozen readings, not a
+    robot standing still (speeds under ODOMETER_WATCH_SPEED_FLOOR_MPS count none). Travel, not a
+    speed held throughout: a robot creeping stop-and-go in a tight gap reports 0.06 and 0.003 m/s
+    on alternate ticks, and still turns its wheels."""
+
+    def __init__(self, travel_m: float, min_s: float) -> None:
+        self.travel_limit_m = float(travel_m)
+        self.min_s = float(min_s)
+        self.distances: tuple[float, float] | None = None  # the last reading
+        self.unchanged_since_s: float | None = None  # when the distances last changed
+        self.travel_m = 0.0  # what the speed accounts for since
+        self._prev: tuple[float, float] | None = None  # (t, |speed|) of the last update with a speed
+
+    def update(self, now_s: float, distances: tuple[float, float] | None, speed_mps: float | None) -> bool:
+        """The tick's reading (None: none fresh) and speed (None: none fresh); True: frozen now."""
+        if distances is None:
+            return False
+        speed = None if speed_mps is None else \
+            (abs(speed_mps) if abs(speed_mps) >= ODOMETER_WATCH_SPEED_FLOOR_MPS else 0.0)
+        if distances != self.distances:
+            self.distances, self.unchanged_since_s, self.travel_m = distances, now_s, 0.0
+            self._prev = None if speed is None else (now_s, speed)
+            return False
+        if speed is None:
+            self._prev = None
+            return False
+        if self._prev is not None:
+            self.travel_m += 0.5 * (self._prev[1] + speed) * (now_s - self._prev[0])
+        self._prev = (now_s, speed)
+        return self.travel_m >= self.travel_limit_m and now_s - self.unchanged_since_s >= self.min_s
+
+
 class WheelOdometry:
     """Integrates left/right wheel distance increments (midpoint rule) into a pose in the odom frame.
 

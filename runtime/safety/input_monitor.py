@@ -15,9 +15,10 @@ Streams and rules:
   needs the start-up sequence (a fresh enable), for up to `base_reboot_window_s` after it came
   back (a base switched to standby while it kept talking has been taken from us: the controller
   stops for good, runtime.controller.navigation).
-  0x311 stuck: its wheel distances unchanged for `odometry_stuck_s` while 0x221 kept reporting
-  the base moving (both come from the same wheel encoders: a live base cannot do that); the
-  fault holds until the distances change.
+  0x311 stuck: its wheel distances unchanged for at least `odometry_stuck_s` while 0x221's speed
+  accounts for `odometry_stuck_speed_mps` x `odometry_stuck_s` of wheel travel (12.5 mm; both
+  come from the same wheel encoders: a live base cannot do that); the fault holds until the
+  distances change.
 - IMU: a sample at least every `imu_timeout_s`; a saturated or rejected sample is a fault, and so
   are `imu_stuck_samples` samples in a row with the very same values (a live sensor's noise
   changes its last bits every sample); that fault holds until a sample differs.
@@ -44,6 +45,7 @@ from firmware_bridge import protocol
 from runtime.io.hardware import BaseInputs
 from runtime.common.sensor_data import LidarScan
 from runtime.io.sensor_inbox import SensorSnapshot
+from runtime.odometry.wheels import OdometerWatch
 
 
 class LidarInputConfig(BaseModel):
@@ -84,8 +86,8 @@ class InputsConfig(BaseModel):
     #: This many IMU samples in a row with identical values: the IMU is stuck (0: off). 20 at
     #: 200 Hz: 0.1 s.
     imu_stuck_samples: int = Field(default=20, ge=0, le=100_000)
-    #: 0x311's wheel distances unchanged this long while 0x221 reports the base moving at least
-    #: odometry_stuck_speed_mps: 0x311 is stuck (0: off).
+    #: 0x311's wheel distances unchanged at least this long while 0x221's speed accounts for
+    #: odometry_stuck_speed_mps x odometry_stuck_s of travel: 0x311 is stuck (0: off).
     odometry_stuck_s: float = Field(default=0.25, ge=0.0, le=10.0)
     odometry_stuck_speed_mps: float = Field(default=0.05, gt=0.0, le=5.0)
     #: A sample or frame stamped later than now plus this is refused (a clock gone wrong must
@@ -163,12 +165,13 @@ class InputMonitor:
         self._imu_fault: str | None = None
         self._imu_last_values: tuple | None = None
         self._imu_same = 0  # samples in a row with the previous one's values
-        self._odometry: tuple[float, float] | None = None  # the last 0x311 distances seen
+        #: 0x311 against 0x221: stuck when the speed accounts for odometry_stuck_speed_mps x
+        #: odometry_stuck_s of wheel travel (12.5 mm) over at least odometry_stuck_s.
+        self._odometer = OdometerWatch(config.odometry_stuck_speed_mps * config.odometry_stuck_s, config.odometry_stuck_s)
         self._system_silent_s: float | None = None  # the last tick at which 0x211 was stale
         #: This tick: the base is back in standby after a silence (it rebooted; module docstring);
         #: _now: and it was not the tick before (its odometers restarted: the odometry re-anchors).
         self.base_rebooted = self.base_rebooted_now = False
-        self._moving_unchanged_s: float | None = None  # since when 0x221 says moving and 0x311 holds still
         self._odometry_stuck: str | None = None
         self._lidar_good_end_s: float | None = None  # end of the newest good frame
         self._lidar_fault: str | None = None  # the last problem, until enough good frames
@@ -210,27 +213,21 @@ class InputMonitor:
             out.append(InputFault("0x311", stuck))
 
     def _odometry_stuck_fault(self, inputs: BaseInputs) -> str | None:
-        """0x311 stuck (module docstring): its distances unchanged for odometry_stuck_s while 0x221
-        reports motion; held until they change."""
+        """0x311 stuck (module docstring): its distances unchanged while 0x221's speed accounts for
+        wheel travel (runtime.odometry.wheels.OdometerWatch); held until they change."""
         c = self.config
         if c.odometry_stuck_s <= 0.0 or inputs.odometry is None:
             return None
-        now = inputs.stamp_s
-        if inputs.odometry != self._odometry:
-            self._odometry = inputs.odometry
-            self._moving_unchanged_s = None
+        speed = inputs.linear_mps if inputs.motion_state_age_s <= c.motion_state_timeout_s else None
+        watch = self._odometer
+        changed = inputs.odometry != watch.distances
+        stuck = watch.update(inputs.stamp_s, inputs.odometry, speed)
+        if changed:
             self._odometry_stuck = None
-            return None
-        if self._odometry_stuck is not None:
-            return self._odometry_stuck
-        if abs(inputs.linear_mps) < c.odometry_stuck_speed_mps or inputs.motion_state_age_s > c.motion_state_timeout_s:
-            self._moving_unchanged_s = None
-            return None
-        if self._moving_unchanged_s is None:
-            self._moving_unchanged_s = now
-        if now - self._moving_unchanged_s >= c.odometry_stuck_s:
-            self._odometry_stuck = (f"0x311 stuck (wheel distances unchanged for {now - self._moving_unchanged_s:.2f} s "
-                                    f"while 0x221 reports {inputs.linear_mps:.2f} m/s)")
+        elif stuck and self._odometry_stuck is None:
+            self._odometry_stuck = (f"0x311 stuck (wheel distances unchanged for "
+                                    f"{inputs.stamp_s - watch.unchanged_since_s:.2f} s while 0x221's speed "
+                                    f"accounts for {1e3 * watch.travel_m:.0f} mm of travel)")
         return self._odometry_stuck
 
     def _imu_faults(self, snapshot: SensorSnapshot, now_s: float, out: list[InputFault]) -> None:

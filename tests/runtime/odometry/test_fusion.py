@@ -569,6 +569,51 @@ def test_without_fresh_wheel_distances_the_reported_speed_carries_the_translatio
     assert odo.pose.x_m == pytest.approx(0.25)
 
 
+def test_frozen_wheel_distances_give_way_to_the_reported_speed_from_their_last_change():
+    """0x311 repeating one reading while 0x221 reports 1 m/s (a stuck odometer): after
+    wheels_frozen_s the distances are withheld and the speed carries the translation from their
+    last change (the frozen ticks before it included); when they change again they re-anchor,
+    their jump over the spell not counted beside the speed's, even after the robot stopped."""
+    from runtime.common.events import EventLog
+    from runtime.odometry.stage import OdometryConfig, OdometryStage
+
+    stage = OdometryStage(OdometryConfig(source="wheels_imu"), 0.175, 1.0, MOUNT, lockstep=True, events=EventLog())
+    stage.start()
+    dt, v = 0.05, 1.0
+    t = 0.0
+    stage.update(t, (0.0, 0.0), (), None, speed_mps=0.0)
+    for k in range(1, 11):  # 0.5 s at 1 m/s, the distances fresh
+        t = k * dt
+        stage.update(t, (v * t, v * t), (), None, speed_mps=v)
+    assert stage.pose.x_m == pytest.approx(0.5)
+    frozen = (v * t, v * t)
+    for k in range(1, 11):  # 0.5 s more at 1 m/s: the same reading every tick
+        stage.update(t + k * dt, frozen, (), None, speed_mps=v)
+        if k == 2:  # 0.1 s unchanged: not yet judged (a reading may lag)
+            assert not stage.describe()["wheels_frozen"]
+    assert stage.describe()["wheels_frozen"] and stage.describe()["wheels_frozen_spells"] == 1
+    assert stage.pose.x_m == pytest.approx(1.0)
+    t += 10 * dt
+    for k in range(1, 5):  # stopped (by the stuck fault's stop), still the frozen reading
+        stage.update(t + k * dt, frozen, (), None, speed_mps=0.0)
+    assert stage.describe()["wheels_frozen"] and stage.pose.x_m == pytest.approx(1.0)
+    t += 4 * dt
+    stage.update(t + dt, (1.0, 1.0), (), None, speed_mps=0.0)  # the odometer again: 0.5 m jump, re-anchored
+    stage.update(t + 2 * dt, (1.01, 1.01), (), None, speed_mps=0.2)
+    assert not stage.describe()["wheels_frozen"] and stage.pose.x_m == pytest.approx(1.01)
+    # a robot standing still has unchanging distances: not frozen, however long
+    still = OdometryStage(OdometryConfig(source="wheels_imu"), 0.175, 1.0, MOUNT, lockstep=True, events=EventLog())
+    still.start()
+    for k in range(1, 40):
+        still.update(k * dt, (0.0, 0.0), (), None, speed_mps=0.01)
+    assert still.describe()["wheels_frozen_spells"] == 0 and still.pose.x_m == pytest.approx(0.0)
+    # ... and one that starts moving reports its speed a tick or two before its distances move
+    for k in range(40, 42):
+        still.update(k * dt, (0.0, 0.0), (), None, speed_mps=0.06)
+    still.update(42 * dt, (0.008, 0.008), (), None, speed_mps=0.1)
+    assert still.describe()["wheels_frozen_spells"] == 0 and still.pose.x_m == pytest.approx(0.008)
+
+
 def test_pose_at_a_past_time_is_the_pose_now_taken_back_by_the_wheels():
     """pose_at(t): where the robot was at t (a camera frame's capture) - the fused pose now, taken
     back by the wheel motion since t; None outside the dead-reckoning history or before any pose."""

@@ -225,7 +225,8 @@ def test_wheel_distances_that_stop_while_the_base_reports_motion_are_a_stuck_0x3
     for _ in range(8):  # 0x311 stuck: 0x221 still says 0.5 m/s
         t += 0.05
         reasons.append([f.reason for f in mon.check(_base(t, (d, d), 0.5), no_sensors, t)])
-    assert reasons[:5] == [[]] * 5 and reasons[5][0].startswith("0x311 stuck (wheel distances unchanged for 0.25 s")
+    # 0.25 s after the distances last changed, the speed accounting for 125 mm of travel
+    assert reasons[:4] == [[]] * 4 and reasons[4][0].startswith("0x311 stuck (wheel distances unchanged for 0.25 s")
     t += 0.05  # stopped by the controller: still stuck (the distances have not changed)
     assert mon.check(_base(t, (d, d), 0.0), no_sensors, t)[0].reason.startswith("0x311 stuck")
     t += 0.05
@@ -233,6 +234,13 @@ def test_wheel_distances_that_stop_while_the_base_reports_motion_are_a_stuck_0x3
     for _ in range(20):  # standing still: unchanged distances are right
         t += 0.05
         assert mon.check(_base(t, (d + 0.1, d + 0.1), 0.0), no_sensors, t) == ()
+    # creeping stop-and-go in a tight gap (0.06 and 0.003 m/s on alternate ticks): the wheels turn,
+    # the distances must follow; stuck once the speed accounts for 12.5 mm (about 0.4 s here)
+    creeping = []
+    for k in range(16):
+        t += 0.05
+        creeping.append(bool(mon.check(_base(t, (d + 0.1, d + 0.1), 0.06 if k % 2 == 0 else 0.003), no_sensors, t)))
+    assert creeping.index(True) in range(6, 10) and all(creeping[creeping.index(True):])
 
 
 def test_a_base_back_in_standby_after_its_feedback_stopped_has_rebooted_and_needs_a_restart():
