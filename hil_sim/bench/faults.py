@@ -229,11 +229,39 @@ def _reduce(task: FaultTask, record: dict, m: dict, faults: list, wall0: float) 
         "stop_latency_s": zero - start if base_stop else (max(zero, verdict) - start if stopped else None),
         "detected_s": verdict - start if verdict is not None else None,
         "stop_after_detect_s": max(0.0, zero - verdict) if stopped and verdict is not None else None,
-        "resume_s": (fault["moving_after_s"] - end) if fault["moving_after_s"] is not None else None,
+        **_resume(m["events"], end, fault["moving_after_s"]),
         "reasons": sorted({e["reason"] for e in stops}),
         "stop_kinds": stop_kinds([e["reason"] for e in stops]),
         **outcome,
     }
+
+
+def _resume(events: list[dict], end_s: float, moving_after_s: float | None) -> dict:
+    """When the robot drove again after the fault (resume_s, from its end): the first nonzero
+    command the base obeyed, or the controller's `resume` where the safety supervisor was holding
+    the robot then (held_by_supervisor): a stop the run without the fault has too (a swept
+    footprint too close in a tight gap), so the controller's recovery ends at its resume and the
+    planner's wait behind the supervisor is the scene's, not the fault's."""
+    resumed = next((e["t_s"] for e in events if e["event"] == "resume" and e["t_s"] >= end_s - 1e-9), None)
+    held = resumed is not None and (moving_after_s is None or resumed < moving_after_s) \
+        and _supervisor_holding(events, resumed)
+    if held:
+        return {"resume_s": resumed - end_s, "held_by_supervisor": True}
+    return {"resume_s": moving_after_s - end_s if moving_after_s is not None else None, "held_by_supervisor": False}
+
+
+def _supervisor_holding(events: list[dict], t_s: float) -> bool:
+    """Whether the supervisor's stops were in force at t_s: a `supervisor_stop` at or before it
+    with no `supervisor_clear` between."""
+    holding = False
+    for e in events:
+        if e["t_s"] > t_s + 1e-9:
+            break
+        if e["event"] == "supervisor_stop":
+            holding = True
+        elif e["event"] == "supervisor_clear":
+            holding = False
+    return holding
 
 
 def stop_kinds(reasons: Iterable[str]) -> list[str]:
@@ -280,6 +308,7 @@ def fault_row(fault: str, records: list[dict], baseline: dict | None = None,
         "stop_after_verdict_max_s": max(after_verdict) if after_verdict else None,
         "resume_p50_s": _pct(resumes, 50), "resume_max_s": max(resumes) if resumes else None,
         "not_resumed": sum(1 for r in ok if r["resume_s"] is None),
+        "resumed_held_by_supervisor": sum(1 for r in ok if r.get("held_by_supervisor")),
         "fixed_contacts": sum(r["fixed_contacts"] for r in ok),
         "reached_goal": sum(r["success"] for r in ok),
         "goal_lost": 0 if expected.latched else sum(
@@ -398,12 +427,15 @@ def format_fault_table(result: dict) -> list[str]:
     for r in result["rows"]:
         mark = "  DIFFERS: " + "; ".join(r["differs"]) if r["differs"] else ""
         reasons = "; ".join(x[:48] for x in r["reasons"][:3]) or "-"
+        if r.get("resumed_held_by_supervisor"):
+            mark = f"  ({r['resumed_held_by_supervisor']} resumed behind the supervisor's stop)" + mark
         lines.append(f"{r['fault']:<20} {r['episodes']:>3} {r['stopped']:>4} {_ms(r['stop_p50_s']):>5} "
                      f"{_ms(r['stop_p99_s']):>5} {_ms(r['stop_max_s']):>5} | "
                      f"{_ms(r['resume_p50_s']):>6}/{_ms(r['resume_max_s']):<7} | {r['fixed_contacts']:>5} "
                      f"{r['reached_goal']:>4} | {reasons}{mark}")
     lines.append("stop: episodes whose base obeyed a zero command while the fault lasted; p50/p99/max: ms from the "
-                 "injection to it; resume: ms from the fault's end until the base drove again; fixed: fixed contacts; "
+                 "injection to it; resume: ms from the fault's end until the base drove again (until the controller "
+                 "resumed, where the safety supervisor held the robot then, as without the fault); fixed: fixed contacts; "
                  "goal: episodes that reached it. The expected reactions: docs/faults.md.")
     b = result["baseline"]
     lines.append(f"without a fault: {b['reached_goal']} of {b['episodes']} episodes reached the goal; a fault's goal "

@@ -150,3 +150,26 @@ def test_the_vlms_faults_last_long_enough_to_meet_a_request(monkeypatch):
     seen.clear()
     F.run_fault_campaign(scenes=["case3"], seeds=1, faults=["vlm-error", "imu-silent"])
     assert {t.fault: t.duration_s for t in seen} == {"none": 1.0, "vlm-error": F.VLM_MIN_DURATION_S, "imu-silent": 1.0}
+
+
+def test_a_resume_behind_the_supervisors_stop_counts_at_the_controllers_resume():
+    """In a tight gap the supervisor holds the robot with or without the fault: the recovery is
+    the controller's resume; anywhere else it is the first nonzero command the base obeyed."""
+    import hil_sim.bench.faults as F
+
+    held = [{"t_s": 1.65, "event": "supervisor_stop", "reason": "swept footprint"},
+            {"t_s": 2.2, "event": "stop", "reason": "0x221 stale"},
+            {"t_s": 3.25, "event": "resume", "reason": "start-up sequence complete"},
+            {"t_s": 4.6, "event": "supervisor_clear", "reason": "no supervisor stop for 10 ticks"}]
+    r = F._resume(held, 3.0, 4.15)
+    assert r["held_by_supervisor"] and abs(r["resume_s"] - 0.25) < 1e-9
+    cleared = held[:1] + [{"t_s": 1.9, "event": "supervisor_clear", "reason": "-"}] + held[1:3]
+    r = F._resume(cleared, 3.0, 4.15)
+    assert not r["held_by_supervisor"] and abs(r["resume_s"] - 1.15) < 1e-9
+    assert F._resume(held, 3.0, None) == {"resume_s": 0.25, "held_by_supervisor": True}
+    assert F._resume(cleared, 3.0, None) == {"resume_s": None, "held_by_supervisor": False}
+    bus_off = {"fault": "bus-off", "stop_latency_s": 0.5, "reasons": ["0x221 stale (no frame for 0.15 s)"],
+               "stop_kinds": ["0x221 stale"]}
+    row = F.fault_row("bus-off", [_record(resume_s=0.25, held_by_supervisor=True, **bus_off),
+                                  _record(resume_s=0.3, **bus_off)])
+    assert row["resumed_held_by_supervisor"] == 1 and row["differs"] == []
