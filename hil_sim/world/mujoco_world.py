@@ -128,6 +128,8 @@ class World:
              (o.pose.x_m, o.pose.y_m), o)
             for o in scenario.obstacles if o.obstacle_class == "person"
         ]
+        #: Their walks measured once (None: standing), asked at every physics step.
+        self._paths = [None if ob.walk is None else ob.walk.path(start) for _, _, start, ob in self._people]
 
     # --- state -------------------------------------------------------------------------
     def reset(self, seed: int = 0) -> None:
@@ -150,9 +152,9 @@ class World:
         mujoco.mj_forward(m, d)
 
     def _move_people(self, t_s: float) -> None:
-        for _, mocap, start, ob in self._people:
-            if ob.walk is not None:
-                self.data.mocap_pos[mocap, :2] = ob.walk.positions(start, t_s)[0]
+        for (_, mocap, _, _), path in zip(self._people, self._paths):
+            if path is not None:
+                self.data.mocap_pos[mocap, :2] = path.at(t_s)
 
     def person_position(self, name: str, t_s: float | None = None) -> np.ndarray:
         """(x, y) of a person now, or where its walk puts it at time t_s."""

@@ -121,15 +121,43 @@ class PersonWalk(StrictModel):
     def positions(self, start_xy: tuple[float, float], t_s: np.ndarray | float) -> np.ndarray:
         """(N, 2) positions at times t_s (seconds from the start of the episode), vectorised:
         arc length speed * (t - delay) along the polyline, wrapped per lap unless mode once."""
-        pts = self.polyline(start_xy)
-        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-        cum = np.concatenate([[0.0], np.cumsum(seg)])
-        s = np.maximum(np.atleast_1d(np.asarray(t_s, dtype=float)) - self.start_delay_s, 0.0) * self.speed_mps
-        lap = cum[-1]
+        return self.path(start_xy).positions(t_s)
+
+    def path(self, start_xy: tuple[float, float]) -> "WalkPath":
+        """The walk from `start_xy` with its polyline measured once (the simulator asks where the
+        person is at every physics step)."""
+        return WalkPath(self, start_xy)
+
+
+class WalkPath:
+    """A PersonWalk from a start: its polyline and cumulative arc lengths, computed once."""
+
+    def __init__(self, walk: PersonWalk, start_xy: tuple[float, float]) -> None:
+        self.walk = walk
+        self.points = walk.polyline(start_xy)
+        seg = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        self.cum = np.concatenate([[0.0], np.cumsum(seg)])
+        self._x, self._y = self.points[:, 0].copy(), self.points[:, 1].copy()
+
+    def positions(self, t_s: np.ndarray | float) -> np.ndarray:
+        """(N, 2) positions at times t_s (PersonWalk.positions)."""
+        w = self.walk
+        s = np.maximum(np.atleast_1d(np.asarray(t_s, dtype=float)) - w.start_delay_s, 0.0) * w.speed_mps
+        lap = self.cum[-1]
         if lap <= 0.0:
-            return np.repeat(pts[:1], s.size, axis=0)
-        s = np.minimum(s, lap) if self.mode == "once" else np.mod(s, lap)
-        return np.stack([np.interp(s, cum, pts[:, 0]), np.interp(s, cum, pts[:, 1])], axis=1)
+            return np.repeat(self.points[:1], s.size, axis=0)
+        s = np.minimum(s, lap) if w.mode == "once" else np.mod(s, lap)
+        return np.stack([np.interp(s, self.cum, self._x), np.interp(s, self.cum, self._y)], axis=1)
+
+    def at(self, t_s: float) -> tuple[float, float]:
+        """The position at one time, as `positions` computes it, without its arrays."""
+        w = self.walk
+        s = max(t_s - w.start_delay_s, 0.0) * w.speed_mps
+        lap = float(self.cum[-1])
+        if lap <= 0.0:
+            return float(self._x[0]), float(self._y[0])
+        s = min(s, lap) if w.mode == "once" else float(np.mod(s, lap))
+        return float(np.interp(s, self.cum, self._x)), float(np.interp(s, self.cum, self._y))
 
 
 class _ObstacleBase(StrictModel):

@@ -8,11 +8,14 @@ import mujoco
 import numpy as np
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from calibration.errors import ConfigFileError
 from hil_sim.sensors.lidar import LidarConfig, SimLidar
 from hil_sim.episode.metrics import EpisodeMetrics
 from hil_sim.world.scenario import Scenario, load_scenario
+from hil_sim.world.scenario_objects import PersonWalk
 from hil_sim.world.scenario_objects import CLASS_DEFAULT_COST
 from hil_sim.world.scene_generators import generate_scene
 from hil_sim.vlm.oracle import oracle_table
@@ -223,3 +226,17 @@ def test_world_builds_every_generated_scene():
             world.step()
         assert np.isfinite(world.data.qpos).all()
         assert mujoco.mj_name2id(world.model, mujoco.mjtObj.mjOBJ_BODY, "base_link") == world.robot_body_id
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(-5, 5), st.floats(-5, 5)), min_size=1, max_size=5),
+       st.tuples(st.floats(-5, 5), st.floats(-5, 5)), st.floats(0.15, 1.5),
+       st.sampled_from(["once", "back_and_forth", "loop"]), st.floats(0.0, 3.0),
+       st.lists(st.floats(0.0, 500.0), min_size=1, max_size=20))
+def test_a_walk_measured_once_puts_the_person_where_its_positions_do(waypoints, start, speed, mode, delay, times):
+    """The simulator asks a person's place at every physics step from the walk measured once
+    (WalkPath.at): the very same floats as PersonWalk.positions, so episodes stay as they were."""
+    walk = PersonWalk(waypoints=waypoints, speed_mps=speed, mode=mode, start_delay_s=delay)
+    path = walk.path(start)
+    expected = walk.positions(start, np.array(times))
+    assert np.array_equal(np.array([path.at(t) for t in times]), expected)
