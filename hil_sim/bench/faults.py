@@ -70,7 +70,7 @@ _IMU_STALE = 0.05 + _SEE  # imu_timeout_s
 _IMU_STUCK = 0.1 + _SEE  # imu_stuck_samples at 200 Hz
 _FEEDBACK_STALE = 0.1 + _SEE  # 0x311, 0x221 timeouts
 _STATE_STALE = 0.35 + _SEE  # 0x211 timeout
-_ODOMETRY_STUCK = 0.25 + _SEE + _TICK  # odometry_stuck_s, after 0x221 said moving for a tick
+_ODOMETRY_STUCK = 0.25 + _SEE + _TICK  # odometry_stuck_s since the distances last changed (a frame before)
 #: Driving again after the fault: two good lidar frames in a row; the delayed faults' queued data
 #: (DELAY_S of it) first; a fresh enable after an E-stop.
 _RESUME_LIDAR = 0.35
@@ -213,6 +213,9 @@ def _reduce(task: FaultTask, record: dict, m: dict, faults: list, wall0: float) 
         return {**record, **outcome, "stop_kinds": stop_kinds(every)}
     fault = m["faults"][0]
     start, end = task.start_s, task.start_s + task.duration_s
+    # A fault only motion reveals (a stuck odometer) is timed from when the wheels had turned as
+    # far as its verdict needs (hil_sim.episode.faults): a robot creeping in a gap takes longer.
+    origin = max(start, fault.get("observable_s") or start)
     # the watchdogs' verdicts while the fault lasted (event times share the faults' origin)
     stops = [e for e in m["events"] if e["event"] in ("stop", "safety_stop") and start - 1e-9 <= e["t_s"] < end]
     verdict = stops[0]["t_s"] if stops else None
@@ -226,8 +229,9 @@ def _reduce(task: FaultTask, record: dict, m: dict, faults: list, wall0: float) 
         "acted_on": int(fault["acted_on"]),
         "stopped": stopped,
         # the base's own zero command where it stops by itself, else the one at the verdict
-        "stop_latency_s": zero - start if base_stop else (max(zero, verdict) - start if stopped else None),
+        "stop_latency_s": zero - start if base_stop else (max(zero, verdict) - origin if stopped else None),
         "detected_s": verdict - start if verdict is not None else None,
+        "observable_after_s": origin - start,
         "stop_after_detect_s": max(0.0, zero - verdict) if stopped and verdict is not None else None,
         **_resume(m["events"], end, fault["moving_after_s"]),
         "reasons": sorted({e["reason"] for e in stops}),
@@ -434,7 +438,7 @@ def format_fault_table(result: dict) -> list[str]:
                      f"{_ms(r['resume_p50_s']):>6}/{_ms(r['resume_max_s']):<7} | {r['fixed_contacts']:>5} "
                      f"{r['reached_goal']:>4} | {reasons}{mark}")
     lines.append("stop: episodes whose base obeyed a zero command while the fault lasted; p50/p99/max: ms from the "
-                 "injection to it; resume: ms from the fault's end until the base drove again (until the controller "
+                 "injection to it (0x311-stuck: from when the wheels had turned the 12.5 mm its verdict needs); resume: ms from the fault's end until the base drove again (until the controller "
                  "resumed, where the safety supervisor held the robot then, as without the fault); fixed: fixed contacts; "
                  "goal: episodes that reached it. The expected reactions: docs/faults.md.")
     b = result["baseline"]

@@ -166,6 +166,19 @@ _FRAME_DROPS = {"drop-0x311": p.ID_ODOMETRY, "drop-0x211": p.ID_SYSTEM_STATE, "d
 #: The faults that put the emulated firmware itself into a state (EmulatedBaseFirmware's fault hooks).
 _FIRMWARE_STATES = ("estop", "base-reboot", "base-error", "rc-takeover")
 
+
+def _stuck_odometer_travel_m() -> float:
+    """The wheel travel the controller's `0x311 stuck` verdict needs (runtime.safety.input_monitor)."""
+    from runtime.safety.input_monitor import InputsConfig
+
+    c = InputsConfig()
+    return c.odometry_stuck_speed_mps * c.odometry_stuck_s
+
+
+#: The faults only motion reveals, and how far the wheels must turn before a watchdog can: a
+#: stuck odometer on a robot standing still reads what a working one does.
+_SEEN_BY_MOTION = {"0x311-stuck": _stuck_odometer_travel_m()}
+
 _SPEC_RE = re.compile(r"^(?P<name>[a-z0-9-]+):(?P<start>[^:]+)(?::(?P<dur>[^:]+))?$")
 
 
@@ -269,6 +282,9 @@ class FaultInjector:
         self._wrong_can = bool(self._by_name["0x311-wrong"] or self._by_name["0x221-wrong"])
         #: Per fault (in the order given): what the base obeyed around it (reactions()).
         self._watch = [{"first_zero_s": None, "moving_after_s": None} for _ in self.faults]
+        #: The faults only motion reveals (a stuck odometer): when the wheels had turned as far
+        #: after the injection as the controller's verdict needs (observable_s).
+        self._travel = [{"travel_m": 0.0, "t_s": None} if f.name in _SEEN_BY_MOTION else None for f in self.faults]
 
     def _active(self, name: str) -> bool:
         faults = self._by_name.get(name, ())
@@ -343,12 +359,22 @@ class FaultInjector:
             end = math.inf if f.duration_s is None else f.start_s + f.duration_s
             if not still and t >= end and watch["moving_after_s"] is None:
                 watch["moving_after_s"] = t
+        for f, watch, travel in zip(self.faults, self._watch, self._travel):
+            if travel is None or t < f.start_s or "observable_s" in watch:
+                continue
+            if travel["t_s"] is not None:
+                travel["travel_m"] += abs(self.firmware.measured_motion()[0]) * (t - travel["t_s"])
+            travel["t_s"] = t
+            if travel["travel_m"] >= _SEEN_BY_MOTION[f.name]:
+                watch["observable_s"] = t
 
     def reactions(self) -> list[dict]:
         """Per fault, in the order given: its window and what the base obeyed (episode seconds):
         first_zero_s, the first instant at or after the fault's start with a zero command in
         force (the fault's start when the robot stood still already), and moving_after_s, the
-        first instant after its end with a nonzero one (None: not within the episode)."""
+        first instant after its end with a nonzero one (None: not within the episode); for a
+        fault only motion reveals, observable_s: when the wheels had turned as far since the
+        injection as the controller's verdict needs (absent: not within the episode)."""
         return [{**f.to_dict(), **w} for f, w in zip(self.faults, self._watch)]
 
     # -- the sensor side (the SensorRig's inbox) -------------------------------------------------

@@ -173,3 +173,50 @@ def test_a_resume_behind_the_supervisors_stop_counts_at_the_controllers_resume()
     row = F.fault_row("bus-off", [_record(resume_s=0.25, held_by_supervisor=True, **bus_off),
                                   _record(resume_s=0.3, **bus_off)])
     assert row["resumed_held_by_supervisor"] == 1 and row["differs"] == []
+
+
+def test_a_stuck_odometer_is_timed_from_when_the_wheels_turned_far_enough_to_show_it(monkeypatch):
+    """0x311-stuck only shows while the wheels turn: its stop is timed from when they had turned
+    the verdict's 12.5 mm after the injection (the injector's observable_s), every other fault's
+    from the injection."""
+    import hil_sim.bench.faults as F
+    import hil_sim.episode.lockstep as L
+
+    class Episode:
+        def __init__(self, metrics):
+            self.metrics = metrics
+
+    def episode(scene, seed=0, faults=()):
+        f = faults[0]
+        watch = {"first_zero_s": 2.0, "moving_after_s": 3.1, "acted_on": 50}
+        if f.name == "0x311-stuck":
+            watch["observable_s"] = 2.3  # creeping: 12.5 mm of wheel travel took 0.3 s
+        return Episode({"failure_reason": None, "success": True, "fixed_contacts": 0,
+                        "events": [{"t_s": 2.6, "event": "stop", "reason": "0x311 stuck (...)"},
+                                   {"t_s": 3.05, "event": "resume", "reason": "every input good again"}],
+                        "faults": [{**f.to_dict(), **watch}]})
+
+    monkeypatch.setattr(L, "run_episode", episode)
+    stuck = F.run_fault_task(F.FaultTask("gap_wedged", 1, "0x311-stuck"))
+    assert abs(stuck["stop_latency_s"] - 0.3) < 1e-9 and abs(stuck["observable_after_s"] - 0.3) < 1e-9
+    assert abs(stuck["detected_s"] - 0.6) < 1e-9
+    other = F.run_fault_task(F.FaultTask("gap_wedged", 1, "drop-0x311"))
+    assert abs(other["stop_latency_s"] - 0.6) < 1e-9 and other["observable_after_s"] == 0.0
+
+
+def test_the_injector_says_when_a_stuck_odometer_became_observable():
+    """The base's measured speed integrated from the injection: 12.5 mm at 0.05 m/s is 0.25 s."""
+    from hil_sim.episode.faults import FaultInjector, FaultSpec
+
+    class Firmware:
+        commanded = (0.05, 0.0)
+
+        def measured_motion(self):
+            return (0.05, 0.0)
+
+    inj = FaultInjector([FaultSpec("0x311-stuck", 1.0, 1.0), FaultSpec("drop-0x311", 1.0, 1.0)], Firmware(),
+                        inbox=None, start_s=0.0, far_m=20.0)
+    for k in range(1001):  # 2 s of 2 ms physics steps
+        inj._watch_command(inj.start_s + 0.002 * k)
+    stuck, drop = inj.reactions()
+    assert abs(stuck["observable_s"] - 1.25) < 0.005 and "observable_s" not in drop
