@@ -24,7 +24,9 @@ ODOMETER_WATCH_SPEED_FLOOR_MPS = 0.02
 class OdometerWatch:
     """Whether the wheel distances (0x311) follow the base's reported speed (0x221). Both come from
     the same encoders: distances that stay unchanged while the speed accounts for `travel_m` of
-    wheel travel (|speed| integrated, trapezoid) over at least `min_s` are frozen readings, not a
+    wheel travel (each tick's |speed| over the time since the tick before: the speed a base
+    reports after the distances last moved is what it did since) over at least `min_s` are
+    frozen readings, not a
     robot standing still (speeds under ODOMETER_WATCH_SPEED_FLOOR_MPS count none). Travel, not a
     speed held throughout: a robot creeping stop-and-go in a tight gap reports 0.06 and 0.003 m/s
     on alternate ticks, and still turns its wheels."""
@@ -38,8 +40,11 @@ class OdometerWatch:
         self._prev: tuple[float, float] | None = None  # (t, |speed|) of the last update with a speed
 
     def update(self, now_s: float, distances: tuple[float, float] | None, speed_mps: float | None) -> bool:
-        """The tick's reading (None: none fresh) and speed (None: none fresh); True: frozen now."""
+        """The tick's reading (None: none fresh) and speed (None: none fresh); True: frozen now. A
+        tick without a fresh reading ends the spell: a silent 0x311 is stale, not stuck, and the
+        next reading starts afresh."""
         if distances is None:
+            self.distances, self.unchanged_since_s, self.travel_m, self._prev = None, None, 0.0, None
             return False
         speed = None if speed_mps is None else \
             (abs(speed_mps) if abs(speed_mps) >= ODOMETER_WATCH_SPEED_FLOOR_MPS else 0.0)
@@ -51,7 +56,7 @@ class OdometerWatch:
             self._prev = None
             return False
         if self._prev is not None:
-            self.travel_m += 0.5 * (self._prev[1] + speed) * (now_s - self._prev[0])
+            self.travel_m += speed * (now_s - self._prev[0])
         self._prev = (now_s, speed)
         return self.travel_m >= self.travel_limit_m and now_s - self.unchanged_since_s >= self.min_s
 

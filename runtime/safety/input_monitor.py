@@ -216,12 +216,13 @@ class InputMonitor:
         """0x311 stuck (module docstring): its distances unchanged while 0x221's speed accounts for
         wheel travel (runtime.odometry.wheels.OdometerWatch); held until they change."""
         c = self.config
-        if c.odometry_stuck_s <= 0.0 or inputs.odometry is None:
+        if c.odometry_stuck_s <= 0.0:
             return None
+        fresh = inputs.odometry if inputs.odometry_age_s <= c.odometry_timeout_s else None
         speed = inputs.linear_mps if inputs.motion_state_age_s <= c.motion_state_timeout_s else None
         watch = self._odometer
-        changed = inputs.odometry != watch.distances
-        stuck = watch.update(inputs.stamp_s, inputs.odometry, speed)
+        changed = fresh is None or fresh != watch.distances
+        stuck = watch.update(inputs.stamp_s, fresh, speed)
         if changed:
             self._odometry_stuck = None
         elif stuck and self._odometry_stuck is None:

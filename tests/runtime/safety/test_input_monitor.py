@@ -243,6 +243,30 @@ def test_wheel_distances_that_stop_while_the_base_reports_motion_are_a_stuck_0x3
     assert creeping.index(True) in range(6, 10) and all(creeping[creeping.index(True):])
 
 
+def test_a_silent_0x311_is_stale_not_stuck():
+    """0x311 silent while 0x221 still reports motion: the last distances do not change, but they
+    are old, not frozen. The stop says stale; when fresh frames return with the robot stopped
+    (the same distances), nothing is stuck: the robot drives again."""
+    from dataclasses import replace
+
+    mon = InputMonitor(InputsConfig(), planner_range_m=6.0, uses_lidar=False, uses_imu=False)
+    no_sensors = SensorSnapshot(None, None, ())
+    d, t = 0.0, 0.0
+    for _ in range(10):
+        t += 0.05
+        d += 0.025
+        assert mon.check(_base(t, (d, d), 0.5), no_sensors, t) == ()
+    last = t
+    for _ in range(8):  # silent: the last frame ages while the base still says 0.5 m/s
+        t += 0.05
+        faults = mon.check(replace(_base(t, (d, d), 0.5), odometry_age_s=t - last), no_sensors, t)
+        assert all("stuck" not in f.reason for f in faults)
+    assert any(f.reason.startswith("0x311 stale") for f in faults)
+    for _ in range(10):  # back, the robot stopped meanwhile
+        t += 0.05
+        assert mon.check(_base(t, (d, d), 0.0), no_sensors, t) == ()
+
+
 def test_a_base_back_in_standby_after_its_feedback_stopped_has_rebooted_and_needs_a_restart():
     from firmware_bridge import protocol
 
