@@ -359,11 +359,12 @@ class FaultInjector:
             end = math.inf if f.duration_s is None else f.start_s + f.duration_s
             if not still and t >= end and watch["moving_after_s"] is None:
                 watch["moving_after_s"] = t
+        measured = getattr(self.firmware, "measured_motion", None)  # (a firmware that says its speed)
         for f, watch, travel in zip(self.faults, self._watch, self._travel):
-            if travel is None or t < f.start_s or "observable_s" in watch:
+            if travel is None or measured is None or t < f.start_s or "observable_s" in watch:
                 continue
             if travel["t_s"] is not None:
-                travel["travel_m"] += abs(self.firmware.measured_motion()[0]) * (t - travel["t_s"])
+                travel["travel_m"] += abs(measured()[0]) * (t - travel["t_s"])
             travel["t_s"] = t
             if travel["travel_m"] >= _SEEN_BY_MOTION[f.name]:
                 watch["observable_s"] = t
