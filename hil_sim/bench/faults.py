@@ -213,16 +213,14 @@ def _reduce(task: FaultTask, record: dict, m: dict, faults: list, wall0: float) 
         return {**record, **outcome, "stop_kinds": stop_kinds(every)}
     fault = m["faults"][0]
     start, end = task.start_s, task.start_s + task.duration_s
+    # the watchdogs' verdicts while the fault lasted (event times share the faults' origin)
+    stops = [e for e in m["events"] if e["event"] in ("stop", "safety_stop") and start - 1e-9 <= e["t_s"] < end]
+    verdict = stops[0]["t_s"] if stops else None
     # A fault only motion reveals (a stuck odometer) is timed from when the wheels had turned as
     # far as its verdict needs (hil_sim.episode.faults): a robot creeping in a gap takes longer.
     # A verdict before that instant (the watchdog counts from the distances' last change, before
     # the injection) shows it was observable by then.
-    verdict_s = next((e["t_s"] for e in m["events"] if e["event"] in ("stop", "safety_stop")
-                      and start - 1e-9 <= e["t_s"] < end), math.inf)
-    origin = max(start, min(fault.get("observable_s") or start, verdict_s))
-    # the watchdogs' verdicts while the fault lasted (event times share the faults' origin)
-    stops = [e for e in m["events"] if e["event"] in ("stop", "safety_stop") and start - 1e-9 <= e["t_s"] < end]
-    verdict = stops[0]["t_s"] if stops else None
+    origin = max(start, min(fault.get("observable_s") or start, math.inf if verdict is None else verdict))
     zero = fault["first_zero_s"]
     stopped = verdict is not None and zero is not None
     if EXPECTED[task.fault].reason is None and EXPECTED[task.fault].base_stops:
