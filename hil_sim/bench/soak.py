@@ -512,7 +512,11 @@ def _summary(opts: SoakOptions, duration_s: float, faults: list[FaultSpec], r: d
         "recorder_queue": r.get("recorder_queue"),
         "goals": {"sent": len(visits), "reached": sum(v.get("outcome") == "reached" for v in visits),
                   "missed": sum(str(v.get("outcome", "")).startswith("missed") for v in visits),
-                  "outcomes": _count(v.get("outcome") for v in visits)},
+                  "outcomes": _count(v.get("outcome") for v in visits),
+                  # where each visit ended, against the world: the misses' errors, the odometry's drift
+                  "world_error_m": _spread(v.get("world_error_m") for v in visits),
+                  "odometry_drift_m": _spread(v.get("odometry_drift_m") for v in visits),
+                  "visits": visits},
         "fixed_contacts": m.get("fixed_contacts"), "movable_contacts": m.get("movable_contacts"),
         "person_contacts": m.get("person_contacts"), "fixed_contact_log": m.get("fixed_contact_log"),
         "holds": r.get("holds"),
@@ -521,6 +525,15 @@ def _summary(opts: SoakOptions, duration_s: float, faults: list[FaultSpec], r: d
         "distance_m": m.get("path_length_m"),
         **{k: r[k] for k in ("recording", "latency", "latency_report") if k in r},
     }
+
+
+def _spread(values) -> dict:
+    """p50, p90 and max of the numbers among `values` (None and missing left out)."""
+    xs = np.array([float(v) for v in values if v is not None], dtype=float)
+    if not len(xs):
+        return {"n": 0, "p50": None, "p90": None, "max": None}
+    return {"n": int(len(xs)), "p50": float(np.percentile(xs, 50)), "p90": float(np.percentile(xs, 90)),
+            "max": float(xs.max())}
 
 
 def _count(values) -> dict:
@@ -562,6 +575,11 @@ def format_soak(result: dict) -> list[str]:
                  f"fixed {result['fixed_contacts']}, movable {result['movable_contacts']}, "
                  f"person {result['person_contacts']}; driven {_num(result['distance_m'], '.0f')} m; "
                  f"ended: {result['end_reason']}")
+    drift, err = g.get("odometry_drift_m") or {}, g.get("world_error_m") or {}
+    if drift.get("n"):
+        lines.append(f"at each goal's end: robot to goal (world) p50 {_num(err['p50'], '.3f')} p90 "
+                     f"{_num(err['p90'], '.3f')} max {_num(err['max'], '.3f')} m; odometry drift since the start "
+                     f"p50 {_num(drift['p50'], '.3f')} p90 {_num(drift['p90'], '.3f')} max {_num(drift['max'], '.3f')} m")
     for c in result.get("fixed_contact_log") or []:
         lines.append(f"fixed contact at {c['t_s'] / 60:.1f} min: {c['object']} ({c['class']}), the robot at "
                      f"{c['robot_speed_mps']:.2f} m/s")

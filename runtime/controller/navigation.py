@@ -380,12 +380,15 @@ class NavigationController:
     # -- odometry ----------------------------------------------------------------------------
     def _update_odometry(self, now: float, inputs: BaseInputs, sensors: SensorSnapshot) -> None:
         """Wheels + gyro every tick, good lidar frames to ICP (beside the tick), the fused pose. An
-        IMU the watchdogs fault this tick (stuck, saturated, a sample refused) gives the odometry
-        nothing: its samples may be valid one by one, not together, and the gyro is integrated. A
+        IMU whose samples the watchdogs fault (stuck, saturated, a sample refused) gives the
+        odometry nothing: its samples may be valid one by one, not together, and the gyro is
+        integrated. Late samples (an IMU the watchdog calls stale: the robot holds) do go to the
+        odometry: each is stamped when it was taken, and the rotation they carry happened; left
+        out, it would be lost from the heading for good. A
         stuck 0x311 is given as it comes: the odometry stage judges its distances frozen when
         they stop changing while 0x221 reports motion, and takes the 0x221 speed instead
         (runtime.odometry.stage, OdometryConfig.wheels_frozen_s)."""
-        imu = sensors.imu if not any(f.stream == "imu" for f in self.faults) else ()
+        imu = sensors.imu if self.monitor.imu_values_fault is None else ()
         if self.monitor.base_rebooted_now:  # its odometers restarted from zero: not motion
             self.odometry.base_restarted()
         if self.state is ControllerState.INITIALIZING and self.restarts == 0:

@@ -16,6 +16,10 @@ MAX_WHEEL_SPEED_MPS = 2.0
 WHEEL_STEP_MARGIN_M = 0.1
 
 
+#: Consecutive IMU samples further apart than this are not integrated (the IMU was lost, not
+#: late): the yaw over such a gap is the wheels'.
+MAX_GYRO_GAP_S = 0.1
+
 #: Speeds below this count no travel in OdometerWatch: a millimetre odometer read at 50 Hz may
 #: stay unchanged for a frame or more that slowly, and a still base's speed may carry noise.
 ODOMETER_WATCH_SPEED_FLOOR_MPS = 0.02
@@ -152,6 +156,10 @@ class WheelGyroOdometry(WheelOdometry):
         #: the online bias estimate observes (runtime.odometry.gyro_bias), never reset.
         self.raw_gyro_yaw_rad = 0.0
         self.gyro_covered_s = 0.0
+        #: The wheels' yaw put in by updates without an IMU sample since the newest sample: the
+        #: gyro's samples of that time may still come (late, not lost), and then they are the yaw.
+        self._wheel_yaw_since_sample = 0.0
+        self.late_imu_yaw_replaced_rad = 0.0  # counter: the wheel yaw given back to late samples
 
     @property
     def yaw_rate_radps(self) -> float:
@@ -182,10 +190,16 @@ class WheelGyroOdometry(WheelOdometry):
             rate = raw - self.gyro_bias_radps
             if self._last_imu_stamp is not None:
                 dt = s.stamp_s - self._last_imu_stamp
-                if 0.0 < dt < 0.1:  # a gap longer than 100 ms is not integrated
-                    d_yaw += 0.5 * (rate + self._last_rate) * dt
+                if 0.0 < dt < MAX_GYRO_GAP_S:
+                    # The gyro covers the time since its previous sample, so also whatever of it
+                    # the wheels' yaw stood in for while this sample was late: that yaw goes.
+                    d_yaw += 0.5 * (rate + self._last_rate) * dt - self._wheel_yaw_since_sample
+                    self.late_imu_yaw_replaced_rad += abs(self._wheel_yaw_since_sample)
+                    self._wheel_yaw_since_sample = 0.0
                     self.raw_gyro_yaw_rad += 0.5 * (raw + self._last_raw) * dt
                     self.gyro_covered_s += dt
+                elif dt >= MAX_GYRO_GAP_S:
+                    self._wheel_yaw_since_sample = 0.0  # the gap's yaw is the wheels'
             self._last_imu_stamp = s.stamp_s
             self._last_rate = rate
             self._last_raw = raw
@@ -203,7 +217,10 @@ class WheelGyroOdometry(WheelOdometry):
         left, right = wheels
         jumped = self._last is not None and self._jumped(left, right, gap_s)
         if not have_imu and not jumped:
-            return self.update(left, right)
+            yaw_before = self._yaw
+            pose = self.update(left, right)
+            self._wheel_yaw_since_sample += wrap_angle(self._yaw - yaw_before)
+            return pose
         if self._last is None or jumped:
             self._last = (left, right)
             self._yaw = wrap_angle(self._yaw + d_yaw)

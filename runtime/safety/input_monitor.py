@@ -231,6 +231,13 @@ class InputMonitor:
                                     f"accounts for {1e3 * watch.travel_m:.0f} mm of travel)")
         return self._odometry_stuck
 
+    @property
+    def imu_values_fault(self) -> str | None:
+        """What is wrong with the IMU's samples themselves (refused, from the future, saturated,
+        stuck), None when they are good or only late: a late sample is a true one, stamped when it
+        was taken. Standing even while the IMU is also stale (which the faults then name)."""
+        return self._imu_fault
+
     def _imu_faults(self, snapshot: SensorSnapshot, now_s: float, out: list[InputFault]) -> None:
         """Every sample of the tick is judged: one saturated or refused sample among ten good ones
         still faults this tick; a tick whose samples are all good clears it."""

@@ -118,6 +118,10 @@ def test_a_short_lockstep_soak_writes_its_figures(tmp_path):
     assert r["complete"] and r["mode"] == "lockstep" and len(r["faults_injected"]) >= 2
     assert len(r["fault_reactions"]) == len(r["faults_injected"])
     assert r["goals"]["reached"] >= 1 and r["fixed_contacts"] == 0
+    # each goal's end against the world, and the odometry's drift then
+    g = r["goals"]
+    assert len(g["visits"]) == g["sent"] and g["odometry_drift_m"]["n"] >= g["reached"]
+    assert 0.0 <= g["world_error_m"]["p50"] <= g["world_error_m"]["max"]
     assert len(r["samples"]["lockstep"]) >= 8 and r["processes"]["lockstep"]["fds"]["change"] is not None
     # the episode's children are sampled as processes of their own: the lidar cast, the ICP worker
     assert {"lidar_cast", "worker"} <= set(r["processes"]), set(r["processes"])

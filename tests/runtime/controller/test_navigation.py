@@ -94,6 +94,9 @@ class FakeSensors:
         self.next_imu_s = 0.0
         self.lidar = "good"  # good | blind | far | frozen | silent
         self.imu_on = True
+        self.imu_delay_s = 0.0  # samples reach the inbox this long after their stamp
+        self.gyro_z_radps = 0.0
+        self._imu_held: list[ImuSample] = []
         self._last_scan = None
 
     def room_scan(self, stamp_s):
@@ -110,8 +113,11 @@ class FakeSensors:
         while self.next_imu_s <= t + 1e-9:
             if self.imu_on:
                 noise = self.rng.normal(0.0, 1e-3, 6)
-                self.inbox.put_imu(ImuSample(self.next_imu_s, noise[:3], np.array([0.0, 0.0, 9.81]) + noise[3:]))
+                gyro = noise[:3] + np.array([0.0, 0.0, self.gyro_z_radps])
+                self._imu_held.append(ImuSample(self.next_imu_s, gyro, np.array([0.0, 0.0, 9.81]) + noise[3:]))
             self.next_imu_s += 0.005
+        while self._imu_held and self._imu_held[0].stamp_s + self.imu_delay_s <= t + 1e-9:
+            self.inbox.put_imu(self._imu_held.pop(0))
         while self.next_frame_s + 0.1 <= t + 1e-9:
             stamp = self.next_frame_s
             self.next_frame_s += 0.1
@@ -377,6 +383,26 @@ def test_a_silent_imu_stops_the_robot(mpc_controller_factory):
     sensors.imu_on = True
     run_ticks(ctl, base, 2, sensors)
     assert ctl.state is ControllerState.ACTIVE
+
+
+def test_a_late_imu_holds_the_robot_and_its_late_samples_still_turn_the_heading(mpc_controller_factory):
+    """Samples arriving 80 ms after they were taken (a loaded link) are stale: the robot holds.
+    They are still true, stamped when taken: the odometry integrates them, so the rotation of that
+    time is in the heading (left out, it was lost for good)."""
+    ctl, base, sensors = mpc_controller_factory()
+    run_ticks(ctl, base, 16, sensors)
+    assert ctl.state is ControllerState.ACTIVE
+    wheels = ctl.odometry.wheels
+    t0, yaw0, covered0 = base.t, wheels.raw_gyro_yaw_rad, wheels.gyro_covered_s
+    sensors.gyro_z_radps, sensors.imu_delay_s = 0.3, 0.08
+    run_ticks(ctl, base, 10, sensors)
+    assert ctl.state is ControllerState.HOLDING and "IMU stale" in ctl.events.last("stop").reason
+    sensors.imu_delay_s = 0.0
+    run_ticks(ctl, base, 4, sensors)
+    assert ctl.state is ControllerState.ACTIVE
+    # every sample since then integrated, the late ones too: no gap in the gyro's time
+    assert wheels.gyro_covered_s - covered0 == pytest.approx(base.t - t0, abs=1e-6)
+    assert wheels.raw_gyro_yaw_rad - yaw0 == pytest.approx(0.3 * (base.t - t0), abs=0.003)
 
 
 def test_a_saturated_imu_sample_stops_the_robot(mpc_controller_factory):
