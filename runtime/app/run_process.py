@@ -231,7 +231,7 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
     from runtime.app.run_observer import RunObserver
     from runtime.common.geometry import Pose2D
     from runtime.controller.builder import RobotSetup, Wiring, assemble
-    from runtime.loop.realtime_setup import request_realtime_from_config
+    from runtime.loop.realtime_setup import apply_switch_interval, request_realtime_from_config
 
     bus, inbox, receiver, publisher, recorder, notifier, clock = io
     config = loaded.config
@@ -256,7 +256,8 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
          f"planner {config.preset}")
     # SCHED_FIFO and CPU pinning for this (the loop's) thread, when allowed; said at start.
     if opts.normal_priority:
-        scheduling = "real-time: not asked for (--normal-priority): the loop thread stays SCHED_OTHER"
+        scheduling = ("real-time: not asked for (--normal-priority): the loop thread stays SCHED_OTHER; GIL switch "
+                      f"interval {apply_switch_interval(config.realtime):g} ms")
     else:
         scheduling = request_realtime_from_config(config.realtime).summary()
     echo(f"dct run: {scheduling}")

@@ -17,8 +17,10 @@ will get (runtime.app.preflight).
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import resource
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -41,6 +43,12 @@ class RealtimeConfig(BaseModel):
     #: CPUs to pin the loop thread to (e.g. [1], leaving CPU 0 to the OS and the sensor
     #: drivers); None or empty: no pinning.
     cpus: tuple[int, ...] | None = None
+    #: CPython's switch interval (sys.setswitchinterval), set for the process when the loop
+    #: starts: how long a thread that wants the interpreter lock waits before the thread holding
+    #: it is made to let go (Python's default is 5 ms). The loop thread shares the lock with the
+    #: DDS receiver, the recorder and the VPP's helpers; every time it takes the lock back (after
+    #: numpy, the solver or I/O released it) it may wait this long, whatever its OS priority.
+    gil_switch_interval_ms: float = Field(default=0.5, gt=0.0, le=100.0)
 
     @field_validator("cpus")
     @classmethod
@@ -68,6 +76,8 @@ class RealtimeGrant:
     affinity_granted: bool | None
     affinity_reason: str | None
     cpus_now: tuple[int, ...] = field(default=())
+    #: The interpreter's switch interval set for the process (ms); None: left as it was.
+    switch_interval_ms: float | None = None
 
     def summary(self) -> str:
         """One start-up line: what the loop runs with and, when something was refused, why."""
@@ -84,7 +94,8 @@ class RealtimeGrant:
             pin = f"pinned to CPUs {_cpu_list(self.cpus_requested)}"
         else:
             pin = f"not pinned: CPUs {_cpu_list(self.cpus_requested)} refused ({self.affinity_reason})"
-        return f"real-time: {sched}; {pin}"
+        gil = "" if self.switch_interval_ms is None else f"; GIL switch interval {self.switch_interval_ms:g} ms"
+        return f"real-time: {sched}; {pin}{gil}"
 
 
 def _cpu_list(cpus: Sequence[int]) -> str:
@@ -157,8 +168,18 @@ def request_realtime(priority: int = 50, cpus: Sequence[int] | None = None, *, f
 
 
 def request_realtime_from_config(config: RealtimeConfig) -> RealtimeGrant:
-    """`request_realtime` with the config's `realtime:` section (call from the loop thread)."""
-    return request_realtime(config.fifo_priority, config.cpus, fifo=config.fifo)
+    """`request_realtime` with the config's `realtime:` section (call from the loop thread), and
+    the interpreter's switch interval (RealtimeConfig.gil_switch_interval_ms) for the process."""
+    grant = request_realtime(config.fifo_priority, config.cpus, fifo=config.fifo)
+    return dataclasses.replace(grant, switch_interval_ms=apply_switch_interval(config))
 
 
-__all__ = ["RealtimeConfig", "RealtimeGrant", "request_realtime", "request_realtime_from_config", "rtprio_limit"]
+def apply_switch_interval(config: RealtimeConfig) -> float:
+    """Set the interpreter's switch interval for the process (RealtimeConfig.gil_switch_interval_ms);
+    returns it in ms."""
+    sys.setswitchinterval(config.gil_switch_interval_ms * 1e-3)
+    return config.gil_switch_interval_ms
+
+
+__all__ = ["RealtimeConfig", "RealtimeGrant", "apply_switch_interval", "request_realtime", "request_realtime_from_config",
+           "rtprio_limit"]

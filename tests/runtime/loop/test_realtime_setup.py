@@ -63,3 +63,18 @@ def test_real_request_on_a_thread_leaves_the_caller_alone():
     t.join()
     assert out[0].summary().startswith("real-time: ")
     assert os.sched_getscheduler(0) == before
+
+
+def test_the_configs_switch_interval_is_set_for_the_process_and_said():
+    """The loop thread waits at most this long for the interpreter lock held by a helper thread."""
+    import sys
+
+    from runtime.loop.realtime_setup import RealtimeConfig, request_realtime_from_config
+
+    before = sys.getswitchinterval()
+    try:
+        grant = request_realtime_from_config(RealtimeConfig(fifo=False, gil_switch_interval_ms=0.7))
+        assert sys.getswitchinterval() == pytest.approx(0.0007)
+        assert grant.switch_interval_ms == 0.7 and grant.summary().endswith("; GIL switch interval 0.7 ms")
+    finally:
+        sys.setswitchinterval(before)
