@@ -101,10 +101,15 @@ class AgileXBaseDriver:
         return msg
 
     # ---------------------------------------------------------------- feedback
-    def poll(self, max_frames: int = 10_000) -> int:
-        """Drain the bus without blocking, decode and record feedback. Returns frames read."""
+    def poll(self, max_frames: int = 10_000, now_s: float | None = None) -> int:
+        """Drain the bus without blocking, decode and record feedback. Returns frames read.
+
+        now_s: the time the frames are stamped received (default: the clock when the first one
+        is decoded). A control loop gives its tick's time, so that a frame's age at a later tick
+        is a difference of tick times, the same when a recording of the run is replayed: stamped
+        with the clock, an age a few milliseconds under a timeout live is over it in the replay."""
         n = 0
-        now: float | None = None
+        now = now_s
         while n < max_frames:
             msg = self._bus.recv(timeout=0)
             if msg is None:
@@ -208,7 +213,11 @@ class AgileXBaseDriver:
     @property
     def feedback_lost(self) -> bool:
         """True when no 0x221 arrived within ``feedback_timeout_s`` (and before the first one)."""
-        return self.feedback_age_s > self.feedback_timeout_s
+        return self.feedback_lost_at(None)
+
+    def feedback_lost_at(self, now_s: float | None) -> bool:
+        """feedback_lost at now_s (None: the clock now)."""
+        return self.frame_age_s(p.ID_MOTION_STATE, now_s) > self.feedback_timeout_s
 
     @property
     def vehicle_state(self) -> int | None:

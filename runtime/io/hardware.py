@@ -133,7 +133,7 @@ class AgileXBaseHardware:
 
     def read(self, now_s: float) -> BaseInputs:
         driver = self.driver
-        driver.poll()
+        driver.poll(now_s=now_s)  # stamped at the tick: ages are tick-time differences (replayable)
         motion = driver.latest_motion  # not driver.feedback: that builds a full snapshot
         odom = driver.latest_odometry
         mode = driver.control_mode
@@ -145,7 +145,7 @@ class AgileXBaseHardware:
             system_state_flags=driver.system_state_flags,
             control_mode=mode,
             stamp_s=now_s,
-            feedback_lost=driver.feedback_lost,
+            feedback_lost=driver.feedback_lost_at(now_s),
             ever_received_motion_state=motion is not None,
             in_command_mode=mode == protocol.CONTROL_MODE_CAN,
             error_code=driver.error_code or 0,

@@ -187,3 +187,26 @@ def test_each_watched_stream_has_its_own_age_and_the_vehicle_state_is_kept(virtu
     assert drv.vehicle_state == p.VEHICLE_STATE_ESTOP
     with pytest.raises(ValueError, match="not a watched feedback frame"):
         drv.frame_age_s(p.ID_BMS)
+
+
+def test_frames_polled_at_a_tick_are_stamped_with_its_time_so_ages_are_tick_differences(virtual_pair, clock):
+    """A control loop's tick reads the bus a few milliseconds after its start; stamped with the
+    clock then, a frame 0.1 s older at a later tick would look fresher than the tick times say
+    (and than a replay of the run, whose clock is the tick's). Given the tick's time, the age and
+    the feedback-lost verdict are those of the tick times alone."""
+    bus, peer = virtual_pair
+    drv = AgileXBaseDriver(bus, clock, feedback_timeout_s=0.1)
+    clock.t = 10.004  # the clock when the tick at 10.000 polls
+    peer.send(codec.encode(p.Odometry(1.0, 1.0)))
+    peer.send(codec.encode(p.MotionState(0.1, 0.0)))
+    assert drv.poll(now_s=10.0) == 2
+    clock.t = 10.1002  # the next-but-one tick, at 10.1001 (its jitter), reads its clock late again
+    assert drv.frame_age_s(p.ID_ODOMETRY, 10.1001) == pytest.approx(0.1001, abs=1e-9)
+    assert drv.frame_age_s(p.ID_ODOMETRY, 10.1001) > 0.1  # stale at that tick, as a replay finds it
+    assert drv.feedback_lost_at(10.1001)
+    assert not drv.feedback_lost_at(10.0999)
+    # without a tick's time, the clock stamps (a tool that polls on its own)
+    peer.send(codec.encode(p.MotionState(0.1, 0.0)))
+    drv.poll()
+    assert drv.frame_age_s(p.ID_MOTION_STATE, 10.2) == pytest.approx(10.2 - 10.1002)
+    assert not drv.feedback_lost

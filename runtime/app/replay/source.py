@@ -186,10 +186,15 @@ def _dct_source(p: Path, rec, topics: dict[str, str | None]) -> ReplaySource:
 
 
 def _tick_starts(rec) -> dict[int, float]:
-    """tick -> when it began on the controller's clock, from /dct/tick (scheduled time plus lateness)."""
-    from runtime.io.recording.schemas import TOPIC_TICK
+    """tick -> when it began on the controller's clock, from /dct/tick (scheduled time plus
+    lateness), for the ticks whose recorded now_s may not be their own (_tick_now): none in a
+    recording that says they all are (`dct.run` tick_now: own); there the controller may read its
+    clock milliseconds after the loop's reading on a busy machine, and that reading is the tick's."""
+    from runtime.io.recording.schemas import META_RUN, META_TICK_NOW, TICK_NOW_OWN, TOPIC_TICK
 
     out = {}
+    if (getattr(rec, "metadata", None) or {}).get(META_RUN, {}).get(META_TICK_NOW) == TICK_NOW_OWN:
+        return out
     for _, m in rec.messages.get(TOPIC_TICK, []):
         try:
             out[int(m["tick"])] = float(m["scheduled_s"]) + float(m["lateness_ms"]) * 1e-3

@@ -297,6 +297,8 @@ class RunRecorder:
             "planner": str(config.preset),
             "controller_config": json.dumps(config.model_dump(mode="json")),
             "recorded_at_unix_s": repr(time.time()),
+            # each tick's now_s is the controller's clock at that tick (a replay takes it as is)
+            S.META_TICK_NOW: S.TICK_NOW_OWN,
             **{k: str(v) for k, v in (run_info or {}).items()},
             "recording_id": self.recording_id,
         }

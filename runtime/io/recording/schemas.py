@@ -27,6 +27,11 @@ TOPIC_INPUTS = "/dct/inputs"
 #: own account (written at the end: records written and dropped).
 META_RUN = "dct.run"
 META_RECORDING = "dct.recording"
+#: A `dct.run` key: how the ticks' now_s (/dct/inputs) were recorded. TICK_NOW_OWN: each is its
+#: tick's own clock reading. Recordings without the key may carry, for the tick a deadline stop
+#: came after, the stop verdict's time instead (runtime.app.replay.source._tick_now).
+META_TICK_NOW = "tick_now"
+TICK_NOW_OWN = "own"
 
 _NUM = {"type": "number"}
 _NUM_OR_NULL = {"type": ["number", "null"]}

@@ -221,6 +221,11 @@ def test_a_drivers_bag_replays_deterministically_and_its_replay_replays_the_same
     assert r3.exit_code == 0, r3.output
     s3 = json.loads((tmp_path / "r3" / "replay.json").read_text())
     assert s3["kind"] == "dct" and s3["ticks"] == s1["ticks"] and s3["icp"]["out_of_step"] == 0
+    from runtime.io.recording.reader import read_recording
+
+    # it says its ticks' now_s are their own: a replay takes them as they are
+    assert read_recording(tmp_path / "r1" / "replay.mcap", topics=[]).metadata["dct.run"]["tick_now"] == "own"
+    assert s3["inputs"]["ticks_now_repaired"] == []
     assert s3["odometry_vs_live"]["matched"] == s1["ticks"] and s3["odometry_vs_live"]["max_m"] == 0.0
     assert (tmp_path / "r3" / "odometry.tum").read_text() == "\n".join(traj) + "\n"
     r4 = _invoke(tmp_path / "r1" / "replay.mcap", "--out", tmp_path / "r3")

@@ -22,3 +22,20 @@ def test_a_tick_recorded_with_the_stop_verdicts_time_is_replayed_at_its_start():
     # a tick without its /dct/tick row keeps what was recorded
     assert _tick_now(src, 77, 3.9, started) == 3.9
     assert src.now_repaired == [76]
+
+
+def test_a_recording_that_says_its_ticks_now_are_their_own_is_never_repaired():
+    """On a busy machine the controller reads its clock milliseconds after the loop's reading
+    (measured: 3 ms); a recording that says each now_s is its tick's own keeps them all."""
+    from runtime.io.recording.schemas import META_RUN, META_TICK_NOW, TICK_NOW_OWN
+
+    rows = [{"tick": 37, "scheduled_s": 1.85, "lateness_ms": 0.241}]
+    rec = _rec(rows)
+    rec.metadata = {META_RUN: {META_TICK_NOW: TICK_NOW_OWN}}
+    src = ReplaySource(Path("x.mcap"), "dct", {})
+    assert _tick_now(src, 37, 1.8532, _tick_starts(rec)) == 1.8532
+    assert src.now_repaired == []
+    rec.metadata = {META_RUN: {}}  # an older recording: the same tick is taken for a stop's
+    assert abs(_tick_now(src, 37, 1.8532, _tick_starts(rec)) - 1.850241) < 1e-9
+    assert src.now_repaired == [37]
+
