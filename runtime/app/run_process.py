@@ -134,6 +134,12 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
 
     loaded = loaded or load_inputs(opts)
     stop = stop or threading.Event()
+    arenas = loaded.config.realtime.malloc_arena_max
+    if arenas is not None:  # before the receiver's, the recorder's and the loop's threads allocate
+        from runtime.loop.heap import limit_arenas
+
+        echo(f"dct run: malloc arenas at most {arenas}" if limit_arenas(arenas)
+             else "dct run: malloc arenas left as they are (not glibc)")
     recorder = _open_outputs(opts)
     try:
         bus = open_bus(loaded.bus_config)

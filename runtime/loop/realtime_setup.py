@@ -49,6 +49,9 @@ class RealtimeConfig(BaseModel):
     #: DDS receiver, the recorder and the VPP's helpers; every time it takes the lock back (after
     #: numpy, the solver or I/O released it) it may wait this long, whatever its OS priority.
     gil_switch_interval_ms: float = Field(default=0.5, gt=0.0, le=100.0)
+    #: The most glibc malloc arenas the controller process keeps (runtime.loop.heap.limit_arenas),
+    #: set before its threads start; None: glibc's default (eight per core).
+    malloc_arena_max: int | None = Field(default=2, ge=1, le=64)
 
     @field_validator("cpus")
     @classmethod

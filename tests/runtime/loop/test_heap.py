@@ -51,3 +51,32 @@ def test_the_loop_trims_between_ticks_at_its_rate_and_never_when_told_not_to():
         loop.run(FakeControlled(clock, lambda k: 0.001), lambda: False, max_ticks=12)
         assert loop.heap.trims == (expected if loop.heap.available else 0)
         assert loop.heap.summary()["trims"] == loop.heap.trims
+
+
+_ARENAS = """
+import ctypes, sys, threading
+from runtime.loop.heap import limit_arenas
+if sys.argv[1] != "none":
+    assert limit_arenas(int(sys.argv[1]))
+def work():
+    for _ in range(20000):
+        b = [bytearray(600) for _ in range(20)]
+        del b
+ts = [threading.Thread(target=work) for _ in range(8)]
+[t.start() for t in ts]; [t.join() for t in ts]
+ctypes.CDLL("libc.so.6").malloc_stats()
+"""
+
+
+@glibc
+def test_the_arena_limit_holds_while_threads_allocate_at_once():
+    """Eight threads allocating at once: glibc gives them arenas of their own unless limited."""
+
+    def arenas(limit: str) -> int:
+        r = subprocess.run([sys.executable, "-c", _ARENAS, limit], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        return sum(line.startswith("Arena ") for line in r.stderr.splitlines())
+
+    assert arenas("none") > 2  # the test can tell: unlimited, the threads spread over arenas
+    assert arenas("2") <= 2
+    assert arenas("1") == 1
