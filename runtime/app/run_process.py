@@ -134,12 +134,10 @@ def run_controller(opts: RunOptions, loaded: Loaded | None = None, stop: threadi
 
     loaded = loaded or load_inputs(opts)
     stop = stop or threading.Event()
-    arenas = loaded.config.realtime.malloc_arena_max
-    if arenas is not None:  # before the receiver's, the recorder's and the loop's threads allocate
+    if loaded.config.realtime.malloc_arena_max is not None:  # before any of its threads allocate
         from runtime.loop.heap import limit_arenas
 
-        echo(f"dct run: malloc arenas at most {arenas}" if limit_arenas(arenas)
-             else "dct run: malloc arenas left as they are (not glibc)")
+        limit_arenas(loaded.config.realtime.malloc_arena_max)  # said on the real-time line
     recorder = _open_outputs(opts)
     try:
         bus = open_bus(loaded.bus_config)
@@ -237,6 +235,7 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
     from runtime.app.run_observer import RunObserver
     from runtime.common.geometry import Pose2D
     from runtime.controller.builder import RobotSetup, Wiring, assemble
+    from runtime.loop import heap
     from runtime.loop.realtime_setup import apply_switch_interval, request_realtime_from_config
 
     bus, inbox, receiver, publisher, recorder, notifier, clock = io
@@ -266,6 +265,8 @@ def _drive(opts: RunOptions, loaded: Loaded, goal, io, stop: threading.Event, ec
                       f"interval {apply_switch_interval(config.realtime):g} ms")
     else:
         scheduling = request_realtime_from_config(config.realtime).summary()
+    scheduling += (f"; malloc arenas at most {heap.arena_limit}" if heap.arena_limit is not None
+                   else "; malloc arenas as glibc's default")
     echo(f"dct run: {scheduling}")
     wall0 = time.monotonic()
     try:

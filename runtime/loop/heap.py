@@ -45,8 +45,16 @@ def limit_arenas(most: int) -> bool:
     and images in their own arenas) the free space held, not the memory in use, made the resident
     size (census: 193 MB in use throughout, 20-316 MB free in the arenas). Call it before the
     threads start. False where the C library is not glibc or refuses."""
+    global arena_limit
     mallopt = _glibc("mallopt", [ctypes.c_int, ctypes.c_int], ctypes.c_int)
-    return mallopt is not None and mallopt(M_ARENA_MAX, int(most)) == 1
+    if mallopt is None or mallopt(M_ARENA_MAX, int(most)) != 1:
+        return False
+    arena_limit = int(most)
+    return True
+
+
+#: The arena limit set for this process (limit_arenas), None while glibc's default holds.
+arena_limit: int | None = None
 
 
 def _malloc_trim():

@@ -90,6 +90,7 @@ def test_case3_realtime_two_processes(tmp_path):
     # The loop thread asked for SCHED_FIFO as on the robot: granted, or refused with the OS's reason.
     sched = rt["scheduling"]
     assert sched.startswith("real-time: SCHED_FIFO priority 50") or "refused (" in sched, sched
+    assert sched.endswith("; malloc arenas at most 2"), sched  # set before the controller's threads started
     # The product's default preset, its VLM the simulator's oracle over HTTP (hil_sim.vlm.service).
     assert m["planner"] == "dct"
     assert m["simulator"]["oracle"]["bad_request"] == 0
