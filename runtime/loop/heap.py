@@ -9,6 +9,10 @@ controller after two minutes, 426 MB of heap of which 174 MB in use. `malloc_tri
 every whole free page of every heap to the system (madvise); the loop calls it between ticks,
 where a collection already runs, about every ten seconds, taking a few milliseconds.
 
+`limit_arenas` caps the number of those heaps for the controller process before its threads start
+(`realtime.malloc_arena_max`): the trim returns whole free pages only, and the free space the
+threads' own heaps held was what the resident size of the real-time controller moved with.
+
 Only where the C library is glibc; elsewhere `HeapTrimmer.available` is False and it does nothing.
 """
 from __future__ import annotations
